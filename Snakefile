@@ -1,0 +1,16 @@
+# TANGO stylization workflow. Run from the repository root:
+#   snakemake --cores 2                              # the default experiment (config/config.yaml)
+#   snakemake --cores 2 --configfile config/X.yaml   # another experiment (replaces the default)
+# Rules describe files; the stages in stages/ do the work (rule <name> -> stages/<name>.py).
+
+
+include: "workflow/rules/common.smk"
+include: "workflow/rules/normalize.smk"
+include: "workflow/rules/decimate.smk"
+include: "workflow/rules/raycache.smk"
+
+
+rule all:
+    default_target: True
+    input:
+        all_targets(),

@@ -1,0 +1,43 @@
+#!/usr/bin/env bash
+# Create (or refresh) the project's virtual environment in .venv.
+#
+# - Keeps a torch that is already installed in .venv (GPU users install their CUDA build first,
+#   see README); otherwise installs torch==2.13.0, which resolves to the CPU build on a machine
+#   that has it as a local wheel, and then pins whatever torch is present for every later install
+#   so no dependency can swap it for a multi-GB CUDA build.
+# - Points Snakemake's cache at .cache/ inside the project (in .venv/bin/activate).
+# - Idempotent and quick when nothing changed (a stamp file records the last successful set-up).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+root=$(pwd)
+py=${PYTHON:-python3}
+extras=${1:-test}
+
+if [ ! -x .venv/bin/python ]; then
+    "$py" -m venv .venv
+fi
+stamp=.venv/.setup-stamp-$extras
+if [ -f "$stamp" ] && [ "$stamp" -nt pyproject.toml ] && [ "$stamp" -nt scripts/setup.sh ]; then
+    echo "setup: .venv is up to date ($stamp)"
+    exit 0
+fi
+
+export PIP_DISABLE_PIP_VERSION_CHECK=1
+if ! .venv/bin/python -c "import torch" >/dev/null 2>&1; then
+    echo "setup: installing torch==${TORCH_VERSION:-2.13.0}"
+    .venv/bin/pip install --quiet "torch==${TORCH_VERSION:-2.13.0}"
+fi
+torch_version=$(.venv/bin/python -c "import torch; print(torch.__version__.split('+')[0])")
+echo "torch==$torch_version" > .venv/constraints.txt
+echo "setup: installing the project (extras: $extras) with torch pinned to $torch_version"
+PIP_CONSTRAINT="$root/.venv/constraints.txt" .venv/bin/pip install --quiet -e ".[$extras]"
+
+# Snakemake (and other tools honouring XDG) cache inside the project, not in $HOME.
+if ! grep -q "tango-stylize cache" .venv/bin/activate; then
+    cat >> .venv/bin/activate <<ACT
+# tango-stylize cache: keep Snakemake's source cache inside the project
+export XDG_CACHE_HOME="$root/.cache"
+ACT
+fi
+touch "$stamp"
+echo "setup: done; activate with 'source .venv/bin/activate'"

@@ -1,0 +1,182 @@
+"""Loading and validating the workflow config, and resolving per-mesh and per-cell settings.
+
+Used by ``workflow/rules/common.smk`` when the DAG is built and by tests. Validation is against
+``workflow/schemas/config.schema.yaml``; every error names the offending key and where it sits
+(``meshes -> vase -> pth``), plus cross-reference checks the schema cannot express (grid ids that
+do not exist).
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+from dataclasses import dataclass
+from functools import cache
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from .errors import ConfigError
+
+log = logging.getLogger(__name__)
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+SCHEMA_PATH = REPO_ROOT / "workflow" / "schemas" / "config.schema.yaml"
+#: stages whose settings are per mesh (overridable in a mesh entry)
+MESH_STAGES = ("normalize", "decimate", "raycache")
+
+
+@cache
+def load_schema() -> dict:
+    with open(SCHEMA_PATH) as fh:
+        return yaml.safe_load(fh)
+
+
+def _where(path) -> str:
+    return " -> ".join(str(p) for p in path) if path else "the top level"
+
+
+def _describe(error) -> str:
+    """One readable line for a jsonschema error."""
+    where = _where(error.absolute_path)
+    v = error.validator
+    if v == "additionalProperties":
+        allowed = sorted(error.schema.get("properties", {}))
+        extra = sorted(set(error.instance) - set(allowed))
+        if not allowed and error.absolute_path and error.absolute_path[0] == "variants":
+            return (
+                f"unknown key(s) {', '.join(repr(k) for k in extra)} at {where}: variants may "
+                "override only per-cell stage settings, and none accepts overrides yet"
+            )
+        return (
+            f"unknown key(s) {', '.join(repr(k) for k in extra)} at {where}; "
+            f"allowed keys: {', '.join(allowed) or '(none)'}"
+        )
+    if v == "required":
+        return f"missing required key at {where}: {error.message}"
+    if v == "oneOf" and error.absolute_path and error.absolute_path[0] == "meshes":
+        return f"mesh {where} needs exactly one of 'path' or 'builtin'"
+    if v == "oneOf" and list(error.absolute_path) == ["grid"]:
+        return "grid must be 'all' or a list of {mesh: <id>, prompt: <id>} entries"
+    if v == "pattern" and v in error.schema:
+        return (
+            f"invalid id {error.instance!r} at {where}: ids name result folders, so use letters, "
+            "digits, '_', '-' and '.' only (starting with a letter or digit)"
+        )
+    return f"invalid value at {where}: {error.message}"
+
+
+def validate(config: dict, source: str = "config") -> None:
+    """Raise :class:`ConfigError` listing every schema violation of ``config``."""
+    import jsonschema
+
+    validator = jsonschema.Draft202012Validator(load_schema())
+    errors = sorted(validator.iter_errors(config), key=lambda e: (list(e.absolute_path), e.validator))
+    if errors:
+        lines = [_describe(e) for e in errors]
+        raise ConfigError(f"{source}: " + "; ".join(dict.fromkeys(lines)))
+
+
+@dataclass(frozen=True)
+class Cell:
+    mesh: str
+    prompt: str
+    variant: str
+
+
+class WorkflowConfig:
+    """A validated config with helpers the rules use (all pure; no file is written)."""
+
+    def __init__(self, config: dict, source: str = "config") -> None:
+        validate(config, source)
+        self.raw = copy.deepcopy(config)
+        self.source = source
+        self.meshes: dict[str, dict] = self.raw["meshes"]
+        self.prompts: dict[str, str] = self.raw["prompts"]
+        self.variants: dict[str, dict] = self.raw.get("variants") or {"base": {}}
+        grid = self.raw.get("grid", "all")
+        if grid == "all":
+            pairs = [(m, p) for m in self.meshes for p in self.prompts]
+        else:
+            pairs = [(g["mesh"], g["prompt"]) for g in grid]
+            problems = []
+            for i, (m, p) in enumerate(pairs):
+                if m not in self.meshes:
+                    problems.append(f"grid -> {i} -> mesh: {m!r} is not a mesh id ({', '.join(self.meshes)})")
+                if p not in self.prompts:
+                    problems.append(
+                        f"grid -> {i} -> prompt: {p!r} is not a prompt id ({', '.join(self.prompts)})"
+                    )
+            if problems:
+                raise ConfigError(f"{source}: " + "; ".join(problems))
+        self.pairs = list(dict.fromkeys(pairs))
+        # Build every mesh's stage settings now so bad values fail when the DAG is built.
+        for mesh_id in self.meshes:
+            for stage in MESH_STAGES:
+                self.stage_settings(mesh_id, stage)
+
+    # ---- ids -------------------------------------------------------------------------------
+    @property
+    def grid_meshes(self) -> list[str]:
+        """Mesh ids that appear in the grid, in config order."""
+        used = {m for m, _ in self.pairs}
+        return [m for m in self.meshes if m in used]
+
+    @property
+    def cells(self) -> list[Cell]:
+        return [Cell(m, p, v) for m, p in self.pairs for v in self.variants]
+
+    # ---- per-mesh --------------------------------------------------------------------------
+    def mesh_source(self, mesh_id: str) -> str:
+        entry = self.meshes[mesh_id]
+        return f"builtin:{entry['builtin']}" if "builtin" in entry else entry["path"]
+
+    def mesh_file(self, mesh_id: str) -> str | None:
+        """The mesh's file when it is a file that exists (Snakemake input), else None."""
+        entry = self.meshes[mesh_id]
+        if "path" in entry and Path(entry["path"]).is_file():
+            return entry["path"]
+        return None
+
+    def stage_dict(self, mesh_id: str, stage: str) -> dict[str, Any]:
+        """Global section of ``stage`` updated by the mesh's own override (shallow, per key)."""
+        merged = dict(self.raw.get(stage) or {})
+        merged.update(self.meshes[mesh_id].get(stage) or {})
+        return merged
+
+    def stage_settings(self, mesh_id: str, stage: str):
+        from .decimate import DecimateSettings
+        from .normalize import NormalizeSettings
+        from .raycache import RaycacheSettings
+
+        cls = {
+            "normalize": NormalizeSettings,
+            "decimate": DecimateSettings,
+            "raycache": RaycacheSettings,
+        }[stage]
+        try:
+            return cls.from_dict(self.stage_dict(mesh_id, stage))
+        except ConfigError as exc:
+            raise ConfigError(f"{self.source}: mesh {mesh_id!r}: {exc}") from exc
+
+    def decimated(self, mesh_id: str) -> bool:
+        return bool(self.stage_settings(mesh_id, "decimate").enabled)
+
+    def prompt_text(self, mesh_id: str, prompt_id: str) -> str:
+        noun = self.meshes[mesh_id].get("object", mesh_id)
+        return self.prompts[prompt_id].replace("{object}", noun)
+
+
+def load_config_file(path: str | Path) -> WorkflowConfig:
+    path = Path(path)
+    try:
+        with open(path) as fh:
+            data = yaml.safe_load(fh)
+    except FileNotFoundError as exc:
+        raise ConfigError(f"{path}: config file not found") from exc
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{path}: not valid YAML ({exc})") from exc
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: expected a mapping at the top level, got {type(data).__name__}")
+    return WorkflowConfig(data, str(path))

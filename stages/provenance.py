@@ -1,0 +1,154 @@
+"""Atomic file output, metadata JSON (settings, seed, versions, timings) and stage logging."""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import importlib.metadata
+import json
+import logging
+import os
+import platform
+import socket
+import sys
+import tempfile
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+log = logging.getLogger(__name__)
+
+#: distributions whose versions every metadata file records (absent ones are reported as null)
+TRACKED_PACKAGES = (
+    "tango-stylize",
+    "numpy",
+    "scipy",
+    "trimesh",
+    "embreex",
+    "pymeshlab",
+    "torch",
+    "open_clip_torch",
+    "xatlas",
+    "usd-core",
+    "snakemake",
+)
+
+
+def package_versions(names: tuple[str, ...] = TRACKED_PACKAGES) -> dict[str, str | None]:
+    """Installed versions of ``names`` (``None`` when not installed), plus Python's."""
+    out: dict[str, str | None] = {"python": platform.python_version()}
+    for name in names:
+        try:
+            out[name] = importlib.metadata.version(name)
+        except importlib.metadata.PackageNotFoundError:
+            out[name] = None
+    return out
+
+
+def sha256_of(path: str | Path, chunk: int = 1 << 20) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while block := f.read(chunk):
+            h.update(block)
+    return h.hexdigest()
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | Path) -> Iterator[Path]:
+    """Yield a temporary path in the target's directory; rename it onto ``path`` on success.
+
+    The temporary name keeps the target's suffix (so writers that infer a format from it work)
+    and starts with a dot, so a killed job leaves at most a hidden ``.name.tmp-*`` file and
+    never a file that looks finished. On error the temporary file is removed.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.tmp-", suffix=path.suffix, dir=path.parent)
+    os.close(fd)
+    tmp_path = Path(tmp)
+    try:
+        yield tmp_path
+        os.chmod(tmp_path, 0o666 & ~_umask())
+        os.replace(tmp_path, path)
+    except BaseException:
+        tmp_path.unlink(missing_ok=True)
+        raise
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def write_json_atomic(path: str | Path, data: Any) -> None:
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(data, indent=2, sort_keys=False, default=_json_default) + "\n")
+
+
+def _json_default(obj: Any) -> Any:
+    if hasattr(obj, "tolist"):
+        return obj.tolist()
+    if isinstance(obj, Path):
+        return str(obj)
+    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
+
+
+class Timer:
+    """Named wall-clock sections: ``with timer("load"): ...``; ``timer.seconds`` is a dict."""
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = {}
+        self._start = time.perf_counter()
+
+    @contextlib.contextmanager
+    def __call__(self, name: str) -> Iterator[None]:
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.seconds[name] = self.seconds.get(name, 0.0) + time.perf_counter() - t0
+
+    def total(self) -> float:
+        return time.perf_counter() - self._start
+
+
+def metadata(
+    *,
+    stage: str,
+    settings: dict[str, Any],
+    inputs: dict[str, str | Path],
+    outputs: dict[str, str | Path],
+    timings: dict[str, float],
+    seed: int | None = None,
+    extra: dict[str, Any] | None = None,
+) -> dict[str, Any]:
+    """The metadata record every stage writes next to its outputs."""
+    ins: dict[str, Any] = {}
+    for key, value in inputs.items():
+        p = Path(value)
+        ins[key] = {"path": str(value), "sha256": sha256_of(p)} if p.is_file() else str(value)
+    return {
+        "stage": stage,
+        "settings": settings,
+        "seed": seed,
+        "inputs": ins,
+        "outputs": {k: str(v) for k, v in outputs.items()},
+        "timings_s": {k: round(v, 6) for k, v in timings.items()},
+        "versions": package_versions(),
+        "host": {"hostname": socket.gethostname(), "platform": platform.platform()},
+        "argv": sys.argv,
+        "finished_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        **(extra or {}),
+    }
+
+
+def setup_logging(verbose: bool = False) -> None:
+    """Log to stderr (rules redirect it to their ``log:`` file)."""
+    logging.basicConfig(
+        level=logging.DEBUG if verbose else logging.INFO,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+        stream=sys.stderr,
+        force=True,
+    )

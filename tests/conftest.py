@@ -1,0 +1,66 @@
+"""Shared fixtures: seeded generators, generated meshes, the ../shared meshes (skipped when absent),
+and a helper that runs Snakemake in a temporary working directory."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED_MESHES = REPO.parent / "shared" / "meshes"
+
+
+@pytest.fixture
+def rng() -> np.random.Generator:
+    return np.random.default_rng(12345)
+
+
+@pytest.fixture(scope="session")
+def shared_meshes() -> Path:
+    if not SHARED_MESHES.is_dir():
+        pytest.skip(f"{SHARED_MESHES} is absent (only developer checkouts have ../shared)")
+    return SHARED_MESHES
+
+
+def shared_mesh(name: str) -> Path:
+    path = SHARED_MESHES / name
+    if not path.is_file():
+        pytest.skip(f"{path} is absent (only developer checkouts have ../shared)")
+    return path
+
+
+def icosphere(subdivisions: int):
+    """Unit icosphere (all vertices on the unit sphere) as a TriMesh."""
+    import trimesh
+
+    from stages.meshio import TriMesh
+
+    s = trimesh.creation.icosphere(subdivisions=subdivisions, radius=1.0)
+    return TriMesh(np.asarray(s.vertices, np.float64), np.asarray(s.faces, np.int64))
+
+
+def run_snakemake(workdir: Path, *args: str, timeout: int = 600) -> subprocess.CompletedProcess:
+    """Run this repository's workflow with ``workdir`` as working directory (results go there).
+
+    Uses the interpreter running the tests, so the stages' ``python -m`` resolves to the same
+    environment; Snakemake's cache goes to the temporary directory, not $HOME.
+    """
+    env = dict(os.environ)
+    env["XDG_CACHE_HOME"] = str(workdir / ".cache")
+    env["PATH"] = str(Path(sys.executable).parent) + os.pathsep + env.get("PATH", "")
+    cmd = [
+        sys.executable,
+        "-m",
+        "snakemake",
+        "--snakefile",
+        str(REPO / "Snakefile"),
+        "--directory",
+        str(workdir),
+        *args,
+    ]
+    return subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=timeout)

@@ -1,0 +1,103 @@
+"""The Snakemake workflow: DAG of the default config, a smoke run, --keep-going on bad input."""
+
+from __future__ import annotations
+
+import json
+import re
+
+import numpy as np
+import pytest
+import yaml
+from conftest import REPO, run_snakemake
+
+from stages.raycache import RayCache
+
+SMOKE = REPO / "tests" / "smoke" / "config.yaml"
+
+
+def job_counts(stdout: str) -> dict[str, int]:
+    table = stdout[stdout.index("Job stats:") :]
+    return {m[1]: int(m[2]) for m in re.finditer(r"^(\w+)\s+(\d+)$", table, re.M)}
+
+
+def test_dry_run_default_config(tmp_path):
+    # no --configfile: the Snakefile's default experiment (config/config.yaml, relative to the
+    # working directory), so run from a copy of the config folder
+    (tmp_path / "config").mkdir()
+    (tmp_path / "config" / "config.yaml").write_text((REPO / "config" / "config.yaml").read_text())
+    proc = run_snakemake(tmp_path, "-n", "--cores", "2")
+    assert proc.returncode == 0, proc.stderr
+    counts = job_counts(proc.stdout)
+    assert counts == {"normalize": 3, "raycache": 3, "all": 1, "total": 7}
+
+
+def test_configfile_replaces_default_and_dag_is_per_mesh(tmp_path):
+    """2 meshes x 2 prompts x 2 variants: mesh stages still run once per mesh."""
+    (tmp_path / "config").mkdir()
+    (tmp_path / "config" / "config.yaml").write_text((REPO / "config" / "config.yaml").read_text())
+    proc = run_snakemake(tmp_path, "-n", "--cores", "2", "--configfile", str(SMOKE))
+    assert proc.returncode == 0, proc.stderr
+    counts = job_counts(proc.stdout)
+    assert counts["normalize"] == 2 and counts["raycache"] == 2 and counts["decimate"] == 1
+    assert "candle" not in proc.stdout  # the default config's meshes are not merged in
+
+
+def test_invalid_config_fails_at_dag_build(tmp_path):
+    bad = yaml.safe_load(SMOKE.read_text())
+    bad["raycache"]["resoluton"] = 64
+    path = tmp_path / "bad.yaml"
+    path.write_text(yaml.safe_dump(bad))
+    proc = run_snakemake(tmp_path, "-n", "--cores", "1", "--configfile", str(path))
+    assert proc.returncode != 0
+    out = proc.stdout + proc.stderr
+    assert "invalid configuration" in out and "'resoluton'" in out and str(path) in out
+
+
+@pytest.mark.slow
+def test_smoke_run(tmp_path):
+    proc = run_snakemake(tmp_path, "--cores", "2", "--configfile", str(SMOKE))
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    res = tmp_path / "results"
+    for mesh in ("vase", "knot"):
+        meta = json.loads((res / mesh / "raycache" / "meta.json").read_text())
+        assert meta["stats"]["train"]["views"] == 4 and meta["stats"]["eval"]["views"] == 8
+        assert meta["stats"]["train"]["width"] == 48
+        cache = RayCache(res / mesh / "raycache" / "train.npz")
+        assert len(cache) == 4 and cache.arrays["offsets"][-1] > 0
+        assert np.abs(np.linalg.norm(cache.view(0).point, axis=1)).max() <= 1.0 + 1e-3
+        for stage in ("normalize", "raycache"):
+            log = (res / mesh / "logs" / f"{stage}.log").read_text()
+            assert " INFO " in log
+            assert (res / mesh / "benchmarks" / f"{stage}.tsv").is_file()
+        tf = json.loads((res / mesh / "normalize" / "transform.json").read_text())
+        assert len(tf["inverse_matrix"]) == 4
+    # the knot is decimated and traced at the decimated level; the vase is not decimated
+    dec = json.loads((res / "knot" / "decimate" / "meta.json").read_text())
+    assert abs(dec["stats"]["faces_after"] - 3000) <= 30
+    traced = json.loads((res / "knot" / "raycache" / "meta.json").read_text())
+    assert traced["inputs"]["mesh"]["path"].endswith("knot/decimate/mesh.ply")
+    assert (
+        len(RayCache(res / "knot" / "raycache" / "train.npz").arrays["faces"]) == dec["stats"]["faces_after"]
+    )
+    assert not (res / "vase" / "decimate").exists()
+    # nothing half-written anywhere
+    assert not list(res.rglob(".*.tmp-*"))
+    # a second run has nothing to do
+    again = run_snakemake(tmp_path, "--cores", "2", "--configfile", str(SMOKE))
+    assert again.returncode == 0 and "Nothing to be done" in again.stdout + again.stderr
+
+
+@pytest.mark.slow
+def test_keep_going_finishes_other_meshes(tmp_path):
+    cfg = yaml.safe_load(SMOKE.read_text())
+    cfg["meshes"] = {"vase": {"builtin": "vase"}, "broken": {"path": str(tmp_path / "missing.obj")}}
+    path = tmp_path / "cfg.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    proc = run_snakemake(tmp_path, "--cores", "2", "--keep-going", "--configfile", str(path))
+    assert proc.returncode != 0
+    assert "not found" in proc.stdout + proc.stderr  # the DAG-time warning
+    res = tmp_path / "results"
+    assert (res / "vase" / "raycache" / "meta.json").is_file()
+    assert not (res / "broken" / "normalize" / "mesh.ply").exists()
+    log = (res / "broken" / "logs" / "normalize.log").read_text()
+    assert "missing.obj: file not found" in log

@@ -1,0 +1,77 @@
+# Config validation, wildcard constraints and input/param helpers -- nothing else.
+# The logic lives in stages/config.py so it is importable and tested.
+import json
+
+from stages.config import WorkflowConfig
+from stages.errors import ConfigError
+
+DEFAULT_CONFIGFILE = "config/config.yaml"
+
+# A --configfile on the command line replaces the default experiment instead of being merged
+# into it (Snakemake's configfile directive would merge the two grids).
+if not workflow.overwrite_configfiles:
+
+    configfile: DEFAULT_CONFIGFILE
+
+
+_source = ", ".join(map(str, workflow.overwrite_configfiles)) or DEFAULT_CONFIGFILE
+try:
+    CFG = WorkflowConfig(config, _source)
+except ConfigError as exc:
+    raise WorkflowError(f"invalid configuration: {exc}") from None
+
+RESULTS = "results"
+# all jobs share one environment (the project installed from the repository root)
+CONDA_ENV = "../envs/tango.yaml"
+ID_REGEX = "[A-Za-z0-9][A-Za-z0-9_.-]*"
+
+
+wildcard_constraints:
+    mesh=ID_REGEX,
+    prompt=ID_REGEX,
+    variant=ID_REGEX,
+
+
+for _mesh in CFG.grid_meshes:
+    if "path" in CFG.meshes[_mesh] and CFG.mesh_file(_mesh) is None:
+        logger.warning(
+            f"mesh {_mesh!r}: file {CFG.meshes[_mesh]['path']!r} not found; "
+            "its jobs will fail (other meshes still run with --keep-going)"
+        )
+
+
+def mesh_dir(mesh):
+    return f"{RESULTS}/{mesh}"
+
+
+def mesh_input(wildcards):
+    """The mesh file when it exists; a missing file is reported by the stage itself, so that
+    --keep-going still runs the rest of the grid."""
+    path = CFG.mesh_file(wildcards.mesh)
+    return [path] if path else []
+
+
+def mesh_source(wildcards):
+    return CFG.mesh_source(wildcards.mesh)
+
+
+def stage_settings_json(stage):
+    """Params function: the resolved settings of ``stage`` for the job's mesh, as JSON."""
+
+    def settings(wildcards):
+        return json.dumps(
+            CFG.stage_settings(wildcards.mesh, stage).to_dict(), sort_keys=True
+        )
+
+    settings.__name__ = f"{stage}_settings_json"
+    return settings
+
+
+def traced_mesh(wildcards):
+    """Input of raycache: the decimated mesh where decimation is enabled, else the normalised one."""
+    stage = "decimate" if CFG.decimated(wildcards.mesh) else "normalize"
+    return f"{mesh_dir(wildcards.mesh)}/{stage}/mesh.ply"
+
+
+def all_targets():
+    return [f"{mesh_dir(m)}/raycache/meta.json" for m in CFG.grid_meshes]
