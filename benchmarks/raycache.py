@@ -71,7 +71,11 @@ def main() -> None:
     else:
         print(f"# {person} absent: measuring the generated mesh only")
     rows = {}
-    print(f"{'mesh':<10}{'faces':>8}{'width':>7}{'coverage':>10}{'trace Mray/s':>14}{'total Mray/s':>14}{'bytes/view':>12}")
+    header = ("mesh", "faces", "width", "coverage", "trace Mray/s", "total Mray/s", "bytes/view")
+    print(
+        f"{header[0]:<10}"
+        + "".join(f"{h:>{w}}" for h, w in zip(header[1:], (8, 7, 10, 14, 14, 12), strict=True))
+    )
     for name, mesh in meshes.items():
         for width in (224, 512):
             r = measure(mesh, width, args.views)
