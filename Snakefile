@@ -8,6 +8,11 @@ include: "workflow/rules/common.smk"
 include: "workflow/rules/normalize.smk"
 include: "workflow/rules/decimate.smk"
 include: "workflow/rules/raycache.smk"
+include: "workflow/rules/optimize.smk"
+
+
+onstart:
+    check_clip_weights()
 
 
 rule all:

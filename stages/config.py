@@ -44,10 +44,11 @@ def _describe(error) -> str:
     if v == "additionalProperties":
         allowed = sorted(error.schema.get("properties", {}))
         extra = sorted(set(error.instance) - set(allowed))
-        if not allowed and error.absolute_path and error.absolute_path[0] == "variants":
+        if error.absolute_path and error.absolute_path[0] == "variants" and len(error.absolute_path) == 2:
             return (
-                f"unknown key(s) {', '.join(repr(k) for k in extra)} at {where}: variants may "
-                "override only per-cell stage settings, and none accepts overrides yet"
+                f"unknown key(s) {', '.join(repr(k) for k in extra)} at {where}: a variant holds a "
+                f"preset and per-cell stage overrides ({', '.join(allowed)}); mesh-level stages are "
+                "overridden per mesh"
             )
         return (
             f"unknown key(s) {', '.join(repr(k) for k in extra)} at {where}; "
@@ -93,7 +94,12 @@ class WorkflowConfig:
         self.raw = copy.deepcopy(config)
         self.source = source
         self.meshes: dict[str, dict] = self.raw["meshes"]
-        self.prompts: dict[str, str] = self.raw["prompts"]
+        self.prompts: dict[str, str] = {
+            k: (v if isinstance(v, str) else v["text"]) for k, v in self.raw["prompts"].items()
+        }
+        self.prompt_presets: dict[str, str | None] = {
+            k: (None if isinstance(v, str) else v.get("preset")) for k, v in self.raw["prompts"].items()
+        }
         self.variants: dict[str, dict] = self.raw.get("variants") or {"base": {}}
         grid = self.raw.get("grid", "all")
         if grid == "all":
@@ -115,6 +121,8 @@ class WorkflowConfig:
         for mesh_id in self.meshes:
             for stage in MESH_STAGES:
                 self.stage_settings(mesh_id, stage)
+        for cell in self.cells:
+            self.optimize_settings(cell.prompt, cell.variant)
 
     # ---- ids -------------------------------------------------------------------------------
     @property
@@ -159,6 +167,39 @@ class WorkflowConfig:
             return cls.from_dict(self.stage_dict(mesh_id, stage))
         except ConfigError as exc:
             raise ConfigError(f"{self.source}: mesh {mesh_id!r}: {exc}") from exc
+
+    # ---- per-cell ----------------------------------------------------------------------------
+    def optimize_dict(self, prompt_id: str, variant_id: str) -> dict[str, Any]:
+        """Resolved optimize overrides: the prompt's preset < the variant's preset < the config's
+        ``optimize`` section < the variant's own overrides (presets fill in; what the config
+        states explicitly wins)."""
+        from .presets import PRESETS
+
+        merged: dict[str, Any] = {}
+        variant = self.variants[variant_id] or {}
+        for preset in (self.prompt_presets.get(prompt_id), variant.get("preset")):
+            if preset:
+                merged.update(PRESETS[preset])
+        merged.update(self.raw.get("optimize") or {})
+        merged.update(variant.get("optimize") or {})
+        return merged
+
+    def optimize_settings(self, prompt_id: str, variant_id: str):
+        from .optimize import OptimizeSettings
+
+        try:
+            return OptimizeSettings.from_dict(self.optimize_dict(prompt_id, variant_id))
+        except ConfigError as exc:
+            raise ConfigError(f"{self.source}: prompt {prompt_id!r}, variant {variant_id!r}: {exc}") from exc
+
+    def clip_cells(self) -> list[Cell]:
+        """Cells guided by real CLIP weights (not image targets, not the tiny test model)."""
+        out = []
+        for c in self.cells:
+            s = self.optimize_settings(c.prompt, c.variant)
+            if s.guidance == "clip" and not s.clip_tiny_test:
+                out.append(c)
+        return out
 
     def decimated(self, mesh_id: str) -> bool:
         return bool(self.stage_settings(mesh_id, "decimate").enabled)

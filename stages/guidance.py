@@ -160,19 +160,25 @@ def tiny_test_clip(seed: int = 0):
     return model, open_clip.get_tokenizer(TINY_MODEL)
 
 
+def _image_size(model) -> int:
+    size = model.visual.image_size
+    return int(size[0] if isinstance(size, tuple | list) else size)
+
+
 def load_clip(spec: ClipSpec, device="cpu", bf16: bool = False) -> ClipGuide:
     """Load the CLIP of ``spec`` on ``device``; fails fast when weights are unavailable."""
     if spec.tiny_test:
         model, tok = tiny_test_clip()
         log.warning("using %s", TEST_ONLY_WEIGHTS)
-        return ClipGuide(model, tok, image_size=64, weights_id=TEST_ONLY_WEIGHTS, test_only=True, device=device, bf16=bf16)
+        return ClipGuide(
+            model, tok, image_size=_image_size(model), weights_id=TEST_ONLY_WEIGHTS, test_only=True, device=device, bf16=bf16
+        )
     path, weights_id, quick_gelu = resolve_weights(spec)
     open_clip = import_open_clip()
     if spec.model == TINY_MODEL:
         register_tiny_model()
     model = open_clip.create_model(spec.model, pretrained=path, force_quick_gelu=quick_gelu, device=device)
-    size = model.visual.image_size
-    size = size[0] if isinstance(size, tuple | list) else int(size)
+    size = _image_size(model)
     log.info("loaded CLIP %s from %s", weights_id, path)
     return ClipGuide(
         model, open_clip.get_tokenizer(spec.model), image_size=size, weights_id=weights_id, test_only=False, device=device, bf16=bf16

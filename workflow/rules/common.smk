@@ -73,5 +73,57 @@ def traced_mesh(wildcards):
     return f"{mesh_dir(wildcards.mesh)}/{stage}/mesh.ply"
 
 
+CELL = f"{RESULTS}/{{mesh}}/{{prompt}}/{{variant}}"
+
+
+def cell_dir(stage):
+    """Params helper: the stage's output folder of the job's grid cell."""
+
+    def folder(wildcards):
+        return (
+            f"{RESULTS}/{wildcards.mesh}/{wildcards.prompt}/{wildcards.variant}/{stage}"
+        )
+
+    folder.__name__ = f"{stage}_dir"
+    return folder
+
+
+def optimize_outputs():
+    from stages.optimize import OUTPUT_FILES
+
+    outs = {key: f"{CELL}/optimize/{name}" for key, name in OUTPUT_FILES.items()}
+    outs["meta"] = f"{CELL}/optimize/meta.json"
+    return outs
+
+
+def prompt_text(wildcards):
+    return CFG.prompt_text(wildcards.mesh, wildcards.prompt)
+
+
+def optimize_settings_json(wildcards):
+    settings = CFG.optimize_settings(wildcards.prompt, wildcards.variant)
+    return json.dumps(settings.to_dict(), sort_keys=True)
+
+
+def check_clip_weights():
+    """Before any job runs: stop at once when real CLIP weights are needed but unavailable."""
+    if not CFG.clip_cells():
+        return
+    from stages.guidance import ClipSpec, ClipWeightsUnavailable, resolve_weights
+
+    specs = set()
+    for cell in CFG.clip_cells():
+        s = CFG.optimize_settings(cell.prompt, cell.variant)
+        specs.add(ClipSpec(s.clip_model, s.clip_pretrained, s.clip_checkpoint))
+    for spec in sorted(specs, key=str):
+        try:
+            resolve_weights(spec)
+        except ClipWeightsUnavailable as exc:
+            raise WorkflowError(str(exc)) from None
+
+
 def all_targets():
-    return [f"{mesh_dir(m)}/raycache/meta.json" for m in CFG.grid_meshes]
+    return [
+        f"{RESULTS}/{c.mesh}/{c.prompt}/{c.variant}/optimize/meta.json"
+        for c in CFG.cells
+    ]

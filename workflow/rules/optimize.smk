@@ -1,0 +1,21 @@
+rule optimize:
+    input:
+        train=f"{RESULTS}/{{mesh}}/raycache/train.npz",
+        eval=f"{RESULTS}/{{mesh}}/raycache/eval.npz",
+    output:
+        **optimize_outputs(),
+    log:
+        f"{RESULTS}/{{mesh}}/{{prompt}}/{{variant}}/logs/optimize.log",
+    benchmark:
+        f"{RESULTS}/{{mesh}}/{{prompt}}/{{variant}}/benchmarks/optimize.tsv"
+    conda:
+        CONDA_ENV
+    threads: 2
+    params:
+        prompt=prompt_text,
+        out_dir=cell_dir("optimize"),
+        settings=optimize_settings_json,
+    shell:
+        "python -m stages.optimize --train {input.train:q} --eval {input.eval:q} "
+        "--prompt {params.prompt:q} --out-dir {params.out_dir:q} --settings {params.settings:q} "
+        "--threads {threads} 2> {log:q}"
