@@ -54,11 +54,16 @@ class StyleField(nn.Module):
                 )
                 self.normal_net = NormalNet(nrm_enc, width=s.width, max_delta=s.normal_max_delta)
             self.light = SGLightModule(
-                s.light_lobes, rgb=s.light_rgb, total_energy=s.light_energy, init_sharpness=s.light_init_sharpness
+                s.light_lobes,
+                rgb=s.light_rgb,
+                total_energy=s.light_energy,
+                init_sharpness=s.light_init_sharpness,
             )
         self.symmetry = s.symmetry
 
-    def forward(self, points: Tensor, normals: Tensor, view: Tensor, light: SGLight | None = None) -> FieldOutput:
+    def forward(
+        self, points: Tensor, normals: Tensor, view: Tensor, light: SGLight | None = None
+    ) -> FieldOutput:
         """Shade hit ``points (N, 3)`` with flat ``normals (N, 3)`` seen along ``view (N, 3)``
         (unit, surface -> eye). Geometric normals are first turned towards the viewer (two-sided
         surfaces: the inside of an open vase is visible)."""

@@ -110,7 +110,9 @@ def resolve_weights(spec: ClipSpec) -> tuple[str, str, bool]:
 class ClipGuide:
     """A frozen CLIP that embeds prompts and images (images in [0, 1], ``(B, 3, S, S)``)."""
 
-    def __init__(self, model, tokenizer, *, image_size: int, weights_id: str, test_only: bool, device, bf16: bool):
+    def __init__(
+        self, model, tokenizer, *, image_size: int, weights_id: str, test_only: bool, device, bf16: bool
+    ):
         self.model = model.eval().requires_grad_(False).to(device)
         self.tokenizer = tokenizer
         self.image_size = image_size
@@ -171,7 +173,13 @@ def load_clip(spec: ClipSpec, device="cpu", bf16: bool = False) -> ClipGuide:
         model, tok = tiny_test_clip()
         log.warning("using %s", TEST_ONLY_WEIGHTS)
         return ClipGuide(
-            model, tok, image_size=_image_size(model), weights_id=TEST_ONLY_WEIGHTS, test_only=True, device=device, bf16=bf16
+            model,
+            tok,
+            image_size=_image_size(model),
+            weights_id=TEST_ONLY_WEIGHTS,
+            test_only=True,
+            device=device,
+            bf16=bf16,
         )
     path, weights_id, quick_gelu = resolve_weights(spec)
     open_clip = import_open_clip()
@@ -181,5 +189,11 @@ def load_clip(spec: ClipSpec, device="cpu", bf16: bool = False) -> ClipGuide:
     size = _image_size(model)
     log.info("loaded CLIP %s from %s", weights_id, path)
     return ClipGuide(
-        model, open_clip.get_tokenizer(spec.model), image_size=size, weights_id=weights_id, test_only=False, device=device, bf16=bf16
+        model,
+        open_clip.get_tokenizer(spec.model),
+        image_size=size,
+        weights_id=weights_id,
+        test_only=False,
+        device=device,
+        bf16=bf16,
     )

@@ -36,7 +36,9 @@ class FourierFeatures(nn.Module):
     with ``B (count, in_dim)`` drawn once from N(0, sigma^2) by ``generator`` (a fixed buffer).
     ``x (N, in_dim)`` -> ``(N, in_dim + 2 count)``."""
 
-    def __init__(self, count: int, sigma: float, in_dim: int = 3, generator: torch.Generator | None = None) -> None:
+    def __init__(
+        self, count: int, sigma: float, in_dim: int = 3, generator: torch.Generator | None = None
+    ) -> None:
         super().__init__()
         self.register_buffer("B", torch.randn(count, in_dim, generator=generator) * sigma)
         self.out_dim = in_dim + 2 * count
@@ -60,7 +62,9 @@ class NerfEncoding(nn.Module):
         return torch.cat([x, torch.sin(xf), torch.cos(xf)], dim=-1)
 
 
-def make_encoding(kind: str, *, frequencies: int, count: int, sigma: float, generator: torch.Generator) -> nn.Module:
+def make_encoding(
+    kind: str, *, frequencies: int, count: int, sigma: float, generator: torch.Generator
+) -> nn.Module:
     """``kind``: ``"nerf"`` (frequencies), ``"fourier"`` (count, sigma) or ``"none"``."""
     if kind == "nerf":
         return NerfEncoding(frequencies)
@@ -124,7 +128,10 @@ class SVBRDFNet(nn.Module):
         self.encoding = encoding
         self.min_roughness = min_roughness
         self.trunk = nn.Sequential(
-            nn.Linear(encoding.out_dim, width), nn.ReLU(inplace=True), nn.Linear(width, width), nn.ReLU(inplace=True)
+            nn.Linear(encoding.out_dim, width),
+            nn.ReLU(inplace=True),
+            nn.Linear(width, width),
+            nn.ReLU(inplace=True),
         )
         self.diffuse = _mlp(width, width, 3, 3)
         self.specular = _mlp(width, width, 3, 3) if specular else None

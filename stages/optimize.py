@@ -213,7 +213,9 @@ class Objective:
             self.test_only = self.guide.test_only
         else:
             self.target_light = procedural_light(settings.target_light, device=device)
-            self.weights_id = f"image targets: procedural {settings.target_material} under {settings.target_light} light"
+            self.weights_id = (
+                f"image targets: procedural {settings.target_material} under {settings.target_light} light"
+            )
 
     def target_colors(self, points, normals, view) -> torch.Tensor:
         flip = (normals * view).sum(-1, keepdim=True) < 0
@@ -255,7 +257,9 @@ class Optimizer:
         self.views = ViewStore(train, self.device)
         self.prompt = prompt
         self.field = StyleField(settings).to(self.device)
-        self.opt = torch.optim.AdamW(self.field.parameters(), lr=settings.lr, weight_decay=settings.weight_decay)
+        self.opt = torch.optim.AdamW(
+            self.field.parameters(), lr=settings.lr, weight_decay=settings.weight_decay
+        )
         self.sched = torch.optim.lr_scheduler.MultiStepLR(
             self.opt, milestones=list(settings.milestones), gamma=settings.gamma
         )
@@ -291,7 +295,9 @@ class Optimizer:
     def step(self, timer: Timer) -> dict:
         s = self.s
         with timer("gather"):
-            ids = self.np_rng.choice(len(self.views), size=s.views_per_step, replace=len(self.views) < s.views_per_step)
+            ids = self.np_rng.choice(
+                len(self.views), size=s.views_per_step, replace=len(self.views) < s.views_per_step
+            )
             batches = []
             for i in ids:
                 v = self.views[int(i)]
@@ -323,7 +329,9 @@ class Optimizer:
                 if self.objective.guide is None:
                     with torch.no_grad():
                         tcol = linear_to_srgb(self.objective.target_colors(pts, nrm, view))
-                    timgs = [compose(tcol, lk, sp, bg) for lk, sp, bg in zip(lookups, specs, bgs, strict=True)]
+                    timgs = [
+                        compose(tcol, lk, sp, bg) for lk, sp, bg in zip(lookups, specs, bgs, strict=True)
+                    ]
                     globals_t.append(timgs[0])
                     crops_t.extend(timgs[1:])
         with timer("guidance"):
@@ -375,7 +383,9 @@ def contact_sheet(images: list[torch.Tensor], columns: int) -> np.ndarray:
     sheet = np.zeros((rows * h, columns * w, 3), np.uint8)
     for k, img in enumerate(images):
         r, c = divmod(k, columns)
-        sheet[r * h : (r + 1) * h, c * w : (c + 1) * w] = (img.clamp(0, 1).permute(1, 2, 0).cpu().numpy() * 255).round()
+        sheet[r * h : (r + 1) * h, c * w : (c + 1) * w] = (
+            img.clamp(0, 1).permute(1, 2, 0).cpu().numpy() * 255
+        ).round()
     return sheet
 
 
@@ -455,7 +465,12 @@ def run(
     from tqdm import tqdm
 
     bar = tqdm(
-        total=settings.iterations, initial=opt.iteration, desc="optimize", mininterval=2.0, unit="it", dynamic_ncols=False
+        total=settings.iterations,
+        initial=opt.iteration,
+        desc="optimize",
+        mininterval=2.0,
+        unit="it",
+        dynamic_ncols=False,
     )
     done_here = 0
     t_loop = time.perf_counter()
@@ -511,7 +526,9 @@ OUTPUT_FILES = {
 }
 
 
-def write_outputs(opt: Optimizer, eval_path: Path, out_dir: Path, settings: OptimizeSettings, prompt: str) -> dict:
+def write_outputs(
+    opt: Optimizer, eval_path: Path, out_dir: Path, settings: OptimizeSettings, prompt: str
+) -> dict:
     field_ = opt.field.eval()
     evalc = ViewStore(RayCache(eval_path), opt.device)
     renders = {k: [] for k in RENDER_KINDS}
@@ -561,7 +578,15 @@ def write_outputs(opt: Optimizer, eval_path: Path, out_dir: Path, settings: Opti
     save_png(out_dir / "renders" / "light.png", (preview.cpu().numpy() * 255).round().astype(np.uint8))
     # the field and the loss curve
     with atomic_path(out_dir / "field.pt") as tmp:
-        torch.save({"format": 1, "settings": settings.to_dict(), "prompt": prompt, "state_dict": field_.state_dict()}, tmp)
+        torch.save(
+            {
+                "format": 1,
+                "settings": settings.to_dict(),
+                "prompt": prompt,
+                "state_dict": field_.state_dict(),
+            },
+            tmp,
+        )
     keys = sorted({k for row in opt.history for k in row}, key=lambda k: (k != "iteration", k))
     with atomic_path(out_dir / "loss.csv") as tmp:
         with open(tmp, "w", newline="") as fh:
@@ -616,7 +641,14 @@ def main(argv: list[str] | None = None) -> int:
 
     with stage_errors("optimize") as status:
         try:
-            run(args.train, args.eval, args.prompt, args.out_dir, OptimizeSettings.from_json(args.settings), args.device)
+            run(
+                args.train,
+                args.eval,
+                args.prompt,
+                args.out_dir,
+                OptimizeSettings.from_json(args.settings),
+                args.device,
+            )
         except ClipWeightsUnavailable as exc:
             raise StageInputError(None, str(exc)) from exc
     return status.code

@@ -13,12 +13,14 @@ from stages.config import MESH_STAGES, WorkflowConfig, load_config_file, load_sc
 from stages.decimate import DecimateSettings
 from stages.errors import ConfigError
 from stages.normalize import NormalizeSettings
+from stages.optimize import OptimizeSettings
 from stages.raycache import RaycacheSettings
 
 SETTINGS = {
     "normalize": NormalizeSettings,
     "decimate": DecimateSettings,
     "raycache": RaycacheSettings,
+    "optimize": OptimizeSettings,
 }
 
 
@@ -40,7 +42,7 @@ def test_default_config_is_valid():
     assert cfg.prompt_text("knot", "wood") == "a knot sculpture made of wood"
 
 
-@pytest.mark.parametrize("stage", MESH_STAGES)
+@pytest.mark.parametrize("stage", [*MESH_STAGES, "optimize"])
 def test_schema_defaults_equal_dataclass_defaults(stage):
     props = load_schema()["$defs"][stage]["properties"]
     fields = {f.name: f.default for f in dataclasses.fields(SETTINGS[stage])}
@@ -125,7 +127,31 @@ def test_ids_must_be_path_safe(base):
 
 def test_variants_cannot_override_mesh_stages(base):
     base["variants"] = {"full": {}, "lowres": {"raycache": {"resolution": 64}}}
-    expect_error(base, "'raycache'", "variants -> lowres")
+    expect_error(base, "'raycache'", "variants -> lowres", "overridden per mesh")
+
+
+def test_presets_and_overrides_resolve_in_order(base):
+    base["prompts"]["gold"] = {"text": "a gold {object}", "preset": "metal"}
+    base["optimize"] = {"iterations": 10, "light_lobes": 16}
+    base["variants"] = {"full": {}, "flat": {"preset": "rough", "optimize": {"normal_network": False}}}
+    cfg = WorkflowConfig(base)
+    full_gold = cfg.optimize_settings("gold", "full")
+    assert full_gold.material_encoding == "fourier" and full_gold.init_roughness == 0.3
+    assert full_gold.light_lobes == 16  # the config's explicit section beats the preset
+    assert full_gold.iterations == 10
+    flat_gold = cfg.optimize_settings("gold", "flat")
+    assert flat_gold.material_encoding == "nerf" and flat_gold.crops == 4  # the variant's preset
+    assert flat_gold.normal_network is False  # the variant's own override wins
+    assert cfg.prompt_text("vase", "gold") == "a gold vase"
+
+
+def test_bad_optimize_values_fail_at_dag_time(base):
+    base["variants"] = {"x": {"optimize": {"guidance": "vibes"}}}
+    expect_error(base, "variants -> x -> optimize -> guidance")
+    base["variants"] = {"x": {"optimize": {"crop_scale": [0.5, 0.1]}}}
+    expect_error(base, "variant 'x'", "crop_scale")
+    base["variants"] = {"x": {"preset": "shiny"}}
+    expect_error(base, "variants -> x -> preset")
 
 
 def test_builtin_name_checked(base):

@@ -28,7 +28,7 @@ def test_dry_run_default_config(tmp_path):
     proc = run_snakemake(tmp_path, "-n", "--cores", "2")
     assert proc.returncode == 0, proc.stderr
     counts = job_counts(proc.stdout)
-    assert counts == {"normalize": 3, "raycache": 3, "all": 1, "total": 7}
+    assert counts == {"normalize": 3, "raycache": 3, "optimize": 6, "all": 1, "total": 13}
 
 
 def test_configfile_replaces_default_and_dag_is_per_mesh(tmp_path):
@@ -39,6 +39,7 @@ def test_configfile_replaces_default_and_dag_is_per_mesh(tmp_path):
     assert proc.returncode == 0, proc.stderr
     counts = job_counts(proc.stdout)
     assert counts["normalize"] == 2 and counts["raycache"] == 2 and counts["decimate"] == 1
+    assert counts["optimize"] == 2 * 2 * 2
     assert "candle" not in proc.stdout  # the default config's meshes are not merged in
 
 
@@ -80,6 +81,16 @@ def test_smoke_run(tmp_path):
         len(RayCache(res / "knot" / "raycache" / "train.npz").arrays["faces"]) == dec["stats"]["faces_after"]
     )
     assert not (res / "vase" / "decimate").exists()
+    # every grid cell optimised, with outputs marked as made by the test-only CLIP
+    for mesh in ("vase", "knot"):
+        for prompt in ("wood", "gold"):
+            for variant in ("full", "second"):
+                cell = res / mesh / prompt / variant / "optimize"
+                meta = json.loads((cell / "meta.json").read_text())
+                assert meta["test_only_weights"] is True and "TEST ONLY" in meta["weights"]
+                assert meta["prompt"] == f"a {mesh} made of {prompt}"
+                assert (cell / "renders" / "rgb.png").is_file() and (cell / "field.pt").is_file()
+                assert not (cell / "checkpoint.pt").exists()
     # nothing half-written anywhere
     assert not list(res.rglob(".*.tmp-*"))
     # a second run has nothing to do
