@@ -184,7 +184,9 @@ class History:
 class Objective:
     """The guidance: CLIP similarity, or image error against a procedural target."""
 
-    def __init__(self, settings: OptimizeSettings, prompt: str, device) -> None:
+    def __init__(self, settings: OptimizeSettings, prompt: str, device, guide=None) -> None:
+        """``guide``: an already loaded :class:`~stages.guidance.ClipGuide` (else loaded from
+        the settings)."""
         self.s = settings
         self.device = device
         self.guide = None
@@ -193,7 +195,7 @@ class Objective:
         if settings.guidance == "clip":
             from .guidance import ClipSpec, load_clip
 
-            self.guide = load_clip(
+            self.guide = guide or load_clip(
                 ClipSpec(
                     model=settings.clip_model,
                     pretrained=settings.clip_pretrained,
@@ -251,7 +253,7 @@ def _save_checkpoint(path: Path, **state) -> None:
 class Optimizer:
     """One optimisation run: state, step function, checkpointing."""
 
-    def __init__(self, settings: OptimizeSettings, train: RayCache, prompt: str, device) -> None:
+    def __init__(self, settings: OptimizeSettings, train: RayCache, prompt: str, device, guide=None) -> None:
         self.s = settings
         self.device = torch.device(device)
         self.views = ViewStore(train, self.device)
@@ -267,7 +269,7 @@ class Optimizer:
         self.tgen = torch.Generator().manual_seed(settings.seed)
         self.iteration = 0
         self.history: list[dict] = []
-        self.objective = Objective(settings, prompt, self.device)
+        self.objective = Objective(settings, prompt, self.device, guide)
         self.points_last = 0
 
     # -- checkpoints

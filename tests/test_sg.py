@@ -363,3 +363,34 @@ def test_float32_agrees_with_float64():
     # the cosine fit subtracts two terms ~30x the result: float32 keeps about 5 digits
     torch.testing.assert_close(got.diffuse.double(), ref.diffuse, rtol=2e-4, atol=2e-5)
     torch.testing.assert_close(got.specular.double(), ref.specular, rtol=2e-3, atol=2e-5)
+
+
+def test_fused_shading_equals_reference():
+    """The fused (N, K)-matrix shading is the reference algebra rearranged: equal to 1e-10."""
+    from stages.render.shading import diffuse_radiance_reference, specular_radiance_reference
+
+    g = torch.Generator().manual_seed(9)
+    n = unit(torch.randn(3000, 3, generator=g, dtype=F64))
+    v = unit(n + unit(torch.randn(3000, 3, generator=g, dtype=F64)))
+    n = face_viewer(n, v)
+    k = 24
+    light = SGLight(
+        unit(torch.randn(k, 3, generator=g, dtype=F64)),
+        10 ** (torch.rand(k, 1, generator=g, dtype=F64) * 6 - 3),
+        torch.rand(k, 3, generator=g, dtype=F64),
+    )
+    albedo = torch.rand(3000, 3, generator=g, dtype=F64)
+    spec = torch.rand(3000, 3, generator=g, dtype=F64)
+    rough = 0.01 + 0.99 * torch.rand(3000, 1, generator=g, dtype=F64)
+    torch.testing.assert_close(
+        diffuse_radiance(n, albedo, light),
+        diffuse_radiance_reference(n, albedo, light),
+        rtol=1e-10,
+        atol=1e-12,
+    )
+    torch.testing.assert_close(
+        specular_radiance(n, v, spec, rough, light),
+        specular_radiance_reference(n, v, spec, rough, light),
+        rtol=1e-8,
+        atol=1e-12,
+    )

@@ -123,15 +123,12 @@ def sg_inner_product(
 
 
 def _hemisphere_t(sharpness: Tensor) -> Tensor:
-    """Meder & Bruderlin's fitted ``t(lam)``, in a form stable for tiny and huge ``lam``."""
+    """Meder & Bruderlin's fitted ``t(lam) = sqrt(lam) (1.6988 lam^2 + 10.8438 lam) /
+    (lam^2 + 6.2201 lam + 10.2415)`` (their rational form multiplied through by ``lam^2``, so it
+    has no ``1 / lam`` and is finite down to ``lam = 0``; ``lam^2`` stays finite in float32 up
+    to ``lam ~ 1e19``)."""
     lam = sharpness
-    big = lam >= 1.0
-    lb = torch.where(big, lam, torch.ones_like(lam))
-    ls = torch.where(big, torch.ones_like(lam), lam)
-    inv = 1.0 / lb
-    t_big = torch.sqrt(lb) * (1.6988 + 10.8438 * inv) / (1.0 + 6.2201 * inv + 10.2415 * inv * inv)
-    t_small = torch.sqrt(ls) * (1.6988 * ls * ls + 10.8438 * ls) / (ls * ls + 6.2201 * ls + 10.2415)
-    return torch.where(big, t_big, t_small)
+    return torch.sqrt(lam) * (1.6988 * lam * lam + 10.8438 * lam) / (lam * lam + 6.2201 * lam + 10.2415)
 
 
 def sg_hemisphere_integral(sharpness: Tensor, cos_beta: Tensor) -> Tensor:
@@ -148,7 +145,7 @@ def sg_hemisphere_integral(sharpness: Tensor, cos_beta: Tensor) -> Tensor:
     (PhySG's two branches for ``c >= 0`` and ``c < 0`` are the same function). Exact at
     ``c = -1, 0, 1`` (0, half and all of ``A_u + A_b``); elsewhere the error is measured against
     quadrature in ``tests/test_sg.py``: at most 1.5% of the full-sphere integral over
-    ``lam`` in [1e-4, 1e4]. Finite values and gradients for ``lam`` in [1e-6, 1e12].
+    ``lam`` in [1e-4, 1e4]. Finite values and gradients for ``lam`` in [1e-6, 1e18].
 
     ``sharpness (..., 1) > 0``, ``cos_beta (..., 1)`` in [-1, 1] -> ``(..., 1)``.
     """

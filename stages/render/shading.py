@@ -72,7 +72,7 @@ def _hemisphere_product_with_cosine(
     return first - second
 
 
-def diffuse_radiance(normal: Tensor, albedo: Tensor, light: SGLight) -> Tensor:
+def diffuse_radiance_reference(normal: Tensor, albedo: Tensor, light: SGLight) -> Tensor:
     """``albedo / pi * int L(w) max(w . n, 0) dw`` per point -> ``(N, 3)``.
 
     ``normal (N, 3)`` unit, ``albedo (N, 3)`` in [0, 1]. Approximate (the clamped-cosine SG fit
@@ -106,7 +106,7 @@ def smith_schlick_over_cosines(cos_nl: Tensor, cos_nv: Tensor, roughness: Tensor
     return 1.0 / (4.0 * (cos_nl * (1.0 - k) + k) * (cos_nv * (1.0 - k) + k))
 
 
-def specular_radiance(
+def specular_radiance_reference(
     normal: Tensor, view: Tensor, specular: Tensor, roughness: Tensor, light: SGLight
 ) -> Tensor:
     """Microfacet specular reflection of the SG light per point -> ``(N, 3)`` (TANGO eq. 10).
@@ -135,6 +135,65 @@ def specular_radiance(
     )
     integral = _hemisphere_product_with_cosine(normal[:, None, :], p_axis, p_lam, p_mu).sum(1)  # (N, C)
     # as for the diffuse term, the cosine fit's slight dip below zero at the horizon is clamped
+    return m * torch.clamp(integral, min=0.0)
+
+
+# ------------------------------------------------------------------------------ fused versions
+# The light's amplitudes enter linearly, and every SG quantity the shading needs is a function of
+# sharpnesses and of dot products between axes. The fused versions therefore work on (N, K)
+# matrices of cosines obtained by matrix products, never on (N, K, 3) tensors, and apply the
+# amplitudes with one final (N, K) @ (K, C) product. They are algebraically identical to the
+# reference versions above (tested to 1e-10 in float64) and several times faster.
+
+
+def _product_terms(lam1: Tensor, lam2: Tensor, cos12: Tensor) -> tuple[Tensor, Tensor]:
+    """Sharpness and log-amplitude factor of the product of two unit SGs from their sharpnesses
+    and the cosine between their axes: ``lam = sqrt((l1 - l2)^2 + 2 l1 l2 (1 + c))`` and
+    ``lam - l1 - l2 = -2 l1 l2 (1 - c) / (lam + l1 + l2)`` (both free of cancellation)."""
+    lam = torch.sqrt((lam1 - lam2) ** 2 + 2.0 * lam1 * lam2 * (1.0 + cos12))
+    log_amp = -2.0 * lam1 * lam2 * (1.0 - cos12) / (lam + lam1 + lam2)
+    return lam, log_amp
+
+
+def _cosine_weighted_hemisphere(lam: Tensor, cos_n: Tensor, log_amp: Tensor) -> Tensor:
+    """``int_{v.n >= 0} exp(log_amp) G(v; xi, lam, 1) max(v . n, 0) dv`` from ``lam`` and
+    ``cos_n = xi . n`` (any matching shapes), with the cosine's SG fit and the hemisphere
+    integral, as :func:`_hemisphere_product_with_cosine`."""
+    cos_lam = torch.as_tensor(COS_LAMBDA, dtype=lam.dtype, device=lam.device)
+    lam_q, log_q = _product_terms(lam, cos_lam, cos_n)
+    safe = torch.where(lam_q > 0, lam_q, torch.ones_like(lam_q))
+    cos_qn = torch.where(lam_q > 0, (COS_LAMBDA + lam * cos_n) / safe, torch.ones_like(lam_q))
+    first = COS_MU * torch.exp(log_amp + log_q) * sg_hemisphere_integral(lam_q, cos_qn.clamp(-1.0, 1.0))
+    second = COS_OFFSET * torch.exp(log_amp) * sg_hemisphere_integral(lam, cos_n)
+    return first - second
+
+
+def diffuse_radiance(normal: Tensor, albedo: Tensor, light: SGLight) -> Tensor:
+    """Fused :func:`diffuse_radiance_reference` (same result): ``(N, 3)``."""
+    cos_n = normal @ light.axis.T  # (N, K)
+    lam = light.sharpness.T  # (1, K): functions of the sharpness alone stay per lobe
+    per_lobe = _cosine_weighted_hemisphere(lam, cos_n, torch.zeros_like(lam))
+    irradiance = per_lobe @ light.amplitude
+    return albedo / math.pi * torch.clamp(irradiance, min=0.0)
+
+
+def specular_radiance(
+    normal: Tensor, view: Tensor, specular: Tensor, roughness: Tensor, light: SGLight
+) -> Tensor:
+    """Fused :func:`specular_radiance_reference` (same result): ``(N, 3)``."""
+    cos_nv = (normal * view).sum(-1, keepdim=True)
+    lam, mu = ndf_sg(roughness)
+    w_axis, w_lam, w_mu = warp_ndf_to_light(normal, view, lam, mu, cos_nv)
+    m = fresnel_schlick(specular, cos_nv) * smith_schlick_over_cosines(cos_nv, cos_nv, roughness)
+    cos_wl = w_axis @ light.axis.T  # (N, K)
+    cos_nl = normal @ light.axis.T
+    cos_nw = (normal * w_axis).sum(-1, keepdim=True)  # (N, 1)
+    lam_l = light.sharpness.T  # (1, K)
+    lam_p, log_p = _product_terms(w_lam, lam_l, cos_wl)
+    safe = torch.where(lam_p > 0, lam_p, torch.ones_like(lam_p))
+    cos_pn = torch.where(lam_p > 0, (w_lam * cos_nw + lam_l * cos_nl) / safe, torch.ones_like(lam_p))
+    per_lobe = _cosine_weighted_hemisphere(lam_p, cos_pn.clamp(-1.0, 1.0), log_p)
+    integral = w_mu * (per_lobe @ light.amplitude)
     return m * torch.clamp(integral, min=0.0)
 
 

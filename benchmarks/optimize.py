@@ -1,0 +1,268 @@
+"""Optimisation step cost on this machine, split by component, against its two ceilings.
+
+At the paper's per-step counts (1 view from a 512x512 ray cache, 1 global image and 4 local crops,
+CLIP ViT-B-32 at 224x224, networks of width 256, 32 light lobes) it measures:
+
+* ``s_per_iter``: wall time of the real training step (``stages.optimize.Optimizer.step``);
+* the split of one step into ray-cache gather, encodings+MLPs (forward+backward), shading
+  (forward+backward), CLIP forward+backward and the optimizer step, by running the same
+  functions with the autograd graph cut between the parts;
+* ``points_per_iter``: the cached hits the networks evaluated (only those the images need);
+* the ceilings: CLIP's own forward+backward time for those 5 images, and the machine's
+  matrix-multiply rate at the MLPs' shapes; ``floor_s = clip_s + MLP FLOPs / rate``;
+  ``ratio_to_floor = s_per_iter / floor_s``.
+
+It then shows the trade between MLP width and step time, the cost of local crops, and the
+cost and benefit of supersampling (error of 1 and 2 samples per pixel against 4, same field).
+CLIP has random weights here (timing does not depend on them). The mesh is
+``../shared/meshes/person.obj`` when present, else the built-in vase.
+
+    python benchmarks/optimize.py [--steps 5] [--threads 2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from stages.guidance import ClipGuide
+from stages.imaging import compose, gather_points, global_spec, linear_to_srgb, sample_crops
+from stages.meshio import save_ply
+from stages.normalize import NormalizeSettings, normalize_mesh
+from stages.optimize import Optimizer, OptimizeSettings
+from stages.provenance import Timer
+from stages.raycache import RayCache, RaycacheSettings
+from stages.raycache import run as raycache_run
+from stages.render.shading import face_viewer, shade
+
+SHARED = Path(__file__).resolve().parents[2] / "shared" / "meshes"
+PARTS = ("gather", "mlp", "shading", "clip", "optimizer")
+
+
+def build_cache(tmp: Path) -> tuple[Path, str]:
+    src = SHARED / "person.obj"
+    name = "person.obj" if src.is_file() else "builtin:vase"
+    save_ply(
+        tmp / "mesh.ply", normalize_mesh(src if src.is_file() else "builtin:vase", NormalizeSettings()).mesh
+    )
+    rc = RaycacheSettings(
+        views=8, resolution=512, eval_azimuths=1, eval_elevations_deg=(0.0,), eval_resolution=64
+    )
+    raycache_run(tmp / "mesh.ply", tmp / "train.npz", tmp / "eval.npz", tmp / "rc.json", rc)
+    return tmp / "train.npz", name
+
+
+def vit_b32_random() -> ClipGuide:
+    from stages.clip_compat import import_open_clip
+
+    open_clip = import_open_clip()
+    model = open_clip.create_model("ViT-B-32", pretrained=None)
+    return ClipGuide(
+        model,
+        open_clip.get_tokenizer("ViT-B-32"),
+        image_size=224,
+        weights_id="ViT-B-32 random (timing only)",
+        test_only=True,
+        device="cpu",
+        bf16=False,
+    )
+
+
+def make_optimizer(settings: OptimizeSettings, train: Path, guide: ClipGuide) -> Optimizer:
+    return Optimizer(settings, RayCache(train), "a person made of wood", "cpu", guide=guide)
+
+
+def mlp_flops_per_point(field) -> float:
+    """Forward+backward FLOPs per point of the encodings' MLPs: 2 per MAC forward, 4 backward
+    (input and weight gradients), from the Linear layers that run."""
+    macs = sum(m.in_features * m.out_features for m in field.modules() if isinstance(m, torch.nn.Linear))
+    return 6.0 * macs
+
+
+def matmul_rate(width: int, rows: int = 65536, repeats: int = 5) -> float:
+    a = torch.randn(rows, width)
+    w = torch.randn(width, width)
+    torch.mm(a, w)
+    ts = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        torch.mm(a, w)
+        ts.append(time.perf_counter() - t0)
+    return 2.0 * rows * width * width / min(ts)
+
+
+def timed_split(opt: Optimizer, steps: int) -> dict[str, float]:
+    """Time the parts of a step with the graph cut between them (same functions as the loop)."""
+    s = opt.s
+    parts = {k: [] for k in ("gather", "mlp", "shading", "clip", "optimizer")}
+    for _ in range(steps):
+        t0 = time.perf_counter()
+        v = opt.views[int(opt.np_rng.integers(len(opt.views)))]
+        specs = [global_spec(opt.views.width, s.image_size, s.supersample)]
+        specs += sample_crops(
+            v.mask,
+            s.crops,
+            scale=s.crop_scale,
+            min_coverage=s.crop_coverage,
+            max_tries=s.crop_max_tries,
+            out_size=s.image_size,
+            rng=opt.np_rng,
+            supersample=s.supersample,
+        )
+        needed, lookups = gather_points(specs, v.index)
+        sel = torch.from_numpy(needed)
+        pts, nrm, view = v.points[sel], v.normals[sel], v.view[sel]
+        bg = torch.zeros(3, s.image_size, s.image_size)
+        t1 = time.perf_counter()
+        f = opt.field
+        flip = (nrm * view).sum(-1, keepdim=True) < 0
+        n0 = torch.where(flip, -nrm, nrm)
+        n1 = f.normal_net(pts, n0) if f.normal_net is not None else n0
+        mat = f.svbrdf(pts)
+        mlp_out = [n1, mat.albedo, mat.specular, mat.roughness]
+        leaves = [x.detach().requires_grad_() for x in mlp_out]
+        t2 = time.perf_counter()
+        light = f.light()
+        nn_ = face_viewer(leaves[0], view)
+        color = linear_to_srgb(shade(nn_, view, leaves[1], light, leaves[2], leaves[3]).rgb)
+        c_leaf = color.detach().requires_grad_()
+        t3 = time.perf_counter()
+        imgs = [compose(c_leaf, lk, sp, bg) for lk, sp in zip(lookups, specs, strict=True)]
+        loss, _ = opt.objective.loss(imgs[:1], imgs[1:])
+        opt.opt.zero_grad(set_to_none=True)
+        loss.backward()
+        t4 = time.perf_counter()
+        color.backward(c_leaf.grad)
+        t5 = time.perf_counter()
+        torch.autograd.backward(mlp_out, [x.grad for x in leaves])
+        t6 = time.perf_counter()
+        opt.opt.step()
+        t7 = time.perf_counter()
+        parts["gather"].append(t1 - t0)
+        parts["mlp"].append((t2 - t1) + (t6 - t5))
+        parts["shading"].append((t3 - t2) + (t5 - t4))
+        parts["clip"].append(t4 - t3)
+        parts["optimizer"].append(t7 - t6)
+    return {k: statistics.mean(v) for k, v in parts.items()} | {"points": len(needed)}
+
+
+def step_time(opt: Optimizer, steps: int) -> tuple[float, float]:
+    """Mean seconds per step and mean points per step over ``steps`` steps after a warm-up
+    (steps differ in their view and crops, hence in points: means pair time with work)."""
+    opt.step(Timer())  # warm-up
+    ts, pts = [], []
+    for _ in range(steps):
+        t0 = time.perf_counter()
+        opt.step(Timer())
+        ts.append(time.perf_counter() - t0)
+        pts.append(opt.points_last)
+    return statistics.mean(ts), statistics.mean(pts)
+
+
+def clip_time(guide: ClipGuide, images: int, steps: int) -> float:
+    text = guide.embed_text("a person")
+    ts = []
+    for _ in range(steps + 1):
+        x = torch.rand(images, 3, 224, 224, requires_grad=True)
+        t0 = time.perf_counter()
+        guide.similarity(x[:1], text).add(guide.similarity(x[1:], text)).backward()
+        ts.append(time.perf_counter() - t0)
+    return statistics.mean(ts[1:])
+
+
+def supersampling_error(opt: Optimizer) -> dict[int, float]:
+    """RMSE of the global image at 1 and 2 samples per pixel against 4 (same field, view 0)."""
+    v = opt.views[0]
+    out = {}
+    with torch.no_grad():
+        ref = None
+        for spp in (4, 2, 1):
+            spec = global_spec(opt.views.width, 224, spp)
+            needed, (lk,) = gather_points([spec], v.index)
+            sel = torch.from_numpy(needed)
+            col = linear_to_srgb(opt.field(v.points[sel], v.normals[sel], v.view[sel]).shading.rgb)
+            img = compose(col, lk, spec, torch.zeros(3, 224, 224))
+            if ref is None:
+                ref = img
+            else:
+                out[spp] = float(torch.sqrt(((img - ref) ** 2).mean()))
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--steps", type=int, default=8)
+    parser.add_argument("--threads", type=int, default=2)
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    with tempfile.TemporaryDirectory() as d:
+        train, mesh_name = build_cache(Path(d))
+        guide = vit_b32_random()
+        paper = OptimizeSettings(crops=4, width=256, light_lobes=32)
+        opt = make_optimizer(paper, train, guide)
+        s_per_iter, points = step_time(opt, args.steps)
+        split = timed_split(opt, args.steps)
+        clip_s = clip_time(guide, 5, args.steps)
+        rate = matmul_rate(256)
+        flops = mlp_flops_per_point(opt.field)
+        mlp_floor = flops * points / rate
+        floor_s = clip_s + mlp_floor
+        print(
+            f"# mesh {mesh_name}, ray cache 512x512, torch threads {args.threads}, "
+            "CLIP ViT-B-32 (random weights)"
+        )
+        print("# paper counts: 1 view, 1 global + 4 crops at 224, width 256, 32 lobes")
+        print(f"{'part':<22}{'s/iter':>10}")
+        for k in ("gather", "mlp", "shading", "clip", "optimizer"):
+            print(f"{k:<22}{split[k]:>10.3f}")
+        print(f"{'sum of parts':<22}{sum(split[k] for k in PARTS):>10.3f}")
+        print(f"{'real step':<22}{s_per_iter:>10.3f}")
+        print(
+            f"# ceilings: CLIP fwd+bwd (5 images) {clip_s:.3f} s; "
+            f"matmul {rate / 1e9:.1f} GFLOP/s at width 256; "
+            f"MLPs {flops / 1e6:.2f} MFLOP/point fwd+bwd x {points:.0f} points = {mlp_floor:.3f} s"
+        )
+        print(f"# floor {floor_s:.3f} s; ratio {s_per_iter / floor_s:.2f}")
+        # trades: width, crops, supersampling
+        print(f"{'width':>6}{'crops':>6}{'spp':>5}{'points':>9}{'s/iter':>9}{'MFLOP/pt':>10}")
+        rows = {}
+        for width, crops, spp in ((64, 4, 1), (128, 4, 1), (256, 4, 1), (256, 0, 1), (256, 0, 2)):
+            s = OptimizeSettings(crops=crops, width=width, light_lobes=32, supersample=spp)
+            o = make_optimizer(s, train, guide)
+            t, p = step_time(o, max(2, args.steps // 2))
+            rows[(width, crops, spp)] = t
+            print(
+                f"{width:>6}{crops:>6}{spp:>5}{p:>9.0f}{t:>9.3f}{mlp_flops_per_point(o.field) / 1e6:>10.2f}"
+            )
+        err = supersampling_error(opt)
+        print(f"# supersampling benefit: RMSE vs 4 spp: 1 spp {err[1]:.4f}, 2 spp {err[2]:.4f}")
+    kv = {
+        "s_per_iter": s_per_iter,
+        "clip_s": clip_s,
+        "points_per_iter": points,
+        "mlp_s": split["mlp"],
+        "shading_s": split["shading"],
+        "gather_s": split["gather"],
+        "optimizer_s": split["optimizer"],
+        "matmul_gflops": rate / 1e9,
+        "mlp_mflop_per_point": flops / 1e6,
+        "floor_s": floor_s,
+        "ratio_to_floor": s_per_iter / floor_s,
+        "s_per_iter_width64": rows[(64, 4, 1)],
+        "s_per_iter_nocrops": rows[(256, 0, 1)],
+        "s_per_iter_nocrops_spp2": rows[(256, 0, 2)],
+        "rmse_spp1_vs_spp4": err[1],
+        "rmse_spp2_vs_spp4": err[2],
+    }
+    print(" ".join(f"{k}={v:.4g}" for k, v in kv.items()))
+
+
+if __name__ == "__main__":
+    np.seterr(all="ignore")
+    main()
