@@ -61,6 +61,10 @@ class StyleField(nn.Module):
             )
         self.symmetry = s.symmetry
 
+    def symmetric_points(self, points: Tensor) -> Tensor:
+        """The points as the networks see them (``(x, y, |z|)`` under the symmetry prior)."""
+        return symmetric(points) if self.symmetry else points
+
     def forward(
         self, points: Tensor, normals: Tensor, view: Tensor, light: SGLight | None = None
     ) -> FieldOutput:
@@ -69,7 +73,7 @@ class StyleField(nn.Module):
         surfaces: the inside of an open vase is visible)."""
         flip = (normals * view).sum(-1, keepdim=True) < 0
         normals = torch.where(flip, -normals, normals)
-        p = symmetric(points) if self.symmetry else points
+        p = self.symmetric_points(points)
         if self.normal_net is not None:
             normals = self.normal_net(p, normals)
         normals = face_viewer(normals, view)
