@@ -9,6 +9,10 @@ include: "workflow/rules/normalize.smk"
 include: "workflow/rules/decimate.smk"
 include: "workflow/rules/raycache.smk"
 include: "workflow/rules/optimize.smk"
+include: "workflow/rules/bake.smk"
+include: "workflow/rules/export.smk"
+include: "workflow/rules/relight.smk"
+include: "workflow/rules/report.smk"
 
 
 onstart:

@@ -257,7 +257,13 @@ def bake_field(mesh: TriMesh, field, settings: BakeSettings, device="cpu", chunk
     light = field.light()
     h = settings.light_width // 2
     dirs = equirect_directions(h, settings.light_width).to(device)
-    env = light.radiance(dirs.reshape(-1, 3)).reshape(h, settings.light_width, 3).cpu().numpy().astype(np.float32)
+    env = (
+        light.radiance(dirs.reshape(-1, 3))
+        .reshape(h, settings.light_width, 3)
+        .cpu()
+        .numpy()
+        .astype(np.float32)
+    )
     return BakeResult(atlas, textures, t, w, float(filled.mean()), env)
 
 
@@ -272,7 +278,10 @@ def sample_bilinear(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
     fx, fy = (x - x0)[:, None], (y - y0)[:, None]
     im = img.astype(np.float64)
     return (
-        im[y0, x0] * (1 - fx) * (1 - fy) + im[y0, x1] * fx * (1 - fy) + im[y1, x0] * (1 - fx) * fy + im[y1, x1] * fx * fy
+        im[y0, x0] * (1 - fx) * (1 - fy)
+        + im[y0, x1] * fx * (1 - fy)
+        + im[y1, x0] * (1 - fx) * fy
+        + im[y1, x1] * fx * fy
     )
 
 
@@ -316,7 +325,12 @@ def render_baked(hits, uv_faces, tex: dict, frames, light, device="cpu"):
 
 
 def run(
-    mesh_path: Path, field_path: Path, eval_path: Path, out_dir: Path, settings: BakeSettings, device: str = "cpu"
+    mesh_path: Path,
+    field_path: Path,
+    eval_path: Path,
+    out_dir: Path,
+    settings: BakeSettings,
+    device: str = "cpu",
 ) -> dict:
     """Bake ``field_path`` onto ``mesh_path`` and write textures, light, atlas and metadata."""
     from PIL import Image
@@ -343,7 +357,9 @@ def run(
         write_hdr(out_dir / "light.hdr", res.light_equirect)
         with atomic_path(out_dir / "atlas.npz") as tmp:
             with open(tmp, "wb") as fh:
-                np.savez(fh, uv=res.atlas.uv.astype(np.float32), tangent=res.tangents, handedness=res.handedness)
+                np.savez(
+                    fh, uv=res.atlas.uv.astype(np.float32), tangent=res.tangents, handedness=res.handedness
+                )
     # fidelity: baked asset vs neural field from the evaluation views
     with timer("fidelity"):
         evalc = RayCache(eval_path)
@@ -362,6 +378,17 @@ def run(
             preds.append(linear_to_srgb(baked))
             refs.append(linear_to_srgb(ref))
         bake_psnr = psnr(torch.cat(preds), torch.cat(refs))
+        # the preview: the baked asset from the evaluation view nearest TANGO's front view
+        from .imaging import compose, gather_points, global_spec
+        from .optimize import save_png
+        from .relight import _front_view
+
+        front = _front_view(store)
+        spec = global_spec(store.width, settings.eval_width)
+        needed, (lookup,) = gather_points([spec], store[front].index)
+        bg = torch.ones(3, settings.eval_width, settings.eval_width)
+        img = compose(preds[front][torch.from_numpy(needed)], lookup, spec, bg)
+        save_png(out_dir / "preview.png", to_u8(img.permute(1, 2, 0).cpu().numpy()))
     stats = {
         "texture_size": res.atlas.size,
         "charts": res.atlas.charts,
@@ -371,15 +398,24 @@ def run(
         "bake_psnr_db": bake_psnr,
         "bake_psnr_pixels": "object pixels of the evaluation views, sRGB, baked textures vs neural field",
     }
-    log.info("baked %d faces into %d^2 textures (%.0f%% texels used), fidelity %.1f dB",
-             len(mesh.faces), res.atlas.size, 100 * res.coverage, bake_psnr)
+    log.info(
+        "baked %d faces into %d^2 textures (%.0f%% texels used), fidelity %.1f dB",
+        len(mesh.faces),
+        res.atlas.size,
+        100 * res.coverage,
+        bake_psnr,
+    )
     write_json_atomic(
         out_dir / "meta.json",
         metadata(
             stage="bake",
             settings=settings.to_dict(),
             inputs={"mesh": mesh_path, "field": field_path, "eval": eval_path},
-            outputs={"textures": out_dir / "textures", "light": out_dir / "light.exr", "atlas": out_dir / "atlas.npz"},
+            outputs={
+                "textures": out_dir / "textures",
+                "light": out_dir / "light.exr",
+                "atlas": out_dir / "atlas.npz",
+            },
             timings={**timer.seconds, "total": timer.total()},
             extra={"stats": stats, "optimize_settings": opt_settings.to_dict()},
         ),
@@ -416,7 +452,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.threads:
         torch.set_num_threads(args.threads)
     with stage_errors("bake") as status:
-        run(args.mesh, args.field, args.eval, args.out_dir, BakeSettings.from_json(args.settings), args.device)
+        run(
+            args.mesh, args.field, args.eval, args.out_dir, BakeSettings.from_json(args.settings), args.device
+        )
     return status.code
 
 

@@ -123,6 +123,8 @@ class WorkflowConfig:
                 self.stage_settings(mesh_id, stage)
         for cell in self.cells:
             self.optimize_settings(cell.prompt, cell.variant)
+            for stage in ("bake", "export", "relight"):
+                self.cell_stage_settings(stage, cell.prompt, cell.variant)
 
     # ---- ids -------------------------------------------------------------------------------
     @property
@@ -171,8 +173,8 @@ class WorkflowConfig:
     # ---- per-cell ----------------------------------------------------------------------------
     def optimize_dict(self, prompt_id: str, variant_id: str) -> dict[str, Any]:
         """Resolved optimize overrides: the prompt's preset < the variant's preset < the config's
-        ``optimize`` section < the variant's own overrides (presets fill in; what the config
-        states explicitly wins)."""
+        ``optimize`` section < the prompt's own overrides < the variant's own overrides (presets
+        fill in; what the config states explicitly wins)."""
         from .presets import PRESETS
 
         merged: dict[str, Any] = {}
@@ -181,6 +183,9 @@ class WorkflowConfig:
             if preset:
                 merged.update(PRESETS[preset])
         merged.update(self.raw.get("optimize") or {})
+        prompt = self.raw["prompts"][prompt_id]
+        if isinstance(prompt, dict):
+            merged.update(prompt.get("optimize") or {})
         merged.update(variant.get("optimize") or {})
         return merged
 
@@ -189,6 +194,24 @@ class WorkflowConfig:
 
         try:
             return OptimizeSettings.from_dict(self.optimize_dict(prompt_id, variant_id))
+        except ConfigError as exc:
+            raise ConfigError(f"{self.source}: prompt {prompt_id!r}, variant {variant_id!r}: {exc}") from exc
+
+    def cell_stage_settings(self, stage: str, prompt_id: str, variant_id: str):
+        """Settings of a per-cell stage after optimize (bake, export, relight): the config's
+        section, updated by the prompt's and then the variant's overrides of that stage."""
+        from .bake import BakeSettings
+        from .export import ExportSettings
+        from .relight import RelightSettings
+
+        cls = {"bake": BakeSettings, "export": ExportSettings, "relight": RelightSettings}[stage]
+        merged = dict(self.raw.get(stage) or {})
+        prompt = self.raw["prompts"][prompt_id]
+        if isinstance(prompt, dict):
+            merged.update(prompt.get(stage) or {})
+        merged.update((self.variants[variant_id] or {}).get(stage) or {})
+        try:
+            return cls.from_dict(merged)
         except ConfigError as exc:
             raise ConfigError(f"{self.source}: prompt {prompt_id!r}, variant {variant_id!r}: {exc}") from exc
 

@@ -551,7 +551,12 @@ def write_outputs(
     columns = len(settings_eval_azimuths(evalc))
     for k, imgs in renders.items():
         save_png(out_dir / "renders" / f"{k}.png", contact_sheet(imgs, columns))
-    result: dict = {"eval_views": len(evalc)}
+    from .relight import _front_view
+
+    result: dict = {
+        "eval_views": len(evalc),
+        "sheet": {"columns": int(columns), "tile": settings.eval_width, "front_view": _front_view(evalc)},
+    }
     if sims:
         result["final_similarity"] = float(np.mean(sims))
         result["final_similarity_per_view"] = sims

@@ -122,8 +122,87 @@ def check_clip_weights():
             raise WorkflowError(str(exc)) from None
 
 
+def cell_settings_json(stage):
+    """Params helper: resolved settings of a per-cell stage (bake, export, relight) as JSON."""
+
+    def settings(wildcards):
+        s = CFG.cell_stage_settings(stage, wildcards.prompt, wildcards.variant)
+        return json.dumps(s.to_dict(), sort_keys=True)
+
+    settings.__name__ = f"{stage}_settings_json"
+    return settings
+
+
+def bake_outputs():
+    from stages.bake import TEXTURES
+
+    outs = {k: f"{CELL}/bake/textures/{k}.png" for k in TEXTURES}
+    for key, name in (
+        ("exr", "light.exr"),
+        ("hdr", "light.hdr"),
+        ("atlas", "atlas.npz"),
+    ):
+        outs[key] = f"{CELL}/bake/{name}"
+    outs["preview"] = f"{CELL}/bake/preview.png"
+    outs["meta"] = f"{CELL}/bake/meta.json"
+    return outs
+
+
+def export_inputs(wildcards):
+    cell = f"{RESULTS}/{wildcards.mesh}/{wildcards.prompt}/{wildcards.variant}"
+    return {
+        "mesh": traced_mesh(wildcards),
+        "transform": f"{mesh_dir(wildcards.mesh)}/normalize/transform.json",
+        "preview": f"{cell}/bake/preview.png",
+        "bake_meta": f"{cell}/bake/meta.json",
+    }
+
+
+def export_outputs():
+    from stages.bake import TEXTURES
+
+    outs = {
+        "model_usda": f"{CELL}/asset/model.usda",
+        "model_usdz": f"{CELL}/asset/model.usdz",
+        "model_glb": f"{CELL}/asset/model.glb",
+    }
+    outs.update({f"tex_{k}": f"{CELL}/asset/textures/{k}.png" for k in TEXTURES})
+    outs.update(
+        exr=f"{CELL}/asset/light.exr",
+        hdr=f"{CELL}/asset/light.hdr",
+        preview=f"{CELL}/asset/preview.png",
+        meta=f"{CELL}/asset/meta.json",
+    )
+    return outs
+
+
+def asset_name(wildcards):
+    return f"{wildcards.mesh}_{wildcards.prompt}_{wildcards.variant}"
+
+
+def relight_inputs(wildcards):
+    cell = f"{RESULTS}/{wildcards.mesh}/{wildcards.prompt}/{wildcards.variant}"
+    inputs = {
+        "field": f"{cell}/optimize/field.pt",
+        "eval": f"{mesh_dir(wildcards.mesh)}/raycache/eval.npz",
+    }
+    env = CFG.cell_stage_settings("relight", wildcards.prompt, wildcards.variant).envmap
+    if not env.startswith("builtin:"):
+        inputs["envmap"] = env
+    return inputs
+
+
+def cell_metas(rel):
+    return [f"{RESULTS}/{c.mesh}/{c.prompt}/{c.variant}/{rel}" for c in CFG.cells]
+
+
+def cell_ids():
+    return " ".join(f"{c.mesh}/{c.prompt}/{c.variant}" for c in CFG.cells)
+
+
 def all_targets():
     return [
-        f"{RESULTS}/{c.mesh}/{c.prompt}/{c.variant}/optimize/meta.json"
-        for c in CFG.cells
+        f"{RESULTS}/report/summary.csv",
+        f"{RESULTS}/report/overview.png",
+        f"{RESULTS}/report/asset_pack.zip",
     ]

@@ -1,0 +1,20 @@
+rule bake:
+    input:
+        mesh=traced_mesh,
+        field=f"{CELL}/optimize/field.pt",
+        eval=f"{RESULTS}/{{mesh}}/raycache/eval.npz",
+    output:
+        **bake_outputs(),
+    log:
+        f"{CELL}/logs/bake.log",
+    benchmark:
+        f"{CELL}/benchmarks/bake.tsv"
+    conda:
+        CONDA_ENV
+    threads: 2
+    params:
+        out_dir=cell_dir("bake"),
+        settings=cell_settings_json("bake"),
+    shell:
+        "python -m stages.bake --mesh {input.mesh:q} --field {input.field:q} --eval {input.eval:q} "
+        "--out-dir {params.out_dir:q} --settings {params.settings:q} --threads {threads} 2> {log:q}"

@@ -1,0 +1,20 @@
+rule export:
+    input:
+        unpack(export_inputs),
+    output:
+        **export_outputs(),
+    log:
+        f"{CELL}/logs/export.log",
+    benchmark:
+        f"{CELL}/benchmarks/export.tsv"
+    conda:
+        CONDA_ENV
+    params:
+        bake_dir=cell_dir("bake"),
+        out_dir=cell_dir("asset"),
+        name=asset_name,
+        settings=cell_settings_json("export"),
+    shell:
+        "python -m stages.export --mesh {input.mesh:q} --transform {input.transform:q} "
+        "--bake-dir {params.bake_dir:q} --preview {input.preview:q} --out-dir {params.out_dir:q} "
+        "--name {params.name:q} --settings {params.settings:q} 2> {log:q}"
