@@ -17,7 +17,8 @@ if [ ! -x .venv/bin/python ]; then
     "$py" -m venv .venv
 fi
 stamp=.venv/.setup-stamp-$extras
-if [ -f "$stamp" ] && [ "$stamp" -nt pyproject.toml ] && [ "$stamp" -nt scripts/setup.sh ]; then
+if [ -f "$stamp" ] && [ "$stamp" -nt pyproject.toml ] && [ "$stamp" -nt scripts/setup.sh ] \
+    && [ "$stamp" -nt package-lock.json ]; then
     echo "setup: .venv is up to date ($stamp)"
     exit 0
 fi
@@ -27,7 +28,7 @@ if ! .venv/bin/python -c "import torch" >/dev/null 2>&1; then
     echo "setup: installing torch==${TORCH_VERSION:-2.13.0}"
     .venv/bin/pip install --quiet "torch==${TORCH_VERSION:-2.13.0}"
 fi
-torch_version=$(.venv/bin/python -c "import torch; print(torch.__version__.split('+')[0])")
+torch_version=$(.venv/bin/python -c "import torch; print(torch.__version__.split('+')[0])" 2>/dev/null)
 echo "torch==$torch_version" > .venv/constraints.txt
 echo "setup: installing the project (extras: $extras) with torch pinned to $torch_version"
 PIP_CONSTRAINT="$root/.venv/constraints.txt" .venv/bin/pip install --quiet -e ".[$extras]"
@@ -38,6 +39,13 @@ if ! grep -q "tango-stylize cache" .venv/bin/activate; then
 # tango-stylize cache: keep Snakemake's source cache inside the project
 export XDG_CACHE_HOME="$root/.cache"
 ACT
+fi
+# Node.js tools for the tests (the Khronos glTF validator), when npm is available
+if command -v npm >/dev/null 2>&1; then
+    echo "setup: installing Node.js test tools (npm ci)"
+    npm ci --no-audit --no-fund --silent
+else
+    echo "setup: npm not found; the glTF-validator test will be skipped"
 fi
 touch "$stamp"
 echo "setup: done; activate with 'source .venv/bin/activate'"

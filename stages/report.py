@@ -41,6 +41,8 @@ def _need(path: Path) -> dict:
 def weights_label(meta: dict) -> str:
     if meta.get("test_only_weights"):
         return "test-only random"
+    if meta.get("guidance") == "image":
+        return f"image-guided ({meta['settings']['target_material']} target)"
     return str(meta.get("weights"))
 
 

@@ -9,18 +9,24 @@ import pytest
 import yaml
 from conftest import REPO
 
+from stages.bake import BakeSettings
 from stages.config import MESH_STAGES, WorkflowConfig, load_config_file, load_schema
 from stages.decimate import DecimateSettings
 from stages.errors import ConfigError
+from stages.export import ExportSettings
 from stages.normalize import NormalizeSettings
 from stages.optimize import OptimizeSettings
 from stages.raycache import RaycacheSettings
+from stages.relight import RelightSettings
 
 SETTINGS = {
     "normalize": NormalizeSettings,
     "decimate": DecimateSettings,
     "raycache": RaycacheSettings,
     "optimize": OptimizeSettings,
+    "bake": BakeSettings,
+    "export": ExportSettings,
+    "relight": RelightSettings,
 }
 
 
@@ -42,7 +48,7 @@ def test_default_config_is_valid():
     assert cfg.prompt_text("knot", "wood") == "a knot sculpture made of wood"
 
 
-@pytest.mark.parametrize("stage", [*MESH_STAGES, "optimize"])
+@pytest.mark.parametrize("stage", [*MESH_STAGES, "optimize", "bake", "export", "relight"])
 def test_schema_defaults_equal_dataclass_defaults(stage):
     props = load_schema()["$defs"][stage]["properties"]
     fields = {f.name: f.default for f in dataclasses.fields(SETTINGS[stage])}

@@ -28,7 +28,18 @@ def test_dry_run_default_config(tmp_path):
     proc = run_snakemake(tmp_path, "-n", "--cores", "2")
     assert proc.returncode == 0, proc.stderr
     counts = job_counts(proc.stdout)
-    assert counts == {"normalize": 3, "raycache": 3, "optimize": 6, "all": 1, "total": 13}
+    assert counts == {
+        "normalize": 3,
+        "raycache": 3,
+        "optimize": 6,
+        "bake": 6,
+        "export": 6,
+        "relight": 6,
+        "report": 1,
+        "pack": 1,
+        "all": 1,
+        "total": 33,
+    }
 
 
 def test_configfile_replaces_default_and_dag_is_per_mesh(tmp_path):
@@ -91,6 +102,19 @@ def test_smoke_run(tmp_path):
                 assert meta["prompt"] == f"a {mesh} made of {prompt}"
                 assert (cell / "renders" / "rgb.png").is_file() and (cell / "field.pt").is_file()
                 assert not (cell / "checkpoint.pt").exists()
+    # the report closes the main job: one summary row per cell, the overview, the asset pack
+    import pandas as pd
+
+    summary = pd.read_csv(res / "report" / "summary.csv")
+    assert len(summary) == 8 and set(summary["weights"]) == {"test-only random"}
+    assert (summary["usd_validation_errors"] == 0).all() and (summary["bake_psnr_db"] >= 35).all()
+    assert (
+        summary.loc[summary["mesh"] == "knot", "faces_after"].iloc[0]
+        < summary.loc[summary["mesh"] == "knot", "faces_before"].iloc[0]
+    )
+    assert (res / "report" / "overview.png").is_file() and (res / "report" / "asset_pack.zip").is_file()
+    for rel in ("asset/model.usdz", "asset/model.glb", "relight/material_edit.png"):
+        assert (res / "vase" / "wood" / "full" / rel).is_file()
     # nothing half-written anywhere
     assert not list(res.rglob(".*.tmp-*"))
     # a second run has nothing to do

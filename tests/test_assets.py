@@ -1,0 +1,301 @@
+"""Baking, USD/glTF export, relighting, summary and asset pack."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import zipfile
+
+import numpy as np
+import pytest
+import torch
+from conftest import REPO, icosphere
+
+from stages import bake, export, optimize, pack, relight, report
+from stages.bake import (
+    BakeSettings,
+    bake_field,
+    decode_textures,
+    dilate,
+    face_frames,
+    rasterize_atlas,
+    unwrap,
+)
+from stages.hdrio import read_exr, read_hdr, write_exr, write_hdr
+from stages.meshio import save_ply
+from stages.networks import Material, SGLightModule
+from stages.normalize import NormalizeSettings, normalize_mesh
+from stages.optimize import OptimizeSettings
+from stages.raycache import RaycacheSettings
+from stages.raycache import run as raycache_run
+
+
+def analytic_albedo(p: torch.Tensor) -> torch.Tensor:
+    return torch.stack(
+        [0.5 + 0.4 * torch.sin(3 * p[:, 0]), 0.5 + 0.4 * p[:, 1], 0.3 + 0.2 * torch.cos(2 * p[:, 2])], -1
+    )
+
+
+class AnalyticField(torch.nn.Module):
+    """Colour = a smooth function of position; a known constant tilt of the normal."""
+
+    def __init__(self, tilt: float = 0.2):
+        super().__init__()
+        self.light = SGLightModule(8)
+        self.tilt = tilt
+        self.normal_net = self._normal if tilt else None
+        self.svbrdf = self._material
+
+    def symmetric_points(self, p):
+        return p
+
+    def _material(self, p):
+        return Material(analytic_albedo(p), torch.full_like(p, 0.3), torch.full_like(p[:, :1], 0.5))
+
+    def _normal(self, p, n):
+        # tilt towards +x of world space, whatever the frame: a known world-space normal
+        out = n + self.tilt * torch.tensor([1.0, 0.0, 0.0])
+        return out / out.norm(dim=-1, keepdim=True)
+
+
+@pytest.fixture(scope="module")
+def sphere_mesh():
+    return icosphere(3)
+
+
+def test_atlas_uvs_and_rasterisation(sphere_mesh):
+    atlas = unwrap(sphere_mesh, 256, 2)
+    assert atlas.uv.shape == (len(sphere_mesh.faces), 3, 2)
+    assert atlas.uv.min() >= 0 and atlas.uv.max() <= 1
+    face, bary = rasterize_atlas(atlas.uv, 256)
+    counts = np.bincount(face[face >= 0], minlength=len(sphere_mesh.faces))
+    assert (counts > 0).all(), "every face gets texels"
+    # texel centres map back inside their face's UV triangle
+    rows, cols = np.nonzero(face >= 0)
+    f = face[rows, cols]
+    uv = atlas.uv[f]
+    b = bary[rows, cols].astype(np.float64)
+    rec = uv[:, 0] + b[:, :1] * (uv[:, 1] - uv[:, 0]) + b[:, 1:] * (uv[:, 2] - uv[:, 0])
+    np.testing.assert_allclose(rec, np.stack([(cols + 0.5) / 256, (rows + 0.5) / 256], 1), atol=1e-4)
+
+
+def test_bake_analytic_field_texels(sphere_mesh):
+    field = AnalyticField(tilt=0.0)
+    res = bake_field(sphere_mesh, field, BakeSettings(texture_size=256, dilation=2, light_width=32))
+    face, bary = rasterize_atlas(res.atlas.uv, 256)
+    filled = face >= 0
+    f = face[filled]
+    b = bary[filled].astype(np.float64)
+    tri = sphere_mesh.vertices[sphere_mesh.faces[f]]
+    pts = tri[:, 0] + b[:, :1] * (tri[:, 1] - tri[:, 0]) + b[:, 1:] * (tri[:, 2] - tri[:, 0])
+    expected = analytic_albedo(torch.from_numpy(pts)).numpy()
+    got = decode_textures(res.textures)["albedo"][filled]
+    # 8-bit sRGB quantisation: at most half a code step, i.e. < 0.5/255 / (sRGB slope >= 0.4)
+    assert np.abs(got - expected).max() < 0.5 / 255 / 0.4 + 1e-6
+    rough = res.textures["metallic_roughness"][..., 1][filled] / 255.0
+    assert np.abs(rough - 0.5).max() <= 0.5 / 255 + 1e-9
+    assert (res.textures["metallic_roughness"][..., 2] == 0).all()  # metalness 0
+    # without a normal network the tangent-space normal is +Z everywhere
+    nz = res.textures["normal"][filled] / 255.0 * 2 - 1
+    assert np.abs(nz - [0, 0, 1]).max() < 2.5 / 255
+
+
+def test_tangent_frames_and_normal_map_round_trip(sphere_mesh):
+    field = AnalyticField(tilt=0.3)
+    res = bake_field(sphere_mesh, field, BakeSettings(texture_size=256, dilation=1, light_width=32))
+    t, b, n, w = face_frames(sphere_mesh, res.atlas.uv)
+    for u, v in ((t, b), (t, n), (b, n)):
+        assert np.abs((u * v).sum(1)).max() < 1e-9
+    assert set(np.unique(w)) <= {-1.0, 1.0}
+    # decoding the normal map through the frames gives back the field's world-space normal
+    face, _ = rasterize_atlas(res.atlas.uv, 256)
+    filled = face >= 0
+    f = face[filled]
+    ts = decode_textures(res.textures)["normal"][filled]
+    world = ts[:, :1] * t[f] + ts[:, 1:2] * b[f] + ts[:, 2:3] * n[f]
+    world /= np.linalg.norm(world, axis=1, keepdims=True)
+    want = n[f] + 0.3 * np.array([1.0, 0, 0])
+    want /= np.linalg.norm(want, axis=1, keepdims=True)
+    assert np.degrees(np.arccos(np.clip((world * want).sum(1), -1, 1))).max() < 1.0
+
+
+def test_dilation_fills_and_keeps():
+    v = np.zeros((8, 8, 1))
+    f = np.zeros((8, 8), bool)
+    v[3, 3] = 1.0
+    f[3, 3] = True
+    out = dilate(v, f, 2)
+    assert out[3, 3, 0] == 1.0 and out[5, 5, 0] == 1.0 and out[0, 0, 0] == 1.0  # rest: mean fill
+
+
+def test_hdr_and_exr_round_trip(tmp_path):
+    rng = np.random.default_rng(0)
+    img = (rng.random((8, 16, 3)) ** 3 * 100).astype(np.float32)
+    write_hdr(tmp_path / "a.hdr", img)
+    back = read_hdr(tmp_path / "a.hdr")
+    # RGBE: 8-bit mantissas with a shared exponent: within 1/128 of each pixel's largest channel
+    assert (np.abs(back - img) <= img.max(-1, keepdims=True) / 128 + 1e-30).all()
+    write_exr(tmp_path / "a.exr", img)
+    np.testing.assert_array_equal(read_exr(tmp_path / "a.exr"), img)
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    d = tmp_path_factory.mktemp("cell")
+    res = normalize_mesh("builtin:candle", NormalizeSettings())
+    save_ply(d / "mesh.ply", res.mesh)
+    (d / "transform.json").write_text(json.dumps(res.transform.to_json()))
+    raycache_run(
+        d / "mesh.ply",
+        d / "train.npz",
+        d / "eval.npz",
+        d / "rc.json",
+        RaycacheSettings(
+            views=4, resolution=64, eval_azimuths=4, eval_elevations_deg=(0.0, 30.0), eval_resolution=48
+        ),
+    )
+    s = OptimizeSettings(
+        iterations=2, clip_tiny_test=True, image_size=64, width=16, crops=1, light_lobes=8, eval_width=32
+    )
+    optimize.run(d / "train.npz", d / "eval.npz", "a candle made of wax", d / "opt", s, "cpu")
+    bake.run(
+        d / "mesh.ply",
+        d / "opt" / "field.pt",
+        d / "eval.npz",
+        d / "bake",
+        BakeSettings(texture_size=256, eval_width=48),
+    )
+    export.run(
+        d / "mesh.ply",
+        d / "transform.json",
+        d / "bake",
+        d / "bake" / "preview.png",
+        d / "asset",
+        export.ExportSettings(),
+    )
+    return d
+
+
+def test_bake_fidelity_and_metadata(trained):
+    meta = json.loads((trained / "bake" / "meta.json").read_text())
+    assert meta["stats"]["bake_psnr_db"] >= 35.0
+    assert meta["stats"]["texture_size"] == 256
+    assert (trained / "bake" / "light.exr").is_file() and (trained / "bake" / "preview.png").is_file()
+
+
+def test_usd_reopens_with_material_and_textures(trained):
+    from pxr import Usd, UsdGeom, UsdShade
+
+    for name in ("model.usda", "model.usdz"):
+        stage = Usd.Stage.Open(str(trained / "asset" / name))
+        assert UsdGeom.GetStageUpAxis(stage) == "Y" and UsdGeom.GetStageMetersPerUnit(stage) == 1.0
+        mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/Asset/Geometry/Mesh"))
+        assert mesh and UsdGeom.PrimvarsAPI(mesh).GetPrimvar("st").IsDefined()
+        material, _ = UsdShade.MaterialBindingAPI(mesh.GetPrim()).ComputeBoundMaterial()
+        assert material.GetPath() == "/Asset/Looks/TangoMaterial"
+        files = []
+        for prim in stage.Traverse():
+            for attr in ("inputs:file", "inputs:texture:file"):
+                a = prim.GetAttribute(attr)
+                if a and a.Get() is not None:
+                    files.append(a.Get())
+        assert len(files) == 5  # four textures and the dome light's image
+        assert all(f.resolvedPath for f in files), files
+        assert export.validate_usd(trained / "asset" / name) == []
+        # geometry is back in the input's units: the candle stands at y ~ 20..33 cm
+        pts = np.asarray(mesh.GetPointsAttr().Get())
+        assert 19 < pts[:, 1].min() < 21 and 32 < pts[:, 1].max() < 34
+
+
+def test_glb_reloads_with_all_textures(trained):
+    import pygltflib
+    import trimesh
+
+    glb = trained / "asset" / "model.glb"
+    g = pygltflib.GLTF2().load(str(glb))
+    assert len(g.images) == 4 and g.extensionsUsed == ["KHR_materials_specular"]
+    mat = g.materials[0]
+    assert mat.pbrMetallicRoughness.metallicRoughnessTexture.index == 1 and mat.normalTexture.index == 2
+    assert mat.extensions["KHR_materials_specular"]["specularColorTexture"]["index"] == 3
+    scene = trimesh.load(glb)
+    geom = next(iter(scene.geometry.values()))
+    assert len(geom.faces) == 13440
+    assert geom.visual.material.baseColorTexture is not None
+    assert geom.visual.material.normalTexture is not None
+
+
+def test_khronos_gltf_validator(trained):
+    node = shutil.which("node")
+    validator = REPO / "node_modules" / "gltf-validator"
+    if node is None or not validator.is_dir():
+        pytest.skip(
+            "Node.js or node_modules/gltf-validator missing (scripts/setup.sh runs npm ci when npm exists)"
+        )
+    out = subprocess.run(
+        [node, str(REPO / "scripts" / "validate_gltf.mjs"), str(trained / "asset" / "model.glb")],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=True,
+    )
+    report_ = json.loads(out.stdout)
+    assert report_["issues"]["numErrors"] == 0, report_["issues"]["messages"]
+    assert report_["issues"]["numWarnings"] == 0, report_["issues"]["messages"]
+
+
+def test_darker_environment_darkens_relit_render(trained, tmp_path):
+    from stages.envmap import procedural_envmap
+
+    bright = procedural_envmap("overcast", 32)
+    write_hdr(tmp_path / "bright.hdr", bright)
+    write_hdr(tmp_path / "dark.hdr", bright * 0.2)
+    s = dict(lobes=8, fit_iterations=60, width=32, roughness_scales=(0.5, 2.0), specular_scales=(0.0, 1.0))
+    a = relight.run(
+        trained / "opt" / "field.pt",
+        trained / "eval.npz",
+        tmp_path / "a",
+        relight.RelightSettings(envmap=str(tmp_path / "bright.hdr"), **s),
+    )
+    b = relight.run(
+        trained / "opt" / "field.pt",
+        trained / "eval.npz",
+        tmp_path / "b",
+        relight.RelightSettings(envmap=str(tmp_path / "dark.hdr"), **s),
+    )
+    assert b["mean_relit"] < 0.8 * a["mean_relit"]
+    from PIL import Image
+
+    grid = Image.open(tmp_path / "a" / "material_edit.png")
+    assert grid.size == (2 * 32, 2 * 32)  # rows: roughness scales, columns: specular scales
+    # more specular (column 2) is brighter than none (column 1) in the same row
+    assert a["mean_material_edit"][1] > a["mean_material_edit"][0]
+
+
+def test_summary_and_pack(trained, tmp_path):
+    results = tmp_path / "results"
+    cell = results / "candle" / "wax" / "base"
+    mesh_dir = results / "candle"
+    (mesh_dir / "normalize").mkdir(parents=True)
+    (mesh_dir / "normalize" / "meta.json").write_text(
+        json.dumps({"stats": {"faces": 13440}, "timings_s": {"total": 0.1}})
+    )
+    cell.mkdir(parents=True)
+    shutil.copytree(trained / "opt", cell / "optimize")
+    shutil.copytree(trained / "bake", cell / "bake")
+    shutil.copytree(trained / "asset", cell / "asset")
+    rows = report.run(results, [("candle", "wax", "base")], results / "report")
+    assert len(rows) == 1 and rows[0]["weights"] == "test-only random" and rows[0]["test_only_weights"]
+    import pandas as pd
+
+    frame = pd.read_csv(results / "report" / "summary.csv")
+    assert len(frame) == 1 and frame.loc[0, "bake_psnr_db"] >= 35
+    assert (results / "report" / "overview.png").is_file()
+    pack.run(results, [("candle", "wax", "base")], results / "pack.zip", results / "index.csv")
+    with zipfile.ZipFile(results / "pack.zip") as z:
+        names = z.namelist()
+    for f in ("model.usdz", "model.usda", "model.glb", "textures/normal.png", "light.exr", "preview.png"):
+        assert f"candle/wax/base/{f}" in names
+    assert "index.csv" in names
+    index = pd.read_csv(results / "index.csv")
+    assert index.loc[0, "faces"] == 13440 and index.loc[0, "texture_size"] == 256
