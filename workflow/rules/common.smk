@@ -1,6 +1,7 @@
 # Config validation, wildcard constraints and input/param helpers -- nothing else.
 # The logic lives in stages/config.py so it is importable and tested.
 import json
+from pathlib import Path
 
 from stages.config import WorkflowConfig
 from stages.errors import ConfigError
@@ -194,6 +195,17 @@ def relight_inputs(wildcards):
 
 def cell_metas(rel):
     return [f"{RESULTS}/{c.mesh}/{c.prompt}/{c.variant}/{rel}" for c in CFG.cells]
+
+
+def results_root(wildcards, input):
+    """Params function: the results folder, from the first cell file among the inputs
+    (``<results>/<mesh>/<prompt>/<variant>/<stage>/meta.json``)."""
+    return str(Path(input[0]).parents[4])
+
+
+def output_folder(wildcards, output):
+    """Params function: the folder of the rule's first output."""
+    return str(Path(output[0]).parent)
 
 
 def cell_ids():

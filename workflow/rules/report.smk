@@ -24,9 +24,10 @@ rule report:
         CONDA_ENV
     params:
         cells=cell_ids(),
-        results=RESULTS,
+        results=results_root,
+        out_dir=output_folder,
     shell:
-        "python -m stages.report --results {params.results:q} --out-dir {RESULTS}/report "
+        "python -m stages.report --results {params.results:q} --out-dir {params.out_dir:q} "
         "--cells {params.cells} 2> {log:q}"
 
 
@@ -44,7 +45,7 @@ rule pack:
         CONDA_ENV
     params:
         cells=cell_ids(),
-        results=RESULTS,
+        results=results_root,
     shell:
         "python -m stages.pack --results {params.results:q} --zip {output.zip:q} "
         "--index {output.index:q} --cells {params.cells} 2> {log:q}"
