@@ -12,6 +12,7 @@ include: "workflow/rules/optimize.smk"
 include: "workflow/rules/bake.smk"
 include: "workflow/rules/export.smk"
 include: "workflow/rules/relight.smk"
+include: "workflow/rules/metrics.smk"
 include: "workflow/rules/report.smk"
 
 

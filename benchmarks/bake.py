@@ -29,7 +29,7 @@ def child(faces: str, size: int, decimate_to: int | None) -> dict:
     import torch
 
     from stages.bake import BakeSettings, bake_field
-    from stages.export import ExportSettings, faceted, package_usdz, write_glb, write_usd
+    from stages.export import faceted, package_usdz, write_glb, write_usd
     from stages.field import StyleField
     from stages.meshio import TriMesh, save_ply
     from stages.normalize import normalization_transform

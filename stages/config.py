@@ -123,7 +123,7 @@ class WorkflowConfig:
                 self.stage_settings(mesh_id, stage)
         for cell in self.cells:
             self.optimize_settings(cell.prompt, cell.variant)
-            for stage in ("bake", "export", "relight"):
+            for stage in ("bake", "export", "relight", "metrics"):
                 self.cell_stage_settings(stage, cell.prompt, cell.variant)
 
     # ---- ids -------------------------------------------------------------------------------
@@ -202,9 +202,15 @@ class WorkflowConfig:
         section, updated by the prompt's and then the variant's overrides of that stage."""
         from .bake import BakeSettings
         from .export import ExportSettings
+        from .metrics import MetricsSettings
         from .relight import RelightSettings
 
-        cls = {"bake": BakeSettings, "export": ExportSettings, "relight": RelightSettings}[stage]
+        cls = {
+            "bake": BakeSettings,
+            "export": ExportSettings,
+            "relight": RelightSettings,
+            "metrics": MetricsSettings,
+        }[stage]
         merged = dict(self.raw.get(stage) or {})
         prompt = self.raw["prompts"][prompt_id]
         if isinstance(prompt, dict):
@@ -214,6 +220,34 @@ class WorkflowConfig:
             return cls.from_dict(merged)
         except ConfigError as exc:
             raise ConfigError(f"{self.source}: prompt {prompt_id!r}, variant {variant_id!r}: {exc}") from exc
+
+    def decimation_pairs(self) -> dict[str, str]:
+        """Decimated mesh id -> a full-resolution mesh id with the same source (robustness)."""
+        full = {self.mesh_source(m): m for m in self.grid_meshes if not self.decimated(m)}
+        return {
+            m: full[self.mesh_source(m)]
+            for m in self.grid_meshes
+            if self.decimated(m) and self.mesh_source(m) in full
+        }
+
+    def candidate_prompts(self, mesh_id: str) -> list[str]:
+        """The texts of every prompt of the grid, for ``mesh_id`` (R-precision candidates)."""
+        ids = list(dict.fromkeys(p for _, p in self.pairs))
+        return [self.prompt_text(mesh_id, p) for p in ids]
+
+    def clip_specs(self) -> list:
+        """Every real (non-test) CLIP the grid needs: guidance models and evaluation models."""
+        from .guidance import ClipSpec
+
+        specs = set()
+        for c in self.cells:
+            s = self.optimize_settings(c.prompt, c.variant)
+            if s.guidance == "clip" and not s.clip_tiny_test:
+                specs.add(ClipSpec(s.clip_model, s.clip_pretrained, s.clip_checkpoint))
+            m = self.cell_stage_settings("metrics", c.prompt, c.variant)
+            if m.clip and not m.clip_tiny_test:
+                specs.add(ClipSpec(m.clip_model, m.clip_pretrained, m.clip_checkpoint))
+        return sorted(specs, key=str)
 
     def clip_cells(self) -> list[Cell]:
         """Cells guided by real CLIP weights (not image targets, not the tiny test model)."""

@@ -84,6 +84,12 @@ class RaycacheSettings(Settings):
     eval_radius: float = 2.0
     eval_fov_deg: float = 60.0
     eval_resolution: int = 512
+    #: metric views (the X-Mesh protocol): azimuths x elevations, radius 2.5, 45 deg, 224 px
+    metrics_azimuths: int = 8
+    metrics_elevations_deg: tuple[float, ...] = (-30.0, 0.0, 30.0)
+    metrics_radius: float = 2.5
+    metrics_fov_deg: float = 45.0
+    metrics_resolution: int = 224
     #: ray-tracing backend: "embree" (embreex) or "trimesh" (pure Python; tiny test inputs only)
     backend: str = "embree"
 
@@ -220,6 +226,11 @@ def evaluation_views(s: RaycacheSettings) -> ViewSet:
     return ViewSet(az, el, np.full(len(az), s.eval_radius), s.eval_fov_deg, s.eval_resolution)
 
 
+def metric_views(s: RaycacheSettings) -> ViewSet:
+    az, el = grid_views(s.metrics_azimuths, s.metrics_elevations_deg)
+    return ViewSet(az, el, np.full(len(az), s.metrics_radius), s.metrics_fov_deg, s.metrics_resolution)
+
+
 def quantize_bary(bary: np.ndarray) -> np.ndarray:
     """``(N, 2)`` float barycentrics in [0, 1] -> uint16 fixed point (error <= 0.5 / 65535)."""
     return np.rint(np.clip(bary, 0.0, 1.0) * BARY_SCALE).astype(np.uint16)
@@ -344,8 +355,16 @@ def _save_cache(path: Path, arrays: dict[str, np.ndarray]) -> None:
             np.savez(fh, **arrays)
 
 
-def run(in_mesh: Path, out_train: Path, out_eval: Path, out_meta: Path, settings: RaycacheSettings) -> dict:
-    """Trace the training pool and the evaluation views of ``in_mesh``; write both caches."""
+def run(
+    in_mesh: Path,
+    out_train: Path,
+    out_eval: Path,
+    out_meta: Path,
+    settings: RaycacheSettings,
+    out_metrics: Path | None = None,
+) -> dict:
+    """Trace the training pool, the evaluation views and (when ``out_metrics`` is given) the
+    metric views of ``in_mesh``; write one cache per set."""
     timer = Timer()
     with timer("load"):
         if not Path(in_mesh).is_file():
@@ -355,7 +374,10 @@ def run(in_mesh: Path, out_train: Path, out_eval: Path, out_meta: Path, settings
         tracer = make_tracer(mesh, settings.backend)
     summary = {}
     results = {}
-    for name, views in (("train", training_views(settings)), ("eval", evaluation_views(settings))):
+    sets = [("train", training_views(settings)), ("eval", evaluation_views(settings))]
+    if out_metrics is not None:
+        sets.append(("metrics", metric_views(settings)))
+    for name, views in sets:
         with timer(f"trace_{name}"):
             arrays, st = trace_views(mesh, views, tracer)
         if st.hits == 0:
@@ -386,6 +408,8 @@ def run(in_mesh: Path, out_train: Path, out_eval: Path, out_meta: Path, settings
     with timer("write"):
         _save_cache(out_train, results["train"])
         _save_cache(out_eval, results["eval"])
+        if out_metrics is not None:
+            _save_cache(out_metrics, results["metrics"])
     for name, s in summary.items():
         log.info(
             "%s %s: %d views of %dx%d, coverage %.1f%%, %.0f bytes/view, %.2f M rays/s",
@@ -405,7 +429,7 @@ def run(in_mesh: Path, out_train: Path, out_eval: Path, out_meta: Path, settings
             settings=settings.to_dict(),
             seed=settings.seed,
             inputs={"mesh": in_mesh},
-            outputs={"train": out_train, "eval": out_eval},
+            outputs={"train": out_train, "eval": out_eval, "metrics": out_metrics},
             timings={**timer.seconds, "total": timer.total()},
             extra={"stats": summary, "bytes_per_hit": BYTES_PER_HIT},
         ),
@@ -421,12 +445,20 @@ def main(argv: list[str] | None = None) -> int:
         "--eval", required=True, type=Path, help="output cache of the evaluation views (.npz)"
     )
     parser.add_argument("--meta", required=True, type=Path, help="output metadata (.json)")
+    parser.add_argument("--metrics", type=Path, default=None, help="output cache of the metric views (.npz)")
     parser.add_argument("--settings", default="{}", help="JSON of the raycache settings")
     parser.add_argument("-v", "--verbose", action="store_true")
     args = parser.parse_args(argv)
     setup_logging(args.verbose)
     with stage_errors("raycache") as status:
-        run(args.input, args.train, args.eval, args.meta, RaycacheSettings.from_json(args.settings))
+        run(
+            args.input,
+            args.train,
+            args.eval,
+            args.meta,
+            RaycacheSettings.from_json(args.settings),
+            args.metrics,
+        )
     return status.code
 
 

@@ -24,7 +24,7 @@ log = logging.getLogger(__name__)
 
 OVERVIEW_KINDS = ("rgb", "diffuse", "roughness", "specular", "normal")
 MESH_STAGES = ("normalize", "decimate", "raycache")
-CELL_STAGES = ("optimize", "bake", "export", "relight")
+CELL_STAGES = ("optimize", "bake", "export", "relight", "metrics")
 
 
 def _read(path: Path) -> dict | None:
@@ -74,10 +74,28 @@ def summary_rows(results: Path, cells: list[tuple[str, str, str]]) -> list[dict]
             "texture_size": bake.get("stats", {}).get("texture_size"),
             "usd_validation_errors": export.get("stats", {}).get("usd_validation_errors"),
         }
+        metrics = _read(cdir / "metrics" / "metrics.json") or {}
+        ev = metrics.get("evaluation") or {}
+        it = metrics.get("image_target") or {}
+        gd = metrics.get("guidance") or {}
+        row.update(
+            {
+                "guidance_similarity": gd.get("similarity"),
+                "eval_weights": ev.get("weights"),
+                "eval_test_only": ev.get("test_only"),
+                "clip_score": ev.get("clip_score"),
+                "r_precision": ev.get("r_precision"),
+                "r_precision_candidates": ev.get("candidates"),
+                "target_psnr_db": it.get("psnr_db"),
+                "target_ssim": it.get("ssim"),
+            }
+        )
         for stage in MESH_STAGES:
             meta = _read(mdir / stage / "meta.json")
             row[f"seconds_{stage}"] = meta["timings_s"]["total"] if meta else None
-        for stage, folder in zip(CELL_STAGES, ("optimize", "bake", "asset", "relight"), strict=True):
+        for stage, folder in zip(
+            CELL_STAGES, ("optimize", "bake", "asset", "relight", "metrics"), strict=True
+        ):
             meta = _read(cdir / folder / "meta.json")
             row[f"seconds_{stage}"] = meta["timings_s"]["total"] if meta else None
         rows.append(row)
@@ -109,18 +127,256 @@ def overview_image(results: Path, cells: list[tuple[str, str, str]], tile: int =
     return np.asarray(canvas)
 
 
-def run(results: Path, cells: list[tuple[str, str, str]], out_dir: Path) -> list[dict]:
+def quality_of(row: dict) -> tuple[float | None, str]:
+    """The quality number of a row and its name: held-out target PSNR for image-guided runs,
+    else the evaluation CLIP score."""
+    if row.get("target_psnr_db") is not None and not _nan(row["target_psnr_db"]):
+        return float(row["target_psnr_db"]), "target PSNR (dB, held-out metric views)"
+    if row.get("clip_score") is not None and not _nan(row["clip_score"]):
+        return float(row["clip_score"]), f"CLIP score ({row.get('eval_weights')})"
+    return None, ""
+
+
+def _nan(x) -> bool:
+    return isinstance(x, float) and x != x
+
+
+def pareto_front(points: list[tuple[float, float]]) -> list[int]:
+    """Indices of the points not dominated in (lower time, higher quality), by time."""
+    order = sorted(range(len(points)), key=lambda i: (points[i][0], -points[i][1]))
+    front, best = [], -float("inf")
+    for i in order:
+        if points[i][1] > best:
+            front.append(i)
+            best = points[i][1]
+    return front
+
+
+def knee_point(points: list[tuple[float, float]], front: list[int]) -> int | None:
+    """The front point farthest from the straight line joining the front's ends (normalised
+    axes): where more time stops buying much quality."""
+    if len(front) < 3:
+        return front[-1] if front else None
+    xs = np.array([points[i][0] for i in front])
+    ys = np.array([points[i][1] for i in front])
+    x = (xs - xs.min()) / max(np.ptp(xs), 1e-12)
+    y = (ys - ys.min()) / max(np.ptp(ys), 1e-12)
+    d = np.abs((y[-1] - y[0]) * x - (x[-1] - x[0]) * y + x[-1] * y[0] - y[-1] * x[0])
+    return front[int(np.argmax(d))]
+
+
+def speed_accuracy(rows: list[dict], results: Path) -> list[dict]:
+    """Per cell: wall time of the optimisation, its peak memory (Snakemake benchmark), quality."""
+    out = []
+    for r in rows:
+        q, qname = quality_of(r)
+        if q is None or r.get("seconds_optimize") is None:
+            continue
+        bench = results / r["mesh"] / r["prompt"] / r["variant"] / "benchmarks" / "optimize.tsv"
+        peak = None
+        if bench.is_file():
+            import pandas as pd
+
+            peak = float(pd.read_csv(bench, sep="\t")["max_rss"].iloc[0])
+        out.append(
+            {
+                "cell": f"{r['mesh']}/{r['prompt']}/{r['variant']}",
+                "variant": r["variant"],
+                "seconds": float(r["seconds_optimize"]),
+                "peak_mb": peak,
+                "quality": q,
+                "quality_name": qname,
+                "weights": r.get("eval_weights") or r.get("weights"),
+                "test_only": bool(r.get("test_only_weights") or r.get("eval_test_only")),
+            }
+        )
+    if out:
+        pts = [(o["seconds"], o["quality"]) for o in out]
+        front = set(pareto_front(pts))
+        knee = knee_point(pts, sorted(front, key=lambda i: pts[i][0]))
+        for i, o in enumerate(out):
+            o["pareto"] = i in front
+            o["knee"] = i == knee
+    return out
+
+
+def plot_pareto(path: Path, points: list[dict]) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.5, 4), dpi=110)
+    for p in points:
+        ax.scatter(p["seconds"], p["quality"], c="tab:red" if p["pareto"] else "tab:gray", s=24, zorder=3)
+        ax.annotate(
+            p["variant"], (p["seconds"], p["quality"]), fontsize=7, xytext=(3, 3), textcoords="offset points"
+        )
+    front = sorted((p for p in points if p["pareto"]), key=lambda p: p["seconds"])
+    ax.plot(
+        [p["seconds"] for p in front], [p["quality"] for p in front], c="tab:red", lw=1, label="Pareto front"
+    )
+    knee = [p for p in points if p["knee"]]
+    if knee:
+        ax.scatter(
+            knee[0]["seconds"], knee[0]["quality"], s=140, facecolors="none", edgecolors="k", label="knee"
+        )
+    ax.set_xscale("log")
+    ax.set_xlabel("optimisation wall time (s)")
+    ax.set_ylabel(points[0]["quality_name"] if points else "quality")
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+    plt.close(fig)
+
+
+def plot_bars(path: Path, rows: list[dict]) -> None:
+    """Mean quality per variant (ablation bars)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    by: dict[str, list[float]] = {}
+    name = ""
+    for r in rows:
+        q, qn = quality_of(r)
+        if q is not None:
+            by.setdefault(r["variant"], []).append(q)
+            name = qn
+    fig, ax = plt.subplots(figsize=(6.5, 3.5), dpi=110)
+    if by:
+        ax.bar(list(by), [float(np.mean(v)) for v in by.values()], color="tab:blue")
+        ax.set_ylabel(name, fontsize=8)
+        ax.tick_params(axis="x", labelrotation=30, labelsize=8)
+    else:
+        ax.text(0.5, 0.5, "no quality metric available", ha="center", va="center")
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+    plt.close(fig)
+
+
+def plot_losses(path: Path, results: Path, cells: list[tuple[str, str, str]]) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import pandas as pd
+
+    fig, ax = plt.subplots(figsize=(6.5, 3.5), dpi=110)
+    for mesh, prompt, variant in cells:
+        f = results / mesh / prompt / variant / "optimize" / "loss.csv"
+        if f.is_file():
+            d = pd.read_csv(f)
+            ax.plot(d["iteration"], d["loss"], lw=0.8, label=f"{mesh}/{prompt}/{variant}")
+    ax.set_xlabel("iteration")
+    ax.set_ylabel("loss")
+    if len(cells) <= 12:
+        ax.legend(fontsize=6)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+    plt.close(fig)
+
+
+def _front_tile(results: Path, cell: tuple[str, str, str], kind: str = "rgb", size: int = 160):
+    from PIL import Image
+
+    mesh, prompt, variant = cell
+    opt = _need(results / mesh / prompt / variant / "optimize" / "meta.json")
+    sh = opt["sheet"]
+    r, c = divmod(sh["front_view"], sh["columns"])
+    t = sh["tile"]
+    img = Image.open(results / mesh / prompt / variant / "optimize" / "renders" / f"{kind}.png")
+    return img.crop((c * t, r * t, (c + 1) * t, (r + 1) * t)).resize((size, size))
+
+
+def labelled_grid(results: Path, rows_: list[str], cols: list[str], cell_of, title: str, size: int = 160):
+    """An image grid with row and column labels; ``cell_of(row, col)`` -> cell or None."""
+    from PIL import Image, ImageDraw
+
+    lw, hh = 160, 36
+    canvas = Image.new("RGB", (lw + size * len(cols), hh + size * len(rows_)), "white")
+    d = ImageDraw.Draw(canvas)
+    d.text((4, 4), title, fill="black")
+    for j, c in enumerate(cols):
+        d.text((lw + j * size + 4, 20), c, fill="black")
+    for i, r in enumerate(rows_):
+        d.text((4, hh + i * size + 6), r, fill="black")
+        for j, c in enumerate(cols):
+            cell = cell_of(r, c)
+            if cell is not None:
+                canvas.paste(_front_tile(results, cell, size=size), (lw + j * size, hh + i * size))
+    return canvas
+
+
+def write_grids(
+    results: Path, cells: list[tuple[str, str, str]], out_dir: Path, decimated: dict
+) -> list[str]:
+    """Per mesh: rows = variants, columns = prompts. Robustness: original vs decimated mesh
+    side by side (meshes sharing a source, one decimated), rows = prompts x variants."""
+    files = []
+    meshes = list(dict.fromkeys(c[0] for c in cells))
+    prompts = list(dict.fromkeys(c[1] for c in cells))
+    variants = list(dict.fromkeys(c[2] for c in cells))
+    present = set(cells)
+    for mesh in meshes:
+        img = labelled_grid(
+            results,
+            variants,
+            prompts,
+            lambda v, p, mesh=mesh: (mesh, p, v) if (mesh, p, v) in present else None,
+            f"{mesh}: rows variants, columns prompts",
+        )
+        name = f"grid_{mesh}.png"
+        with atomic_path(out_dir / name) as tmp:
+            img.save(tmp, format="PNG")
+        files.append(name)
+    pairs = [(orig, dec) for dec, orig in decimated.items() if orig in meshes and dec in meshes]
+    if pairs:
+        rows_ = [f"{p}/{v}" for p in prompts for v in variants]
+        cols = [m for pair in pairs for m in pair]
+
+        def cell_of(r, m):
+            p, v = r.split("/")
+            return (m, p, v) if (m, p, v) in present else None
+
+        img = labelled_grid(results, rows_, cols, cell_of, "robustness: original | decimated")
+        with atomic_path(out_dir / "robustness.png") as tmp:
+            img.save(tmp, format="PNG")
+        files.append("robustness.png")
+    return files
+
+
+def run(
+    results: Path, cells: list[tuple[str, str, str]], out_dir: Path, decimated: dict | None = None
+) -> list[dict]:
+    """Write summary.csv/json, overview.png, the speed/accuracy table and plot, ablation bars,
+    loss curves and image grids into ``out_dir``. ``decimated``: decimated mesh id -> the id of
+    the same source at full resolution (for the robustness grid)."""
     import pandas as pd
     from PIL import Image
 
-    rows = summary_rows(Path(results), cells)
+    results = Path(results)
+    rows = summary_rows(results, cells)
     frame = pd.DataFrame(rows)
     out_dir = Path(out_dir)
     with atomic_path(out_dir / "summary.csv") as tmp:
         frame.to_csv(tmp, index=False)
     with atomic_path(out_dir / "overview.png") as tmp:
-        Image.fromarray(overview_image(Path(results), cells)).save(tmp, format="PNG")
+        Image.fromarray(overview_image(results, cells)).save(tmp, format="PNG")
     write_json_atomic(out_dir / "summary.json", rows)
+    sa = speed_accuracy(rows, results)
+    with atomic_path(out_dir / "speed_accuracy.csv") as tmp:
+        pd.DataFrame(sa).to_csv(tmp, index=False)
+    plot_pareto(out_dir / "pareto.png", sa)
+    plot_bars(out_dir / "ablation_bars.png", rows)
+    plot_losses(out_dir / "loss_curves.png", results, cells)
+    grids = write_grids(results, cells, out_dir, decimated or {})
+    write_json_atomic(out_dir / "figures.json", {"grids": grids})
     log.info("summary of %d cells written to %s", len(rows), out_dir)
     return rows
 
@@ -140,11 +396,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--results", type=Path, default=Path("results"))
     parser.add_argument("--out-dir", type=Path, default=Path("results/report"))
     parser.add_argument("--cells", nargs="+", required=True, help="mesh/prompt/variant ...")
+    parser.add_argument(
+        "--decimated", default="{}", help="JSON: decimated mesh id -> full-resolution mesh id"
+    )
     parser.add_argument("-v", "--verbose", action="store_true")
     args = parser.parse_args(argv)
     setup_logging(args.verbose)
     with stage_errors("report") as status:
-        run(args.results, parse_cells(args.cells), args.out_dir)
+        run(args.results, parse_cells(args.cells), args.out_dir, json.loads(args.decimated))
     return status.code
 
 

@@ -299,3 +299,70 @@ def test_summary_and_pack(trained, tmp_path):
     assert "index.csv" in names
     index = pd.read_csv(results / "index.csv")
     assert index.loc[0, "faces"] == 13440 and index.loc[0, "texture_size"] == 256
+
+
+def reference_ssim(a: np.ndarray, b: np.ndarray) -> float:
+    """SSIM with scipy's Gaussian filter (truncate so the window is 11 wide), valid region."""
+    from scipy.ndimage import gaussian_filter
+
+    c1, c2 = 0.01**2, 0.03**2
+    vals = []
+    for ch in range(a.shape[0]):
+        x, y = a[ch].astype(np.float64), b[ch].astype(np.float64)
+
+        def f(t):
+            return gaussian_filter(t, 1.5, truncate=5 / 1.5, mode="constant")[5:-5, 5:-5]
+
+        mx, my = f(x), f(y)
+        sxx, syy, sxy = f(x * x) - mx**2, f(y * y) - my**2, f(x * y) - mx * my
+        vals.append(((2 * mx * my + c1) * (2 * sxy + c2) / ((mx**2 + my**2 + c1) * (sxx + syy + c2))).mean())
+    return float(np.mean(vals))
+
+
+def test_ssim_and_psnr_against_reference():
+    from stages.metrics import psnr, ssim
+
+    rng = np.random.default_rng(0)
+    a = rng.random((3, 48, 48))
+    b = np.clip(a + rng.normal(0, 0.05, a.shape), 0, 1)
+    ta, tb = torch.from_numpy(a)[None], torch.from_numpy(b)[None]
+    assert ssim(ta, ta) == pytest.approx(1.0, abs=1e-12)
+    assert ssim(ta, tb) == pytest.approx(reference_ssim(a, b), abs=1e-9)
+    assert psnr(ta, tb) == pytest.approx(10 * np.log10(1 / np.mean((a - b) ** 2)), rel=1e-9)
+
+
+def test_metrics_mark_weights_and_rank_prompts(trained, tmp_path):
+    from stages import metrics
+    from stages.raycache import RaycacheSettings
+
+    s = RaycacheSettings(
+        views=1,
+        resolution=16,
+        eval_resolution=16,
+        metrics_azimuths=4,
+        metrics_elevations_deg=(0.0,),
+        metrics_resolution=64,
+    )
+    raycache_run(
+        trained / "mesh.ply",
+        tmp_path / "t.npz",
+        tmp_path / "e.npz",
+        tmp_path / "m.json",
+        s,
+        tmp_path / "metrics.npz",
+    )
+    out = metrics.run(
+        trained / "opt" / "field.pt",
+        tmp_path / "metrics.npz",
+        "a candle made of wax",
+        ["a candle made of wax", "a candle made of gold", "a candle made of ice"],
+        tmp_path / "met",
+        metrics.MetricsSettings(clip_tiny_test=True),
+    )
+    ev = out["evaluation"]
+    assert ev["test_only"] is True and "TEST ONLY" in ev["weights"]
+    assert ev["candidates"] == 3 and ev["views"] == 4 and 0 <= ev["r_precision"] <= 1
+    assert out["guidance"]["test_only"] is True
+    assert out["protocol"]["fov_deg"] == 45.0 and out["protocol"]["radius"] == 2.5
+    saved = json.loads((tmp_path / "met" / "metrics.json").read_text())
+    assert saved["evaluation"]["clip_score"] == pytest.approx(ev["clip_score"])

@@ -107,16 +107,11 @@ def optimize_settings_json(wildcards):
 
 
 def check_clip_weights():
-    """Before any job runs: stop at once when real CLIP weights are needed but unavailable."""
-    if not CFG.clip_cells():
-        return
-    from stages.guidance import ClipSpec, ClipWeightsUnavailable, resolve_weights
+    """Before any job runs: stop at once when real CLIP weights (for guidance or for the
+    evaluation metrics) are needed but unavailable."""
+    from stages.guidance import ClipWeightsUnavailable, resolve_weights
 
-    specs = set()
-    for cell in CFG.clip_cells():
-        s = CFG.optimize_settings(cell.prompt, cell.variant)
-        specs.add(ClipSpec(s.clip_model, s.clip_pretrained, s.clip_checkpoint))
-    for spec in sorted(specs, key=str):
+    for spec in CFG.clip_specs():
         try:
             resolve_weights(spec)
         except ClipWeightsUnavailable as exc:
@@ -193,6 +188,14 @@ def relight_inputs(wildcards):
     return inputs
 
 
+def decimation_pairs_json(wildcards):
+    return json.dumps(CFG.decimation_pairs())
+
+
+def candidates_json(wildcards):
+    return json.dumps(CFG.candidate_prompts(wildcards.mesh))
+
+
 def cell_metas(rel):
     return [f"{RESULTS}/{c.mesh}/{c.prompt}/{c.variant}/{rel}" for c in CFG.cells]
 
@@ -201,6 +204,11 @@ def results_root(wildcards, input):
     """Params function: the results folder, from the first cell file among the inputs
     (``<results>/<mesh>/<prompt>/<variant>/<stage>/meta.json``)."""
     return str(Path(input[0]).parents[4])
+
+
+def results_root_from_assets(wildcards, input):
+    """Params function: the results folder, from the cells' asset metadata inputs."""
+    return str(Path(input.assets[0]).parents[4])
 
 
 def output_folder(wildcards, output):
@@ -217,4 +225,5 @@ def all_targets():
         f"{RESULTS}/report/summary.csv",
         f"{RESULTS}/report/overview.png",
         f"{RESULTS}/report/asset_pack.zip",
+        f"{RESULTS}/report/index.html",
     ]

@@ -4,6 +4,7 @@ rule report:
         cell_metas("bake/meta.json"),
         cell_metas("asset/meta.json"),
         cell_metas("relight/meta.json"),
+        cell_metas("metrics/metrics.json"),
     output:
         summary=report(
             f"{RESULTS}/report/summary.csv",
@@ -16,6 +17,23 @@ rule report:
             caption="../report/overview.rst",
             category="Summary",
         ),
+        speed_accuracy=f"{RESULTS}/report/speed_accuracy.csv",
+        pareto=report(
+            f"{RESULTS}/report/pareto.png",
+            caption="../report/pareto.rst",
+            category="Speed/accuracy",
+        ),
+        bars=report(
+            f"{RESULTS}/report/ablation_bars.png",
+            caption="../report/bars.rst",
+            category="Ablations",
+        ),
+        losses=report(
+            f"{RESULTS}/report/loss_curves.png",
+            caption="../report/losses.rst",
+            category="Training",
+        ),
+        figures=f"{RESULTS}/report/figures.json",
     log:
         f"{RESULTS}/report/logs/report.log",
     benchmark:
@@ -26,9 +44,10 @@ rule report:
         cells=cell_ids(),
         results=results_root,
         out_dir=output_folder,
+        decimated=decimation_pairs_json,
     shell:
         "python -m stages.report --results {params.results:q} --out-dir {params.out_dir:q} "
-        "--cells {params.cells} 2> {log:q}"
+        "--cells {params.cells} --decimated {params.decimated:q} 2> {log:q}"
 
 
 rule pack:
@@ -49,3 +68,25 @@ rule pack:
     shell:
         "python -m stages.pack --results {params.results:q} --zip {output.zip:q} "
         "--index {output.index:q} --cells {params.cells} 2> {log:q}"
+
+
+rule html_report:
+    input:
+        summary=f"{RESULTS}/report/summary.csv",
+        figures=f"{RESULTS}/report/figures.json",
+        assets=cell_metas("asset/meta.json"),
+    output:
+        html=f"{RESULTS}/report/index.html",
+    log:
+        f"{RESULTS}/report/logs/html_report.log",
+    benchmark:
+        f"{RESULTS}/report/benchmarks/html_report.tsv"
+    conda:
+        CONDA_ENV
+    params:
+        cells=cell_ids(),
+        results=results_root_from_assets,
+        report_dir=output_folder,
+    shell:
+        "python -m stages.html_report --results {params.results:q} --report-dir {params.report_dir:q} "
+        "--out {output.html:q} --cells {params.cells} 2> {log:q}"

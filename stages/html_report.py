@@ -1,0 +1,147 @@
+"""html_report: one static, self-contained HTML page over every grid cell.
+
+Tables (the summary, split so that numbers from real CLIP weights, from the tiny test-only CLIP and
+from image targets never share a table), the speed/accuracy table, plots (loss curves, Pareto
+front, ablation bars), image grids (variants x prompts per mesh; original vs decimated), and for
+each cell an interactive 3D viewer of its GLB (Google's <model-viewer>, bundled from the npm
+package into the page: no CDN, no network). Images and models are embedded as data URIs, so the
+single file opens anywhere, including from disk.
+"""
+
+from __future__ import annotations
+
+import argparse
+import base64
+import html
+import json
+import logging
+from pathlib import Path
+
+import pandas as pd
+
+from .errors import StageInputError, stage_errors
+from .provenance import atomic_path, setup_logging
+from .report import parse_cells
+
+log = logging.getLogger(__name__)
+
+REPO = Path(__file__).resolve().parents[1]
+MODEL_VIEWER = REPO / "node_modules" / "@google" / "model-viewer" / "dist" / "model-viewer-umd.min.js"
+
+CSS = """
+body{font-family:system-ui,sans-serif;margin:24px;color:#222;max-width:1400px}
+h1{font-size:22px} h2{font-size:18px;margin-top:32px;border-bottom:1px solid #ddd}
+table{border-collapse:collapse;font-size:12px;margin:8px 0}
+td,th{border:1px solid #ccc;padding:3px 6px;text-align:right} th{background:#f3f3f3}
+td:first-child,th:first-child{text-align:left}
+.cells{display:flex;flex-wrap:wrap;gap:16px}
+.cell{border:1px solid #ddd;padding:8px;width:420px}
+model-viewer{width:400px;height:320px;background:#eee}
+img{max-width:100%} .note{color:#a00;font-weight:bold}
+"""
+
+
+def data_uri(path: Path, mime: str) -> str:
+    return f"data:{mime};base64," + base64.b64encode(Path(path).read_bytes()).decode("ascii")
+
+
+def table(frame: pd.DataFrame) -> str:
+    return frame.to_html(index=False, float_format=lambda x: f"{x:.4g}", na_rep="", border=0, escape=True)
+
+
+def group_rows(frame: pd.DataFrame) -> list[tuple[str, pd.DataFrame]]:
+    """Split rows so that real, test-only and image-guided numbers never share a table."""
+    test = frame["test_only_weights"].fillna(False).astype(bool)
+    if "eval_test_only" in frame:
+        test |= frame["eval_test_only"].fillna(False).astype(bool)
+    image = frame["guidance"].astype(str).str.startswith("image")
+    groups = [
+        ("CLIP-guided with real weights", frame[~test & ~image]),
+        ("Image-guided (procedural targets; verification, no CLIP)", frame[image & ~test]),
+        ("TEST ONLY: tiny random CLIP (not real stylisations; never compare with the above)", frame[test]),
+    ]
+    return [(t, f) for t, f in groups if len(f)]
+
+
+def build(results: Path, report_dir: Path, cells: list[tuple[str, str, str]], out: Path) -> int:
+    if not MODEL_VIEWER.is_file():
+        raise StageInputError(
+            MODEL_VIEWER,
+            "model-viewer is not installed",
+            "Run 'npm ci' in the repository (scripts/setup.sh does).",
+        )
+    frame = pd.read_csv(report_dir / "summary.csv")
+    parts = [
+        f"<!doctype html><html><head><meta charset='utf-8'><title>tango-stylize report</title><style>{CSS}</style>"
+    ]
+    parts.append(f"<script>{MODEL_VIEWER.read_text()}</script></head><body>")
+    parts.append(f"<h1>tango-stylize report: {len(cells)} grid cells</h1>")
+    parts.append("<h2>Summary</h2>")
+    for title, sub in group_rows(frame):
+        cls = " class='note'" if title.startswith("TEST ONLY") else ""
+        parts.append(f"<h3{cls}>{html.escape(title)}</h3>")
+        parts.append(table(sub))
+    sa = report_dir / "speed_accuracy.csv"
+    if sa.is_file() and sa.stat().st_size > 1:
+        try:
+            sa_frame = pd.read_csv(sa)
+        except pd.errors.EmptyDataError:
+            sa_frame = pd.DataFrame()
+        if len(sa_frame):
+            parts.append("<h2>Speed / accuracy</h2>")
+            parts.append(table(sa_frame))
+    parts.append("<h2>Figures</h2>")
+    figures = ["overview.png", "pareto.png", "ablation_bars.png", "loss_curves.png"]
+    fj = report_dir / "figures.json"
+    if fj.is_file():
+        figures += json.loads(fj.read_text()).get("grids", [])
+    for name in figures:
+        if (report_dir / name).is_file():
+            parts.append(
+                f"<h3>{html.escape(name)}</h3><img alt='{html.escape(name)}' src='{data_uri(report_dir / name, 'image/png')}'>"
+            )
+    parts.append("<h2>Assets</h2><div class='cells'>")
+    models = 0
+    for mesh, prompt, variant in cells:
+        cdir = results / mesh / prompt / variant
+        glb = cdir / "asset" / "model.glb"
+        row = frame[(frame["mesh"] == mesh) & (frame["prompt"] == prompt) & (frame["variant"] == variant)]
+        label = html.escape(f"{mesh} / {prompt} / {variant}")
+        text = html.escape(str(row["prompt_text"].iloc[0])) if len(row) else ""
+        weights = html.escape(str(row["weights"].iloc[0])) if len(row) else ""
+        parts.append(f"<div class='cell'><b>{label}</b><br>{text}<br><small>{weights}</small><br>")
+        if glb.is_file():
+            parts.append(
+                f"<model-viewer src='{data_uri(glb, 'model/gltf-binary')}' alt='{label}' camera-controls "
+                "loading='eager' reveal='auto' shadow-intensity='0.5' exposure='1' interaction-prompt='none'></model-viewer>"
+            )
+            models += 1
+        edit = cdir / "relight" / "material_edit.png"
+        if edit.is_file():
+            parts.append(
+                f"<br><small>material editing (rows: roughness x, columns: specular x)</small>"
+                f"<img src='{data_uri(edit, 'image/png')}'>"
+            )
+        parts.append("</div>")
+    parts.append("</div></body></html>")
+    with atomic_path(out) as tmp:
+        tmp.write_text("".join(parts))
+    log.info("wrote %s (%d viewers, %.1f MB)", out, models, out.stat().st_size / 1e6)
+    return models
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m stages.html_report", description=__doc__.split("\n")[0])
+    parser.add_argument("--results", type=Path, default=Path("results"))
+    parser.add_argument("--report-dir", type=Path, default=Path("results/report"))
+    parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--cells", nargs="+", required=True)
+    args = parser.parse_args(argv)
+    setup_logging()
+    with stage_errors("html_report") as status:
+        build(args.results, args.report_dir, parse_cells(args.cells), args.out)
+    return status.code
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

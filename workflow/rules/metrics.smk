@@ -1,0 +1,24 @@
+rule metrics:
+    input:
+        field=f"{CELL}/optimize/field.pt",
+        cache=f"{RESULTS}/{{mesh}}/raycache/metrics.npz",
+    output:
+        metrics=f"{CELL}/metrics/metrics.json",
+        views=f"{CELL}/metrics/views.png",
+        meta=f"{CELL}/metrics/meta.json",
+    log:
+        f"{CELL}/logs/metrics.log",
+    benchmark:
+        f"{CELL}/benchmarks/metrics.tsv"
+    conda:
+        CONDA_ENV
+    threads: 2
+    params:
+        prompt=prompt_text,
+        candidates=candidates_json,
+        out_dir=cell_dir("metrics"),
+        settings=cell_settings_json("metrics"),
+    shell:
+        "python -m stages.metrics --field {input.field:q} --metrics-cache {input.cache:q} "
+        "--prompt {params.prompt:q} --candidates {params.candidates:q} --out-dir {params.out_dir:q} "
+        "--settings {params.settings:q} --threads {threads} 2> {log:q}"
