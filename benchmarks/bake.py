@@ -68,9 +68,7 @@ def child(faces: str, size: int, decimate_to: int | None) -> dict:
         atlas = {"uv": res.atlas.uv, "tangent": res.tangents, "handedness": res.handedness}
         geom = faceted(mesh, atlas, tf)
         write_usd(d / "model.usda", geom, 1.0, "light.exr")
-        package_usdz(
-            d / "model.usda", d / "model.usdz", [f"textures/{k}.png" for k in res.textures] + ["light.exr"]
-        )
+        package_usdz(d / "model.usda", d / "model.usdz", [f"textures/{k}.png" for k in res.textures] + ["light.exr"])
         write_glb(d / "model.glb", geom, d / "textures", 1.0, "bench")
         t["export"] = time.perf_counter() - t0
         sizes = {k: (d / k).stat().st_size for k in ("model.usdz", "model.glb")}

@@ -48,12 +48,8 @@ PARTS = ("gather", "mlp", "shading", "clip", "optimizer")
 def build_cache(tmp: Path) -> tuple[Path, str]:
     src = SHARED / "person.obj"
     name = "person.obj" if src.is_file() else "builtin:vase"
-    save_ply(
-        tmp / "mesh.ply", normalize_mesh(src if src.is_file() else "builtin:vase", NormalizeSettings()).mesh
-    )
-    rc = RaycacheSettings(
-        views=8, resolution=512, eval_azimuths=1, eval_elevations_deg=(0.0,), eval_resolution=64
-    )
+    save_ply(tmp / "mesh.ply", normalize_mesh(src if src.is_file() else "builtin:vase", NormalizeSettings()).mesh)
+    rc = RaycacheSettings(views=8, resolution=512, eval_azimuths=1, eval_elevations_deg=(0.0,), eval_resolution=64)
     raycache_run(tmp / "mesh.ply", tmp / "train.npz", tmp / "eval.npz", tmp / "rc.json", rc)
     return tmp / "train.npz", name
 
@@ -213,10 +209,7 @@ def main() -> None:
         flops = mlp_flops_per_point(opt.field)
         mlp_floor = flops * points / rate
         floor_s = clip_s + mlp_floor
-        print(
-            f"# mesh {mesh_name}, ray cache 512x512, torch threads {args.threads}, "
-            "CLIP ViT-B-32 (random weights)"
-        )
+        print(f"# mesh {mesh_name}, ray cache 512x512, torch threads {args.threads}, CLIP ViT-B-32 (random weights)")
         print("# paper counts: 1 view, 1 global + 4 crops at 224, width 256, 32 lobes")
         print(f"{'part':<22}{'s/iter':>10}")
         for k in ("gather", "mlp", "shading", "clip", "optimizer"):
@@ -237,9 +230,7 @@ def main() -> None:
             o = make_optimizer(s, train, guide)
             t, p = step_time(o, max(2, args.steps // 2))
             rows[(width, crops, spp)] = t
-            print(
-                f"{width:>6}{crops:>6}{spp:>5}{p:>9.0f}{t:>9.3f}{mlp_flops_per_point(o.field) / 1e6:>10.2f}"
-            )
+            print(f"{width:>6}{crops:>6}{spp:>5}{p:>9.0f}{t:>9.3f}{mlp_flops_per_point(o.field) / 1e6:>10.2f}")
         err = supersampling_error(opt)
         print(f"# supersampling benefit: RMSE vs 4 spp: 1 spp {err[1]:.4f}, 2 spp {err[2]:.4f}")
     kv = {

@@ -72,10 +72,7 @@ def main() -> None:
         print(f"# {person} absent: measuring the generated mesh only")
     rows = {}
     header = ("mesh", "faces", "width", "coverage", "trace Mray/s", "total Mray/s", "bytes/view")
-    print(
-        f"{header[0]:<10}"
-        + "".join(f"{h:>{w}}" for h, w in zip(header[1:], (8, 7, 10, 14, 14, 12), strict=True))
-    )
+    print(f"{header[0]:<10}" + "".join(f"{h:>{w}}" for h, w in zip(header[1:], (8, 7, 10, 14, 14, 12), strict=True)))
     for name, mesh in meshes.items():
         for width in (224, 512):
             r = measure(mesh, width, args.views)

@@ -257,13 +257,7 @@ def bake_field(mesh: TriMesh, field, settings: BakeSettings, device="cpu", chunk
     light = field.light()
     h = settings.light_width // 2
     dirs = equirect_directions(h, settings.light_width).to(device)
-    env = (
-        light.radiance(dirs.reshape(-1, 3))
-        .reshape(h, settings.light_width, 3)
-        .cpu()
-        .numpy()
-        .astype(np.float32)
-    )
+    env = light.radiance(dirs.reshape(-1, 3)).reshape(h, settings.light_width, 3).cpu().numpy().astype(np.float32)
     return BakeResult(atlas, textures, t, w, float(filled.mean()), env)
 
 
@@ -277,12 +271,7 @@ def sample_bilinear(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
     x1, y1 = np.minimum(x0 + 1, s - 1), np.minimum(y0 + 1, s - 1)
     fx, fy = (x - x0)[:, None], (y - y0)[:, None]
     im = img.astype(np.float64)
-    return (
-        im[y0, x0] * (1 - fx) * (1 - fy)
-        + im[y0, x1] * fx * (1 - fy)
-        + im[y1, x0] * (1 - fx) * fy
-        + im[y1, x1] * fx * fy
-    )
+    return im[y0, x0] * (1 - fx) * (1 - fy) + im[y0, x1] * fx * (1 - fy) + im[y1, x0] * (1 - fx) * fy + im[y1, x1] * fx * fy
 
 
 def decode_textures(textures: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -357,9 +346,7 @@ def run(
         write_hdr(out_dir / "light.hdr", res.light_equirect)
         with atomic_path(out_dir / "atlas.npz") as tmp:
             with open(tmp, "wb") as fh:
-                np.savez(
-                    fh, uv=res.atlas.uv.astype(np.float32), tangent=res.tangents, handedness=res.handedness
-                )
+                np.savez(fh, uv=res.atlas.uv.astype(np.float32), tangent=res.tangents, handedness=res.handedness)
     # fidelity: baked asset vs neural field from the evaluation views
     with timer("fidelity"):
         evalc = RayCache(eval_path)
@@ -452,9 +439,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.threads:
         torch.set_num_threads(args.threads)
     with stage_errors("bake") as status:
-        run(
-            args.mesh, args.field, args.eval, args.out_dir, BakeSettings.from_json(args.settings), args.device
-        )
+        run(args.mesh, args.field, args.eval, args.out_dir, BakeSettings.from_json(args.settings), args.device)
     return status.code
 
 

@@ -72,7 +72,5 @@ def import_open_clip():
         _patch_torchvision_ops()
         import open_clip
     except ImportError as exc:
-        raise ImportError(
-            "CLIP guidance needs open_clip_torch (and torchvision): pip install open_clip_torch"
-        ) from exc
+        raise ImportError("CLIP guidance needs open_clip_torch (and torchvision): pip install open_clip_torch") from exc
     return open_clip

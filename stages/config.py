@@ -50,10 +50,7 @@ def _describe(error) -> str:
                 f"preset and per-cell stage overrides ({', '.join(allowed)}); mesh-level stages are "
                 "overridden per mesh"
             )
-        return (
-            f"unknown key(s) {', '.join(repr(k) for k in extra)} at {where}; "
-            f"allowed keys: {', '.join(allowed) or '(none)'}"
-        )
+        return f"unknown key(s) {', '.join(repr(k) for k in extra)} at {where}; allowed keys: {', '.join(allowed) or '(none)'}"
     if v == "required":
         return f"missing required key at {where}: {error.message}"
     if v == "oneOf" and error.absolute_path and error.absolute_path[0] == "meshes":
@@ -94,9 +91,7 @@ class WorkflowConfig:
         self.raw = copy.deepcopy(config)
         self.source = source
         self.meshes: dict[str, dict] = self.raw["meshes"]
-        self.prompts: dict[str, str] = {
-            k: (v if isinstance(v, str) else v["text"]) for k, v in self.raw["prompts"].items()
-        }
+        self.prompts: dict[str, str] = {k: (v if isinstance(v, str) else v["text"]) for k, v in self.raw["prompts"].items()}
         self.prompt_presets: dict[str, str | None] = {
             k: (None if isinstance(v, str) else v.get("preset")) for k, v in self.raw["prompts"].items()
         }
@@ -111,9 +106,7 @@ class WorkflowConfig:
                 if m not in self.meshes:
                     problems.append(f"grid -> {i} -> mesh: {m!r} is not a mesh id ({', '.join(self.meshes)})")
                 if p not in self.prompts:
-                    problems.append(
-                        f"grid -> {i} -> prompt: {p!r} is not a prompt id ({', '.join(self.prompts)})"
-                    )
+                    problems.append(f"grid -> {i} -> prompt: {p!r} is not a prompt id ({', '.join(self.prompts)})")
             if problems:
                 raise ConfigError(f"{source}: " + "; ".join(problems))
         self.pairs = list(dict.fromkeys(pairs))
@@ -224,11 +217,7 @@ class WorkflowConfig:
     def decimation_pairs(self) -> dict[str, str]:
         """Decimated mesh id -> a full-resolution mesh id with the same source (robustness)."""
         full = {self.mesh_source(m): m for m in self.grid_meshes if not self.decimated(m)}
-        return {
-            m: full[self.mesh_source(m)]
-            for m in self.grid_meshes
-            if self.decimated(m) and self.mesh_source(m) in full
-        }
+        return {m: full[self.mesh_source(m)] for m in self.grid_meshes if self.decimated(m) and self.mesh_source(m) in full}
 
     def candidate_prompts(self, mesh_id: str) -> list[str]:
         """The texts of every prompt of the grid, for ``mesh_id`` (R-precision candidates)."""

@@ -113,12 +113,8 @@ def decimate_mesh(mesh: TriMesh, settings: DecimateSettings) -> DecimateResult:
     dec = ms.mesh(1)
     out = TriMesh(np.asarray(dec.vertex_matrix(), np.float64), np.asarray(dec.face_matrix(), np.int64))
     n = settings.hausdorff_samples
-    fwd = ms.get_hausdorff_distance(
-        sampledmesh=0, targetmesh=1, samplevert=True, sampleface=True, samplenum=n
-    )
-    bwd = ms.get_hausdorff_distance(
-        sampledmesh=1, targetmesh=0, samplevert=True, sampleface=True, samplenum=n
-    )
+    fwd = ms.get_hausdorff_distance(sampledmesh=0, targetmesh=1, samplevert=True, sampleface=True, samplenum=n)
+    bwd = ms.get_hausdorff_distance(sampledmesh=1, targetmesh=0, samplevert=True, sampleface=True, samplenum=n)
     radius = np.linalg.norm(out.vertices, axis=1)
     stats = {
         "faces_before": faces_before,

@@ -49,9 +49,7 @@ def procedural_envmap(name: str, height: int = 128) -> np.ndarray:
     return img.astype(np.float32)
 
 
-def fit_sg_light(
-    env: np.ndarray, lobes: int = 64, iterations: int = 400, seed: int = 0
-) -> tuple[SGLight, float]:
+def fit_sg_light(env: np.ndarray, lobes: int = 64, iterations: int = 400, seed: int = 0) -> tuple[SGLight, float]:
     """Fit ``lobes`` RGB SG lobes to an equirectangular ``env (H, W, 3)`` by least squares
     weighted by solid angle (Adam). Returns the light and the relative RMS error of the fit."""
     from .networks import SGLightModule
@@ -96,9 +94,7 @@ def fit_sg_light(
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
-        prog="python -m stages.envmap", description="Write a procedural environment map."
-    )
+    parser = argparse.ArgumentParser(prog="python -m stages.envmap", description="Write a procedural environment map.")
     parser.add_argument("--name", required=True, choices=PROCEDURAL)
     parser.add_argument("--out", required=True, type=Path, help="output .hdr")
     parser.add_argument("--height", type=int, default=128)

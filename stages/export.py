@@ -116,9 +116,7 @@ def write_usd(path: Path, geom: Faceted, meters_per_unit: float, light_file: str
     lo, hi = geom.positions.min(0), geom.positions.max(0)
     mesh.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(*map(float, lo)), Gf.Vec3f(*map(float, hi))]))
     st = np.stack([geom.uv[:, 0], 1.0 - geom.uv[:, 1]], axis=1).astype(np.float32)
-    pv = UsdGeom.PrimvarsAPI(mesh).CreatePrimvar(
-        "st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.vertex
-    )
+    pv = UsdGeom.PrimvarsAPI(mesh).CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.vertex)
     pv.Set(Vt.Vec2fArray.FromNumpy(st))
 
     mat = UsdShade.Material.Define(stage, "/Asset/Looks/TangoMaterial")
@@ -150,15 +148,11 @@ def write_usd(path: Path, geom: Faceted, meters_per_unit: float, light_file: str
     surf.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).ConnectToSource(base.ConnectableAPI(), "rgb")
     spec = texture("SpecularTexture", TEXTURE_FILES["specular"], "sRGB")
     spec.CreateOutput("rgb", Sdf.ValueTypeNames.Float3)
-    surf.CreateInput("specularColor", Sdf.ValueTypeNames.Color3f).ConnectToSource(
-        spec.ConnectableAPI(), "rgb"
-    )
+    surf.CreateInput("specularColor", Sdf.ValueTypeNames.Color3f).ConnectToSource(spec.ConnectableAPI(), "rgb")
     rough = texture("RoughnessTexture", TEXTURE_FILES["metallic_roughness"], "raw")
     rough.CreateOutput("g", Sdf.ValueTypeNames.Float)
     surf.CreateInput("roughness", Sdf.ValueTypeNames.Float).ConnectToSource(rough.ConnectableAPI(), "g")
-    nrm = texture(
-        "NormalTexture", TEXTURE_FILES["normal"], "raw", (2.0, 2.0, 2.0, 1.0), (-1.0, -1.0, -1.0, 0.0)
-    )
+    nrm = texture("NormalTexture", TEXTURE_FILES["normal"], "raw", (2.0, 2.0, 2.0, 1.0), (-1.0, -1.0, -1.0, 0.0))
     nrm.CreateOutput("rgb", Sdf.ValueTypeNames.Float3)
     surf.CreateInput("normal", Sdf.ValueTypeNames.Normal3f).ConnectToSource(nrm.ConnectableAPI(), "rgb")
     UsdShade.MaterialBindingAPI.Apply(mesh.GetPrim()).Bind(mat)
@@ -194,11 +188,7 @@ def validate_usd(path: Path) -> list[str]:
     registry = UsdValidation.ValidationRegistry()
     context = UsdValidation.ValidationContext(registry.GetOrLoadAllValidators())
     errors = context.Validate(stage)
-    return [
-        f"{e.GetName()}: {e.GetMessage()}"
-        for e in errors
-        if e.GetType() == UsdValidation.ValidationErrorType.Error
-    ]
+    return [f"{e.GetName()}: {e.GetMessage()}" for e in errors if e.GetType() == UsdValidation.ValidationErrorType.Error]
 
 
 # ----------------------------------------------------------------------------------------- glTF
@@ -333,9 +323,7 @@ def run(
     stats = {
         "faces": len(mesh.faces),
         "vertices_exported": len(geom.positions),
-        "texture_size": int(
-            np.asarray(__import__("PIL.Image").Image.open(out_dir / TEXTURE_FILES["basecolor"]).size)[0]
-        ),
+        "texture_size": int(np.asarray(__import__("PIL.Image").Image.open(out_dir / TEXTURE_FILES["basecolor"]).size)[0]),
         "usd_validation_errors": 0,
         "bounds": [geom.positions.min(0).tolist(), geom.positions.max(0).tolist()],
     }

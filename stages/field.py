@@ -65,9 +65,7 @@ class StyleField(nn.Module):
         """The points as the networks see them (``(x, y, |z|)`` under the symmetry prior)."""
         return symmetric(points) if self.symmetry else points
 
-    def forward(
-        self, points: Tensor, normals: Tensor, view: Tensor, light: SGLight | None = None
-    ) -> FieldOutput:
+    def forward(self, points: Tensor, normals: Tensor, view: Tensor, light: SGLight | None = None) -> FieldOutput:
         """Shade hit ``points (N, 3)`` with flat ``normals (N, 3)`` seen along ``view (N, 3)``
         (unit, surface -> eye). Geometric normals are first turned towards the viewer (two-sided
         surfaces: the inside of an open vase is visible)."""

@@ -85,8 +85,7 @@ def resolve_weights(spec: ClipSpec) -> tuple[str, str, bool]:
     cfg = open_clip.get_pretrained_cfg(spec.model, spec.pretrained)
     if not cfg:
         raise ClipWeightsUnavailable(
-            f"open_clip has no pretrained weights {spec.pretrained!r} for model {spec.model!r} "
-            "(see open_clip.list_pretrained())."
+            f"open_clip has no pretrained weights {spec.pretrained!r} for model {spec.model!r} (see open_clip.list_pretrained())."
         )
     weights_id = f"{spec.model}/{spec.pretrained}"
     quick_gelu = bool(cfg.get("quick_gelu", False))
@@ -96,8 +95,7 @@ def resolve_weights(spec: ClipSpec) -> tuple[str, str, bool]:
             return cached, weights_id, quick_gelu
     if not _hub_reachable():
         raise ClipWeightsUnavailable(
-            f"CLIP weights {weights_id} are not cached on this machine and the model hub is "
-            f"unreachable (offline). {how}"
+            f"CLIP weights {weights_id} are not cached on this machine and the model hub is unreachable (offline). {how}"
         )
     from open_clip.pretrained import download_pretrained
 
@@ -110,9 +108,7 @@ def resolve_weights(spec: ClipSpec) -> tuple[str, str, bool]:
 class ClipGuide:
     """A frozen CLIP that embeds prompts and images (images in [0, 1], ``(B, 3, S, S)``)."""
 
-    def __init__(
-        self, model, tokenizer, *, image_size: int, weights_id: str, test_only: bool, device, bf16: bool
-    ):
+    def __init__(self, model, tokenizer, *, image_size: int, weights_id: str, test_only: bool, device, bf16: bool):
         self.model = model.eval().requires_grad_(False).to(device)
         self.tokenizer = tokenizer
         self.image_size = image_size

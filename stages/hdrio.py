@@ -103,9 +103,7 @@ def read_envmap(path: str | Path) -> np.ndarray:
     elif path.suffix.lower() == ".exr":
         img = read_exr(path)
     else:
-        raise StageInputError(
-            path, f"unsupported environment map format {path.suffix!r}", "Use .hdr or .exr."
-        )
+        raise StageInputError(path, f"unsupported environment map format {path.suffix!r}", "Use .hdr or .exr.")
     if img.ndim != 3 or img.shape[1] != 2 * img.shape[0]:
         raise StageInputError(path, f"is {img.shape[1]}x{img.shape[0]}, not a 2:1 equirectangular map")
     if not np.isfinite(img).all():

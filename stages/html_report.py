@@ -71,9 +71,7 @@ def build(results: Path, report_dir: Path, cells: list[tuple[str, str, str]], ou
             "Run 'npm ci' in the repository (scripts/setup.sh does).",
         )
     frame = pd.read_csv(report_dir / "summary.csv")
-    parts = [
-        f"<!doctype html><html><head><meta charset='utf-8'><title>tango-stylize report</title><style>{CSS}</style>"
-    ]
+    parts = [f"<!doctype html><html><head><meta charset='utf-8'><title>tango-stylize report</title><style>{CSS}</style>"]
     parts.append(f"<script>{MODEL_VIEWER.read_text()}</script></head><body>")
     parts.append(f"<h1>tango-stylize report: {len(cells)} grid cells</h1>")
     parts.append("<h2>Summary</h2>")

@@ -146,9 +146,7 @@ def compose(colors: Tensor, lookup: np.ndarray, spec: ImageSpec, bg: Tensor) -> 
     if spec.supersample > 1:
         img = F.avg_pool2d(img[None], spec.supersample)[0]
     elif h != spec.out_size:
-        img = F.interpolate(
-            img[None], size=(spec.out_size, spec.out_size), mode="bilinear", align_corners=False
-        )[0]
+        img = F.interpolate(img[None], size=(spec.out_size, spec.out_size), mode="bilinear", align_corners=False)[0]
     return img
 
 

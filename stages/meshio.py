@@ -144,8 +144,7 @@ def check_mesh(mesh: TriMesh, name: str) -> TriMesh:
         raise StageInputError(
             name,
             f"has no faces ({len(vertices)} vertices, 0 faces: {what})",
-            "Supply a triangle mesh; a point cloud must be meshed first (e.g. MeshLab's "
-            "screened Poisson reconstruction).",
+            "Supply a triangle mesh; a point cloud must be meshed first (e.g. MeshLab's screened Poisson reconstruction).",
         )
     if faces.ndim != 2 or faces.shape[1] != 3:
         raise StageInputError(name, f"faces have shape {faces.shape}, expected (F, 3)")
@@ -161,8 +160,7 @@ def check_mesh(mesh: TriMesh, name: str) -> TriMesh:
         raise StageInputError(
             name,
             f"{int(bad.sum())} of {len(used)} vertices used by faces have NaN or infinite coordinates",
-            "Repair or re-export the mesh (e.g. MeshLab: Remove Duplicate/Unreferenced Vertices "
-            "after fixing the exporter).",
+            "Repair or re-export the mesh (e.g. MeshLab: Remove Duplicate/Unreferenced Vertices after fixing the exporter).",
         )
     remap = np.full(len(vertices), -1, dtype=np.int64)
     remap[used] = np.arange(len(used))

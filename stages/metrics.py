@@ -88,9 +88,7 @@ def render_metric_views(field, store, background: str) -> torch.Tensor:
         needed, (lookup,) = gather_points([spec], v.index)
         sel = torch.from_numpy(needed).to(v.points.device)
         col = linear_to_srgb(field(v.points[sel], v.normals[sel], v.view[sel]).shading.rgb)
-        bg = torch.full(
-            (3, store.width, store.width), 1.0 if background == "white" else 0.0, device=col.device
-        )
+        bg = torch.full((3, store.width, store.width), 1.0 if background == "white" else 0.0, device=col.device)
         imgs.append(compose(col, lookup, spec, bg))
     return torch.stack(imgs)
 
@@ -227,9 +225,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--field", required=True, type=Path)
     parser.add_argument("--metrics-cache", required=True, type=Path)
     parser.add_argument("--prompt", required=True)
-    parser.add_argument(
-        "--candidates", default="[]", help="JSON list of the grid's prompt texts for this mesh"
-    )
+    parser.add_argument("--candidates", default="[]", help="JSON list of the grid's prompt texts for this mesh")
     parser.add_argument("--out-dir", required=True, type=Path)
     parser.add_argument("--settings", default="{}")
     parser.add_argument("--device", default="cpu")

@@ -36,9 +36,7 @@ class FourierFeatures(nn.Module):
     with ``B (count, in_dim)`` drawn once from N(0, sigma^2) by ``generator`` (a fixed buffer).
     ``x (N, in_dim)`` -> ``(N, in_dim + 2 count)``."""
 
-    def __init__(
-        self, count: int, sigma: float, in_dim: int = 3, generator: torch.Generator | None = None
-    ) -> None:
+    def __init__(self, count: int, sigma: float, in_dim: int = 3, generator: torch.Generator | None = None) -> None:
         super().__init__()
         self.register_buffer("B", torch.randn(count, in_dim, generator=generator) * sigma)
         self.out_dim = in_dim + 2 * count
@@ -62,9 +60,7 @@ class NerfEncoding(nn.Module):
         return torch.cat([x, torch.sin(xf), torch.cos(xf)], dim=-1)
 
 
-def make_encoding(
-    kind: str, *, frequencies: int, count: int, sigma: float, generator: torch.Generator
-) -> nn.Module:
+def make_encoding(kind: str, *, frequencies: int, count: int, sigma: float, generator: torch.Generator) -> nn.Module:
     """``kind``: ``"nerf"`` (frequencies), ``"fourier"`` (count, sigma) or ``"none"``."""
     if kind == "nerf":
         return NerfEncoding(frequencies)
@@ -201,9 +197,7 @@ def fibonacci_sphere(k: int) -> Tensor:
     i = torch.arange(k, dtype=torch.float64) + 0.5
     polar = torch.acos(1.0 - 2.0 * i / k)
     azim = math.pi * (1.0 + 5.0**0.5) * i
-    return torch.stack(
-        [torch.cos(azim) * torch.sin(polar), torch.cos(polar), torch.sin(azim) * torch.sin(polar)], dim=-1
-    ).float()
+    return torch.stack([torch.cos(azim) * torch.sin(polar), torch.cos(polar), torch.sin(azim) * torch.sin(polar)], dim=-1).float()
 
 
 def _inv_softplus(y: Tensor) -> Tensor:

@@ -45,9 +45,7 @@ class NormalizeSettings(Settings):
         if self.up_axis not in UP_AXIS_ROTATIONS:
             from .errors import ConfigError
 
-            raise ConfigError(
-                f"normalize.up_axis must be one of {sorted(UP_AXIS_ROTATIONS)}, got {self.up_axis!r}"
-            )
+            raise ConfigError(f"normalize.up_axis must be one of {sorted(UP_AXIS_ROTATIONS)}, got {self.up_axis!r}")
 
 
 @dataclass(frozen=True)
@@ -145,9 +143,7 @@ def _topology_stats(faces: np.ndarray) -> dict:
     }
 
 
-def run(
-    source: str, out_mesh: Path, out_transform: Path, out_meta: Path, settings: NormalizeSettings
-) -> None:
+def run(source: str, out_mesh: Path, out_transform: Path, out_meta: Path, settings: NormalizeSettings) -> None:
     """Normalise ``source`` and write mesh, inverse transform and metadata, each atomically."""
     timer = Timer()
     with timer("normalize"):
@@ -180,9 +176,7 @@ def run(
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m stages.normalize", description=__doc__.split("\n")[0])
-    parser.add_argument(
-        "--input", required=True, help="mesh file (OBJ/PLY/STL/OFF/GLB/GLTF) or builtin:<name>"
-    )
+    parser.add_argument("--input", required=True, help="mesh file (OBJ/PLY/STL/OFF/GLB/GLTF) or builtin:<name>")
     parser.add_argument("--mesh", required=True, type=Path, help="output normalised mesh (.ply)")
     parser.add_argument("--transform", required=True, type=Path, help="output inverse transform (.json)")
     parser.add_argument("--meta", required=True, type=Path, help="output metadata (.json)")

@@ -215,9 +215,7 @@ class Objective:
             self.test_only = self.guide.test_only
         else:
             self.target_light = procedural_light(settings.target_light, device=device)
-            self.weights_id = (
-                f"image targets: procedural {settings.target_material} under {settings.target_light} light"
-            )
+            self.weights_id = f"image targets: procedural {settings.target_material} under {settings.target_light} light"
 
     def target_colors(self, points, normals, view) -> torch.Tensor:
         flip = (normals * view).sum(-1, keepdim=True) < 0
@@ -259,12 +257,8 @@ class Optimizer:
         self.views = ViewStore(train, self.device)
         self.prompt = prompt
         self.field = StyleField(settings).to(self.device)
-        self.opt = torch.optim.AdamW(
-            self.field.parameters(), lr=settings.lr, weight_decay=settings.weight_decay
-        )
-        self.sched = torch.optim.lr_scheduler.MultiStepLR(
-            self.opt, milestones=list(settings.milestones), gamma=settings.gamma
-        )
+        self.opt = torch.optim.AdamW(self.field.parameters(), lr=settings.lr, weight_decay=settings.weight_decay)
+        self.sched = torch.optim.lr_scheduler.MultiStepLR(self.opt, milestones=list(settings.milestones), gamma=settings.gamma)
         self.np_rng = np.random.default_rng(settings.seed)
         self.tgen = torch.Generator().manual_seed(settings.seed)
         self.iteration = 0
@@ -297,9 +291,7 @@ class Optimizer:
     def step(self, timer: Timer) -> dict:
         s = self.s
         with timer("gather"):
-            ids = self.np_rng.choice(
-                len(self.views), size=s.views_per_step, replace=len(self.views) < s.views_per_step
-            )
+            ids = self.np_rng.choice(len(self.views), size=s.views_per_step, replace=len(self.views) < s.views_per_step)
             batches = []
             for i in ids:
                 v = self.views[int(i)]
@@ -331,9 +323,7 @@ class Optimizer:
                 if self.objective.guide is None:
                     with torch.no_grad():
                         tcol = linear_to_srgb(self.objective.target_colors(pts, nrm, view))
-                    timgs = [
-                        compose(tcol, lk, sp, bg) for lk, sp, bg in zip(lookups, specs, bgs, strict=True)
-                    ]
+                    timgs = [compose(tcol, lk, sp, bg) for lk, sp, bg in zip(lookups, specs, bgs, strict=True)]
                     globals_t.append(timgs[0])
                     crops_t.extend(timgs[1:])
         with timer("guidance"):
@@ -385,9 +375,7 @@ def contact_sheet(images: list[torch.Tensor], columns: int) -> np.ndarray:
     sheet = np.zeros((rows * h, columns * w, 3), np.uint8)
     for k, img in enumerate(images):
         r, c = divmod(k, columns)
-        sheet[r * h : (r + 1) * h, c * w : (c + 1) * w] = (
-            img.clamp(0, 1).permute(1, 2, 0).cpu().numpy() * 255
-        ).round()
+        sheet[r * h : (r + 1) * h, c * w : (c + 1) * w] = (img.clamp(0, 1).permute(1, 2, 0).cpu().numpy() * 255).round()
     return sheet
 
 
@@ -528,9 +516,7 @@ OUTPUT_FILES = {
 }
 
 
-def write_outputs(
-    opt: Optimizer, eval_path: Path, out_dir: Path, settings: OptimizeSettings, prompt: str
-) -> dict:
+def write_outputs(opt: Optimizer, eval_path: Path, out_dir: Path, settings: OptimizeSettings, prompt: str) -> dict:
     field_ = opt.field.eval()
     evalc = ViewStore(RayCache(eval_path), opt.device)
     renders = {k: [] for k in RENDER_KINDS}

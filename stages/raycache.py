@@ -165,9 +165,7 @@ class TrimeshTracer:
         face = np.full(n, -1, np.int32)
         bary = np.zeros((n, 2), np.float32)
         depth = np.full(n, np.inf, np.float32)
-        tri_idx, ray_idx, loc = self._rmi.intersects_id(
-            origins, directions, multiple_hits=True, return_locations=True
-        )
+        tri_idx, ray_idx, loc = self._rmi.intersects_id(origins, directions, multiple_hits=True, return_locations=True)
         if len(ray_idx):
             t = np.einsum("ij,ij->i", loc - origins[ray_idx], directions[ray_idx]) / np.einsum(
                 "ij,ij->i", directions[ray_idx], directions[ray_idx]
@@ -441,9 +439,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m stages.raycache", description=__doc__.split("\n")[0])
     parser.add_argument("--input", required=True, type=Path, help="normalised (or decimated) mesh (.ply)")
     parser.add_argument("--train", required=True, type=Path, help="output cache of the training pool (.npz)")
-    parser.add_argument(
-        "--eval", required=True, type=Path, help="output cache of the evaluation views (.npz)"
-    )
+    parser.add_argument("--eval", required=True, type=Path, help="output cache of the evaluation views (.npz)")
     parser.add_argument("--meta", required=True, type=Path, help="output metadata (.json)")
     parser.add_argument("--metrics", type=Path, default=None, help="output cache of the metric views (.npz)")
     parser.add_argument("--settings", default="{}", help="JSON of the raycache settings")

@@ -48,9 +48,7 @@ def load_env(spec: str) -> np.ndarray:
     if spec.startswith("builtin:"):
         name = spec.split(":", 1)[1]
         if name not in PROCEDURAL:
-            raise StageInputError(
-                spec, f"no procedural environment {name!r}", f"Use one of {', '.join(PROCEDURAL)}."
-            )
+            raise StageInputError(spec, f"no procedural environment {name!r}", f"Use one of {', '.join(PROCEDURAL)}.")
         return procedural_envmap(name)
     return read_envmap(spec)
 
@@ -80,9 +78,7 @@ def render_edit(field, view, width: int, out: int, light, rough_scale: float = 1
     return compose(col, lookup, spec, torch.zeros(3, out, out, device=col.device))
 
 
-def run(
-    field_path: Path, eval_path: Path, out_dir: Path, settings: RelightSettings, device: str = "cpu"
-) -> dict:
+def run(field_path: Path, eval_path: Path, out_dir: Path, settings: RelightSettings, device: str = "cpu") -> dict:
     from .envmap import fit_sg_light
     from .networks import equirect_directions
     from .optimize import ViewStore, contact_sheet, load_field, save_png, settings_eval_azimuths

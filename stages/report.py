@@ -93,9 +93,7 @@ def summary_rows(results: Path, cells: list[tuple[str, str, str]]) -> list[dict]
         for stage in MESH_STAGES:
             meta = _read(mdir / stage / "meta.json")
             row[f"seconds_{stage}"] = meta["timings_s"]["total"] if meta else None
-        for stage, folder in zip(
-            CELL_STAGES, ("optimize", "bake", "asset", "relight", "metrics"), strict=True
-        ):
+        for stage, folder in zip(CELL_STAGES, ("optimize", "bake", "asset", "relight", "metrics"), strict=True):
             meta = _read(cdir / folder / "meta.json")
             row[f"seconds_{stage}"] = meta["timings_s"]["total"] if meta else None
         rows.append(row)
@@ -209,18 +207,12 @@ def plot_pareto(path: Path, points: list[dict]) -> None:
     fig, ax = plt.subplots(figsize=(6.5, 4), dpi=110)
     for p in points:
         ax.scatter(p["seconds"], p["quality"], c="tab:red" if p["pareto"] else "tab:gray", s=24, zorder=3)
-        ax.annotate(
-            p["variant"], (p["seconds"], p["quality"]), fontsize=7, xytext=(3, 3), textcoords="offset points"
-        )
+        ax.annotate(p["variant"], (p["seconds"], p["quality"]), fontsize=7, xytext=(3, 3), textcoords="offset points")
     front = sorted((p for p in points if p["pareto"]), key=lambda p: p["seconds"])
-    ax.plot(
-        [p["seconds"] for p in front], [p["quality"] for p in front], c="tab:red", lw=1, label="Pareto front"
-    )
+    ax.plot([p["seconds"] for p in front], [p["quality"] for p in front], c="tab:red", lw=1, label="Pareto front")
     knee = [p for p in points if p["knee"]]
     if knee:
-        ax.scatter(
-            knee[0]["seconds"], knee[0]["quality"], s=140, facecolors="none", edgecolors="k", label="knee"
-        )
+        ax.scatter(knee[0]["seconds"], knee[0]["quality"], s=140, facecolors="none", edgecolors="k", label="knee")
     ax.set_xscale("log")
     ax.set_xlabel("optimisation wall time (s)")
     ax.set_ylabel(points[0]["quality_name"] if points else "quality")
@@ -313,9 +305,7 @@ def labelled_grid(results: Path, rows_: list[str], cols: list[str], cell_of, tit
     return canvas
 
 
-def write_grids(
-    results: Path, cells: list[tuple[str, str, str]], out_dir: Path, decimated: dict
-) -> list[str]:
+def write_grids(results: Path, cells: list[tuple[str, str, str]], out_dir: Path, decimated: dict) -> list[str]:
     """Per mesh: rows = variants, columns = prompts. Robustness: original vs decimated mesh
     side by side (meshes sharing a source, one decimated), rows = prompts x variants."""
     files = []
@@ -351,9 +341,7 @@ def write_grids(
     return files
 
 
-def run(
-    results: Path, cells: list[tuple[str, str, str]], out_dir: Path, decimated: dict | None = None
-) -> list[dict]:
+def run(results: Path, cells: list[tuple[str, str, str]], out_dir: Path, decimated: dict | None = None) -> list[dict]:
     """Write summary.csv/json, overview.png, the speed/accuracy table and plot, ablation bars,
     loss curves and image grids into ``out_dir``. ``decimated``: decimated mesh id -> the id of
     the same source at full resolution (for the robustness grid)."""
@@ -396,9 +384,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--results", type=Path, default=Path("results"))
     parser.add_argument("--out-dir", type=Path, default=Path("results/report"))
     parser.add_argument("--cells", nargs="+", required=True, help="mesh/prompt/variant ...")
-    parser.add_argument(
-        "--decimated", default="{}", help="JSON: decimated mesh id -> full-resolution mesh id"
-    )
+    parser.add_argument("--decimated", default="{}", help="JSON: decimated mesh id -> full-resolution mesh id")
     parser.add_argument("-v", "--verbose", action="store_true")
     args = parser.parse_args(argv)
     setup_logging(args.verbose)

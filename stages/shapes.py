@@ -145,9 +145,7 @@ def knot(p: int = 2, q: int = 3, samples: int = 320, sides: int = 20) -> tuple[n
     binormal = np.cross(tangent, normal)
     phi = np.linspace(0.0, 2.0 * np.pi, sides, endpoint=False)
     radius = 0.45
-    ring = radius * (
-        np.cos(phi)[None, :, None] * normal[:, None, :] + np.sin(phi)[None, :, None] * binormal[:, None, :]
-    )
+    ring = radius * (np.cos(phi)[None, :, None] * normal[:, None, :] + np.sin(phi)[None, :, None] * binormal[:, None, :])
     v = (curve[:, None, :] + ring).reshape(-1, 3)
     idx = np.arange(samples * sides).reshape(samples, sides)
     a = idx

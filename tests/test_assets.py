@@ -32,9 +32,7 @@ from stages.raycache import run as raycache_run
 
 
 def analytic_albedo(p: torch.Tensor) -> torch.Tensor:
-    return torch.stack(
-        [0.5 + 0.4 * torch.sin(3 * p[:, 0]), 0.5 + 0.4 * p[:, 1], 0.3 + 0.2 * torch.cos(2 * p[:, 2])], -1
-    )
+    return torch.stack([0.5 + 0.4 * torch.sin(3 * p[:, 0]), 0.5 + 0.4 * p[:, 1], 0.3 + 0.2 * torch.cos(2 * p[:, 2])], -1)
 
 
 class AnalyticField(torch.nn.Module):
@@ -151,13 +149,9 @@ def trained(tmp_path_factory):
         d / "train.npz",
         d / "eval.npz",
         d / "rc.json",
-        RaycacheSettings(
-            views=4, resolution=64, eval_azimuths=4, eval_elevations_deg=(0.0, 30.0), eval_resolution=48
-        ),
+        RaycacheSettings(views=4, resolution=64, eval_azimuths=4, eval_elevations_deg=(0.0, 30.0), eval_resolution=48),
     )
-    s = OptimizeSettings(
-        iterations=2, clip_tiny_test=True, image_size=64, width=16, crops=1, light_lobes=8, eval_width=32
-    )
+    s = OptimizeSettings(iterations=2, clip_tiny_test=True, image_size=64, width=16, crops=1, light_lobes=8, eval_width=32)
     optimize.run(d / "train.npz", d / "eval.npz", "a candle made of wax", d / "opt", s, "cpu")
     bake.run(
         d / "mesh.ply",
@@ -229,9 +223,7 @@ def test_khronos_gltf_validator(trained):
     node = shutil.which("node")
     validator = REPO / "node_modules" / "gltf-validator"
     if node is None or not validator.is_dir():
-        pytest.skip(
-            "Node.js or node_modules/gltf-validator missing (scripts/setup.sh runs npm ci when npm exists)"
-        )
+        pytest.skip("Node.js or node_modules/gltf-validator missing (scripts/setup.sh runs npm ci when npm exists)")
     out = subprocess.run(
         [node, str(REPO / "scripts" / "validate_gltf.mjs"), str(trained / "asset" / "model.glb")],
         capture_output=True,
@@ -277,9 +269,7 @@ def test_summary_and_pack(trained, tmp_path):
     cell = results / "candle" / "wax" / "base"
     mesh_dir = results / "candle"
     (mesh_dir / "normalize").mkdir(parents=True)
-    (mesh_dir / "normalize" / "meta.json").write_text(
-        json.dumps({"stats": {"faces": 13440}, "timings_s": {"total": 0.1}})
-    )
+    (mesh_dir / "normalize" / "meta.json").write_text(json.dumps({"stats": {"faces": 13440}, "timings_s": {"total": 0.1}}))
     cell.mkdir(parents=True)
     shutil.copytree(trained / "opt", cell / "optimize")
     shutil.copytree(trained / "bake", cell / "bake")

@@ -68,9 +68,7 @@ def test_diffuse_only_builds_no_specular_heads():
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_tangent_frame_orthonormal_everywhere(dtype):
     n = torch.randn(10000, 3, dtype=dtype)
-    n = torch.cat(
-        [n, torch.tensor([[0, 0, 1.0], [0, 0, -1.0], [1e-9, 0, -1.0], [0, 0, 1.0 - 1e-7]], dtype=dtype)]
-    )
+    n = torch.cat([n, torch.tensor([[0, 0, 1.0], [0, 0, -1.0], [1e-9, 0, -1.0], [0, 0, 1.0 - 1e-7]], dtype=dtype)])
     n = n / n.norm(dim=-1, keepdim=True)
     t, b = tangent_frame(n)
     tol = 1e-5 if dtype == torch.float32 else 1e-12
@@ -86,9 +84,7 @@ def spherical_offset(n: torch.Tensor, d_theta: torch.Tensor, d_phi: torch.Tensor
     """TANGO's parametrisation: offset the normal's spherical angles (theta azimuth, phi polar)."""
     theta = torch.atan2(n[:, 1], n[:, 0]) + d_theta
     phi = torch.acos(n[:, 2]) + d_phi
-    return torch.stack(
-        [torch.sin(phi) * torch.cos(theta), torch.sin(phi) * torch.sin(theta), torch.cos(phi)], -1
-    )
+    return torch.stack([torch.sin(phi) * torch.cos(theta), torch.sin(phi) * torch.sin(theta), torch.cos(phi)], -1)
 
 
 @pytest.mark.parametrize("pole", [1.0, -1.0])
@@ -100,9 +96,7 @@ def test_spherical_angles_are_singular_at_poles_but_tangent_offsets_are_not(pole
     # acos' is infinite at +-1: the gradient reaching the normal is not finite
     assert not torch.isfinite(n.grad).all()
     # and an azimuth offset does not move a polar normal at all
-    moved = spherical_offset(
-        n.detach(), torch.tensor([0.5], dtype=torch.float64), torch.zeros(1, dtype=torch.float64)
-    )
+    moved = spherical_offset(n.detach(), torch.tensor([0.5], dtype=torch.float64), torch.zeros(1, dtype=torch.float64))
     torch.testing.assert_close(moved, n.detach())
     # the tangent-frame offset: finite gradients, and each component tilts the normal
     net = NormalNet(IdentityEncoding(), width=16, max_delta=0.3).double()
@@ -147,9 +141,7 @@ def test_light_initial_energy_and_layout(lobes, rgb):
     mc = 4 * math.pi * light.radiance(v.float()).double().mean(0)
     se = 4 * math.pi * light.radiance(v.float()).double().std(0) / math.sqrt(len(v))
     assert ((mc - 6.25).abs() <= 5 * se + 1e-4).all()
-    assert sg_integral(light.sharpness[:1], light.amplitude[:1])[0, 0].item() == pytest.approx(
-        6.25 / lobes, rel=1e-5
-    )
+    assert sg_integral(light.sharpness[:1], light.amplitude[:1])[0, 0].item() == pytest.approx(6.25 / lobes, rel=1e-5)
 
 
 def test_fibonacci_and_equirect():

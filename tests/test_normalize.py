@@ -137,9 +137,7 @@ def test_scene_flattened_with_transforms(tmp_path):
     scene.export(path)
     mesh = load_mesh(path)
     assert len(mesh.faces) == 24
-    assert mesh.vertices[:, 0].min() == pytest.approx(-10.5) and mesh.vertices[:, 0].max() == pytest.approx(
-        10.5
-    )
+    assert mesh.vertices[:, 0].min() == pytest.approx(-10.5) and mesh.vertices[:, 0].max() == pytest.approx(10.5)
 
 
 def test_keeps_non_manifold_and_duplicates(tmp_path):

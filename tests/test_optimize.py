@@ -39,9 +39,7 @@ def cache(tmp_path_factory):
         d / "train.npz",
         d / "eval.npz",
         d / "meta.json",
-        RaycacheSettings(
-            views=6, resolution=64, eval_azimuths=4, eval_elevations_deg=(0.0, 30.0), eval_resolution=48
-        ),
+        RaycacheSettings(views=6, resolution=64, eval_azimuths=4, eval_elevations_deg=(0.0, 30.0), eval_resolution=48),
     )
     return d
 
@@ -51,9 +49,7 @@ def params(module) -> dict[str, torch.Tensor]:
 
 
 def test_one_clip_step_changes_parameters(cache):
-    opt = Optimizer(
-        OptimizeSettings(iterations=1, **TINY), RayCache(cache / "train.npz"), "a vase made of wood", "cpu"
-    )
+    opt = Optimizer(OptimizeSettings(iterations=1, **TINY), RayCache(cache / "train.npz"), "a vase made of wood", "cpu")
     before = params(opt.field)
     row = opt.step(Timer())
     after = params(opt.field)
@@ -71,9 +67,7 @@ def test_kill_and_resume_matches_uninterrupted_run(cache, tmp_path):
     ref = optimize.run(cache / "train.npz", cache / "eval.npz", "a vase", tmp_path / "ref", s, "cpu")
     # a run that dies after 5 iterations (its last checkpoint is at 3), then a rerun
     out = tmp_path / "killed"
-    assert optimize.run(cache / "train.npz", cache / "eval.npz", "a vase", out, s, "cpu", stop_after=5) == {
-        "stopped_at": 5
-    }
+    assert optimize.run(cache / "train.npz", cache / "eval.npz", "a vase", out, s, "cpu", stop_after=5) == {"stopped_at": 5}
     assert (out / "checkpoint.pt").is_file() and not (out / "meta.json").exists()
     resumed = optimize.run(cache / "train.npz", cache / "eval.npz", "a vase", out, s, "cpu")
     assert resumed["resumed_from_iteration"] == 3  # the last checkpoint before the kill
@@ -117,9 +111,7 @@ def test_outputs_and_metadata(cache, tmp_path):
 
 def test_switched_off_parts_are_not_built():
     full = StyleField(OptimizeSettings(width=32))
-    plain = StyleField(
-        OptimizeSettings(width=32, normal_network=False, specular=False, material_encoding="none", crops=0)
-    )
+    plain = StyleField(OptimizeSettings(width=32, normal_network=False, specular=False, material_encoding="none", crops=0))
     assert full.normal_net is not None and plain.normal_net is None
     assert plain.svbrdf.specular is None and plain.svbrdf.roughness is None
     assert sum(p.numel() for p in plain.parameters()) < 0.4 * sum(p.numel() for p in full.parameters())
@@ -141,9 +133,7 @@ def test_image_target_recovery_reaches_30_db(tmp_path):
         eval_elevations_deg=(-20.0, 10.0, 35.0),
         eval_resolution=96,
     )
-    raycache_run(
-        tmp_path / "vase.ply", tmp_path / "train.npz", tmp_path / "eval.npz", tmp_path / "rc.json", rc
-    )
+    raycache_run(tmp_path / "vase.ply", tmp_path / "train.npz", tmp_path / "eval.npz", tmp_path / "rc.json", rc)
     s = OptimizeSettings(
         iterations=300,
         guidance="image",

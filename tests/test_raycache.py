@@ -36,9 +36,7 @@ def test_look_at_is_orthonormal_and_faces_origin(rng):
     eye = camera_positions(az, el, 2.5)
     c2w = look_at(eye)
     r = c2w[:, :3, :3]
-    np.testing.assert_allclose(
-        np.einsum("vij,vik->vjk", r, r), np.broadcast_to(np.eye(3), r.shape), atol=1e-12
-    )
+    np.testing.assert_allclose(np.einsum("vij,vik->vjk", r, r), np.broadcast_to(np.eye(3), r.shape), atol=1e-12)
     np.testing.assert_allclose(np.linalg.det(r), 1.0, atol=1e-12)
     # the camera's -z axis points at the origin; +x (image right) is horizontal
     np.testing.assert_allclose(-r[:, :, 2], -eye / 2.5, atol=1e-12)
@@ -71,9 +69,7 @@ def test_view_sampler_statistics():
 
 
 def test_elevations_clamped_away_from_poles():
-    _, el = sample_views(
-        1000, anchor_azimuth=0.0, anchor_elevation=1.5, std=1.0, rng=np.random.default_rng(1)
-    )
+    _, el = sample_views(1000, anchor_azimuth=0.0, anchor_elevation=1.5, std=1.0, rng=np.random.default_rng(1))
     assert np.abs(el).max() <= np.pi / 2 - POLE_MARGIN
     assert np.isfinite(look_at(camera_positions(0.3, el, 2.0))).all()
 
@@ -85,9 +81,7 @@ def test_grid_views():
     np.testing.assert_allclose(np.unique(az), np.arange(8) * np.pi / 4)
 
 
-@pytest.mark.parametrize(
-    ("az", "el"), [(1.96, 0.63), (0.0, 0.0), (-2.5, -1.2), (0.7, np.pi / 2 - POLE_MARGIN)]
-)
+@pytest.mark.parametrize(("az", "el"), [(1.96, 0.63), (0.0, 0.0), (-2.5, -1.2), (0.7, np.pi / 2 - POLE_MARGIN)])
 def test_hits_agree_with_analytic_sphere(az, el):
     """Icosphere (vertices on the unit sphere) against the analytic unit sphere.
 
@@ -174,9 +168,7 @@ def test_cache_files_and_metadata(tmp_path):
     mesh = TriMesh(mesh.vertices, np.concatenate([mesh.faces, [[0, 0, 1], [2, 2, 2]]]))
     src = tmp_path / "sphere.ply"
     save_ply(src, mesh)
-    settings = RaycacheSettings(
-        views=5, resolution=40, eval_azimuths=4, eval_elevations_deg=(0.0, 45.0), eval_resolution=24
-    )
+    settings = RaycacheSettings(views=5, resolution=40, eval_azimuths=4, eval_elevations_deg=(0.0, 45.0), eval_resolution=24)
     out = tmp_path / "rc"
     code = raycache.main(
         [

@@ -113,9 +113,7 @@ def test_integral_against_monte_carlo(lam):
 def test_integral_against_quadrature(lam):
     # in the lobe's frame the integrand depends on u = cos(theta) only: 2 pi int exp(lam (u-1)) du
     pts = [min(2.0, k / lam) for k in (1, 10, 50)]
-    ref, _ = integrate.quad(
-        lambda w: 2 * math.pi * math.exp(-lam * w), 0, 2, points=pts, limit=200, epsrel=1e-12
-    )
+    ref, _ = integrate.quad(lambda w: 2 * math.pi * math.exp(-lam * w), 0, 2, points=pts, limit=200, epsrel=1e-12)
     for dtype, rtol in ((F64, 1e-10), (torch.float32, 2e-6)):
         got = sg_integral(torch.tensor([[lam]], dtype=dtype), torch.ones(1, 1, dtype=dtype)).item()
         assert got == pytest.approx(ref, rel=rtol)
@@ -172,9 +170,7 @@ def test_hemisphere_integral_within_stated_bound():
     for lam in np.logspace(-4, 4, 17):
         full = sg_integral(torch.tensor([[lam]], dtype=F64), torch.ones(1, 1, dtype=F64)).item()
         for c in np.linspace(-1, 1, 11):
-            approx = sg_hemisphere_integral(
-                torch.tensor([[lam]], dtype=F64), torch.tensor([[c]], dtype=F64)
-            ).item()
+            approx = sg_hemisphere_integral(torch.tensor([[lam]], dtype=F64), torch.tensor([[c]], dtype=F64)).item()
             worst = max(worst, abs(approx - hemisphere_quadrature(lam, c)) / full)
     assert worst <= 0.015  # the docstring's bound (measured: 1.1%)
 
@@ -219,9 +215,7 @@ def test_diffuse_against_monte_carlo(lam):
     light = make_light(32, lam)
     v = sphere_samples(seed=4)
     rad = light.radiance(v)
-    normals = unit(
-        torch.tensor([[0.0, 0.0, 1.0], [0.3, -0.8, 0.1], [0.0, 0.0, -1.0], [0.5, 0.5, 0.5]], dtype=F64)
-    )
+    normals = unit(torch.tensor([[0.0, 0.0, 1.0], [0.3, -0.8, 0.1], [0.0, 0.0, -1.0], [0.5, 0.5, 0.5]], dtype=F64))
     for n in normals:
         mc, se = mc_sphere(rad * (v @ n).clamp(min=0)[:, None])
         got = diffuse_radiance(n[None], torch.full((1, 3), math.pi, dtype=F64), light)[0]
@@ -311,9 +305,7 @@ def test_gradcheck_shading(cos_nv, r):
 
     # fast mode and a step that keeps the extreme sharpness (2 / 0.01^4) numerically resolvable
     eps = 1e-6 if r >= 0.3 else 1e-9
-    assert torch.autograd.gradcheck(
-        f, (n, albedo, spec, rough, axis, lam, amp), eps=eps, atol=1e-5, rtol=1e-3
-    )
+    assert torch.autograd.gradcheck(f, (n, albedo, spec, rough, axis, lam, amp), eps=eps, atol=1e-5, rtol=1e-3)
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])

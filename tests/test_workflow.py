@@ -88,9 +88,7 @@ def test_smoke_run(tmp_path):
     assert abs(dec["stats"]["faces_after"] - 3000) <= 30
     traced = json.loads((res / "knot" / "raycache" / "meta.json").read_text())
     assert traced["inputs"]["mesh"]["path"].endswith("knot/decimate/mesh.ply")
-    assert (
-        len(RayCache(res / "knot" / "raycache" / "train.npz").arrays["faces"]) == dec["stats"]["faces_after"]
-    )
+    assert len(RayCache(res / "knot" / "raycache" / "train.npz").arrays["faces"]) == dec["stats"]["faces_after"]
     assert not (res / "vase" / "decimate").exists()
     # every grid cell optimised, with outputs marked as made by the test-only CLIP
     for mesh in ("vase", "knot"):

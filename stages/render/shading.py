@@ -58,9 +58,7 @@ def face_viewer(normal: Tensor, view: Tensor, min_cos: float = 1e-3) -> Tensor:
     return bent / torch.linalg.vector_norm(bent, dim=-1, keepdim=True)
 
 
-def _hemisphere_product_with_cosine(
-    normal: Tensor, axis: Tensor, sharpness: Tensor, amplitude: Tensor
-) -> Tensor:
+def _hemisphere_product_with_cosine(normal: Tensor, axis: Tensor, sharpness: Tensor, amplitude: Tensor) -> Tensor:
     """``int_{v . n >= 0} G(v) max(v . n, 0) dv`` for SGs ``(N, K, ...)`` and normals ``(N, 1, 3)``,
     with the clamped cosine replaced by its SG fit ``COS_MU exp(COS_LAMBDA (v.n - 1)) - COS_OFFSET``
     [Meder18] and both hemisphere integrals by :func:`sg_hemisphere_integral` (PhySG's scheme)."""
@@ -79,9 +77,9 @@ def diffuse_radiance_reference(normal: Tensor, albedo: Tensor, light: SGLight) -
     and the hemisphere integral): within 2% of quadrature for smooth lights (tested).
     """
     n = normal[:, None, :]
-    irradiance = _hemisphere_product_with_cosine(
-        n, light.axis[None], light.sharpness[None], light.amplitude[None]
-    ).sum(1)  # (N, C)
+    irradiance = _hemisphere_product_with_cosine(n, light.axis[None], light.sharpness[None], light.amplitude[None]).sum(
+        1
+    )  # (N, C)
     # the cosine fit dips to -0.006 at the horizon: clamp the (tiny) negative irradiance [Zhang21]
     return albedo / math.pi * torch.clamp(irradiance, min=0.0)
 
@@ -106,9 +104,7 @@ def smith_schlick_over_cosines(cos_nl: Tensor, cos_nv: Tensor, roughness: Tensor
     return 1.0 / (4.0 * (cos_nl * (1.0 - k) + k) * (cos_nv * (1.0 - k) + k))
 
 
-def specular_radiance_reference(
-    normal: Tensor, view: Tensor, specular: Tensor, roughness: Tensor, light: SGLight
-) -> Tensor:
+def specular_radiance_reference(normal: Tensor, view: Tensor, specular: Tensor, roughness: Tensor, light: SGLight) -> Tensor:
     """Microfacet specular reflection of the SG light per point -> ``(N, 3)`` (TANGO eq. 10).
 
     The SG normal distribution (:func:`ndf_sg`) is warped into the light domain
@@ -177,9 +173,7 @@ def diffuse_radiance(normal: Tensor, albedo: Tensor, light: SGLight) -> Tensor:
     return albedo / math.pi * torch.clamp(irradiance, min=0.0)
 
 
-def specular_radiance(
-    normal: Tensor, view: Tensor, specular: Tensor, roughness: Tensor, light: SGLight
-) -> Tensor:
+def specular_radiance(normal: Tensor, view: Tensor, specular: Tensor, roughness: Tensor, light: SGLight) -> Tensor:
     """Fused :func:`specular_radiance_reference` (same result): ``(N, 3)``."""
     cos_nv = (normal * view).sum(-1, keepdim=True)
     lam, mu = ndf_sg(roughness)
