@@ -356,3 +356,74 @@ def test_metrics_mark_weights_and_rank_prompts(trained, tmp_path):
     assert out["protocol"]["fov_deg"] == 45.0 and out["protocol"]["radius"] == 2.5
     saved = json.loads((tmp_path / "met" / "metrics.json").read_text())
     assert saved["evaluation"]["clip_score"] == pytest.approx(ev["clip_score"])
+
+
+def test_pareto_front_and_knee():
+    from stages.report import knee_point, pareto_front
+
+    pts = [(1.0, 20.0), (2.0, 30.0), (3.0, 25.0), (4.0, 33.0), (8.0, 34.0), (16.0, 34.5), (5.0, 10.0)]
+    front = pareto_front(pts)
+    assert front == [0, 1, 3, 4, 5]  # (3, 25) and (5, 10) are dominated
+    # normalised distance to the chord from (1 s, 20 dB) to (16 s, 34.5 dB) peaks at (4 s, 33 dB)
+    assert knee_point(pts, front) == 3
+
+
+def test_report_tables_never_mix_test_only_and_real():
+    import pandas as pd
+
+    from stages.html_report import group_rows
+
+    frame = pd.DataFrame(
+        {
+            "test_only_weights": [True, False, False],
+            "eval_test_only": [True, False, None],
+            "guidance": ["CLIP", "CLIP", "image-guided (procedural targets)"],
+        }
+    )
+    groups = dict(group_rows(frame))
+    assert len(groups) == 3
+    for title, sub in groups.items():
+        assert len(sub) == 1
+        assert sub["test_only_weights"].iloc[0] == title.startswith("TEST ONLY")
+
+
+def test_html_report_opens_in_chromium(trained, tmp_path):
+    """The self-contained page loads in headless Chromium with no console errors, and its 3D
+    viewer draws the model (screenshot not blank)."""
+    from stages import html_report
+
+    node, chromium = shutil.which("node"), shutil.which("chromium")
+    if not (REPO / "node_modules" / "@google" / "model-viewer").is_dir():
+        pytest.skip("node_modules missing (scripts/setup.sh runs npm ci when npm exists)")
+    results = tmp_path / "results"
+    cell = results / "candle" / "wax" / "base"
+    (results / "candle" / "normalize").mkdir(parents=True)
+    (results / "candle" / "normalize" / "meta.json").write_text(
+        json.dumps({"stats": {"faces": 13440}, "timings_s": {"total": 0.1}})
+    )
+    for src, dst in (("opt", "optimize"), ("bake", "bake"), ("asset", "asset")):
+        shutil.copytree(trained / src, cell / dst)
+    report.run(results, [("candle", "wax", "base")], results / "report")
+    page = results / "report" / "index.html"
+    assert html_report.build(results, results / "report", [("candle", "wax", "base")], page) == 1
+    text = page.read_text()
+    assert "<script src" not in text and "<link" not in text  # nothing loaded from elsewhere
+    assert "<model-viewer" in text and "data:model/gltf-binary;base64," in text
+    if node is None or chromium is None or not (REPO / "node_modules" / "playwright-core").is_dir():
+        pytest.skip("Node.js, Debian's chromium or playwright-core missing (.ci/run installs them)")
+    shot = tmp_path / "shot.png"
+    out = subprocess.run(
+        [node, str(REPO / "scripts" / "check_report.mjs"), str(page), str(shot)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=True,
+    )
+    result = json.loads(out.stdout.strip().splitlines()[-1])
+    assert result["errors"] == [] and result["loaded"] and result["viewers"] == 1
+    from PIL import Image
+
+    img = np.asarray(Image.open(shot).convert("RGB")).astype(float)
+    background = np.median(img.reshape(-1, 3), axis=0)
+    differs = np.abs(img - background).sum(-1) > 30
+    assert differs.mean() > 0.05, "the 3D canvas is blank"

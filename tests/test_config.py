@@ -182,8 +182,23 @@ def test_config_file_errors(tmp_path):
         load_config_file(bad)
 
 
+def deep_update(base: dict, over: dict) -> dict:
+    out = dict(base)
+    for k, v in over.items():
+        out[k] = deep_update(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
 def test_every_shipped_config_is_valid():
+    overlay = yaml.safe_load((REPO / "config" / "overlays" / "offline.yaml").read_text())
     for path in sorted((REPO / "config").glob("*.yaml")):
-        load_config_file(path)
+        cfg = load_config_file(path)
+        # every experiment also validates under the offline overlay (as Snakemake merges them)
+        offline = WorkflowConfig(deep_update(cfg.raw, overlay), f"{path} + offline overlay")
+        assert all(
+            offline.optimize_settings(c.prompt, c.variant).clip_tiny_test
+            or offline.optimize_settings(c.prompt, c.variant).guidance == "image"
+            for c in offline.cells
+        )
     smoke = yaml.safe_load((REPO / "tests" / "smoke" / "config.yaml").read_text())
     WorkflowConfig(copy.deepcopy(smoke))

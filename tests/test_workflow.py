@@ -35,23 +35,27 @@ def test_dry_run_default_config(tmp_path):
         "bake": 6,
         "export": 6,
         "relight": 6,
+        "metrics": 6,
         "report": 1,
         "pack": 1,
+        "html_report": 1,
         "all": 1,
-        "total": 33,
+        "total": 40,
     }
 
 
 def test_configfile_replaces_default_and_dag_is_per_mesh(tmp_path):
-    """2 meshes x 2 prompts x 2 variants: mesh stages still run once per mesh."""
+    """3 meshes x 3 prompts x 2 variants: mesh stages still run once per mesh."""
     (tmp_path / "config").mkdir()
     (tmp_path / "config" / "config.yaml").write_text((REPO / "config" / "config.yaml").read_text())
     proc = run_snakemake(tmp_path, "-n", "--cores", "2", "--configfile", str(SMOKE))
     assert proc.returncode == 0, proc.stderr
     counts = job_counts(proc.stdout)
-    assert counts["normalize"] == 2 and counts["raycache"] == 2 and counts["decimate"] == 1
-    assert counts["optimize"] == 2 * 2 * 2
-    assert "candle" not in proc.stdout  # the default config's meshes are not merged in
+    assert counts["normalize"] == 3 and counts["raycache"] == 3 and counts["decimate"] == 1
+    for rule in ("optimize", "bake", "export", "relight", "metrics"):
+        assert counts[rule] == 3 * 3 * 2, rule
+    assert counts["report"] == counts["pack"] == counts["html_report"] == 1
+    assert "silver" not in proc.stdout  # the default config's prompts are not merged in
 
 
 def test_invalid_config_fails_at_dag_build(tmp_path):
@@ -67,10 +71,10 @@ def test_invalid_config_fails_at_dag_build(tmp_path):
 
 @pytest.mark.slow
 def test_smoke_run(tmp_path):
-    proc = run_snakemake(tmp_path, "--cores", "2", "--configfile", str(SMOKE))
+    proc = run_snakemake(tmp_path, "--cores", "2", "--configfile", str(SMOKE), timeout=1500)
     assert proc.returncode == 0, proc.stderr[-3000:]
     res = tmp_path / "results"
-    for mesh in ("vase", "knot"):
+    for mesh in ("vase", "candle", "knot"):
         meta = json.loads((res / mesh / "raycache" / "meta.json").read_text())
         assert meta["stats"]["train"]["views"] == 4 and meta["stats"]["eval"]["views"] == 8
         assert meta["stats"]["train"]["width"] == 48
@@ -91,8 +95,8 @@ def test_smoke_run(tmp_path):
     assert len(RayCache(res / "knot" / "raycache" / "train.npz").arrays["faces"]) == dec["stats"]["faces_after"]
     assert not (res / "vase" / "decimate").exists()
     # every grid cell optimised, with outputs marked as made by the test-only CLIP
-    for mesh in ("vase", "knot"):
-        for prompt in ("wood", "gold"):
+    for mesh in ("vase", "candle", "knot"):
+        for prompt in ("wood", "gold", "ice"):
             for variant in ("full", "second"):
                 cell = res / mesh / prompt / variant / "optimize"
                 meta = json.loads((cell / "meta.json").read_text())
@@ -104,13 +108,17 @@ def test_smoke_run(tmp_path):
     import pandas as pd
 
     summary = pd.read_csv(res / "report" / "summary.csv")
-    assert len(summary) == 8 and set(summary["weights"]) == {"test-only random"}
+    assert len(summary) == 18 and set(summary["weights"]) == {"test-only random"}
+    assert summary["eval_test_only"].all() and (summary["r_precision_candidates"] == 3).all()
+    assert summary["clip_score"].notna().all()
     assert (summary["usd_validation_errors"] == 0).all() and (summary["bake_psnr_db"] >= 35).all()
     assert (
         summary.loc[summary["mesh"] == "knot", "faces_after"].iloc[0]
         < summary.loc[summary["mesh"] == "knot", "faces_before"].iloc[0]
     )
-    assert (res / "report" / "overview.png").is_file() and (res / "report" / "asset_pack.zip").is_file()
+    for name in ("overview.png", "asset_pack.zip", "index.html", "pareto.png", "loss_curves.png", "grid_vase.png"):
+        assert (res / "report" / name).is_file(), name
+    assert "TEST ONLY" in (res / "report" / "index.html").read_text()
     for rel in ("asset/model.usdz", "asset/model.glb", "relight/material_edit.png"):
         assert (res / "vase" / "wood" / "full" / rel).is_file()
     # nothing half-written anywhere
