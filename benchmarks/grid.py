@@ -57,6 +57,7 @@ def run(meshes: int, prompts: int, variants: int) -> tuple[float, int]:
             capture_output=True,
             text=True,
             check=True,
+            env=env,
         )
         wall = time.perf_counter() - t0
         jobs = len(re.findall(r"Finished job", out.stdout + out.stderr))
