@@ -51,9 +51,13 @@ def table(frame: pd.DataFrame) -> str:
 
 def group_rows(frame: pd.DataFrame) -> list[tuple[str, pd.DataFrame]]:
     """Split rows so that real, test-only and image-guided numbers never share a table."""
-    test = frame["test_only_weights"].fillna(False).astype(bool)
-    if "eval_test_only" in frame:
-        test |= frame["eval_test_only"].fillna(False).astype(bool)
+
+    def flag(column: str) -> pd.Series:
+        if column not in frame:
+            return pd.Series(False, index=frame.index)
+        return frame[column].apply(lambda x: bool(x) if x is not None and x == x else False)
+
+    test = flag("test_only_weights") | flag("eval_test_only")
     image = frame["guidance"].astype(str).str.startswith("image")
     groups = [
         ("CLIP-guided with real weights", frame[~test & ~image]),
