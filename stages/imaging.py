@@ -161,3 +161,16 @@ def clip_normalize(images: Tensor, mean=CLIP_MEAN, std=CLIP_STD) -> Tensor:
     m = torch.tensor(mean, device=images.device, dtype=images.dtype)[:, None, None]
     s = torch.tensor(std, device=images.device, dtype=images.dtype)[:, None, None]
     return (images - m) / s
+
+
+def render_cached_view(view, width: int, out_size: int, colors, background: float = 0.0) -> Tensor:
+    """One cached view as an image: ``colors(points, normals, view) -> (M, 3)`` (display space) is
+    evaluated at the hits an ``out_size`` image of the ``width``-pixel cache shows, and composed
+    over a constant ``background``. ``view`` has ``points``, ``normals``, ``view`` (tensors) and
+    ``index`` (the hit-index map). Returns ``(3, out_size, out_size)``."""
+    spec = global_spec(width, out_size)
+    needed, (lookup,) = gather_points([spec], view.index)
+    sel = torch.from_numpy(needed).to(view.points.device)
+    col = colors(view.points[sel], view.normals[sel], view.view[sel])
+    bg = torch.full((3, out_size, out_size), float(background), device=view.points.device)
+    return compose(col, lookup, spec, bg)

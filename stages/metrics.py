@@ -79,18 +79,13 @@ def psnr(a: torch.Tensor, b: torch.Tensor) -> float:
 @torch.no_grad()
 def render_metric_views(field, store, background: str) -> torch.Tensor:
     """All metric views rendered at the cache's resolution: ``(V, 3, S, S)`` sRGB in [0, 1]."""
-    from .imaging import compose, gather_points, global_spec, linear_to_srgb
+    from .imaging import linear_to_srgb, render_cached_view
 
-    imgs = []
-    for i in range(len(store)):
-        v = store[i]
-        spec = global_spec(store.width, store.width)
-        needed, (lookup,) = gather_points([spec], v.index)
-        sel = torch.from_numpy(needed).to(v.points.device)
-        col = linear_to_srgb(field(v.points[sel], v.normals[sel], v.view[sel]).shading.rgb)
-        bg = torch.full((3, store.width, store.width), 1.0 if background == "white" else 0.0, device=col.device)
-        imgs.append(compose(col, lookup, spec, bg))
-    return torch.stack(imgs)
+    def colors(p, n, d):
+        return linear_to_srgb(field(p, n, d).shading.rgb)
+
+    bg = 1.0 if background == "white" else 0.0
+    return torch.stack([render_cached_view(store[i], store.width, store.width, colors, bg) for i in range(len(store))])
 
 
 def _resize(imgs: torch.Tensor, size: int) -> torch.Tensor:
@@ -129,7 +124,7 @@ def run(
     device: str = "cpu",
 ) -> dict:
     from .guidance import ClipSpec, load_clip
-    from .optimize import Objective, ViewStore, contact_sheet, load_field, save_png, settings_eval_azimuths
+    from .optimize import Objective, ViewStore, contact_sheet, load_field, render_target, save_png, settings_eval_azimuths
     from .raycache import RayCache
 
     timer = Timer()
@@ -185,19 +180,8 @@ def run(
     if opt_settings.guidance == "image":
         with timer("image_target"):
             obj = Objective(opt_settings, prompt, dev)
-            targets = []
-            from .imaging import compose, gather_points, global_spec, linear_to_srgb
-
-            for i in range(len(store)):
-                v = store[i]
-                spec = global_spec(store.width, store.width)
-                needed, (lookup,) = gather_points([spec], v.index)
-                sel = torch.from_numpy(needed).to(dev)
-                with torch.no_grad():
-                    col = linear_to_srgb(obj.target_colors(v.points[sel], v.normals[sel], v.view[sel]))
-                bg = torch.full((3, store.width, store.width), 1.0 if settings.background == "white" else 0.0)
-                targets.append(compose(col, lookup, spec, bg.to(dev)))
-            t = torch.stack(targets)
+            bg = 1.0 if settings.background == "white" else 0.0
+            t = torch.stack([render_target(obj, store[i], store.width, store.width, bg)[0] for i in range(len(store))])
             result["image_target"] = {
                 "weights": obj.weights_id,
                 "psnr_db": psnr(imgs, t),

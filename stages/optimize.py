@@ -597,14 +597,14 @@ def settings_eval_azimuths(store: ViewStore) -> np.ndarray:
 
 
 @torch.no_grad()
-def render_target(objective: Objective, v: CachedView, width: int, out_width: int):
+def render_target(objective: Objective, v: CachedView, width: int, out_width: int, background: float = 0.0):
+    """The procedural target of one cached view ``(3, out, out)`` and its object mask ``(1, out, out)``."""
+    from .imaging import render_cached_view
+
+    img = render_cached_view(v, width, out_width, lambda p, n, d: linear_to_srgb(objective.target_colors(p, n, d)), background)
     spec = global_spec(width, out_width)
-    needed, (lookup,) = gather_points([spec], v.index)
-    sel = torch.from_numpy(needed).to(v.points.device)
-    col = linear_to_srgb(objective.target_colors(v.points[sel], v.normals[sel], v.view[sel]))
-    bg = torch.zeros(3, out_width, out_width, device=v.points.device)
-    mask = torch.as_tensor(lookup >= 0, device=v.points.device)[None]
-    return compose(col, lookup, spec, bg), mask
+    mask = torch.as_tensor(v.index[spec.rows, spec.cols] >= 0, device=v.points.device)[None]
+    return img, mask
 
 
 def load_field(path: str | Path, device="cpu") -> tuple[StyleField, OptimizeSettings]:

@@ -56,26 +56,24 @@ def load_env(spec: str) -> np.ndarray:
 @torch.no_grad()
 def render_edit(field, view, width: int, out: int, light, rough_scale: float = 1.0, spec_scale: float = 1.0):
     """One cached view rendered with ``light`` and scaled roughness/specular -> ``(3, out, out)``."""
-    from .imaging import compose, gather_points, global_spec, linear_to_srgb
+    from .imaging import linear_to_srgb, render_cached_view
     from .render.shading import face_viewer, shade
 
-    spec = global_spec(width, out)
-    needed, (lookup,) = gather_points([spec], view.index)
-    sel = torch.from_numpy(needed).to(view.points.device)
-    pts, nrm, v = view.points[sel], view.normals[sel], view.view[sel]
-    flip = (nrm * v).sum(-1, keepdim=True) < 0
-    n = torch.where(flip, -nrm, nrm)
-    p = field.symmetric_points(pts)
-    if field.normal_net is not None:
-        n = field.normal_net(p, n)
-    n = face_viewer(n, v)
-    mat = field.svbrdf(p)
-    s = r = None
-    if mat.specular is not None:
-        s = (mat.specular * spec_scale).clamp(0.0, 1.0)
-        r = (mat.roughness * rough_scale).clamp(field.svbrdf.min_roughness, 1.0)
-    col = linear_to_srgb(shade(n, v, mat.albedo, light, s, r).rgb)
-    return compose(col, lookup, spec, torch.zeros(3, out, out, device=col.device))
+    def colors(pts, nrm, v):
+        flip = (nrm * v).sum(-1, keepdim=True) < 0
+        n = torch.where(flip, -nrm, nrm)
+        p = field.symmetric_points(pts)
+        if field.normal_net is not None:
+            n = field.normal_net(p, n)
+        n = face_viewer(n, v)
+        mat = field.svbrdf(p)
+        s = r = None
+        if mat.specular is not None:
+            s = (mat.specular * spec_scale).clamp(0.0, 1.0)
+            r = (mat.roughness * rough_scale).clamp(field.svbrdf.min_roughness, 1.0)
+        return linear_to_srgb(shade(n, v, mat.albedo, light, s, r).rgb)
+
+    return render_cached_view(view, width, out, colors)
 
 
 def run(field_path: Path, eval_path: Path, out_dir: Path, settings: RelightSettings, device: str = "cpu") -> dict:

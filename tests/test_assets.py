@@ -427,3 +427,21 @@ def test_html_report_opens_in_chromium(trained, tmp_path):
     background = np.median(img.reshape(-1, 3), axis=0)
     differs = np.abs(img - background).sum(-1) > 30
     assert differs.mean() > 0.05, "the 3D canvas is blank"
+
+
+def test_image_guided_metrics_psnr_ssim(trained, tmp_path):
+    from stages import metrics
+
+    s = OptimizeSettings(iterations=2, guidance="image", image_size=32, width=16, crops=0, light_lobes=4, eval_width=32)
+    optimize.run(trained / "train.npz", trained / "eval.npz", "", tmp_path / "opt", s, "cpu")
+    rs = RaycacheSettings(
+        views=1, resolution=16, eval_resolution=16, metrics_azimuths=3, metrics_elevations_deg=(0.0,), metrics_resolution=48
+    )
+    raycache_run(trained / "mesh.ply", tmp_path / "t.npz", tmp_path / "e.npz", tmp_path / "m.json", rs, tmp_path / "metrics.npz")
+    out = metrics.run(
+        tmp_path / "opt" / "field.pt", tmp_path / "metrics.npz", "x", ["x"], tmp_path / "met", metrics.MetricsSettings(clip=False)
+    )
+    it = out["image_target"]
+    assert it["weights"].startswith("image targets") and 5 < it["psnr_db"] < 60 and 0 < it["ssim"] <= 1
+    assert "evaluation" not in out and "guidance" not in out
+    assert (tmp_path / "met" / "targets.png").is_file()
