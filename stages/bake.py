@@ -38,7 +38,7 @@ from .errors import ConfigError, StageInputError, stage_errors
 from .hdrio import write_exr, write_hdr
 from .meshio import TriMesh, load_ply
 from .networks import equirect_directions
-from .provenance import Timer, atomic_path, metadata, setup_logging, write_json_atomic
+from .provenance import Timer, add_torch_arguments, apply_torch_arguments, atomic_path, metadata, write_json_atomic
 from .settings import Settings
 
 log = logging.getLogger(__name__)
@@ -431,13 +431,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--eval", required=True, type=Path, help="evaluation ray cache (.npz)")
     parser.add_argument("--out-dir", required=True, type=Path)
     parser.add_argument("--settings", default="{}", help="JSON of the bake settings")
-    parser.add_argument("--device", default="cpu")
-    parser.add_argument("--threads", type=int, default=None)
-    parser.add_argument("-v", "--verbose", action="store_true")
+    add_torch_arguments(parser, "cpu")
     args = parser.parse_args(argv)
-    setup_logging(args.verbose)
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    apply_torch_arguments(args)
     with stage_errors("bake") as status:
         run(args.mesh, args.field, args.eval, args.out_dir, BakeSettings.from_json(args.settings), args.device)
     return status.code

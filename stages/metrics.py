@@ -28,7 +28,7 @@ import torch
 from torch.nn import functional as F
 
 from .errors import StageInputError, stage_errors
-from .provenance import Timer, metadata, setup_logging, write_json_atomic
+from .provenance import Timer, add_torch_arguments, apply_torch_arguments, metadata, write_json_atomic
 from .settings import Settings
 
 log = logging.getLogger(__name__)
@@ -212,13 +212,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--candidates", default="[]", help="JSON list of the grid's prompt texts for this mesh")
     parser.add_argument("--out-dir", required=True, type=Path)
     parser.add_argument("--settings", default="{}")
-    parser.add_argument("--device", default="cpu")
-    parser.add_argument("--threads", type=int, default=None)
-    parser.add_argument("-v", "--verbose", action="store_true")
+    add_torch_arguments(parser, "cpu")
     args = parser.parse_args(argv)
-    setup_logging(args.verbose)
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    apply_torch_arguments(args)
     from .guidance import ClipWeightsUnavailable
 
     with stage_errors("metrics") as status:

@@ -36,7 +36,7 @@ from .field import StyleField
 from .imaging import background, compose, gather_points, global_spec, index_map, linear_to_srgb, sample_crops
 from .networks import equirect_directions
 from .procedural import LIGHTS, MATERIALS, procedural_light, procedural_material
-from .provenance import Timer, atomic_path, metadata, setup_logging, write_json_atomic
+from .provenance import Timer, add_torch_arguments, apply_torch_arguments, atomic_path, metadata, write_json_atomic
 from .raycache import RayCache
 from .render.shading import face_viewer, shade
 from .settings import Settings
@@ -623,13 +623,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--prompt", required=True, help="text prompt (CLIP guidance)")
     parser.add_argument("--out-dir", required=True, type=Path)
     parser.add_argument("--settings", default="{}", help="JSON of the optimize settings")
-    parser.add_argument("--device", default="auto", help="auto (CUDA when available), cpu, cuda, cuda:1, ...")
-    parser.add_argument("--threads", type=int, default=None, help="CPU threads for torch")
-    parser.add_argument("-v", "--verbose", action="store_true")
+    add_torch_arguments(parser, "auto")
     args = parser.parse_args(argv)
-    setup_logging(args.verbose)
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    apply_torch_arguments(args)
     from .guidance import ClipWeightsUnavailable
 
     with stage_errors("optimize") as status:

@@ -152,3 +152,22 @@ def setup_logging(verbose: bool = False) -> None:
         stream=sys.stderr,
         force=True,
     )
+
+
+def add_torch_arguments(parser, default_device: str = "cpu") -> None:
+    """The runtime options shared by the torch stages: ``--device``, ``--threads``, ``-v``."""
+    parser.add_argument("--device", default=default_device, help="cpu, cuda, cuda:1, ... ('auto': CUDA when available)")
+    parser.add_argument("--threads", type=int, default=None, help="CPU threads for torch")
+    parser.add_argument("-v", "--verbose", action="store_true")
+
+
+def apply_torch_arguments(args) -> None:
+    """Log to stderr, set torch's thread count and resolve ``--device auto``, from
+    :func:`add_torch_arguments`' options."""
+    import torch
+
+    setup_logging(args.verbose)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    if args.device == "auto":
+        args.device = "cuda" if torch.cuda.is_available() else "cpu"

@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from .errors import StageInputError, stage_errors
-from .provenance import Timer, metadata, setup_logging, write_json_atomic
+from .provenance import Timer, add_torch_arguments, apply_torch_arguments, metadata, write_json_atomic
 from .settings import Settings
 
 log = logging.getLogger(__name__)
@@ -148,13 +148,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--eval", required=True, type=Path)
     parser.add_argument("--out-dir", required=True, type=Path)
     parser.add_argument("--settings", default="{}")
-    parser.add_argument("--device", default="cpu")
-    parser.add_argument("--threads", type=int, default=None)
-    parser.add_argument("-v", "--verbose", action="store_true")
+    add_torch_arguments(parser, "cpu")
     args = parser.parse_args(argv)
-    setup_logging(args.verbose)
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    apply_torch_arguments(args)
     with stage_errors("relight") as status:
         run(args.field, args.eval, args.out_dir, RelightSettings.from_json(args.settings), args.device)
     return status.code
