@@ -34,6 +34,7 @@ def child(faces: str, size: int, decimate_to: int | None) -> dict:
     from stages.meshio import TriMesh, save_ply
     from stages.normalize import normalization_transform
     from stages.optimize import OptimizeSettings
+    from stages.provenance import origin_record
     from stages.shapes import knot
 
     torch.set_num_threads(2)
@@ -67,9 +68,10 @@ def child(faces: str, size: int, decimate_to: int | None) -> dict:
         t0 = time.perf_counter()
         atlas = {"uv": res.atlas.uv, "tangent": res.tangents, "handedness": res.handedness}
         geom = faceted(mesh, atlas, tf)
-        write_usd(d / "model.usda", geom, 1.0, "light.exr")
+        origin = origin_record(guidance="clip", weights="random untrained field (benchmark)", test_only=True)
+        write_usd(d / "model.usda", geom, 1.0, "light.exr", origin)
         package_usdz(d / "model.usda", d / "model.usdz", [f"textures/{k}.png" for k in res.textures] + ["light.exr"])
-        write_glb(d / "model.glb", geom, d / "textures", 1.0, "bench")
+        write_glb(d / "model.glb", geom, d / "textures", 1.0, "bench", origin)
         t["export"] = time.perf_counter() - t0
         sizes = {k: (d / k).stat().st_size for k in ("model.usdz", "model.glb")}
     del np, save_ply

@@ -38,7 +38,7 @@ from .errors import ConfigError, StageInputError, stage_errors
 from .hdrio import write_exr, write_hdr
 from .meshio import TriMesh, load_ply
 from .networks import equirect_directions
-from .provenance import Timer, add_torch_arguments, apply_torch_arguments, atomic_path, metadata, write_json_atomic
+from .provenance import ORIGIN_KEY, Timer, add_torch_arguments, apply_torch_arguments, atomic_path, metadata, write_json_atomic
 from .settings import Settings
 
 log = logging.getLogger(__name__)
@@ -404,7 +404,7 @@ def run(
                 "atlas": out_dir / "atlas.npz",
             },
             timings={**timer.seconds, "total": timer.total()},
-            extra={"stats": stats, "optimize_settings": opt_settings.to_dict()},
+            extra={"stats": stats, "optimize_settings": opt_settings.to_dict(), ORIGIN_KEY: field.origin},
         ),
     )
     return stats

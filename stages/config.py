@@ -164,23 +164,68 @@ class WorkflowConfig:
             raise ConfigError(f"{self.source}: mesh {mesh_id!r}: {exc}") from exc
 
     # ---- per-cell ----------------------------------------------------------------------------
-    def optimize_dict(self, prompt_id: str, variant_id: str) -> dict[str, Any]:
-        """Resolved optimize overrides: the prompt's preset < the variant's preset < the config's
-        ``optimize`` section < the prompt's own overrides < the variant's own overrides (presets
-        fill in; what the config states explicitly wins)."""
+    def optimize_layers(self, prompt_id: str, variant_id: str) -> list[tuple[str, dict[str, Any]]]:
+        """The optimize overrides of a cell, least specific first, each named by where it comes from.
+
+        Order (later wins): the config's ``optimize`` section < the prompt's preset < the prompt's
+        ``optimize`` overrides < the variant's preset < the variant's ``optimize`` overrides. The
+        more specific level wins (a variant over a prompt over the base section); within a level,
+        explicit keys win over the level's preset. Keys no layer sets keep their schema defaults.
+        """
         from .presets import PRESETS
 
-        merged: dict[str, Any] = {}
-        variant = self.variants[variant_id] or {}
-        for preset in (self.prompt_presets.get(prompt_id), variant.get("preset")):
-            if preset:
-                merged.update(PRESETS[preset])
-        merged.update(self.raw.get("optimize") or {})
+        layers: list[tuple[str, dict[str, Any]]] = [("config optimize section", dict(self.raw.get("optimize") or {}))]
         prompt = self.raw["prompts"][prompt_id]
-        if isinstance(prompt, dict):
-            merged.update(prompt.get("optimize") or {})
-        merged.update(variant.get("optimize") or {})
+        variant = self.variants[variant_id] or {}
+        for level, entry in ((f"prompt {prompt_id!r}", prompt), (f"variant {variant_id!r}", variant)):
+            if not isinstance(entry, dict):
+                continue
+            if entry.get("preset"):
+                layers.append((f"preset {entry['preset']!r} of {level}", dict(PRESETS[entry["preset"]])))
+            if entry.get("optimize"):
+                layers.append((f"{level} optimize overrides", dict(entry["optimize"])))
+        return layers
+
+    def optimize_dict(self, prompt_id: str, variant_id: str) -> dict[str, Any]:
+        """Resolved optimize overrides of a cell (see :meth:`optimize_layers` for the order)."""
+        merged: dict[str, Any] = {}
+        for _, layer in self.optimize_layers(prompt_id, variant_id):
+            merged.update(layer)
         return merged
+
+    def cell_stage_layers(self, stage: str, prompt_id: str, variant_id: str) -> list[tuple[str, dict[str, Any]]]:
+        """Overrides of a per-cell stage after optimize, least specific first: the config's
+        section < the prompt's overrides < the variant's overrides."""
+        layers: list[tuple[str, dict[str, Any]]] = [(f"config {stage} section", dict(self.raw.get(stage) or {}))]
+        prompt = self.raw["prompts"][prompt_id]
+        if isinstance(prompt, dict) and prompt.get(stage):
+            layers.append((f"prompt {prompt_id!r} {stage} overrides", dict(prompt[stage])))
+        variant = self.variants[variant_id] or {}
+        if variant.get(stage):
+            layers.append((f"variant {variant_id!r} {stage} overrides", dict(variant[stage])))
+        return layers
+
+    def explain(self, cell: Cell, stage: str = "optimize") -> list[tuple[str, Any, str]]:
+        """How one cell's settings of ``stage`` were resolved: ``(key, value, source)`` for every
+        setting, where source is the layer that set it last, or "default" (the settings class,
+        which the schema mirrors)."""
+        import dataclasses
+
+        if stage == "optimize":
+            layers = self.optimize_layers(cell.prompt, cell.variant)
+            resolved = self.optimize_settings(cell.prompt, cell.variant)
+        elif stage in MESH_STAGES:
+            layers = [(f"config {stage} section", dict(self.raw.get(stage) or {}))]
+            layers.append((f"mesh {cell.mesh!r} {stage} overrides", dict(self.meshes[cell.mesh].get(stage) or {})))
+            resolved = self.stage_settings(cell.mesh, stage)
+        else:
+            layers = self.cell_stage_layers(stage, cell.prompt, cell.variant)
+            resolved = self.cell_stage_settings(stage, cell.prompt, cell.variant)
+        source = {}
+        for name, layer in layers:
+            for key in layer:
+                source[key] = name
+        return [(f.name, getattr(resolved, f.name), source.get(f.name, "default")) for f in dataclasses.fields(resolved)]
 
     def optimize_settings(self, prompt_id: str, variant_id: str):
         from .optimize import OptimizeSettings
@@ -204,11 +249,9 @@ class WorkflowConfig:
             "relight": RelightSettings,
             "metrics": MetricsSettings,
         }[stage]
-        merged = dict(self.raw.get(stage) or {})
-        prompt = self.raw["prompts"][prompt_id]
-        if isinstance(prompt, dict):
-            merged.update(prompt.get(stage) or {})
-        merged.update((self.variants[variant_id] or {}).get(stage) or {})
+        merged: dict[str, Any] = {}
+        for _, layer in self.cell_stage_layers(stage, prompt_id, variant_id):
+            merged.update(layer)
         try:
             return cls.from_dict(merged)
         except ConfigError as exc:
@@ -255,6 +298,53 @@ class WorkflowConfig:
         return self.prompts[prompt_id].replace("{object}", noun)
 
 
+def parse_cell(text: str, cfg: WorkflowConfig) -> Cell:
+    """``mesh/prompt/variant`` (the variant may be left out when the config has one) -> a grid cell."""
+    parts = text.split("/")
+    if len(parts) == 2 and len(cfg.variants) == 1:
+        parts.append(next(iter(cfg.variants)))
+    if len(parts) != 3:
+        raise ConfigError(f"cell {text!r} is not mesh/prompt/variant")
+    cell = Cell(*parts)
+    if cell not in cfg.cells:
+        cells = ", ".join(f"{c.mesh}/{c.prompt}/{c.variant}" for c in cfg.cells[:12])
+        raise ConfigError(
+            f"{cfg.source}: {text!r} is not a cell of the grid (cells: {cells}{', ...' if len(cfg.cells) > 12 else ''})"
+        )
+    return cell
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m stages.config --configfile C --cell mesh/prompt/variant [--stage optimize]``:
+    print how one cell's settings were resolved, key by key, with where each value came from."""
+    import argparse
+    import json
+    import sys
+
+    parser = argparse.ArgumentParser(prog="python -m stages.config", description=main.__doc__.split("\n")[0])
+    parser.add_argument("--configfile", type=Path, default=Path("config/config.yaml"))
+    parser.add_argument("--cell", required=True, help="mesh/prompt/variant")
+    stages = ("optimize", "bake", "export", "relight", "metrics", *MESH_STAGES)
+    parser.add_argument("--stage", default="optimize", choices=stages)
+    parser.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    args = parser.parse_args(argv)
+    try:
+        cfg = load_config_file(args.configfile)
+        rows = cfg.explain(parse_cell(args.cell, cfg), args.stage)
+    except ConfigError as exc:
+        sys.stderr.write(f"error: {exc}\n")
+        return 2
+    if args.json:
+        sys.stdout.write(json.dumps([{"key": k, "value": v, "source": s} for k, v, s in rows], indent=1) + "\n")
+        return 0
+    width = max(len(k) for k, _, _ in rows)
+    vwidth = min(max(len(json.dumps(v)) for _, v, _ in rows), 40)
+    sys.stdout.write(f"{args.stage} settings of {args.cell} ({args.configfile}); later sources win:\n")
+    for k, v, s in rows:
+        sys.stdout.write(f"  {k:<{width}}  {json.dumps(v):<{vwidth}}  {s}\n")
+    return 0
+
+
 def load_config_file(path: str | Path) -> WorkflowConfig:
     path = Path(path)
     try:
@@ -267,3 +357,7 @@ def load_config_file(path: str | Path) -> WorkflowConfig:
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: expected a mapping at the top level, got {type(data).__name__}")
     return WorkflowConfig(data, str(path))
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

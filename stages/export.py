@@ -38,11 +38,14 @@ import numpy as np
 from .errors import ConfigError, StageInputError, stage_errors
 from .meshio import TriMesh, load_ply
 from .normalize import Similarity
-from .provenance import Timer, atomic_path, metadata, setup_logging, write_json_atomic
+from .provenance import ORIGIN_KEY, Timer, atomic_path, metadata, read_origin, setup_logging, write_json_atomic
 from .settings import Settings
 
 log = logging.getLogger(__name__)
 
+REPO_ROOT = Path(__file__).resolve().parents[1]
+#: key of the origin record in the USD layer's customLayerData and the glTF asset's extras
+ORIGIN_METADATA_KEY = "tango_stylize"
 TEXTURE_FILES = {k: f"textures/{k}.png" for k in ("basecolor", "metallic_roughness", "specular", "normal")}
 
 
@@ -93,12 +96,17 @@ def faceted(mesh: TriMesh, atlas: dict, transform: Similarity | None) -> Faceted
 
 
 # ------------------------------------------------------------------------------------------ USD
-def write_usd(path: Path, geom: Faceted, meters_per_unit: float, light_file: str | None) -> None:
+def write_usd(path: Path, geom: Faceted, meters_per_unit: float, light_file: str | None, origin: dict) -> None:
     """Write ``model.usda``: a Mesh with ``st`` and normals, a UsdPreviewSurface bound to it, and
-    a DomeLight with the learned light. Texture paths are relative to the file."""
+    a DomeLight with the learned light. Texture paths are relative to the file. ``origin`` (the
+    guidance and weights that made the material) goes into the root layer's ``customLayerData``
+    under ``tango_stylize`` and its label into the layer's documentation."""
     from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdShade, Vt
 
     stage = Usd.Stage.CreateNew(str(path))
+    layer = stage.GetRootLayer()
+    layer.documentation = f"tango-stylize asset. {origin['label']}"
+    layer.customLayerData = {ORIGIN_METADATA_KEY: {k: v for k, v in origin.items() if v is not None}}
     UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
     UsdGeom.SetStageMetersPerUnit(stage, meters_per_unit)
     root = UsdGeom.Xform.Define(stage, "/Asset")
@@ -180,20 +188,81 @@ def package_usdz(usda: Path, usdz: Path, files: list[str]) -> None:
         writer.Save()
 
 
-def validate_usd(path: Path) -> list[str]:
-    """Errors (not warnings) that usd-core's validators report for ``path`` (all validators)."""
+def validate_usd(path: Path) -> dict:
+    """Run every validator usd-core registers on ``path`` and count what they report.
+
+    Returns ``{"file", "validators" (how many ran), "validator_names" (sorted), "validator_digest"
+    (SHA-256 of the names, one per line), "errors", "warnings", "infos" (counts), "messages"
+    (``"name: message"`` of every error and warning)}``. Nothing here is a constant: a stage whose
+    validators report errors fails, and the counts say what ran.
+    """
+    import hashlib
+
     from pxr import Usd, UsdValidation
 
     stage = Usd.Stage.Open(str(path))
     registry = UsdValidation.ValidationRegistry()
-    context = UsdValidation.ValidationContext(registry.GetOrLoadAllValidators())
-    errors = context.Validate(stage)
-    return [f"{e.GetName()}: {e.GetMessage()}" for e in errors if e.GetType() == UsdValidation.ValidationErrorType.Error]
+    validators = registry.GetOrLoadAllValidators()
+    names = sorted(v.GetMetadata().name for v in validators)
+    context = UsdValidation.ValidationContext(validators)
+    issues = context.Validate(stage)
+    kinds = UsdValidation.ValidationErrorType
+    count = {kind: sum(1 for e in issues if e.GetType() == kind) for kind in (kinds.Error, kinds.Warn, kinds.Info)}
+    return {
+        "file": Path(path).name,
+        "validators": len(validators),
+        "validator_names": names,
+        "validator_digest": hashlib.sha256("\n".join(names).encode()).hexdigest(),
+        "errors": count[kinds.Error],
+        "warnings": count[kinds.Warn],
+        "infos": count[kinds.Info],
+        "messages": [f"{e.GetName()}: {e.GetMessage()}" for e in issues if e.GetType() in (kinds.Error, kinds.Warn)],
+    }
+
+
+#: the Khronos glTF-Validator as the repository installs it (``npm ci``; see package.json)
+GLTF_VALIDATOR = REPO_ROOT / "node_modules" / "gltf-validator"
+
+
+def validate_glb(path: Path) -> dict:
+    """The Khronos glTF-Validator's counts for ``path`` when Node.js and the validator are installed
+    (``scripts/setup.sh`` runs ``npm ci``), else ``{"ran": False, "reason": ...}``.
+
+    Returns ``{"ran": True, "validator" (name and version), "errors", "warnings", "infos",
+    "hints", "messages"}``.
+    """
+    import shutil
+    import subprocess
+
+    node = shutil.which("node")
+    if node is None or not GLTF_VALIDATOR.is_dir():
+        missing = "Node.js (node) is not on PATH" if node is None else f"{GLTF_VALIDATOR} is missing (run npm ci)"
+        return {"ran": False, "reason": missing}
+    proc = subprocess.run(
+        [node, str(REPO_ROOT / "scripts" / "validate_gltf.mjs"), str(path)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    if proc.returncode != 0:
+        raise RuntimeError(f"the Khronos glTF-Validator could not run on {path}: {proc.stderr.strip()[-2000:]}")
+    report = json.loads(proc.stdout)
+    issues = report["issues"]
+    return {
+        "ran": True,
+        "validator": f"Khronos glTF-Validator {report.get('validatorVersion')}",
+        "errors": int(issues["numErrors"]),
+        "warnings": int(issues["numWarnings"]),
+        "infos": int(issues["numInfos"]),
+        "hints": int(issues["numHints"]),
+        "messages": [f"{m['code']} at {m.get('pointer', '')}: {m['message']}" for m in issues["messages"] if m["severity"] <= 1],
+    }
 
 
 # ----------------------------------------------------------------------------------------- glTF
-def write_glb(path: Path, geom: Faceted, textures_dir: Path, meters_per_unit: float, name: str) -> None:
-    """Write a self-contained binary glTF 2.0 file (see the module docstring for the mapping)."""
+def write_glb(path: Path, geom: Faceted, textures_dir: Path, meters_per_unit: float, name: str, origin: dict) -> None:
+    """Write a self-contained binary glTF 2.0 file (see the module docstring for the mapping);
+    ``origin`` goes into ``asset.extras.tango_stylize``."""
     import pygltflib as g
 
     pos = geom.positions * np.float32(meters_per_unit)
@@ -249,7 +318,7 @@ def write_glb(path: Path, geom: Faceted, textures_dir: Path, meters_per_unit: fl
         },
     )
     gltf = g.GLTF2(
-        asset=g.Asset(version="2.0", generator="tango-stylize"),
+        asset=g.Asset(version="2.0", generator="tango-stylize", extras={ORIGIN_METADATA_KEY: origin}),
         scene=0,
         scenes=[g.Scene(nodes=[0])],
         nodes=[g.Node(mesh=0, name=name)],
@@ -293,6 +362,7 @@ def run(
     for p in needed:
         if not Path(p).is_file():
             raise StageInputError(p, "file not found", "Run the bake stage first.")
+    origin = read_origin(bake_dir / "meta.json")
     mesh = load_ply(mesh_path)
     with np.load(bake_dir / "atlas.npz") as z:
         atlas = {k: z[k] for k in z.files}
@@ -312,19 +382,38 @@ def run(
     with timer("usd"):
         with atomic_path(out_dir / "model.usda") as tmp:
             tmp.unlink()
-            write_usd(tmp, geom, settings.meters_per_unit, "light.exr")
+            write_usd(tmp, geom, settings.meters_per_unit, "light.exr", origin)
         package_usdz(out_dir / "model.usda", out_dir / "model.usdz", [*TEXTURE_FILES.values(), "light.exr"])
     with timer("gltf"):
-        write_glb(out_dir / "model.glb", geom, out_dir / "textures", settings.meters_per_unit, name)
+        write_glb(out_dir / "model.glb", geom, out_dir / "textures", settings.meters_per_unit, name, origin)
     with timer("validate"):
-        usd_errors = validate_usd(out_dir / "model.usda") + validate_usd(out_dir / "model.usdz")
-    if usd_errors:
-        raise RuntimeError("usd-core validation errors:\n" + "\n".join(usd_errors))
+        usd = [validate_usd(out_dir / "model.usda"), validate_usd(out_dir / "model.usdz")]
+        gltf = validate_glb(out_dir / "model.glb")
+    messages = [f"{r['file']}: {m}" for r in usd for m in r["messages"]]
+    for line in messages:
+        log.warning("usd-core validation: %s", line)
+    if not gltf["ran"]:
+        log.warning("the Khronos glTF-Validator did not run: %s; model.glb is unchecked", gltf["reason"])
+    else:
+        for line in gltf["messages"]:
+            log.warning("glTF validation: %s", line)
+    if any(r["errors"] for r in usd) or gltf.get("errors"):
+        raise RuntimeError("asset validation failed:\n" + "\n".join(messages + gltf.get("messages", [])))
+    from PIL import Image
+
+    with Image.open(out_dir / TEXTURE_FILES["basecolor"]) as img:
+        texture_size = int(img.size[0])
     stats = {
         "faces": len(mesh.faces),
         "vertices_exported": len(geom.positions),
-        "texture_size": int(np.asarray(__import__("PIL.Image").Image.open(out_dir / TEXTURE_FILES["basecolor"]).size)[0]),
-        "usd_validation_errors": 0,
+        "texture_size": texture_size,
+        "usd_validation": usd,
+        "usd_validators": usd[0]["validators"],
+        "usd_validation_errors": sum(r["errors"] for r in usd),
+        "usd_validation_warnings": sum(r["warnings"] for r in usd),
+        "gltf_validation": gltf,
+        "gltf_validation_errors": gltf.get("errors"),
+        "gltf_validation_warnings": gltf.get("warnings"),
         "bounds": [geom.positions.min(0).tolist(), geom.positions.max(0).tolist()],
     }
     write_json_atomic(
@@ -335,7 +424,7 @@ def run(
             inputs={"mesh": mesh_path, "transform": transform_path, "bake": bake_dir},
             outputs={k: out_dir / k for k in ("model.usda", "model.usdz", "model.glb")},
             timings={**timer.seconds, "total": timer.total()},
-            extra={"stats": stats},
+            extra={"stats": stats, ORIGIN_KEY: origin},
         ),
     )
     return stats

@@ -6,6 +6,13 @@ front, ablation bars), image grids (variants x prompts per mesh; original vs dec
 each cell an interactive 3D viewer of its GLB (Google's <model-viewer>, bundled from the npm
 package into the page: no CDN, no network). Images and models are embedded as data URIs, so the
 single file opens anywhere, including from disk.
+
+Without Node.js's packages (``node_modules/@google/model-viewer``, installed by ``npm ci`` in
+``scripts/setup.sh`` when npm exists) the page is still written, with each cell's static preview
+image in place of the 3D viewer, a warning in the log and a notice at the top of the page.
+
+Every cell shows the guidance and weights that made it; when any cell was made with the test-only
+random CLIP or fitted to image targets, a banner at the top of the page says so first.
 """
 
 from __future__ import annotations
@@ -19,7 +26,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from .errors import StageInputError, stage_errors
+from .errors import stage_errors
 from .provenance import atomic_path, setup_logging
 from .report import parse_cells
 
@@ -38,6 +45,7 @@ td:first-child,th:first-child{text-align:left}
 .cell{border:1px solid #ddd;padding:8px;width:420px}
 model-viewer{width:400px;height:320px;background:#eee}
 img{max-width:100%} .note{color:#a00;font-weight:bold}
+.banner{border:2px solid #a00;padding:8px;background:#fff4f4}
 """
 
 
@@ -67,17 +75,48 @@ def group_rows(frame: pd.DataFrame) -> list[tuple[str, pd.DataFrame]]:
     return [(t, f) for t, f in groups if len(f)]
 
 
-def build(results: Path, report_dir: Path, cells: list[tuple[str, str, str]], out: Path) -> int:
-    if not MODEL_VIEWER.is_file():
-        raise StageInputError(
-            MODEL_VIEWER,
-            "model-viewer is not installed",
-            "Run 'npm ci' in the repository (scripts/setup.sh does).",
+def origin_banner(frame: pd.DataFrame) -> str:
+    """The page's first lines when any cell is not a real CLIP stylisation."""
+    out = []
+    n = len(frame)
+    test = int(frame["test_only_weights"].astype(bool).sum()) if "test_only_weights" in frame else 0
+    image = int((frame["image_guided"].astype(bool) & ~frame["test_only_weights"].astype(bool)).sum()) if n else 0
+    if test:
+        out.append(
+            f"<p class='banner note'>TEST ONLY: {test} of {n} cells were made with a tiny CLIP with random weights "
+            "(a test model). Their renders and assets are not real stylisations of their prompts.</p>"
         )
+    if image:
+        out.append(
+            f"<p class='banner note'>IMAGE-GUIDED: {image} of {n} cells were fitted to renders of procedural target "
+            "materials (a verification run without CLIP), not stylised from their prompts.</p>"
+        )
+    return "".join(out)
+
+
+def build(results: Path, report_dir: Path, cells: list[tuple[str, str, str]], out: Path, model_viewer: Path | None = None) -> int:
+    """Write the page; returns the number of 3D viewers in it (0 when model-viewer is missing)."""
+    model_viewer = MODEL_VIEWER if model_viewer is None else Path(model_viewer)
+    viewer = model_viewer.is_file()
     frame = pd.read_csv(report_dir / "summary.csv")
     parts = [f"<!doctype html><html><head><meta charset='utf-8'><title>tango-stylize report</title><style>{CSS}</style>"]
-    parts.append(f"<script>{MODEL_VIEWER.read_text()}</script></head><body>")
+    if viewer:
+        parts.append(f"<script>{model_viewer.read_text()}</script>")
+    else:
+        log.warning(
+            "%s not found: the report shows static previews instead of 3D viewers. Install Node.js and run "
+            "'npm ci' in the repository (scripts/setup.sh does when npm is available), then rerun the report.",
+            model_viewer,
+        )
+    parts.append("</head><body>")
     parts.append(f"<h1>tango-stylize report: {len(cells)} grid cells</h1>")
+    parts.append(origin_banner(frame))
+    if not viewer:
+        parts.append(
+            "<p class='banner' id='no-viewer'>3D viewers are off: model-viewer (an npm package) was not installed "
+            "when this page was made, so each asset shows its static preview. Install Node.js, run 'npm ci' and "
+            "rerun the report to get them.</p>"
+        )
     parts.append("<h2>Summary</h2>")
     for title, sub in group_rows(frame):
         cls = " class='note'" if title.startswith("TEST ONLY") else ""
@@ -110,9 +149,13 @@ def build(results: Path, report_dir: Path, cells: list[tuple[str, str, str]], ou
         row = frame[(frame["mesh"] == mesh) & (frame["prompt"] == prompt) & (frame["variant"] == variant)]
         label = html.escape(f"{mesh} / {prompt} / {variant}")
         text = html.escape(str(row["prompt_text"].iloc[0])) if len(row) else ""
-        weights = html.escape(str(row["weights"].iloc[0])) if len(row) else ""
-        parts.append(f"<div class='cell'><b>{label}</b><br>{text}<br><small>{weights}</small><br>")
-        if glb.is_file():
+        origin = str(row["origin"].iloc[0]) if len(row) else ""
+        cls = " class='note'" if origin.startswith(("TEST ONLY", "IMAGE-GUIDED")) else ""
+        parts.append(f"<div class='cell'><b>{label}</b><br>{text}<br><small{cls}>{html.escape(origin)}</small><br>")
+        preview = cdir / "asset" / "preview.png"
+        if not viewer and preview.is_file():
+            parts.append(f"<img class='preview' alt='{label}' src='{data_uri(preview, 'image/png')}'>")
+        elif glb.is_file():
             parts.append(
                 f"<model-viewer src='{data_uri(glb, 'model/gltf-binary')}' alt='{label}' camera-controls "
                 "loading='eager' reveal='auto' shadow-intensity='0.5' exposure='1' interaction-prompt='none'></model-viewer>"

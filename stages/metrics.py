@@ -28,7 +28,7 @@ import torch
 from torch.nn import functional as F
 
 from .errors import StageInputError, stage_errors
-from .provenance import Timer, add_torch_arguments, apply_torch_arguments, metadata, write_json_atomic
+from .provenance import ORIGIN_KEY, Timer, add_torch_arguments, apply_torch_arguments, metadata, write_json_atomic
 from .settings import Settings
 
 log = logging.getLogger(__name__)
@@ -140,7 +140,7 @@ def run(
         imgs = render_metric_views(field, store, settings.background)
     out_dir = Path(out_dir)
     save_png(out_dir / "views.png", contact_sheet(list(imgs), len(settings_eval_azimuths(store))))
-    result: dict = {"prompt": prompt}
+    result: dict = {"prompt": prompt, ORIGIN_KEY: field.origin}
     result["protocol"] = {
         "views": len(store),
         "resolution": store.width,
@@ -198,7 +198,7 @@ def run(
             inputs={"field": field_path, "metrics_cache": metrics_cache},
             outputs={"metrics": out_dir / "metrics.json", "views": out_dir / "views.png"},
             timings={**timer.seconds, "total": timer.total()},
-            extra={"candidates": candidates},
+            extra={"candidates": candidates, ORIGIN_KEY: field.origin},
         ),
     )
     return result

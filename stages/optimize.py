@@ -36,7 +36,16 @@ from .field import StyleField
 from .imaging import background, compose, gather_points, global_spec, index_map, linear_to_srgb, sample_crops
 from .networks import equirect_directions
 from .procedural import LIGHTS, MATERIALS, procedural_light, procedural_material
-from .provenance import Timer, add_torch_arguments, apply_torch_arguments, atomic_path, metadata, write_json_atomic
+from .provenance import (
+    ORIGIN_KEY,
+    Timer,
+    add_torch_arguments,
+    apply_torch_arguments,
+    atomic_path,
+    metadata,
+    origin_record,
+    write_json_atomic,
+)
 from .raycache import RayCache
 from .render.shading import face_viewer, shade
 from .settings import Settings
@@ -216,6 +225,7 @@ class Objective:
         else:
             self.target_light = procedural_light(settings.target_light, device=device)
             self.weights_id = f"image targets: procedural {settings.target_material} under {settings.target_light} light"
+        self.origin = origin_record(guidance=settings.guidance, weights=self.weights_id, test_only=self.test_only, prompt=prompt)
 
     def target_colors(self, points, normals, view) -> torch.Tensor:
         flip = (normals * view).sum(-1, keepdim=True) < 0
@@ -495,6 +505,7 @@ def run(
             "guidance": settings.guidance,
             "weights": opt.objective.weights_id,
             "test_only_weights": opt.objective.test_only,
+            ORIGIN_KEY: opt.objective.origin,
             "resumed_from_iteration": resumed_from,
             "seconds_per_iteration": loop_s / iters_here,
             "points_per_iteration": opt.points_last,
@@ -576,6 +587,7 @@ def write_outputs(opt: Optimizer, eval_path: Path, out_dir: Path, settings: Opti
                 "format": 1,
                 "settings": settings.to_dict(),
                 "prompt": prompt,
+                ORIGIN_KEY: opt.objective.origin,
                 "state_dict": field_.state_dict(),
             },
             tmp,
@@ -608,11 +620,20 @@ def render_target(objective: Objective, v: CachedView, width: int, out_width: in
 
 
 def load_field(path: str | Path, device="cpu") -> tuple[StyleField, OptimizeSettings]:
-    """Rebuild a trained :class:`StyleField` from ``field.pt``."""
+    """Rebuild a trained :class:`StyleField` from ``field.pt``; ``field.origin`` is the record of
+    the guidance and weights that trained it (:func:`~stages.provenance.origin_record`), which
+    every stage that uses the field copies into its own outputs."""
     data = torch.load(path, map_location=device, weights_only=False)
+    if not isinstance(data.get(ORIGIN_KEY), dict):
+        raise StageInputError(
+            path,
+            "records no origin (guidance and weights), so outputs made from it could not say what made them",
+            "It was written by an older version: rerun the optimize stage (snakemake --forcerun optimize).",
+        )
     settings = OptimizeSettings.from_dict(data["settings"])
     f = StyleField(settings).to(device)
     f.load_state_dict(data["state_dict"])
+    f.origin = data[ORIGIN_KEY]
     return f.eval(), settings
 
 

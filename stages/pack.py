@@ -1,9 +1,11 @@
 """pack: zip every grid cell's asset folder into one asset pack with an index.
 
 ``asset_pack.zip`` holds ``<mesh>/<prompt>/<variant>/{model.usdz, model.usda, model.glb,
-textures/*.png, light.exr, light.hdr, preview.png, meta.json}`` and ``index.csv``; the same index
-is written beside it as ``asset_index.csv`` (columns: mesh, prompt, variant, files, texture_size,
-faces).
+textures/*.png, light.exr, light.hdr, preview.png, meta.json}``, ``index.csv`` and a short
+``README.txt`` that says, per cell, which guidance and weights made it (and, first of all, when
+any asset was made with the test-only random CLIP or fitted to image targets). The same index is
+written beside the zip as ``asset_index.csv`` (columns: mesh, prompt, variant, guidance, weights,
+test_only, image_guided, origin, files, texture_size, faces, validation counts).
 """
 
 from __future__ import annotations
@@ -17,10 +19,39 @@ import zipfile
 from pathlib import Path
 
 from .errors import StageInputError, stage_errors
-from .provenance import atomic_path, setup_logging
+from .provenance import ORIGIN_KEY, atomic_path, read_origin, setup_logging
 from .report import parse_cells
 
 log = logging.getLogger(__name__)
+
+
+def pack_readme(rows: list[dict]) -> str:
+    """The pack's ``README.txt``: a warning first when any asset is test-only or image-guided,
+    then one line per cell with the guidance and weights that made it."""
+    test = [r for r in rows if r["test_only"]]
+    image = [r for r in rows if r["image_guided"] and not r["test_only"]]
+    lines = ["tango-stylize asset pack", ""]
+    if test:
+        lines += [
+            f"WARNING: TEST ONLY. {len(test)} of {len(rows)} assets were made with a tiny CLIP with random",
+            "weights (a test model): they are not real stylisations of their prompts.",
+            "",
+        ]
+    if image:
+        lines += [
+            f"NOTE: {len(image)} of {len(rows)} assets are IMAGE-GUIDED: fitted to renders of procedural",
+            "target materials (a verification run without CLIP), not stylised from their prompts.",
+            "",
+        ]
+    lines += [
+        "Each folder <mesh>/<prompt>/<variant>/ holds model.usdz, model.usda, model.glb, textures/,",
+        "light.exr/.hdr (the learned environment light), preview.png and meta.json (full provenance).",
+        "The origin is also inside each model: glTF asset.extras.tango_stylize, USD customLayerData.",
+        "",
+        "Assets and what made them:",
+    ]
+    lines += [f"- {r['mesh']}/{r['prompt']}/{r['variant']}: {r[ORIGIN_KEY]}" for r in rows]
+    return "\n".join(lines) + "\n"
 
 
 def run(results: Path, cells: list[tuple[str, str, str]], out_zip: Path, out_index: Path) -> list[dict]:
@@ -32,6 +63,7 @@ def run(results: Path, cells: list[tuple[str, str, str]], out_zip: Path, out_ind
         if not meta_path.is_file():
             raise StageInputError(meta_path, "file not found", "Run the export stage first.")
         meta = json.loads(meta_path.read_text())
+        origin = read_origin(meta_path)
         files = sorted(p for p in asset.rglob("*") if p.is_file() and not p.name.startswith("."))
         rel = [str(p.relative_to(asset)) for p in files]
         entries += [(p, f"{mesh}/{prompt}/{variant}/{r}") for p, r in zip(files, rel, strict=True)]
@@ -40,9 +72,19 @@ def run(results: Path, cells: list[tuple[str, str, str]], out_zip: Path, out_ind
                 "mesh": mesh,
                 "prompt": prompt,
                 "variant": variant,
+                "guidance": origin["guidance"],
+                "weights": origin["weights"],
+                "test_only": origin["test_only"],
+                "image_guided": origin["image_guided"],
+                ORIGIN_KEY: origin["label"],
                 "files": ";".join(rel),
                 "texture_size": meta["stats"]["texture_size"],
                 "faces": meta["stats"]["faces"],
+                "usd_validators": meta["stats"]["usd_validators"],
+                "usd_validation_errors": meta["stats"]["usd_validation_errors"],
+                "usd_validation_warnings": meta["stats"]["usd_validation_warnings"],
+                "gltf_validation_errors": meta["stats"]["gltf_validation_errors"],
+                "gltf_validation_warnings": meta["stats"]["gltf_validation_warnings"],
             }
         )
     buf = io.StringIO()
@@ -51,6 +93,7 @@ def run(results: Path, cells: list[tuple[str, str, str]], out_zip: Path, out_ind
     writer.writerows(rows)
     with atomic_path(out_zip) as tmp:
         with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_STORED) as z:
+            z.writestr("README.txt", pack_readme(rows))
             z.writestr("index.csv", buf.getvalue())
             for path, arc in entries:
                 z.write(path, arc)

@@ -171,3 +171,51 @@ def apply_torch_arguments(args) -> None:
         torch.set_num_threads(args.threads)
     if args.device == "auto":
         args.device = "cuda" if torch.cuda.is_available() else "cpu"
+
+
+# ---- origin: which guidance and weights made a result, carried by every downstream output ----
+#: the key under which every stage's ``meta.json`` (and the field file) records the origin
+ORIGIN_KEY = "origin"
+
+
+def origin_record(*, guidance: str, weights: str, test_only: bool, prompt: str | None = None) -> dict[str, Any]:
+    """What made a trained field, in the form every downstream output repeats.
+
+    ``guidance``: ``"clip"`` or ``"image"``; ``weights``: the id of the CLIP weights or of the
+    image targets; ``test_only``: made with the tiny random test CLIP. ``label`` is the one line a
+    person reads (in file metadata, the asset index, the pack's README and the report); it starts
+    with ``TEST ONLY`` or ``IMAGE-GUIDED`` whenever the result is not a real CLIP stylisation.
+    """
+    if guidance not in ("clip", "image"):
+        raise ValueError(f"guidance must be 'clip' or 'image', got {guidance!r}")
+    if test_only:
+        label = f"TEST ONLY: made with random test weights, not a real stylisation ({weights})"
+    elif guidance == "image":
+        label = f"IMAGE-GUIDED: fitted to procedural target renders, not text-guided ({weights})"
+    else:
+        label = f"CLIP-guided ({weights})"
+    return {
+        "guidance": guidance,
+        "weights": weights,
+        "test_only": bool(test_only),
+        "image_guided": guidance == "image",
+        "prompt": prompt,
+        "label": label,
+    }
+
+
+def read_origin(meta_path: str | Path) -> dict[str, Any]:
+    """The origin recorded in an upstream ``meta.json``; a clear error when it has none."""
+    from .errors import StageInputError
+
+    meta_path = Path(meta_path)
+    if not meta_path.is_file():
+        raise StageInputError(meta_path, "file not found", "Run the earlier stages first.")
+    origin = json.loads(meta_path.read_text()).get(ORIGIN_KEY)
+    if not isinstance(origin, dict) or "label" not in origin:
+        raise StageInputError(
+            meta_path,
+            "records no origin (guidance and weights), so outputs made from it could not say what made them",
+            "It was written by an older version: rerun the stage that wrote it (snakemake --forcerun <rule>).",
+        )
+    return origin

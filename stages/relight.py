@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from .errors import StageInputError, stage_errors
-from .provenance import Timer, add_torch_arguments, apply_torch_arguments, metadata, write_json_atomic
+from .provenance import ORIGIN_KEY, Timer, add_torch_arguments, apply_torch_arguments, metadata, write_json_atomic
 from .settings import Settings
 
 log = logging.getLogger(__name__)
@@ -126,7 +126,7 @@ def run(field_path: Path, eval_path: Path, out_dir: Path, settings: RelightSetti
             inputs={"field": field_path, "eval": eval_path},
             outputs={k: out_dir / f"{k}.png" for k in ("relit", "material_edit", "light_fit")},
             timings={**timer.seconds, "total": timer.total()},
-            extra={"stats": stats},
+            extra={"stats": stats, ORIGIN_KEY: field.origin},
         ),
     )
     return stats

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import StageInputError, stage_errors
-from .provenance import atomic_path, setup_logging, write_json_atomic
+from .provenance import ORIGIN_KEY, atomic_path, read_origin, setup_logging, write_json_atomic
 
 log = logging.getLogger(__name__)
 
@@ -46,12 +46,39 @@ def weights_label(meta: dict) -> str:
     return str(meta.get("weights"))
 
 
+#: a cell's per-stage outputs that repeat the optimisation's origin (folder, file)
+ORIGIN_FILES = (
+    ("optimize", "meta.json"),
+    ("bake", "meta.json"),
+    ("asset", "meta.json"),
+    ("relight", "meta.json"),
+    ("metrics", "meta.json"),
+    ("metrics", "metrics.json"),
+)
+
+
+def check_origins(cell_dir: Path) -> dict:
+    """The cell's origin (from its optimisation), after checking that every downstream output that
+    exists repeats it: a mismatch means outputs of different runs were mixed."""
+    origin = read_origin(cell_dir / "optimize" / "meta.json")
+    for folder, name in ORIGIN_FILES[1:]:
+        path = cell_dir / folder / name
+        if path.is_file() and read_origin(path) != origin:
+            raise StageInputError(
+                path,
+                f"says it was made by {read_origin(path)['label']!r} but the cell's optimisation says {origin['label']!r}",
+                "Outputs of different runs are mixed: rerun the cell (snakemake --forcerun optimize).",
+            )
+    return origin
+
+
 def summary_rows(results: Path, cells: list[tuple[str, str, str]]) -> list[dict]:
     rows = []
     for mesh, prompt, variant in cells:
         mdir = results / mesh
         cdir = mdir / prompt / variant
         opt = _need(cdir / "optimize" / "meta.json")
+        origin = check_origins(cdir)
         bake = _read(cdir / "bake" / "meta.json") or {}
         export = _read(cdir / "asset" / "meta.json") or {}
         norm = _need(mdir / "normalize" / "meta.json")
@@ -63,7 +90,9 @@ def summary_rows(results: Path, cells: list[tuple[str, str, str]]) -> list[dict]
             "prompt_text": opt.get("prompt"),
             "guidance": "image-guided (procedural targets)" if opt.get("guidance") == "image" else "CLIP",
             "weights": weights_label(opt),
-            "test_only_weights": bool(opt.get("test_only_weights")),
+            "test_only_weights": bool(origin["test_only"]),
+            "image_guided": bool(origin["image_guided"]),
+            ORIGIN_KEY: origin["label"],
             "iterations": opt["settings"]["iterations"],
             "final_similarity": opt.get("final_similarity"),
             "eval_psnr_db": opt.get("eval_psnr_db"),
@@ -72,8 +101,16 @@ def summary_rows(results: Path, cells: list[tuple[str, str, str]]) -> list[dict]
             "decimated": dec is not None,
             "bake_psnr_db": bake.get("stats", {}).get("bake_psnr_db"),
             "texture_size": bake.get("stats", {}).get("texture_size"),
+            "usd_validators": export.get("stats", {}).get("usd_validators"),
             "usd_validation_errors": export.get("stats", {}).get("usd_validation_errors"),
+            "usd_validation_warnings": export.get("stats", {}).get("usd_validation_warnings"),
+            "gltf_validation_errors": export.get("stats", {}).get("gltf_validation_errors"),
+            "gltf_validation_warnings": export.get("stats", {}).get("gltf_validation_warnings"),
         }
+        if dec:
+            row["decimation_target"] = dec["stats"].get("target_faces")
+            row["decimation_target_reached"] = dec["stats"].get("target_reached")
+            row["decimation_shortfall"] = dec["stats"].get("target_shortfall_reason")
         metrics = _read(cdir / "metrics" / "metrics.json") or {}
         ev = metrics.get("evaluation") or {}
         it = metrics.get("image_target") or {}

@@ -34,6 +34,16 @@ def shared_mesh(name: str) -> Path:
     return path
 
 
+def require_tool(available: bool, reason: str) -> None:
+    """Skip a test whose external tool (Node.js, Chromium, a validator) is missing, except in CI
+    (``CI`` set), where CI installs every such tool and a missing one must fail the run."""
+    if available:
+        return
+    if os.environ.get("CI"):
+        pytest.fail(f"{reason}; CI must provide it (.ci/run installs it)", pytrace=False)
+    pytest.skip(reason)
+
+
 def icosphere(subdivisions: int):
     """Unit icosphere (all vertices on the unit sphere) as a TriMesh."""
     import trimesh

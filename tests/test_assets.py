@@ -6,11 +6,12 @@ import json
 import shutil
 import subprocess
 import zipfile
+from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
-from conftest import REPO, icosphere
+from conftest import REPO, icosphere, require_tool
 
 from stages import bake, export, optimize, pack, relight, report
 from stages.bake import (
@@ -184,6 +185,9 @@ def test_usd_reopens_with_material_and_textures(trained):
     for name in ("model.usda", "model.usdz"):
         stage = Usd.Stage.Open(str(trained / "asset" / name))
         assert UsdGeom.GetStageUpAxis(stage) == "Y" and UsdGeom.GetStageMetersPerUnit(stage) == 1.0
+        origin = stage.GetRootLayer().customLayerData["tango_stylize"]
+        assert origin["test_only"] is True and origin["label"].startswith("TEST ONLY")
+        assert "TEST ONLY" in stage.GetRootLayer().documentation
         mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/Asset/Geometry/Mesh"))
         assert mesh and UsdGeom.PrimvarsAPI(mesh).GetPrimvar("st").IsDefined()
         material, _ = UsdShade.MaterialBindingAPI(mesh.GetPrim()).ComputeBoundMaterial()
@@ -196,10 +200,66 @@ def test_usd_reopens_with_material_and_textures(trained):
                     files.append(a.Get())
         assert len(files) == 5  # four textures and the dome light's image
         assert all(f.resolvedPath for f in files), files
-        assert export.validate_usd(trained / "asset" / name) == []
+        checked = export.validate_usd(trained / "asset" / name)
+        assert checked["errors"] == 0 and checked["validators"] >= 20, checked["messages"]
         # geometry is back in the input's units: the candle stands at y ~ 20..33 cm
         pts = np.asarray(mesh.GetPointsAttr().Get())
         assert 19 < pts[:, 1].min() < 21 and 32 < pts[:, 1].max() < 34
+
+
+def _broken_usda(path):
+    """A USD layer with four faults usd-core's validators know: no metersPerUnit, no upAxis, no
+    default prim, and a primvar reader whose varname is a token (must be a string)."""
+    from pxr import Sdf, Usd, UsdGeom, UsdShade
+
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.Xform.Define(stage, "/A")
+    UsdShade.Material.Define(stage, "/A/M")
+    reader = UsdShade.Shader.Define(stage, "/A/M/R")
+    reader.CreateIdAttr("UsdPrimvarReader_float2")
+    reader.CreateInput("varname", Sdf.ValueTypeNames.Token).Set("st")
+    stage.GetRootLayer().Save()
+
+
+def test_usd_validation_is_counted_not_asserted(trained, tmp_path):
+    """The export records what its validators found, counted: every validator usd-core registers
+    ran (their number and names match the registry, asked here directly), and a faulty layer
+    gets its faults counted rather than a constant 0."""
+    from pxr import UsdValidation
+
+    registered = sorted(v.GetMetadata().name for v in UsdValidation.ValidationRegistry().GetOrLoadAllValidators())
+    meta = json.loads((trained / "asset" / "meta.json").read_text())["stats"]
+    assert [r["file"] for r in meta["usd_validation"]] == ["model.usda", "model.usdz"]
+    for r in meta["usd_validation"]:
+        assert r["validators"] == len(registered) and r["validator_names"] == registered
+    assert meta["usd_validators"] == len(registered)
+    assert meta["usd_validation_errors"] == sum(r["errors"] for r in meta["usd_validation"]) == 0
+    _broken_usda(tmp_path / "broken.usda")
+    broken = export.validate_usd(tmp_path / "broken.usda")
+    assert broken["errors"] == 4 and broken["validators"] == len(registered)
+    assert any(m.startswith("MismatchedPropertyType") for m in broken["messages"])
+
+
+def test_export_fails_on_validation_errors(trained, tmp_path, monkeypatch):
+    """A validator error stops the export and leaves no finished-looking metadata behind."""
+    real = export.validate_usd
+
+    def faulty(path):
+        _broken_usda(tmp_path / "broken.usda")
+        return {**real(tmp_path / "broken.usda"), "file": Path(path).name}
+
+    monkeypatch.setattr(export, "validate_usd", faulty)
+    out = tmp_path / "asset"
+    with pytest.raises(RuntimeError, match="MismatchedPropertyType"):
+        export.run(
+            trained / "mesh.ply",
+            trained / "transform.json",
+            trained / "bake",
+            trained / "bake" / "preview.png",
+            out,
+            export.ExportSettings(),
+        )
+    assert not (out / "meta.json").exists()
 
 
 def test_glb_reloads_with_all_textures(trained):
@@ -209,6 +269,7 @@ def test_glb_reloads_with_all_textures(trained):
     glb = trained / "asset" / "model.glb"
     g = pygltflib.GLTF2().load(str(glb))
     assert len(g.images) == 4 and g.extensionsUsed == ["KHR_materials_specular"]
+    assert g.asset.extras["tango_stylize"]["test_only"] is True
     mat = g.materials[0]
     assert mat.pbrMetallicRoughness.metallicRoughnessTexture.index == 1 and mat.normalTexture.index == 2
     assert mat.extensions["KHR_materials_specular"]["specularColorTexture"]["index"] == 3
@@ -222,8 +283,10 @@ def test_glb_reloads_with_all_textures(trained):
 def test_khronos_gltf_validator(trained):
     node = shutil.which("node")
     validator = REPO / "node_modules" / "gltf-validator"
-    if node is None or not validator.is_dir():
-        pytest.skip("Node.js or node_modules/gltf-validator missing (scripts/setup.sh runs npm ci when npm exists)")
+    require_tool(
+        node is not None and validator.is_dir(),
+        "Node.js or node_modules/gltf-validator missing (scripts/setup.sh runs npm ci when npm exists)",
+    )
     out = subprocess.run(
         [node, str(REPO / "scripts" / "validate_gltf.mjs"), str(trained / "asset" / "model.glb")],
         capture_output=True,
@@ -234,6 +297,10 @@ def test_khronos_gltf_validator(trained):
     report_ = json.loads(out.stdout)
     assert report_["issues"]["numErrors"] == 0, report_["issues"]["messages"]
     assert report_["issues"]["numWarnings"] == 0, report_["issues"]["messages"]
+    # the export ran the same validator and recorded its counts
+    recorded = json.loads((trained / "asset" / "meta.json").read_text())["stats"]["gltf_validation"]
+    assert recorded["ran"] and recorded["validator"] == f"Khronos glTF-Validator {report_['validatorVersion']}"
+    assert (recorded["errors"], recorded["warnings"]) == (0, 0)
 
 
 def test_darker_environment_darkens_relit_render(trained, tmp_path):
@@ -286,9 +353,51 @@ def test_summary_and_pack(trained, tmp_path):
         names = z.namelist()
     for f in ("model.usdz", "model.usda", "model.glb", "textures/normal.png", "light.exr", "preview.png"):
         assert f"candle/wax/base/{f}" in names
-    assert "index.csv" in names
+    assert "index.csv" in names and "README.txt" in names
     index = pd.read_csv(results / "index.csv")
     assert index.loc[0, "faces"] == 13440 and index.loc[0, "texture_size"] == 256
+    assert bool(index.loc[0, "test_only"]) and index.loc[0, "origin"].startswith("TEST ONLY")
+    with zipfile.ZipFile(results / "pack.zip") as z:
+        readme = z.read("README.txt").decode()
+    assert "WARNING: TEST ONLY. 1 of 1 assets" in readme and "candle/wax/base: TEST ONLY" in readme
+
+
+def test_html_report_without_model_viewer_shows_previews(trained, tmp_path, caplog):
+    """Without Node.js's packages the report is still written: static previews, a warning in the
+    log and a notice on the page; the test-only banner comes first."""
+    from stages import html_report
+
+    results = tmp_path / "results"
+    cell = results / "candle" / "wax" / "base"
+    (results / "candle" / "normalize").mkdir(parents=True)
+    (results / "candle" / "normalize" / "meta.json").write_text(
+        json.dumps({"stats": {"faces": 13440}, "timings_s": {"total": 0.1}})
+    )
+    for src, dst in (("opt", "optimize"), ("bake", "bake"), ("asset", "asset")):
+        shutil.copytree(trained / src, cell / dst)
+    report.run(results, [("candle", "wax", "base")], results / "report")
+    page = results / "report" / "index.html"
+    n = html_report.build(results, results / "report", [("candle", "wax", "base")], page, model_viewer=tmp_path / "absent.js")
+    text = page.read_text()
+    assert n == 0 and "<model-viewer" not in text and "id='no-viewer'" in text
+    assert "class='preview'" in text and "data:image/png;base64," in text
+    assert text.index("TEST ONLY: 1 of 1 cells") < text.index("<h2>Summary</h2>")
+    assert any(r.levelname == "WARNING" and "static previews" in r.getMessage() for r in caplog.records)
+
+
+def test_outputs_of_mixed_runs_are_refused(trained, tmp_path):
+    """The report checks that every output of a cell repeats its optimisation's origin."""
+    from stages.errors import StageInputError
+
+    results = tmp_path / "results"
+    cell = results / "candle" / "wax" / "base"
+    for src, dst in (("opt", "optimize"), ("bake", "bake"), ("asset", "asset")):
+        shutil.copytree(trained / src, cell / dst)
+    meta = json.loads((cell / "bake" / "meta.json").read_text())
+    meta["origin"] = {**meta["origin"], "test_only": False, "label": "CLIP-guided (ViT-B-32/openai)"}
+    (cell / "bake" / "meta.json").write_text(json.dumps(meta))
+    with pytest.raises(StageInputError, match="mixed"):
+        report.check_origins(cell)
 
 
 def reference_ssim(a: np.ndarray, b: np.ndarray) -> float:
@@ -393,8 +502,10 @@ def test_html_report_opens_in_chromium(trained, tmp_path):
     from stages import html_report
 
     node, chromium = shutil.which("node"), shutil.which("chromium")
-    if not (REPO / "node_modules" / "@google" / "model-viewer").is_dir():
-        pytest.skip("node_modules missing (scripts/setup.sh runs npm ci when npm exists)")
+    require_tool(
+        (REPO / "node_modules" / "@google" / "model-viewer").is_dir(),
+        "node_modules missing (scripts/setup.sh runs npm ci when npm exists)",
+    )
     results = tmp_path / "results"
     cell = results / "candle" / "wax" / "base"
     (results / "candle" / "normalize").mkdir(parents=True)
@@ -409,8 +520,10 @@ def test_html_report_opens_in_chromium(trained, tmp_path):
     text = page.read_text()
     assert "<script src" not in text and "<link" not in text  # nothing loaded from elsewhere
     assert "<model-viewer" in text and "data:model/gltf-binary;base64," in text
-    if node is None or chromium is None or not (REPO / "node_modules" / "playwright-core").is_dir():
-        pytest.skip("Node.js, Debian's chromium or playwright-core missing (.ci/run installs them)")
+    require_tool(
+        node is not None and chromium is not None and (REPO / "node_modules" / "playwright-core").is_dir(),
+        "Node.js, Debian's chromium or playwright-core missing (.ci/run installs them)",
+    )
     shot = tmp_path / "shot.png"
     out = subprocess.run(
         [node, str(REPO / "scripts" / "check_report.mjs"), str(page), str(shot)],

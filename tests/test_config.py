@@ -137,18 +137,81 @@ def test_variants_cannot_override_mesh_stages(base):
 
 
 def test_presets_and_overrides_resolve_in_order(base):
-    base["prompts"]["gold"] = {"text": "a gold {object}", "preset": "metal"}
-    base["optimize"] = {"iterations": 10, "light_lobes": 16}
+    """The more specific level wins (variant > prompt > base section); within a level, explicit
+    keys beat the level's preset."""
+    base["prompts"]["gold"] = {"text": "a gold {object}", "preset": "metal", "optimize": {"init_roughness": 0.5}}
+    base["optimize"] = {"iterations": 10, "light_lobes": 16, "width": 32}
     base["variants"] = {"full": {}, "flat": {"preset": "rough", "optimize": {"normal_network": False}}}
     cfg = WorkflowConfig(base)
     full_gold = cfg.optimize_settings("gold", "full")
-    assert full_gold.material_encoding == "fourier" and full_gold.init_roughness == 0.3
-    assert full_gold.light_lobes == 16  # the config's explicit section beats the preset
-    assert full_gold.iterations == 10
+    assert full_gold.material_encoding == "fourier"  # the prompt's preset
+    assert full_gold.light_lobes == 64  # the prompt's preset beats the base section
+    assert full_gold.init_roughness == 0.5  # the prompt's explicit key beats its own preset
+    assert full_gold.iterations == 10 and full_gold.width == 32  # base keys no preset touches
     flat_gold = cfg.optimize_settings("gold", "flat")
-    assert flat_gold.material_encoding == "nerf" and flat_gold.crops == 4  # the variant's preset
-    assert flat_gold.normal_network is False  # the variant's own override wins
+    assert flat_gold.material_encoding == "nerf" and flat_gold.crops == 4  # the variant's preset beats the prompt's
+    assert flat_gold.light_lobes == 32  # the variant's preset beats the prompt's preset and the base section
+    assert flat_gold.init_roughness == 0.5  # a key the variant does not set stays the prompt's
+    assert flat_gold.normal_network is False  # the variant's own override wins over its preset
     assert cfg.prompt_text("vase", "gold") == "a gold vase"
+
+
+def test_variant_preset_beats_the_base_section_of_the_default_config():
+    """`variants: {quick: {preset: fast}}` on the default config runs the fast preset's schedule,
+    not the default config's 1,500 iterations with the preset's milestones."""
+    from stages.presets import PRESETS
+
+    raw = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
+    raw["variants"] = {"quick": {"preset": "fast"}}
+    cfg = WorkflowConfig(raw)
+    s = cfg.optimize_settings(next(iter(raw["prompts"])), "quick")
+    for key, value in PRESETS["fast"].items():
+        want = tuple(value) if isinstance(value, list) else value
+        assert getattr(s, key) == want, key
+    assert s.iterations == 300 and s.milestones == (180, 255) and s.lr == 5e-3
+
+
+def test_paper_preset_is_the_schema_defaults():
+    from stages.presets import PRESETS
+
+    defaults = OptimizeSettings()
+    for key, value in PRESETS["paper"].items():
+        assert getattr(defaults, key) == (tuple(value) if isinstance(value, list) else value), key
+
+
+def test_speed_presets_are_the_measured_sweep_points():
+    """The sweep measures the presets as variants; `fast` is its knee (one view per step), so the
+    two resolve to the same settings, and every preset key is a setting the sweep ran."""
+    cfg = load_config_file(REPO / "config" / "sweep.yaml")
+    prompt = next(iter(cfg.prompts))
+    assert cfg.optimize_settings(prompt, "fast") == cfg.optimize_settings(prompt, "views1")
+    balanced = cfg.optimize_settings(prompt, "balanced")
+    assert (balanced.iterations, balanced.width, balanced.light_lobes) == (600, 128, 32)
+    assert balanced.image_size == cfg.optimize_settings(prompt, "base").image_size  # left out on purpose
+
+
+def test_explain_names_the_source_of_every_key(base, tmp_path, capsys):
+    from stages import config as config_mod
+
+    base["prompts"]["gold"] = {"text": "a gold {object}", "preset": "metal"}
+    base["optimize"] = {"iterations": 10, "light_lobes": 16}
+    base["variants"] = {"full": {}, "flat": {"preset": "rough", "optimize": {"normal_network": False}}}
+    path = tmp_path / "c.yaml"
+    path.write_text(yaml.safe_dump(base))
+    assert config_mod.main(["--configfile", str(path), "--cell", "vase/gold/flat", "--json"]) == 0
+    import json
+
+    rows = {r["key"]: r for r in json.loads(capsys.readouterr().out)}
+    assert set(rows) == {f.name for f in dataclasses.fields(OptimizeSettings)}
+    assert rows["iterations"]["source"] == "config optimize section" and rows["iterations"]["value"] == 10
+    assert rows["light_lobes"]["source"] == "preset 'rough' of variant 'flat'" and rows["light_lobes"]["value"] == 32
+    assert rows["init_roughness"]["source"] == "preset 'metal' of prompt 'gold'"
+    assert rows["normal_network"]["source"] == "variant 'flat' optimize overrides"
+    assert rows["seed"]["source"] == "default"
+    assert config_mod.main(["--configfile", str(path), "--cell", "vase/gold/flat", "--stage", "decimate"]) == 0
+    assert "enabled" in capsys.readouterr().out
+    assert config_mod.main(["--configfile", str(path), "--cell", "vase/nope/flat"]) == 2
+    assert "not a cell of the grid" in capsys.readouterr().err
 
 
 def test_bad_optimize_values_fail_at_dag_time(base):
