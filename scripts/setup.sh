@@ -17,8 +17,9 @@ if [ ! -x .venv/bin/python ]; then
     "$py" -m venv .venv
 fi
 stamp=.venv/.setup-stamp-$extras
+# (up to date unless a file it installs from changed, or npm appeared since node_modules was skipped)
 if [ -f "$stamp" ] && [ "$stamp" -nt pyproject.toml ] && [ "$stamp" -nt scripts/setup.sh ] \
-    && [ "$stamp" -nt package-lock.json ]; then
+    && [ "$stamp" -nt package-lock.json ] && { [ -d node_modules ] || ! command -v npm >/dev/null 2>&1; }; then
     echo "setup: .venv is up to date ($stamp)"
     exit 0
 fi
@@ -40,12 +41,14 @@ if ! grep -q "tango-stylize cache" .venv/bin/activate; then
 export XDG_CACHE_HOME="$root/.cache"
 ACT
 fi
-# Node.js tools for the tests (the Khronos glTF validator), when npm is available
+# Node.js tools (model-viewer for the report's 3D viewers; the Khronos glTF-Validator, run by the
+# export and the tests; playwright-core for the browser test), when npm is available
 if command -v npm >/dev/null 2>&1; then
     echo "setup: installing Node.js test tools (npm ci)"
     npm ci --no-audit --no-fund --silent
 else
-    echo "setup: npm not found; the glTF-validator test will be skipped"
+    echo "setup: npm not found: the HTML report will show static previews instead of 3D viewers, and the"
+    echo "       glTF-validator and browser tests will skip (install Node.js and npm, then rerun this script)"
 fi
 touch "$stamp"
 echo "setup: done; activate with 'source .venv/bin/activate'"

@@ -38,7 +38,16 @@ from .errors import ConfigError, StageInputError, stage_errors
 from .hdrio import write_exr, write_hdr
 from .meshio import TriMesh, load_ply
 from .networks import equirect_directions
-from .provenance import ORIGIN_KEY, Timer, add_torch_arguments, apply_torch_arguments, atomic_path, metadata, write_json_atomic
+from .provenance import (
+    ORIGIN_KEY,
+    Timer,
+    add_torch_arguments,
+    apply_torch_arguments,
+    atomic_path,
+    metadata,
+    staged_outputs,
+    write_json_atomic,
+)
 from .settings import Settings
 
 log = logging.getLogger(__name__)
@@ -338,75 +347,76 @@ def run(
     with timer("bake"):
         res = bake_field(mesh, field, settings, device)
     out_dir = Path(out_dir)
-    with timer("write"):
-        for name, img in res.textures.items():
-            with atomic_path(out_dir / "textures" / f"{name}.png") as tmp:
-                Image.fromarray(img).save(tmp, format="PNG")
-        write_exr(out_dir / "light.exr", res.light_equirect)
-        write_hdr(out_dir / "light.hdr", res.light_equirect)
-        with atomic_path(out_dir / "atlas.npz") as tmp:
-            with open(tmp, "wb") as fh:
-                np.savez(fh, uv=res.atlas.uv.astype(np.float32), tangent=res.tangents, handedness=res.handedness)
-    # fidelity: baked asset vs neural field from the evaluation views
-    with timer("fidelity"):
-        evalc = RayCache(eval_path)
-        store = ViewStore(evalc, torch.device(device))
-        tex = decode_textures(res.textures)
-        t, b, n, _ = face_frames(mesh, res.atlas.uv)
-        light = field.light()
-        preds, refs = [], []
-        for i in range(len(evalc)):
-            hits = evalc.view(i)
-            hits_bary = _bary_of(evalc, i)
-            baked = render_baked(_Hits(hits, hits_bary), res.atlas.uv, tex, (t, b, n), light, device)
-            v = store[i]
-            with torch.no_grad():
-                ref = field(v.points, v.normals, v.view).shading.rgb
-            preds.append(linear_to_srgb(baked))
-            refs.append(linear_to_srgb(ref))
-        bake_psnr = psnr(torch.cat(preds), torch.cat(refs))
-        # the preview: the baked asset from the evaluation view nearest TANGO's front view
-        from .imaging import compose, gather_points, global_spec
-        from .optimize import save_png
-        from .relight import _front_view
+    with staged_outputs(out_dir) as staging:
+        with timer("write"):
+            for name, img in res.textures.items():
+                with atomic_path(staging / "textures" / f"{name}.png") as tmp:
+                    Image.fromarray(img).save(tmp, format="PNG")
+            write_exr(staging / "light.exr", res.light_equirect)
+            write_hdr(staging / "light.hdr", res.light_equirect)
+            with atomic_path(staging / "atlas.npz") as tmp:
+                with open(tmp, "wb") as fh:
+                    np.savez(fh, uv=res.atlas.uv.astype(np.float32), tangent=res.tangents, handedness=res.handedness)
+        # fidelity: baked asset vs neural field from the evaluation views
+        with timer("fidelity"):
+            evalc = RayCache(eval_path)
+            store = ViewStore(evalc, torch.device(device))
+            tex = decode_textures(res.textures)
+            t, b, n, _ = face_frames(mesh, res.atlas.uv)
+            light = field.light()
+            preds, refs = [], []
+            for i in range(len(evalc)):
+                hits = evalc.view(i)
+                hits_bary = _bary_of(evalc, i)
+                baked = render_baked(_Hits(hits, hits_bary), res.atlas.uv, tex, (t, b, n), light, device)
+                v = store[i]
+                with torch.no_grad():
+                    ref = field(v.points, v.normals, v.view).shading.rgb
+                preds.append(linear_to_srgb(baked))
+                refs.append(linear_to_srgb(ref))
+            bake_psnr = psnr(torch.cat(preds), torch.cat(refs))
+            # the preview: the baked asset from the evaluation view nearest TANGO's front view
+            from .imaging import compose, gather_points, global_spec
+            from .optimize import save_png
+            from .relight import _front_view
 
-        front = _front_view(store)
-        spec = global_spec(store.width, settings.eval_width)
-        needed, (lookup,) = gather_points([spec], store[front].index)
-        bg = torch.ones(3, settings.eval_width, settings.eval_width)
-        img = compose(preds[front][torch.from_numpy(needed)], lookup, spec, bg)
-        save_png(out_dir / "preview.png", to_u8(img.permute(1, 2, 0).cpu().numpy()))
-    stats = {
-        "texture_size": res.atlas.size,
-        "charts": res.atlas.charts,
-        "atlas_utilization": res.atlas.utilization,
-        "texel_coverage": res.coverage,
-        "faces": len(mesh.faces),
-        "bake_psnr_db": bake_psnr,
-        "bake_psnr_pixels": "object pixels of the evaluation views, sRGB, baked textures vs neural field",
-    }
-    log.info(
-        "baked %d faces into %d^2 textures (%.0f%% texels used), fidelity %.1f dB",
-        len(mesh.faces),
-        res.atlas.size,
-        100 * res.coverage,
-        bake_psnr,
-    )
-    write_json_atomic(
-        out_dir / "meta.json",
-        metadata(
-            stage="bake",
-            settings=settings.to_dict(),
-            inputs={"mesh": mesh_path, "field": field_path, "eval": eval_path},
-            outputs={
-                "textures": out_dir / "textures",
-                "light": out_dir / "light.exr",
-                "atlas": out_dir / "atlas.npz",
-            },
-            timings={**timer.seconds, "total": timer.total()},
-            extra={"stats": stats, "optimize_settings": opt_settings.to_dict(), ORIGIN_KEY: field.origin},
-        ),
-    )
+            front = _front_view(store)
+            spec = global_spec(store.width, settings.eval_width)
+            needed, (lookup,) = gather_points([spec], store[front].index)
+            bg = torch.ones(3, settings.eval_width, settings.eval_width)
+            img = compose(preds[front][torch.from_numpy(needed)], lookup, spec, bg)
+            save_png(staging / "preview.png", to_u8(img.permute(1, 2, 0).cpu().numpy()))
+        stats = {
+            "texture_size": res.atlas.size,
+            "charts": res.atlas.charts,
+            "atlas_utilization": res.atlas.utilization,
+            "texel_coverage": res.coverage,
+            "faces": len(mesh.faces),
+            "bake_psnr_db": bake_psnr,
+            "bake_psnr_pixels": "object pixels of the evaluation views, sRGB, baked textures vs neural field",
+        }
+        log.info(
+            "baked %d faces into %d^2 textures (%.0f%% texels used), fidelity %.1f dB",
+            len(mesh.faces),
+            res.atlas.size,
+            100 * res.coverage,
+            bake_psnr,
+        )
+        write_json_atomic(
+            staging / "meta.json",
+            metadata(
+                stage="bake",
+                settings=settings.to_dict(),
+                inputs={"mesh": mesh_path, "field": field_path, "eval": eval_path},
+                outputs={
+                    "textures": out_dir / "textures",
+                    "light": out_dir / "light.exr",
+                    "atlas": out_dir / "atlas.npz",
+                },
+                timings={**timer.seconds, "total": timer.total()},
+                extra={"stats": stats, "optimize_settings": opt_settings.to_dict(), ORIGIN_KEY: field.origin},
+            ),
+        )
     return stats
 
 

@@ -38,7 +38,16 @@ import numpy as np
 from .errors import ConfigError, StageInputError, stage_errors
 from .meshio import TriMesh, load_ply
 from .normalize import Similarity
-from .provenance import ORIGIN_KEY, Timer, atomic_path, metadata, read_origin, setup_logging, write_json_atomic
+from .provenance import (
+    ORIGIN_KEY,
+    Timer,
+    atomic_path,
+    metadata,
+    read_origin,
+    setup_logging,
+    staged_outputs,
+    write_json_atomic,
+)
 from .settings import Settings
 
 log = logging.getLogger(__name__)
@@ -368,65 +377,65 @@ def run(
         atlas = {k: z[k] for k in z.files}
     tf = Similarity.from_json(json.loads(Path(transform_path).read_text()))
     geom = faceted(mesh, atlas, tf if settings.units == "original" else None)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    with timer("copy"):
-        for rel in TEXTURE_FILES.values():
-            (out_dir / "textures").mkdir(exist_ok=True)
-            with atomic_path(out_dir / rel) as tmp:
-                shutil.copyfile(bake_dir / rel, tmp)
-        for fname in ("light.exr", "light.hdr"):
-            with atomic_path(out_dir / fname) as tmp:
-                shutil.copyfile(bake_dir / fname, tmp)
-        with atomic_path(out_dir / "preview.png") as tmp:
-            shutil.copyfile(preview, tmp)
-    with timer("usd"):
-        with atomic_path(out_dir / "model.usda") as tmp:
-            tmp.unlink()
-            write_usd(tmp, geom, settings.meters_per_unit, "light.exr", origin)
-        package_usdz(out_dir / "model.usda", out_dir / "model.usdz", [*TEXTURE_FILES.values(), "light.exr"])
-    with timer("gltf"):
-        write_glb(out_dir / "model.glb", geom, out_dir / "textures", settings.meters_per_unit, name, origin)
-    with timer("validate"):
-        usd = [validate_usd(out_dir / "model.usda"), validate_usd(out_dir / "model.usdz")]
-        gltf = validate_glb(out_dir / "model.glb")
-    messages = [f"{r['file']}: {m}" for r in usd for m in r["messages"]]
-    for line in messages:
-        log.warning("usd-core validation: %s", line)
-    if not gltf["ran"]:
-        log.warning("the Khronos glTF-Validator did not run: %s; model.glb is unchecked", gltf["reason"])
-    else:
-        for line in gltf["messages"]:
-            log.warning("glTF validation: %s", line)
-    if any(r["errors"] for r in usd) or gltf.get("errors"):
-        raise RuntimeError("asset validation failed:\n" + "\n".join(messages + gltf.get("messages", [])))
-    from PIL import Image
+    with staged_outputs(out_dir) as staging:
+        with timer("copy"):
+            for rel in TEXTURE_FILES.values():
+                (staging / "textures").mkdir(exist_ok=True)
+                with atomic_path(staging / rel) as tmp:
+                    shutil.copyfile(bake_dir / rel, tmp)
+            for fname in ("light.exr", "light.hdr"):
+                with atomic_path(staging / fname) as tmp:
+                    shutil.copyfile(bake_dir / fname, tmp)
+            with atomic_path(staging / "preview.png") as tmp:
+                shutil.copyfile(preview, tmp)
+        with timer("usd"):
+            with atomic_path(staging / "model.usda") as tmp:
+                tmp.unlink()
+                write_usd(tmp, geom, settings.meters_per_unit, "light.exr", origin)
+            package_usdz(staging / "model.usda", staging / "model.usdz", [*TEXTURE_FILES.values(), "light.exr"])
+        with timer("gltf"):
+            write_glb(staging / "model.glb", geom, staging / "textures", settings.meters_per_unit, name, origin)
+        with timer("validate"):
+            usd = [validate_usd(staging / "model.usda"), validate_usd(staging / "model.usdz")]
+            gltf = validate_glb(staging / "model.glb")
+        messages = [f"{r['file']}: {m}" for r in usd for m in r["messages"]]
+        for line in messages:
+            log.warning("usd-core validation: %s", line)
+        if not gltf["ran"]:
+            log.warning("the Khronos glTF-Validator did not run: %s; model.glb is unchecked", gltf["reason"])
+        else:
+            for line in gltf["messages"]:
+                log.warning("glTF validation: %s", line)
+        if any(r["errors"] for r in usd) or gltf.get("errors"):
+            raise RuntimeError("asset validation failed:\n" + "\n".join(messages + gltf.get("messages", [])))
+        from PIL import Image
 
-    with Image.open(out_dir / TEXTURE_FILES["basecolor"]) as img:
-        texture_size = int(img.size[0])
-    stats = {
-        "faces": len(mesh.faces),
-        "vertices_exported": len(geom.positions),
-        "texture_size": texture_size,
-        "usd_validation": usd,
-        "usd_validators": usd[0]["validators"],
-        "usd_validation_errors": sum(r["errors"] for r in usd),
-        "usd_validation_warnings": sum(r["warnings"] for r in usd),
-        "gltf_validation": gltf,
-        "gltf_validation_errors": gltf.get("errors"),
-        "gltf_validation_warnings": gltf.get("warnings"),
-        "bounds": [geom.positions.min(0).tolist(), geom.positions.max(0).tolist()],
-    }
-    write_json_atomic(
-        out_dir / "meta.json",
-        metadata(
-            stage="export",
-            settings=settings.to_dict(),
-            inputs={"mesh": mesh_path, "transform": transform_path, "bake": bake_dir},
-            outputs={k: out_dir / k for k in ("model.usda", "model.usdz", "model.glb")},
-            timings={**timer.seconds, "total": timer.total()},
-            extra={"stats": stats, ORIGIN_KEY: origin},
-        ),
-    )
+        with Image.open(staging / TEXTURE_FILES["basecolor"]) as img:
+            texture_size = int(img.size[0])
+        stats = {
+            "faces": len(mesh.faces),
+            "vertices_exported": len(geom.positions),
+            "texture_size": texture_size,
+            "usd_validation": usd,
+            "usd_validators": usd[0]["validators"],
+            "usd_validation_errors": sum(r["errors"] for r in usd),
+            "usd_validation_warnings": sum(r["warnings"] for r in usd),
+            "gltf_validation": gltf,
+            "gltf_validation_errors": gltf.get("errors"),
+            "gltf_validation_warnings": gltf.get("warnings"),
+            "bounds": [geom.positions.min(0).tolist(), geom.positions.max(0).tolist()],
+        }
+        write_json_atomic(
+            staging / "meta.json",
+            metadata(
+                stage="export",
+                settings=settings.to_dict(),
+                inputs={"mesh": mesh_path, "transform": transform_path, "bake": bake_dir},
+                outputs={k: out_dir / k for k in ("model.usda", "model.usdz", "model.glb")},
+                timings={**timer.seconds, "total": timer.total()},
+                extra={"stats": stats, ORIGIN_KEY: origin},
+            ),
+        )
     return stats
 
 

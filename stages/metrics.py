@@ -28,7 +28,15 @@ import torch
 from torch.nn import functional as F
 
 from .errors import StageInputError, stage_errors
-from .provenance import ORIGIN_KEY, Timer, add_torch_arguments, apply_torch_arguments, metadata, write_json_atomic
+from .provenance import (
+    ORIGIN_KEY,
+    Timer,
+    add_torch_arguments,
+    apply_torch_arguments,
+    metadata,
+    staged_outputs,
+    write_json_atomic,
+)
 from .settings import Settings
 
 log = logging.getLogger(__name__)
@@ -139,68 +147,69 @@ def run(
     with timer("render"):
         imgs = render_metric_views(field, store, settings.background)
     out_dir = Path(out_dir)
-    save_png(out_dir / "views.png", contact_sheet(list(imgs), len(settings_eval_azimuths(store))))
-    result: dict = {"prompt": prompt, ORIGIN_KEY: field.origin}
-    result["protocol"] = {
-        "views": len(store),
-        "resolution": store.width,
-        "fov_deg": float(store.cache.arrays["fov_deg"]),
-        "radius": float(store.cache.arrays["radius"][0]),
-        "background": settings.background,
-    }
-    if opt_settings.guidance == "clip":
-        with timer("guidance"):
-            g = load_clip(
-                ClipSpec(
-                    opt_settings.clip_model,
-                    opt_settings.clip_pretrained,
-                    opt_settings.clip_checkpoint,
-                    opt_settings.clip_tiny_test,
-                ),
-                device=dev,
-            )
-            m = clip_metrics(g, imgs, prompt, candidates)
-            result["guidance"] = {
-                "weights": m["weights"],
-                "test_only": m["test_only"],
-                "similarity": m["similarity_mean_embedding"],
-            }
-    if settings.clip:
-        with timer("evaluation"):
-            e = load_clip(
-                ClipSpec(
-                    settings.clip_model,
-                    settings.clip_pretrained,
-                    settings.clip_checkpoint,
-                    settings.clip_tiny_test,
-                ),
-                device=dev,
-            )
-            result["evaluation"] = clip_metrics(e, imgs, prompt, candidates)
-    if opt_settings.guidance == "image":
-        with timer("image_target"):
-            obj = Objective(opt_settings, prompt, dev)
-            bg = 1.0 if settings.background == "white" else 0.0
-            t = torch.stack([render_target(obj, store[i], store.width, store.width, bg)[0] for i in range(len(store))])
-            result["image_target"] = {
-                "weights": obj.weights_id,
-                "psnr_db": psnr(imgs, t),
-                "ssim": ssim(imgs, t),
-                "target_material": opt_settings.target_material,
-            }
-            save_png(out_dir / "targets.png", contact_sheet(list(t), len(settings_eval_azimuths(store))))
-    write_json_atomic(out_dir / "metrics.json", result)
-    write_json_atomic(
-        out_dir / "meta.json",
-        metadata(
-            stage="metrics",
-            settings=settings.to_dict(),
-            inputs={"field": field_path, "metrics_cache": metrics_cache},
-            outputs={"metrics": out_dir / "metrics.json", "views": out_dir / "views.png"},
-            timings={**timer.seconds, "total": timer.total()},
-            extra={"candidates": candidates, ORIGIN_KEY: field.origin},
-        ),
-    )
+    with staged_outputs(out_dir) as staging:
+        save_png(staging / "views.png", contact_sheet(list(imgs), len(settings_eval_azimuths(store))))
+        result: dict = {"prompt": prompt, ORIGIN_KEY: field.origin}
+        result["protocol"] = {
+            "views": len(store),
+            "resolution": store.width,
+            "fov_deg": float(store.cache.arrays["fov_deg"]),
+            "radius": float(store.cache.arrays["radius"][0]),
+            "background": settings.background,
+        }
+        if opt_settings.guidance == "clip":
+            with timer("guidance"):
+                g = load_clip(
+                    ClipSpec(
+                        opt_settings.clip_model,
+                        opt_settings.clip_pretrained,
+                        opt_settings.clip_checkpoint,
+                        opt_settings.clip_tiny_test,
+                    ),
+                    device=dev,
+                )
+                m = clip_metrics(g, imgs, prompt, candidates)
+                result["guidance"] = {
+                    "weights": m["weights"],
+                    "test_only": m["test_only"],
+                    "similarity": m["similarity_mean_embedding"],
+                }
+        if settings.clip:
+            with timer("evaluation"):
+                e = load_clip(
+                    ClipSpec(
+                        settings.clip_model,
+                        settings.clip_pretrained,
+                        settings.clip_checkpoint,
+                        settings.clip_tiny_test,
+                    ),
+                    device=dev,
+                )
+                result["evaluation"] = clip_metrics(e, imgs, prompt, candidates)
+        if opt_settings.guidance == "image":
+            with timer("image_target"):
+                obj = Objective(opt_settings, prompt, dev)
+                bg = 1.0 if settings.background == "white" else 0.0
+                t = torch.stack([render_target(obj, store[i], store.width, store.width, bg)[0] for i in range(len(store))])
+                result["image_target"] = {
+                    "weights": obj.weights_id,
+                    "psnr_db": psnr(imgs, t),
+                    "ssim": ssim(imgs, t),
+                    "target_material": opt_settings.target_material,
+                }
+                save_png(staging / "targets.png", contact_sheet(list(t), len(settings_eval_azimuths(store))))
+        write_json_atomic(staging / "metrics.json", result)
+        write_json_atomic(
+            staging / "meta.json",
+            metadata(
+                stage="metrics",
+                settings=settings.to_dict(),
+                inputs={"field": field_path, "metrics_cache": metrics_cache},
+                outputs={"metrics": out_dir / "metrics.json", "views": out_dir / "views.png"},
+                timings={**timer.seconds, "total": timer.total()},
+                extra={"candidates": candidates, ORIGIN_KEY: field.origin},
+            ),
+        )
     return result
 
 

@@ -44,6 +44,7 @@ from .provenance import (
     atomic_path,
     metadata,
     origin_record,
+    staged_outputs,
     write_json_atomic,
 )
 from .raycache import RayCache
@@ -487,34 +488,37 @@ def run(
             return {"stopped_at": opt.iteration}
     bar.close()
     loop_s = time.perf_counter() - t_loop
-    with timer("outputs"):
-        result = write_outputs(opt, eval_path, out_dir, settings, prompt)
+    # every output is staged and moved into place together, the metadata last; the checkpoint
+    # goes only after that, so a kill at any point leaves either a resumable run or finished outputs
+    with staged_outputs(out_dir) as staging:
+        with timer("outputs"):
+            result = write_outputs(opt, eval_path, staging, settings, prompt)
+        timings = {**timer.seconds, "loop": loop_s, "total": timer.total()}
+        iters_here = max(done_here, 1)
+        meta = metadata(
+            stage="optimize",
+            settings=settings.to_dict(),
+            seed=settings.seed,
+            inputs={"train": train_path, "eval": eval_path},
+            outputs={k: out_dir / v for k, v in OUTPUT_FILES.items()},
+            timings=timings,
+            extra={
+                "prompt": prompt,
+                "device": str(dev),
+                "guidance": settings.guidance,
+                "weights": opt.objective.weights_id,
+                "test_only_weights": opt.objective.test_only,
+                ORIGIN_KEY: opt.objective.origin,
+                "resumed_from_iteration": resumed_from,
+                "seconds_per_iteration": loop_s / iters_here,
+                "points_per_iteration": opt.points_last,
+                "parameters": sum(p.numel() for p in opt.field.parameters()),
+                "light_energy": opt.field.light.energy().tolist(),
+                **result,
+            },
+        )
+        write_json_atomic(staging / "meta.json", meta)
     ckpt.unlink(missing_ok=True)
-    timings = {**timer.seconds, "loop": loop_s, "total": timer.total()}
-    iters_here = max(done_here, 1)
-    meta = metadata(
-        stage="optimize",
-        settings=settings.to_dict(),
-        seed=settings.seed,
-        inputs={"train": train_path, "eval": eval_path},
-        outputs={k: out_dir / v for k, v in OUTPUT_FILES.items()},
-        timings=timings,
-        extra={
-            "prompt": prompt,
-            "device": str(dev),
-            "guidance": settings.guidance,
-            "weights": opt.objective.weights_id,
-            "test_only_weights": opt.objective.test_only,
-            ORIGIN_KEY: opt.objective.origin,
-            "resumed_from_iteration": resumed_from,
-            "seconds_per_iteration": loop_s / iters_here,
-            "points_per_iteration": opt.points_last,
-            "parameters": sum(p.numel() for p in opt.field.parameters()),
-            "light_energy": opt.field.light.energy().tolist(),
-            **result,
-        },
-    )
-    write_json_atomic(out_dir / "meta.json", meta)
     return meta
 
 

@@ -219,3 +219,33 @@ def read_origin(meta_path: str | Path) -> dict[str, Any]:
             "It was written by an older version: rerun the stage that wrote it (snakemake --forcerun <rule>).",
         )
     return origin
+
+
+@contextlib.contextmanager
+def staged_outputs(out_dir: str | Path, last: tuple[str, ...] = ("meta.json",)) -> Iterator[Path]:
+    """A hidden staging folder inside ``out_dir`` for a job's outputs, moved into place together.
+
+    Write every output under the yielded folder (same relative paths as in ``out_dir``). On
+    success each file is renamed into ``out_dir`` (``last``, the metadata, after all others) and
+    the folder is removed; on an exception the folder is removed and ``out_dir`` is untouched. A
+    job killed before the commit leaves only ``out_dir/.staging-*``, which hides from Snakemake and
+    from anyone looking for finished files, and which the next run of the job deletes. The commit
+    itself is a handful of renames on one file system (microseconds), not a copy.
+    """
+    import shutil
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    for stale in out_dir.glob(".staging-*"):
+        log.info("removing %s left by a killed run", stale)
+        shutil.rmtree(stale, ignore_errors=True)
+    stage = Path(tempfile.mkdtemp(prefix=".staging-", dir=out_dir))
+    try:
+        yield stage
+        files = sorted((p for p in stage.rglob("*") if p.is_file()), key=lambda p: (p.name in last, str(p)))
+        for path in files:
+            target = out_dir / path.relative_to(stage)
+            target.parent.mkdir(parents=True, exist_ok=True)
+            os.replace(path, target)
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)

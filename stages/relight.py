@@ -19,7 +19,15 @@ import numpy as np
 import torch
 
 from .errors import StageInputError, stage_errors
-from .provenance import ORIGIN_KEY, Timer, add_torch_arguments, apply_torch_arguments, metadata, write_json_atomic
+from .provenance import (
+    ORIGIN_KEY,
+    Timer,
+    add_torch_arguments,
+    apply_torch_arguments,
+    metadata,
+    staged_outputs,
+    write_json_atomic,
+)
 from .settings import Settings
 
 log = logging.getLogger(__name__)
@@ -94,41 +102,42 @@ def run(field_path: Path, eval_path: Path, out_dir: Path, settings: RelightSetti
     field, _ = load_field(field_path, dev)
     store = ViewStore(RayCache(eval_path), dev)
     out_dir = Path(out_dir)
-    with timer("render"):
-        views = [render_edit(field, store[i], store.width, settings.width, light) for i in range(len(store))]
-        save_png(out_dir / "relit.png", contact_sheet(views, len(settings_eval_azimuths(store))))
-        front = _front_view(store)
-        grid = [
-            render_edit(field, store[front], store.width, settings.width, light, rs, ss)
-            for rs in settings.roughness_scales
-            for ss in settings.specular_scales
-        ]
-        save_png(out_dir / "material_edit.png", contact_sheet(grid, len(settings.specular_scales)))
-        h, w = env.shape[:2]
-        fit = light.radiance(equirect_directions(h, w).to(dev).reshape(-1, 3)).reshape(h, w, 3).cpu().numpy()
-        top = max(float(env.max()), 1e-12)
-        both = np.concatenate([env, fit], axis=0) / top
-        from .bake import srgb_encode, to_u8
+    with staged_outputs(out_dir) as staging:
+        with timer("render"):
+            views = [render_edit(field, store[i], store.width, settings.width, light) for i in range(len(store))]
+            save_png(staging / "relit.png", contact_sheet(views, len(settings_eval_azimuths(store))))
+            front = _front_view(store)
+            grid = [
+                render_edit(field, store[front], store.width, settings.width, light, rs, ss)
+                for rs in settings.roughness_scales
+                for ss in settings.specular_scales
+            ]
+            save_png(staging / "material_edit.png", contact_sheet(grid, len(settings.specular_scales)))
+            h, w = env.shape[:2]
+            fit = light.radiance(equirect_directions(h, w).to(dev).reshape(-1, 3)).reshape(h, w, 3).cpu().numpy()
+            top = max(float(env.max()), 1e-12)
+            both = np.concatenate([env, fit], axis=0) / top
+            from .bake import srgb_encode, to_u8
 
-        save_png(out_dir / "light_fit.png", to_u8(srgb_encode(both)))
-    stats = {
-        "envmap": settings.envmap,
-        "sg_fit_relative_rms": rel_err,
-        "mean_relit": float(torch.stack(views).mean()),
-        "mean_material_edit": [float(g.mean()) for g in grid],
-        "front_view": front,
-    }
-    write_json_atomic(
-        out_dir / "meta.json",
-        metadata(
-            stage="relight",
-            settings=settings.to_dict(),
-            inputs={"field": field_path, "eval": eval_path},
-            outputs={k: out_dir / f"{k}.png" for k in ("relit", "material_edit", "light_fit")},
-            timings={**timer.seconds, "total": timer.total()},
-            extra={"stats": stats, ORIGIN_KEY: field.origin},
-        ),
-    )
+            save_png(staging / "light_fit.png", to_u8(srgb_encode(both)))
+        stats = {
+            "envmap": settings.envmap,
+            "sg_fit_relative_rms": rel_err,
+            "mean_relit": float(torch.stack(views).mean()),
+            "mean_material_edit": [float(g.mean()) for g in grid],
+            "front_view": front,
+        }
+        write_json_atomic(
+            staging / "meta.json",
+            metadata(
+                stage="relight",
+                settings=settings.to_dict(),
+                inputs={"field": field_path, "eval": eval_path},
+                outputs={k: out_dir / f"{k}.png" for k in ("relit", "material_edit", "light_fit")},
+                timings={**timer.seconds, "total": timer.total()},
+                extra={"stats": stats, ORIGIN_KEY: field.origin},
+            ),
+        )
     return stats
 
 
