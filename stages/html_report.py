@@ -91,6 +91,14 @@ def origin_banner(frame: pd.DataFrame) -> str:
             f"<p class='banner note'>IMAGE-GUIDED: {image} of {n} cells were fitted to renders of procedural target "
             "materials (a verification run without CLIP), not stylised from their prompts.</p>"
         )
+    if "decimation_target_reached" in frame:
+        short = frame[frame["decimation_target_reached"].astype(str).str.lower() == "false"].drop_duplicates("mesh")
+        for _, r in short.iterrows():
+            out.append(
+                f"<p class='banner note'>DECIMATION SHORT OF TARGET: mesh {html.escape(str(r['mesh']))} has "
+                f"{int(r['faces_after'])} faces for a target of {int(r['decimation_target'])}: "
+                f"{html.escape(str(r['decimation_shortfall']))}. Its robustness comparison is not at the intended level.</p>"
+            )
     return "".join(out)
 
 

@@ -57,10 +57,11 @@ class MetricsSettings(Settings):
     background: str = "white"
 
 
-def ssim(a: torch.Tensor, b: torch.Tensor, window: int = 11, sigma: float = 1.5) -> float:
+def ssim(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor | None = None, window: int = 11, sigma: float = 1.5) -> float:
     """Mean structural similarity (Wang et al. 2004) of images ``(B, 3, H, W)`` in [0, 1]:
     Gaussian window 11 / 1.5, constants ``(0.01)^2`` and ``(0.03)^2``, per channel, 'valid'
-    windows only, averaged."""
+    windows only, averaged over every window or, with ``mask (B, 1, H, W)`` bool, over the
+    windows centred on object pixels (so the background does not count)."""
     c1, c2 = 0.01**2, 0.03**2
     x = torch.arange(window, dtype=a.dtype) - (window - 1) / 2
     g = torch.exp(-(x**2) / (2 * sigma**2))
@@ -76,7 +77,12 @@ def ssim(a: torch.Tensor, b: torch.Tensor, window: int = 11, sigma: float = 1.5)
     sab = blur(a * b) - mu_a * mu_b
     num = (2 * mu_a * mu_b + c1) * (2 * sab + c2)
     den = (mu_a**2 + mu_b**2 + c1) * (saa + sbb + c2)
-    return float((num / den).mean())
+    smap = num / den
+    if mask is None:
+        return float(smap.mean())
+    h = (window - 1) // 2
+    centre = mask[:, :, h : mask.shape[2] - h, h : mask.shape[3] - h].expand_as(smap)
+    return float(smap[centre].mean())
 
 
 def psnr(a: torch.Tensor, b: torch.Tensor) -> float:
@@ -190,11 +196,16 @@ def run(
             with timer("image_target"):
                 obj = Objective(opt_settings, prompt, dev)
                 bg = 1.0 if settings.background == "white" else 0.0
-                t = torch.stack([render_target(obj, store[i], store.width, store.width, bg)[0] for i in range(len(store))])
+                pairs = [render_target(obj, store[i], store.width, store.width, bg) for i in range(len(store))]
+                t = torch.stack([img for img, _ in pairs])
+                mask = torch.stack([m for _, m in pairs])
+                px = mask.expand_as(t)
                 result["image_target"] = {
                     "weights": obj.weights_id,
-                    "psnr_db": psnr(imgs, t),
-                    "ssim": ssim(imgs, t),
+                    "psnr_db": psnr(imgs[px], t[px]),
+                    "ssim": ssim(imgs, t, mask),
+                    "pixels": "object pixels of the held-out metric views (SSIM: windows centred on them)",
+                    "target_light": opt_settings.target_light,
                     "target_material": opt_settings.target_material,
                 }
                 save_png(staging / "targets.png", contact_sheet(list(t), len(settings_eval_azimuths(store))))

@@ -398,6 +398,8 @@ def save_png(path: Path, array: np.ndarray) -> None:
 
 
 def psnr(a: torch.Tensor, b: torch.Tensor) -> float:
+    """Peak signal-to-noise ratio in dB of values in [0, 1], over every element given: callers
+    pass object pixels only (``img[mask]``), never a frame with its background."""
     mse = float(F.mse_loss(a, b))
     return float("inf") if mse == 0 else 10.0 * math.log10(1.0 / mse)
 
@@ -566,8 +568,9 @@ def write_outputs(opt: Optimizer, eval_path: Path, out_dir: Path, settings: Opti
         pred = torch.stack(renders["rgb"])
         tgt = torch.stack([t for t, _ in targets])
         masks = torch.stack([m for _, m in targets])
-        result["eval_psnr_db"] = psnr(pred, tgt)
-        result["eval_psnr_object_db"] = psnr(pred[masks.expand_as(pred)], tgt[masks.expand_as(tgt)])
+        # object pixels only: the background is black in both and would inflate the figure
+        result["eval_psnr_db"] = psnr(pred[masks.expand_as(pred)], tgt[masks.expand_as(tgt)])
+        result["eval_psnr_pixels"] = "object pixels of the evaluation views, sRGB"
     # the light: equirectangular radiance (linear, float32) and a tone-mapped preview
     with torch.no_grad():
         light = field_.light()

@@ -558,3 +558,30 @@ def test_image_guided_metrics_psnr_ssim(trained, tmp_path):
     assert it["weights"].startswith("image targets") and 5 < it["psnr_db"] < 60 and 0 < it["ssim"] <= 1
     assert "evaluation" not in out and "guidance" not in out
     assert (tmp_path / "met" / "targets.png").is_file()
+
+
+def test_decimation_shortfall_reaches_summary_and_report(trained, tmp_path):
+    """A decimation that stopped short of its target is a column of the summary and a banner of
+    the report, with the reason the stage recorded."""
+    import pandas as pd
+
+    from stages import html_report
+
+    results = tmp_path / "results"
+    cell = results / "candle" / "wax" / "base"
+    (results / "candle" / "normalize").mkdir(parents=True)
+    (results / "candle" / "normalize" / "meta.json").write_text(
+        json.dumps({"stats": {"faces": 13440}, "timings_s": {"total": 0.1}})
+    )
+    (results / "candle" / "decimate").mkdir(parents=True)
+    reason = "1000 separate triangles: no edge can collapse without deleting a component"
+    dec = {"faces_after": 1000, "target_faces": 500, "target_reached": False, "target_shortfall_reason": reason}
+    (results / "candle" / "decimate" / "meta.json").write_text(json.dumps({"stats": dec, "timings_s": {"total": 0.1}}))
+    for src, dst in (("opt", "optimize"), ("bake", "bake"), ("asset", "asset")):
+        shutil.copytree(trained / src, cell / dst)
+    report.run(results, [("candle", "wax", "base")], results / "report")
+    row = pd.read_csv(results / "report" / "summary.csv").iloc[0]
+    assert not row["decimation_target_reached"] and row["decimation_shortfall"] == reason
+    page = results / "report" / "index.html"
+    html_report.build(results, results / "report", [("candle", "wax", "base")], page, model_viewer=tmp_path / "absent.js")
+    assert "DECIMATION SHORT OF TARGET: mesh candle has 1000 faces for a target of 500" in page.read_text()

@@ -119,11 +119,9 @@ def test_switched_off_parts_are_not_built():
     assert no_delta.normal_net is None
 
 
-@pytest.mark.slow
-def test_image_target_recovery_reaches_30_db(tmp_path):
-    """Render a known procedural wood and studio light, recover them from the images, and check
-    novel-view PSNR on the held-out evaluation views (measured: about 34.7 dB full frame, 30.4 dB
-    on object pixels only, in about 25 s on 2 CPU cores)."""
+def _recover(tmp_path, **overrides) -> dict:
+    """Fit the image targets of a procedural material and light on the built-in vase (300
+    iterations, the sweep's base settings) and return the optimisation's metadata."""
     save_ply(tmp_path / "vase.ply", normalize_mesh("builtin:vase", NormalizeSettings()).mesh)
     rc = RaycacheSettings(
         views=32,
@@ -134,26 +132,47 @@ def test_image_target_recovery_reaches_30_db(tmp_path):
         eval_resolution=96,
     )
     raycache_run(tmp_path / "vase.ply", tmp_path / "train.npz", tmp_path / "eval.npz", tmp_path / "rc.json", rc)
-    s = OptimizeSettings(
-        iterations=300,
-        guidance="image",
-        target_material="wood",
-        lr=5e-3,
-        milestones=(180, 255),
-        gamma=0.3,
-        width=64,
-        image_size=96,
-        crops=0,
-        views_per_step=2,
-        normal_network=False,
-        material_frequencies=6,
-        light_lobes=16,
-        eval_width=96,
-        checkpoint_every=1000,
-    )
+    settings = {
+        "iterations": 300,
+        "guidance": "image",
+        "target_material": "wood",
+        "lr": 5e-3,
+        "milestones": (180, 255),
+        "gamma": 0.3,
+        "width": 64,
+        "image_size": 96,
+        "crops": 0,
+        "views_per_step": 2,
+        "normal_network": False,
+        "material_frequencies": 6,
+        "light_lobes": 16,
+        "eval_width": 96,
+        "checkpoint_every": 1000,
+        **overrides,
+    }
     torch.set_num_threads(2)
-    meta = optimize.run(tmp_path / "train.npz", tmp_path / "eval.npz", "", tmp_path / "out", s, "cpu")
-    assert meta["eval_psnr_db"] >= 30.0
-    assert meta["eval_psnr_object_db"] >= 28.0
-    assert meta["weights"].startswith("image targets")
+    return optimize.run(tmp_path / "train.npz", tmp_path / "eval.npz", "", tmp_path / "out", OptimizeSettings(**settings), "cpu")
+
+
+@pytest.mark.slow
+def test_image_target_recovery_representable_target(tmp_path):
+    """The easy case, kept as a regression check of the optimisation: the target's light (4 SG
+    lobes) and flat normals are exactly representable by the model (16 lobes, no normal network),
+    and the target is rendered by our own renderer. PSNR over object pixels of the held-out
+    evaluation views only (measured 2026-11-22: 30.4 dB, 72 s on 2 CPU cores shared with other work)."""
+    meta = _recover(tmp_path)
+    assert meta["eval_psnr_db"] >= 29.0
+    assert meta["eval_psnr_pixels"].startswith("object pixels")
+    assert meta["weights"].startswith("image targets") and meta["origin"]["image_guided"]
     assert (tmp_path / "out" / "renders" / "target.png").is_file()
+
+
+@pytest.mark.slow
+def test_image_target_recovery_unrepresentable_light(tmp_path):
+    """A target the model cannot represent exactly: the `sky` light (a 1.5-degree sun, a graded
+    sky and a ground: 97 lobes) against a model of 16 lobes, with the normal network on (free to
+    tilt the normals away from the target's flat ones). Object pixels only (measured 2026-11-22:
+    27.4 dB, 3 dB below the representable case, 132 s)."""
+    meta = _recover(tmp_path, target_light="sky", normal_network=True)
+    assert meta["eval_psnr_db"] >= 26.0
+    assert meta["origin"]["weights"].endswith("under sky light")

@@ -69,6 +69,59 @@ def test_invalid_config_fails_at_dag_build(tmp_path):
     assert "invalid configuration" in out and "'resoluton'" in out and str(path) in out
 
 
+def check_test_only_marks(res) -> None:
+    """Every file of every cell made from the test-only CLIP says so: each stage's metadata, the
+    GLB's asset.extras, both USD files' layer metadata, the asset index, the pack's README, the
+    summary (CSV and JSON) and the HTML report."""
+    import zipfile
+
+    import pandas as pd
+    import pygltflib
+    from pxr import Usd
+
+    cells = [(m, p, v) for m in ("vase", "candle", "knot") for p in ("wood", "gold", "ice") for v in ("full", "second")]
+    for mesh, prompt, variant in cells:
+        cell = res / mesh / prompt / variant
+        origins = [
+            json.loads((cell / rel).read_text())["origin"]
+            for rel in (
+                "optimize/meta.json",
+                "bake/meta.json",
+                "asset/meta.json",
+                "relight/meta.json",
+                "metrics/meta.json",
+                "metrics/metrics.json",
+            )
+        ]
+        for origin in origins:
+            assert origin == origins[0], cell
+            assert origin["test_only"] is True and origin["label"].startswith("TEST ONLY") and "TEST ONLY" in origin["weights"]
+        glb = pygltflib.GLTF2().load(str(cell / "asset" / "model.glb"))
+        assert glb.asset.extras["tango_stylize"] == origins[0]
+        for name in ("model.usda", "model.usdz"):
+            layer = Usd.Stage.Open(str(cell / "asset" / name)).GetRootLayer()
+            assert layer.customLayerData["tango_stylize"]["test_only"] is True, (cell, name)
+            assert "TEST ONLY" in layer.documentation
+    index = pd.read_csv(res / "report" / "asset_index.csv")
+    assert len(index) == len(cells) and index["test_only"].all() and index["origin"].str.startswith("TEST ONLY").all()
+    with zipfile.ZipFile(res / "report" / "asset_pack.zip") as z:
+        readme = z.read("README.txt").decode()
+        inner = pd.read_csv(z.open("index.csv"))
+    assert inner["test_only"].all()
+    assert readme.startswith("tango-stylize asset pack") and f"WARNING: TEST ONLY. {len(cells)} of {len(cells)}" in readme
+    for mesh, prompt, variant in cells:
+        assert f"- {mesh}/{prompt}/{variant}: TEST ONLY" in readme
+    summary = pd.read_csv(res / "report" / "summary.csv")
+    assert summary["test_only_weights"].all() and summary["origin"].str.startswith("TEST ONLY").all()
+    assert all(
+        r["test_only_weights"] and r["origin"].startswith("TEST ONLY")
+        for r in json.loads((res / "report" / "summary.json").read_text())
+    )
+    page = (res / "report" / "index.html").read_text()
+    assert f"TEST ONLY: {len(cells)} of {len(cells)} cells" in page
+    assert page.count("<small class='note'>TEST ONLY") == len(cells)
+
+
 @pytest.mark.slow
 def test_smoke_run(tmp_path):
     proc = run_snakemake(tmp_path, "--cores", "2", "--configfile", str(SMOKE), timeout=1500)
@@ -121,8 +174,9 @@ def test_smoke_run(tmp_path):
     assert "TEST ONLY" in (res / "report" / "index.html").read_text()
     for rel in ("asset/model.usdz", "asset/model.glb", "relight/material_edit.png"):
         assert (res / "vase" / "wood" / "full" / rel).is_file()
+    check_test_only_marks(res)
     # nothing half-written anywhere
-    assert not list(res.rglob(".*.tmp-*"))
+    assert not list(res.rglob(".*.tmp-*")) and not list(res.rglob(".staging-*"))
     # a second run has nothing to do
     again = run_snakemake(tmp_path, "--cores", "2", "--configfile", str(SMOKE))
     assert again.returncode == 0 and "Nothing to be done" in again.stdout + again.stderr

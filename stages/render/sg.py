@@ -30,6 +30,9 @@ COS_LAMBDA = 0.0315
 COS_MU = 32.7080
 COS_OFFSET = 31.7003
 
+#: the half-vector map l = 2 (h . v) h - v stretches solid angle by d omega_l / d omega_h = 4 |h . v| [Wang09]
+HALF_VECTOR_JACOBIAN = 4.0
+
 #: below this sharpness, (1 - exp(-2 lam)) / lam is evaluated by its Taylor series
 _SERIES_BELOW = 1e-3
 
@@ -38,8 +41,9 @@ def one_minus_exp_neg2x_over_x(x: Tensor) -> Tensor:
     """``(1 - exp(-2x)) / x`` for ``x > 0``, accurate (float32 and float64) as ``x -> 0`` and ``inf``.
 
     Exact (to rounding): ``-expm1(-2x) / x`` for ``x >= 1e-3``, and the series
-    ``2 - 2x + 4x^2/3 - 2x^3/3`` below (truncation error < 2x^4/3 < 1e-12 relative there), which
-    also keeps the derivative accurate where the quotient's derivative would cancel.
+    ``2 - 2x + 4x^2/3 - 2x^3/3`` below (alternating: relative truncation error < 2x^4/15 < 1.4e-13
+    there), which also keeps the derivative accurate where the quotient's derivative would cancel.
+    Tested over ``x`` in [1e-8, 1e8]: within 2e-13 of ``-expm1(-2x) / x`` in float64, 3e-7 in float32.
     """
     small = x < _SERIES_BELOW
     xs = torch.where(small, x, torch.zeros_like(x))
@@ -125,8 +129,8 @@ def sg_inner_product(
 def _hemisphere_t(sharpness: Tensor) -> Tensor:
     """Meder & Bruderlin's fitted ``t(lam) = sqrt(lam) (1.6988 lam^2 + 10.8438 lam) /
     (lam^2 + 6.2201 lam + 10.2415)`` (their rational form multiplied through by ``lam^2``, so it
-    has no ``1 / lam`` and is finite down to ``lam = 0``; ``lam^2`` stays finite in float32 up
-    to ``lam ~ 1e19``)."""
+    has no ``1 / lam`` and is finite down to ``lam = 0``; in float32 ``sqrt(lam) lam^2`` overflows
+    above ``lam ~ 2e15``, far beyond the renderer's sharpest lobe, ~1e11)."""
     lam = sharpness
     return torch.sqrt(lam) * (1.6988 * lam * lam + 10.8438 * lam) / (lam * lam + 6.2201 * lam + 10.2415)
 
@@ -145,7 +149,8 @@ def sg_hemisphere_integral(sharpness: Tensor, cos_beta: Tensor) -> Tensor:
     (PhySG's two branches for ``c >= 0`` and ``c < 0`` are the same function). Exact at
     ``c = -1, 0, 1`` (0, half and all of ``A_u + A_b``); elsewhere the error is measured against
     quadrature in ``tests/test_sg.py``: at most 1.5% of the full-sphere integral over
-    ``lam`` in [1e-4, 1e4]. Finite values and gradients for ``lam`` in [1e-6, 1e18].
+    ``lam`` in [1e-4, 1e4] (tested; measured 1.1%). Finite values and gradients for ``lam`` in
+    [1e-6, 1e18] in float64 and [1e-6, 1e15] in float32 (tested).
 
     ``sharpness (..., 1) > 0``, ``cos_beta (..., 1)`` in [-1, 1] -> ``(..., 1)``.
     """
@@ -165,8 +170,8 @@ def clamped_cosine_sg(normal: Tensor) -> tuple[Tensor, Tensor, Tensor, float]:
 
     Returns the SG (axis ``normal (..., 3)``, sharpness ``(..., 1)``, amplitude ``(..., 1)``) and
     the constant offset. Approximate: within 0.008 of ``max(v . n, 0)`` on the upper hemisphere
-    (tested); its integrals are taken over the upper hemisphere only, where it stands for the
-    clamped cosine.
+    (tested; measured 0.0077, at ``v = n``); its integrals are taken over the upper hemisphere
+    only, where it stands for the clamped cosine.
     """
     lam = torch.full_like(normal[..., :1], COS_LAMBDA)
     mu = torch.full_like(normal[..., :1], COS_MU)
@@ -178,9 +183,11 @@ def warp_ndf_to_light(
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Spherical warp of an SG normal distribution ``D(h)`` centred on ``n`` into the light
     domain [Wang09 Sec. 4.2, Zhang21]: the lobe moves to the mirror direction
-    ``r = 2 (v . n) n - v``, its sharpness becomes ``lam / (4 |h . v|)`` with ``h = n`` at the
-    lobe centre, and its amplitude is unchanged. Approximate (exact at the lobe centre; the warp
-    is the first-order Jacobian of ``h -> l``).
+    ``r = 2 (v . n) n - v``, its sharpness becomes ``lam / (4 |h . v|)`` (``HALF_VECTOR_JACOBIAN``)
+    with ``h = n`` at the lobe centre, and its amplitude is unchanged. Approximate (exact at the lobe
+    centre; the warp is the first-order Jacobian of ``h -> l``, made isotropic): the warped lobe's
+    integral matches that of ``D(h(l))`` over ``l`` to within ``2 / lam`` relative for ``lam >= 32``
+    and ``n . v`` in [0.3, 1] (tested; measured ``1 / lam``).
 
     ``normal, view (..., 3)`` unit (``view`` points from the surface to the eye),
     ``ndf_sharpness (..., 1)``, ``ndf_amplitude (..., C)``, ``cos_nv = n . v (..., 1)`` in
@@ -188,4 +195,4 @@ def warp_ndf_to_light(
     :func:`stages.render.shading.face_viewer`). Returns the warped SG.
     """
     axis = 2.0 * cos_nv * normal - view  # unit length for unit n and v
-    return axis, ndf_sharpness / (4.0 * cos_nv), ndf_amplitude
+    return axis, ndf_sharpness / (HALF_VECTOR_JACOBIAN * cos_nv), ndf_amplitude

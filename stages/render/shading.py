@@ -16,6 +16,11 @@ from torch import Tensor
 
 from .sg import COS_LAMBDA, COS_MU, COS_OFFSET, sg_hemisphere_integral, sg_product, warp_ndf_to_light
 
+#: SG normal distribution ``D(h) = exp(NDF_SHARPNESS / alpha^2 (h . n - 1)) / (pi alpha^2)``, ``alpha = r^2`` [Zhang21]
+NDF_SHARPNESS = 2.0
+#: Schlick's Fresnel ``F0 + (1 - F0) (1 - cos)^FRESNEL_POWER``
+FRESNEL_POWER = 5
+
 
 @dataclass(frozen=True)
 class SGLight:
@@ -74,7 +79,8 @@ def diffuse_radiance_reference(normal: Tensor, albedo: Tensor, light: SGLight) -
     """``albedo / pi * int L(w) max(w . n, 0) dw`` per point -> ``(N, 3)``.
 
     ``normal (N, 3)`` unit, ``albedo (N, 3)`` in [0, 1]. Approximate (the clamped-cosine SG fit
-    and the hemisphere integral): within 2% of quadrature for smooth lights (tested).
+    and the hemisphere integral): within 2.5% of brute force for lights of 32 lobes of sharpness
+    0.5 to 30 (tested against Monte Carlo, 5 standard errors allowed on top; measured 2.2%).
     """
     n = normal[:, None, :]
     irradiance = _hemisphere_product_with_cosine(n, light.axis[None], light.sharpness[None], light.amplitude[None]).sum(
@@ -86,21 +92,28 @@ def diffuse_radiance_reference(normal: Tensor, albedo: Tensor, light: SGLight) -
 
 def ndf_sg(roughness: Tensor) -> tuple[Tensor, Tensor]:
     """SG fit of the GGX-like normal distribution used by PhySG/TANGO for roughness ``r``
-    (``alpha = r^2``): sharpness ``2 / r^4``, amplitude ``1 / (pi r^4)``. ``(N, 1)`` each."""
+    (``alpha = r^2``): sharpness ``lam = 2 / r^4`` (``NDF_SHARPNESS``), amplitude ``1 / (pi r^4)``.
+    ``(N, 1)`` each. Normalised to within ``r^4 / 2``: ``int D(h) (h . n) dh = 1 - (1 - exp(-lam)) / lam``
+    (tested by quadrature)."""
     r4 = roughness**4
-    return 2.0 / r4, 1.0 / (math.pi * r4)
+    return NDF_SHARPNESS / r4, 1.0 / (math.pi * r4)
 
 
 def fresnel_schlick(f0: Tensor, cos: Tensor) -> Tensor:
     """Schlick's Fresnel ``F0 + (1 - F0) (1 - cos)^5``; ``f0 (N, 3)``, ``cos (N, 1)`` in [0, 1]."""
-    return f0 + (1.0 - f0) * (1.0 - cos) ** 5
+    return f0 + (1.0 - f0) * (1.0 - cos) ** FRESNEL_POWER
+
+
+def smith_k(roughness: Tensor) -> Tensor:
+    """Smith-Schlick's ``k = (r + 1)^2 / 8`` for roughness ``r`` (Karis 2013, as in PhySG; not ``alpha / 2``)."""
+    return (roughness + 1.0) ** 2 / 8.0
 
 
 def smith_schlick_over_cosines(cos_nl: Tensor, cos_nv: Tensor, roughness: Tensor) -> Tensor:
     """``G(l, v) / (4 (n.l) (n.v))`` with Smith-Schlick ``G1(x) = x / (x (1 - k) + k)``,
     ``k = (r + 1)^2 / 8`` (Karis 2013, as in PhySG). Written with the cosines cancelled,
     ``1 / (4 (x_l (1-k) + k) (x_v (1-k) + k))``, so it stays finite at grazing angles."""
-    k = (roughness + 1.0) ** 2 / 8.0
+    k = smith_k(roughness)
     return 1.0 / (4.0 * (cos_nl * (1.0 - k) + k) * (cos_nv * (1.0 - k) + k))
 
 
@@ -112,6 +125,20 @@ def specular_radiance_reference(normal: Tensor, view: Tensor, specular: Tensor, 
     evaluated once at the mirror direction ``l = 2 (v.n) n - v`` (where ``h = n``, so
     ``n.l = v.h = n.v``) with ``F0 = specular``; the warped lobe times each light lobe times the
     clamped cosine is integrated over the hemisphere in closed form.
+
+    Accuracy, tested against seeded Monte Carlo (5 standard errors allowed on top of each bound)
+    for ``n . v`` in [0.3, 1], roughness 0.1 to 1 and ``F0`` 0.04, 0.3, 0.9:
+
+    - the closed-form integration (clamped-cosine fit, hemisphere integral) is within
+      ``0.5% + 0.01 / (n . v)`` of the integral of the same warped lobe (the fit's absolute error,
+      0.008, relative to ``n . l ~ n . v``): 1.5% at normal view, 3.8% at ``n . v = 0.3``;
+    - against the microfacet BRDF itself (NDF, Fresnel and shadowing varying over the lobe), the
+      warp and the single ``M`` are within 3% for roughness <= 0.3 and ``F0 >= 0.3`` (8% at
+      ``F0 = 0.04``), and within 30% for roughness <= 1 and ``F0 >= 0.3``; at ``F0 = 0.04`` and
+      roughness >= 0.5 the mirror-direction Fresnel overestimates near grazing, up to 3x at
+      ``n . v = 0.3`` (bound 200%). Nearer grazing the warp underestimates more (measured, not
+      tested: by 54% to 71% at ``n . v = 0.1`` for roughness 0.5 to 1 and ``F0 >= 0.5``), a known
+      limit of the isotropic warp [Wang09] that TANGO shares.
 
     ``normal, view (N, 3)`` unit with ``n . v > 0`` (:func:`face_viewer`), ``specular (N, 3)`` in
     [0, 1], ``roughness (N, 1)`` in [0.01, 1].
@@ -139,7 +166,8 @@ def specular_radiance_reference(normal: Tensor, view: Tensor, specular: Tensor, 
 # sharpnesses and of dot products between axes. The fused versions therefore work on (N, K)
 # matrices of cosines obtained by matrix products, never on (N, K, 3) tensors, and apply the
 # amplitudes with one final (N, K) @ (K, C) product. They are algebraically identical to the
-# reference versions above (tested to 1e-10 in float64) and several times faster.
+# reference versions above (tested to 1e-10 relative in float64; measured 6e-14) and several times
+# faster.
 
 
 def _product_terms(lam1: Tensor, lam2: Tensor, cos12: Tensor) -> tuple[Tensor, Tensor]:
