@@ -99,7 +99,8 @@ def check_test_only_marks(res) -> None:
         glb = pygltflib.GLTF2().load(str(cell / "asset" / "model.glb"))
         assert glb.asset.extras["tango_stylize"] == origins[0]
         for name in ("model.usda", "model.usdz"):
-            layer = Usd.Stage.Open(str(cell / "asset" / name)).GetRootLayer()
+            stage = Usd.Stage.Open(str(cell / "asset" / name))  # keep the stage: it owns the layer
+            layer = stage.GetRootLayer()
             assert layer.customLayerData["tango_stylize"]["test_only"] is True, (cell, name)
             assert "TEST ONLY" in layer.documentation
     index = pd.read_csv(res / "report" / "asset_index.csv")
