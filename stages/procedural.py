@@ -79,9 +79,9 @@ def procedural_light(kind: str = "studio", dtype=torch.float32, device="cpu") ->
         ground_amp = torch.tensor([0.06, 0.05, 0.04], dtype=dtype).expand(len(lower), 3)
         axes = torch.cat([sun, upper, lower])
         axes = axes / torch.linalg.vector_norm(axes, dim=-1, keepdim=True)
-        lam = torch.cat(
-            [torch.full((1, 1), 2000.0), torch.full((len(upper), 1), 12.0), torch.full((len(lower), 1), 6.0)]
-        ).to(dtype)
+        lam = torch.cat([torch.full((1, 1), 2000.0), torch.full((len(upper), 1), 12.0), torch.full((len(lower), 1), 6.0)]).to(
+            dtype
+        )
         amp = torch.cat([torch.tensor([[900.0, 800.0, 650.0]], dtype=dtype), sky_amp, ground_amp])
         return SGLight(axes.to(device), lam.to(device), amp.to(device))
     raise ValueError(f"unknown procedural light {kind!r}; choose one of {', '.join(LIGHTS)}")
