@@ -42,6 +42,7 @@ from .provenance import (
     add_torch_arguments,
     apply_torch_arguments,
     atomic_path,
+    checked_origin,
     metadata,
     origin_record,
     staged_outputs,
@@ -631,16 +632,11 @@ def load_field(path: str | Path, device="cpu") -> tuple[StyleField, OptimizeSett
     the guidance and weights that trained it (:func:`~stages.provenance.origin_record`), which
     every stage that uses the field copies into its own outputs."""
     data = torch.load(path, map_location=device, weights_only=False)
-    if not isinstance(data.get(ORIGIN_KEY), dict):
-        raise StageInputError(
-            path,
-            "records no origin (guidance and weights), so outputs made from it could not say what made them",
-            "It was written by an older version: rerun the optimize stage (snakemake --forcerun optimize).",
-        )
+    origin = checked_origin(data.get(ORIGIN_KEY), path, "the optimize stage")
     settings = OptimizeSettings.from_dict(data["settings"])
     f = StyleField(settings).to(device)
     f.load_state_dict(data["state_dict"])
-    f.origin = data[ORIGIN_KEY]
+    f.origin = origin
     return f.eval(), settings
 
 

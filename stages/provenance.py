@@ -211,12 +211,18 @@ def read_origin(meta_path: str | Path) -> dict[str, Any]:
     meta_path = Path(meta_path)
     if not meta_path.is_file():
         raise StageInputError(meta_path, "file not found", "Run the earlier stages first.")
-    origin = json.loads(meta_path.read_text()).get(ORIGIN_KEY)
+    return checked_origin(json.loads(meta_path.read_text()).get(ORIGIN_KEY), meta_path, "the stage that wrote it")
+
+
+def checked_origin(origin: Any, path: str | Path, writer: str) -> dict[str, Any]:
+    """``origin`` when it is an origin record, else a clear error naming ``path`` and ``writer``."""
+    from .errors import StageInputError
+
     if not isinstance(origin, dict) or "label" not in origin:
         raise StageInputError(
-            meta_path,
+            path,
             "records no origin (guidance and weights), so outputs made from it could not say what made them",
-            "It was written by an older version: rerun the stage that wrote it (snakemake --forcerun <rule>).",
+            f"It was written by an older version: rerun {writer} (snakemake --forcerun <rule>).",
         )
     return origin
 

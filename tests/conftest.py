@@ -54,23 +54,22 @@ def icosphere(subdivisions: int):
     return TriMesh(np.asarray(s.vertices, np.float64), np.asarray(s.faces, np.int64))
 
 
-def run_snakemake(workdir: Path, *args: str, timeout: int = 600) -> subprocess.CompletedProcess:
-    """Run this repository's workflow with ``workdir`` as working directory (results go there).
-
-    Uses the interpreter running the tests, so the stages' ``python -m`` resolves to the same
-    environment; Snakemake's cache goes to the temporary directory, not $HOME.
-    """
+def snakemake_env(workdir: Path) -> dict[str, str]:
+    """The environment of a test's Snakemake: this interpreter's bin first on PATH (so the stages'
+    ``python -m`` resolves to the same environment), Snakemake's cache in ``workdir``, not $HOME."""
     env = dict(os.environ)
     env["XDG_CACHE_HOME"] = str(workdir / ".cache")
     env["PATH"] = str(Path(sys.executable).parent) + os.pathsep + env.get("PATH", "")
-    cmd = [
-        sys.executable,
-        "-m",
-        "snakemake",
-        "--snakefile",
-        str(REPO / "Snakefile"),
-        "--directory",
-        str(workdir),
-        *args,
-    ]
-    return subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=timeout)
+    return env
+
+
+def snakemake_command(workdir: Path, *args: str) -> list[str]:
+    """This repository's workflow with ``workdir`` as working directory (results go there)."""
+    return [sys.executable, "-m", "snakemake", "--snakefile", str(REPO / "Snakefile"), "--directory", str(workdir), *args]
+
+
+def run_snakemake(workdir: Path, *args: str, timeout: int = 600) -> subprocess.CompletedProcess:
+    """Run the workflow in ``workdir`` (see :func:`snakemake_command`, :func:`snakemake_env`)."""
+    return subprocess.run(
+        snakemake_command(workdir, *args), cwd=REPO, env=snakemake_env(workdir), capture_output=True, text=True, timeout=timeout
+    )

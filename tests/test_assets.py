@@ -172,6 +172,21 @@ def trained(tmp_path_factory):
     return d
 
 
+def results_with_cell(trained, tmp_path, normalize_meta: bool = True):
+    """A results tree holding the trained fixture as cell candle/wax/base (optimize, bake, asset),
+    with the mesh's normalize metadata; returns ``(results, cell)``."""
+    results = tmp_path / "results"
+    cell = results / "candle" / "wax" / "base"
+    if normalize_meta:
+        (results / "candle" / "normalize").mkdir(parents=True)
+        (results / "candle" / "normalize" / "meta.json").write_text(
+            json.dumps({"stats": {"faces": 13440}, "timings_s": {"total": 0.1}})
+        )
+    for src, dst in (("opt", "optimize"), ("bake", "bake"), ("asset", "asset")):
+        shutil.copytree(trained / src, cell / dst)
+    return results, cell
+
+
 def test_bake_fidelity_and_metadata(trained):
     meta = json.loads((trained / "bake" / "meta.json").read_text())
     assert meta["stats"]["bake_psnr_db"] >= 35.0
@@ -332,15 +347,7 @@ def test_darker_environment_darkens_relit_render(trained, tmp_path):
 
 
 def test_summary_and_pack(trained, tmp_path):
-    results = tmp_path / "results"
-    cell = results / "candle" / "wax" / "base"
-    mesh_dir = results / "candle"
-    (mesh_dir / "normalize").mkdir(parents=True)
-    (mesh_dir / "normalize" / "meta.json").write_text(json.dumps({"stats": {"faces": 13440}, "timings_s": {"total": 0.1}}))
-    cell.mkdir(parents=True)
-    shutil.copytree(trained / "opt", cell / "optimize")
-    shutil.copytree(trained / "bake", cell / "bake")
-    shutil.copytree(trained / "asset", cell / "asset")
+    results, cell = results_with_cell(trained, tmp_path)
     rows = report.run(results, [("candle", "wax", "base")], results / "report")
     assert len(rows) == 1 and rows[0]["weights"] == "test-only random" and rows[0]["test_only_weights"]
     import pandas as pd
@@ -367,14 +374,7 @@ def test_html_report_without_model_viewer_shows_previews(trained, tmp_path, capl
     log and a notice on the page; the test-only banner comes first."""
     from stages import html_report
 
-    results = tmp_path / "results"
-    cell = results / "candle" / "wax" / "base"
-    (results / "candle" / "normalize").mkdir(parents=True)
-    (results / "candle" / "normalize" / "meta.json").write_text(
-        json.dumps({"stats": {"faces": 13440}, "timings_s": {"total": 0.1}})
-    )
-    for src, dst in (("opt", "optimize"), ("bake", "bake"), ("asset", "asset")):
-        shutil.copytree(trained / src, cell / dst)
+    results, cell = results_with_cell(trained, tmp_path)
     report.run(results, [("candle", "wax", "base")], results / "report")
     page = results / "report" / "index.html"
     n = html_report.build(results, results / "report", [("candle", "wax", "base")], page, model_viewer=tmp_path / "absent.js")
@@ -389,10 +389,7 @@ def test_outputs_of_mixed_runs_are_refused(trained, tmp_path):
     """The report checks that every output of a cell repeats its optimisation's origin."""
     from stages.errors import StageInputError
 
-    results = tmp_path / "results"
-    cell = results / "candle" / "wax" / "base"
-    for src, dst in (("opt", "optimize"), ("bake", "bake"), ("asset", "asset")):
-        shutil.copytree(trained / src, cell / dst)
+    results, cell = results_with_cell(trained, tmp_path, normalize_meta=False)
     meta = json.loads((cell / "bake" / "meta.json").read_text())
     meta["origin"] = {**meta["origin"], "test_only": False, "label": "CLIP-guided (ViT-B-32/openai)"}
     (cell / "bake" / "meta.json").write_text(json.dumps(meta))
@@ -506,14 +503,7 @@ def test_html_report_opens_in_chromium(trained, tmp_path):
         (REPO / "node_modules" / "@google" / "model-viewer").is_dir(),
         "node_modules missing (scripts/setup.sh runs npm ci when npm exists)",
     )
-    results = tmp_path / "results"
-    cell = results / "candle" / "wax" / "base"
-    (results / "candle" / "normalize").mkdir(parents=True)
-    (results / "candle" / "normalize" / "meta.json").write_text(
-        json.dumps({"stats": {"faces": 13440}, "timings_s": {"total": 0.1}})
-    )
-    for src, dst in (("opt", "optimize"), ("bake", "bake"), ("asset", "asset")):
-        shutil.copytree(trained / src, cell / dst)
+    results, cell = results_with_cell(trained, tmp_path)
     report.run(results, [("candle", "wax", "base")], results / "report")
     page = results / "report" / "index.html"
     assert html_report.build(results, results / "report", [("candle", "wax", "base")], page) == 1
@@ -567,18 +557,11 @@ def test_decimation_shortfall_reaches_summary_and_report(trained, tmp_path):
 
     from stages import html_report
 
-    results = tmp_path / "results"
-    cell = results / "candle" / "wax" / "base"
-    (results / "candle" / "normalize").mkdir(parents=True)
-    (results / "candle" / "normalize" / "meta.json").write_text(
-        json.dumps({"stats": {"faces": 13440}, "timings_s": {"total": 0.1}})
-    )
+    results, cell = results_with_cell(trained, tmp_path)
     (results / "candle" / "decimate").mkdir(parents=True)
     reason = "1000 separate triangles: no edge can collapse without deleting a component"
     dec = {"faces_after": 1000, "target_faces": 500, "target_reached": False, "target_shortfall_reason": reason}
     (results / "candle" / "decimate" / "meta.json").write_text(json.dumps({"stats": dec, "timings_s": {"total": 0.1}}))
-    for src, dst in (("opt", "optimize"), ("bake", "bake"), ("asset", "asset")):
-        shutil.copytree(trained / src, cell / dst)
     report.run(results, [("candle", "wax", "base")], results / "report")
     row = pd.read_csv(results / "report" / "summary.csv").iloc[0]
     assert not row["decimation_target_reached"] and row["decimation_shortfall"] == reason

@@ -9,14 +9,13 @@ import json
 import os
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
 import pytest
 import torch
 import yaml
-from conftest import REPO, run_snakemake
+from conftest import REPO, run_snakemake, snakemake_command, snakemake_env
 
 CELL = Path("results/vase/wood/base")
 CONFIG = {
@@ -57,32 +56,14 @@ def declared_outputs(stage: str) -> list[Path]:
     return [CELL / "bake" / n for n in names]
 
 
-def snakemake_cmd(workdir: Path, config: Path, *args: str) -> list[str]:
-    return [
-        sys.executable,
-        "-m",
-        "snakemake",
-        "--snakefile",
-        str(REPO / "Snakefile"),
-        "--directory",
-        str(workdir),
-        *args,
-        "--cores",
-        "1",
-        "--configfile",
-        str(config),
-    ]
-
-
 def kill_when(workdir: Path, config: Path, target: Path, ready) -> None:
     """Start Snakemake for ``target`` in its own session; SIGKILL the whole session (Snakemake,
     the job's shell and the stage) as soon as ``ready()`` is true."""
-    env = dict(os.environ, XDG_CACHE_HOME=str(workdir / ".cache"))
-    env["PATH"] = str(Path(sys.executable).parent) + os.pathsep + env.get("PATH", "")
     proc = subprocess.Popen(
-        snakemake_cmd(workdir, config, str(target)),  # the target before --configfile, which takes a list
+        # the target before --configfile, which takes a list
+        snakemake_command(workdir, str(target), "--cores", "1", "--configfile", str(config)),
         cwd=REPO,
-        env=env,
+        env=snakemake_env(workdir),
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
         start_new_session=True,
