@@ -1,7 +1,8 @@
 # TANGO stylization workflow. Run from the repository root:
 #   snakemake --cores 2                              # the default experiment (config/config.yaml)
 #   snakemake --cores 2 --configfile config/X.yaml   # another experiment (replaces the default)
-# Rules describe files; the stages in stages/ do the work (rule <name> -> stages/<name>.py).
+# Rules describe files; the stages in stages/ do the work (rule <name> -> stages/<name>.py, writing
+# <name>/); the layers beneath them are described in ARCHITECTURE.md.
 
 
 include: "workflow/rules/common.smk"

@@ -28,14 +28,14 @@ def child(faces: str, size: int, decimate_to: int | None) -> dict:
     import numpy as np
     import torch
 
-    from stages.bake import BakeSettings, bake_field
+    from stages.assets.baking import bake_field
+    from stages.config.sections import BakeSettings, OptimizeSettings
+    from stages.core.provenance import origin_record
     from stages.export import faceted, package_usdz, write_glb, write_usd
-    from stages.field import StyleField
-    from stages.meshio import TriMesh, save_ply
-    from stages.normalize import normalization_transform
-    from stages.optimize import OptimizeSettings
-    from stages.provenance import origin_record
-    from stages.shapes import knot
+    from stages.geometry.meshio import TriMesh, save_ply
+    from stages.geometry.normalization import normalization_transform
+    from stages.geometry.shapes import knot
+    from stages.model.field import StyleField
 
     torch.set_num_threads(2)
     samples, sides = KNOTS[faces]
@@ -44,12 +44,13 @@ def child(faces: str, size: int, decimate_to: int | None) -> dict:
     mesh = TriMesh(tf.forward(v), f)
     t = {}
     if decimate_to:
-        from stages.decimate import DecimateSettings, decimate_mesh
+        from stages.config.sections import DecimateSettings
+        from stages.geometry.decimation import decimate_mesh
 
         t0 = time.perf_counter()
         mesh = decimate_mesh(mesh, DecimateSettings(target_faces=decimate_to, hausdorff_samples=10000)).mesh
         t["decimate"] = time.perf_counter() - t0
-    field = StyleField(OptimizeSettings()).eval()
+    field = StyleField(OptimizeSettings().field_settings()).eval()
     t0 = time.perf_counter()
     res = bake_field(mesh, field, BakeSettings(texture_size=size))
     t["bake"] = time.perf_counter() - t0
@@ -61,7 +62,7 @@ def child(faces: str, size: int, decimate_to: int | None) -> dict:
         (d / "textures").mkdir()
         for name, img in res.textures.items():
             Image.fromarray(img).save(d / "textures" / f"{name}.png")
-        from stages.hdrio import write_exr
+        from stages.render.hdrio import write_exr
 
         write_exr(d / "light.exr", res.light_equirect)
         t["write_textures"] = time.perf_counter() - t0

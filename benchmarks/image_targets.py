@@ -1,6 +1,6 @@
 """Image-target recovery on the built-in vase: object-pixel PSNR on the held-out evaluation views
 for a light the model represents exactly and for one it cannot, with and without the normal
-network. Uses the very fit of ``tests/test_optimize.py`` (300 iterations, the sweep's base
+network. Uses the very fit of ``tests/training/test_optimize.py`` (300 iterations, the sweep's base
 settings), so the README's table and the tests' thresholds come from one definition.
 
     python benchmarks/image_targets.py
@@ -14,7 +14,7 @@ import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path[:0] = [str(REPO), str(REPO / "tests")]
+sys.path[:0] = [str(REPO), str(REPO / "tests"), str(REPO / "tests" / "training")]
 
 CASES = (
     ("studio light (4 lobes, representable), no normal network", {}),

@@ -3,7 +3,7 @@
 At the paper's per-step counts (1 view from a 512x512 ray cache, 1 global image and 4 local crops,
 CLIP ViT-B-32 at 224x224, networks of width 256, 32 light lobes) it measures:
 
-* ``s_per_iter``: wall time of the real training step (``stages.optimize.Optimizer.step``);
+* ``s_per_iter``: wall time of the real training step (``stages.training.optimizer.Optimizer.step``);
 * the split of one step into ray-cache gather, encodings+MLPs (forward+backward), shading
   (forward+backward), CLIP forward+backward and the optimizer step, by running the same
   functions with the autograd graph cut between the parts;
@@ -31,15 +31,17 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from stages.guidance import ClipGuide
-from stages.imaging import compose, gather_points, global_spec, linear_to_srgb, sample_crops
-from stages.meshio import save_ply
-from stages.normalize import NormalizeSettings, normalize_mesh
-from stages.optimize import Optimizer, OptimizeSettings
-from stages.provenance import Timer
-from stages.raycache import RayCache, RaycacheSettings
+from stages.config.sections import NormalizeSettings, OptimizeSettings, RaycacheSettings
+from stages.core.provenance import Timer
+from stages.geometry.meshio import save_ply
+from stages.geometry.normalization import normalize_mesh
+from stages.geometry.raycache import RayCache
+from stages.guidance.clip import ClipGuide
+from stages.imaging.images import compose, gather_points, global_spec
+from stages.model.networks import Material
 from stages.raycache import run as raycache_run
-from stages.render.shading import face_viewer, shade
+from stages.render.color import linear_to_srgb
+from stages.training.optimizer import Optimizer
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "meshes"
 PARTS = ("gather", "mlp", "shading", "clip", "optimizer")
@@ -55,7 +57,7 @@ def build_cache(tmp: Path) -> tuple[Path, str]:
 
 
 def vit_b32_random() -> ClipGuide:
-    from stages.clip_compat import import_open_clip
+    from stages.guidance.compat import import_open_clip
 
     open_clip = import_open_clip()
     model = open_clip.create_model("ViT-B-32", pretrained=None)
@@ -100,33 +102,18 @@ def timed_split(opt: Optimizer, steps: int) -> dict[str, float]:
     for _ in range(steps):
         t0 = time.perf_counter()
         v = opt.views[int(opt.np_rng.integers(len(opt.views)))]
-        specs = [global_spec(opt.views.width, s.image_size, s.supersample)]
-        specs += sample_crops(
-            v.mask,
-            s.crops,
-            scale=s.crop_scale,
-            min_coverage=s.crop_coverage,
-            max_tries=s.crop_max_tries,
-            out_size=s.image_size,
-            rng=opt.np_rng,
-            supersample=s.supersample,
-        )
+        specs = opt.image_specs(v)
         needed, lookups = gather_points(specs, v.index)
         sel = torch.from_numpy(needed)
         pts, nrm, view = v.points[sel], v.normals[sel], v.view[sel]
         bg = torch.zeros(3, s.image_size, s.image_size)
         t1 = time.perf_counter()
-        f = opt.field
-        flip = (nrm * view).sum(-1, keepdim=True) < 0
-        n0 = torch.where(flip, -nrm, nrm)
-        n1 = f.normal_net(pts, n0) if f.normal_net is not None else n0
-        mat = f.svbrdf(pts)
-        mlp_out = [n1, mat.albedo, mat.specular, mat.roughness]
+        # the field's own forward pass, cut between its networks and its renderer
+        mat, normal = opt.field.surface(pts, nrm, view)
+        mlp_out = [normal, mat.albedo, mat.specular, mat.roughness]
         leaves = [x.detach().requires_grad_() for x in mlp_out]
         t2 = time.perf_counter()
-        light = f.light()
-        nn_ = face_viewer(leaves[0], view)
-        color = linear_to_srgb(shade(nn_, view, leaves[1], light, leaves[2], leaves[3]).rgb)
+        color = linear_to_srgb(opt.field.shade(Material(*leaves[1:]), leaves[0], view).rgb)
         c_leaf = color.detach().requires_grad_()
         t3 = time.perf_counter()
         imgs = [compose(c_leaf, lk, sp, bg) for lk, sp in zip(lookups, specs, strict=True)]

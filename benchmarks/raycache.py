@@ -22,17 +22,19 @@ from pathlib import Path
 
 import numpy as np
 
-from stages.meshio import TriMesh
-from stages.normalize import NormalizeSettings, normalize_mesh
-from stages.raycache import EmbreeTracer, RaycacheSettings, trace_views, training_views
-from stages.shapes import knot
+from stages.config.sections import NormalizeSettings, RaycacheSettings
+from stages.geometry.meshio import TriMesh
+from stages.geometry.normalization import normalize_mesh
+from stages.geometry.raycache import trace_views, training_views
+from stages.geometry.shapes import knot
+from stages.geometry.tracing import EmbreeTracer
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "meshes"
 
 
 def generated_80k() -> TriMesh:
     v, f = knot(samples=2048, sides=20)  # 2048 * 20 * 2 = 81,920 faces
-    from stages.normalize import normalization_transform
+    from stages.geometry.normalization import normalization_transform
 
     tf = normalization_transform(v)
     return TriMesh(tf.forward(v), f)

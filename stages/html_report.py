@@ -17,7 +17,6 @@ random CLIP or fitted to image targets, a banner at the top of the page says so 
 
 from __future__ import annotations
 
-import argparse
 import base64
 import html
 import json
@@ -26,9 +25,9 @@ from pathlib import Path
 
 import pandas as pd
 
-from .errors import stage_errors
-from .provenance import atomic_path, setup_logging
-from .report import parse_cells
+from .core.cli import stage_main
+from .core.provenance import atomic_path
+from .results.cells import parse_cells
 
 log = logging.getLogger(__name__)
 
@@ -102,7 +101,7 @@ def origin_banner(frame: pd.DataFrame) -> str:
     return "".join(out)
 
 
-def build(results: Path, report_dir: Path, cells: list[tuple[str, str, str]], out: Path, model_viewer: Path | None = None) -> int:
+def run(results: Path, report_dir: Path, cells: list[tuple[str, str, str]], out: Path, model_viewer: Path | None = None) -> int:
     """Write the page; returns the number of 3D viewers in it (0 when model-viewer is missing)."""
     model_viewer = MODEL_VIEWER if model_viewer is None else Path(model_viewer)
     viewer = model_viewer.is_file()
@@ -153,14 +152,14 @@ def build(results: Path, report_dir: Path, cells: list[tuple[str, str, str]], ou
     models = 0
     for mesh, prompt, variant in cells:
         cdir = results / mesh / prompt / variant
-        glb = cdir / "asset" / "model.glb"
+        glb = cdir / "export" / "model.glb"
         row = frame[(frame["mesh"] == mesh) & (frame["prompt"] == prompt) & (frame["variant"] == variant)]
         label = html.escape(f"{mesh} / {prompt} / {variant}")
         text = html.escape(str(row["prompt_text"].iloc[0])) if len(row) else ""
         origin = str(row["origin"].iloc[0]) if len(row) else ""
         cls = " class='note'" if origin.startswith(("TEST ONLY", "IMAGE-GUIDED")) else ""
         parts.append(f"<div class='cell'><b>{label}</b><br>{text}<br><small{cls}>{html.escape(origin)}</small><br>")
-        preview = cdir / "asset" / "preview.png"
+        preview = cdir / "export" / "preview.png"
         if not viewer and preview.is_file():
             parts.append(f"<img class='preview' alt='{label}' src='{data_uri(preview, 'image/png')}'>")
         elif glb.is_file():
@@ -184,16 +183,16 @@ def build(results: Path, report_dir: Path, cells: list[tuple[str, str, str]], ou
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m stages.html_report", description=__doc__.split("\n")[0])
-    parser.add_argument("--results", type=Path, default=Path("results"))
-    parser.add_argument("--report-dir", type=Path, default=Path("results/report"))
-    parser.add_argument("--out", type=Path, required=True)
-    parser.add_argument("--cells", nargs="+", required=True)
-    args = parser.parse_args(argv)
-    setup_logging()
-    with stage_errors("html_report") as status:
-        build(args.results, args.report_dir, parse_cells(args.cells), args.out)
-    return status.code
+    def arguments(parser):
+        parser.add_argument("--results", type=Path, default=Path("results"))
+        parser.add_argument("--report-dir", type=Path, default=Path("results/report"))
+        parser.add_argument("--out", type=Path, required=True)
+        parser.add_argument("--cells", nargs="+", required=True)
+
+    def body(args):
+        run(args.results, args.report_dir, parse_cells(args.cells), args.out)
+
+    return stage_main("html_report", __doc__, arguments, body, argv)
 
 
 if __name__ == "__main__":

@@ -10,7 +10,6 @@ test_only, image_guided, origin, files, texture_size, faces, validation counts).
 
 from __future__ import annotations
 
-import argparse
 import csv
 import io
 import json
@@ -18,9 +17,10 @@ import logging
 import zipfile
 from pathlib import Path
 
-from .errors import StageInputError, stage_errors
-from .provenance import ORIGIN_KEY, atomic_path, read_origin, setup_logging
-from .report import parse_cells
+from .core.cli import stage_main
+from .core.errors import StageInputError
+from .core.provenance import ORIGIN_KEY, atomic_path, read_origin
+from .results.cells import parse_cells
 
 log = logging.getLogger(__name__)
 
@@ -58,7 +58,7 @@ def run(results: Path, cells: list[tuple[str, str, str]], out_zip: Path, out_ind
     rows = []
     entries = []
     for mesh, prompt, variant in cells:
-        asset = Path(results) / mesh / prompt / variant / "asset"
+        asset = Path(results) / mesh / prompt / variant / "export"
         meta_path = asset / "meta.json"
         if not meta_path.is_file():
             raise StageInputError(meta_path, "file not found", "Run the export stage first.")
@@ -104,16 +104,16 @@ def run(results: Path, cells: list[tuple[str, str, str]], out_zip: Path, out_ind
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m stages.pack", description=__doc__.split("\n")[0])
-    parser.add_argument("--results", type=Path, default=Path("results"))
-    parser.add_argument("--zip", required=True, type=Path)
-    parser.add_argument("--index", required=True, type=Path)
-    parser.add_argument("--cells", nargs="+", required=True)
-    args = parser.parse_args(argv)
-    setup_logging()
-    with stage_errors("pack") as status:
+    def arguments(parser):
+        parser.add_argument("--results", type=Path, default=Path("results"))
+        parser.add_argument("--zip", required=True, type=Path)
+        parser.add_argument("--index", required=True, type=Path)
+        parser.add_argument("--cells", nargs="+", required=True)
+
+    def body(args):
         run(args.results, parse_cells(args.cells), args.zip, args.index)
-    return status.code
+
+    return stage_main("pack", __doc__, arguments, body, argv)
 
 
 if __name__ == "__main__":

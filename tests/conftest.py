@@ -48,7 +48,7 @@ def icosphere(subdivisions: int):
     """Unit icosphere (all vertices on the unit sphere) as a TriMesh."""
     import trimesh
 
-    from stages.meshio import TriMesh
+    from stages.geometry.meshio import TriMesh
 
     s = trimesh.creation.icosphere(subdivisions=subdivisions, radius=1.0)
     return TriMesh(np.asarray(s.vertices, np.float64), np.asarray(s.faces, np.int64))

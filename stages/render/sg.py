@@ -25,7 +25,9 @@ import math
 import torch
 from torch import Tensor
 
-#: clamped-cosine fit max(v . n, 0) ~ COS_MU * exp(COS_LAMBDA (v . n - 1)) - COS_OFFSET [Meder18]
+#: the SG fit of the clamped cosine used by TANGO [Meder18, Chen22 Sec. 3.2]:
+#: max(v . n, 0) ~ COS_MU * exp(COS_LAMBDA (v . n - 1)) - COS_OFFSET, within 0.008 on the upper
+#: hemisphere (tested; measured 0.0077 at v = n); its integrals are taken over the upper hemisphere only
 COS_LAMBDA = 0.0315
 COS_MU = 32.7080
 COS_OFFSET = 31.7003
@@ -162,20 +164,6 @@ def sg_hemisphere_integral(sharpness: Tensor, cos_beta: Tensor) -> Tensor:
     s = -torch.expm1(-t * (1.0 + c)) * lo / (-torch.expm1(-t) * (lo + hi))
     a_u = math.pi * one_minus_exp_neg2x_over_x(0.5 * lam)  # 2 pi (1 - exp(-lam)) / lam
     return a_u * (s + torch.exp(-lam) * (1.0 - s))
-
-
-def clamped_cosine_sg(normal: Tensor) -> tuple[Tensor, Tensor, Tensor, float]:
-    """The SG fit of ``max(v . n, 0)`` used by TANGO [Meder18, Chen22 Sec. 3.2]:
-    ``COS_MU exp(COS_LAMBDA (v . n - 1)) - COS_OFFSET``.
-
-    Returns the SG (axis ``normal (..., 3)``, sharpness ``(..., 1)``, amplitude ``(..., 1)``) and
-    the constant offset. Approximate: within 0.008 of ``max(v . n, 0)`` on the upper hemisphere
-    (tested; measured 0.0077, at ``v = n``); its integrals are taken over the upper hemisphere
-    only, where it stands for the clamped cosine.
-    """
-    lam = torch.full_like(normal[..., :1], COS_LAMBDA)
-    mu = torch.full_like(normal[..., :1], COS_MU)
-    return normal, lam, mu, COS_OFFSET
 
 
 def warp_ndf_to_light(

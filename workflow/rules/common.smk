@@ -1,10 +1,11 @@
 # Config validation, wildcard constraints and input/param helpers -- nothing else.
-# The logic lives in stages/config.py so it is importable and tested.
+# The logic lives in stages/config/ (no torch: building the DAG imports only that layer and core).
 import json
 from pathlib import Path
 
-from stages.config import WorkflowConfig
-from stages.errors import ConfigError
+from stages.config.layout import OPTIMIZE_FILES, TEXTURES
+from stages.config.workflow import WorkflowConfig
+from stages.core.errors import ConfigError
 
 DEFAULT_CONFIGFILE = "config/config.yaml"
 
@@ -90,9 +91,7 @@ def cell_dir(stage):
 
 
 def optimize_outputs():
-    from stages.optimize import OUTPUT_FILES
-
-    outs = {key: f"{CELL}/optimize/{name}" for key, name in OUTPUT_FILES.items()}
+    outs = {key: f"{CELL}/optimize/{name}" for key, name in OPTIMIZE_FILES.items()}
     outs["meta"] = f"{CELL}/optimize/meta.json"
     return outs
 
@@ -109,7 +108,7 @@ def optimize_settings_json(wildcards):
 def check_clip_weights():
     """Before any job runs: stop at once when real CLIP weights (for guidance or for the
     evaluation metrics) are needed but unavailable."""
-    from stages.guidance import ClipWeightsUnavailable, resolve_weights
+    from stages.guidance.clip import ClipWeightsUnavailable, resolve_weights  # imports torch: only at start
 
     for spec in CFG.clip_specs():
         try:
@@ -130,8 +129,6 @@ def cell_settings_json(stage):
 
 
 def bake_outputs():
-    from stages.bake import TEXTURES
-
     outs = {k: f"{CELL}/bake/textures/{k}.png" for k in TEXTURES}
     for key, name in (
         ("exr", "light.exr"),
@@ -155,19 +152,17 @@ def export_inputs(wildcards):
 
 
 def export_outputs():
-    from stages.bake import TEXTURES
-
     outs = {
-        "model_usda": f"{CELL}/asset/model.usda",
-        "model_usdz": f"{CELL}/asset/model.usdz",
-        "model_glb": f"{CELL}/asset/model.glb",
+        "model_usda": f"{CELL}/export/model.usda",
+        "model_usdz": f"{CELL}/export/model.usdz",
+        "model_glb": f"{CELL}/export/model.glb",
     }
-    outs.update({f"tex_{k}": f"{CELL}/asset/textures/{k}.png" for k in TEXTURES})
+    outs.update({f"tex_{k}": f"{CELL}/export/textures/{k}.png" for k in TEXTURES})
     outs.update(
-        exr=f"{CELL}/asset/light.exr",
-        hdr=f"{CELL}/asset/light.hdr",
-        preview=f"{CELL}/asset/preview.png",
-        meta=f"{CELL}/asset/meta.json",
+        exr=f"{CELL}/export/light.exr",
+        hdr=f"{CELL}/export/light.hdr",
+        preview=f"{CELL}/export/preview.png",
+        meta=f"{CELL}/export/meta.json",
     )
     return outs
 

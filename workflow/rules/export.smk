@@ -11,7 +11,7 @@ rule export:
         CONDA_ENV
     params:
         bake_dir=cell_dir("bake"),
-        out_dir=cell_dir("asset"),
+        out_dir=cell_dir("export"),
         name=asset_name,
         settings=cell_settings_json("export"),
     shell:

@@ -2,7 +2,7 @@ rule report:
     input:
         cell_metas("optimize/meta.json"),
         cell_metas("bake/meta.json"),
-        cell_metas("asset/meta.json"),
+        cell_metas("export/meta.json"),
         cell_metas("relight/meta.json"),
         cell_metas("metrics/metrics.json"),
     output:
@@ -52,7 +52,7 @@ rule report:
 
 rule pack:
     input:
-        cell_metas("asset/meta.json"),
+        cell_metas("export/meta.json"),
     output:
         zip=f"{RESULTS}/report/asset_pack.zip",
         index=f"{RESULTS}/report/asset_index.csv",
@@ -74,7 +74,7 @@ rule html_report:
     input:
         summary=f"{RESULTS}/report/summary.csv",
         figures=f"{RESULTS}/report/figures.json",
-        assets=cell_metas("asset/meta.json"),
+        assets=cell_metas("export/meta.json"),
     output:
         html=f"{RESULTS}/report/index.html",
     log:

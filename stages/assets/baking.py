@@ -1,0 +1,265 @@
+"""Texture baking: xatlas charts, atlas rasterisation, tangent frames, the field evaluated at texel
+centres, and the baked textures rendered back for the fidelity check.
+
+1. xatlas charts and packs the (normalised, possibly decimated) mesh; face order is kept.
+2. The atlas is rasterised in UV space with Embree (one ray per texel centre, cast at the flat
+   UV-space triangles), so every covered texel knows its face and barycentrics, hence its 3D
+   point and its face's frame.
+3. The networks are evaluated at texel centres: base colour (diffuse albedo), roughness,
+   specular colour and the predicted normal. The normal is stored in tangent space.
+4. Empty texels are filled by dilation (so bilinear filtering and mip-maps do not bleed the
+   background across seams), then the rest with the mean.
+5. The learned SG light is written as an equirectangular image (``light.exr`` and ``light.hdr``).
+6. Fidelity: the baked asset (textures sampled bilinearly per pixel, as a viewer would) is
+   rendered with the same SG renderer and light from the evaluation views and compared with the
+   neural field's renders: PSNR over object pixels.
+
+Conventions. Image row 0 is the top; texel ``(row, col)`` has centre ``u = (col + 0.5) / S``,
+``v = (row + 0.5) / S`` (glTF's texture coordinates). USD's ``st = (u, 1 - v)``. The tangent
+frame is per face, computed from positions and ``st`` (``T = dP/ds``, ``B = dP/dt``),
+Gram-Schmidt-orthonormalised against the flat face normal, with handedness
+``w = sign((N x T) . B)`` and bitangent ``w (N x T)``: the frame that MikkTSpace produces on a mesh
+whose faces do not share vertices (the exported meshes are faceted, as TANGO shades them), and the
+one the exporters hand to glTF viewers as the TANGENT attribute. The normal texture stores
+``((n.T, n.B, n.N) + 1) / 2`` (+X right, +Y up: OpenGL/glTF/USD convention).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from ..config.sections import BakeSettings
+from ..geometry.meshio import TriMesh
+from ..geometry.raycache import dequantize_bary
+from ..geometry.tracing import EmbreeTracer
+from ..render.color import srgb_decode, srgb_encode, to_u8
+from ..render.envmap import equirect_directions
+from ..render.shading import face_viewer, shade
+
+
+@dataclass
+class Atlas:
+    """``uv (F, 3, 2)`` per-corner texture coordinates (glTF convention), ``size`` in texels."""
+
+    uv: np.ndarray
+    size: int
+    charts: int
+    utilization: float
+
+
+def unwrap(mesh: TriMesh, size: int, padding: int) -> Atlas:
+    """xatlas parametrisation packed for a ``size x size`` texture."""
+    try:
+        import xatlas
+    except ImportError as exc:  # pragma: no cover
+        raise ImportError("the bake stage needs xatlas: pip install xatlas") from exc
+    atlas = xatlas.Atlas()
+    atlas.add_mesh(mesh.vertices.astype(np.float32), mesh.faces.astype(np.uint32))
+    pack = xatlas.PackOptions()
+    pack.resolution = size
+    pack.padding = padding
+    pack.bilinear = True
+    atlas.generate(xatlas.ChartOptions(), pack)
+    vmapping, indices, uvs = atlas[0]
+    if not np.array_equal(vmapping[indices], mesh.faces):
+        raise RuntimeError("xatlas changed the face order; cannot map faces to the atlas")
+    # xatlas packs into its own width x height; rescale to the square texture
+    uv = uvs[indices].astype(np.float64)
+    scale = max(atlas.width, atlas.height)
+    uv = uv * np.array([atlas.width, atlas.height]) / scale
+    return Atlas(uv, size, int(atlas.chart_count), float(atlas.utilization))
+
+
+def rasterize_atlas(uv: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
+    """Face id ``(S, S) int32`` (-1 = empty) and barycentrics ``(S, S, 2) float32`` (Embree's
+    ``(u, v)``: point = (1-u-v) p0 + u p1 + v p2) of every texel centre, by casting one ray per
+    texel at the UV-space triangles."""
+    tri2d = np.concatenate([uv * size, np.zeros(uv.shape[:2] + (1,))], axis=-1)  # (F, 3, 3)
+    flat = TriMesh(tri2d.reshape(-1, 3), np.arange(3 * len(uv)).reshape(-1, 3))
+    tracer = EmbreeTracer(flat)
+    c = np.arange(size) + 0.5
+    cols, rows = np.meshgrid(c, c)  # texel (row, col) -> (u, v) = (col, row) / S
+    origins = np.stack([cols.ravel(), rows.ravel(), np.ones(size * size)], axis=1)
+    dirs = np.broadcast_to(np.array([0.0, 0.0, -1.0]), origins.shape)
+    hits = tracer.trace(origins, dirs)
+    return hits.face.reshape(size, size), hits.bary.reshape(size, size, 2)
+
+
+def face_frames(mesh: TriMesh, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per-face unit tangent ``T``, bitangent ``B = w (N x T)`` and normal ``N``, ``(F, 3)`` each,
+    and handedness ``w (F,)`` folded into ``B``; see the module docstring. Faces with a degenerate
+    UV or 3D triangle get an arbitrary orthonormal frame around ``N``."""
+    p = mesh.vertices[mesh.faces]
+    n = mesh.face_normals
+    st = np.stack([uv[..., 0], 1.0 - uv[..., 1]], axis=-1)
+    e1, e2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
+    d1, d2 = st[:, 1] - st[:, 0], st[:, 2] - st[:, 0]
+    det = d1[:, 0] * d2[:, 1] - d2[:, 0] * d1[:, 1]
+    ok = np.abs(det) > 1e-20
+    r = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)[:, None]
+    t = (e1 * d2[:, 1:2] - e2 * d1[:, 1:2]) * r
+    b = (e2 * d1[:, 0:1] - e1 * d2[:, 0:1]) * r
+    t = t - n * (n * t).sum(1, keepdims=True)
+    tn = np.linalg.norm(t, axis=1, keepdims=True)
+    bad = ~ok | (tn[:, 0] < 1e-20) | (np.linalg.norm(n, axis=1) < 0.5)
+    fallback = np.where(np.abs(n[:, :1]) < 0.9, np.array([[1.0, 0, 0]]), np.array([[0, 1.0, 0]]))
+    fallback = fallback - n * (n * fallback).sum(1, keepdims=True)
+    t = np.where(bad[:, None], fallback, t)
+    t /= np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-30)
+    w = np.where((np.cross(n, t) * b).sum(1) < 0, -1.0, 1.0)
+    w[bad] = 1.0
+    return t, np.cross(n, t) * w[:, None], n, w
+
+
+def dilate(values: np.ndarray, filled: np.ndarray, passes: int) -> np.ndarray:
+    """Grow ``values (S, S, C)`` from ``filled (S, S) bool`` texels into empty neighbours
+    (8-neighbourhood mean), ``passes`` times; remaining empty texels take the filled mean."""
+    v = values.copy()
+    f = filled.copy()
+    for _ in range(passes):
+        acc = np.zeros_like(v)
+        cnt = np.zeros(f.shape, np.float64)
+        for dy in (-1, 0, 1):
+            for dx in (-1, 0, 1):
+                if dy == dx == 0:
+                    continue
+                sv = np.roll(np.roll(v, dy, 0), dx, 1)
+                sf = np.roll(np.roll(f, dy, 0), dx, 1)
+                acc += sv * sf[..., None]
+                cnt += sf
+        grow = ~f & (cnt > 0)
+        if not grow.any():
+            break
+        v[grow] = acc[grow] / cnt[grow][:, None]
+        f |= grow
+    if (~f).any() and filled.any():
+        v[~f] = values[filled].mean(0)
+    return v
+
+
+@dataclass
+class BakeResult:
+    atlas: Atlas
+    textures: dict[str, np.ndarray]  # uint8 (S, S, 3) images as written
+    tangents: np.ndarray  # (F, 3)
+    handedness: np.ndarray  # (F,)
+    coverage: float
+    light_equirect: np.ndarray
+
+
+@torch.no_grad()
+def bake_field(mesh: TriMesh, field, settings: BakeSettings, device="cpu", chunk: int = 65536) -> BakeResult:
+    """Unwrap ``mesh``, rasterise the atlas and evaluate ``field`` at every covered texel."""
+    size = settings.size_for(len(mesh.faces))
+    atlas = unwrap(mesh, size, settings.padding)
+    face, bary = rasterize_atlas(atlas.uv, size)
+    filled = face >= 0
+    fi = face[filled].astype(np.int64)
+    uvb = bary[filled].astype(np.float64)
+    tri = mesh.vertices[mesh.faces[fi]]
+    points = tri[:, 0] + uvb[:, :1] * (tri[:, 1] - tri[:, 0]) + uvb[:, 1:] * (tri[:, 2] - tri[:, 0])
+    t, b, n, w = face_frames(mesh, atlas.uv)
+    normals = n[fi]
+    albedo, spec, rough, pred = [], [], [], []
+    p_t = torch.from_numpy(points.astype(np.float32)).to(device)
+    n_t = torch.from_numpy(normals.astype(np.float32)).to(device)
+    for lo in range(0, len(p_t), chunk):
+        mat, normal = field.surface(p_t[lo : lo + chunk], n_t[lo : lo + chunk])
+        albedo.append(mat.albedo)
+        if mat.specular is not None:
+            spec.append(mat.specular)
+            rough.append(mat.roughness)
+        pred.append(normal)
+    s = size
+    base = np.zeros((s, s, 3))
+    base[filled] = torch.cat(albedo).cpu().double().numpy()
+    spc = np.zeros((s, s, 3))
+    rgh = np.ones((s, s, 1))
+    if spec:
+        spc[filled] = torch.cat(spec).cpu().double().numpy()
+        rgh[filled] = torch.cat(rough).cpu().double().numpy()
+    pn = torch.cat(pred).cpu().double().numpy()
+    ts = np.stack([(pn * t[fi]).sum(1), (pn * b[fi]).sum(1), (pn * n[fi]).sum(1)], axis=1)
+    nrm = np.zeros((s, s, 3))
+    nrm[..., 2] = 1.0
+    nrm[filled] = ts / np.linalg.norm(ts, axis=1, keepdims=True)
+    base, spc, rgh, nrm = (dilate(x, filled, settings.dilation) for x in (base, spc, rgh, nrm))
+    mr = np.concatenate([np.ones((s, s, 1)), rgh, np.zeros((s, s, 1))], axis=-1)  # R unused, G rough, B metal
+    textures = {
+        "basecolor": to_u8(srgb_encode(base)),
+        "metallic_roughness": to_u8(mr),
+        "specular": to_u8(srgb_encode(spc)),
+        "normal": to_u8(0.5 + 0.5 * nrm),
+    }
+    light = field.light()
+    h = settings.light_width // 2
+    dirs = equirect_directions(h, settings.light_width).to(device)
+    env = light.radiance(dirs.reshape(-1, 3)).reshape(h, settings.light_width, 3).cpu().numpy().astype(np.float32)
+    return BakeResult(atlas, textures, t, w, float(filled.mean()), env)
+
+
+# ------------------------------------------------------------------------ texture sampling / fidelity
+def sample_bilinear(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Bilinear lookup of ``img (S, S, C)`` at glTF-convention ``uv (N, 2)`` (clamped at edges)."""
+    s = img.shape[0]
+    x = np.clip(uv[:, 0] * s - 0.5, 0, s - 1)
+    y = np.clip(uv[:, 1] * s - 0.5, 0, s - 1)
+    x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
+    x1, y1 = np.minimum(x0 + 1, s - 1), np.minimum(y0 + 1, s - 1)
+    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
+    im = img.astype(np.float64)
+    return im[y0, x0] * (1 - fx) * (1 - fy) + im[y0, x1] * fx * (1 - fy) + im[y1, x0] * (1 - fx) * fy + im[y1, x1] * fx * fy
+
+
+def decode_textures(textures: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """The 8-bit textures as float arrays in the renderer's units (linear)."""
+    return {
+        "albedo": srgb_decode(textures["basecolor"] / 255.0),
+        "specular": srgb_decode(textures["specular"] / 255.0),
+        "roughness": textures["metallic_roughness"][..., 1:2] / 255.0,
+        "normal": textures["normal"] / 255.0 * 2.0 - 1.0,
+    }
+
+
+@torch.no_grad()
+def render_baked(hits, uv_faces, tex: dict, frames, light, device="cpu"):
+    """Shade cached hits (a :class:`~stages.geometry.raycache.ViewHits`) from the decoded textures.
+    Returns ``(N, 3)`` linear radiance."""
+    t, b, n = frames
+    f = hits.face
+    tri_uv = uv_faces[f]
+    # barycentrics of the hit from its point (cache stores quantised Embree barycentrics)
+    bu = hits.bary
+    uv = tri_uv[:, 0] + bu[:, :1] * (tri_uv[:, 1] - tri_uv[:, 0]) + bu[:, 1:] * (tri_uv[:, 2] - tri_uv[:, 0])
+    ts = sample_bilinear(tex["normal"], uv)
+    world = ts[:, :1] * t[f] + ts[:, 1:2] * b[f] + ts[:, 2:3] * n[f]
+    world /= np.linalg.norm(world, axis=1, keepdims=True)
+    view = -hits.direction.astype(np.float64)
+    # two-sided, as in training: flip normals seen from behind
+    flip = (n[f] * view).sum(1, keepdims=True) < 0
+    world = np.where(flip, -world, world)
+
+    def tt(x):
+        return torch.from_numpy(np.ascontiguousarray(x, dtype=np.float32)).to(device)
+
+    nn_ = face_viewer(tt(world), tt(view))
+    spec = tt(sample_bilinear(tex["specular"], uv))
+    rough = tt(np.clip(sample_bilinear(tex["roughness"], uv), 0.01, 1.0))
+    return shade(nn_, tt(view), tt(sample_bilinear(tex["albedo"], uv)), light, spec, rough).rgb
+
+
+class BakedHits:
+    """The face, ray direction and float barycentrics of one cached view's hits."""
+
+    def __init__(self, hits, bary):
+        self.face = hits.face
+        self.direction = hits.direction
+        self.bary = bary
+
+
+def cached_barycentrics(cache, i: int) -> np.ndarray:
+    lo, hi = cache.arrays["offsets"][i], cache.arrays["offsets"][i + 1]
+    return dequantize_bary(cache.arrays["bary"][lo:hi]).astype(np.float64)

@@ -1,0 +1,315 @@
+"""Asset file formats: faceted geometry, USD (``model.usda`` + packaged ``model.usdz``) and binary
+glTF 2.0 (``model.glb``) writers, and their validators (usd-core's, the Khronos glTF-Validator).
+
+Geometry is faceted (each face has its own three vertices and its flat normal), which is how
+TANGO shades the mesh and makes the per-face tangent frame of the bake exact for viewers. It is
+returned to the input's units and position through the normalisation's inverse transform (the
+rotation that made the input's up axis +Y is kept, so ``upAxis`` is Y), or left in the
+normalised frame (``units: normalized``).
+
+Material mapping:
+
+* **USD** ``UsdPreviewSurface`` with ``useSpecularWorkflow = 1``: ``diffuseColor`` = the baked
+  albedo, ``specularColor`` = TANGO's specular colour (F0), ``roughness`` = TANGO's roughness
+  (both use ``alpha = roughness^2``), ``normal`` = the tangent-space normal map (scale 2, bias -1).
+  A ``DomeLight`` carries the learned SG light as an equirectangular EXR (latlong).
+* **glTF** metallic-roughness with ``metallic = 0``: ``baseColor`` = albedo, roughness in the green
+  channel of ``metallicRoughnessTexture``, ``normalTexture`` with explicit ``TANGENT`` vectors (the
+  bake's frame), and ``KHR_materials_specular`` for the coloured F0: glTF's dielectric F0 is
+  ``0.04 * specularColorFactor * specularColorTexture`` (IOR 1.5), so the factor is 25 and the
+  texture holds TANGO's F0 (clamped to 1 by glTF). What is lost: glTF makes the diffuse lobe
+  give way to the specular one (energy conservation, ``(1 - F)`` weighting) where TANGO simply adds
+  them, so a glTF viewer renders slightly darker diffuse at grazing angles; glTF's Fresnel uses
+  the half vector per light sample where TANGO evaluates it once at the mirror direction; and the
+  environment light is not part of glTF core (it ships beside the model as ``light.exr``/``.hdr``).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import shutil
+import subprocess
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..config.layout import TEXTURE_FILES
+from ..core.provenance import ORIGIN_METADATA_KEY, atomic_path
+from ..geometry.meshio import TriMesh
+from ..geometry.normalization import Similarity
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+
+
+@dataclass
+class Faceted:
+    """Per-corner arrays of a faceted mesh: ``positions, normals (3F, 3)``, ``uv (3F, 2)`` (glTF
+    convention), ``tangents (3F, 4)``."""
+
+    positions: np.ndarray
+    normals: np.ndarray
+    uv: np.ndarray
+    tangents: np.ndarray
+
+
+def faceted(mesh: TriMesh, atlas: dict, transform: Similarity | None) -> Faceted:
+    """Corners of every face in export space (see the module docstring for the frame)."""
+    pos = mesh.vertices[mesh.faces].reshape(-1, 3)
+    n = np.repeat(mesh.face_normals, 3, axis=0)
+    t = np.repeat(atlas["tangent"], 3, axis=0)
+    w = np.repeat(atlas["handedness"], 3)
+    if transform is not None:
+        # x' = R x_original = x_normalized / scale + R c: original units and position, +Y up
+        pos = pos / transform.scale + transform.rotation @ transform.centroid
+    return Faceted(
+        pos.astype(np.float32),
+        n.astype(np.float32),
+        atlas["uv"].reshape(-1, 2).astype(np.float32),
+        np.concatenate([t, w[:, None]], axis=1).astype(np.float32),
+    )
+
+
+# ------------------------------------------------------------------------------------------ USD
+def write_usd(path: Path, geom: Faceted, meters_per_unit: float, light_file: str | None, origin: dict) -> None:
+    """Write ``model.usda``: a Mesh with ``st`` and normals, a UsdPreviewSurface bound to it, and
+    a DomeLight with the learned light. Texture paths are relative to the file. ``origin`` (the
+    guidance and weights that made the material) goes into the root layer's ``customLayerData``
+    under ``tango_stylize`` and its label into the layer's documentation."""
+    from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdShade, Vt
+
+    stage = Usd.Stage.CreateNew(str(path))
+    layer = stage.GetRootLayer()
+    layer.documentation = f"tango-stylize asset. {origin['label']}"
+    layer.customLayerData = {ORIGIN_METADATA_KEY: {k: v for k, v in origin.items() if v is not None}}
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    UsdGeom.SetStageMetersPerUnit(stage, meters_per_unit)
+    root = UsdGeom.Xform.Define(stage, "/Asset")
+    stage.SetDefaultPrim(root.GetPrim())
+    Usd.ModelAPI(root.GetPrim()).SetKind("component")
+    mesh = UsdGeom.Mesh.Define(stage, "/Asset/Geometry/Mesh")
+    count = len(geom.positions)
+    mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(geom.positions))
+    mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(count // 3, 3, np.int32)))
+    mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(np.arange(count, dtype=np.int32)))
+    mesh.CreateNormalsAttr(Vt.Vec3fArray.FromNumpy(geom.normals))
+    mesh.SetNormalsInterpolation(UsdGeom.Tokens.vertex)
+    mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+    mesh.CreateDoubleSidedAttr(True)
+    lo, hi = geom.positions.min(0), geom.positions.max(0)
+    mesh.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(*map(float, lo)), Gf.Vec3f(*map(float, hi))]))
+    st = np.stack([geom.uv[:, 0], 1.0 - geom.uv[:, 1]], axis=1).astype(np.float32)
+    pv = UsdGeom.PrimvarsAPI(mesh).CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.vertex)
+    pv.Set(Vt.Vec2fArray.FromNumpy(st))
+
+    mat = UsdShade.Material.Define(stage, "/Asset/Looks/TangoMaterial")
+    surf = UsdShade.Shader.Define(stage, "/Asset/Looks/TangoMaterial/PreviewSurface")
+    surf.CreateIdAttr("UsdPreviewSurface")
+    surf.CreateInput("useSpecularWorkflow", Sdf.ValueTypeNames.Int).Set(1)
+    mat.CreateSurfaceOutput().ConnectToSource(surf.ConnectableAPI(), "surface")
+    reader = UsdShade.Shader.Define(stage, "/Asset/Looks/TangoMaterial/StReader")
+    reader.CreateIdAttr("UsdPrimvarReader_float2")
+    varname = mat.CreateInput("frame:stPrimvarName", Sdf.ValueTypeNames.String)
+    varname.Set("st")
+    reader.CreateInput("varname", Sdf.ValueTypeNames.String).ConnectToSource(varname)
+
+    def texture(name: str, file: str, color_space: str, scale=None, bias=None):
+        tex = UsdShade.Shader.Define(stage, f"/Asset/Looks/TangoMaterial/{name}")
+        tex.CreateIdAttr("UsdUVTexture")
+        tex.CreateInput("file", Sdf.ValueTypeNames.Asset).Set(file)
+        tex.CreateInput("sourceColorSpace", Sdf.ValueTypeNames.Token).Set(color_space)
+        tex.CreateInput("wrapS", Sdf.ValueTypeNames.Token).Set("clamp")
+        tex.CreateInput("wrapT", Sdf.ValueTypeNames.Token).Set("clamp")
+        tex.CreateInput("st", Sdf.ValueTypeNames.Float2).ConnectToSource(reader.ConnectableAPI(), "result")
+        if scale is not None:
+            tex.CreateInput("scale", Sdf.ValueTypeNames.Float4).Set(Gf.Vec4f(*scale))
+            tex.CreateInput("bias", Sdf.ValueTypeNames.Float4).Set(Gf.Vec4f(*bias))
+        return tex
+
+    base = texture("BaseColorTexture", TEXTURE_FILES["basecolor"], "sRGB")
+    base.CreateOutput("rgb", Sdf.ValueTypeNames.Float3)
+    surf.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).ConnectToSource(base.ConnectableAPI(), "rgb")
+    spec = texture("SpecularTexture", TEXTURE_FILES["specular"], "sRGB")
+    spec.CreateOutput("rgb", Sdf.ValueTypeNames.Float3)
+    surf.CreateInput("specularColor", Sdf.ValueTypeNames.Color3f).ConnectToSource(spec.ConnectableAPI(), "rgb")
+    rough = texture("RoughnessTexture", TEXTURE_FILES["metallic_roughness"], "raw")
+    rough.CreateOutput("g", Sdf.ValueTypeNames.Float)
+    surf.CreateInput("roughness", Sdf.ValueTypeNames.Float).ConnectToSource(rough.ConnectableAPI(), "g")
+    nrm = texture("NormalTexture", TEXTURE_FILES["normal"], "raw", (2.0, 2.0, 2.0, 1.0), (-1.0, -1.0, -1.0, 0.0))
+    nrm.CreateOutput("rgb", Sdf.ValueTypeNames.Float3)
+    surf.CreateInput("normal", Sdf.ValueTypeNames.Normal3f).ConnectToSource(nrm.ConnectableAPI(), "rgb")
+    UsdShade.MaterialBindingAPI.Apply(mesh.GetPrim()).Bind(mat)
+
+    if light_file:
+        dome = UsdLux.DomeLight.Define(stage, "/Asset/Lights/LearnedLight")
+        dome.CreateTextureFileAttr().Set(light_file)
+        dome.CreateTextureFormatAttr().Set(UsdLux.Tokens.latlong)
+        dome.CreateIntensityAttr().Set(1.0)
+    stage.GetRootLayer().Save()
+
+
+def package_usdz(usda: Path, usdz: Path, files: list[str]) -> None:
+    """Package ``usda`` (first, as the root layer) and ``files`` (paths relative to it, stored
+    under the same relative paths) into ``usdz``, atomically, with usd-core's zip writer (which
+    aligns entries as the usdz format requires)."""
+    from pxr import Sdf
+
+    with atomic_path(usdz) as tmp:
+        tmp.unlink()
+        writer = Sdf.ZipFileWriter.CreateNew(str(tmp))
+        writer.AddFile(str(usda), usda.name)
+        for rel in files:
+            writer.AddFile(str(usda.parent / rel), rel)
+        writer.Save()
+
+
+def validate_usd(path: Path) -> dict:
+    """Run every validator usd-core registers on ``path`` and count what they report.
+
+    Returns ``{"file", "validators" (how many ran), "validator_names" (sorted), "validator_digest"
+    (SHA-256 of the names, one per line), "errors", "warnings", "infos" (counts), "messages"
+    (``"name: message"`` of every error and warning)}``. Nothing here is a constant: a stage whose
+    validators report errors fails, and the counts say what ran.
+    """
+    from pxr import Usd, UsdValidation
+
+    stage = Usd.Stage.Open(str(path))
+    registry = UsdValidation.ValidationRegistry()
+    validators = registry.GetOrLoadAllValidators()
+    names = sorted(v.GetMetadata().name for v in validators)
+    context = UsdValidation.ValidationContext(validators)
+    issues = context.Validate(stage)
+    kinds = UsdValidation.ValidationErrorType
+    count = {kind: sum(1 for e in issues if e.GetType() == kind) for kind in (kinds.Error, kinds.Warn, kinds.Info)}
+    return {
+        "file": Path(path).name,
+        "validators": len(validators),
+        "validator_names": names,
+        "validator_digest": hashlib.sha256("\n".join(names).encode()).hexdigest(),
+        "errors": count[kinds.Error],
+        "warnings": count[kinds.Warn],
+        "infos": count[kinds.Info],
+        "messages": [f"{e.GetName()}: {e.GetMessage()}" for e in issues if e.GetType() in (kinds.Error, kinds.Warn)],
+    }
+
+
+#: the Khronos glTF-Validator as the repository installs it (``npm ci``; see package.json)
+GLTF_VALIDATOR = REPO_ROOT / "node_modules" / "gltf-validator"
+
+
+def validate_glb(path: Path) -> dict:
+    """The Khronos glTF-Validator's counts for ``path`` when Node.js and the validator are installed
+    (``scripts/setup.sh`` runs ``npm ci``), else ``{"ran": False, "reason": ...}``.
+
+    Returns ``{"ran": True, "validator" (name and version), "errors", "warnings", "infos",
+    "hints", "messages"}``.
+    """
+    node = shutil.which("node")
+    if node is None or not GLTF_VALIDATOR.is_dir():
+        missing = "Node.js (node) is not on PATH" if node is None else f"{GLTF_VALIDATOR} is missing (run npm ci)"
+        return {"ran": False, "reason": missing}
+    proc = subprocess.run(
+        [node, str(REPO_ROOT / "scripts" / "validate_gltf.mjs"), str(path)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    if proc.returncode != 0:
+        raise RuntimeError(f"the Khronos glTF-Validator could not run on {path}: {proc.stderr.strip()[-2000:]}")
+    report = json.loads(proc.stdout)
+    issues = report["issues"]
+    return {
+        "ran": True,
+        "validator": f"Khronos glTF-Validator {report.get('validatorVersion')}",
+        "errors": int(issues["numErrors"]),
+        "warnings": int(issues["numWarnings"]),
+        "infos": int(issues["numInfos"]),
+        "hints": int(issues["numHints"]),
+        "messages": [f"{m['code']} at {m.get('pointer', '')}: {m['message']}" for m in issues["messages"] if m["severity"] <= 1],
+    }
+
+
+# ----------------------------------------------------------------------------------------- glTF
+def write_glb(path: Path, geom: Faceted, textures_dir: Path, meters_per_unit: float, name: str, origin: dict) -> None:
+    """Write a self-contained binary glTF 2.0 file (see the module docstring for the mapping);
+    ``origin`` goes into ``asset.extras.tango_stylize``."""
+    import pygltflib as g
+
+    pos = geom.positions * np.float32(meters_per_unit)
+    blobs: list[bytes] = []
+    views: list[g.BufferView] = []
+    accessors: list[g.Accessor] = []
+
+    def add_view(data: bytes, target=None) -> int:
+        offset = sum(len(b) for b in blobs)
+        pad = (-len(data)) % 4
+        blobs.append(data + b"\x00" * pad)
+        views.append(g.BufferView(buffer=0, byteOffset=offset, byteLength=len(data), target=target))
+        return len(views) - 1
+
+    def add_accessor(arr: np.ndarray, kind: str, target=g.ARRAY_BUFFER, minmax=False) -> int:
+        view = add_view(np.ascontiguousarray(arr).tobytes(), target)
+        ctype = g.FLOAT if arr.dtype == np.float32 else g.UNSIGNED_INT
+        acc = g.Accessor(bufferView=view, componentType=ctype, count=len(arr), type=kind)
+        if minmax:
+            acc.min = arr.min(0).astype(float).tolist()
+            acc.max = arr.max(0).astype(float).tolist()
+        accessors.append(acc)
+        return len(accessors) - 1
+
+    attrs = g.Attributes(
+        POSITION=add_accessor(pos, g.VEC3, minmax=True),
+        NORMAL=add_accessor(geom.normals, g.VEC3),
+        TANGENT=add_accessor(geom.tangents, g.VEC4),
+        TEXCOORD_0=add_accessor(geom.uv, g.VEC2),
+    )
+    indices = add_accessor(np.arange(len(pos), dtype=np.uint32), g.SCALAR, target=g.ELEMENT_ARRAY_BUFFER)
+    images, textures = [], []
+    for key in ("basecolor", "metallic_roughness", "normal", "specular"):
+        view = add_view((textures_dir / f"{key}.png").read_bytes())
+        images.append(g.Image(bufferView=view, mimeType="image/png", name=key))
+        textures.append(g.Texture(source=len(images) - 1, sampler=0))
+    material = g.Material(
+        name="TangoMaterial",
+        pbrMetallicRoughness=g.PbrMetallicRoughness(
+            baseColorTexture=g.TextureInfo(index=0),
+            metallicRoughnessTexture=g.TextureInfo(index=1),
+            metallicFactor=1.0,  # the texture's blue channel (0) is the metalness
+            roughnessFactor=1.0,
+        ),
+        normalTexture=g.NormalMaterialTexture(index=2),
+        doubleSided=True,
+        extensions={
+            "KHR_materials_specular": {
+                "specularFactor": 1.0,
+                "specularColorFactor": [25.0, 25.0, 25.0],
+                "specularColorTexture": {"index": 3},
+            }
+        },
+    )
+    gltf = g.GLTF2(
+        asset=g.Asset(version="2.0", generator="tango-stylize", extras={ORIGIN_METADATA_KEY: origin}),
+        scene=0,
+        scenes=[g.Scene(nodes=[0])],
+        nodes=[g.Node(mesh=0, name=name)],
+        meshes=[g.Mesh(name=name, primitives=[g.Primitive(attributes=attrs, indices=indices, material=0)])],
+        materials=[material],
+        textures=textures,
+        images=images,
+        samplers=[
+            g.Sampler(
+                magFilter=g.LINEAR,
+                minFilter=g.LINEAR_MIPMAP_LINEAR,
+                wrapS=g.CLAMP_TO_EDGE,
+                wrapT=g.CLAMP_TO_EDGE,
+            )
+        ],
+        accessors=accessors,
+        bufferViews=views,
+        buffers=[g.Buffer(byteLength=sum(len(b) for b in blobs))],
+        extensionsUsed=["KHR_materials_specular"],
+    )
+    gltf.set_binary_blob(b"".join(blobs))
+    with atomic_path(path) as tmp:
+        gltf.save_binary(str(tmp))

@@ -1,0 +1,3 @@
+from .workflow import main
+
+raise SystemExit(main())

@@ -1,0 +1,368 @@
+"""The settings of every stage: one frozen dataclass per config section, the only home of defaults.
+
+Each class is what its stage receives (as JSON on the command line) and what the workflow resolves
+per mesh or per grid cell; unknown keys fail (:class:`~stages.core.settings.Settings`). The config
+schema (``workflow/schemas/config.schema.yaml``) repeats the defaults for users reading it;
+``tests/config/test_sections.py`` checks every section of it against these classes. Nothing here
+imports torch or numpy: the workflow builds its DAG from this module alone.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from dataclasses import dataclass, fields
+
+from ..core.errors import ConfigError
+from ..core.settings import Settings
+
+#: input up axes the normalize stage can turn into +y
+UP_AXES = ("+y", "-y", "+z", "-z", "+x", "-x")
+#: procedural target materials and lights of ``guidance: image`` (:mod:`stages.model.procedural`)
+MATERIALS = ("wood", "metal", "plaster")
+LIGHTS = ("studio", "sky")
+#: the procedural environment maps ``relight.envmap: builtin:<name>`` names (:mod:`stages.render.envmap`)
+PROCEDURAL_ENVMAPS = ("sunset", "overcast", "night")
+ENCODINGS = ("nerf", "fourier", "none")
+
+
+@dataclass(frozen=True)
+class ClipSpec:
+    """Which CLIP to load: an open_clip model name and a pretrained tag, or a local checkpoint
+    (which takes precedence), or the tiny random test model."""
+
+    model: str = "ViT-B-32"
+    pretrained: str = "openai"
+    checkpoint: str | None = None
+    tiny_test: bool = False
+
+
+@dataclass(frozen=True, kw_only=True)
+class NormalizeSettings(Settings):
+    """Settings of the normalize stage (config section ``normalize``, overridable per mesh)."""
+
+    section = "normalize"
+    #: the input's up axis; it becomes +y, the up axis of the cameras
+    up_axis: str = "+y"
+
+    def __post_init__(self) -> None:
+        if self.up_axis not in UP_AXES:
+            raise ConfigError(f"normalize.up_axis must be one of {sorted(UP_AXES)}, got {self.up_axis!r}")
+
+
+@dataclass(frozen=True, kw_only=True)
+class DecimateSettings(Settings):
+    """Settings of the decimate stage (config section ``decimate``, overridable per mesh)."""
+
+    section = "decimate"
+    #: whether the workflow inserts this stage for a mesh (the stage itself always decimates)
+    enabled: bool = False
+    #: face count to reach (TANGO's robustness study: 5000)
+    target_faces: int = 5000
+    #: MeshLab's quality threshold for the collapse (0..1; higher avoids slivers)
+    quality_threshold: float = 0.3
+    #: keep boundary edges in place
+    preserve_boundary: bool = True
+    #: forbid collapses that flip a face normal
+    preserve_normal: bool = True
+    #: Hausdorff sampling: number of surface samples per direction
+    hausdorff_samples: int = 100_000
+    #: weld coincident vertices (UV/normal seams of exported meshes) before the collapse
+    weld: bool = True
+    #: vertices closer than this fraction of the bounding-box diagonal are welded (0: exact duplicates only)
+    weld_tolerance: float = 1e-6
+    #: if the collapse stops above the target with boundaries preserved, collapse again with
+    #: boundary vertices free to slide along the boundary (topology kept); the reason is recorded
+    relax_boundary: bool = True
+
+    def __post_init__(self) -> None:
+        if self.target_faces < 4:
+            raise ConfigError(f"decimate.target_faces must be >= 4, got {self.target_faces}")
+        if not 0 <= self.weld_tolerance < 0.01:
+            raise ConfigError(f"decimate.weld_tolerance must be in [0, 0.01) (of the diagonal), got {self.weld_tolerance}")
+
+
+@dataclass(frozen=True, kw_only=True)
+class RaycacheSettings(Settings):
+    """Settings of the raycache stage (config section ``raycache``, overridable per mesh)."""
+
+    section = "raycache"
+    #: size of the sampled training view pool (view 0 is the anchor)
+    views: int = 64
+    #: image width = height in pixels (TANGO: 512)
+    resolution: int = 512
+    #: full field of view in degrees (TANGO: 60)
+    fov_deg: float = 60.0
+    #: camera distance from the origin; the unit sphere fills the view at 1 / sin(fov / 2)
+    radius: float = 2.0
+    #: anchor (front) view, radians (TANGO's demos: azimuth 1.96, elevation 0.63)
+    anchor_azimuth: float = 1.96
+    anchor_elevation: float = 0.63
+    #: spread divisor: elevation std pi/std, azimuth std 2 pi/std (TANGO's demos: 8)
+    std: float = 8.0
+    #: seed of the view sampler
+    seed: int = 0
+    #: evaluation views: this many azimuths times these elevations (degrees)
+    eval_azimuths: int = 8
+    eval_elevations_deg: tuple[float, ...] = (-30.0, 0.0, 30.0)
+    eval_radius: float = 2.0
+    eval_fov_deg: float = 60.0
+    eval_resolution: int = 512
+    #: metric views (the X-Mesh protocol): azimuths x elevations, radius 2.5, 45 deg, 224 px
+    metrics_azimuths: int = 8
+    metrics_elevations_deg: tuple[float, ...] = (-30.0, 0.0, 30.0)
+    metrics_radius: float = 2.5
+    metrics_fov_deg: float = 45.0
+    metrics_resolution: int = 224
+    #: ray-tracing backend: "embree" (embreex) or "trimesh" (pure Python; tiny test inputs only)
+    backend: str = "embree"
+
+    def __post_init__(self) -> None:
+        problems = []
+        if self.views < 1:
+            problems.append(f"views must be >= 1, got {self.views}")
+        for name in ("resolution", "eval_resolution"):
+            if not 8 <= getattr(self, name) <= 8192:
+                problems.append(f"{name} must be in [8, 8192], got {getattr(self, name)}")
+        for name in ("fov_deg", "eval_fov_deg"):
+            if not 0.0 < getattr(self, name) < 180.0:
+                problems.append(f"{name} must be in (0, 180), got {getattr(self, name)}")
+        for name in ("radius", "eval_radius", "std"):
+            if not getattr(self, name) > 0:
+                problems.append(f"{name} must be > 0, got {getattr(self, name)}")
+        if self.backend not in ("embree", "trimesh"):
+            problems.append(f"backend must be 'embree' or 'trimesh', got {self.backend!r}")
+        if problems:
+            raise ConfigError("raycache settings: " + "; ".join(problems))
+
+
+@dataclass(frozen=True, kw_only=True)
+class FieldSettings:
+    """What the stylisation field (:class:`~stages.model.field.StyleField`) is built from: the
+    network, encoding and light fields of :class:`OptimizeSettings`, which is their one source
+    (:meth:`OptimizeSettings.field_settings`); no defaults of its own."""
+
+    seed: int
+    symmetry: bool
+    width: int
+    material_encoding: str
+    material_frequencies: int
+    material_fourier_count: int
+    material_fourier_sigma: float
+    specular: bool
+    init_specular: float | None
+    init_roughness: float | None
+    min_roughness: float
+    normal_network: bool
+    normal_encoding: str
+    normal_frequencies: int
+    normal_fourier_count: int
+    normal_fourier_sigma: float
+    normal_max_delta: float
+    light_lobes: int
+    light_rgb: bool
+    light_energy: float
+    light_init_sharpness: float | None
+
+
+@dataclass(frozen=True, kw_only=True)
+class OptimizeSettings(Settings):
+    """Settings of the optimize stage (config section ``optimize``; presets and variants override).
+
+    Defaults follow TANGO's paper and demo scripts where they state a value.
+    """
+
+    section = "optimize"
+    # schedule
+    iterations: int = 1500
+    lr: float = 5e-4
+    weight_decay: float = 0.0
+    milestones: tuple[int, ...] = (500, 1000)
+    gamma: float = 0.7
+    seed: int = 0
+    # images per step
+    views_per_step: int = 1
+    image_size: int = 224
+    supersample: int = 1
+    crops: int = 4
+    crop_scale: tuple[float, float] = (0.01, 0.2)
+    crop_coverage: float = 0.3
+    crop_max_tries: int = 20
+    background: str = "black"
+    # networks
+    symmetry: bool = False
+    width: int = 256
+    material_encoding: str = "nerf"
+    material_frequencies: int = 12
+    material_fourier_count: int = 128
+    material_fourier_sigma: float = 0.5
+    specular: bool = True
+    init_specular: float | None = None
+    init_roughness: float | None = None
+    min_roughness: float = 0.01
+    normal_network: bool = True
+    normal_encoding: str = "nerf"
+    normal_frequencies: int = 10
+    normal_fourier_count: int = 128
+    normal_fourier_sigma: float = 0.5
+    normal_max_delta: float = 0.3
+    light_lobes: int = 32
+    light_rgb: bool = True
+    light_energy: float = 6.25
+    light_init_sharpness: float | None = None
+    # guidance
+    guidance: str = "clip"
+    clip_model: str = "ViT-B-32"
+    clip_pretrained: str = "openai"
+    clip_checkpoint: str | None = None
+    clip_tiny_test: bool = False
+    bf16: bool = False
+    target_material: str = "wood"
+    target_light: str = "studio"
+    # outputs
+    checkpoint_every: int = 100
+    eval_width: int = 256
+
+    def __post_init__(self) -> None:
+        p = []
+        if self.iterations < 1:
+            p.append(f"iterations must be >= 1, got {self.iterations}")
+        if self.guidance not in ("clip", "image"):
+            p.append(f"guidance must be 'clip' or 'image', got {self.guidance!r}")
+        for name in ("material_encoding", "normal_encoding"):
+            if getattr(self, name) not in ENCODINGS:
+                p.append(f"{name} must be nerf, fourier or none, got {getattr(self, name)!r}")
+        if self.background not in ("black", "white", "noise"):
+            p.append(f"background must be black, white or noise, got {self.background!r}")
+        lo, hi = self.crop_scale
+        if not 0 < lo <= hi <= 1:
+            p.append(f"crop_scale must satisfy 0 < lo <= hi <= 1, got {self.crop_scale}")
+        if not 0 < self.min_roughness < 1:
+            p.append(f"min_roughness must be in (0, 1), got {self.min_roughness}")
+        if self.target_material not in MATERIALS:
+            p.append(f"target_material must be one of {MATERIALS}, got {self.target_material!r}")
+        if self.target_light not in LIGHTS:
+            p.append(f"target_light must be one of {LIGHTS}, got {self.target_light!r}")
+        if self.views_per_step < 1 or self.crops < 0 or self.supersample < 1 or self.checkpoint_every < 1:
+            p.append("views_per_step, supersample and checkpoint_every must be >= 1 and crops >= 0")
+        if p:
+            raise ConfigError("optimize settings: " + "; ".join(p))
+
+    def digest(self) -> str:
+        """Hash of the settings that shape training (a checkpoint resumes only under the same)."""
+        d = {k: v for k, v in self.to_dict().items() if k not in ("checkpoint_every", "eval_width")}
+        return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
+
+    def field_settings(self) -> FieldSettings:
+        """The subset that builds the field (networks, encodings, light, seed)."""
+        return FieldSettings(**{f.name: getattr(self, f.name) for f in fields(FieldSettings)})
+
+    def clip_spec(self) -> ClipSpec:
+        """The guidance CLIP of these settings."""
+        return ClipSpec(self.clip_model, self.clip_pretrained, self.clip_checkpoint, self.clip_tiny_test)
+
+
+@dataclass(frozen=True, kw_only=True)
+class BakeSettings(Settings):
+    """Settings of the bake stage (config section ``bake``; variants may override)."""
+
+    section = "bake"
+    #: texture width = height; null: from the texel density below
+    texture_size: int | None = None
+    #: texel density target when texture_size is null: texels per face (before packing losses)
+    texels_per_face: float = 64.0
+    min_size: int = 256
+    max_size: int = 2048
+    #: xatlas packing padding between charts, in texels
+    padding: int = 4
+    #: dilation passes that grow charts into empty texels
+    dilation: int = 8
+    #: width of the equirectangular light image (height = width / 2)
+    light_width: int = 512
+    #: resolution of the fidelity renders (evaluation views)
+    eval_width: int = 256
+
+    def __post_init__(self) -> None:
+        if self.texture_size is not None and not 16 <= self.texture_size <= 16384:
+            raise ConfigError(f"bake.texture_size must be in [16, 16384], got {self.texture_size}")
+        if not 16 <= self.min_size <= self.max_size:
+            raise ConfigError("bake: need 16 <= min_size <= max_size")
+
+    def size_for(self, faces: int) -> int:
+        """Texture size: the configured one, or the power of two nearest to
+        ``sqrt(faces * texels_per_face / 0.75)`` (xatlas packs about 75%), clamped."""
+        if self.texture_size is not None:
+            return int(self.texture_size)
+        want = math.sqrt(faces * self.texels_per_face / 0.75)
+        size = 2 ** round(math.log2(max(want, 1.0)))
+        return int(min(max(size, self.min_size), self.max_size))
+
+
+@dataclass(frozen=True, kw_only=True)
+class ExportSettings(Settings):
+    """Settings of the export stage (config section ``export``)."""
+
+    section = "export"
+    #: "original": the input's units and position (inverse transform); "normalized": unit sphere
+    units: str = "original"
+    #: metres per unit of the exported geometry (USD metersPerUnit; glTF positions are scaled
+    #: to metres by it)
+    meters_per_unit: float = 1.0
+
+    def __post_init__(self) -> None:
+        if self.units not in ("original", "normalized"):
+            raise ConfigError(f"export.units must be 'original' or 'normalized', got {self.units!r}")
+        if not self.meters_per_unit > 0:
+            raise ConfigError("export.meters_per_unit must be > 0")
+
+
+@dataclass(frozen=True, kw_only=True)
+class RelightSettings(Settings):
+    """Settings of the relight stage (config section ``relight``)."""
+
+    section = "relight"
+    #: environment map: a .hdr/.exr path or builtin:sunset | builtin:overcast | builtin:night
+    envmap: str = "builtin:sunset"
+    #: SG lobes fitted to the map, and fitting iterations
+    lobes: int = 64
+    fit_iterations: int = 400
+    #: material editing grid (TANGO Fig. 6): rows scale roughness, columns scale specular
+    roughness_scales: tuple[float, ...] = (0.5, 1.0, 2.0)
+    specular_scales: tuple[float, ...] = (0.0, 1.0, 2.0)
+    width: int = 256
+
+
+@dataclass(frozen=True, kw_only=True)
+class MetricsSettings(Settings):
+    """Settings of the metrics stage (config section ``metrics``)."""
+
+    section = "metrics"
+    #: compute the CLIP-based metrics (needs weights, or clip_tiny_test)
+    clip: bool = True
+    #: the independent evaluation model (open_clip name, pretrained tag or local checkpoint)
+    clip_model: str = "ViT-B-16"
+    clip_pretrained: str = "openai"
+    clip_checkpoint: str | None = None
+    clip_tiny_test: bool = False
+    background: str = "white"
+
+    def clip_spec(self) -> ClipSpec:
+        """The evaluation CLIP of these settings."""
+        return ClipSpec(self.clip_model, self.clip_pretrained, self.clip_checkpoint, self.clip_tiny_test)
+
+
+#: every config section that holds a stage's settings, and its class
+SECTIONS: dict[str, type[Settings]] = {
+    cls.section: cls
+    for cls in (
+        NormalizeSettings,
+        DecimateSettings,
+        RaycacheSettings,
+        OptimizeSettings,
+        BakeSettings,
+        ExportSettings,
+        RelightSettings,
+        MetricsSettings,
+    )
+}

@@ -1,0 +1,336 @@
+"""Loading and validating the workflow config, and resolving per-mesh and per-cell settings.
+
+Used by ``workflow/rules/common.smk`` when the DAG is built and by tests. Validation is against
+``workflow/schemas/config.schema.yaml``; every error names the offending key and where it sits
+(``meshes -> vase -> pth``), plus cross-reference checks the schema cannot express (grid ids that
+do not exist).
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import dataclasses
+import json
+import logging
+import sys
+from dataclasses import dataclass
+from functools import cache
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from ..core.errors import ConfigError
+from .presets import PRESETS
+from .sections import SECTIONS, OptimizeSettings
+
+log = logging.getLogger(__name__)
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+SCHEMA_PATH = REPO_ROOT / "workflow" / "schemas" / "config.schema.yaml"
+#: stages whose settings are per mesh (overridable in a mesh entry)
+MESH_STAGES = ("normalize", "decimate", "raycache")
+#: stages after optimize whose settings are per grid cell (overridable per prompt and variant)
+CELL_STAGES = ("bake", "export", "relight", "metrics")
+
+
+@cache
+def load_schema() -> dict:
+    with open(SCHEMA_PATH) as fh:
+        return yaml.safe_load(fh)
+
+
+def _where(path) -> str:
+    return " -> ".join(str(p) for p in path) if path else "the top level"
+
+
+def _describe(error) -> str:
+    """One readable line for a jsonschema error."""
+    where = _where(error.absolute_path)
+    v = error.validator
+    if v == "additionalProperties":
+        allowed = sorted(error.schema.get("properties", {}))
+        extra = sorted(set(error.instance) - set(allowed))
+        if error.absolute_path and error.absolute_path[0] == "variants" and len(error.absolute_path) == 2:
+            return (
+                f"unknown key(s) {', '.join(repr(k) for k in extra)} at {where}: a variant holds a "
+                f"preset and per-cell stage overrides ({', '.join(allowed)}); mesh-level stages are "
+                "overridden per mesh"
+            )
+        return f"unknown key(s) {', '.join(repr(k) for k in extra)} at {where}; allowed keys: {', '.join(allowed) or '(none)'}"
+    if v == "required":
+        return f"missing required key at {where}: {error.message}"
+    if v == "oneOf" and error.absolute_path and error.absolute_path[0] == "meshes":
+        return f"mesh {where} needs exactly one of 'path' or 'builtin'"
+    if v == "oneOf" and list(error.absolute_path) == ["grid"]:
+        return "grid must be 'all' or a list of {mesh: <id>, prompt: <id>} entries"
+    if v == "pattern" and v in error.schema:
+        return (
+            f"invalid id {error.instance!r} at {where}: ids name result folders, so use letters, "
+            "digits, '_', '-' and '.' only (starting with a letter or digit)"
+        )
+    return f"invalid value at {where}: {error.message}"
+
+
+def validate(config: dict, source: str = "config") -> None:
+    """Raise :class:`ConfigError` listing every schema violation of ``config``."""
+    import jsonschema
+
+    validator = jsonschema.Draft202012Validator(load_schema())
+    errors = sorted(validator.iter_errors(config), key=lambda e: (list(e.absolute_path), e.validator))
+    if errors:
+        lines = [_describe(e) for e in errors]
+        raise ConfigError(f"{source}: " + "; ".join(dict.fromkeys(lines)))
+
+
+@dataclass(frozen=True)
+class Cell:
+    mesh: str
+    prompt: str
+    variant: str
+
+
+class WorkflowConfig:
+    """A validated config with helpers the rules use (all pure; no file is written)."""
+
+    def __init__(self, config: dict, source: str = "config") -> None:
+        validate(config, source)
+        self.raw = copy.deepcopy(config)
+        self.source = source
+        self.meshes: dict[str, dict] = self.raw["meshes"]
+        self.prompts: dict[str, str] = {k: (v if isinstance(v, str) else v["text"]) for k, v in self.raw["prompts"].items()}
+        self.prompt_presets: dict[str, str | None] = {
+            k: (None if isinstance(v, str) else v.get("preset")) for k, v in self.raw["prompts"].items()
+        }
+        self.variants: dict[str, dict] = self.raw.get("variants") or {"base": {}}
+        grid = self.raw.get("grid", "all")
+        if grid == "all":
+            pairs = [(m, p) for m in self.meshes for p in self.prompts]
+        else:
+            pairs = [(g["mesh"], g["prompt"]) for g in grid]
+            problems = []
+            for i, (m, p) in enumerate(pairs):
+                if m not in self.meshes:
+                    problems.append(f"grid -> {i} -> mesh: {m!r} is not a mesh id ({', '.join(self.meshes)})")
+                if p not in self.prompts:
+                    problems.append(f"grid -> {i} -> prompt: {p!r} is not a prompt id ({', '.join(self.prompts)})")
+            if problems:
+                raise ConfigError(f"{source}: " + "; ".join(problems))
+        self.pairs = list(dict.fromkeys(pairs))
+        # Build every mesh's stage settings now so bad values fail when the DAG is built.
+        for mesh_id in self.meshes:
+            for stage in MESH_STAGES:
+                self.stage_settings(mesh_id, stage)
+        for cell in self.cells:
+            self.optimize_settings(cell.prompt, cell.variant)
+            for stage in CELL_STAGES:
+                self.cell_stage_settings(stage, cell.prompt, cell.variant)
+
+    # ---- ids -------------------------------------------------------------------------------
+    @property
+    def grid_meshes(self) -> list[str]:
+        """Mesh ids that appear in the grid, in config order."""
+        used = {m for m, _ in self.pairs}
+        return [m for m in self.meshes if m in used]
+
+    @property
+    def cells(self) -> list[Cell]:
+        return [Cell(m, p, v) for m, p in self.pairs for v in self.variants]
+
+    # ---- per-mesh --------------------------------------------------------------------------
+    def mesh_source(self, mesh_id: str) -> str:
+        entry = self.meshes[mesh_id]
+        return f"builtin:{entry['builtin']}" if "builtin" in entry else entry["path"]
+
+    def mesh_file(self, mesh_id: str) -> str | None:
+        """The mesh's file when it is a file that exists (Snakemake input), else None."""
+        entry = self.meshes[mesh_id]
+        if "path" in entry and Path(entry["path"]).is_file():
+            return entry["path"]
+        return None
+
+    def stage_dict(self, mesh_id: str, stage: str) -> dict[str, Any]:
+        """Global section of ``stage`` updated by the mesh's own override (shallow, per key)."""
+        merged = dict(self.raw.get(stage) or {})
+        merged.update(self.meshes[mesh_id].get(stage) or {})
+        return merged
+
+    def stage_settings(self, mesh_id: str, stage: str):
+        if stage not in MESH_STAGES:
+            raise ValueError(f"{stage!r} is not a per-mesh stage ({', '.join(MESH_STAGES)})")
+        cls = SECTIONS[stage]
+        try:
+            return cls.from_dict(self.stage_dict(mesh_id, stage))
+        except ConfigError as exc:
+            raise ConfigError(f"{self.source}: mesh {mesh_id!r}: {exc}") from exc
+
+    # ---- per-cell ----------------------------------------------------------------------------
+    def optimize_layers(self, prompt_id: str, variant_id: str) -> list[tuple[str, dict[str, Any]]]:
+        """The optimize overrides of a cell, least specific first, each named by where it comes from.
+
+        Order (later wins): the config's ``optimize`` section < the prompt's preset < the prompt's
+        ``optimize`` overrides < the variant's preset < the variant's ``optimize`` overrides. The
+        more specific level wins (a variant over a prompt over the base section); within a level,
+        explicit keys win over the level's preset. Keys no layer sets keep their schema defaults.
+        """
+        layers: list[tuple[str, dict[str, Any]]] = [("config optimize section", dict(self.raw.get("optimize") or {}))]
+        prompt = self.raw["prompts"][prompt_id]
+        variant = self.variants[variant_id] or {}
+        for level, entry in ((f"prompt {prompt_id!r}", prompt), (f"variant {variant_id!r}", variant)):
+            if not isinstance(entry, dict):
+                continue
+            if entry.get("preset"):
+                layers.append((f"preset {entry['preset']!r} of {level}", dict(PRESETS[entry["preset"]])))
+            if entry.get("optimize"):
+                layers.append((f"{level} optimize overrides", dict(entry["optimize"])))
+        return layers
+
+    def optimize_dict(self, prompt_id: str, variant_id: str) -> dict[str, Any]:
+        """Resolved optimize overrides of a cell (see :meth:`optimize_layers` for the order)."""
+        merged: dict[str, Any] = {}
+        for _, layer in self.optimize_layers(prompt_id, variant_id):
+            merged.update(layer)
+        return merged
+
+    def cell_stage_layers(self, stage: str, prompt_id: str, variant_id: str) -> list[tuple[str, dict[str, Any]]]:
+        """Overrides of a per-cell stage after optimize, least specific first: the config's
+        section < the prompt's overrides < the variant's overrides."""
+        layers: list[tuple[str, dict[str, Any]]] = [(f"config {stage} section", dict(self.raw.get(stage) or {}))]
+        prompt = self.raw["prompts"][prompt_id]
+        if isinstance(prompt, dict) and prompt.get(stage):
+            layers.append((f"prompt {prompt_id!r} {stage} overrides", dict(prompt[stage])))
+        variant = self.variants[variant_id] or {}
+        if variant.get(stage):
+            layers.append((f"variant {variant_id!r} {stage} overrides", dict(variant[stage])))
+        return layers
+
+    def explain(self, cell: Cell, stage: str = "optimize") -> list[tuple[str, Any, str]]:
+        """How one cell's settings of ``stage`` were resolved: ``(key, value, source)`` for every
+        setting, where source is the layer that set it last, or "default" (the settings class,
+        which the schema mirrors)."""
+        if stage == "optimize":
+            layers = self.optimize_layers(cell.prompt, cell.variant)
+            resolved = self.optimize_settings(cell.prompt, cell.variant)
+        elif stage in MESH_STAGES:
+            layers = [(f"config {stage} section", dict(self.raw.get(stage) or {}))]
+            layers.append((f"mesh {cell.mesh!r} {stage} overrides", dict(self.meshes[cell.mesh].get(stage) or {})))
+            resolved = self.stage_settings(cell.mesh, stage)
+        else:
+            layers = self.cell_stage_layers(stage, cell.prompt, cell.variant)
+            resolved = self.cell_stage_settings(stage, cell.prompt, cell.variant)
+        source = {}
+        for name, layer in layers:
+            for key in layer:
+                source[key] = name
+        return [(f.name, getattr(resolved, f.name), source.get(f.name, "default")) for f in dataclasses.fields(resolved)]
+
+    def optimize_settings(self, prompt_id: str, variant_id: str):
+        try:
+            return OptimizeSettings.from_dict(self.optimize_dict(prompt_id, variant_id))
+        except ConfigError as exc:
+            raise ConfigError(f"{self.source}: prompt {prompt_id!r}, variant {variant_id!r}: {exc}") from exc
+
+    def cell_stage_settings(self, stage: str, prompt_id: str, variant_id: str):
+        """Settings of a per-cell stage after optimize (bake, export, relight): the config's
+        section, updated by the prompt's and then the variant's overrides of that stage."""
+        if stage not in CELL_STAGES:
+            raise ValueError(f"{stage!r} is not a per-cell stage after optimize ({', '.join(CELL_STAGES)})")
+        cls = SECTIONS[stage]
+        merged: dict[str, Any] = {}
+        for _, layer in self.cell_stage_layers(stage, prompt_id, variant_id):
+            merged.update(layer)
+        try:
+            return cls.from_dict(merged)
+        except ConfigError as exc:
+            raise ConfigError(f"{self.source}: prompt {prompt_id!r}, variant {variant_id!r}: {exc}") from exc
+
+    def decimation_pairs(self) -> dict[str, str]:
+        """Decimated mesh id -> a full-resolution mesh id with the same source (robustness)."""
+        full = {self.mesh_source(m): m for m in self.grid_meshes if not self.decimated(m)}
+        return {m: full[self.mesh_source(m)] for m in self.grid_meshes if self.decimated(m) and self.mesh_source(m) in full}
+
+    def candidate_prompts(self, mesh_id: str) -> list[str]:
+        """The texts of every prompt of the grid, for ``mesh_id`` (R-precision candidates)."""
+        ids = list(dict.fromkeys(p for _, p in self.pairs))
+        return [self.prompt_text(mesh_id, p) for p in ids]
+
+    def clip_specs(self) -> list:
+        """Every real (non-test) CLIP the grid needs: guidance models and evaluation models."""
+        specs = set()
+        for c in self.cells:
+            s = self.optimize_settings(c.prompt, c.variant)
+            if s.guidance == "clip" and not s.clip_tiny_test:
+                specs.add(s.clip_spec())
+            m = self.cell_stage_settings("metrics", c.prompt, c.variant)
+            if m.clip and not m.clip_tiny_test:
+                specs.add(m.clip_spec())
+        return sorted(specs, key=str)
+
+    def decimated(self, mesh_id: str) -> bool:
+        return bool(self.stage_settings(mesh_id, "decimate").enabled)
+
+    def prompt_text(self, mesh_id: str, prompt_id: str) -> str:
+        noun = self.meshes[mesh_id].get("object", mesh_id)
+        return self.prompts[prompt_id].replace("{object}", noun)
+
+
+def parse_cell(text: str, cfg: WorkflowConfig) -> Cell:
+    """``mesh/prompt/variant`` (the variant may be left out when the config has one) -> a grid cell."""
+    parts = text.split("/")
+    if len(parts) == 2 and len(cfg.variants) == 1:
+        parts.append(next(iter(cfg.variants)))
+    if len(parts) != 3:
+        raise ConfigError(f"cell {text!r} is not mesh/prompt/variant")
+    cell = Cell(*parts)
+    if cell not in cfg.cells:
+        cells = ", ".join(f"{c.mesh}/{c.prompt}/{c.variant}" for c in cfg.cells[:12])
+        raise ConfigError(
+            f"{cfg.source}: {text!r} is not a cell of the grid (cells: {cells}{', ...' if len(cfg.cells) > 12 else ''})"
+        )
+    return cell
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m stages.config --configfile C --cell mesh/prompt/variant [--stage optimize]``:
+    print how one cell's settings were resolved, key by key, with where each value came from."""
+    parser = argparse.ArgumentParser(prog="python -m stages.config", description=main.__doc__.split("\n")[0])
+    parser.add_argument("--configfile", type=Path, default=Path("config/config.yaml"))
+    parser.add_argument("--cell", required=True, help="mesh/prompt/variant")
+    stages = ("optimize", "bake", "export", "relight", "metrics", *MESH_STAGES)
+    parser.add_argument("--stage", default="optimize", choices=stages)
+    parser.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    args = parser.parse_args(argv)
+    try:
+        cfg = load_config_file(args.configfile)
+        rows = cfg.explain(parse_cell(args.cell, cfg), args.stage)
+    except ConfigError as exc:
+        sys.stderr.write(f"error: {exc}\n")
+        return 2
+    if args.json:
+        sys.stdout.write(json.dumps([{"key": k, "value": v, "source": s} for k, v, s in rows], indent=1) + "\n")
+        return 0
+    width = max(len(k) for k, _, _ in rows)
+    vwidth = min(max(len(json.dumps(v)) for _, v, _ in rows), 40)
+    sys.stdout.write(f"{args.stage} settings of {args.cell} ({args.configfile}); later sources win:\n")
+    for k, v, s in rows:
+        sys.stdout.write(f"  {k:<{width}}  {json.dumps(v):<{vwidth}}  {s}\n")
+    return 0
+
+
+def load_config_file(path: str | Path) -> WorkflowConfig:
+    path = Path(path)
+    try:
+        with open(path) as fh:
+            data = yaml.safe_load(fh)
+    except FileNotFoundError as exc:
+        raise ConfigError(f"{path}: config file not found") from exc
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{path}: not valid YAML ({exc})") from exc
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: expected a mapping at the top level, got {type(data).__name__}")
+    return WorkflowConfig(data, str(path))
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,75 @@
+"""The one command-line wrapper every stage's ``main`` uses, logging set-up and device choice.
+
+A stage's ``main`` names its arguments and what to do with them; :func:`stage_main` adds the
+shared options (``-v``; for torch stages ``--device`` and ``--threads``), sets up logging to stderr
+(rules redirect it to their ``log:`` file), and turns expected failures (bad input, bad settings,
+missing CLIP weights) into one clear log line and exit status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from collections.abc import Callable
+from typing import Any
+
+from .errors import stage_errors
+
+
+def setup_logging(verbose: bool = False) -> None:
+    """Log to stderr (rules redirect it to their ``log:`` file)."""
+    logging.basicConfig(
+        level=logging.DEBUG if verbose else logging.INFO,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+        stream=sys.stderr,
+        force=True,
+    )
+
+
+def resolve_device(name: str = "auto"):
+    """``torch.device`` of ``name``; ``"auto"`` is CUDA when available, else the CPU.
+
+    torch is imported here, when a torch stage asks, so that this module (and the workflow's
+    DAG, which imports the settings) stays free of it.
+    """
+    import torch
+
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(name)
+
+
+def stage_main(
+    stage: str,
+    doc: str,
+    arguments: Callable[[argparse.ArgumentParser], None],
+    body: Callable[[argparse.Namespace], Any],
+    argv: list[str] | None = None,
+    *,
+    device: str | None = None,
+) -> int:
+    """Parse ``argv`` for ``python -m stages.<stage>`` and run ``body(args)``; return the exit status.
+
+    ``arguments(parser)`` adds the stage's own options. ``device`` (the default device) marks a
+    torch stage: it gets ``--device`` (resolved by :func:`resolve_device` into ``args.device``) and
+    ``--threads``. Bad input and bad settings exit with status 2 after one log line; anything else
+    propagates with its traceback (a bug, not bad input).
+    """
+    parser = argparse.ArgumentParser(prog=f"python -m stages.{stage}", description=doc.strip().split("\n")[0])
+    arguments(parser)
+    if device is not None:
+        parser.add_argument("--device", default=device, help="cpu, cuda, cuda:1, ... ('auto': CUDA when available)")
+        parser.add_argument("--threads", type=int, default=None, help="CPU threads for torch")
+    parser.add_argument("-v", "--verbose", action="store_true")
+    args = parser.parse_args(argv)
+    setup_logging(args.verbose)
+    with stage_errors(stage) as status:
+        if device is not None:
+            import torch
+
+            if args.threads:
+                torch.set_num_threads(args.threads)
+            args.device = resolve_device(args.device)
+        body(args)
+    return status.code

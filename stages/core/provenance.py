@@ -1,0 +1,228 @@
+"""Atomic file output, staged output folders, metadata JSON (settings, seed, versions, timings)
+and the origin record (which guidance and weights made a result) that every output repeats."""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import importlib.metadata
+import json
+import logging
+import os
+import platform
+import shutil
+import socket
+import sys
+import tempfile
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+from .errors import StageInputError
+
+log = logging.getLogger(__name__)
+
+#: distributions whose versions every metadata file records (absent ones are reported as null)
+TRACKED_PACKAGES = (
+    "tango-stylize",
+    "numpy",
+    "scipy",
+    "trimesh",
+    "embreex",
+    "pymeshlab",
+    "torch",
+    "open_clip_torch",
+    "xatlas",
+    "usd-core",
+    "snakemake",
+)
+
+
+def package_versions(names: tuple[str, ...] = TRACKED_PACKAGES) -> dict[str, str | None]:
+    """Installed versions of ``names`` (``None`` when not installed), plus Python's."""
+    out: dict[str, str | None] = {"python": platform.python_version()}
+    for name in names:
+        try:
+            out[name] = importlib.metadata.version(name)
+        except importlib.metadata.PackageNotFoundError:
+            out[name] = None
+    return out
+
+
+def sha256_of(path: str | Path, chunk: int = 1 << 20) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while block := f.read(chunk):
+            h.update(block)
+    return h.hexdigest()
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | Path) -> Iterator[Path]:
+    """Yield a temporary path in the target's directory; rename it onto ``path`` on success.
+
+    The temporary name keeps the target's suffix (so writers that infer a format from it work)
+    and starts with a dot, so a killed job leaves at most a hidden ``.name.tmp-*`` file and
+    never a file that looks finished. On error the temporary file is removed.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.tmp-", suffix=path.suffix, dir=path.parent)
+    os.close(fd)
+    tmp_path = Path(tmp)
+    try:
+        yield tmp_path
+        os.chmod(tmp_path, 0o666 & ~_umask())
+        os.replace(tmp_path, path)
+    except BaseException:
+        tmp_path.unlink(missing_ok=True)
+        raise
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def write_json_atomic(path: str | Path, data: Any) -> None:
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(data, indent=2, sort_keys=False, default=_json_default) + "\n")
+
+
+def _json_default(obj: Any) -> Any:
+    if hasattr(obj, "tolist"):
+        return obj.tolist()
+    if isinstance(obj, Path):
+        return str(obj)
+    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
+
+
+class Timer:
+    """Named wall-clock sections: ``with timer("load"): ...``; ``timer.seconds`` is a dict."""
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = {}
+        self._start = time.perf_counter()
+
+    @contextlib.contextmanager
+    def __call__(self, name: str) -> Iterator[None]:
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.seconds[name] = self.seconds.get(name, 0.0) + time.perf_counter() - t0
+
+    def total(self) -> float:
+        return time.perf_counter() - self._start
+
+
+def metadata(
+    *,
+    stage: str,
+    settings: dict[str, Any],
+    inputs: dict[str, str | Path],
+    outputs: dict[str, str | Path],
+    timings: dict[str, float],
+    seed: int | None = None,
+    extra: dict[str, Any] | None = None,
+) -> dict[str, Any]:
+    """The metadata record every stage writes next to its outputs."""
+    ins: dict[str, Any] = {}
+    for key, value in inputs.items():
+        p = Path(value)
+        ins[key] = {"path": str(value), "sha256": sha256_of(p)} if p.is_file() else str(value)
+    return {
+        "stage": stage,
+        "settings": settings,
+        "seed": seed,
+        "inputs": ins,
+        "outputs": {k: str(v) for k, v in outputs.items()},
+        "timings_s": {k: round(v, 6) for k, v in timings.items()},
+        "versions": package_versions(),
+        "host": {"hostname": socket.gethostname(), "platform": platform.platform()},
+        "argv": sys.argv,
+        "finished_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        **(extra or {}),
+    }
+
+
+# ---- origin: which guidance and weights made a result, carried by every downstream output ----
+#: the key under which every stage's ``meta.json`` (and the field file) records the origin
+ORIGIN_KEY = "origin"
+#: the key of the origin record inside asset files (USD customLayerData, glTF asset.extras)
+ORIGIN_METADATA_KEY = "tango_stylize"
+
+
+def origin_record(*, guidance: str, weights: str, test_only: bool, prompt: str | None = None) -> dict[str, Any]:
+    """What made a trained field, in the form every downstream output repeats.
+
+    ``guidance``: ``"clip"`` or ``"image"``; ``weights``: the id of the CLIP weights or of the
+    image targets; ``test_only``: made with the tiny random test CLIP. ``label`` is the one line a
+    person reads (in file metadata, the asset index, the pack's README and the report); it starts
+    with ``TEST ONLY`` or ``IMAGE-GUIDED`` whenever the result is not a real CLIP stylisation.
+    """
+    if guidance not in ("clip", "image"):
+        raise ValueError(f"guidance must be 'clip' or 'image', got {guidance!r}")
+    if test_only:
+        label = f"TEST ONLY: made with random test weights, not a real stylisation ({weights})"
+    elif guidance == "image":
+        label = f"IMAGE-GUIDED: fitted to procedural target renders, not text-guided ({weights})"
+    else:
+        label = f"CLIP-guided ({weights})"
+    return {
+        "guidance": guidance,
+        "weights": weights,
+        "test_only": bool(test_only),
+        "image_guided": guidance == "image",
+        "prompt": prompt,
+        "label": label,
+    }
+
+
+def read_origin(meta_path: str | Path) -> dict[str, Any]:
+    """The origin recorded in an upstream ``meta.json``; a clear error when it has none."""
+    meta_path = Path(meta_path)
+    if not meta_path.is_file():
+        raise StageInputError(meta_path, "file not found", "Run the earlier stages first.")
+    return checked_origin(json.loads(meta_path.read_text()).get(ORIGIN_KEY), meta_path, "the stage that wrote it")
+
+
+def checked_origin(origin: Any, path: str | Path, writer: str) -> dict[str, Any]:
+    """``origin`` when it is an origin record, else a clear error naming ``path`` and ``writer``."""
+    if not isinstance(origin, dict) or "label" not in origin:
+        raise StageInputError(
+            path,
+            "records no origin (guidance and weights), so outputs made from it could not say what made them",
+            f"It was written by an older version: rerun {writer} (snakemake --forcerun <rule>).",
+        )
+    return origin
+
+
+@contextlib.contextmanager
+def staged_outputs(out_dir: str | Path, last: tuple[str, ...] = ("meta.json",)) -> Iterator[Path]:
+    """A hidden staging folder inside ``out_dir`` for a job's outputs, moved into place together.
+
+    Write every output under the yielded folder (same relative paths as in ``out_dir``). On
+    success each file is renamed into ``out_dir`` (``last``, the metadata, after all others) and
+    the folder is removed; on an exception the folder is removed and ``out_dir`` is untouched. A
+    job killed before the commit leaves only ``out_dir/.staging-*``, which hides from Snakemake and
+    from anyone looking for finished files, and which the next run of the job deletes. The commit
+    itself is a handful of renames on one file system (microseconds), not a copy.
+    """
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    for stale in out_dir.glob(".staging-*"):
+        log.info("removing %s left by a killed run", stale)
+        shutil.rmtree(stale, ignore_errors=True)
+    stage = Path(tempfile.mkdtemp(prefix=".staging-", dir=out_dir))
+    try:
+        yield stage
+        files = sorted((p for p in stage.rglob("*") if p.is_file()), key=lambda p: (p.name in last, str(p)))
+        for path in files:
+            target = out_dir / path.relative_to(stage)
+            target.parent.mkdir(parents=True, exist_ok=True)
+            os.replace(path, target)
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)

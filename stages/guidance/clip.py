@@ -1,0 +1,200 @@
+"""Guidance: CLIP through open_clip (real weights from a pretrained tag or a local checkpoint, or
+a tiny randomly initialised model that is for tests only), and image targets for verification.
+
+Loading never hangs on an unreachable model hub: cached or local weights load directly; weights
+that would have to be downloaded are only fetched when the hub answers a 3-second probe, and
+otherwise :class:`ClipWeightsUnavailable` explains how to supply a checkpoint.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import socket
+from pathlib import Path
+
+import torch
+from torch import Tensor
+from torch.nn import functional as F
+
+from ..config.sections import ClipSpec
+from ..core.errors import StageInputError
+from .compat import import_open_clip
+
+log = logging.getLogger(__name__)
+
+#: the weights id recorded for the tiny random model; anything carrying it is not a real result
+TEST_ONLY_WEIGHTS = "tiny-random-clip (TEST ONLY: random weights, not a real stylization)"
+HUB_HOST = ("huggingface.co", 443)
+
+
+#: CLIP's input normalisation (the OpenAI models and open_clip's defaults)
+CLIP_MEAN = (0.48145466, 0.4578275, 0.40821073)
+CLIP_STD = (0.26862954, 0.26130258, 0.27577711)
+
+
+class ClipWeightsUnavailable(StageInputError):
+    """CLIP weights are neither local nor downloadable from here (bad input of a run: a stage
+    exits with status 2 and this message)."""
+
+    def __init__(self, message: str) -> None:
+        super().__init__(None, message.rstrip("."))
+
+
+def clip_normalize(images: Tensor, mean=CLIP_MEAN, std=CLIP_STD) -> Tensor:
+    """``(B, 3, S, S)`` in [0, 1] -> CLIP's normalised input."""
+    m = torch.tensor(mean, device=images.device, dtype=images.dtype)[:, None, None]
+    s = torch.tensor(std, device=images.device, dtype=images.dtype)[:, None, None]
+    return (images - m) / s
+
+
+def _hub_reachable(timeout: float = 3.0) -> bool:
+    if os.environ.get("HF_HUB_OFFLINE", "") not in ("", "0"):
+        return False
+    try:
+        with socket.create_connection(HUB_HOST, timeout=timeout):
+            return True
+    except OSError:
+        return False
+
+
+def _cached_hub_file(hf_hub: str) -> str | None:
+    from huggingface_hub import try_to_load_from_cache
+
+    repo, filename = os.path.split(hf_hub)
+    names = [filename] if filename else ["open_clip_model.safetensors", "open_clip_pytorch_model.bin"]
+    for name in names:
+        path = try_to_load_from_cache(repo_id=repo, filename=name)
+        if isinstance(path, str):
+            return path
+    return None
+
+
+def resolve_weights(spec: ClipSpec) -> tuple[str, str, bool]:
+    """Return ``(path, weights_id, quick_gelu)`` for ``spec``, downloading only when the hub
+    answers. Raises :class:`ClipWeightsUnavailable` (fast) when the weights cannot be had."""
+    how = (
+        "Supply a local checkpoint: on a machine with internet run\n"
+        "  python -c \"import open_clip; open_clip.create_model('ViT-B-32', pretrained='openai')\"\n"
+        "copy the downloaded file (under ~/.cache/huggingface/hub/...) here and set\n"
+        "  optimize: {clip_checkpoint: /path/to/open_clip_pytorch_model.bin}\n"
+        "in the config (with clip_model naming its architecture, e.g. ViT-B-32-quickgelu for the "
+        "OpenAI weights), or populate the Hugging Face cache (HF_HOME) on this machine."
+    )
+    if spec.checkpoint:
+        path = Path(spec.checkpoint)
+        if not path.is_file():
+            raise ClipWeightsUnavailable(f"CLIP checkpoint {path} does not exist. {how}")
+        return str(path), f"{spec.model}:{path.name}", False
+    open_clip = import_open_clip()
+    cfg = open_clip.get_pretrained_cfg(spec.model, spec.pretrained)
+    if not cfg:
+        raise ClipWeightsUnavailable(
+            f"open_clip has no pretrained weights {spec.pretrained!r} for model {spec.model!r} (see open_clip.list_pretrained())."
+        )
+    weights_id = f"{spec.model}/{spec.pretrained}"
+    quick_gelu = bool(cfg.get("quick_gelu", False))
+    if cfg.get("hf_hub"):
+        cached = _cached_hub_file(cfg["hf_hub"])
+        if cached:
+            return cached, weights_id, quick_gelu
+    if not _hub_reachable():
+        raise ClipWeightsUnavailable(
+            f"CLIP weights {weights_id} are not cached on this machine and the model hub is unreachable (offline). {how}"
+        )
+    from open_clip.pretrained import download_pretrained
+
+    path = download_pretrained(cfg)
+    if not path:
+        raise ClipWeightsUnavailable(f"downloading CLIP weights {weights_id} failed. {how}")
+    return path, weights_id, quick_gelu
+
+
+class ClipGuide:
+    """A frozen CLIP that embeds prompts and images (images in [0, 1], ``(B, 3, S, S)``)."""
+
+    def __init__(self, model, tokenizer, *, image_size: int, weights_id: str, test_only: bool, device, bf16: bool):
+        self.model = model.eval().requires_grad_(False).to(device)
+        self.tokenizer = tokenizer
+        self.image_size = image_size
+        self.weights_id = weights_id
+        self.test_only = test_only
+        self.device = torch.device(device)
+        self.bf16 = bf16 and self.device.type == "cuda"
+
+    def embed_text(self, text: str) -> Tensor:
+        with torch.no_grad():
+            tokens = self.tokenizer([text]).to(self.device)
+            emb = self.model.encode_text(tokens).float()
+        return F.normalize(emb, dim=-1)[0]
+
+    def embed_images(self, images: Tensor) -> Tensor:
+        x = clip_normalize(images, CLIP_MEAN, CLIP_STD)
+        with torch.autocast("cuda", dtype=torch.bfloat16, enabled=self.bf16):
+            emb = self.model.encode_image(x)
+        return emb.float()
+
+    def similarity(self, images: Tensor, text_embedding: Tensor) -> Tensor:
+        """Cosine similarity of the *averaged* image embedding with the text embedding (TANGO)."""
+        mean = self.embed_images(images).mean(0)
+        return F.cosine_similarity(mean, text_embedding, dim=0)
+
+
+#: open_clip model name of the tiny test architecture (stages/data/tango-tiny-test-clip.json)
+TINY_MODEL = "tango-tiny-test-clip"
+
+
+def register_tiny_model() -> None:
+    """Make the tiny test architecture known to open_clip (idempotent)."""
+    open_clip = import_open_clip()
+    if TINY_MODEL not in open_clip.list_models():
+        open_clip.add_model_config(Path(__file__).parent / "data" / f"{TINY_MODEL}.json")
+
+
+def tiny_test_clip(seed: int = 0):
+    """A 2-layer, 64-wide CLIP with random weights (3.6 M parameters, mostly the token
+    embedding), built through open_clip like a real model: for tests and CI only. Its outputs
+    carry :data:`TEST_ONLY_WEIGHTS`."""
+    open_clip = import_open_clip()
+    register_tiny_model()
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        model = open_clip.create_model(TINY_MODEL, pretrained=None)
+    return model, open_clip.get_tokenizer(TINY_MODEL)
+
+
+def _image_size(model) -> int:
+    size = model.visual.image_size
+    return int(size[0] if isinstance(size, tuple | list) else size)
+
+
+def load_clip(spec: ClipSpec, device="cpu", bf16: bool = False) -> ClipGuide:
+    """Load the CLIP of ``spec`` on ``device``; fails fast when weights are unavailable."""
+    if spec.tiny_test:
+        model, tok = tiny_test_clip()
+        log.warning("using %s", TEST_ONLY_WEIGHTS)
+        return ClipGuide(
+            model,
+            tok,
+            image_size=_image_size(model),
+            weights_id=TEST_ONLY_WEIGHTS,
+            test_only=True,
+            device=device,
+            bf16=bf16,
+        )
+    path, weights_id, quick_gelu = resolve_weights(spec)
+    open_clip = import_open_clip()
+    if spec.model == TINY_MODEL:
+        register_tiny_model()
+    model = open_clip.create_model(spec.model, pretrained=path, force_quick_gelu=quick_gelu, device=device)
+    size = _image_size(model)
+    log.info("loaded CLIP %s from %s", weights_id, path)
+    return ClipGuide(
+        model,
+        open_clip.get_tokenizer(spec.model),
+        image_size=size,
+        weights_id=weights_id,
+        test_only=False,
+        device=device,
+        bf16=bf16,
+    )

@@ -1,0 +1,44 @@
+"""Image-quality figures: PSNR and SSIM, over object pixels (callers pass masks or masked values;
+a frame's background never counts)."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch.nn import functional as F
+
+
+def psnr(a: torch.Tensor, b: torch.Tensor) -> float:
+    """Peak signal-to-noise ratio in dB of values in [0, 1], over every element given: callers
+    pass object pixels only (``img[mask]``), never a frame with its background."""
+    mse = float(F.mse_loss(a, b))
+    return float("inf") if mse == 0 else 10.0 * math.log10(1.0 / mse)
+
+
+def ssim(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor | None = None, window: int = 11, sigma: float = 1.5) -> float:
+    """Mean structural similarity (Wang et al. 2004) of images ``(B, 3, H, W)`` in [0, 1]:
+    Gaussian window 11 / 1.5, constants ``(0.01)^2`` and ``(0.03)^2``, per channel, 'valid'
+    windows only, averaged over every window or, with ``mask (B, 1, H, W)`` bool, over the
+    windows centred on object pixels (so the background does not count)."""
+    c1, c2 = 0.01**2, 0.03**2
+    x = torch.arange(window, dtype=a.dtype) - (window - 1) / 2
+    g = torch.exp(-(x**2) / (2 * sigma**2))
+    g = (g / g.sum()).to(a.device)
+    k = (g[:, None] * g[None, :])[None, None].repeat(a.shape[1], 1, 1, 1)
+
+    def blur(t):
+        return F.conv2d(t, k, groups=a.shape[1])
+
+    mu_a, mu_b = blur(a), blur(b)
+    saa = blur(a * a) - mu_a**2
+    sbb = blur(b * b) - mu_b**2
+    sab = blur(a * b) - mu_a * mu_b
+    num = (2 * mu_a * mu_b + c1) * (2 * sab + c2)
+    den = (mu_a**2 + mu_b**2 + c1) * (saa + sbb + c2)
+    smap = num / den
+    if mask is None:
+        return float(smap.mean())
+    h = (window - 1) // 2
+    centre = mask[:, :, h : mask.shape[2] - h, h : mask.shape[3] - h].expand_as(smap)
+    return float(smap[centre].mean())

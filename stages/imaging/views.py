@@ -1,0 +1,96 @@
+"""Cached views on the device, and images rendered from them through the field."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from ..config.layout import RENDER_KINDS
+from ..geometry.raycache import RayCache
+from ..model.field import StyleField
+from ..render.color import linear_to_srgb
+from .images import compose, gather_points, global_spec, index_map, render_cached_view
+
+
+@dataclass
+class CachedView:
+    """Tensors of one cached view on the device: hit ``points``, flat ``normals`` and unit
+    ``view`` directions (surface -> eye) ``(N, 3)``, plus the ``(W, W)`` hit-index map and mask."""
+
+    points: torch.Tensor
+    normals: torch.Tensor
+    view: torch.Tensor
+    index: np.ndarray
+    mask: np.ndarray
+
+
+class ViewStore:
+    """The views of one :class:`~stages.geometry.raycache.RayCache` as :class:`CachedView`, built
+    on first use and kept on ``device``."""
+
+    def __init__(self, cache: RayCache, device) -> None:
+        self.cache = cache
+        self.device = device
+        self._views: dict[int, CachedView] = {}
+
+    def __len__(self) -> int:
+        return len(self.cache)
+
+    @property
+    def width(self) -> int:
+        return self.cache.width
+
+    def azimuths(self) -> np.ndarray:
+        """Distinct azimuths of a grid of views (contact sheets of it have one column each)."""
+        return np.unique(np.round(self.cache.arrays["azimuth"], 9))
+
+    def __getitem__(self, i: int) -> CachedView:
+        if i not in self._views:
+            h = self.cache.view(i)
+            idx = index_map(h.pixel, self.cache.width)
+            self._views[i] = CachedView(
+                torch.from_numpy(h.point).to(self.device),
+                torch.from_numpy(h.normal).to(self.device),
+                torch.from_numpy(-h.direction).to(self.device),
+                idx,
+                idx >= 0,
+            )
+        return self._views[i]
+
+
+@torch.no_grad()
+def render_view(field: StyleField, v: CachedView, width: int, out_width: int, chunk: int = 65536) -> dict:
+    """All render kinds of one cached view at ``out_width`` (nearest sampling), black background.
+    Returns ``{kind: (3, out, out)}`` in display space (sRGB for radiance, [0, 1] for data)."""
+    spec = global_spec(width, out_width)
+    needed, (lookup,) = gather_points([spec], v.index)
+    sel = torch.from_numpy(needed).to(v.points.device)
+    outs = {k: [] for k in RENDER_KINDS}
+    for lo in range(0, len(sel), chunk):
+        idx = sel[lo : lo + chunk]
+        pts, nrm, view = v.points[idx], v.normals[idx], v.view[idx]
+        o = field(pts, nrm, view)
+        outs["rgb"].append(linear_to_srgb(o.shading.rgb))
+        outs["diffuse"].append(linear_to_srgb(o.shading.diffuse))
+        outs["specular"].append(linear_to_srgb(o.shading.specular))
+        r = o.material.roughness if o.material.roughness is not None else torch.ones_like(pts[:, :1])
+        outs["roughness"].append(r.expand(-1, 3))
+        outs["normal"].append(0.5 + 0.5 * o.normal)
+        flip = (nrm * view).sum(-1, keepdim=True) < 0
+        outs["normal_original"].append(0.5 + 0.5 * torch.where(flip, -nrm, nrm))
+    bg = torch.zeros(3, out_width, out_width, device=v.points.device)
+    empty = torch.zeros(0, 3, device=v.points.device)
+    return {k: compose(torch.cat(c) if c else empty, lookup, spec, bg) for k, c in outs.items()}
+
+
+@torch.no_grad()
+def render_views(field, store, background: str) -> torch.Tensor:
+    """Every view of ``store`` rendered through the field at the cache's resolution: ``(V, 3, S, S)`` sRGB in [0, 1]."""
+
+    def colors(p, n, d):
+        return linear_to_srgb(field(p, n, d).shading.rgb)
+
+    bg = 1.0 if background == "white" else 0.0
+    return torch.stack([render_cached_view(store[i], store.width, store.width, colors, bg) for i in range(len(store))])

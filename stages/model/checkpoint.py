@@ -1,0 +1,44 @@
+"""The trained field on disk (``field.pt``): its weights, the optimisation settings that built it,
+the prompt and the origin record (which guidance and weights trained it)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from ..config.sections import OptimizeSettings
+from ..core.provenance import ORIGIN_KEY, atomic_path, checked_origin
+from .field import StyleField
+
+#: version of the ``field.pt`` layout
+FIELD_FORMAT = 1
+
+
+def save_field(path: str | Path, field: StyleField, settings: OptimizeSettings, prompt: str, origin: dict[str, Any]) -> None:
+    """Write ``field.pt`` atomically."""
+    with atomic_path(path) as tmp:
+        torch.save(
+            {
+                "format": FIELD_FORMAT,
+                "settings": settings.to_dict(),
+                "prompt": prompt,
+                ORIGIN_KEY: origin,
+                "state_dict": field.state_dict(),
+            },
+            tmp,
+        )
+
+
+def load_field(path: str | Path, device="cpu") -> tuple[StyleField, OptimizeSettings]:
+    """Rebuild a trained :class:`StyleField` from ``field.pt``; ``field.origin`` is the record of
+    the guidance and weights that trained it (:func:`~stages.core.provenance.origin_record`), which
+    every stage that uses the field copies into its own outputs."""
+    data = torch.load(path, map_location=device, weights_only=False)
+    origin = checked_origin(data.get(ORIGIN_KEY), path, "the optimize stage")
+    settings = OptimizeSettings.from_dict(data["settings"])
+    f = StyleField(settings.field_settings()).to(device)
+    f.load_state_dict(data["state_dict"])
+    f.origin = origin
+    return f.eval(), settings

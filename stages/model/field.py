@@ -1,0 +1,128 @@
+"""The stylisation field: SVBRDF network, optional normal network and SG light, built from a
+:class:`~stages.config.sections.FieldSettings`, and its forward pass, the one path from cached
+hits to shaded colour that training, evaluation, relighting (a light override), material editing
+(scales), baking (:meth:`StyleField.surface`) and the benchmarks all use."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor, nn
+
+from ..config.sections import FieldSettings
+from ..render.shading import SGLight, Shading, face_viewer, shade
+from .networks import Material, NormalNet, SGLightModule, SVBRDFNet, make_encoding, symmetric
+
+
+@dataclass(frozen=True)
+class FieldOutput:
+    shading: Shading
+    material: Material
+    normal: Tensor  # (N, 3) shading normal (predicted, facing the viewer)
+
+
+@dataclass(frozen=True)
+class MaterialEdit:
+    """TANGO's material editing (Fig. 6): roughness and specular colour scaled, then clamped back
+    into their valid ranges (``[min_roughness, 1]`` and ``[0, 1]``)."""
+
+    roughness_scale: float = 1.0
+    specular_scale: float = 1.0
+
+    def apply(self, material: Material, min_roughness: float) -> Material:
+        if material.specular is None:
+            return material
+        return Material(
+            material.albedo,
+            (material.specular * self.specular_scale).clamp(0.0, 1.0),
+            (material.roughness * self.roughness_scale).clamp(min_roughness, 1.0),
+        )
+
+
+class StyleField(nn.Module):
+    """Material + normals + light, built from ``settings`` (networks, encodings, light, seed)."""
+
+    def __init__(self, settings: FieldSettings) -> None:
+        super().__init__()
+        s = settings
+        gen = torch.Generator().manual_seed(s.seed + 7919)
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(s.seed)
+            mat_enc = make_encoding(
+                s.material_encoding,
+                frequencies=s.material_frequencies,
+                count=s.material_fourier_count,
+                sigma=s.material_fourier_sigma,
+                generator=gen,
+            )
+            self.svbrdf = SVBRDFNet(
+                mat_enc,
+                width=s.width,
+                specular=s.specular,
+                init_specular=s.init_specular,
+                init_roughness=s.init_roughness,
+                min_roughness=s.min_roughness,
+            )
+            self.normal_net = None
+            if s.normal_network and s.normal_max_delta > 0:
+                nrm_enc = make_encoding(
+                    s.normal_encoding,
+                    frequencies=s.normal_frequencies,
+                    count=s.normal_fourier_count,
+                    sigma=s.normal_fourier_sigma,
+                    generator=gen,
+                )
+                self.normal_net = NormalNet(nrm_enc, width=s.width, max_delta=s.normal_max_delta)
+            self.light = SGLightModule(
+                s.light_lobes,
+                rgb=s.light_rgb,
+                total_energy=s.light_energy,
+                init_sharpness=s.light_init_sharpness,
+            )
+        self.symmetry = s.symmetry
+
+    def symmetric_points(self, points: Tensor) -> Tensor:
+        """The points as the networks see them (``(x, y, |z|)`` under the symmetry prior)."""
+        return symmetric(points) if self.symmetry else points
+
+    def surface(self, points: Tensor, normals: Tensor, view: Tensor | None = None) -> tuple[Material, Tensor]:
+        """The networks at hit ``points (N, 3)`` with flat ``normals (N, 3)``: the material and
+        the unit shading normal.
+
+        With ``view (N, 3)`` (unit, surface -> eye), geometric normals are first turned towards
+        the viewer (two-sided surfaces: the inside of an open vase is visible) and the predicted
+        normal is kept in the viewer's hemisphere (:func:`~stages.render.shading.face_viewer`).
+        Without it (texture baking) the normals are taken as given and the prediction returned as is.
+        """
+        if view is not None:
+            flip = (normals * view).sum(-1, keepdim=True) < 0
+            normals = torch.where(flip, -normals, normals)
+        p = self.symmetric_points(points)
+        if self.normal_net is not None:
+            normals = self.normal_net(p, normals)
+        if view is not None:
+            normals = face_viewer(normals, view)
+        return self.svbrdf(p), normals
+
+    def forward(
+        self,
+        points: Tensor,
+        normals: Tensor,
+        view: Tensor,
+        light: SGLight | None = None,
+        edit: MaterialEdit | None = None,
+    ) -> FieldOutput:
+        """Shade hit ``points (N, 3)`` with flat ``normals (N, 3)`` seen along ``view (N, 3)``
+        (unit, surface -> eye) under the learned light, or under ``light`` (relighting), with the
+        material optionally edited (``edit``)."""
+        material, normal = self.surface(points, normals, view)
+        if edit is not None:
+            material = edit.apply(material, self.svbrdf.min_roughness)
+        return FieldOutput(self.shade(material, normal, view, light), material, normal)
+
+    def shade(self, material: Material, normal: Tensor, view: Tensor, light: SGLight | None = None) -> Shading:
+        """The renderer's half of the forward pass: ``material`` and unit shading ``normal`` (from
+        :meth:`surface`) seen along ``view``, under the learned light or ``light``."""
+        light = light if light is not None else self.light()
+        return shade(normal, view, material.albedo, light, material.specular, material.roughness)

@@ -1,0 +1,54 @@
+"""Fitting SG lobes to an environment map (how relighting brings any map into the renderer)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from ..render.envmap import equirect_directions
+from ..render.shading import SGLight
+from .networks import SGLightModule
+
+
+def fit_sg_light(env: np.ndarray, lobes: int = 64, iterations: int = 400, seed: int = 0) -> tuple[SGLight, float]:
+    """Fit ``lobes`` RGB SG lobes to an equirectangular ``env (H, W, 3)`` by least squares
+    weighted by solid angle (Adam). Returns the light and the relative RMS error of the fit."""
+    h, w, _ = env.shape
+    dirs = equirect_directions(h, w).reshape(-1, 3)
+    el = math.pi / 2 - math.pi * (torch.arange(h) + 0.5) / h
+    weight = torch.cos(el)[:, None].expand(h, w).reshape(-1, 1)
+    target = torch.from_numpy(env.reshape(-1, 3).astype(np.float32))
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        energy = float((target * weight).sum(0).mean() * (2 * math.pi / w) * (math.pi / h))
+        module = SGLightModule(lobes, rgb=True, total_energy=max(energy, 1e-6))
+        # start a quarter of the lobes, sharper, on the brightest directions (suns, windows)
+        order = torch.argsort((target * weight).sum(-1), descending=True)
+        with torch.no_grad():
+            k = max(lobes // 4, 1)
+            picks, taken = [], []
+            for idx in order.tolist():
+                d = dirs[idx]
+                if all(float(d @ t) < 0.95 for t in taken):
+                    picks.append(idx)
+                    taken.append(d)
+                if len(picks) == k:
+                    break
+            module.axis_raw[: len(picks)] = dirs[picks]
+            module.sharpness_raw[: len(picks)] = 100.0
+    opt = torch.optim.Adam(module.parameters(), lr=0.03)
+    scale = target.abs().max().clamp(min=1e-12)
+    for _ in range(iterations):
+        light = module()
+        err = ((light.radiance(dirs) - target) / scale) ** 2 * weight
+        loss = err.mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    with torch.no_grad():
+        light = module()
+        diff = (light.radiance(dirs) - target) ** 2 * weight
+        rel = math.sqrt(float(diff.sum() / ((target**2) * weight).sum().clamp(min=1e-30)))
+    return SGLight(light.axis.detach(), light.sharpness.detach(), light.amplitude.detach()), rel

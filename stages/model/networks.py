@@ -1,0 +1,251 @@
+"""TANGO's learnable parts: positional encodings, the SVBRDF and normal MLPs, and the SG light.
+
+Constraints live in the parametrisation, so the renderer always receives valid inputs: albedo
+and specular colour in [0, 1] (sigmoid), roughness in [min_roughness, 1], unit normals tilted by a
+bounded offset, positive light sharpness and amplitude (softplus). Parts a scene does not need
+(the normal network, the specular/roughness heads) are not built at all when switched off, so
+they cost nothing at run time.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor, nn
+
+from ..render.sg import sg_integral
+from ..render.shading import SGLight
+
+
+# ------------------------------------------------------------------------------------ encodings
+class IdentityEncoding(nn.Module):
+    """No positional encoding (the ablation): the input passes through."""
+
+    def __init__(self, in_dim: int = 3) -> None:
+        super().__init__()
+        self.out_dim = in_dim
+
+    def forward(self, x: Tensor) -> Tensor:
+        return x
+
+
+class FourierFeatures(nn.Module):
+    """Gaussian random Fourier features (Tancik et al. 2020): ``[x, cos(2 pi B x), sin(2 pi B x)]``
+    with ``B (count, in_dim)`` drawn once from N(0, sigma^2) by ``generator`` (a fixed buffer).
+    ``x (N, in_dim)`` -> ``(N, in_dim + 2 count)``."""
+
+    def __init__(self, count: int, sigma: float, in_dim: int = 3, generator: torch.Generator | None = None) -> None:
+        super().__init__()
+        self.register_buffer("B", torch.randn(count, in_dim, generator=generator) * sigma)
+        self.out_dim = in_dim + 2 * count
+
+    def forward(self, x: Tensor) -> Tensor:
+        proj = 2.0 * math.pi * x @ self.B.T
+        return torch.cat([x, torch.cos(proj), torch.sin(proj)], dim=-1)
+
+
+class NerfEncoding(nn.Module):
+    """NeRF's frequency encoding (Mildenhall et al. 2020): ``[x, sin(2^k pi x), cos(2^k pi x)]``
+    for ``k = 0 .. frequencies - 1``. ``x (N, in_dim)`` -> ``(N, in_dim (1 + 2 frequencies))``."""
+
+    def __init__(self, frequencies: int, in_dim: int = 3) -> None:
+        super().__init__()
+        self.register_buffer("freqs", math.pi * 2.0 ** torch.arange(frequencies, dtype=torch.float32))
+        self.out_dim = in_dim * (1 + 2 * frequencies)
+
+    def forward(self, x: Tensor) -> Tensor:
+        xf = (x[..., None] * self.freqs).flatten(-2)  # (N, in_dim * F)
+        return torch.cat([x, torch.sin(xf), torch.cos(xf)], dim=-1)
+
+
+def make_encoding(kind: str, *, frequencies: int, count: int, sigma: float, generator: torch.Generator) -> nn.Module:
+    """``kind``: ``"nerf"`` (frequencies), ``"fourier"`` (count, sigma) or ``"none"``."""
+    if kind == "nerf":
+        return NerfEncoding(frequencies)
+    if kind == "fourier":
+        return FourierFeatures(count, sigma, generator=generator)
+    if kind == "none":
+        return IdentityEncoding()
+    raise ValueError(f"unknown encoding {kind!r}; use nerf, fourier or none")
+
+
+def symmetric(x: Tensor) -> Tensor:
+    """TANGO's symmetry prior: encode ``(x, y, |z|)`` (bilateral symmetry across the x-y plane)."""
+    return torch.cat([x[..., :2], x[..., 2:].abs()], dim=-1)
+
+
+def _mlp(in_dim: int, width: int, layers: int, out_dim: int) -> nn.Sequential:
+    mods: list[nn.Module] = []
+    d = in_dim
+    for _ in range(layers - 1):
+        mods += [nn.Linear(d, width), nn.ReLU(inplace=True)]
+        d = width
+    mods.append(nn.Linear(d, out_dim))
+    return nn.Sequential(*mods)
+
+
+def _init_constant(head: nn.Sequential, value: Tensor) -> None:
+    """Make a sigmoid head start near ``value`` everywhere: small last weights, bias = logit."""
+    last = head[-1]
+    with torch.no_grad():
+        last.weight.mul_(0.01)
+        last.bias.copy_(torch.logit(value))
+
+
+# --------------------------------------------------------------------------------------- SVBRDF
+@dataclass(frozen=True)
+class Material:
+    """Per-point material: ``albedo (N, 3)`` and, unless diffuse-only, ``specular (N, 3)`` in
+    [0, 1] and ``roughness (N, 1)`` in [min_roughness, 1]."""
+
+    albedo: Tensor
+    specular: Tensor | None
+    roughness: Tensor | None
+
+
+class SVBRDFNet(nn.Module):
+    """TANGO's SVBRDF MLP: a shared trunk (two layers) and three heads of three layers each for
+    diffuse albedo (3), specular colour (3) and roughness (1), all bounded by sigmoids.
+    ``specular=False`` builds the diffuse head only (the paper's "-spec, rough" ablation)."""
+
+    def __init__(
+        self,
+        encoding: nn.Module,
+        *,
+        width: int = 256,
+        specular: bool = True,
+        init_specular: float | None = None,
+        init_roughness: float | None = None,
+        min_roughness: float = 0.01,
+    ) -> None:
+        super().__init__()
+        self.encoding = encoding
+        self.min_roughness = min_roughness
+        self.trunk = nn.Sequential(
+            nn.Linear(encoding.out_dim, width),
+            nn.ReLU(inplace=True),
+            nn.Linear(width, width),
+            nn.ReLU(inplace=True),
+        )
+        self.diffuse = _mlp(width, width, 3, 3)
+        self.specular = _mlp(width, width, 3, 3) if specular else None
+        self.roughness = _mlp(width, width, 3, 1) if specular else None
+        if specular and init_specular is not None:
+            _init_constant(self.specular, torch.full((3,), float(init_specular)))
+        if specular and init_roughness is not None:
+            u = (float(init_roughness) - min_roughness) / (1.0 - min_roughness)
+            _init_constant(self.roughness, torch.tensor([u]))
+
+    def forward(self, points: Tensor) -> Material:
+        """``points (N, 3)`` (already symmetrised if the prior is on) -> :class:`Material`."""
+        h = self.trunk(self.encoding(points))
+        albedo = torch.sigmoid(self.diffuse(h))
+        if self.specular is None:
+            return Material(albedo, None, None)
+        spec = torch.sigmoid(self.specular(h))
+        rough = self.min_roughness + (1.0 - self.min_roughness) * torch.sigmoid(self.roughness(h))
+        return Material(albedo, spec, rough)
+
+
+# --------------------------------------------------------------------------------------- normals
+def tangent_frame(n: Tensor) -> tuple[Tensor, Tensor]:
+    """An orthonormal tangent frame ``t, b (N, 3)`` for unit normals ``n (N, 3)``, defined and
+    smooth everywhere except across the plane ``n_z = 0`` where its sign convention flips
+    (Duff et al. 2017, "Building an orthonormal basis, revisited", JCGT 6(1)). Exact; valid at
+    both poles (``n = +-z``), unlike spherical angles, whose azimuth is undefined there."""
+    x, y, z = n.unbind(-1)
+    sign = torch.where(z >= 0, torch.ones_like(z), -torch.ones_like(z))
+    a = -1.0 / (sign + z)
+    b = x * y * a
+    t = torch.stack([1.0 + sign * x * x * a, sign * b, -sign * x], dim=-1)
+    bt = torch.stack([b, sign + y * y * a, -y], dim=-1)
+    return t, bt
+
+
+class NormalNet(nn.Module):
+    """TANGO's normal-offset MLP (three layers) on the encoded point and the face normal.
+
+    TANGO offsets the normal's spherical angles, which is singular at the poles (the azimuth is
+    undefined at ``n = +-z``: its gradient is infinite there and an azimuth offset does nothing;
+    see ``tests/test_networks.py``). Here the network predicts an equivalent bounded offset in
+    the normal's tangent frame instead: ``n' = normalize(n + d1 t + d2 b)`` with
+    ``d = max_delta tanh(.)``, so the tilt is at most ``atan(sqrt(2) max_delta)`` everywhere.
+    """
+
+    def __init__(self, encoding: nn.Module, *, width: int = 256, max_delta: float = 0.3) -> None:
+        super().__init__()
+        self.encoding = encoding
+        self.max_delta = max_delta
+        self.mlp = _mlp(encoding.out_dim + 3, width, 3, 2)
+        with torch.no_grad():  # start from the geometric normal
+            self.mlp[-1].weight.mul_(0.01)
+            self.mlp[-1].bias.zero_()
+
+    def forward(self, points: Tensor, normals: Tensor) -> Tensor:
+        """``points (N, 3)``, unit ``normals (N, 3)`` -> unit predicted normals ``(N, 3)``."""
+        d = self.max_delta * torch.tanh(self.mlp(torch.cat([self.encoding(points), normals], dim=-1)))
+        t, b = tangent_frame(normals)
+        out = normals + d[:, :1] * t + d[:, 1:] * b
+        return out / torch.linalg.vector_norm(out, dim=-1, keepdim=True)
+
+
+# ----------------------------------------------------------------------------------------- light
+def fibonacci_sphere(k: int) -> Tensor:
+    """``k`` nearly uniform unit directions ``(k, 3)`` on a Fibonacci spiral (y up)."""
+    i = torch.arange(k, dtype=torch.float64) + 0.5
+    polar = torch.acos(1.0 - 2.0 * i / k)
+    azim = math.pi * (1.0 + 5.0**0.5) * i
+    return torch.stack([torch.cos(azim) * torch.sin(polar), torch.cos(polar), torch.sin(azim) * torch.sin(polar)], dim=-1).float()
+
+
+def _inv_softplus(y: Tensor) -> Tensor:
+    return y + torch.log(-torch.expm1(-y))
+
+
+class SGLightModule(nn.Module):
+    """``K`` learnable SG lobes, initialised on a Fibonacci sphere with equal sharpness and a
+    configured total energy ``E = sum_k int G_k`` (the true SG integral; TANGO's eq. 7 divides
+    by ``1 - exp(-2 lam)`` where the integral multiplies, which we do not follow). ``rgb=False``
+    learns one amplitude per lobe (monochrome light). Parametrisation: axes normalised, sharpness
+    ``min_sharpness + softplus(.)``, amplitude ``softplus(.)``.
+
+    With ``E = 2 pi`` (TANGO initialises 6.25), a uniform environment has radiance 0.5, so a white
+    diffuse surface renders at 0.5.
+    """
+
+    def __init__(
+        self,
+        lobes: int = 32,
+        *,
+        rgb: bool = True,
+        total_energy: float = 6.25,
+        init_sharpness: float | None = None,
+        min_sharpness: float = 0.01,
+    ) -> None:
+        super().__init__()
+        if init_sharpness is None:
+            # neighbours (spacing sqrt(4 pi / K)) overlap at half maximum
+            spacing = math.sqrt(4.0 * math.pi / lobes)
+            init_sharpness = math.log(2.0) / (1.0 - math.cos(spacing))
+        self.min_sharpness = min_sharpness
+        channels = 3 if rgb else 1
+        lam = torch.full((lobes, 1), float(init_sharpness))
+        per_lobe = total_energy / lobes / sg_integral(lam[:1], torch.ones(1, 1)).item()
+        self.axis_raw = nn.Parameter(fibonacci_sphere(lobes))
+        self.sharpness_raw = nn.Parameter(_inv_softplus(lam - min_sharpness))
+        self.amplitude_raw = nn.Parameter(_inv_softplus(torch.full((lobes, channels), per_lobe)))
+
+    def forward(self) -> SGLight:
+        axis = self.axis_raw / torch.linalg.vector_norm(self.axis_raw, dim=-1, keepdim=True)
+        lam = self.min_sharpness + nn.functional.softplus(self.sharpness_raw)
+        amp = nn.functional.softplus(self.amplitude_raw)
+        if amp.shape[-1] == 1:
+            amp = amp.expand(-1, 3)
+        return SGLight(axis, lam, amp)
+
+    def energy(self) -> Tensor:
+        """Total energy per channel ``(3,)``: the sum of the lobes' sphere integrals."""
+        light = self()
+        return sg_integral(light.sharpness, light.amplitude).sum(0)

@@ -1,0 +1,86 @@
+"""Equirectangular environment maps: pixel directions, procedural skies (no downloads), loading.
+
+``sunset``: a warm low sun, an orange-to-blue sky and a dim ground; ``overcast``: a soft, bright,
+nearly uniform sky; ``night``: the same layout as sunset at a twentieth of the brightness (for
+checks that a darker environment darkens a render). Rows run from the zenith (row 0) to the
+nadir; columns follow the cameras' azimuth (see :func:`equirect_directions`).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..config.sections import PROCEDURAL_ENVMAPS as PROCEDURAL
+from ..core.cli import stage_main
+from ..core.errors import StageInputError
+from .hdrio import read_envmap, write_hdr
+
+log = logging.getLogger(__name__)
+
+
+def equirect_directions(height: int, width: int) -> Tensor:
+    """Unit directions ``(H, W, 3)`` of an equirectangular image, y up: row 0 is the zenith,
+    column ``j`` has azimuth ``2 pi (j + 0.5) / W`` measured like the cameras
+    (``(cos a, 0, sin a)``)."""
+    el = math.pi / 2 - math.pi * (torch.arange(height) + 0.5) / height
+    az = 2 * math.pi * (torch.arange(width) + 0.5) / width
+    ee, aa = torch.meshgrid(el, az, indexing="ij")
+    return torch.stack([torch.cos(ee) * torch.cos(aa), torch.sin(ee), torch.cos(ee) * torch.sin(aa)], dim=-1)
+
+
+def procedural_envmap(name: str, height: int = 128) -> np.ndarray:
+    """``(height, 2 height, 3) float32`` linear radiance of the named procedural sky."""
+    d = equirect_directions(height, 2 * height).numpy().astype(np.float64)
+    y = d[..., 1]
+    if name in ("sunset", "night"):
+        sun = np.array([math.cos(0.25) * math.cos(2.0), math.sin(0.25), math.cos(0.25) * math.sin(2.0)])
+        cos_sun = d @ sun
+        sky = np.where(
+            y[..., None] >= 0,
+            (1 - y[..., None]) * np.array([1.2, 0.55, 0.25]) + y[..., None] * np.array([0.25, 0.4, 0.9]),
+            np.array([0.12, 0.1, 0.08]),
+        )
+        img = sky + 12.0 * np.exp(150.0 * (cos_sun[..., None] - 1.0)) * np.array([1.0, 0.75, 0.45])
+        img += 1.5 * np.exp(20.0 * (cos_sun[..., None] - 1.0)) * np.array([1.0, 0.6, 0.3])
+        if name == "night":
+            img = img / 20.0
+    elif name == "overcast":
+        img = np.where(y[..., None] >= 0, 0.9 + 0.3 * y[..., None], 0.3) * np.array([1.0, 1.0, 1.02])
+    else:
+        raise ValueError(f"unknown procedural environment {name!r}; choose one of {', '.join(PROCEDURAL)}")
+    return img.astype(np.float32)
+
+
+def load_env(spec: str) -> np.ndarray:
+    """``(H, W, 3) float32`` radiance of ``spec``: a ``.hdr``/``.exr`` path or ``builtin:<name>``."""
+    if spec.startswith("builtin:"):
+        name = spec.split(":", 1)[1]
+        if name not in PROCEDURAL:
+            raise StageInputError(spec, f"no procedural environment {name!r}", f"Use one of {', '.join(PROCEDURAL)}.")
+        return procedural_envmap(name)
+    return read_envmap(spec)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m stages.render.envmap --name sunset --out sunset.hdr``: write a procedural map."""
+
+    def arguments(parser):
+        parser.add_argument("--name", required=True, choices=PROCEDURAL)
+        parser.add_argument("--out", required=True, type=Path, help="output .hdr")
+        parser.add_argument("--height", type=int, default=128)
+
+    def body(args):
+        write_hdr(args.out, procedural_envmap(args.name, args.height))
+        log.info("wrote %s (%dx%d)", args.out, 2 * args.height, args.height)
+
+    return stage_main("render.envmap", "Write a procedural environment map.", arguments, body, argv)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,111 @@
+"""High-dynamic-range images: Radiance RGBE (.hdr, read and write, no dependency) and OpenEXR
+(.exr, through the OpenEXR package). Arrays are ``(H, W, 3) float32``, linear radiance, row 0 at
+the top."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+
+from ..core.errors import StageInputError
+from ..core.provenance import atomic_path
+
+
+def _to_rgbe(rgb: np.ndarray) -> np.ndarray:
+    rgb = np.maximum(np.asarray(rgb, np.float32), 0.0)
+    m = rgb.max(axis=-1)
+    mant, exp = np.frexp(m)
+    scale = np.where(m > 1e-32, mant * 256.0 / np.where(m > 0, m, 1.0), 0.0)
+    out = np.zeros(rgb.shape[:-1] + (4,), np.uint8)
+    out[..., :3] = np.clip(rgb * scale[..., None], 0, 255).astype(np.uint8)
+    out[..., 3] = np.where(m > 1e-32, exp + 128, 0).astype(np.uint8)
+    return out
+
+
+def write_hdr(path: str | Path, rgb: np.ndarray) -> None:
+    """Write ``rgb (H, W, 3)`` as a flat (uncompressed) Radiance RGBE file, atomically."""
+    h, w, _ = rgb.shape
+    header = f"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n-Y {h} +X {w}\n".encode("ascii")
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(header + _to_rgbe(rgb).tobytes())
+
+
+def read_hdr(path: str | Path) -> np.ndarray:
+    """Read a Radiance RGBE file (flat or new-style run-length encoded, ``-Y H +X W``)."""
+    path = Path(path)
+    data = path.read_bytes()
+    if not data.startswith(b"#?"):
+        raise StageInputError(path, "is not a Radiance HDR file (no #? signature)")
+    end = data.find(b"\n\n")
+    m = re.match(rb"-Y (\d+) \+X (\d+)\n", data[end + 2 : end + 40])
+    if end < 0 or not m:
+        raise StageInputError(path, "has an unsupported Radiance HDR header (need '-Y H +X W')")
+    h, w = int(m.group(1)), int(m.group(2))
+    pos = end + 2 + m.end()
+    buf = np.frombuffer(data, np.uint8, offset=pos)
+    out = np.zeros((h, w, 4), np.uint8)
+    i = 0
+    for y in range(h):
+        if 8 <= w < 32768 and buf[i] == 2 and buf[i + 1] == 2 and (buf[i + 2] << 8 | buf[i + 3]) == w:
+            i += 4
+            for c in range(4):
+                x = 0
+                while x < w:
+                    n = int(buf[i])
+                    i += 1
+                    if n > 128:
+                        out[y, x : x + n - 128, c] = buf[i]
+                        x += n - 128
+                        i += 1
+                    else:
+                        out[y, x : x + n, c] = buf[i : i + n]
+                        x += n
+                        i += n
+        else:
+            out[y] = buf[i : i + 4 * w].reshape(w, 4)
+            i += 4 * w
+    e = out[..., 3].astype(np.int32)
+    scale = np.where(e > 0, np.ldexp(1.0, e - 136), 0.0).astype(np.float32)
+    return out[..., :3].astype(np.float32) * scale[..., None]
+
+
+def write_exr(path: str | Path, rgb: np.ndarray) -> None:
+    """Write ``rgb (H, W, 3)`` as a ZIP-compressed float32 OpenEXR file, atomically."""
+    try:
+        import OpenEXR
+    except ImportError as exc:  # pragma: no cover
+        raise ImportError("writing EXR needs the OpenEXR package: pip install OpenEXR") from exc
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    with atomic_path(path) as tmp:
+        with OpenEXR.File(header, {"RGB": np.ascontiguousarray(rgb, np.float32)}) as f:
+            f.write(str(tmp))
+
+
+def read_exr(path: str | Path) -> np.ndarray:
+    import OpenEXR
+
+    with OpenEXR.File(str(path)) as f:
+        ch = f.channels()
+        if "RGB" in ch:
+            return np.asarray(ch["RGB"].pixels, np.float32)
+        return np.stack([np.asarray(ch[c].pixels, np.float32) for c in "RGB"], axis=-1)
+
+
+def read_envmap(path: str | Path) -> np.ndarray:
+    """An equirectangular environment map from ``.hdr`` or ``.exr``: ``(H, W, 3) float32``."""
+    path = Path(path)
+    if not path.is_file():
+        raise StageInputError(path, "file not found", "Give an equirectangular .hdr or .exr file.")
+    if path.suffix.lower() == ".hdr":
+        img = read_hdr(path)
+    elif path.suffix.lower() == ".exr":
+        img = read_exr(path)
+    else:
+        raise StageInputError(path, f"unsupported environment map format {path.suffix!r}", "Use .hdr or .exr.")
+    if img.ndim != 3 or img.shape[1] != 2 * img.shape[0]:
+        raise StageInputError(path, f"is {img.shape[1]}x{img.shape[0]}, not a 2:1 equirectangular map")
+    if not np.isfinite(img).all():
+        raise StageInputError(path, "contains NaN or infinite pixels")
+    return img

@@ -1,0 +1,169 @@
+"""One optimisation run's state and step (TANGO Sec. 3.3), its checkpoints and its loss records.
+
+Per step: pick ``views_per_step`` views of the cached pool, build one global image per view and
+``crops`` local crops with enough object coverage (:mod:`stages.imaging.images`), shade only the
+cached hits those images need through the field, and minimise the objective
+(:mod:`stages.guidance.objective`). AdamW with step decay. The state (networks, light, optimiser,
+scheduler, RNG states, loss history) round-trips through :meth:`Optimizer.state` and
+:meth:`Optimizer.load`, so a resumed run ends with the same parameters as an uninterrupted one.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..config.sections import OptimizeSettings
+from ..core.provenance import Timer, atomic_path
+from ..geometry.raycache import RayCache
+from ..guidance.objective import Objective
+from ..imaging.images import ImageSpec, background, compose, gather_points, global_spec, sample_crops
+from ..imaging.views import CachedView, ViewStore
+from ..model.field import StyleField
+from ..render.color import linear_to_srgb
+
+
+def _rng_state(np_rng: np.random.Generator, tgen: torch.Generator) -> dict:
+    return {"numpy": np_rng.bit_generator.state, "torch": tgen.get_state()}
+
+
+def save_checkpoint(path: Path, **state) -> None:
+    with atomic_path(path) as tmp:
+        torch.save(state, tmp)
+
+
+class Optimizer:
+    """One optimisation run: state, step function, checkpointing."""
+
+    def __init__(self, settings: OptimizeSettings, train: RayCache, prompt: str, device, guide=None) -> None:
+        self.s = settings
+        self.device = torch.device(device)
+        self.views = ViewStore(train, self.device)
+        self.prompt = prompt
+        self.field = StyleField(settings.field_settings()).to(self.device)
+        self.opt = torch.optim.AdamW(self.field.parameters(), lr=settings.lr, weight_decay=settings.weight_decay)
+        self.sched = torch.optim.lr_scheduler.MultiStepLR(self.opt, milestones=list(settings.milestones), gamma=settings.gamma)
+        self.np_rng = np.random.default_rng(settings.seed)
+        self.tgen = torch.Generator().manual_seed(settings.seed)
+        self.iteration = 0
+        self.history: list[dict] = []
+        self.objective = Objective(settings, prompt, self.device, guide)
+        self.points_last = 0
+
+    # -- checkpoints
+    def state(self) -> dict:
+        return {
+            "digest": self.s.digest(),
+            "iteration": self.iteration,
+            "field": self.field.state_dict(),
+            "optimizer": self.opt.state_dict(),
+            "scheduler": self.sched.state_dict(),
+            "rng": _rng_state(self.np_rng, self.tgen),
+            "history": self.history,
+        }
+
+    def load(self, state: dict) -> None:
+        self.field.load_state_dict(state["field"])
+        self.opt.load_state_dict(state["optimizer"])
+        self.sched.load_state_dict(state["scheduler"])
+        self.np_rng.bit_generator.state = state["rng"]["numpy"]
+        self.tgen.set_state(state["rng"]["torch"])
+        self.iteration = int(state["iteration"])
+        self.history = list(state["history"])
+
+    # -- one step
+    def image_specs(self, v: CachedView) -> list[ImageSpec]:
+        """The images of one view in a step: the global image, then ``crops`` random crops with
+        enough object coverage (drawn from the run's RNG)."""
+        s = self.s
+        specs = [global_spec(self.views.width, s.image_size, s.supersample)]
+        specs += sample_crops(
+            v.mask,
+            s.crops,
+            scale=s.crop_scale,
+            min_coverage=s.crop_coverage,
+            max_tries=s.crop_max_tries,
+            out_size=s.image_size,
+            rng=self.np_rng,
+            supersample=s.supersample,
+        )
+        return specs
+
+    def step(self, timer: Timer) -> dict:
+        s = self.s
+        with timer("gather"):
+            ids = self.np_rng.choice(len(self.views), size=s.views_per_step, replace=len(self.views) < s.views_per_step)
+            batches = []
+            for i in ids:
+                v = self.views[int(i)]
+                specs = self.image_specs(v)
+                needed, lookups = gather_points(specs, v.index)
+                sel = torch.from_numpy(needed).to(self.device)
+                bgs = [background(s.background, s.image_size, self.tgen, self.device) for _ in specs]
+                batches.append((v, sel, specs, lookups, bgs))
+        with timer("networks+shading"):
+            globals_, crops, globals_t, crops_t = [], [], [], []
+            npts = 0
+            for v, sel, specs, lookups, bgs in batches:
+                pts, nrm, view = v.points[sel], v.normals[sel], v.view[sel]
+                npts += len(sel)
+                color = linear_to_srgb(self.field(pts, nrm, view).shading.rgb)
+                imgs = [compose(color, lk, sp, bg) for lk, sp, bg in zip(lookups, specs, bgs, strict=True)]
+                globals_.append(imgs[0])
+                crops.extend(imgs[1:])
+                if self.objective.guide is None:
+                    with torch.no_grad():
+                        tcol = linear_to_srgb(self.objective.target_colors(pts, nrm, view))
+                    timgs = [compose(tcol, lk, sp, bg) for lk, sp, bg in zip(lookups, specs, bgs, strict=True)]
+                    globals_t.append(timgs[0])
+                    crops_t.extend(timgs[1:])
+        with timer("guidance"):
+            loss, stats = self.objective.loss(globals_, crops, globals_t, crops_t)
+        with timer("backward"):
+            self.opt.zero_grad(set_to_none=True)
+            loss.backward()
+        with timer("optimizer"):
+            lr = self.sched.get_last_lr()[0]
+            self.opt.step()
+            self.sched.step()
+        self.iteration += 1
+        self.points_last = npts
+        row = {"iteration": self.iteration, "loss": float(loss.detach()), "lr": lr, "points": npts, **stats}
+        self.history.append(row)
+        return row
+
+
+def write_loss_csv(path: Path, history: list[dict]) -> None:
+    """The loss history, one row per iteration, atomically."""
+    keys = sorted({k for row in history for k in row}, key=lambda k: (k != "iteration", k))
+    with atomic_path(path) as tmp:
+        with open(tmp, "w", newline="") as fh:
+            w = csv.DictWriter(fh, fieldnames=keys)
+            w.writeheader()
+            w.writerows(history)
+
+
+def plot_loss(path: Path, history: list[dict], title: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 3.5), dpi=100)
+    it = [r["iteration"] for r in history]
+    ax.plot(it, [r["loss"] for r in history], lw=0.8, label="loss")
+    if history and "similarity_global" in history[0]:
+        ax.plot(it, [-r["similarity_global"] for r in history], lw=0.8, label="-similarity (global)")
+    ax.set_xlabel("iteration")
+    ax.set_title(title, fontsize=9)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png")
+    plt.close(fig)
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(buf.getvalue())

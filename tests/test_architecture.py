@@ -1,0 +1,123 @@
+"""The library's structure (ARCHITECTURE.md): layers whose imports only go down, stage modules that
+never import each other, one stage module per rule, no import hidden in a function to dodge a
+cycle, and a workflow whose DAG builds without torch."""
+
+import ast
+import importlib
+import os
+import re
+import shutil
+import subprocess
+import sys
+
+import pytest
+from conftest import REPO, require_tool
+
+STAGES = REPO / "stages"
+#: the library's layers, top to bottom (as in pyproject.toml's import contract)
+LAYERS = ("training", "assets", "results", "guidance", "imaging", "model", "render", "geometry", "config", "core")
+
+
+def rules() -> dict[str, str]:
+    """Rule name -> the stage module its shell line runs (``python -m stages.<module>``)."""
+    out = {}
+    for smk in sorted((REPO / "workflow" / "rules").glob("*.smk")):
+        text = smk.read_text()
+        for m in re.finditer(r"^rule (\w+):\n(.*?)(?=^rule |\Z)", text, re.S | re.M):
+            called = re.findall(r"python -m stages\.(\w+)", m.group(2))
+            assert len(called) == 1, f"rule {m.group(1)} ({smk.name}) must call exactly one stage"
+            out[m.group(1)] = called[0]
+    return out
+
+
+def test_import_contracts_hold():
+    """import-linter's layers, independence and forbidden contracts (pyproject.toml)."""
+    exe = shutil.which("lint-imports", path=os.path.dirname(sys.executable)) or shutil.which("lint-imports")
+    require_tool(exe is not None, "import-linter is not installed (pip install -e '.[test]')")
+    proc = subprocess.run([exe, "--no-cache"], cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stdout[-4000:] + proc.stderr[-2000:]
+    assert "0 broken" in proc.stdout
+
+
+def test_every_rule_runs_its_own_thin_stage_module():
+    found = rules()
+    assert {"normalize", "decimate", "raycache", "optimize", "bake", "export", "relight", "metrics"} <= set(found)
+    stage_files = {p.stem for p in STAGES.glob("*.py") if p.stem != "__init__"}
+    assert set(found.values()) == stage_files, "every stage module is run by a rule, and only stage modules sit in stages/"
+    for rule, module in found.items():
+        assert rule == module, f"rule {rule} runs stages.{module}: name them alike"
+        mod = importlib.import_module(f"stages.{module}")
+        assert callable(mod.run) and callable(mod.main), module
+
+
+def test_per_cell_rules_write_the_folder_named_after_them():
+    """Rule ``export`` writes ``export/``: each per-cell rule's outputs sit in its own folder."""
+    common = (REPO / "workflow" / "rules" / "common.smk").read_text()
+    for stage in ("optimize", "bake", "export", "relight", "metrics"):
+        smk = (REPO / "workflow" / "rules" / f"{stage}.smk").read_text()
+        folders = set(re.findall(r"\{CELL\}/(\w+)/", smk + common)) - {"logs", "benchmarks"}
+        assert stage in folders, stage
+    assert "{CELL}/asset/" not in common
+
+
+def test_no_project_import_inside_a_function():
+    """Function-local imports hide cycles; third-party ones (heavy or optional packages) are fine."""
+    offenders = []
+    for path in sorted(STAGES.rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+                for sub in ast.walk(node):
+                    if isinstance(sub, ast.ImportFrom) and (sub.level or (sub.module or "").startswith("stages")):
+                        offenders.append(f"{path.relative_to(REPO)}:{sub.lineno}")
+                    if isinstance(sub, ast.Import) and any(a.name.startswith("stages") for a in sub.names):
+                        offenders.append(f"{path.relative_to(REPO)}:{sub.lineno}")
+    assert not offenders, offenders
+
+
+def test_layers_are_packages_with_a_description():
+    for layer in LAYERS:
+        init = STAGES / layer / "__init__.py"
+        assert init.is_file(), layer
+        assert ast.get_docstring(ast.parse(init.read_text())), f"stages/{layer}/__init__.py says what the layer holds"
+    assert (REPO / "ARCHITECTURE.md").is_file()
+    text = (REPO / "ARCHITECTURE.md").read_text()
+    for layer in LAYERS:
+        assert f"stages/{layer}" in text, layer
+
+
+def test_dry_run_builds_the_dag_without_torch(tmp_path):
+    """``snakemake -n`` on the default config imports neither torch nor numpy's heavy users."""
+    code = (
+        "import sys\n"
+        "from snakemake.cli import main\n"
+        "try:\n"
+        "    main(['-n', '--quiet', '--directory', sys.argv[1], '--snakefile', sys.argv[2]])\n"
+        "except SystemExit as exc:\n"
+        "    assert not exc.code, exc.code\n"
+        "print('TORCH' if 'torch' in sys.modules else 'NO-TORCH')\n"
+    )
+    env = {**os.environ, "XDG_CACHE_HOME": str(tmp_path / "cache")}
+    (tmp_path / "config").mkdir()
+    shutil.copy(REPO / "config" / "config.yaml", tmp_path / "config" / "config.yaml")
+    proc = subprocess.run(
+        [sys.executable, "-c", code, str(tmp_path), str(REPO / "Snakefile")],
+        cwd=REPO,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert proc.stdout.strip().splitlines()[-1] == "NO-TORCH"
+
+
+def test_importing_the_settings_loads_no_torch():
+    code = "import sys, stages.config.workflow, stages.config.sections, stages.config.layout; print('torch' in sys.modules)"
+    proc = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert proc.stdout.strip() == "False", proc.stderr
+
+
+@pytest.mark.parametrize("helper", ["psnr", "linear_to_srgb", "stage_main", "resolve_device", "contact_sheet", "save_png"])
+def test_each_shared_helper_is_defined_once(helper):
+    defined = [str(p.relative_to(REPO)) for p in STAGES.rglob("*.py") if re.search(rf"^def {helper}\(", p.read_text(), re.M)]
+    assert len(defined) == 1, defined

@@ -1,0 +1,183 @@
+"""The optimisation loop: a step changes the parameters, kill-and-resume equals an uninterrupted
+run, ablations build less, outputs and metadata, and image-target recovery (>= 30 dB)."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from stages import optimize
+from stages.config.layout import OPTIMIZE_FILES
+from stages.config.sections import NormalizeSettings, OptimizeSettings, RaycacheSettings
+from stages.core.provenance import Timer
+from stages.geometry.meshio import save_ply
+from stages.geometry.normalization import normalize_mesh
+from stages.geometry.raycache import RayCache
+from stages.model.checkpoint import load_field
+from stages.model.field import StyleField
+from stages.raycache import run as raycache_run
+from stages.training.optimizer import Optimizer
+
+TINY = dict(
+    clip_tiny_test=True,
+    image_size=64,
+    width=32,
+    crops=2,
+    light_lobes=8,
+    eval_width=32,
+    material_frequencies=4,
+)
+
+
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory):
+    d = tmp_path_factory.mktemp("rc")
+    save_ply(d / "vase.ply", normalize_mesh("builtin:vase", NormalizeSettings()).mesh)
+    raycache_run(
+        d / "vase.ply",
+        d / "train.npz",
+        d / "eval.npz",
+        d / "meta.json",
+        RaycacheSettings(views=6, resolution=64, eval_azimuths=4, eval_elevations_deg=(0.0, 30.0), eval_resolution=48),
+    )
+    return d
+
+
+def params(module) -> dict[str, torch.Tensor]:
+    return {k: v.detach().clone() for k, v in module.state_dict().items()}
+
+
+def test_one_clip_step_changes_parameters(cache):
+    opt = Optimizer(OptimizeSettings(iterations=1, **TINY), RayCache(cache / "train.npz"), "a vase made of wood", "cpu")
+    before = params(opt.field)
+    row = opt.step(Timer())
+    after = params(opt.field)
+    changed = [k for k in before if not torch.equal(before[k], after[k])]
+    assert any(k.startswith("svbrdf") for k in changed)
+    assert any(k.startswith("normal_net") for k in changed)
+    assert any(k.startswith("light") for k in changed)
+    assert math.isfinite(row["loss"]) and -2 <= row["loss"] <= 2
+    # only the pixels the images need were shaded: global 64x64 plus two crops of at most 64x64
+    assert 0 < row["points"] <= 3 * 64 * 64
+
+
+def test_kill_and_resume_matches_uninterrupted_run(cache, tmp_path):
+    s = OptimizeSettings(iterations=8, checkpoint_every=3, background="noise", **TINY)
+    ref = optimize.run(cache / "train.npz", cache / "eval.npz", "a vase", tmp_path / "ref", s, "cpu")
+    # a run that dies after 5 iterations (its last checkpoint is at 3), then a rerun
+    out = tmp_path / "killed"
+    assert optimize.run(cache / "train.npz", cache / "eval.npz", "a vase", out, s, "cpu", stop_after=5) == {"stopped_at": 5}
+    assert (out / "checkpoint.pt").is_file() and not (out / "meta.json").exists()
+    resumed = optimize.run(cache / "train.npz", cache / "eval.npz", "a vase", out, s, "cpu")
+    assert resumed["resumed_from_iteration"] == 3  # the last checkpoint before the kill
+    a = torch.load(tmp_path / "ref" / "field.pt", weights_only=False)["state_dict"]
+    b = torch.load(out / "field.pt", weights_only=False)["state_dict"]
+    for k in a:
+        torch.testing.assert_close(a[k], b[k], rtol=0, atol=0, msg=k)
+    assert not (out / "checkpoint.pt").exists()
+    assert ref["final_similarity"] == pytest.approx(resumed["final_similarity"], abs=1e-6)
+
+
+def test_checkpoint_from_other_settings_is_not_resumed(cache, tmp_path):
+    s = OptimizeSettings(iterations=4, checkpoint_every=2, **TINY)
+    optimize.run(cache / "train.npz", cache / "eval.npz", "a vase", tmp_path, s, "cpu", stop_after=3)
+    other = OptimizeSettings(iterations=4, checkpoint_every=2, **{**TINY, "width": 16})
+    meta = optimize.run(cache / "train.npz", cache / "eval.npz", "a vase", tmp_path, other, "cpu")
+    assert meta["resumed_from_iteration"] is None
+
+
+def test_outputs_and_metadata(cache, tmp_path):
+    s = OptimizeSettings(iterations=3, **TINY)
+    optimize.run(cache / "train.npz", cache / "eval.npz", "a vase made of wood", tmp_path, s, "cpu")
+    for name in OPTIMIZE_FILES.values():
+        assert (tmp_path / name).is_file(), name
+    saved = json.loads((tmp_path / "meta.json").read_text())
+    assert saved["test_only_weights"] is True and "TEST ONLY" in saved["weights"]
+    assert saved["prompt"] == "a vase made of wood" and saved["seed"] == 0
+    assert "final_similarity" in saved and len(saved["final_similarity_per_view"]) == 8
+    assert saved["versions"]["torch"] and saved["timings_s"]["loop"] > 0
+    rows = (tmp_path / "loss.csv").read_text().splitlines()
+    assert rows[0].startswith("iteration") and len(rows) == 4
+    light = np.load(tmp_path / "light.npz")
+    assert light["equirect"].shape == (128, 256, 3) and (light["equirect"] > 0).all()
+    field, settings = load_field(tmp_path / "field.pt")
+    assert settings == s and isinstance(field, StyleField)
+    from PIL import Image
+
+    sheet = Image.open(tmp_path / "renders" / "rgb.png")
+    assert sheet.size == (4 * 32, 2 * 32)
+
+
+def test_switched_off_parts_are_not_built():
+    full = StyleField(OptimizeSettings(width=32).field_settings())
+    plain = StyleField(
+        OptimizeSettings(width=32, normal_network=False, specular=False, material_encoding="none", crops=0).field_settings()
+    )
+    assert full.normal_net is not None and plain.normal_net is None
+    assert plain.svbrdf.specular is None and plain.svbrdf.roughness is None
+    assert sum(p.numel() for p in plain.parameters()) < 0.4 * sum(p.numel() for p in full.parameters())
+    no_delta = StyleField(OptimizeSettings(width=32, normal_max_delta=0.0).field_settings())
+    assert no_delta.normal_net is None
+
+
+def _recover(tmp_path, **overrides) -> dict:
+    """Fit the image targets of a procedural material and light on the built-in vase (300
+    iterations, the sweep's base settings) and return the optimisation's metadata."""
+    save_ply(tmp_path / "vase.ply", normalize_mesh("builtin:vase", NormalizeSettings()).mesh)
+    rc = RaycacheSettings(
+        views=32,
+        resolution=96,
+        std=3.0,
+        eval_azimuths=8,
+        eval_elevations_deg=(-20.0, 10.0, 35.0),
+        eval_resolution=96,
+    )
+    raycache_run(tmp_path / "vase.ply", tmp_path / "train.npz", tmp_path / "eval.npz", tmp_path / "rc.json", rc)
+    settings = {
+        "iterations": 300,
+        "guidance": "image",
+        "target_material": "wood",
+        "lr": 5e-3,
+        "milestones": (180, 255),
+        "gamma": 0.3,
+        "width": 64,
+        "image_size": 96,
+        "crops": 0,
+        "views_per_step": 2,
+        "normal_network": False,
+        "material_frequencies": 6,
+        "light_lobes": 16,
+        "eval_width": 96,
+        "checkpoint_every": 1000,
+        **overrides,
+    }
+    torch.set_num_threads(2)
+    return optimize.run(tmp_path / "train.npz", tmp_path / "eval.npz", "", tmp_path / "out", OptimizeSettings(**settings), "cpu")
+
+
+@pytest.mark.slow
+def test_image_target_recovery_representable_target(tmp_path):
+    """The easy case, kept as a regression check of the optimisation: the target's light (4 SG
+    lobes) and flat normals are exactly representable by the model (16 lobes, no normal network),
+    and the target is rendered by our own renderer. PSNR over object pixels of the held-out
+    evaluation views only (measured 2026-11-22: 30.4 dB, 72 s on 2 CPU cores shared with other work)."""
+    meta = _recover(tmp_path)
+    assert meta["eval_psnr_db"] >= 29.0
+    assert meta["eval_psnr_pixels"].startswith("object pixels")
+    assert meta["weights"].startswith("image targets") and meta["origin"]["image_guided"]
+    assert (tmp_path / "out" / "renders" / "target.png").is_file()
+
+
+@pytest.mark.slow
+def test_image_target_recovery_unrepresentable_light(tmp_path):
+    """A target the model cannot represent exactly: the `sky` light (a 1.5-degree sun, a graded
+    sky and a ground: 97 lobes) against a model of 16 lobes, with the normal network on (free to
+    tilt the normals away from the target's flat ones). Object pixels only (measured 2026-11-22:
+    27.4 dB, 3 dB below the representable case, 132 s)."""
+    meta = _recover(tmp_path, target_light="sky", normal_network=True)
+    assert meta["eval_psnr_db"] >= 26.0
+    assert meta["origin"]["weights"].endswith("under sky light")

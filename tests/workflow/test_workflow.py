@@ -1,0 +1,199 @@
+"""The Snakemake workflow: DAG of the default config, a smoke run, --keep-going on bad input."""
+
+from __future__ import annotations
+
+import json
+import re
+
+import numpy as np
+import pytest
+import yaml
+from conftest import REPO, run_snakemake
+
+from stages.geometry.raycache import RayCache
+
+SMOKE = REPO / "tests" / "smoke" / "config.yaml"
+
+
+def job_counts(stdout: str) -> dict[str, int]:
+    table = stdout[stdout.index("Job stats:") :]
+    return {m[1]: int(m[2]) for m in re.finditer(r"^(\w+)\s+(\d+)$", table, re.M)}
+
+
+def test_dry_run_default_config(tmp_path):
+    # no --configfile: the Snakefile's default experiment (config/config.yaml, relative to the
+    # working directory), so run from a copy of the config folder
+    (tmp_path / "config").mkdir()
+    (tmp_path / "config" / "config.yaml").write_text((REPO / "config" / "config.yaml").read_text())
+    proc = run_snakemake(tmp_path, "-n", "--cores", "2")
+    assert proc.returncode == 0, proc.stderr
+    counts = job_counts(proc.stdout)
+    assert counts == {
+        "normalize": 3,
+        "raycache": 3,
+        "optimize": 6,
+        "bake": 6,
+        "export": 6,
+        "relight": 6,
+        "metrics": 6,
+        "report": 1,
+        "pack": 1,
+        "html_report": 1,
+        "all": 1,
+        "total": 40,
+    }
+
+
+def test_configfile_replaces_default_and_dag_is_per_mesh(tmp_path):
+    """3 meshes x 3 prompts x 2 variants: mesh stages still run once per mesh."""
+    (tmp_path / "config").mkdir()
+    (tmp_path / "config" / "config.yaml").write_text((REPO / "config" / "config.yaml").read_text())
+    proc = run_snakemake(tmp_path, "-n", "--cores", "2", "--configfile", str(SMOKE))
+    assert proc.returncode == 0, proc.stderr
+    counts = job_counts(proc.stdout)
+    assert counts["normalize"] == 3 and counts["raycache"] == 3 and counts["decimate"] == 1
+    for rule in ("optimize", "bake", "export", "relight", "metrics"):
+        assert counts[rule] == 3 * 3 * 2, rule
+    assert counts["report"] == counts["pack"] == counts["html_report"] == 1
+    assert "silver" not in proc.stdout  # the default config's prompts are not merged in
+
+
+def test_invalid_config_fails_at_dag_build(tmp_path):
+    bad = yaml.safe_load(SMOKE.read_text())
+    bad["raycache"]["resoluton"] = 64
+    path = tmp_path / "bad.yaml"
+    path.write_text(yaml.safe_dump(bad))
+    proc = run_snakemake(tmp_path, "-n", "--cores", "1", "--configfile", str(path))
+    assert proc.returncode != 0
+    out = proc.stdout + proc.stderr
+    assert "invalid configuration" in out and "'resoluton'" in out and str(path) in out
+
+
+def check_test_only_marks(res) -> None:
+    """Every file of every cell made from the test-only CLIP says so: each stage's metadata, the
+    GLB's asset.extras, both USD files' layer metadata, the asset index, the pack's README, the
+    summary (CSV and JSON) and the HTML report."""
+    import zipfile
+
+    import pandas as pd
+    import pygltflib
+    from pxr import Usd
+
+    cells = [(m, p, v) for m in ("vase", "candle", "knot") for p in ("wood", "gold", "ice") for v in ("full", "second")]
+    for mesh, prompt, variant in cells:
+        cell = res / mesh / prompt / variant
+        origins = [
+            json.loads((cell / rel).read_text())["origin"]
+            for rel in (
+                "optimize/meta.json",
+                "bake/meta.json",
+                "export/meta.json",
+                "relight/meta.json",
+                "metrics/meta.json",
+                "metrics/metrics.json",
+            )
+        ]
+        for origin in origins:
+            assert origin == origins[0], cell
+            assert origin["test_only"] is True and origin["label"].startswith("TEST ONLY") and "TEST ONLY" in origin["weights"]
+        glb = pygltflib.GLTF2().load(str(cell / "export" / "model.glb"))
+        assert glb.asset.extras["tango_stylize"] == origins[0]
+        for name in ("model.usda", "model.usdz"):
+            stage = Usd.Stage.Open(str(cell / "export" / name))  # keep the stage: it owns the layer
+            layer = stage.GetRootLayer()
+            assert layer.customLayerData["tango_stylize"]["test_only"] is True, (cell, name)
+            assert "TEST ONLY" in layer.documentation
+    index = pd.read_csv(res / "report" / "asset_index.csv")
+    assert len(index) == len(cells) and index["test_only"].all() and index["origin"].str.startswith("TEST ONLY").all()
+    with zipfile.ZipFile(res / "report" / "asset_pack.zip") as z:
+        readme = z.read("README.txt").decode()
+        inner = pd.read_csv(z.open("index.csv"))
+    assert inner["test_only"].all()
+    assert readme.startswith("tango-stylize asset pack") and f"WARNING: TEST ONLY. {len(cells)} of {len(cells)}" in readme
+    for mesh, prompt, variant in cells:
+        assert f"- {mesh}/{prompt}/{variant}: TEST ONLY" in readme
+    summary = pd.read_csv(res / "report" / "summary.csv")
+    assert summary["test_only_weights"].all() and summary["origin"].str.startswith("TEST ONLY").all()
+    assert all(
+        r["test_only_weights"] and r["origin"].startswith("TEST ONLY")
+        for r in json.loads((res / "report" / "summary.json").read_text())
+    )
+    page = (res / "report" / "index.html").read_text()
+    assert f"TEST ONLY: {len(cells)} of {len(cells)} cells" in page
+    assert page.count("<small class='note'>TEST ONLY") == len(cells)
+
+
+@pytest.mark.slow
+def test_smoke_run(tmp_path):
+    proc = run_snakemake(tmp_path, "--cores", "2", "--configfile", str(SMOKE), timeout=1500)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    res = tmp_path / "results"
+    for mesh in ("vase", "candle", "knot"):
+        meta = json.loads((res / mesh / "raycache" / "meta.json").read_text())
+        assert meta["stats"]["train"]["views"] == 4 and meta["stats"]["eval"]["views"] == 8
+        assert meta["stats"]["train"]["width"] == 48
+        cache = RayCache(res / mesh / "raycache" / "train.npz")
+        assert len(cache) == 4 and cache.arrays["offsets"][-1] > 0
+        assert np.abs(np.linalg.norm(cache.view(0).point, axis=1)).max() <= 1.0 + 1e-3
+        for stage in ("normalize", "raycache"):
+            log = (res / mesh / "logs" / f"{stage}.log").read_text()
+            assert " INFO " in log
+            assert (res / mesh / "benchmarks" / f"{stage}.tsv").is_file()
+        tf = json.loads((res / mesh / "normalize" / "transform.json").read_text())
+        assert len(tf["inverse_matrix"]) == 4
+    # the knot is decimated and traced at the decimated level; the vase is not decimated
+    dec = json.loads((res / "knot" / "decimate" / "meta.json").read_text())
+    assert abs(dec["stats"]["faces_after"] - 3000) <= 30
+    traced = json.loads((res / "knot" / "raycache" / "meta.json").read_text())
+    assert traced["inputs"]["mesh"]["path"].endswith("knot/decimate/mesh.ply")
+    assert len(RayCache(res / "knot" / "raycache" / "train.npz").arrays["faces"]) == dec["stats"]["faces_after"]
+    assert not (res / "vase" / "decimate").exists()
+    # every grid cell optimised, with outputs marked as made by the test-only CLIP
+    for mesh in ("vase", "candle", "knot"):
+        for prompt in ("wood", "gold", "ice"):
+            for variant in ("full", "second"):
+                cell = res / mesh / prompt / variant / "optimize"
+                meta = json.loads((cell / "meta.json").read_text())
+                assert meta["test_only_weights"] is True and "TEST ONLY" in meta["weights"]
+                assert meta["prompt"] == f"a {mesh} made of {prompt}"
+                assert (cell / "renders" / "rgb.png").is_file() and (cell / "field.pt").is_file()
+                assert not (cell / "checkpoint.pt").exists()
+    # the report closes the main job: one summary row per cell, the overview, the asset pack
+    import pandas as pd
+
+    summary = pd.read_csv(res / "report" / "summary.csv")
+    assert len(summary) == 18 and set(summary["weights"]) == {"test-only random"}
+    assert summary["eval_test_only"].all() and (summary["r_precision_candidates"] == 3).all()
+    assert summary["clip_score"].notna().all()
+    assert (summary["usd_validation_errors"] == 0).all() and (summary["bake_psnr_db"] >= 35).all()
+    assert (
+        summary.loc[summary["mesh"] == "knot", "faces_after"].iloc[0]
+        < summary.loc[summary["mesh"] == "knot", "faces_before"].iloc[0]
+    )
+    for name in ("overview.png", "asset_pack.zip", "index.html", "pareto.png", "loss_curves.png", "grid_vase.png"):
+        assert (res / "report" / name).is_file(), name
+    assert "TEST ONLY" in (res / "report" / "index.html").read_text()
+    for rel in ("export/model.usdz", "export/model.glb", "relight/material_edit.png"):
+        assert (res / "vase" / "wood" / "full" / rel).is_file()
+    check_test_only_marks(res)
+    # nothing half-written anywhere
+    assert not list(res.rglob(".*.tmp-*")) and not list(res.rglob(".staging-*"))
+    # a second run has nothing to do
+    again = run_snakemake(tmp_path, "--cores", "2", "--configfile", str(SMOKE))
+    assert again.returncode == 0 and "Nothing to be done" in again.stdout + again.stderr
+
+
+@pytest.mark.slow
+def test_keep_going_finishes_other_meshes(tmp_path):
+    cfg = yaml.safe_load(SMOKE.read_text())
+    cfg["meshes"] = {"vase": {"builtin": "vase"}, "broken": {"path": str(tmp_path / "missing.obj")}}
+    path = tmp_path / "cfg.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    proc = run_snakemake(tmp_path, "--cores", "2", "--keep-going", "--configfile", str(path))
+    assert proc.returncode != 0
+    assert "not found" in proc.stdout + proc.stderr  # the DAG-time warning
+    res = tmp_path / "results"
+    assert (res / "vase" / "raycache" / "meta.json").is_file()
+    assert not (res / "broken" / "normalize" / "mesh.ply").exists()
+    log = (res / "broken" / "logs" / "normalize.log").read_text()
+    assert "missing.obj: file not found" in log
