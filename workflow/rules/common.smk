@@ -108,7 +108,8 @@ def optimize_settings_json(wildcards):
 def check_clip_weights():
     """Before any job runs: stop at once when real CLIP weights (for guidance or for the
     evaluation metrics) are needed but unavailable."""
-    from stages.guidance.clip import ClipWeightsUnavailable, resolve_weights  # imports torch: only at start
+    # imported here, not at the top: it imports torch, which building the DAG never needs
+    from stages.guidance.clip import ClipWeightsUnavailable, resolve_weights
 
     for spec in CFG.clip_specs():
         try:
