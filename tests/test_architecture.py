@@ -117,7 +117,10 @@ def test_importing_the_settings_loads_no_torch():
     assert proc.stdout.strip() == "False", proc.stderr
 
 
-@pytest.mark.parametrize("helper", ["psnr", "linear_to_srgb", "stage_main", "resolve_device", "contact_sheet", "save_png"])
+@pytest.mark.parametrize(
+    "helper",
+    ["psnr", "ssim", "linear_to_srgb", "srgb_encode", "stage_main", "resolve_device", "contact_sheet", "save_png", "clip_spec"],
+)
 def test_each_shared_helper_is_defined_once(helper):
-    defined = [str(p.relative_to(REPO)) for p in STAGES.rglob("*.py") if re.search(rf"^def {helper}\(", p.read_text(), re.M)]
+    defined = [str(p.relative_to(REPO)) for p in STAGES.rglob("*.py") if re.search(rf"^\s*def {helper}\(", p.read_text(), re.M)]
     assert len(defined) == 1, defined

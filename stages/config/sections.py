@@ -38,6 +38,14 @@ class ClipSpec:
     tiny_test: bool = False
 
 
+class ClipChoice:
+    """For settings that name a CLIP (``clip_model``, ``clip_pretrained``, ``clip_checkpoint``,
+    ``clip_tiny_test``): the one way to turn them into a :class:`ClipSpec`."""
+
+    def clip_spec(self) -> ClipSpec:
+        return ClipSpec(self.clip_model, self.clip_pretrained, self.clip_checkpoint, self.clip_tiny_test)
+
+
 @dataclass(frozen=True, kw_only=True)
 class NormalizeSettings(Settings):
     """Settings of the normalize stage (config section ``normalize``, overridable per mesh)."""
@@ -167,7 +175,7 @@ class FieldSettings:
 
 
 @dataclass(frozen=True, kw_only=True)
-class OptimizeSettings(Settings):
+class OptimizeSettings(ClipChoice, Settings):
     """Settings of the optimize stage (config section ``optimize``; presets and variants override).
 
     Defaults follow TANGO's paper and demo scripts where they state a value.
@@ -258,10 +266,6 @@ class OptimizeSettings(Settings):
         """The subset that builds the field (networks, encodings, light, seed)."""
         return FieldSettings(**{f.name: getattr(self, f.name) for f in fields(FieldSettings)})
 
-    def clip_spec(self) -> ClipSpec:
-        """The guidance CLIP of these settings."""
-        return ClipSpec(self.clip_model, self.clip_pretrained, self.clip_checkpoint, self.clip_tiny_test)
-
 
 @dataclass(frozen=True, kw_only=True)
 class BakeSettings(Settings):
@@ -334,7 +338,7 @@ class RelightSettings(Settings):
 
 
 @dataclass(frozen=True, kw_only=True)
-class MetricsSettings(Settings):
+class MetricsSettings(ClipChoice, Settings):
     """Settings of the metrics stage (config section ``metrics``)."""
 
     section = "metrics"
@@ -346,10 +350,6 @@ class MetricsSettings(Settings):
     clip_checkpoint: str | None = None
     clip_tiny_test: bool = False
     background: str = "white"
-
-    def clip_spec(self) -> ClipSpec:
-        """The evaluation CLIP of these settings."""
-        return ClipSpec(self.clip_model, self.clip_pretrained, self.clip_checkpoint, self.clip_tiny_test)
 
 
 #: every config section that holds a stage's settings, and its class

@@ -8,7 +8,6 @@ do not exist).
 
 from __future__ import annotations
 
-import argparse
 import copy
 import dataclasses
 import json
@@ -21,6 +20,7 @@ from typing import Any
 
 import yaml
 
+from ..core.cli import stage_main
 from ..core.errors import ConfigError
 from .presets import PRESETS
 from .sections import SECTIONS, OptimizeSettings
@@ -294,28 +294,26 @@ def parse_cell(text: str, cfg: WorkflowConfig) -> Cell:
 def main(argv: list[str] | None = None) -> int:
     """``python -m stages.config --configfile C --cell mesh/prompt/variant [--stage optimize]``:
     print how one cell's settings were resolved, key by key, with where each value came from."""
-    parser = argparse.ArgumentParser(prog="python -m stages.config", description=main.__doc__.split("\n")[0])
-    parser.add_argument("--configfile", type=Path, default=Path("config/config.yaml"))
-    parser.add_argument("--cell", required=True, help="mesh/prompt/variant")
-    stages = ("optimize", "bake", "export", "relight", "metrics", *MESH_STAGES)
-    parser.add_argument("--stage", default="optimize", choices=stages)
-    parser.add_argument("--json", action="store_true", help="print JSON instead of a table")
-    args = parser.parse_args(argv)
-    try:
+
+    def arguments(parser):
+        parser.add_argument("--configfile", type=Path, default=Path("config/config.yaml"))
+        parser.add_argument("--cell", required=True, help="mesh/prompt/variant")
+        parser.add_argument("--stage", default="optimize", choices=("optimize", *CELL_STAGES, *MESH_STAGES))
+        parser.add_argument("--json", action="store_true", help="print JSON instead of a table")
+
+    def body(args):
         cfg = load_config_file(args.configfile)
         rows = cfg.explain(parse_cell(args.cell, cfg), args.stage)
-    except ConfigError as exc:
-        sys.stderr.write(f"error: {exc}\n")
-        return 2
-    if args.json:
-        sys.stdout.write(json.dumps([{"key": k, "value": v, "source": s} for k, v, s in rows], indent=1) + "\n")
-        return 0
-    width = max(len(k) for k, _, _ in rows)
-    vwidth = min(max(len(json.dumps(v)) for _, v, _ in rows), 40)
-    sys.stdout.write(f"{args.stage} settings of {args.cell} ({args.configfile}); later sources win:\n")
-    for k, v, s in rows:
-        sys.stdout.write(f"  {k:<{width}}  {json.dumps(v):<{vwidth}}  {s}\n")
-    return 0
+        if args.json:
+            sys.stdout.write(json.dumps([{"key": k, "value": v, "source": s} for k, v, s in rows], indent=1) + "\n")
+            return
+        width = max(len(k) for k, _, _ in rows)
+        vwidth = min(max(len(json.dumps(v)) for _, v, _ in rows), 40)
+        sys.stdout.write(f"{args.stage} settings of {args.cell} ({args.configfile}); later sources win:\n")
+        for k, v, src in rows:
+            sys.stdout.write(f"  {k:<{width}}  {json.dumps(v):<{vwidth}}  {src}\n")
+
+    return stage_main("config", main.__doc__, arguments, body, argv)
 
 
 def load_config_file(path: str | Path) -> WorkflowConfig:
