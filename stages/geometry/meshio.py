@@ -3,7 +3,7 @@
 The reader keeps the mesh as it is (no vertex merging, no repair: non-manifold edges, boundaries
 and duplicate faces are normal in real data); it only triangulates, flattens scenes into one mesh
 and drops unreferenced vertices. Anything that cannot be a surface fails with a
-:class:`~stages.errors.StageInputError` naming the file, the problem and a remedy.
+:class:`~stages.core.errors.StageInputError` naming the file, the problem and a remedy.
 """
 
 from __future__ import annotations

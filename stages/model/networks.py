@@ -169,7 +169,7 @@ class NormalNet(nn.Module):
 
     TANGO offsets the normal's spherical angles, which is singular at the poles (the azimuth is
     undefined at ``n = +-z``: its gradient is infinite there and an azimuth offset does nothing;
-    see ``tests/test_networks.py``). Here the network predicts an equivalent bounded offset in
+    see ``tests/model/test_networks.py``). Here the network predicts an equivalent bounded offset in
     the normal's tangent frame instead: ``n' = normalize(n + d1 t + d2 b)`` with
     ``d = max_delta tanh(.)``, so the tilt is at most ``atan(sqrt(2) max_delta)`` everywhere.
     """

@@ -150,7 +150,7 @@ def sg_hemisphere_integral(sharpness: Tensor, cos_beta: Tensor) -> Tensor:
     written with ``expm1`` and rescaled so that no exponential of a positive number is taken
     (PhySG's two branches for ``c >= 0`` and ``c < 0`` are the same function). Exact at
     ``c = -1, 0, 1`` (0, half and all of ``A_u + A_b``); elsewhere the error is measured against
-    quadrature in ``tests/test_sg.py``: at most 1.5% of the full-sphere integral over
+    quadrature in ``tests/render/test_sg.py``: at most 1.5% of the full-sphere integral over
     ``lam`` in [1e-4, 1e4] (tested; measured 1.1%). Finite values and gradients for ``lam`` in
     [1e-6, 1e18] in float64 and [1e-6, 1e15] in float32 (tested).
 
