@@ -11,7 +11,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 root=$(pwd)
 py=${PYTHON:-python3}
-extras=${1:-test}
+extras=${1:-test,reference}
 
 if [ ! -x .venv/bin/python ]; then
     "$py" -m venv .venv

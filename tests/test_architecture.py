@@ -15,7 +15,7 @@ from conftest import REPO, require_tool
 
 STAGES = REPO / "stages"
 #: the library's layers, top to bottom (as in pyproject.toml's import contract)
-LAYERS = ("training", "assets", "results", "guidance", "imaging", "model", "render", "geometry", "config", "core")
+LAYERS = ("training", "assets", "results", "reference", "guidance", "imaging", "model", "render", "geometry", "config", "core")
 
 
 def rules() -> dict[str, str]:
