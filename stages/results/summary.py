@@ -1,0 +1,370 @@
+"""Reading a results tree: per-cell summary rows, origin checks, the speed/accuracy table and its
+Pareto front, and the report's figures (overview, plots, image grids)."""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from ..core.errors import StageInputError
+from ..core.provenance import ORIGIN_KEY, atomic_path, read_origin
+
+log = logging.getLogger(__name__)
+
+OVERVIEW_KINDS = ("rgb", "diffuse", "roughness", "specular", "normal")
+MESH_STAGES = ("normalize", "decimate", "raycache")
+CELL_STAGES = ("optimize", "bake", "export", "relight", "metrics")
+
+
+def _read(path: Path) -> dict | None:
+    return json.loads(path.read_text()) if path.is_file() else None
+
+
+def _need(path: Path) -> dict:
+    data = _read(path)
+    if data is None:
+        raise StageInputError(path, "file not found", "Run the stage that writes it first.")
+    return data
+
+
+def weights_label(meta: dict) -> str:
+    if meta.get("test_only_weights"):
+        return "test-only random"
+    if meta.get("guidance") == "image":
+        return f"image-guided ({meta['settings']['target_material']} target)"
+    return str(meta.get("weights"))
+
+
+#: a cell's per-stage outputs that repeat the optimisation's origin (folder, file)
+ORIGIN_FILES = (
+    ("optimize", "meta.json"),
+    ("bake", "meta.json"),
+    ("export", "meta.json"),
+    ("relight", "meta.json"),
+    ("metrics", "meta.json"),
+    ("metrics", "metrics.json"),
+)
+
+
+def check_origins(cell_dir: Path) -> dict:
+    """The cell's origin (from its optimisation), after checking that every downstream output that
+    exists repeats it: a mismatch means outputs of different runs were mixed."""
+    origin = read_origin(cell_dir / "optimize" / "meta.json")
+    for folder, name in ORIGIN_FILES[1:]:
+        path = cell_dir / folder / name
+        if path.is_file() and read_origin(path) != origin:
+            raise StageInputError(
+                path,
+                f"says it was made by {read_origin(path)['label']!r} but the cell's optimisation says {origin['label']!r}",
+                "Outputs of different runs are mixed: rerun the cell (snakemake --forcerun optimize).",
+            )
+    return origin
+
+
+def summary_rows(results: Path, cells: list[tuple[str, str, str]]) -> list[dict]:
+    rows = []
+    for mesh, prompt, variant in cells:
+        mdir = results / mesh
+        cdir = mdir / prompt / variant
+        opt = _need(cdir / "optimize" / "meta.json")
+        origin = check_origins(cdir)
+        bake = _read(cdir / "bake" / "meta.json") or {}
+        export = _read(cdir / "export" / "meta.json") or {}
+        norm = _need(mdir / "normalize" / "meta.json")
+        dec = _read(mdir / "decimate" / "meta.json")
+        row = {
+            "mesh": mesh,
+            "prompt": prompt,
+            "variant": variant,
+            "prompt_text": opt.get("prompt"),
+            "guidance": "image-guided (procedural targets)" if opt.get("guidance") == "image" else "CLIP",
+            "weights": weights_label(opt),
+            "test_only_weights": bool(origin["test_only"]),
+            "image_guided": bool(origin["image_guided"]),
+            ORIGIN_KEY: origin["label"],
+            "iterations": opt["settings"]["iterations"],
+            "final_similarity": opt.get("final_similarity"),
+            "eval_psnr_db": opt.get("eval_psnr_db"),
+            "faces_before": norm["stats"]["faces"],
+            "faces_after": dec["stats"]["faces_after"] if dec else norm["stats"]["faces"],
+            "decimated": dec is not None,
+            "bake_psnr_db": bake.get("stats", {}).get("bake_psnr_db"),
+            "texture_size": bake.get("stats", {}).get("texture_size"),
+            "usd_validators": export.get("stats", {}).get("usd_validators"),
+            "usd_validation_errors": export.get("stats", {}).get("usd_validation_errors"),
+            "usd_validation_warnings": export.get("stats", {}).get("usd_validation_warnings"),
+            "gltf_validation_errors": export.get("stats", {}).get("gltf_validation_errors"),
+            "gltf_validation_warnings": export.get("stats", {}).get("gltf_validation_warnings"),
+        }
+        if dec:
+            row["decimation_target"] = dec["stats"].get("target_faces")
+            row["decimation_target_reached"] = dec["stats"].get("target_reached")
+            row["decimation_shortfall"] = dec["stats"].get("target_shortfall_reason")
+        metrics = _read(cdir / "metrics" / "metrics.json") or {}
+        ev = metrics.get("evaluation") or {}
+        it = metrics.get("image_target") or {}
+        gd = metrics.get("guidance") or {}
+        row.update(
+            {
+                "guidance_similarity": gd.get("similarity"),
+                "eval_weights": ev.get("weights"),
+                "eval_test_only": ev.get("test_only"),
+                "clip_score": ev.get("clip_score"),
+                "r_precision": ev.get("r_precision"),
+                "r_precision_candidates": ev.get("candidates"),
+                "target_psnr_db": it.get("psnr_db"),
+                "target_ssim": it.get("ssim"),
+            }
+        )
+        for stage in MESH_STAGES:
+            meta = _read(mdir / stage / "meta.json")
+            row[f"seconds_{stage}"] = meta["timings_s"]["total"] if meta else None
+        for stage, folder in zip(CELL_STAGES, ("optimize", "bake", "export", "relight", "metrics"), strict=True):
+            meta = _read(cdir / folder / "meta.json")
+            row[f"seconds_{stage}"] = meta["timings_s"]["total"] if meta else None
+        rows.append(row)
+    return rows
+
+
+def overview_image(results: Path, cells: list[tuple[str, str, str]], tile: int = 160) -> np.ndarray:
+    """Rows = cells, columns = :data:`OVERVIEW_KINDS`, with a label strip on the left."""
+    from PIL import Image, ImageDraw
+
+    label_w = 220
+    header = 24
+    canvas = Image.new("RGB", (label_w + tile * len(OVERVIEW_KINDS), header + tile * len(cells)), "white")
+    draw = ImageDraw.Draw(canvas)
+    for j, kind in enumerate(OVERVIEW_KINDS):
+        draw.text((label_w + j * tile + 4, 6), kind, fill="black")
+    for i, (mesh, prompt, variant) in enumerate(cells):
+        opt = _need(results / mesh / prompt / variant / "optimize" / "meta.json")
+        sheet = opt["sheet"]
+        cols, t, k = sheet["columns"], sheet["tile"], sheet["front_view"]
+        r, c = divmod(k, cols)
+        y = header + i * tile
+        label = f"{mesh} / {prompt} / {variant}\n{weights_label(opt)[:34]}"
+        draw.text((4, y + 6), label, fill="black")
+        for j, kind in enumerate(OVERVIEW_KINDS):
+            img = Image.open(results / mesh / prompt / variant / "optimize" / "renders" / f"{kind}.png")
+            crop = img.crop((c * t, r * t, (c + 1) * t, (r + 1) * t)).resize((tile, tile))
+            canvas.paste(crop, (label_w + j * tile, y))
+    return np.asarray(canvas)
+
+
+def quality_of(row: dict) -> tuple[float | None, str]:
+    """The quality number of a row and its name: held-out target PSNR for image-guided runs,
+    else the evaluation CLIP score."""
+    if row.get("target_psnr_db") is not None and not _nan(row["target_psnr_db"]):
+        return float(row["target_psnr_db"]), "target PSNR (dB, held-out metric views)"
+    if row.get("clip_score") is not None and not _nan(row["clip_score"]):
+        return float(row["clip_score"]), f"CLIP score ({row.get('eval_weights')})"
+    return None, ""
+
+
+def _nan(x) -> bool:
+    return isinstance(x, float) and x != x
+
+
+def pareto_front(points: list[tuple[float, float]]) -> list[int]:
+    """Indices of the points not dominated in (lower time, higher quality), by time."""
+    order = sorted(range(len(points)), key=lambda i: (points[i][0], -points[i][1]))
+    front, best = [], -float("inf")
+    for i in order:
+        if points[i][1] > best:
+            front.append(i)
+            best = points[i][1]
+    return front
+
+
+def knee_point(points: list[tuple[float, float]], front: list[int]) -> int | None:
+    """The front point farthest from the straight line joining the front's ends (normalised
+    axes): where more time stops buying much quality."""
+    if len(front) < 3:
+        return front[-1] if front else None
+    xs = np.array([points[i][0] for i in front])
+    ys = np.array([points[i][1] for i in front])
+    x = (xs - xs.min()) / max(np.ptp(xs), 1e-12)
+    y = (ys - ys.min()) / max(np.ptp(ys), 1e-12)
+    d = np.abs((y[-1] - y[0]) * x - (x[-1] - x[0]) * y + x[-1] * y[0] - y[-1] * x[0])
+    return front[int(np.argmax(d))]
+
+
+def speed_accuracy(rows: list[dict], results: Path) -> list[dict]:
+    """Per cell: wall time of the optimisation, its peak memory (Snakemake benchmark), quality."""
+    out = []
+    for r in rows:
+        q, qname = quality_of(r)
+        if q is None or r.get("seconds_optimize") is None:
+            continue
+        bench = results / r["mesh"] / r["prompt"] / r["variant"] / "benchmarks" / "optimize.tsv"
+        peak = None
+        if bench.is_file():
+            import pandas as pd
+
+            peak = float(pd.read_csv(bench, sep="\t")["max_rss"].iloc[0])
+        out.append(
+            {
+                "cell": f"{r['mesh']}/{r['prompt']}/{r['variant']}",
+                "variant": r["variant"],
+                "seconds": float(r["seconds_optimize"]),
+                "peak_mb": peak,
+                "quality": q,
+                "quality_name": qname,
+                "weights": r.get("eval_weights") or r.get("weights"),
+                "test_only": bool(r.get("test_only_weights") or r.get("eval_test_only")),
+            }
+        )
+    if out:
+        pts = [(o["seconds"], o["quality"]) for o in out]
+        front = set(pareto_front(pts))
+        knee = knee_point(pts, sorted(front, key=lambda i: pts[i][0]))
+        for i, o in enumerate(out):
+            o["pareto"] = i in front
+            o["knee"] = i == knee
+    return out
+
+
+def plot_pareto(path: Path, points: list[dict]) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.5, 4), dpi=110)
+    for p in points:
+        ax.scatter(p["seconds"], p["quality"], c="tab:red" if p["pareto"] else "tab:gray", s=24, zorder=3)
+        ax.annotate(p["variant"], (p["seconds"], p["quality"]), fontsize=7, xytext=(3, 3), textcoords="offset points")
+    front = sorted((p for p in points if p["pareto"]), key=lambda p: p["seconds"])
+    ax.plot([p["seconds"] for p in front], [p["quality"] for p in front], c="tab:red", lw=1, label="Pareto front")
+    knee = [p for p in points if p["knee"]]
+    if knee:
+        ax.scatter(knee[0]["seconds"], knee[0]["quality"], s=140, facecolors="none", edgecolors="k", label="knee")
+    ax.set_xscale("log")
+    ax.set_xlabel("optimisation wall time (s)")
+    ax.set_ylabel(points[0]["quality_name"] if points else "quality")
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+    plt.close(fig)
+
+
+def plot_bars(path: Path, rows: list[dict]) -> None:
+    """Mean quality per variant (ablation bars)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    by: dict[str, list[float]] = {}
+    name = ""
+    for r in rows:
+        q, qn = quality_of(r)
+        if q is not None:
+            by.setdefault(r["variant"], []).append(q)
+            name = qn
+    fig, ax = plt.subplots(figsize=(6.5, 3.5), dpi=110)
+    if by:
+        ax.bar(list(by), [float(np.mean(v)) for v in by.values()], color="tab:blue")
+        ax.set_ylabel(name, fontsize=8)
+        ax.tick_params(axis="x", labelrotation=30, labelsize=8)
+    else:
+        ax.text(0.5, 0.5, "no quality metric available", ha="center", va="center")
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+    plt.close(fig)
+
+
+def plot_losses(path: Path, results: Path, cells: list[tuple[str, str, str]]) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import pandas as pd
+
+    fig, ax = plt.subplots(figsize=(6.5, 3.5), dpi=110)
+    for mesh, prompt, variant in cells:
+        f = results / mesh / prompt / variant / "optimize" / "loss.csv"
+        if f.is_file():
+            d = pd.read_csv(f)
+            ax.plot(d["iteration"], d["loss"], lw=0.8, label=f"{mesh}/{prompt}/{variant}")
+    ax.set_xlabel("iteration")
+    ax.set_ylabel("loss")
+    if len(cells) <= 12:
+        ax.legend(fontsize=6)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+    plt.close(fig)
+
+
+def _front_tile(results: Path, cell: tuple[str, str, str], kind: str = "rgb", size: int = 160):
+    from PIL import Image
+
+    mesh, prompt, variant = cell
+    opt = _need(results / mesh / prompt / variant / "optimize" / "meta.json")
+    sh = opt["sheet"]
+    r, c = divmod(sh["front_view"], sh["columns"])
+    t = sh["tile"]
+    img = Image.open(results / mesh / prompt / variant / "optimize" / "renders" / f"{kind}.png")
+    return img.crop((c * t, r * t, (c + 1) * t, (r + 1) * t)).resize((size, size))
+
+
+def labelled_grid(results: Path, rows_: list[str], cols: list[str], cell_of, title: str, size: int = 160):
+    """An image grid with row and column labels; ``cell_of(row, col)`` -> cell or None."""
+    from PIL import Image, ImageDraw
+
+    lw, hh = 160, 36
+    canvas = Image.new("RGB", (lw + size * len(cols), hh + size * len(rows_)), "white")
+    d = ImageDraw.Draw(canvas)
+    d.text((4, 4), title, fill="black")
+    for j, c in enumerate(cols):
+        d.text((lw + j * size + 4, 20), c, fill="black")
+    for i, r in enumerate(rows_):
+        d.text((4, hh + i * size + 6), r, fill="black")
+        for j, c in enumerate(cols):
+            cell = cell_of(r, c)
+            if cell is not None:
+                canvas.paste(_front_tile(results, cell, size=size), (lw + j * size, hh + i * size))
+    return canvas
+
+
+def write_grids(results: Path, cells: list[tuple[str, str, str]], out_dir: Path, decimated: dict) -> list[str]:
+    """Per mesh: rows = variants, columns = prompts. Robustness: original vs decimated mesh
+    side by side (meshes sharing a source, one decimated), rows = prompts x variants."""
+    files = []
+    meshes = list(dict.fromkeys(c[0] for c in cells))
+    prompts = list(dict.fromkeys(c[1] for c in cells))
+    variants = list(dict.fromkeys(c[2] for c in cells))
+    present = set(cells)
+    for mesh in meshes:
+        img = labelled_grid(
+            results,
+            variants,
+            prompts,
+            lambda v, p, mesh=mesh: (mesh, p, v) if (mesh, p, v) in present else None,
+            f"{mesh}: rows variants, columns prompts",
+        )
+        name = f"grid_{mesh}.png"
+        with atomic_path(out_dir / name) as tmp:
+            img.save(tmp, format="PNG")
+        files.append(name)
+    pairs = [(orig, dec) for dec, orig in decimated.items() if orig in meshes and dec in meshes]
+    if pairs:
+        rows_ = [f"{p}/{v}" for p in prompts for v in variants]
+        cols = [m for pair in pairs for m in pair]
+
+        def cell_of(r, m):
+            p, v = r.split("/")
+            return (m, p, v) if (m, p, v) in present else None
+
+        img = labelled_grid(results, rows_, cols, cell_of, "robustness: original | decimated")
+        with atomic_path(out_dir / "robustness.png") as tmp:
+            img.save(tmp, format="PNG")
+        files.append("robustness.png")
+    return files
