@@ -15,11 +15,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .assets.baking import BakedHits, bake_field, cached_barycentrics, decode_textures, face_frames, render_baked
+from .assets.baking import BakedHits, bake_field, cached_barycentrics, decode_textures, render_baked
 from .config.sections import BakeSettings
 from .core.cli import stage_main
 from .core.errors import StageInputError
 from .core.provenance import ORIGIN_KEY, Timer, atomic_path, metadata, staged_outputs, write_json_atomic
+from .geometry.atlas import face_frames
 from .geometry.meshio import load_ply
 from .geometry.raycache import RayCache
 from .imaging.images import compose, gather_points, global_spec

@@ -8,8 +8,11 @@ background; see the raycache stage's ``metrics_*`` settings).
   model (``metrics.clip_model`` / ``clip_pretrained`` / ``clip_checkpoint``) and R-precision over
   the grid's prompts (the fraction of views whose render ranks its own prompt first among the
   ``candidates`` prompts of the grid);
-* ``image_target`` (image-guided runs): PSNR and SSIM of the renders against the procedural
-  targets on the same (held-out) views, over object pixels only.
+* ``image_target`` (image-guided runs): PSNR and SSIM of the renders against the image targets
+  on the same held-out views, over object pixels only (for Mitsuba targets: pixels fully covered
+  by the object), and for Mitsuba targets the recovered material's error against the ground
+  truth at every fully covered hit of those views (albedo, specular colour, roughness, shading
+  normal) and the recovered light's energy against the environment's.
 
 Every number sits under the id of the weights that produced it, with ``test_only: true`` for the
 tiny random test CLIP; the report never mixes those with real ones in a table.
@@ -31,8 +34,9 @@ from .geometry.raycache import RayCache
 from .guidance.clip import load_clip
 from .guidance.objective import Objective, render_target
 from .guidance.scores import clip_metrics
-from .imaging.quality import psnr, ssim
+from .imaging.quality import material_errors, psnr, ssim
 from .imaging.sheets import contact_sheet, save_png
+from .imaging.targets import FULL_COVERAGE, TargetSet
 from .imaging.views import ViewStore, render_views
 from .model.checkpoint import load_field
 
@@ -47,6 +51,7 @@ def run(
     out_dir: Path,
     settings: MetricsSettings,
     device: str = "cpu",
+    targets_path: Path | None = None,
 ) -> dict:
     timer = Timer()
     for p in (field_path, metrics_cache):
@@ -56,7 +61,14 @@ def run(
         candidates = [prompt, *candidates]
     dev = torch.device(device)
     field, opt_settings = load_field(field_path, dev)
-    store = ViewStore(RayCache(metrics_cache), dev)
+    cache = RayCache(metrics_cache)
+    mitsuba = opt_settings.guidance == "image" and opt_settings.target_renderer == "mitsuba"
+    if mitsuba and targets_path is None:
+        raise StageInputError(
+            field_path, "was trained on Mitsuba targets but no --targets file was given", "Pass the target stage's metrics.npz."
+        )
+    targets = TargetSet(targets_path, cache) if mitsuba else None
+    store = ViewStore(cache, dev, targets)
     with timer("render"):
         imgs = render_views(field, store, settings.background)
     out_dir = Path(out_dir)
@@ -85,7 +97,7 @@ def run(
                 result["evaluation"] = clip_metrics(e, imgs, prompt, candidates)
         if opt_settings.guidance == "image":
             with timer("image_target"):
-                obj = Objective(opt_settings, prompt, dev)
+                obj = Objective(opt_settings, prompt, dev, targets=targets.description if targets else None)
                 bg = 1.0 if settings.background == "white" else 0.0
                 pairs = [render_target(obj, store[i], store.width, store.width, bg) for i in range(len(store))]
                 t = torch.stack([img for img, _ in pairs])
@@ -96,9 +108,15 @@ def run(
                     "psnr_db": psnr(imgs[px], t[px]),
                     "ssim": ssim(imgs, t, mask),
                     "pixels": "object pixels of the held-out metric views (SSIM: windows centred on them)",
-                    "target_light": opt_settings.target_light,
+                    "target_renderer": opt_settings.target_renderer,
                     "target_material": opt_settings.target_material,
                 }
+                if targets is not None:
+                    result["image_target"]["target_noise_psnr_db"] = _noise_psnr(targets_path)
+                    if targets.has_truth:
+                        result["image_target"]["material"] = _material_errors(field, store, targets)
+                else:
+                    result["image_target"]["target_light"] = opt_settings.target_light
                 save_png(staging / "targets.png", contact_sheet(list(t), len(store.azimuths())))
         write_json_atomic(staging / "metrics.json", result)
         write_json_atomic(
@@ -106,13 +124,45 @@ def run(
             metadata(
                 stage="metrics",
                 settings=settings.to_dict(),
-                inputs={"field": field_path, "metrics_cache": metrics_cache},
+                inputs={"field": field_path, "metrics_cache": metrics_cache, **({"targets": targets_path} if targets else {})},
                 outputs={"metrics": out_dir / "metrics.json", "views": out_dir / "views.png"},
                 timings={**timer.seconds, "total": timer.total()},
                 extra={"candidates": candidates, ORIGIN_KEY: field.origin},
             ),
         )
     return result
+
+
+def _noise_psnr(targets_path: Path) -> float | None:
+    """The noise of the metric views' targets, as the target stage measured it."""
+    meta = Path(targets_path).parent / "meta.json"
+    if not meta.is_file():
+        return None
+    return json.loads(meta.read_text())["views"]["metrics"]["noise_psnr_db"]
+
+
+@torch.no_grad()
+def _material_errors(field, store: ViewStore, targets: TargetSet) -> dict:
+    """The recovered material at every fully covered hit of the metric views against the truth."""
+    pred: dict[str, list] = {"albedo": [], "specular": [], "roughness": [], "normal": []}
+    truth: dict[str, list] = {k: [] for k in pred}
+    for i in range(len(store)):
+        v = store[i]
+        keep = v.coverage >= FULL_COVERAGE
+        mat, normal = field.surface(v.points[keep], v.normals[keep], v.view[keep])
+        pred["albedo"].append(mat.albedo)
+        pred["specular"].append(mat.specular)
+        pred["roughness"].append(mat.roughness)
+        pred["normal"].append(normal)
+        for k in truth:
+            truth[k].append(torch.from_numpy(targets.view(i, k)).to(v.points.device)[keep])
+    if pred["specular"][0] is None:
+        pred["specular"] = pred["roughness"] = None
+    cat = {k: (torch.cat(x) if x is not None else None) for k, x in pred.items()}
+    out = material_errors(cat, {k: torch.cat(x) for k, x in truth.items()}, field.light.energy(), targets.arrays["env_energy"])
+    out["hits"] = int(sum(len(x) for x in truth["albedo"]))
+    out["measured_on"] = "every fully covered hit of the held-out metric views"
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -123,10 +173,12 @@ def main(argv: list[str] | None = None) -> int:
         parser.add_argument("--candidates", default="[]", help="JSON list of the grid's prompt texts for this mesh")
         parser.add_argument("--out-dir", required=True, type=Path)
         parser.add_argument("--settings", default="{}")
+        parser.add_argument("--targets", type=Path, default=None, help="Mitsuba targets of the metric views (target stage)")
 
     def body(args):
         settings = MetricsSettings.from_json(args.settings)
-        run(args.field, args.metrics_cache, args.prompt, json.loads(args.candidates), args.out_dir, settings, args.device)
+        candidates = json.loads(args.candidates)
+        run(args.field, args.metrics_cache, args.prompt, candidates, args.out_dir, settings, args.device, args.targets)
 
     return stage_main("metrics", __doc__, arguments, body, argv, device="cpu")
 

@@ -1,12 +1,13 @@
 """optimize: learn material, normal map and light so renders of a mesh match a prompt (TANGO).
 
 The run (:class:`~stages.training.optimizer.Optimizer`) minimises minus the CLIP similarity of
-renders of the cached views with the prompt, or with ``guidance: image`` the error against renders
-of a known procedural material and light. Atomic checkpoints every ``checkpoint_every`` iterations;
-a rerun after a kill resumes from the last one and ends with the same parameters as an
-uninterrupted run. Outputs (in ``--out-dir``, see :data:`stages.config.layout.OPTIMIZE_FILES`):
-``field.pt``, ``loss.csv``, ``loss.png``, ``renders/*.png`` from the evaluation views,
-``light.npz`` and ``meta.json``.
+renders of the cached views with the prompt, or with ``guidance: image`` the error against image
+targets of a known material and light: Mitsuba's path-traced ground truth (``--targets``, from the
+target stage) or our own SG renders of a procedural material (``target_renderer: sg``). Atomic
+checkpoints every ``checkpoint_every`` iterations; a rerun after a kill resumes from the last one
+and ends with the same parameters as an uninterrupted run. Outputs (in ``--out-dir``, see
+:data:`stages.config.layout.OPTIMIZE_FILES`): ``field.pt``, ``loss.csv``, ``loss.png``,
+``renders/*.png`` from the evaluation views, ``light.npz`` and ``meta.json``.
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ from .geometry.raycache import RayCache
 from .guidance.objective import render_target
 from .imaging.quality import psnr
 from .imaging.sheets import contact_sheet, save_png
+from .imaging.targets import TargetSet
 from .imaging.views import ViewStore, render_view
 from .model.checkpoint import save_field
 from .render.color import linear_to_srgb
@@ -46,21 +48,30 @@ def run(
     settings: OptimizeSettings,
     device: str = "auto",
     stop_after: int | None = None,
+    targets_path: Path | None = None,
 ) -> dict:
     """Optimise (resuming from ``out_dir/checkpoint.pt`` when it matches) and write the outputs.
 
     ``stop_after`` ends the process's work after that many iterations *of this call* without
-    writing final outputs, as a kill would (used by tests of resumption).
+    writing final outputs, as a kill would (used by tests of resumption). ``targets_path``: the
+    Mitsuba image targets of ``train_path`` (needed by ``target_renderer: mitsuba``).
     """
     timer = Timer()
     dev = resolve_device(device)
     for p in (train_path, eval_path):
         if not Path(p).is_file():
             raise StageInputError(p, "file not found", "Run the raycache stage first.")
+    mitsuba_targets = settings.guidance == "image" and settings.target_renderer == "mitsuba"
+    if mitsuba_targets and targets_path is None:
+        raise StageInputError(
+            train_path, "target_renderer is mitsuba but no --targets file was given", "Pass the target stage's train.npz."
+        )
     out_dir = Path(out_dir)
     ckpt = out_dir / "checkpoint.pt"
     with timer("setup"):
-        opt = Optimizer(settings, RayCache(train_path), prompt, dev)
+        train = RayCache(train_path)
+        targets = TargetSet(targets_path, train) if mitsuba_targets else None
+        opt = Optimizer(settings, train, prompt, dev, targets=targets)
     resumed_from = None
     if ckpt.is_file():
         state = torch.load(ckpt, map_location=dev, weights_only=False)
@@ -104,7 +115,7 @@ def run(
             stage="optimize",
             settings=settings.to_dict(),
             seed=settings.seed,
-            inputs={"train": train_path, "eval": eval_path},
+            inputs={"train": train_path, "eval": eval_path, **({"targets": targets_path} if targets else {})},
             outputs={k: out_dir / v for k, v in OPTIMIZE_FILES.items()},
             timings=timings,
             extra={
@@ -143,7 +154,8 @@ def _write_outputs(opt: Optimizer, eval_path: Path, out_dir: Path, settings: Opt
             img = F.interpolate(r["rgb"][None], size=(size, size), mode="bilinear", align_corners=False)
             with torch.no_grad():
                 sims.append(float(opt.objective.guide.similarity(img, opt.objective.text)))
-        else:
+        elif settings.target_renderer == "sg":
+            # (Mitsuba targets exist for the training and metric views: the metrics stage grades those)
             targets.append(render_target(opt.objective, v, evalc.width, settings.eval_width))
     columns = len(evalc.azimuths())
     for k, imgs in renders.items():
@@ -194,10 +206,11 @@ def main(argv: list[str] | None = None) -> int:
         parser.add_argument("--prompt", required=True, help="text prompt (CLIP guidance)")
         parser.add_argument("--out-dir", required=True, type=Path)
         parser.add_argument("--settings", default="{}", help="JSON of the optimize settings")
+        parser.add_argument("--targets", type=Path, default=None, help="Mitsuba image targets of --train (target stage)")
 
     def body(args):
         settings = OptimizeSettings.from_json(args.settings)
-        run(args.train, args.eval, args.prompt, args.out_dir, settings, args.device)
+        run(args.train, args.eval, args.prompt, args.out_dir, settings, args.device, targets_path=args.targets)
 
     return stage_main("optimize", __doc__, arguments, body, argv, device="auto")
 

@@ -38,7 +38,11 @@ log = logging.getLogger(__name__)
 def render_edit(field, view, width: int, out: int, light, edit: MaterialEdit | None = None):
     """One cached view through the field's forward pass under ``light`` with the material edited
     by ``edit`` -> ``(3, out, out)`` sRGB."""
-    return render_cached_view(view, width, out, lambda p, n, v: linear_to_srgb(field(p, n, v, light, edit).shading.rgb))
+
+    def colors(v, sel):
+        return linear_to_srgb(field(v.points[sel], v.normals[sel], v.view[sel], light, edit).shading.rgb)
+
+    return render_cached_view(view, width, out, colors)
 
 
 def run(field_path: Path, eval_path: Path, out_dir: Path, settings: RelightSettings, device: str = "cpu") -> dict:

@@ -32,112 +32,12 @@ import numpy as np
 import torch
 
 from ..config.sections import BakeSettings
+from ..geometry.atlas import Atlas, dilate, face_frames, rasterize_atlas, sample_bilinear, unwrap
 from ..geometry.meshio import TriMesh
 from ..geometry.raycache import dequantize_bary
-from ..geometry.tracing import EmbreeTracer
 from ..render.color import srgb_decode, srgb_encode, to_u8
 from ..render.envmap import equirect_directions
 from ..render.shading import face_viewer, shade
-
-
-@dataclass
-class Atlas:
-    """``uv (F, 3, 2)`` per-corner texture coordinates (glTF convention), ``size`` in texels."""
-
-    uv: np.ndarray
-    size: int
-    charts: int
-    utilization: float
-
-
-def unwrap(mesh: TriMesh, size: int, padding: int) -> Atlas:
-    """xatlas parametrisation packed for a ``size x size`` texture."""
-    try:
-        import xatlas
-    except ImportError as exc:  # pragma: no cover
-        raise ImportError("the bake stage needs xatlas: pip install xatlas") from exc
-    atlas = xatlas.Atlas()
-    atlas.add_mesh(mesh.vertices.astype(np.float32), mesh.faces.astype(np.uint32))
-    pack = xatlas.PackOptions()
-    pack.resolution = size
-    pack.padding = padding
-    pack.bilinear = True
-    atlas.generate(xatlas.ChartOptions(), pack)
-    vmapping, indices, uvs = atlas[0]
-    if not np.array_equal(vmapping[indices], mesh.faces):
-        raise RuntimeError("xatlas changed the face order; cannot map faces to the atlas")
-    # xatlas packs into its own width x height; rescale to the square texture
-    uv = uvs[indices].astype(np.float64)
-    scale = max(atlas.width, atlas.height)
-    uv = uv * np.array([atlas.width, atlas.height]) / scale
-    return Atlas(uv, size, int(atlas.chart_count), float(atlas.utilization))
-
-
-def rasterize_atlas(uv: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
-    """Face id ``(S, S) int32`` (-1 = empty) and barycentrics ``(S, S, 2) float32`` (Embree's
-    ``(u, v)``: point = (1-u-v) p0 + u p1 + v p2) of every texel centre, by casting one ray per
-    texel at the UV-space triangles."""
-    tri2d = np.concatenate([uv * size, np.zeros(uv.shape[:2] + (1,))], axis=-1)  # (F, 3, 3)
-    flat = TriMesh(tri2d.reshape(-1, 3), np.arange(3 * len(uv)).reshape(-1, 3))
-    tracer = EmbreeTracer(flat)
-    c = np.arange(size) + 0.5
-    cols, rows = np.meshgrid(c, c)  # texel (row, col) -> (u, v) = (col, row) / S
-    origins = np.stack([cols.ravel(), rows.ravel(), np.ones(size * size)], axis=1)
-    dirs = np.broadcast_to(np.array([0.0, 0.0, -1.0]), origins.shape)
-    hits = tracer.trace(origins, dirs)
-    return hits.face.reshape(size, size), hits.bary.reshape(size, size, 2)
-
-
-def face_frames(mesh: TriMesh, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per-face unit tangent ``T``, bitangent ``B = w (N x T)`` and normal ``N``, ``(F, 3)`` each,
-    and handedness ``w (F,)`` folded into ``B``; see the module docstring. Faces with a degenerate
-    UV or 3D triangle get an arbitrary orthonormal frame around ``N``."""
-    p = mesh.vertices[mesh.faces]
-    n = mesh.face_normals
-    st = np.stack([uv[..., 0], 1.0 - uv[..., 1]], axis=-1)
-    e1, e2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
-    d1, d2 = st[:, 1] - st[:, 0], st[:, 2] - st[:, 0]
-    det = d1[:, 0] * d2[:, 1] - d2[:, 0] * d1[:, 1]
-    ok = np.abs(det) > 1e-20
-    r = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)[:, None]
-    t = (e1 * d2[:, 1:2] - e2 * d1[:, 1:2]) * r
-    b = (e2 * d1[:, 0:1] - e1 * d2[:, 0:1]) * r
-    t = t - n * (n * t).sum(1, keepdims=True)
-    tn = np.linalg.norm(t, axis=1, keepdims=True)
-    bad = ~ok | (tn[:, 0] < 1e-20) | (np.linalg.norm(n, axis=1) < 0.5)
-    fallback = np.where(np.abs(n[:, :1]) < 0.9, np.array([[1.0, 0, 0]]), np.array([[0, 1.0, 0]]))
-    fallback = fallback - n * (n * fallback).sum(1, keepdims=True)
-    t = np.where(bad[:, None], fallback, t)
-    t /= np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-30)
-    w = np.where((np.cross(n, t) * b).sum(1) < 0, -1.0, 1.0)
-    w[bad] = 1.0
-    return t, np.cross(n, t) * w[:, None], n, w
-
-
-def dilate(values: np.ndarray, filled: np.ndarray, passes: int) -> np.ndarray:
-    """Grow ``values (S, S, C)`` from ``filled (S, S) bool`` texels into empty neighbours
-    (8-neighbourhood mean), ``passes`` times; remaining empty texels take the filled mean."""
-    v = values.copy()
-    f = filled.copy()
-    for _ in range(passes):
-        acc = np.zeros_like(v)
-        cnt = np.zeros(f.shape, np.float64)
-        for dy in (-1, 0, 1):
-            for dx in (-1, 0, 1):
-                if dy == dx == 0:
-                    continue
-                sv = np.roll(np.roll(v, dy, 0), dx, 1)
-                sf = np.roll(np.roll(f, dy, 0), dx, 1)
-                acc += sv * sf[..., None]
-                cnt += sf
-        grow = ~f & (cnt > 0)
-        if not grow.any():
-            break
-        v[grow] = acc[grow] / cnt[grow][:, None]
-        f |= grow
-    if (~f).any() and filled.any():
-        v[~f] = values[filled].mean(0)
-    return v
 
 
 @dataclass
@@ -202,18 +102,6 @@ def bake_field(mesh: TriMesh, field, settings: BakeSettings, device="cpu", chunk
 
 
 # ------------------------------------------------------------------------ texture sampling / fidelity
-def sample_bilinear(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """Bilinear lookup of ``img (S, S, C)`` at glTF-convention ``uv (N, 2)`` (clamped at edges)."""
-    s = img.shape[0]
-    x = np.clip(uv[:, 0] * s - 0.5, 0, s - 1)
-    y = np.clip(uv[:, 1] * s - 0.5, 0, s - 1)
-    x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
-    x1, y1 = np.minimum(x0 + 1, s - 1), np.minimum(y0 + 1, s - 1)
-    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
-    im = img.astype(np.float64)
-    return im[y0, x0] * (1 - fx) * (1 - fy) + im[y0, x1] * fx * (1 - fy) + im[y1, x0] * (1 - fx) * fy + im[y1, x1] * fx * fy
-
-
 def decode_textures(textures: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     """The 8-bit textures as float arrays in the renderer's units (linear)."""
     return {

@@ -22,8 +22,10 @@ UP_AXES = ("+y", "-y", "+z", "-z", "+x", "-x")
 #: procedural target materials and lights of ``guidance: image`` (:mod:`stages.model.procedural`)
 MATERIALS = ("wood", "metal", "plaster")
 LIGHTS = ("studio", "sky")
+#: who renders image targets (``optimize.target_renderer``)
+TARGET_RENDERERS = ("mitsuba", "sg")
 #: the procedural environment maps ``relight.envmap: builtin:<name>`` names (:mod:`stages.render.envmap`)
-PROCEDURAL_ENVMAPS = ("sunset", "overcast", "night")
+PROCEDURAL_ENVMAPS = ("sunset", "overcast", "night", "sun_sky")
 ENCODINGS = ("nerf", "fourier", "none")
 
 
@@ -227,6 +229,9 @@ class OptimizeSettings(ClipChoice, Settings):
     clip_tiny_test: bool = False
     bf16: bool = False
     target_material: str = "wood"
+    #: who renders the image targets: "mitsuba" (path-traced ground truth, the target stage) or
+    #: "sg" (our own SG renderer under target_light: fast, but the renderer grades itself)
+    target_renderer: str = "mitsuba"
     target_light: str = "studio"
     # outputs
     checkpoint_every: int = 100
@@ -250,6 +255,8 @@ class OptimizeSettings(ClipChoice, Settings):
             p.append(f"min_roughness must be in (0, 1), got {self.min_roughness}")
         if self.target_material not in MATERIALS:
             p.append(f"target_material must be one of {MATERIALS}, got {self.target_material!r}")
+        if self.target_renderer not in TARGET_RENDERERS:
+            p.append(f"target_renderer must be one of {TARGET_RENDERERS}, got {self.target_renderer!r}")
         if self.target_light not in LIGHTS:
             p.append(f"target_light must be one of {LIGHTS}, got {self.target_light!r}")
         if self.views_per_step < 1 or self.crops < 0 or self.supersample < 1 or self.checkpoint_every < 1:
@@ -337,6 +344,59 @@ class RelightSettings(Settings):
     width: int = 256
 
 
+#: Mitsuba variants the target stage may use ("auto": LLVM when a usable libLLVM is found)
+MITSUBA_VARIANTS = ("auto", "scalar_rgb", "llvm_ad_rgb")
+
+
+@dataclass(frozen=True)
+class TargetSettings(Settings):
+    """Settings of the target stage (config section ``target``, overridable per mesh): ground-truth
+    image targets path-traced by Mitsuba 3 for ``guidance: image`` with ``target_renderer:
+    mitsuba``. The material is the cell's ``optimize.target_material`` (as Mitsuba's principled
+    BSDF with textures and a normal map); the light is an environment map."""
+
+    section = "target"
+    #: environment: builtin:sun_sky (a sun disc and a clear sky) or any .hdr/.exr path
+    environment: str = "builtin:sun_sky"
+    #: rows of a procedural environment (files keep their size); columns = 2 x rows
+    environment_height: int = 512
+    #: samples per pixel of the training views' targets and of the held-out metric views
+    spp: int = 32
+    metric_spp: int = 256
+    #: longest light path (vertices after the camera): 1 = emitters only, 2 = direct light only
+    max_depth: int = 8
+    #: texture size of the ground-truth material and normal map
+    texture_size: int = 1024
+    #: steepest slope of the normal map's bumps (0 = no normal map)
+    bump_slope: float = 0.3
+    #: Mitsuba variant: auto | scalar_rgb | llvm_ad_rgb
+    variant: str = "auto"
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        problems = []
+        for name in ("spp", "metric_spp"):
+            value = getattr(self, name)
+            if value < 2 or value % 2:
+                problems.append(f"{name} must be an even number >= 2 (two halves measure the noise), got {value}")
+        if self.max_depth < 2 and self.max_depth != -1:
+            problems.append(f"max_depth must be >= 2 (or -1: unlimited), got {self.max_depth}")
+        if not 16 <= self.texture_size <= 8192:
+            problems.append(f"texture_size must be in [16, 8192], got {self.texture_size}")
+        if not 0.0 <= self.bump_slope <= 2.0:
+            problems.append(f"bump_slope must be in [0, 2], got {self.bump_slope}")
+        if not 16 <= self.environment_height <= 8192:
+            problems.append(f"environment_height must be in [16, 8192], got {self.environment_height}")
+        if self.variant not in MITSUBA_VARIANTS:
+            problems.append(f"variant must be one of {MITSUBA_VARIANTS}, got {self.variant!r}")
+        if not self.environment.strip():
+            problems.append("environment must name builtin:<name> or a .hdr/.exr file")
+        if self.environment.startswith("builtin:") and self.environment[8:] not in PROCEDURAL_ENVMAPS:
+            problems.append(f"environment {self.environment!r}: choose builtin:<{'|'.join(PROCEDURAL_ENVMAPS)}> or a file")
+        if problems:
+            raise ConfigError("target: " + "; ".join(problems))
+
+
 @dataclass(frozen=True, kw_only=True)
 class MetricsSettings(ClipChoice, Settings):
     """Settings of the metrics stage (config section ``metrics``)."""
@@ -359,6 +419,7 @@ SECTIONS: dict[str, type[Settings]] = {
         NormalizeSettings,
         DecimateSettings,
         RaycacheSettings,
+        TargetSettings,
         OptimizeSettings,
         BakeSettings,
         ExportSettings,

@@ -30,7 +30,7 @@ log = logging.getLogger(__name__)
 REPO_ROOT = Path(__file__).resolve().parents[2]
 SCHEMA_PATH = REPO_ROOT / "workflow" / "schemas" / "config.schema.yaml"
 #: stages whose settings are per mesh (overridable in a mesh entry)
-MESH_STAGES = ("normalize", "decimate", "raycache")
+MESH_STAGES = ("normalize", "decimate", "raycache", "target")
 #: stages after optimize whose settings are per grid cell (overridable per prompt and variant)
 CELL_STAGES = ("bake", "export", "relight", "metrics")
 
@@ -266,6 +266,14 @@ class WorkflowConfig:
             if m.clip and not m.clip_tiny_test:
                 specs.add(m.clip_spec())
         return sorted(specs, key=str)
+
+    def target_material(self, prompt_id: str, variant_id: str) -> str | None:
+        """The procedural material whose Mitsuba targets a cell trains on, or None when the cell
+        needs none (CLIP guidance, or image targets rendered by our own SG renderer)."""
+        s = self.optimize_settings(prompt_id, variant_id)
+        if s.guidance == "image" and s.target_renderer == "mitsuba":
+            return s.target_material
+        return None
 
     def decimated(self, mesh_id: str) -> bool:
         return bool(self.stage_settings(mesh_id, "decimate").enabled)

@@ -168,7 +168,7 @@ def origin_record(*, guidance: str, weights: str, test_only: bool, prompt: str |
     if test_only:
         label = f"TEST ONLY: made with random test weights, not a real stylisation ({weights})"
     elif guidance == "image":
-        label = f"IMAGE-GUIDED: fitted to procedural target renders, not text-guided ({weights})"
+        label = f"IMAGE-GUIDED: fitted to image targets, not text-guided ({weights})"
     else:
         label = f"CLIP-guided ({weights})"
     return {

@@ -147,13 +147,14 @@ def compose(colors: Tensor, lookup: np.ndarray, spec: ImageSpec, bg: Tensor) -> 
 
 
 def render_cached_view(view, width: int, out_size: int, colors, background: float = 0.0) -> Tensor:
-    """One cached view as an image: ``colors(points, normals, view) -> (M, 3)`` (display space) is
-    evaluated at the hits an ``out_size`` image of the ``width``-pixel cache shows, and composed
-    over a constant ``background``. ``view`` has ``points``, ``normals``, ``view`` (tensors) and
-    ``index`` (the hit-index map). Returns ``(3, out_size, out_size)``."""
+    """One cached view as an image: ``colors(view, sel) -> (M, 3)`` (display space) is evaluated
+    at the hits ``sel`` (indices into the view's hits) that an ``out_size`` image of the
+    ``width``-pixel cache shows, and composed over a constant ``background``. ``view`` has
+    ``points``, ``normals``, ``view`` (tensors) and ``index`` (the hit-index map). Returns
+    ``(3, out_size, out_size)``."""
     spec = global_spec(width, out_size)
     needed, (lookup,) = gather_points([spec], view.index)
     sel = torch.from_numpy(needed).to(view.points.device)
-    col = colors(view.points[sel], view.normals[sel], view.view[sel])
+    col = colors(view, sel)
     bg = torch.full((3, out_size, out_size), float(background), device=view.points.device)
     return compose(col, lookup, spec, bg)

@@ -42,3 +42,38 @@ def ssim(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor | None = None, win
     h = (window - 1) // 2
     centre = mask[:, :, h : mask.shape[2] - h, h : mask.shape[3] - h].expand_as(smap)
     return float(smap[centre].mean())
+
+
+def material_errors(pred: dict[str, torch.Tensor], truth: dict[str, torch.Tensor], energy: torch.Tensor, true_energy) -> dict:
+    """Errors of a recovered material against the ground truth at the same hits, and of the
+    recovered light's energy.
+
+    ``pred`` and ``truth``: ``albedo (N, 3)``, ``specular (N, 3)`` (F0 colour), ``roughness
+    (N, 1)``, ``normal (N, 3)`` (unit, facing the viewer); ``pred`` may lack the specular terms
+    (a diffuse-only model). ``energy`` and ``true_energy``: ``int L dw`` per channel ``(3,)``.
+
+    Albedo and light share a scale that images cannot pin down (twice the light and half the
+    albedo render the same diffuse image), so the albedo error is given as is and after the one
+    least-squares scale ``s = <a, t> / <a, a>`` of the recovered albedo, with ``s`` itself.
+    """
+    a, t = pred["albedo"].double(), truth["albedo"].double()
+    scale = float((a * t).sum() / (a * a).sum().clamp(min=1e-30))
+    out = {
+        "albedo_rmse": float(torch.sqrt(((a - t) ** 2).mean())),
+        "albedo_scale": scale,
+        "albedo_rmse_scaled": float(torch.sqrt(((scale * a - t) ** 2).mean())),
+    }
+    if pred.get("roughness") is not None:
+        r, rt = pred["roughness"].double(), truth["roughness"].double()
+        out["roughness_rmse"] = float(torch.sqrt(((r - rt) ** 2).mean()))
+        out["roughness_mae"] = float((r - rt).abs().mean())
+        s, st = pred["specular"].double(), truth["specular"].double()
+        out["specular_rmse"] = float(torch.sqrt(((s - st) ** 2).mean()))
+    cos = (pred["normal"].double() * truth["normal"].double()).sum(-1).clamp(-1.0, 1.0)
+    out["normal_angle_deg_mean"] = float(torch.rad2deg(torch.arccos(cos)).mean())
+    e = energy.double().cpu()
+    te = torch.as_tensor(true_energy, dtype=torch.float64)
+    out["light_energy"] = e.tolist()
+    out["light_energy_true"] = te.tolist()
+    out["light_energy_ratio"] = (e / te.clamp(min=1e-30)).tolist()
+    return out

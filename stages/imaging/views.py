@@ -12,6 +12,7 @@ from ..geometry.raycache import RayCache
 from ..model.field import StyleField
 from ..render.color import linear_to_srgb
 from .images import compose, gather_points, global_spec, index_map, render_cached_view
+from .targets import TargetSet
 
 
 @dataclass
@@ -24,15 +25,20 @@ class CachedView:
     view: torch.Tensor
     index: np.ndarray
     mask: np.ndarray
+    #: image targets at the hits (linear radiance ``(N, 3)``, coverage ``(N,)``), when given
+    target: torch.Tensor | None = None
+    coverage: torch.Tensor | None = None
 
 
 class ViewStore:
     """The views of one :class:`~stages.geometry.raycache.RayCache` as :class:`CachedView`, built
-    on first use and kept on ``device``."""
+    on first use and kept on ``device``, with the image targets of a
+    :class:`~stages.imaging.targets.TargetSet` attached when one is given."""
 
-    def __init__(self, cache: RayCache, device) -> None:
+    def __init__(self, cache: RayCache, device, targets: TargetSet | None = None) -> None:
         self.cache = cache
         self.device = device
+        self.targets = targets
         self._views: dict[int, CachedView] = {}
 
     def __len__(self) -> int:
@@ -50,12 +56,18 @@ class ViewStore:
         if i not in self._views:
             h = self.cache.view(i)
             idx = index_map(h.pixel, self.cache.width)
+            target = coverage = None
+            if self.targets is not None:
+                target = torch.from_numpy(self.targets.view(i)).to(self.device)
+                coverage = torch.from_numpy(self.targets.view(i, "coverage")).to(self.device)
             self._views[i] = CachedView(
                 torch.from_numpy(h.point).to(self.device),
                 torch.from_numpy(h.normal).to(self.device),
                 torch.from_numpy(-h.direction).to(self.device),
                 idx,
                 idx >= 0,
+                target,
+                coverage,
             )
         return self._views[i]
 
@@ -89,8 +101,8 @@ def render_view(field: StyleField, v: CachedView, width: int, out_width: int, ch
 def render_views(field, store, background: str) -> torch.Tensor:
     """Every view of ``store`` rendered through the field at the cache's resolution: ``(V, 3, S, S)`` sRGB in [0, 1]."""
 
-    def colors(p, n, d):
-        return linear_to_srgb(field(p, n, d).shading.rgb)
+    def colors(v, sel):
+        return linear_to_srgb(field(v.points[sel], v.normals[sel], v.view[sel]).shading.rgb)
 
     bg = 1.0 if background == "white" else 0.0
     return torch.stack([render_cached_view(store[i], store.width, store.width, colors, bg) for i in range(len(store))])

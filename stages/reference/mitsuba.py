@@ -14,6 +14,8 @@ optical axis), so distances are taken from the ``position`` AOV instead.
 
 from __future__ import annotations
 
+import glob
+import os
 from pathlib import Path
 
 import numpy as np
@@ -22,10 +24,49 @@ import numpy as np
 OPENGL_TO_MITSUBA = np.diag([-1.0, 1.0, -1.0, 1.0])
 #: the variant used when none is given: CPU, no LLVM needed
 DEFAULT_VARIANT = "scalar_rgb"
+#: Dr.Jit's LLVM back end needs LLVM 16 or newer (older ones abort on ``fminimum``); newest first
+LLVM_MAJORS = (20, 19, 18, 17, 16)
+LIBRARY_DIRS = ("/usr/lib/x86_64-linux-gnu", "/usr/lib/aarch64-linux-gnu", "/usr/lib64", "/usr/lib", "/usr/local/lib")
+
+
+def find_libllvm() -> str | None:
+    """A libLLVM that Dr.Jit's vectorised CPU back end can use: ``DRJIT_LIBLLVM_PATH`` when set and
+    present, else the newest ``libLLVM`` 16+ in the usual library folders (Debian: ``apt-get
+    install libllvm19``), else None."""
+    given = os.environ.get("DRJIT_LIBLLVM_PATH")
+    if given:
+        return given if Path(given).is_file() else None
+    for major in LLVM_MAJORS:
+        for folder in LIBRARY_DIRS:
+            for pattern in (f"libLLVM.so.{major}*", f"libLLVM-{major}.so*"):
+                found = sorted(glob.glob(os.path.join(folder, pattern)))
+                if found:
+                    return found[0]
+    return None
+
+
+def choose_variant(requested: str = "auto") -> str:
+    """``auto``: ``llvm_ad_rgb`` (vectorised, several times faster) when :func:`find_libllvm`
+    finds a usable libLLVM, else ``scalar_rgb``. An explicit LLVM variant without one fails with
+    what to install."""
+    if requested == "auto":
+        return "llvm_ad_rgb" if find_libllvm() else "scalar_rgb"
+    if requested.startswith("llvm") and not find_libllvm():
+        raise ImportError(
+            f"Mitsuba variant {requested} needs libLLVM 16 or newer (Debian: apt-get install libllvm19, "
+            "or set DRJIT_LIBLLVM_PATH); use variant scalar_rgb or auto instead"
+        )
+    return requested
 
 
 def import_mitsuba(variant: str = DEFAULT_VARIANT):
-    """``import mitsuba`` with ``variant`` set, or an ImportError that says what to install."""
+    """``import mitsuba`` with ``variant`` set, or an ImportError that says what to install. For
+    an LLVM variant, ``DRJIT_LIBLLVM_PATH`` is pointed at :func:`find_libllvm`'s library first."""
+    if variant.startswith("llvm"):
+        lib = find_libllvm()
+        if lib is None:
+            choose_variant(variant)  # raises with the remedy
+        os.environ.setdefault("DRJIT_LIBLLVM_PATH", lib)
     try:
         import mitsuba as mi
     except ImportError as exc:
@@ -38,11 +79,16 @@ def import_mitsuba(variant: str = DEFAULT_VARIANT):
     return mi
 
 
-def sensor(c2w: np.ndarray, fov_deg: float, width: int, spp: int = 1, *, centred: bool = True) -> dict:
+def sensor(
+    c2w: np.ndarray, fov_deg: float, width: int, spp: int = 1, *, centred: bool = True, alpha: bool = False, mi=None
+) -> dict:
     """A Mitsuba perspective sensor for our camera ``c2w (4, 4)``: ``width x width`` pixels, full
     field of view ``fov_deg``. ``centred``: one sample per pixel at its centre (``spp`` must be
-    1); otherwise ``spp`` jittered samples per pixel (for rendering)."""
-    mi = import_mitsuba()
+    1); otherwise ``spp`` uniformly random samples per pixel, each kept in its own pixel by the
+    box filter, so a pixel holds the mean radiance over its footprint (for rendering).
+    ``alpha``: an RGBA film (alpha = the footprint's covered fraction). ``mi``: the imported
+    module (default: :func:`import_mitsuba` with the default variant)."""
+    mi = mi or import_mitsuba()
     if centred and spp != 1:
         raise ValueError("a centred sensor takes one sample per pixel")
     sampler = (
@@ -53,7 +99,13 @@ def sensor(c2w: np.ndarray, fov_deg: float, width: int, spp: int = 1, *, centred
         "fov": float(fov_deg),
         "fov_axis": "x",
         "to_world": mi.ScalarTransform4f((np.asarray(c2w, np.float64) @ OPENGL_TO_MITSUBA).tolist()),
-        "film": {"type": "hdrfilm", "width": int(width), "height": int(width), "rfilter": {"type": "box"}},
+        "film": {
+            "type": "hdrfilm",
+            "width": int(width),
+            "height": int(width),
+            "rfilter": {"type": "box"},
+            "pixel_format": "rgba" if alpha else "rgb",
+        },
         "sampler": sampler,
     }
 

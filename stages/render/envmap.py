@@ -1,9 +1,14 @@
-"""Equirectangular environment maps: pixel directions, procedural skies (no downloads), loading.
+"""Equirectangular environment maps: pixel directions, procedural skies (no downloads), loading,
+and the radiant energy of a map.
 
-``sunset``: a warm low sun, an orange-to-blue sky and a dim ground; ``overcast``: a soft, bright,
-nearly uniform sky; ``night``: the same layout as sunset at a twentieth of the brightness (for
-checks that a darker environment darkens a render). Rows run from the zenith (row 0) to the
-nadir; columns follow the cameras' azimuth (see :func:`equirect_directions`).
+``sun_sky``: a clear sky with a hard-edged sun disc (angular radius 1.5 degrees, elevation 35
+degrees), a horizon brighter than the zenith, an aureole around the sun and a dim ground below a
+sharp horizon: the Mitsuba ground-truth targets' default light, chosen because no finite sum of
+spherical Gaussians represents its disc edge or its horizon step. ``sunset``: a warm low sun, an
+orange-to-blue sky and a dim ground; ``overcast``: a soft, bright, nearly uniform sky;
+``night``: the same layout as sunset at a twentieth of the brightness (for checks that a darker
+environment darkens a render). Rows run from the zenith (row 0) to the nadir; columns follow
+the cameras' azimuth (see :func:`equirect_directions`).
 """
 
 from __future__ import annotations
@@ -52,19 +57,63 @@ def procedural_envmap(name: str, height: int = 128) -> np.ndarray:
             img = img / 20.0
     elif name == "overcast":
         img = np.where(y[..., None] >= 0, 0.9 + 0.3 * y[..., None], 0.3) * np.array([1.0, 1.0, 1.02])
+    elif name == "sun_sky":
+        img = _sun_sky(d, height)
     else:
         raise ValueError(f"unknown procedural environment {name!r}; choose one of {', '.join(PROCEDURAL)}")
     return img.astype(np.float32)
 
 
-def load_env(spec: str) -> np.ndarray:
-    """``(H, W, 3) float32`` radiance of ``spec``: a ``.hdr``/``.exr`` path or ``builtin:<name>``."""
+#: the sun of ``sun_sky``: direction (elevation 35 degrees, azimuth 2.2 rad), angular radius, radiance
+SUN_ELEVATION = math.radians(35.0)
+SUN_AZIMUTH = 2.2
+SUN_RADIUS = math.radians(1.5)
+SUN_RADIANCE = (1300.0, 1225.0, 1100.0)
+
+
+def sun_direction() -> np.ndarray:
+    """Unit direction ``(3,)`` towards the centre of ``sun_sky``'s sun (y up)."""
+    e, a = SUN_ELEVATION, SUN_AZIMUTH
+    return np.array([math.cos(e) * math.cos(a), math.sin(e), math.cos(e) * math.sin(a)])
+
+
+def _sun_sky(d: np.ndarray, height: int) -> np.ndarray:
+    y = d[..., 1:2]
+    angle = np.arccos(np.clip(d @ sun_direction(), -1.0, 1.0))[..., None]
+    up = np.clip(y, 0.0, 1.0)
+    zenith, horizon = np.array([0.08, 0.15, 0.35]), np.array([0.31, 0.34, 0.40])
+    sky = zenith + (horizon - zenith) * (1.0 - up) ** 4 + 0.45 * np.exp(-angle / 0.12) * np.array([1.0, 0.9, 0.7])
+    ground = np.array([0.08, 0.065, 0.05]) * (0.6 + 0.4 * np.clip(-y, 0.0, 1.0))
+    img = np.where(y >= 0.0, sky, ground)
+    # the disc, its edge anti-aliased over one pixel's angular size
+    pixel = math.pi / height
+    cover = np.clip((SUN_RADIUS - angle) / pixel + 0.5, 0.0, 1.0)
+    return img + cover * np.array(SUN_RADIANCE)
+
+
+def load_env(spec: str, height: int = 128) -> np.ndarray:
+    """``(H, W, 3) float32`` radiance of ``spec``: a ``.hdr``/``.exr`` path or ``builtin:<name>``
+    (procedural maps at ``height`` rows; files at their own size)."""
     if spec.startswith("builtin:"):
         name = spec.split(":", 1)[1]
         if name not in PROCEDURAL:
             raise StageInputError(spec, f"no procedural environment {name!r}", f"Use one of {', '.join(PROCEDURAL)}.")
-        return procedural_envmap(name)
+        return procedural_envmap(name, height)
     return read_envmap(spec)
+
+
+def solid_angles(height: int, width: int) -> np.ndarray:
+    """Solid angle ``(H, 1)`` of each pixel of an equirectangular image's rows (exact, per row:
+    ``2 pi / W (cos(theta_top) - cos(theta_bottom))``); the rows sum to ``4 pi``."""
+    theta = np.pi * np.arange(height + 1) / height
+    return (2.0 * np.pi / width * (np.cos(theta[:-1]) - np.cos(theta[1:])))[:, None]
+
+
+def radiant_energy(env: np.ndarray) -> np.ndarray:
+    """``int L(w) dw`` over the sphere, per channel ``(3,)``, of an equirectangular ``env (H, W, 3)``
+    (exact for a map constant over each pixel)."""
+    h, w, _ = env.shape
+    return (env.astype(np.float64) * solid_angles(h, w)[..., None]).sum((0, 1))
 
 
 def main(argv: list[str] | None = None) -> int:

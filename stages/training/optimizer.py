@@ -22,6 +22,7 @@ from ..core.provenance import Timer, atomic_path
 from ..geometry.raycache import RayCache
 from ..guidance.objective import Objective
 from ..imaging.images import ImageSpec, background, compose, gather_points, global_spec, sample_crops
+from ..imaging.targets import TargetSet
 from ..imaging.views import CachedView, ViewStore
 from ..model.field import StyleField
 from ..render.color import linear_to_srgb
@@ -39,10 +40,13 @@ def save_checkpoint(path: Path, **state) -> None:
 class Optimizer:
     """One optimisation run: state, step function, checkpointing."""
 
-    def __init__(self, settings: OptimizeSettings, train: RayCache, prompt: str, device, guide=None) -> None:
+    def __init__(
+        self, settings: OptimizeSettings, train: RayCache, prompt: str, device, guide=None, targets: TargetSet | None = None
+    ) -> None:
+        """``targets``: the Mitsuba image targets of ``train`` (``target_renderer: mitsuba``)."""
         self.s = settings
         self.device = torch.device(device)
-        self.views = ViewStore(train, self.device)
+        self.views = ViewStore(train, self.device, targets)
         self.prompt = prompt
         self.field = StyleField(settings.field_settings()).to(self.device)
         self.opt = torch.optim.AdamW(self.field.parameters(), lr=settings.lr, weight_decay=settings.weight_decay)
@@ -51,7 +55,7 @@ class Optimizer:
         self.tgen = torch.Generator().manual_seed(settings.seed)
         self.iteration = 0
         self.history: list[dict] = []
-        self.objective = Objective(settings, prompt, self.device, guide)
+        self.objective = Objective(settings, prompt, self.device, guide, targets.description if targets else None)
         self.points_last = 0
 
     # -- checkpoints
@@ -117,7 +121,7 @@ class Optimizer:
                 crops.extend(imgs[1:])
                 if self.objective.guide is None:
                     with torch.no_grad():
-                        tcol = linear_to_srgb(self.objective.target_colors(pts, nrm, view))
+                        tcol = linear_to_srgb(self.objective.target_colors(v, sel))
                     timgs = [compose(tcol, lk, sp, bg) for lk, sp, bg in zip(lookups, specs, bgs, strict=True)]
                     globals_t.append(timgs[0])
                     crops_t.extend(timgs[1:])

@@ -15,7 +15,7 @@ from conftest import REPO, icosphere, require_tool
 
 from stages import bake, export, optimize, pack, relight, report
 from stages.assets import formats
-from stages.assets.baking import bake_field, decode_textures, dilate, face_frames, rasterize_atlas, unwrap
+from stages.assets.baking import bake_field, decode_textures
 from stages.config.sections import (
     BakeSettings,
     ExportSettings,
@@ -25,6 +25,7 @@ from stages.config.sections import (
     RaycacheSettings,
     RelightSettings,
 )
+from stages.geometry.atlas import dilate, face_frames, rasterize_atlas, unwrap
 from stages.geometry.meshio import save_ply
 from stages.geometry.normalization import normalize_mesh
 from stages.model.networks import Material, SGLightModule

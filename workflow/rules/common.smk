@@ -4,6 +4,7 @@ import json
 from pathlib import Path
 
 from stages.config.layout import OPTIMIZE_FILES, TEXTURES
+from stages.config.sections import MATERIALS
 from stages.config.workflow import WorkflowConfig
 from stages.core.errors import ConfigError
 
@@ -29,6 +30,7 @@ ID_REGEX = "[A-Za-z0-9][A-Za-z0-9_.-]*"
 
 
 wildcard_constraints:
+    material="|".join(MATERIALS),
     mesh=ID_REGEX,
     prompt=ID_REGEX,
     variant=ID_REGEX,
@@ -103,6 +105,25 @@ def prompt_text(wildcards):
 def optimize_settings_json(wildcards):
     settings = CFG.optimize_settings(wildcards.prompt, wildcards.variant)
     return json.dumps(settings.to_dict(), sort_keys=True)
+
+
+def cell_targets(name):
+    """Input function: the cell's Mitsuba targets (``train`` or ``metrics``), or nothing when the
+    cell trains on CLIP or on SG-rendered targets."""
+
+    def targets(wildcards):
+        material = CFG.target_material(wildcards.prompt, wildcards.variant)
+        if material is None:
+            return {}
+        return {"targets": f"{RESULTS}/{wildcards.mesh}/target/{material}/{name}.npz"}
+
+    targets.__name__ = f"{name}_targets"
+    return targets
+
+
+def targets_option(wildcards, input):
+    """Params function: ``--targets FILE`` when the job has Mitsuba targets, else nothing."""
+    return f"--targets {input.targets}" if "targets" in input.keys() else ""
 
 
 def check_clip_weights():

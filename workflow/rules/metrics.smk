@@ -1,5 +1,6 @@
 rule metrics:
     input:
+        unpack(cell_targets("metrics")),
         field=f"{CELL}/optimize/field.pt",
         cache=f"{RESULTS}/{{mesh}}/raycache/metrics.npz",
     output:
@@ -18,7 +19,8 @@ rule metrics:
         candidates=candidates_json,
         out_dir=cell_dir("metrics"),
         settings=cell_settings_json("metrics"),
+        targets=targets_option,
     shell:
         "python -m stages.metrics --field {input.field:q} --metrics-cache {input.cache:q} "
         "--prompt {params.prompt:q} --candidates {params.candidates:q} --out-dir {params.out_dir:q} "
-        "--settings {params.settings:q} --threads {threads} 2> {log:q}"
+        "--settings {params.settings:q} {params.targets} --threads {threads} 2> {log:q}"

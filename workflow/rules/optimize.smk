@@ -1,5 +1,6 @@
 rule optimize:
     input:
+        unpack(cell_targets("train")),
         train=f"{RESULTS}/{{mesh}}/raycache/train.npz",
         eval=f"{RESULTS}/{{mesh}}/raycache/eval.npz",
     output:
@@ -15,7 +16,8 @@ rule optimize:
         prompt=prompt_text,
         out_dir=cell_dir("optimize"),
         settings=optimize_settings_json,
+        targets=targets_option,
     shell:
         "python -m stages.optimize --train {input.train:q} --eval {input.eval:q} "
         "--prompt {params.prompt:q} --out-dir {params.out_dir:q} --settings {params.settings:q} "
-        "--threads {threads} 2> {log:q}"
+        "{params.targets} --threads {threads} 2> {log:q}"

@@ -1,0 +1,319 @@
+"""Ground-truth image targets path-traced by Mitsuba 3 through the ray cache's own cameras.
+
+The scene, all of it rendered by Mitsuba (nobody here wrote its light transport or its BSDF):
+
+* **geometry**: the cached mesh, faceted (flat face normals, as our renderer shades it), with an
+  xatlas texture atlas (:mod:`stages.geometry.atlas`);
+* **material**: Mitsuba's ``principled`` BSDF (GGX microfacets, Disney diffuse, dielectric or
+  metallic Fresnel) wrapped in ``normalmap`` and ``twosided``, with textures for base colour,
+  roughness and metallic, baked from the procedural material ``kind``
+  (:func:`principled_material`), and a tangent-space normal map of procedural bumps
+  (:func:`bumped_normals`);
+* **light**: an environment map (by default ``builtin:sun_sky``, a sun disc and a clear sky, which
+  no sum of SG lobes represents), rotated into Mitsuba's convention by :data:`ENV_TO_WORLD`;
+* **transport**: the ``path`` integrator (shadows and interreflection up to ``max_depth``), the
+  environment hidden from the camera, an RGBA film whose alpha is each pixel's covered fraction.
+
+Each cached view is rendered twice with ``spp / 2`` samples and different seeds: the mean is the
+target and half the squared difference of the two (in sRGB) estimates the target's own noise.
+Per cached hit the target keeps the *unpremultiplied* radiance (pixel radiance / alpha) and the
+coverage, so training composes it exactly as it composes the model's renders, and metrics count
+only fully covered object pixels.
+
+The material's ground truth in TANGO's terms (:func:`tango_equivalent`: diffuse albedo
+``base (1 - metallic)``, specular colour ``F0``, roughness) is sampled at every hit of the metric
+views from the same textures Mitsuba reads, for the material-error figures.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from ..config.sections import TargetSettings
+from ..geometry.atlas import dilate, rasterize_atlas, sample_bilinear, unwrap
+from ..geometry.meshio import TriMesh
+from ..geometry.raycache import RayCache, dequantize_bary
+from ..model.procedural import procedural_material
+from ..render.color import srgb_encode
+from ..render.envmap import load_env, radiant_energy
+from .mitsuba import choose_variant, import_mitsuba, sensor
+
+log = logging.getLogger(__name__)
+
+#: Mitsuba's environment map looks up ``u = atan2(x, -z) / 2 pi``, ``v = acos(y) / pi`` in its local
+#: frame; ours has column azimuth ``a`` at ``(cos a, y, sin a)``. This to-world rotation makes the
+#: two agree (checked in tests/reference by evaluating Mitsuba's emitter in given directions).
+ENV_TO_WORLD = np.array([[0.0, 0.0, -1.0, 0.0], [0.0, 1.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
+#: Mitsuba's principled ``specular`` sets a dielectric's normal-incidence Fresnel to ``0.08 specular``
+PRINCIPLED_F0_PER_SPECULAR = 0.08
+#: a procedural material whose mean specular colour exceeds this is made a metal
+METAL_F0 = 0.2
+#: the bumps of the normal map: wave vectors (radians per unit length) of three plane waves
+BUMP_WAVES = np.array([[23.0, 7.0, -4.0], [-5.0, 19.0, 13.0], [9.0, -6.0, 27.0]])
+BUMP_PHASES = np.array([0.3, 1.7, 4.1])
+
+
+@dataclass(frozen=True)
+class PrincipledMaps:
+    """Mitsuba principled parameters per point: ``base_color (N, 3)`` linear, ``metallic (N, 1)``,
+    ``roughness (N, 1)``, and the dielectric ``specular`` level (a scalar in Mitsuba)."""
+
+    base_color: np.ndarray
+    metallic: np.ndarray
+    roughness: np.ndarray
+    specular: float
+
+
+def principled_material(kind: str, points: np.ndarray) -> PrincipledMaps:
+    """The procedural material ``kind`` (:func:`~stages.model.procedural.procedural_material`) as
+    principled parameters at ``points (N, 3)``: a metal where its specular colour is bright
+    (base colour = that colour, metallic 1), else a dielectric (base colour = its albedo, the
+    specular level from its mean ``F0``)."""
+    m = procedural_material(kind, torch.from_numpy(np.asarray(points, np.float64)))
+    albedo, f0, rough = (t.numpy() for t in (m.albedo, m.specular, m.roughness))
+    metal = (f0.mean(1, keepdims=True) > METAL_F0).astype(np.float64)
+    dielectric_f0 = f0[metal[:, 0] == 0].mean() if (metal == 0).any() else 0.04
+    level = float(np.clip(dielectric_f0 / PRINCIPLED_F0_PER_SPECULAR, 0.0, 1.0))
+    return PrincipledMaps(metal * f0 + (1 - metal) * albedo, metal, rough, level)
+
+
+def tango_equivalent(base: np.ndarray, metallic: np.ndarray, roughness: np.ndarray, specular: float) -> dict:
+    """TANGO's parameters closest to principled ones: diffuse ``albedo = base (1 - metallic)``,
+    specular colour ``F0 = lerp(0.08 specular, base, metallic)``, the same roughness (both models
+    use ``alpha = roughness^2``). Arrays ``(N, C)``."""
+    f0 = (1 - metallic) * PRINCIPLED_F0_PER_SPECULAR * specular + metallic * base
+    return {"albedo": base * (1 - metallic), "specular": f0, "roughness": roughness}
+
+
+def bumped_normals(points: np.ndarray, normals: np.ndarray, slope: float) -> np.ndarray:
+    """Unit normals ``(N, 3)`` of the height field ``h(p) = sum_i a sin(k_i . p + phi_i)`` on a
+    surface with unit ``normals``: ``normalize(n - (grad h - (grad h . n) n))``, the amplitude ``a``
+    chosen so that the steepest possible slope ``|grad h|`` is ``slope``."""
+    k = BUMP_WAVES
+    a = slope / np.linalg.norm(k, axis=1).sum()
+    grad = (a * np.cos(points @ k.T + BUMP_PHASES)) @ k  # (N, 3)
+    tangential = grad - (grad * normals).sum(1, keepdims=True) * normals
+    bent = normals - tangential
+    return bent / np.linalg.norm(bent, axis=1, keepdims=True)
+
+
+def mitsuba_frames(mesh: TriMesh, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The shading frame Mitsuba's ``normalmap`` uses on a flat-shaded face: ``s`` = ``dp/du``
+    made orthogonal to the face normal ``n`` and normalised, ``t = n x s`` (whatever the UV
+    handedness; measured in tests/reference). Per face ``(F, 3)`` each."""
+    p = mesh.vertices[mesh.faces].astype(np.float64)
+    n = mesh.face_normals.astype(np.float64)
+    e1, e2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
+    d1, d2 = uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]
+    det = d1[:, 0] * d2[:, 1] - d2[:, 0] * d1[:, 1]
+    safe = np.where(np.abs(det) > 1e-20, det, 1.0)
+    dp_du = (e1 * d2[:, 1:2] - e2 * d1[:, 1:2]) / safe[:, None]
+    s = dp_du - (dp_du * n).sum(1, keepdims=True) * n
+    norm = np.linalg.norm(s, axis=1, keepdims=True)
+    fallback = np.where(np.abs(n[:, :1]) < 0.9, np.array([[1.0, 0, 0]]), np.array([[0, 1.0, 0]]))
+    fallback = fallback - (fallback * n).sum(1, keepdims=True) * n
+    s = np.where(norm > 1e-20, s, fallback)
+    s /= np.linalg.norm(s, axis=1, keepdims=True)
+    return s, np.cross(n, s), n
+
+
+@dataclass
+class GroundTruth:
+    """The scene's material as textures ``(S, S, C)`` (linear; row 0 at ``v = 0``, as Mitsuba and
+    glTF read them), the atlas ``uv (F, 3, 2)`` and the per-face normal-map frames."""
+
+    uv: np.ndarray
+    base_color: np.ndarray
+    metallic: np.ndarray
+    roughness: np.ndarray
+    normal: np.ndarray  # tangent space, in [-1, 1]
+    specular: float
+    frames: tuple[np.ndarray, np.ndarray, np.ndarray]
+
+    def at_hits(self, face: np.ndarray, bary: np.ndarray, back: np.ndarray) -> dict:
+        """TANGO-equivalent maps and the world shading normal at hits (``face (N,)``,
+        ``bary (N, 2)``, ``back (N,) bool``: seen from behind, where ``twosided`` mirrors the
+        perturbed normal through the face's plane and the viewer sees ``-mirror``, i.e. the
+        normal facing the viewer). Sampled bilinearly, as Mitsuba does."""
+        tri = self.uv[face]
+        uv = tri[:, 0] + bary[:, :1] * (tri[:, 1] - tri[:, 0]) + bary[:, 1:] * (tri[:, 2] - tri[:, 0])
+        out = tango_equivalent(
+            sample_bilinear(self.base_color, uv),
+            sample_bilinear(self.metallic, uv),
+            sample_bilinear(self.roughness, uv),
+            self.specular,
+        )
+        ts = sample_bilinear(self.normal, uv)
+        s, t, n = (f[face] for f in self.frames)
+        world = ts[:, :1] * s + ts[:, 1:2] * t + ts[:, 2:3] * n
+        world /= np.linalg.norm(world, axis=1, keepdims=True)
+        # seen from behind: the mirror image through the face's plane, turned to face the viewer
+        mirrored = world - 2.0 * (world * n).sum(1, keepdims=True) * n
+        out["normal"] = np.where(back[:, None], -mirrored, world)
+        return out
+
+
+def ground_truth(mesh: TriMesh, kind: str, settings: TargetSettings) -> GroundTruth:
+    """Unwrap ``mesh`` and bake the procedural material ``kind`` and its bumps into textures."""
+    size = settings.texture_size
+    atlas = unwrap(mesh, size, padding=4)
+    face, bary = rasterize_atlas(atlas.uv, size)
+    filled = face >= 0
+    fi = face[filled].astype(np.int64)
+    b = bary[filled].astype(np.float64)
+    tri = mesh.vertices[mesh.faces[fi]].astype(np.float64)
+    points = tri[:, 0] + b[:, :1] * (tri[:, 1] - tri[:, 0]) + b[:, 1:] * (tri[:, 2] - tri[:, 0])
+    mat = principled_material(kind, points)
+    frames = mitsuba_frames(mesh, atlas.uv)
+    s, t, n = (f[fi] for f in frames)
+    bent = bumped_normals(points, n, settings.bump_slope)
+    local = np.stack([(bent * s).sum(1), (bent * t).sum(1), (bent * n).sum(1)], axis=1)
+
+    def texture(values: np.ndarray, empty: float) -> np.ndarray:
+        img = np.full((size, size, values.shape[1]), empty)
+        img[filled] = values
+        return dilate(img, filled, 8)
+
+    normal = texture(local, 0.0)
+    normal /= np.maximum(np.linalg.norm(normal, axis=-1, keepdims=True), 1e-12)
+    return GroundTruth(
+        atlas.uv,
+        texture(mat.base_color, 0.0),
+        texture(mat.metallic, 0.0),
+        texture(mat.roughness, 1.0),
+        normal,
+        mat.specular,
+        frames,
+    )
+
+
+def _mesh(mi, mesh: TriMesh, uv: np.ndarray, bsdf):
+    """A Mitsuba mesh with one vertex per face corner (flat normals, the atlas's texcoords)."""
+    corners = mesh.vertices[mesh.faces].reshape(-1, 3).astype(np.float32)
+    nf = len(mesh.faces)
+    m = mi.Mesh("target", 3 * nf, nf, has_vertex_normals=False, has_vertex_texcoords=True)
+    params = mi.traverse(m)
+    params["vertex_positions"] = mi.Float(np.ascontiguousarray(corners.ravel()))
+    params["faces"] = mi.UInt32(np.arange(3 * nf, dtype=np.uint32))
+    params["vertex_texcoords"] = mi.Float(np.ascontiguousarray(uv.reshape(-1, 2).astype(np.float32).ravel()))
+    params.update()
+    m.set_bsdf(bsdf)
+    return m
+
+
+def _bitmap(mi, img: np.ndarray) -> dict:
+    return {
+        "type": "bitmap",
+        "bitmap": mi.Bitmap(np.ascontiguousarray(img.astype(np.float32))),
+        "raw": True,
+        "filter_type": "bilinear",
+    }
+
+
+def scene_dict(mi, mesh: TriMesh, gt: GroundTruth, env: np.ndarray, max_depth: int) -> dict:
+    """The Mitsuba scene description (see the module docstring); sensors are added per view."""
+    principled = {
+        "type": "principled",
+        "base_color": _bitmap(mi, gt.base_color),
+        "roughness": _bitmap(mi, gt.roughness),
+        "metallic": _bitmap(mi, gt.metallic),
+        "specular": float(gt.specular),
+    }
+    bsdf = {
+        "type": "twosided",
+        "material": {"type": "normalmap", "normalmap": _bitmap(mi, 0.5 * gt.normal + 0.5), "bsdf": principled},
+    }
+    return {
+        "type": "scene",
+        "integrator": {"type": "path", "max_depth": int(max_depth), "hide_emitters": True},
+        "object": _mesh(mi, mesh, gt.uv, mi.load_dict(bsdf)),
+        "light": {
+            "type": "envmap",
+            "bitmap": mi.Bitmap(np.ascontiguousarray(env.astype(np.float32))),
+            "to_world": mi.ScalarTransform4f(ENV_TO_WORLD.tolist()),
+        },
+    }
+
+
+@dataclass
+class ViewTargets:
+    """One cache's targets: per hit ``radiance (N, 3) float32`` (unpremultiplied, linear) and
+    ``coverage (N,) float32`` (Mitsuba's alpha at the hit's pixel); per view the object-pixel
+    noise ``noise_mse (V,)`` (sRGB, of the mean of the two halves) and ``pixels (V,)``."""
+
+    radiance: np.ndarray
+    coverage: np.ndarray
+    noise_mse: np.ndarray
+    pixels: np.ndarray
+    seconds: float
+
+    @property
+    def noise_psnr_db(self) -> float:
+        """PSNR of the targets against their noise-free expectation, object pixels, sRGB."""
+        mse = float((self.noise_mse * self.pixels).sum() / max(self.pixels.sum(), 1))
+        return float("inf") if mse <= 0 else float(10.0 * np.log10(1.0 / mse))
+
+
+class TargetRenderer:
+    """A loaded Mitsuba scene that renders views of ray caches (one sensor, moved per view)."""
+
+    def __init__(self, mesh: TriMesh, kind: str, settings: TargetSettings) -> None:
+        self.settings = settings
+        self.variant = choose_variant(settings.variant)
+        self.mi = import_mitsuba(self.variant)
+        t0 = time.perf_counter()
+        self.truth = ground_truth(mesh, kind, settings)
+        self.seconds_textures = time.perf_counter() - t0
+        self.env = load_env(settings.environment, settings.environment_height)
+        self.env_energy = radiant_energy(self.env)
+        self.scene = self.mi.load_dict(scene_dict(self.mi, mesh, self.truth, self.env, settings.max_depth))
+
+    def render(self, c2w: np.ndarray, fov_deg: float, width: int, spp: int, seed: int) -> np.ndarray:
+        """``(W, W, 4)`` float32: linear RGB (premultiplied by coverage) and alpha."""
+        mi = self.mi
+        cam = mi.load_dict(sensor(c2w, fov_deg, width, spp, centred=False, alpha=True, mi=mi))
+        return np.array(mi.render(self.scene, sensor=cam, seed=int(seed), spp=int(spp)), dtype=np.float32)
+
+    def render_cache(self, cache: RayCache, spp: int, seed: int) -> ViewTargets:
+        """Targets of every view of ``cache`` (two half renders per view, see the module docstring)."""
+        t0 = time.perf_counter()
+        radiance, coverage, noise, pixels = [], [], [], []
+        for i in range(len(cache)):
+            hits = cache.view(i)
+            halves = [self.render(hits.c2w, cache.fov_deg, cache.width, spp // 2, seed + 2 * (i * 7919) + h) for h in (0, 1)]
+            img = 0.5 * (halves[0] + halves[1])
+            flat = img.reshape(-1, 4)[hits.pixel]
+            alpha = flat[:, 3]
+            rgb = np.where(alpha[:, None] > 0, flat[:, :3] / np.maximum(alpha[:, None], 1e-8), 0.0)
+            radiance.append(rgb.astype(np.float32))
+            coverage.append(alpha.astype(np.float32))
+            full = alpha >= ALPHA_FULL
+            a, b = (srgb_encode(np.clip(h.reshape(-1, 4)[hits.pixel][full, :3], 0, None)) for h in halves)
+            noise.append(float(((a - b) ** 2).mean() / 4.0) if full.any() else 0.0)
+            pixels.append(int(full.sum()))
+            log.info("target view %d/%d: %d hits, %.1f s so far", i + 1, len(cache), len(hits.pixel), time.perf_counter() - t0)
+        return ViewTargets(
+            np.concatenate(radiance) if radiance else np.zeros((0, 3), np.float32),
+            np.concatenate(coverage) if coverage else np.zeros(0, np.float32),
+            np.array(noise),
+            np.array(pixels),
+            time.perf_counter() - t0,
+        )
+
+    def truth_at_hits(self, cache: RayCache) -> dict:
+        """The TANGO-equivalent material and world shading normal at every hit of ``cache``."""
+        a = cache.arrays
+        face = a["face"].astype(np.int64)
+        bary = dequantize_bary(a["bary"]).astype(np.float64)
+        direction = np.concatenate([cache.view(i).direction for i in range(len(cache))])
+        back = (a["face_normals"][face] * direction).sum(1) > 0
+        return self.truth.at_hits(face, bary, back)
+
+
+#: a pixel counts as an object pixel of the figures when Mitsuba's alpha says it is fully covered
+ALPHA_FULL = 0.999
