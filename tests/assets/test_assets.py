@@ -536,7 +536,9 @@ def test_html_report_opens_in_chromium(trained, tmp_path):
 def test_image_guided_metrics_psnr_ssim(trained, tmp_path):
     from stages import metrics
 
-    s = OptimizeSettings(iterations=2, guidance="image", image_size=32, width=16, crops=0, light_lobes=4, eval_width=32)
+    s = OptimizeSettings(
+        iterations=2, guidance="image", target_renderer="sg", image_size=32, width=16, crops=0, light_lobes=4, eval_width=32
+    )
     optimize.run(trained / "train.npz", trained / "eval.npz", "", tmp_path / "opt", s, "cpu")
     rs = RaycacheSettings(
         views=1, resolution=16, eval_resolution=16, metrics_azimuths=3, metrics_elevations_deg=(0.0,), metrics_resolution=48

@@ -12,7 +12,7 @@ import torch
 
 from stages import optimize
 from stages.config.layout import OPTIMIZE_FILES
-from stages.config.sections import NormalizeSettings, OptimizeSettings, RaycacheSettings
+from stages.config.sections import NormalizeSettings, OptimizeSettings, RaycacheSettings, TargetSettings
 from stages.core.provenance import Timer
 from stages.geometry.meshio import save_ply
 from stages.geometry.normalization import normalize_mesh
@@ -124,35 +124,91 @@ def test_switched_off_parts_are_not_built():
     assert no_delta.normal_net is None
 
 
-def _recover(tmp_path, **overrides) -> dict:
-    """Fit the image targets of a procedural material and light on the built-in vase (300
-    iterations, the sweep's base settings) and return the optimisation's metadata."""
-    save_ply(tmp_path / "vase.ply", normalize_mesh("builtin:vase", NormalizeSettings()).mesh)
-    rc = RaycacheSettings(
-        views=32,
-        resolution=96,
-        std=3.0,
-        eval_azimuths=8,
-        eval_elevations_deg=(-20.0, 10.0, 35.0),
-        eval_resolution=96,
+#: floors of the Mitsuba recovery test, below the figures measured on 2026-11-22
+#: (measured: 21.4 dB, SSIM 0.695, albedo RMSE 0.265 after its scale, roughness MAE 0.256)
+RECOVERY_MITSUBA_PSNR_DB = 20.0
+RECOVERY_MITSUBA_SSIM = 0.65
+RECOVERY_MITSUBA_ALBEDO_RMSE = 0.32
+RECOVERY_MITSUBA_ROUGHNESS_MAE = 0.32
+
+#: the Mitsuba targets of the recovery test and benchmark (fewer samples than the stage's default)
+MITSUBA_TARGET = TargetSettings(spp=16, metric_spp=128, texture_size=512)
+
+#: the fit both recovery helpers share (300 iterations, the sweep's base settings)
+RECOVERY = {
+    "iterations": 300,
+    "guidance": "image",
+    "lr": 5e-3,
+    "milestones": (180, 255),
+    "gamma": 0.3,
+    "width": 64,
+    "image_size": 96,
+    "crops": 0,
+    "views_per_step": 2,
+    "normal_network": False,
+    "material_frequencies": 6,
+    "light_lobes": 16,
+    "eval_width": 96,
+    "checkpoint_every": 1000,
+}
+RECOVERY_CACHE = RaycacheSettings(
+    views=32,
+    resolution=96,
+    std=3.0,
+    eval_azimuths=8,
+    eval_elevations_deg=(-20.0, 10.0, 35.0),
+    eval_resolution=96,
+    metrics_resolution=96,
+)
+
+
+def recover_mitsuba(tmp_path, mesh: str = "builtin:vase", material: str = "wood", target=None, **overrides) -> dict:
+    """Fit Mitsuba's path-traced targets (the target stage with ``target`` settings) of
+    ``material`` on ``mesh``, then grade the field with the metrics stage on the held-out metric
+    views. Returns ``{"optimize": meta, "metrics": image_target figures, "target": summary}``."""
+    from stages import metrics
+    from stages import target as target_stage
+    from stages.config.sections import MetricsSettings
+
+    save_ply(tmp_path / "mesh.ply", normalize_mesh(mesh, NormalizeSettings()).mesh)
+    raycache_run(
+        tmp_path / "mesh.ply",
+        tmp_path / "train.npz",
+        tmp_path / "eval.npz",
+        tmp_path / "rc.json",
+        RECOVERY_CACHE,
+        tmp_path / "metrics.npz",
     )
-    raycache_run(tmp_path / "vase.ply", tmp_path / "train.npz", tmp_path / "eval.npz", tmp_path / "rc.json", rc)
+    tdir = tmp_path / "target"
+    summary = target_stage.run(tmp_path / "train.npz", tmp_path / "metrics.npz", material, tdir, target or TargetSettings())
+    settings = OptimizeSettings(**{**RECOVERY, "target_material": material, "target_renderer": "mitsuba", **overrides})
+    torch.set_num_threads(2)
+    meta = optimize.run(
+        tmp_path / "train.npz", tmp_path / "eval.npz", "", tmp_path / "out", settings, "cpu", targets_path=tdir / "train.npz"
+    )
+    m = metrics.run(
+        tmp_path / "out" / "field.pt",
+        tmp_path / "metrics.npz",
+        "",
+        [""],
+        tmp_path / "metrics",
+        MetricsSettings(clip=False),
+        "cpu",
+        tdir / "metrics.npz",
+    )
+    return {"optimize": meta, "metrics": m["image_target"], "target": summary}
+
+
+def _recover(tmp_path, **overrides) -> dict:
+    """Fit the image targets of a procedural material under an SG light, rendered by our own SG
+    renderer, on the built-in vase (300 iterations, the sweep's base settings) and return the
+    optimisation's metadata."""
+    save_ply(tmp_path / "vase.ply", normalize_mesh("builtin:vase", NormalizeSettings()).mesh)
+    raycache_run(tmp_path / "vase.ply", tmp_path / "train.npz", tmp_path / "eval.npz", tmp_path / "rc.json", RECOVERY_CACHE)
     settings = {
-        "iterations": 300,
-        "guidance": "image",
+        **RECOVERY,
         "target_material": "wood",
-        "lr": 5e-3,
-        "milestones": (180, 255),
-        "gamma": 0.3,
-        "width": 64,
-        "image_size": 96,
-        "crops": 0,
-        "views_per_step": 2,
-        "normal_network": False,
-        "material_frequencies": 6,
-        "light_lobes": 16,
-        "eval_width": 96,
-        "checkpoint_every": 1000,
+        "target_renderer": "sg",
         **overrides,
     }
     torch.set_num_threads(2)
@@ -180,4 +236,24 @@ def test_image_target_recovery_unrepresentable_light(tmp_path):
     27.4 dB, 3 dB below the representable case, 132 s)."""
     meta = _recover(tmp_path, target_light="sky", normal_network=True)
     assert meta["eval_psnr_db"] >= 26.0
-    assert meta["origin"]["weights"].endswith("under sky light")
+    assert "under the sky SG light" in meta["origin"]["weights"]
+
+
+@pytest.mark.slow
+def test_image_target_recovery_on_mitsuba_ground_truth(tmp_path):
+    """The judge nobody here wrote: Mitsuba path-traces the vase in a principled wood with a
+    normal map under a sun and sky (shadows, interreflection, a disc no SG sum represents). The
+    fit (normal network on) is graded on the held-out metric views over fully covered object
+    pixels, and the recovered material against the ground truth. Thresholds sit below the
+    figures measured 2026-11-22 (see README, "Recovery on Mitsuba targets")."""
+    r = recover_mitsuba(tmp_path, target=MITSUBA_TARGET, normal_network=True)
+    it = r["metrics"]
+    assert it["weights"].startswith("image targets: Mitsuba 3")
+    assert r["optimize"]["origin"]["image_guided"] and "Mitsuba 3" in r["optimize"]["origin"]["label"]
+    assert it["psnr_db"] >= RECOVERY_MITSUBA_PSNR_DB and it["ssim"] >= RECOVERY_MITSUBA_SSIM
+    assert it["target_noise_psnr_db"] > it["psnr_db"] + 3.0  # the targets' own noise is not what limits the figure
+    mat = it["material"]
+    assert mat["albedo_rmse_scaled"] < RECOVERY_MITSUBA_ALBEDO_RMSE
+    assert mat["roughness_mae"] < RECOVERY_MITSUBA_ROUGHNESS_MAE
+    assert all(0.3 < r_ < 3.0 for r_ in mat["light_energy_ratio"])
+    assert "eval_psnr_db" not in r["optimize"]  # Mitsuba targets exist for training and metric views only

@@ -1,0 +1,297 @@
+"""Mitsuba ground-truth targets: the conventions that tie Mitsuba's scene to our data (environment
+orientation, normal-map frame, texture orientation at cached hits), the target stage's outputs and
+its measured noise, and the material-error figures."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+from conftest import icosphere, require_tool
+
+from stages.config.sections import RaycacheSettings, TargetSettings
+from stages.geometry.meshio import TriMesh
+from stages.geometry.normalization import normalization_transform
+from stages.geometry.raycache import RayCache, metric_views, trace_views
+from stages.geometry.shapes import builtin_mesh
+from stages.geometry.tracing import EmbreeTracer
+from stages.imaging.quality import material_errors
+from stages.imaging.targets import TargetSet
+from stages.reference import mitsuba as mref
+from stages.reference import targets as tref
+from stages.render.envmap import equirect_directions, procedural_envmap, radiant_energy, solid_angles
+
+
+def have_mitsuba() -> bool:
+    try:
+        mref.import_mitsuba()
+        return True
+    except ImportError:
+        return False
+
+
+@pytest.fixture(scope="module")
+def mi():
+    require_tool(have_mitsuba(), "Mitsuba 3 is not installed (pip install -e '.[reference]')")
+    return mref.import_mitsuba(mref.choose_variant("auto"))
+
+
+def test_ci_renders_with_the_vectorised_llvm_variant():
+    """CI installs libLLVM 19 (.ci/run), so the targets render with Dr.Jit's LLVM back end there."""
+    require_tool(mref.find_libllvm() is not None, "no libLLVM 16+ found (Debian: apt-get install libllvm19)")
+    assert mref.choose_variant("auto") == "llvm_ad_rgb"
+
+
+def _smooth_radiance(d: np.ndarray) -> np.ndarray:
+    """A smooth, asymmetric radiance over directions ``(N, 3)`` -> ``(N, 3)``."""
+    x, y, z = d[:, 0], d[:, 1], d[:, 2]
+    r = 1.0 + 0.5 * x + 0.8 * y**3 + 0.3 * z
+    return np.stack([r, 1.2 - 0.4 * z, 0.7 + 0.5 * x * y], axis=1)
+
+
+def test_environment_orientation_matches_mitsuba(mi):
+    """Mitsuba's envmap emitter, given our equirectangular map of a known radiance function
+    through mitsuba_rows and ENV_TO_WORLD, returns that function in random directions. Without
+    the rotation, or without resampling the rows (Mitsuba puts its first and last rows at the
+    poles), the lookups are wrong (the mutation checks)."""
+    h = 64
+    env = _smooth_radiance(equirect_directions(h, 2 * h).numpy().reshape(-1, 3).astype(np.float64)).reshape(h, 2 * h, 3)
+    d = np.random.default_rng(0).normal(size=(400, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    want = _smooth_radiance(d)
+
+    def error(bitmap, to_world):
+        emitter = mi.load_dict(
+            {
+                "type": "envmap",
+                "bitmap": mi.Bitmap(bitmap.astype(np.float32)),
+                "to_world": mi.ScalarTransform4f(to_world.tolist()),
+            }
+        )
+        si = mi.SurfaceInteraction3f()
+        if mi.variant().startswith("scalar"):
+            got = []
+            for k in range(len(d)):
+                si.wi = mi.Vector3f(*(-d[k]))
+                got.append(np.array(emitter.eval(si)).ravel()[:3])
+            got = np.array(got)
+        else:
+            si.wi = mi.Vector3f(*(mi.Float(np.ascontiguousarray(-c)) for c in d.T))
+            got = np.array(emitter.eval(si))
+            got = got.T if got.shape[0] == 3 else got
+        return float(np.abs(got - want).max() / np.abs(want).max())
+
+    assert error(tref.mitsuba_rows(env), tref.ENV_TO_WORLD) < 2e-3
+    assert error(tref.mitsuba_rows(env), np.eye(4)) > 0.05
+    assert error(env, tref.ENV_TO_WORLD) > 1e-2
+
+
+def test_radiant_energy_is_the_sphere_integral():
+    """A constant map of radiance 1 holds 4 pi; the solid angles of the rows sum to 4 pi."""
+    assert np.isclose(radiant_energy(np.ones((16, 32, 3))), 4 * math.pi).all()
+    assert math.isclose(solid_angles(7, 14).sum() * 14, 4 * math.pi, rel_tol=1e-12)
+    # a sun disc of radius r and radiance L carries L * 2 pi (1 - cos r)
+    env = procedural_envmap("sun_sky", 512) - procedural_envmap("sun_sky", 512).clip(max=10.0)
+    sun = radiant_energy(env)[0]
+    expected = (1300.0 - 10.0) * 2 * math.pi * (1 - math.cos(math.radians(1.5)))
+    assert abs(sun - expected) / expected < 0.03
+
+
+def _quad(mi, uv, normal_ts, light_dir):
+    """A unit quad in the xy plane (normal +z) with a constant tangent-space normal map, diffuse
+    white, under a directional light of irradiance pi: its radiance is max(n' . l, 0)."""
+    v = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], np.float64)
+    mesh = TriMesh(v, np.array([[0, 1, 2], [0, 2, 3]]))
+    face_uv = uv[mesh.faces]
+    tex = np.ones((4, 4, 3), np.float32) * (0.5 * np.asarray(normal_ts) + 0.5)
+    bsdf = mi.load_dict(
+        {
+            "type": "normalmap",
+            "normalmap": {"type": "bitmap", "bitmap": mi.Bitmap(tex), "raw": True, "filter_type": "nearest"},
+            "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [1.0, 1.0, 1.0]}},
+        }
+    )
+    scene = mi.load_dict(
+        {
+            "type": "scene",
+            "integrator": {"type": "direct"},
+            "sensor": mref.sensor(
+                np.array([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 5.0], [0, 0, 0, 1]]), 10.0, 8, 4, centred=False, mi=mi
+            ),
+            "quad": tref._mesh(mi, mesh, face_uv, bsdf),
+            "sun": {
+                "type": "directional",
+                "direction": (-np.asarray(light_dir)).tolist(),
+                "irradiance": {"type": "rgb", "value": [math.pi] * 3},
+            },
+        }
+    )
+    img = np.array(mi.render(scene), dtype=np.float64)
+    return float(img[4, 4, 0]), mesh, face_uv
+
+
+@pytest.mark.parametrize("mirrored", [False, True])
+def test_normal_map_frame_is_mitsubas(mi, mirrored):
+    """A world normal written into the normal map through mitsuba_frames comes back from
+    Mitsuba's normalmap BSDF as that world normal (diffuse radiance = n' . l under a
+    directional light), for UVs of either handedness; a frame that follows the UV handedness
+    (bitangent = +dp/dv, as glTF's does) fails on the mirrored UVs."""
+    uv = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], np.float64)
+    if mirrored:
+        uv = uv[:, ::-1].copy()  # u along +y, v along +x: the mirrored handedness
+    target = np.array([0.45, -0.3, 0.0])
+    target[2] = math.sqrt(1 - target[0] ** 2 - target[1] ** 2)
+    v = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], np.float64)
+    mesh = TriMesh(v, np.array([[0, 1, 2], [0, 2, 3]]))
+    s, t, n = (f[0] for f in tref.mitsuba_frames(mesh, uv[mesh.faces]))
+    local = np.array([target @ s, target @ t, target @ n])
+    lights = [np.array([0.6, 0.0, 0.8]), np.array([-0.6, 0.0, 0.8]), np.array([0.0, 0.6, 0.8]), np.array([0.0, -0.6, 0.8])]
+    got = np.array([_quad(mi, uv, local, light)[0] for light in lights])
+    want = np.array([max(target @ light, 0.0) for light in lights])
+    assert np.abs(got - want).max() < 0.01, (got, want)
+    # the mutation: a bitangent along +dp/dv (handedness-following) differs on mirrored UVs
+    e1, e2 = v[1] - v[0], v[2] - v[0]
+    d1, d2 = uv[1] - uv[0], uv[2] - uv[0]
+    dp_dv = (e2 * d1[0] - e1 * d2[0]) / (d1[0] * d2[1] - d2[0] * d1[1])
+    t_hand = dp_dv - (dp_dv @ n) * n - (dp_dv @ s) * s
+    t_hand /= np.linalg.norm(t_hand)
+    assert np.allclose(t_hand, t) != mirrored
+
+
+def _sphere_cache(tmp_path, width=64):
+    mesh = icosphere(4)
+    s = RaycacheSettings(metrics_azimuths=3, metrics_elevations_deg=(0.0, 40.0), metrics_resolution=width)
+    arrays, _ = trace_views(mesh, metric_views(s), EmbreeTracer(mesh))
+    np.savez(tmp_path / "metrics.npz", **arrays)
+    return mesh, RayCache(tmp_path / "metrics.npz")
+
+
+def test_ground_truth_at_hits_is_what_mitsuba_shows(mi, tmp_path):
+    """On a convex sphere under a constant white environment, a diffuse surface's radiance is its
+    albedo: Mitsuba's render of the baked base-colour texture, read at our cached hits, equals
+    GroundTruth.at_hits (atlas, texture orientation, UV interpolation and pixel alignment all
+    agree). Flipping the texture vertically (the mutation) breaks it."""
+    mesh, cache = _sphere_cache(tmp_path)
+    gt = tref.ground_truth(mesh, "wood", TargetSettings(texture_size=256))
+
+    def render_albedo(texture):
+        bsdf = mi.load_dict({"type": "diffuse", "reflectance": tref._bitmap(mi, texture)})
+        scene = mi.load_dict(
+            {
+                "type": "scene",
+                "integrator": {"type": "path", "max_depth": 2, "hide_emitters": True},
+                "object": tref._mesh(mi, mesh, gt.uv, bsdf),
+                "light": {"type": "constant", "radiance": {"type": "rgb", "value": [1.0, 1.0, 1.0]}},
+            }
+        )
+        errors = []
+        for i in range(len(cache)):
+            h = cache.view(i)
+            cam = mi.load_dict(mref.sensor(h.c2w, cache.fov_deg, cache.width, 64, centred=False, alpha=True, mi=mi))
+            img = np.array(mi.render(scene, sensor=cam, seed=i, spp=64), dtype=np.float64).reshape(-1, 4)[h.pixel]
+            full = img[:, 3] > 0.999
+            back = np.zeros(len(h.pixel), bool)
+            want = gt.at_hits(h.face, _bary(cache, i), back)["albedo"]
+            errors.append(np.abs(img[full, :3] - want[full]).mean())
+        return float(np.mean(errors))
+
+    assert render_albedo(gt.base_color) < 0.01
+    assert render_albedo(gt.base_color[::-1].copy()) > 0.02
+
+
+def _bary(cache, i):
+    from stages.geometry.raycache import dequantize_bary
+
+    lo, hi = cache.arrays["offsets"][i], cache.arrays["offsets"][i + 1]
+    return dequantize_bary(cache.arrays["bary"][lo:hi]).astype(np.float64)
+
+
+def test_bumped_normals_are_unit_with_the_requested_steepest_slope():
+    rng = np.random.default_rng(3)
+    p = rng.normal(size=(20000, 3))
+    n = rng.normal(size=(20000, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    b = tref.bumped_normals(p, n, 0.3)
+    assert np.allclose(np.linalg.norm(b, axis=1), 1.0)
+    # tilt = atan(|tangential gradient|) <= atan(0.3), and the bound is nearly reached
+    tilt = np.arccos(np.clip((b * n).sum(1), -1, 1))
+    assert tilt.max() <= math.atan(0.3) + 1e-9
+    assert tilt.max() > 0.6 * math.atan(0.3)
+    assert np.allclose(tref.bumped_normals(p, n, 0.0), n)
+
+
+def test_principled_material_and_its_tango_equivalent():
+    """Wood is a dielectric (F0 0.04 -> specular 0.5), the brushed metal a metal whose base colour
+    is its specular colour; the equivalent TANGO maps follow the principled definitions."""
+    p = np.random.default_rng(1).uniform(-1, 1, (500, 3))
+    wood = tref.principled_material("wood", p)
+    assert (wood.metallic == 0).all() and math.isclose(wood.specular, 0.5, rel_tol=1e-6)
+    eq = tref.tango_equivalent(wood.base_color, wood.metallic, wood.roughness, wood.specular)
+    assert np.allclose(eq["albedo"], wood.base_color) and np.allclose(eq["specular"], 0.04)
+    metal = tref.principled_material("metal", p)
+    assert (metal.metallic == 1).all()
+    eq = tref.tango_equivalent(metal.base_color, metal.metallic, metal.roughness, metal.specular)
+    assert np.allclose(eq["albedo"], 0.0) and np.allclose(eq["specular"], metal.base_color)
+
+
+def test_material_errors_against_hand_computed_figures():
+    t = {"albedo": torch.full((4, 3), 0.5), "specular": torch.full((4, 3), 0.04), "roughness": torch.full((4, 1), 0.6)}
+    t["normal"] = torch.tensor([[0.0, 0.0, 1.0]]).expand(4, 3)
+    tilt = math.radians(10.0)
+    p = {"albedo": torch.full((4, 3), 0.25), "specular": torch.full((4, 3), 0.04), "roughness": torch.full((4, 1), 0.4)}
+    p["normal"] = torch.tensor([[math.sin(tilt), 0.0, math.cos(tilt)]]).expand(4, 3)
+    e = material_errors(p, t, torch.tensor([2.0, 2.0, 2.0]), [4.0, 4.0, 8.0])
+    assert math.isclose(e["albedo_rmse"], 0.25, rel_tol=1e-9)
+    assert math.isclose(e["albedo_scale"], 2.0, rel_tol=1e-9) and e["albedo_rmse_scaled"] < 1e-12
+    assert math.isclose(e["roughness_rmse"], 0.2, rel_tol=1e-6) and e["specular_rmse"] < 1e-9
+    assert math.isclose(e["normal_angle_deg_mean"], 10.0, rel_tol=1e-4)
+    assert e["light_energy_ratio"] == [0.5, 0.5, 0.25]
+
+
+def test_target_stage_writes_targets_truth_and_measured_noise(mi, tmp_path):
+    """The stage renders both caches, stores per-hit targets aligned with them (checked by
+    TargetSet), the ground truth at the metric hits, and noise that falls with the samples:
+    4x the samples, about 6 dB more noise PSNR."""
+    from stages import target
+
+    v, f = builtin_mesh("vase")
+    mesh = TriMesh(normalization_transform(v).forward(v), f)
+    s = RaycacheSettings(views=3, resolution=48, metrics_azimuths=2, metrics_elevations_deg=(0.0,), metrics_resolution=48)
+    from stages.geometry.raycache import training_views
+
+    for name, views in (("train", training_views(s)), ("metrics", metric_views(s))):
+        arrays, _ = trace_views(mesh, views, EmbreeTracer(mesh))
+        np.savez(tmp_path / f"{name}.npz", **arrays)
+    out = tmp_path / "target"
+    summary = target.run(
+        tmp_path / "train.npz", tmp_path / "metrics.npz", "wood", out, TargetSettings(spp=8, metric_spp=32, texture_size=128)
+    )
+    for name in ("train.npz", "metrics.npz", "targets.png", "material.png", "meta.json"):
+        assert (out / name).is_file()
+    meta = json.loads((out / "meta.json").read_text())
+    assert meta["renderer"]["name"] == "Mitsuba 3" and meta["renderer"]["version"]
+    assert meta["description"].startswith("Mitsuba 3")
+    assert all(np.isfinite(summary[k]["noise_psnr_db"]) for k in ("train", "metrics"))
+    # the same views at 4x the samples: the noise's variance falls 4x, its PSNR rises ~6 dB
+    renderer = tref.TargetRenderer(mesh, "wood", TargetSettings(texture_size=128))
+    metric = RayCache(tmp_path / "metrics.npz")
+    gain = renderer.render_cache(metric, 16, 7).noise_psnr_db - renderer.render_cache(metric, 4, 3).noise_psnr_db
+    assert 4.5 < gain < 7.5, gain
+    t = TargetSet(out / "metrics.npz", RayCache(tmp_path / "metrics.npz"))
+    assert t.has_truth and np.isfinite(t.arrays["radiance"].astype(np.float32)).all()
+    assert (t.arrays["coverage"].astype(np.float32) > 0.999).mean() > 0.9
+    assert np.allclose(t.arrays["env_energy"], radiant_energy(procedural_envmap("sun_sky", 512)))
+    with pytest.raises(Exception, match="another ray cache"):
+        TargetSet(out / "metrics.npz", RayCache(tmp_path / "train.npz"))
+
+
+def test_unknown_variant_and_bad_settings_fail_clearly():
+    from stages.core.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="spp must be an even number"):
+        TargetSettings(spp=3)
+    with pytest.raises(ConfigError, match="variant must be one of"):
+        TargetSettings(variant="cuda_ad_rgb")
+    with pytest.raises(ConfigError, match="builtin"):
+        TargetSettings(environment="builtin:nowhere")
