@@ -289,10 +289,14 @@ class TargetRenderer:
         self.env_energy = radiant_energy(self.env)
         self.scene = self.mi.load_dict(scene_dict(self.mi, mesh, self.truth, self.env, settings.max_depth))
 
+    def sensor_dict(self, c2w: np.ndarray, fov_deg: float, width: int, spp: int) -> dict:
+        """Our camera as a Mitsuba sensor with ``spp`` random samples per pixel and an RGBA film."""
+        return sensor(c2w, fov_deg, width, spp, centred=False, alpha=True, mi=self.mi)
+
     def render(self, c2w: np.ndarray, fov_deg: float, width: int, spp: int, seed: int) -> np.ndarray:
         """``(W, W, 4)`` float32: linear RGB (premultiplied by coverage) and alpha."""
         mi = self.mi
-        cam = mi.load_dict(sensor(c2w, fov_deg, width, spp, centred=False, alpha=True, mi=mi))
+        cam = mi.load_dict(self.sensor_dict(c2w, fov_deg, width, spp))
         return np.array(mi.render(self.scene, sensor=cam, seed=int(seed), spp=int(spp)), dtype=np.float32)
 
     def render_cache(self, cache: RayCache, spp: int, seed: int) -> ViewTargets:

@@ -1,0 +1,74 @@
+"""What TANGO's SG model cannot represent, measured against Mitsuba on the held-out metric views.
+
+For each mesh and material: Mitsuba's full path-traced target, the same scene with direct light
+only (no interreflection), direct light without visibility (no shadows), and our SG renderer
+with the *true* material and normals under the SG light fitted to the target through it (the
+best a perfect optimisation of the model could reach). Prints the error budget in mean squared
+sRGB error over fully covered object pixels, Mitsuba's own noise taken out (see
+``stages/reference/limits.py``).
+
+    python benchmarks/sg_limits.py                       # built-in meshes
+    python benchmarks/sg_limits.py --shared bunny horse  # also meshes of ../shared/meshes
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+
+def main() -> None:
+    from stages.config.sections import NormalizeSettings, RaycacheSettings, TargetSettings
+    from stages.geometry.normalization import normalize_mesh
+    from stages.geometry.raycache import RayCache, metric_views, trace_views
+    from stages.geometry.tracing import EmbreeTracer
+    from stages.reference.limits import measure_limits
+    from stages.reference.targets import TargetRenderer
+
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--builtin", nargs="*", default=["vase:wood", "candle:plaster", "knot:wood", "vase:metal"])
+    parser.add_argument("--shared", nargs="*", default=[], help="names in ../shared/meshes (wood)")
+    parser.add_argument("--spp", type=int, default=128)
+    parser.add_argument("--resolution", type=int, default=128)
+    parser.add_argument("--lobes", type=int, nargs="*", default=[32])
+    args = parser.parse_args()
+    cases = [(f"builtin:{c.split(':')[0]}", c.split(":")[1]) for c in args.builtin]
+    cases += [(str(REPO.parent / "shared" / "meshes" / f"{n}.obj"), "wood") for n in args.shared]
+    rc = RaycacheSettings(metrics_resolution=args.resolution)
+    print(f"metric views: {len(metric_views(rc))} at {args.resolution} px; Mitsuba at {args.spp} spp per render")
+    for source, material in cases:
+        t0 = time.perf_counter()
+        mesh = normalize_mesh(source, NormalizeSettings()).mesh
+        arrays, _ = trace_views(mesh, metric_views(rc), EmbreeTracer(mesh))
+        with tempfile.TemporaryDirectory() as d:
+            np.savez(Path(d) / "m.npz", **arrays)
+            cache = RayCache(Path(d) / "m.npz")
+            renderer = TargetRenderer(mesh, material, TargetSettings(texture_size=1024))
+            r = measure_limits(renderer, cache, args.spp, tuple(args.lobes))
+        name = f"{Path(source).stem if '/' in source else source[8:]} ({len(mesh.faces)} faces), {material}"
+        parts = []
+        for k in args.lobes:
+            lk = r[f"lobes_{k}"]
+            sh = lk["share"]
+            parts.append(
+                f"{k} lobes: {lk['psnr_db']['target']:.2f} dB (error {lk['error_mse']['target']:.2e} = interreflection "
+                f"{100 * sh['interreflection']:.0f}% + shadows {100 * sh['shadows']:.0f}% + BRDF/light/closed form "
+                f"{100 * sh['brdf_light_and_closed_form']:.0f}%)"
+            )
+        print(
+            f"{name}: noise {r['noise_mse']:.1e}, interreflection {r['interreflection_mse']:.2e}, "
+            f"shadows {r['shadows_mse']:.2e}; " + "; ".join(parts) + f"; {time.perf_counter() - t0:.0f} s",
+            flush=True,
+        )
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,192 @@
+"""What the SG model cannot represent, measured: the same scene rendered by Mitsuba with and
+without the effects TANGO's renderer leaves out, and by our SG renderer with the true material.
+
+Rungs, each compared with the full path-traced target on the held-out metric views (fully
+covered object pixels, sRGB), so each step's loss of PSNR is the share of the error that effect
+accounts for:
+
+1. ``direct``: Mitsuba's path tracer stopped after one bounce (``max_depth 2``): no
+   interreflection, shadows kept;
+2. ``unshadowed``: direct light with no visibility test (:func:`unshadowed_integrator`, MIS of
+   light and BSDF sampling, the test ray never cast): no shadows either; what is left differs
+   from our model only by the BRDF model (Mitsuba's principled against TANGO's sum) and the light;
+3. ``sg_exact_material``: our closed-form SG renderer with the *true* material and normals
+   (:meth:`~stages.reference.targets.GroundTruth.at_hits`) under the ``lobes``-lobe SG light
+   fitted to the target's pixels through that renderer (:func:`fit_light_to_image`): what a
+   perfect optimisation of TANGO's model could reach; the step from rung 2 is the BRDF model,
+   the SG light and the closed-form shading together (the last alone is measured by
+   ``benchmarks/shading_vs_mitsuba.py``).
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import torch
+
+from ..geometry.raycache import RayCache
+from ..imaging.quality import psnr
+from ..imaging.targets import FULL_COVERAGE
+from ..model.networks import SGLightModule
+from ..render.color import linear_to_srgb, srgb_encode
+from ..render.shading import face_viewer, shade
+from .targets import TargetRenderer
+
+
+def unshadowed_integrator(mi):
+    """A Mitsuba integrator (the imported module's variant) for direct light *without
+    visibility*: at the first hit, one light sample (the emitter's importance sampling, the
+    shadow ray never traced) and one BSDF sample (the environment looked up in the sampled
+    direction without tracing it), combined by the balance heuristic. Emitters are hidden from
+    the camera; alpha is 1 on a hit."""
+    import drjit  # installed with mitsuba
+
+    class Unshadowed(mi.SamplingIntegrator):
+        def __init__(self, props=None):
+            super().__init__(props if props is not None else mi.Properties())
+
+        def sample(self, scene, sampler, ray, medium=None, active=True):
+            si = scene.ray_intersect(ray, active)
+            valid = si.is_valid() & active
+            bsdf = si.bsdf(ray)
+            ctx = mi.BSDFContext()
+            result = mi.Spectrum(0.0)
+            # light sampling, no visibility test
+            ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(valid), False, valid)
+            wo = si.to_local(ds.d)
+            value, pdf_bsdf = bsdf.eval_pdf(ctx, si, wo, valid)
+            w_light = drjit.select(ds.delta, 1.0, ds.pdf / (ds.pdf + pdf_bsdf))
+            result += drjit.select(valid & (ds.pdf > 0), em_weight * value * w_light, 0.0)
+            # BSDF sampling: the environment in the sampled direction, unoccluded
+            bs, weight = bsdf.sample(ctx, si, sampler.next_1d(valid), sampler.next_2d(valid), valid)
+            d = si.to_world(bs.wo)
+            far = drjit.zeros(mi.SurfaceInteraction3f)
+            far.wi = -d
+            far.t = drjit.inf
+            env = scene.environment()
+            ok = valid & (bs.pdf > 0) & (env is not None)
+            ds_env = mi.DirectionSample3f(scene, far, si)
+            pdf_light = scene.pdf_emitter_direction(si, ds_env, ok)
+            w_bsdf = bs.pdf / (bs.pdf + pdf_light)
+            result += drjit.select(ok, weight * env.eval(far, ok) * w_bsdf, 0.0)
+            return result, valid, []
+
+    return Unshadowed()
+
+
+#: hits per step of the light fit (a random batch each step)
+FIT_BATCH = 8192
+
+
+def fit_light_to_image(
+    normal, view, albedo, specular, roughness, target, lobes: int, energy, seed: int = 0, iterations: int = 400
+):
+    """The ``lobes``-lobe SG light that makes our renderer, given the true material and normals
+    at hits (``(N, 3)``/``(N, 1)`` tensors), best match the sRGB ``target (N, 3)`` (mean squared
+    error over random batches of hits, Adam): the light a
+    perfect optimisation of TANGO's model would find. Returns the light and the seconds taken."""
+    t0 = time.perf_counter()
+    gen = torch.Generator().manual_seed(seed)
+    torch.manual_seed(seed)
+    module = SGLightModule(lobes, rgb=True, total_energy=float(np.mean(energy)))
+    opt = torch.optim.Adam(module.parameters(), lr=0.02)
+    for _ in range(iterations):
+        b = torch.randint(len(normal), (min(FIT_BATCH, len(normal)),), generator=gen)
+        light = module()
+        pred = linear_to_srgb(shade(normal[b], view[b], albedo[b], light, specular[b], roughness[b]).rgb)
+        loss = torch.nn.functional.mse_loss(pred, target[b])
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    with torch.no_grad():
+        light = module()
+    return type(light)(light.axis.detach(), light.sharpness.detach(), light.amplitude.detach()), time.perf_counter() - t0
+
+
+def _per_hit(img: np.ndarray, cache: RayCache, i: int) -> tuple[np.ndarray, np.ndarray]:
+    flat = img.reshape(-1, img.shape[-1])[cache.view(i).pixel]
+    alpha = flat[:, 3] if flat.shape[1] > 3 else np.ones(len(flat))
+    return np.where(alpha[:, None] > 0, flat[:, :3] / np.maximum(alpha[:, None], 1e-8), 0.0), alpha
+
+
+def measure_limits(renderer: TargetRenderer, cache: RayCache, spp: int, lobes: tuple[int, ...] = (16, 32), seed: int = 0) -> dict:
+    """The error budget of the best our model can do on ``cache``'s views (see the module
+    docstring), in mean squared sRGB error over fully covered object pixels, each Mitsuba
+    render's own noise measured (two independent renders of the target) and taken out.
+
+    For each lobe count, the SG model with the true material is fitted (its light only) to each
+    rung's image: the full target, direct light only, and unshadowed direct light. Its error
+    against the full target is the error budget; removing interreflection from the target lowers
+    it by the interreflection's share, removing shadows too by the shadows' share, and what
+    remains against the unshadowed image is the BRDF model, SG light and closed-form shading
+    together. The three shares add up to one by construction. Also, model-free:
+    ``interreflection_mse`` (target against direct) and ``shadows_mse`` (direct against
+    unshadowed)."""
+    mi = renderer.mi
+    unshadowed = unshadowed_integrator(mi)
+    direct = mi.load_dict({"type": "path", "max_depth": 2, "hide_emitters": True})
+    images = {"target": [], "second_target": [], "direct": [], "unshadowed": []}
+    cover = []
+    for i in range(len(cache)):
+        h = cache.view(i)
+        cam = mi.load_dict(renderer.sensor_dict(h.c2w, cache.fov_deg, cache.width, spp))
+        for name, integrator, s in (
+            ("target", None, seed + 4 * i),
+            ("second_target", None, seed + 4 * i + 1),
+            ("direct", direct, seed + 4 * i + 2),
+            ("unshadowed", unshadowed, seed + 4 * i + 3),
+        ):
+            kwargs = {"integrator": integrator} if integrator is not None else {}
+            img = np.array(mi.render(renderer.scene, sensor=cam, seed=s, spp=spp, **kwargs), dtype=np.float64)
+            rgb, alpha = _per_hit(img, cache, i)
+            images[name].append(rgb)
+            if name == "target":
+                cover.append(alpha)
+    full = np.concatenate(cover) >= FULL_COVERAGE
+    hits = {k: np.concatenate(v)[full] for k, v in images.items()}
+    srgb = {k: srgb_encode(v) for k, v in hits.items()}
+
+    def mse(a, b):
+        return float(((srgb[a] - srgb[b]) ** 2).mean())
+
+    # each Mitsuba render carries its own noise of variance `noise`; differences of two renders
+    # carry twice that, which is taken out so each effect is measured above the noise
+    noise = mse("target", "second_target") / 2.0
+    out = {
+        "pixels": int(full.sum()),
+        "spp": spp,
+        "noise_mse": noise,
+        "interreflection_mse": max(mse("direct", "target") - 2 * noise, 0.0),
+        "shadows_mse": max(mse("unshadowed", "direct") - 2 * noise, 0.0),
+    }
+    truth = renderer.truth_at_hits(cache)
+    direction = np.concatenate([cache.view(i).direction for i in range(len(cache))])
+    view = torch.from_numpy(-direction[full]).double()
+    normal = face_viewer(torch.from_numpy(truth["normal"][full]).double(), view)
+    albedo, spec, rough = (torch.from_numpy(truth[k][full]).float() for k in ("albedo", "specular", "roughness"))
+    v32, n32 = view.float(), normal.float()
+    rough = rough.clamp(0.01, 1.0)
+    for k in lobes:
+        errors, psnrs, seconds = {}, {}, 0.0
+        for rung in ("target", "direct", "unshadowed"):
+            goal = torch.from_numpy(srgb[rung]).float()
+            light, sec = fit_light_to_image(n32, v32, albedo, spec, rough, goal, k, renderer.env_energy, seed)
+            with torch.no_grad():
+                ours = linear_to_srgb(shade(n32, v32, albedo, light, spec, rough).rgb)
+            # each Mitsuba image carries its noise; ours is noise-free
+            errors[rung] = max(float(((ours - goal) ** 2).mean()) - noise, 0.0)
+            psnrs[rung] = psnr(ours, goal)
+            seconds += sec
+        total = max(errors["target"], 1e-12)
+        out[f"lobes_{k}"] = {
+            "psnr_db": psnrs,
+            "error_mse": errors,
+            "share": {
+                "interreflection": (errors["target"] - errors["direct"]) / total,
+                "shadows": (errors["direct"] - errors["unshadowed"]) / total,
+                "brdf_light_and_closed_form": errors["unshadowed"] / total,
+            },
+            "fit_seconds": seconds,
+        }
+    return out
