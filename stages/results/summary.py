@@ -117,6 +117,10 @@ def summary_rows(results: Path, cells: list[tuple[str, str, str]]) -> list[dict]
                 "r_precision_candidates": ev.get("candidates"),
                 "target_psnr_db": it.get("psnr_db"),
                 "target_ssim": it.get("ssim"),
+                "target_renderer": it.get("target_renderer"),
+                "target_albedo_rmse": (it.get("material") or {}).get("albedo_rmse_scaled"),
+                "target_roughness_mae": (it.get("material") or {}).get("roughness_mae"),
+                "target_normal_angle_deg": (it.get("material") or {}).get("normal_angle_deg_mean"),
             }
         )
         for stage in MESH_STAGES:
