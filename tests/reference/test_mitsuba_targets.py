@@ -10,6 +10,7 @@ import pytest
 import torch
 from conftest import icosphere, require_tool
 
+from stages.assets.baking import cached_barycentrics
 from stages.config.sections import RaycacheSettings, TargetSettings
 from stages.geometry.meshio import TriMesh
 from stages.geometry.normalization import normalization_transform
@@ -192,19 +193,12 @@ def test_ground_truth_at_hits_is_what_mitsuba_shows(mi, tmp_path):
             img = np.array(mi.render(scene, sensor=cam, seed=i, spp=64), dtype=np.float64).reshape(-1, 4)[h.pixel]
             full = img[:, 3] > 0.999
             back = np.zeros(len(h.pixel), bool)
-            want = gt.at_hits(h.face, _bary(cache, i), back)["albedo"]
+            want = gt.at_hits(h.face, cached_barycentrics(cache, i), back)["albedo"]
             errors.append(np.abs(img[full, :3] - want[full]).mean())
         return float(np.mean(errors))
 
     assert render_albedo(gt.base_color) < 0.01
     assert render_albedo(gt.base_color[::-1].copy()) > 0.02
-
-
-def _bary(cache, i):
-    from stages.geometry.raycache import dequantize_bary
-
-    lo, hi = cache.arrays["offsets"][i], cache.arrays["offsets"][i + 1]
-    return dequantize_bary(cache.arrays["bary"][lo:hi]).astype(np.float64)
 
 
 def test_bumped_normals_are_unit_with_the_requested_steepest_slope():
