@@ -15,6 +15,7 @@ include: "workflow/rules/bake.smk"
 include: "workflow/rules/export.smk"
 include: "workflow/rules/relight.smk"
 include: "workflow/rules/metrics.smk"
+include: "workflow/rules/roundtrip.smk"
 include: "workflow/rules/report.smk"
 
 

@@ -11,7 +11,11 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 root=$(pwd)
 py=${PYTHON:-python3}
-extras=${1:-test,reference}
+extras=${1:-test,reference,blender}
+# Blender as a module (bpy) pins numpy < 2, so it lives in its own environment, .venv-blender,
+# which the Blender judge (stages/reference/blender.py) runs as a separate process
+bpy_version=${BPY_VERSION:-5.0.1}
+pip_extras=$(echo "$extras" | tr ',' '\n' | grep -v '^blender$' | paste -sd, -)
 
 if [ ! -x .venv/bin/python ]; then
     "$py" -m venv .venv
@@ -32,7 +36,21 @@ fi
 torch_version=$(.venv/bin/python -c "import torch; print(torch.__version__.split('+')[0])" 2>/dev/null)
 echo "torch==$torch_version" > .venv/constraints.txt
 echo "setup: installing the project (extras: $extras) with torch pinned to $torch_version"
-PIP_CONSTRAINT="$root/.venv/constraints.txt" .venv/bin/pip install --quiet -e ".[$extras]"
+PIP_CONSTRAINT="$root/.venv/constraints.txt" .venv/bin/pip install --quiet -e ".[$pip_extras]"
+
+if [[ ",$extras," == *",blender,"* ]]; then
+    bpy_python=${BLENDER_PYTHON:-$(command -v python3.11 || command -v "$py" || true)}
+    if [ -z "$bpy_python" ] || ! "$bpy_python" -c "import sys; sys.exit(sys.version_info[:2] != (3, 11))" 2>/dev/null; then
+        echo "setup: bpy $bpy_version needs Python 3.11 ($bpy_python not found): the Blender round trip and its"
+        echo "       tests are unavailable (install python3.11, or set TANGO_BLENDER to a blender executable)"
+    else
+        [ -x .venv-blender/bin/python ] || "$bpy_python" -m venv .venv-blender
+        if ! .venv-blender/bin/python -c "import bpy, sys; sys.exit(bpy.app.version_string != '$bpy_version')" >/dev/null 2>&1; then
+            echo "setup: installing Blender as a module (bpy==$bpy_version, about 370 MB) into .venv-blender"
+            .venv-blender/bin/pip install --quiet "bpy==$bpy_version"
+        fi
+    fi
+fi
 
 # Snakemake (and other tools honouring XDG) cache inside the project, not in $HOME.
 if ! grep -q "tango-stylize cache" .venv/bin/activate; then

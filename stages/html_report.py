@@ -101,6 +101,37 @@ def origin_banner(frame: pd.DataFrame) -> str:
     return "".join(out)
 
 
+def _figure(row, column: str) -> float | None:
+    if column not in row or not len(row) or pd.isna(row[column].iloc[0]):
+        return None
+    return float(row[column].iloc[0])
+
+
+def fidelity_lines(row) -> str:
+    """The cell's recovery (image targets, held-out views) and Blender round-trip figures."""
+    lines = []
+    psnr, ssim = _figure(row, "target_psnr_db"), _figure(row, "target_ssim")
+    if psnr is not None:
+        renderer = str(row["target_renderer"].iloc[0]) if "target_renderer" in row else "?"
+        text = f"recovery on {renderer} targets (held-out views, object pixels): {psnr:.2f} dB"
+        text += f", SSIM {ssim:.3f}" if ssim is not None else ""
+        albedo, rough = _figure(row, "target_albedo_rmse"), _figure(row, "target_roughness_mae")
+        if albedo is not None and rough is not None:
+            text += f"; albedo RMSE {albedo:.3f}, roughness MAE {rough:.3f}"
+        lines.append(text)
+    glb, usdz = _figure(row, "roundtrip_glb_psnr_db"), _figure(row, "roundtrip_usdz_psnr_db")
+    if glb is not None or usdz is not None:
+        parts = [f"{name} {value:.2f} dB" for name, value in (("GLB", glb), ("USDZ", usdz)) if value is not None]
+        diffuse = _figure(row, "roundtrip_glb_diffuse_psnr_db")
+        text = "Blender round trip (Cycles vs our render, object pixels): " + ", ".join(parts)
+        text += f"; GLB diffuse alone {diffuse:.2f} dB" if diffuse is not None else ""
+        problems = _figure(row, "roundtrip_problems")
+        if problems:
+            text += f"; {int(problems)} import problem(s), see roundtrip/meta.json"
+        lines.append(text)
+    return "".join(f"<br><small class='fidelity'>{html.escape(t)}</small>" for t in lines)
+
+
 def run(results: Path, report_dir: Path, cells: list[tuple[str, str, str]], out: Path, model_viewer: Path | None = None) -> int:
     """Write the page; returns the number of 3D viewers in it (0 when model-viewer is missing)."""
     model_viewer = MODEL_VIEWER if model_viewer is None else Path(model_viewer)
@@ -168,6 +199,13 @@ def run(results: Path, report_dir: Path, cells: list[tuple[str, str, str]], out:
                 "loading='eager' reveal='auto' shadow-intensity='0.5' exposure='1' interaction-prompt='none'></model-viewer>"
             )
             models += 1
+        parts.append(fidelity_lines(row))
+        compare = cdir / "roundtrip" / "compare.png"
+        if compare.is_file():
+            parts.append(
+                "<br><small>Blender round trip, front view: ours | Cycles per format | 4 x |difference|</small>"
+                f"<img src='{data_uri(compare, 'image/png')}'>"
+            )
         edit = cdir / "relight" / "material_edit.png"
         if edit.is_file():
             parts.append(

@@ -3,6 +3,7 @@ and a helper that runs Snakemake in a temporary working directory."""
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -73,3 +74,44 @@ def run_snakemake(workdir: Path, *args: str, timeout: int = 600) -> subprocess.C
     return subprocess.run(
         snakemake_command(workdir, *args), cwd=REPO, env=snakemake_env(workdir), capture_output=True, text=True, timeout=timeout
     )
+
+
+@pytest.fixture(scope="session")
+def trained_cell(tmp_path_factory):
+    """A cell trained for two steps with the tiny test CLIP on the built-in candle, baked and
+    exported: ``mesh.ply, transform.json, train/eval.npz, opt/, bake/, export/``."""
+    from stages import bake, export, optimize
+    from stages.config.sections import BakeSettings, ExportSettings, NormalizeSettings, OptimizeSettings, RaycacheSettings
+    from stages.geometry.meshio import save_ply
+    from stages.geometry.normalization import normalize_mesh
+    from stages.raycache import run as raycache_run
+
+    d = tmp_path_factory.mktemp("cell")
+    res = normalize_mesh("builtin:candle", NormalizeSettings())
+    save_ply(d / "mesh.ply", res.mesh)
+    (d / "transform.json").write_text(json.dumps(res.transform.to_json()))
+    raycache_run(
+        d / "mesh.ply",
+        d / "train.npz",
+        d / "eval.npz",
+        d / "rc.json",
+        RaycacheSettings(views=4, resolution=64, eval_azimuths=4, eval_elevations_deg=(0.0, 30.0), eval_resolution=48),
+    )
+    s = OptimizeSettings(iterations=2, clip_tiny_test=True, image_size=64, width=16, crops=1, light_lobes=8, eval_width=32)
+    optimize.run(d / "train.npz", d / "eval.npz", "a candle made of wax", d / "opt", s, "cpu")
+    bake.run(
+        d / "mesh.ply",
+        d / "opt" / "field.pt",
+        d / "eval.npz",
+        d / "bake",
+        BakeSettings(texture_size=256, eval_width=48),
+    )
+    export.run(
+        d / "mesh.ply",
+        d / "transform.json",
+        d / "bake",
+        d / "bake" / "preview.png",
+        d / "export",
+        ExportSettings(),
+    )
+    return d

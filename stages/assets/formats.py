@@ -41,6 +41,8 @@ from ..geometry.meshio import TriMesh
 from ..geometry.normalization import Similarity
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
+#: rotation of the USD DomeLight about +Y that shows our equirectangular light as our renderer sees it
+DOME_ROTATE_Y_DEG = -90.0
 
 
 @dataclass
@@ -88,6 +90,10 @@ def write_usd(path: Path, geom: Faceted, meters_per_unit: float, light_file: str
     root = UsdGeom.Xform.Define(stage, "/Asset")
     stage.SetDefaultPrim(root.GetPrim())
     Usd.ModelAPI(root.GetPrim()).SetKind("component")
+    # typed parents: importers (Blender's among them) drop an untyped prim from the transform
+    # hierarchy, and the up-axis correction applied at /Asset with it
+    UsdGeom.Xform.Define(stage, "/Asset/Geometry")
+    UsdGeom.Scope.Define(stage, "/Asset/Looks")
     mesh = UsdGeom.Mesh.Define(stage, "/Asset/Geometry/Mesh")
     count = len(geom.positions)
     mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(geom.positions))
@@ -142,7 +148,12 @@ def write_usd(path: Path, geom: Faceted, meters_per_unit: float, light_file: str
     UsdShade.MaterialBindingAPI.Apply(mesh.GetPrim()).Bind(mat)
 
     if light_file:
+        UsdGeom.Xform.Define(stage, "/Asset/Lights")
         dome = UsdLux.DomeLight.Define(stage, "/Asset/Lights/LearnedLight")
+        # OpenEXR's latlong (USD's dome convention) puts longitude 0 at +z and pi/2 at +x, with
+        # u = (pi - longitude) / 2 pi; our maps put u = azimuth / 2 pi at (cos a, 0, sin a): a
+        # quarter turn apart (DOME_ROTATE_Y_DEG; Blender's importer checks it in the tests)
+        UsdGeom.Xformable(dome.GetPrim()).AddRotateYOp().Set(DOME_ROTATE_Y_DEG)
         dome.CreateTextureFileAttr().Set(light_file)
         dome.CreateTextureFormatAttr().Set(UsdLux.Tokens.latlong)
         dome.CreateIntensityAttr().Set(1.0)

@@ -412,6 +412,50 @@ class MetricsSettings(ClipChoice, Settings):
     background: str = "white"
 
 
+#: asset formats the Blender round trip imports, and the light transport of its Cycles renders
+ROUNDTRIP_FORMATS = ("glb", "usdz")
+ROUNDTRIP_TRANSPORTS = ("direct_unshadowed", "full")
+
+
+@dataclass(frozen=True, kw_only=True)
+class RoundtripSettings(Settings):
+    """Settings of the roundtrip stage (config section ``roundtrip``): the exported assets
+    imported into Blender and rendered with Cycles under the learned light from the evaluation
+    views, against our render of the trained field (the ``blender`` extra; off by default, the
+    main job never needs Blender)."""
+
+    section = "roundtrip"
+    enabled: bool = False
+    #: which exported files to import and render
+    formats: tuple[str, ...] = ROUNDTRIP_FORMATS
+    #: evaluation views rendered, evenly spread over the ray cache's (0 = all of them)
+    views: int = 8
+    #: Cycles samples per pixel, in two halves with different seeds (their difference is the noise)
+    spp: int = 64
+    #: direct_unshadowed: light straight from the world, no self-shadowing (what our closed-form
+    #: renderer models, so the figure measures the asset); full: path tracing (shadows, bounces)
+    transport: str = "direct_unshadowed"
+    seed: int = 0
+    #: longest a Blender job may run (seconds)
+    timeout_s: float = 3600.0
+
+    def __post_init__(self) -> None:
+        problems = []
+        bad = [f for f in self.formats if f not in ROUNDTRIP_FORMATS]
+        if bad or not self.formats:
+            problems.append(f"formats must be a non-empty list of {ROUNDTRIP_FORMATS}, got {list(self.formats)}")
+        if self.views < 0:
+            problems.append(f"views must be >= 0 (0 = all), got {self.views}")
+        if self.spp < 2 or self.spp % 2:
+            problems.append(f"spp must be an even number >= 2 (two halves measure the noise), got {self.spp}")
+        if self.transport not in ROUNDTRIP_TRANSPORTS:
+            problems.append(f"transport must be one of {ROUNDTRIP_TRANSPORTS}, got {self.transport!r}")
+        if not self.timeout_s > 0:
+            problems.append(f"timeout_s must be > 0, got {self.timeout_s}")
+        if problems:
+            raise ConfigError("roundtrip: " + "; ".join(problems))
+
+
 #: every config section that holds a stage's settings, and its class
 SECTIONS: dict[str, type[Settings]] = {
     cls.section: cls
@@ -423,6 +467,7 @@ SECTIONS: dict[str, type[Settings]] = {
         OptimizeSettings,
         BakeSettings,
         ExportSettings,
+        RoundtripSettings,
         RelightSettings,
         MetricsSettings,
     )

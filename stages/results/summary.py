@@ -46,6 +46,7 @@ ORIGIN_FILES = (
     ("relight", "meta.json"),
     ("metrics", "meta.json"),
     ("metrics", "metrics.json"),
+    ("roundtrip", "meta.json"),
 )
 
 
@@ -121,6 +122,19 @@ def summary_rows(results: Path, cells: list[tuple[str, str, str]]) -> list[dict]
                 "target_albedo_rmse": (it.get("material") or {}).get("albedo_rmse_scaled"),
                 "target_roughness_mae": (it.get("material") or {}).get("roughness_mae"),
                 "target_normal_angle_deg": (it.get("material") or {}).get("normal_angle_deg_mean"),
+            }
+        )
+        rt = _read(cdir / "roundtrip" / "meta.json") or {}
+        rts = rt.get("stats", {})
+        row.update(
+            {
+                "roundtrip_glb_psnr_db": rts.get("glb_psnr_db"),
+                "roundtrip_usdz_psnr_db": rts.get("usdz_psnr_db"),
+                "roundtrip_glb_diffuse_psnr_db": rts.get("glb_diffuse_psnr_db"),
+                "roundtrip_glb_lobes_summed_psnr_db": rts.get("glb_lobes_summed_psnr_db"),
+                "roundtrip_problems": rts.get("problems"),
+                "roundtrip_transport": rts.get("transport"),
+                "seconds_roundtrip": rt["timings_s"]["total"] if rt else None,
             }
         )
         for stage in MESH_STAGES:

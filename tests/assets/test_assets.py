@@ -13,21 +13,18 @@ import pytest
 import torch
 from conftest import REPO, icosphere, require_tool
 
-from stages import bake, export, optimize, pack, relight, report
+from stages import export, optimize, pack, relight, report
 from stages.assets import formats
 from stages.assets.baking import bake_field, decode_textures
 from stages.config.sections import (
     BakeSettings,
     ExportSettings,
     MetricsSettings,
-    NormalizeSettings,
     OptimizeSettings,
     RaycacheSettings,
     RelightSettings,
 )
 from stages.geometry.atlas import dilate, face_frames, rasterize_atlas, unwrap
-from stages.geometry.meshio import save_ply
-from stages.geometry.normalization import normalize_mesh
 from stages.model.networks import Material, SGLightModule
 from stages.raycache import run as raycache_run
 from stages.render.hdrio import read_exr, read_hdr, write_exr, write_hdr
@@ -141,36 +138,8 @@ def test_hdr_and_exr_round_trip(tmp_path):
 
 
 @pytest.fixture(scope="module")
-def trained(tmp_path_factory):
-    d = tmp_path_factory.mktemp("cell")
-    res = normalize_mesh("builtin:candle", NormalizeSettings())
-    save_ply(d / "mesh.ply", res.mesh)
-    (d / "transform.json").write_text(json.dumps(res.transform.to_json()))
-    raycache_run(
-        d / "mesh.ply",
-        d / "train.npz",
-        d / "eval.npz",
-        d / "rc.json",
-        RaycacheSettings(views=4, resolution=64, eval_azimuths=4, eval_elevations_deg=(0.0, 30.0), eval_resolution=48),
-    )
-    s = OptimizeSettings(iterations=2, clip_tiny_test=True, image_size=64, width=16, crops=1, light_lobes=8, eval_width=32)
-    optimize.run(d / "train.npz", d / "eval.npz", "a candle made of wax", d / "opt", s, "cpu")
-    bake.run(
-        d / "mesh.ply",
-        d / "opt" / "field.pt",
-        d / "eval.npz",
-        d / "bake",
-        BakeSettings(texture_size=256, eval_width=48),
-    )
-    export.run(
-        d / "mesh.ply",
-        d / "transform.json",
-        d / "bake",
-        d / "bake" / "preview.png",
-        d / "export",
-        ExportSettings(),
-    )
-    return d
+def trained(trained_cell):
+    return trained_cell
 
 
 def results_with_cell(trained, tmp_path, normalize_meta: bool = True):

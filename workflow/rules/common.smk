@@ -205,6 +205,28 @@ def relight_inputs(wildcards):
     return inputs
 
 
+def roundtrip_inputs(wildcards):
+    cell = f"{RESULTS}/{wildcards.mesh}/{wildcards.prompt}/{wildcards.variant}"
+    return {
+        "mesh": traced_mesh(wildcards),
+        "transform": f"{mesh_dir(wildcards.mesh)}/normalize/transform.json",
+        "field": f"{cell}/optimize/field.pt",
+        "eval": f"{mesh_dir(wildcards.mesh)}/raycache/eval.npz",
+        "atlas": f"{cell}/bake/atlas.npz",
+        "export_meta": f"{cell}/export/meta.json",
+    }
+
+
+def roundtrip_metas():
+    """The Blender round trip's metadata of every cell that has it enabled (section
+    ``roundtrip``); nothing when it is off, so the main job never needs Blender."""
+    return [
+        f"{RESULTS}/{c.mesh}/{c.prompt}/{c.variant}/roundtrip/meta.json"
+        for c in CFG.cells
+        if CFG.cell_stage_settings("roundtrip", c.prompt, c.variant).enabled
+    ]
+
+
 def decimation_pairs_json(wildcards):
     return json.dumps(CFG.decimation_pairs())
 

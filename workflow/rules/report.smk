@@ -5,6 +5,7 @@ rule report:
         cell_metas("export/meta.json"),
         cell_metas("relight/meta.json"),
         cell_metas("metrics/metrics.json"),
+        roundtrip_metas(),
     output:
         summary=report(
             f"{RESULTS}/report/summary.csv",
