@@ -13,10 +13,9 @@ import logging
 import shutil
 from pathlib import Path
 
-import numpy as np
 from PIL import Image
 
-from .assets.formats import faceted, package_usdz, validate_glb, validate_usd, write_glb, write_usd
+from .assets.formats import faceted, package_usdz, read_atlas, validate_glb, validate_usd, write_glb, write_usd
 from .config.layout import TEXTURE_FILES
 from .config.sections import ExportSettings
 from .core.cli import stage_main
@@ -47,8 +46,7 @@ def run(
             raise StageInputError(p, "file not found", "Run the bake stage first.")
     origin = read_origin(bake_dir / "meta.json")
     mesh = load_ply(mesh_path)
-    with np.load(bake_dir / "atlas.npz") as z:
-        atlas = {k: z[k] for k in z.files}
+    atlas = read_atlas(bake_dir / "atlas.npz")
     tf = Similarity.from_json(json.loads(Path(transform_path).read_text()))
     geom = faceted(mesh, atlas, tf if settings.units == "original" else None)
     with staged_outputs(out_dir) as staging:

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .assets.formats import faceted
+from .assets.formats import faceted, read_atlas
 from .config.sections import RoundtripSettings
 from .core.cli import stage_main
 from .core.errors import StageInputError
@@ -109,8 +109,7 @@ def run(
     mpu = float(export_meta["settings"]["meters_per_unit"])
     with timer("load"):
         mesh = load_ply(mesh_path)
-        with np.load(bake_dir / "atlas.npz") as z:
-            atlas = {k: z[k] for k in z.files}
+        atlas = read_atlas(bake_dir / "atlas.npz")
         tf = Similarity.from_json(json.loads(Path(transform_path).read_text()))
         geom = faceted(mesh, atlas, tf if units == "original" else None)
         field, _ = load_field(field_path, device)

@@ -56,6 +56,12 @@ class Faceted:
     tangents: np.ndarray
 
 
+def read_atlas(path: Path) -> dict[str, np.ndarray]:
+    """The bake's ``atlas.npz`` (``uv (F, 3, 2)``, ``tangent (F, 3)``, ``handedness (F,)``)."""
+    with np.load(path) as z:
+        return {k: z[k] for k in z.files}
+
+
 def faceted(mesh: TriMesh, atlas: dict, transform: Similarity | None) -> Faceted:
     """Corners of every face in export space (see the module docstring for the frame)."""
     pos = mesh.vertices[mesh.faces].reshape(-1, 3)

@@ -55,23 +55,20 @@ class BlenderUnavailable(RuntimeError):
 def find_blender() -> list[str]:
     """The command that runs a Python script in Blender: ``[python]`` (a Python with ``bpy``)
     or ``[blender, -b, --factory-startup, --python-exit-code, 1, --python]``."""
-    candidates = []
     given = os.environ.get("TANGO_BLENDER")
+    venv = REPO_ROOT / ".venv-blender" / "bin" / "python"
     if given:
-        if not (Path(given).is_file() or shutil.which(given)):
+        exe = shutil.which(given) or (given if Path(given).is_file() else None)
+        if exe is None:
             raise BlenderUnavailable(f"TANGO_BLENDER={given!r} does not exist; {INSTALL_HINT}")
-        candidates.append(shutil.which(given) or given)
+    elif venv.is_file():
+        exe = str(venv)
+    elif importlib.util.find_spec("bpy") is not None:
+        exe = sys.executable
     else:
-        venv = REPO_ROOT / ".venv-blender" / "bin" / "python"
-        if venv.is_file():
-            candidates.append(str(venv))
-        elif importlib.util.find_spec("bpy") is not None:
-            candidates.append(sys.executable)
-        elif shutil.which("blender"):
-            candidates.append(shutil.which("blender"))
-    if not candidates:
+        exe = shutil.which("blender")
+    if exe is None:
         raise BlenderUnavailable(f"Blender was not found; {INSTALL_HINT}")
-    exe = candidates[0]
     if Path(exe).name.startswith("blender"):
         return [exe, "-b", "--factory-startup", "--python-exit-code", "1", "--python"]
     return [exe]
@@ -327,6 +324,7 @@ def compare_renders(hits: list, renders: np.ndarray, reference: list[np.ndarray]
     """``hits``: the :class:`~stages.geometry.raycache.ViewHits` of each rendered view;
     ``renders (V, 2, W, W, 4)`` from Blender (premultiplied RGBA, two seeds); ``reference``: our
     linear radiance per hit of each view ``(N_i, 3)``."""
+
     def srgb(x):
         return np.clip(srgb_encode(np.clip(x, 0.0, None)), 0.0, 1.0)
 

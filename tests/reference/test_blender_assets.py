@@ -15,7 +15,7 @@ from PIL import Image
 
 from stages import roundtrip
 from stages.assets.baking import BakedHits, cached_barycentrics, decode_textures, render_baked
-from stages.assets.formats import faceted, write_glb
+from stages.assets.formats import faceted, read_atlas, write_glb
 from stages.config.sections import RoundtripSettings
 from stages.geometry.atlas import face_frames
 from stages.geometry.cameras import camera_positions, camera_space_directions, look_at
@@ -105,8 +105,7 @@ def test_world_orientation_for_glb_and_usd(ready, trained_cell, tmp_path):
 def imported(ready, trained_cell, tmp_path_factory):
     d = trained_cell
     mesh = load_ply(d / "mesh.ply")
-    with np.load(d / "bake" / "atlas.npz") as z:
-        atlas = {k: z[k] for k in z.files}
+    atlas = read_atlas(d / "bake" / "atlas.npz")
     tf = Similarity.from_json(json.loads((d / "transform.json").read_text()))
     geom = faceted(mesh, atlas, tf)
     work = tmp_path_factory.mktemp("imported")
@@ -157,8 +156,7 @@ def test_normal_map_handedness_under_cycles(ready, trained_cell, tmp_path):
     Image.fromarray(np.broadcast_to(np.round((0.5 + 0.5 * tilt) * 255), normal.shape).astype(np.uint8)).save(tex / "normal.png")
     Image.fromarray(np.zeros_like(np.asarray(Image.open(tex / "specular.png")))).save(tex / "specular.png")
     mesh = load_ply(d / "mesh.ply")
-    with np.load(d / "bake" / "atlas.npz") as z:
-        atlas = {k: z[k] for k in z.files}
+    atlas = read_atlas(d / "bake" / "atlas.npz")
     geom = faceted(mesh, atlas, None)
     write_glb(tmp_path / "model.glb", geom, tex, 1.0, "tilted", {"label": "test"})
     light, _ = fit_sg_light(load_env("builtin:sunset", 32), lobes=24, iterations=300)
