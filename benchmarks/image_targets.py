@@ -40,6 +40,13 @@ SG_CASES = (
 )
 
 
+def _scaled(mat: dict) -> str:
+    """The albedo error after its scale, or why there is none (a black, metallic truth)."""
+    if mat["albedo_rmse_scaled"] is None:
+        return "no scale: the true albedo is black"
+    return f"{mat['albedo_rmse_scaled']:.3f} after scale {mat['albedo_scale']:.2f}"
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--mitsuba", action="store_true", help="only the Mitsuba cases")
@@ -57,7 +64,7 @@ def main() -> None:
             print(
                 f"Mitsuba targets, {name}: PSNR {it['psnr_db']:.2f} dB, SSIM {it['ssim']:.3f} "
                 f"(target noise {it['target_noise_psnr_db']:.1f} dB); albedo RMSE {mat['albedo_rmse']:.3f} "
-                f"({mat['albedo_rmse_scaled']:.3f} after scale {mat['albedo_scale']:.2f}), roughness MAE "
+                f"({_scaled(mat)}), roughness MAE "
                 f"{mat.get('roughness_mae', float('nan')):.3f}, specular RMSE {mat.get('specular_rmse', float('nan')):.3f}, "
                 f"normal {mat['normal_angle_deg_mean']:.1f} deg, light energy ratio "
                 f"{'/'.join(f'{x:.2f}' for x in mat['light_energy_ratio'])}; {time.perf_counter() - t0:.0f} s",

@@ -116,8 +116,11 @@ def fidelity_lines(row) -> str:
         text = f"recovery on {renderer} targets (held-out views, object pixels): {psnr:.2f} dB"
         text += f", SSIM {ssim:.3f}" if ssim is not None else ""
         albedo, rough = _figure(row, "target_albedo_rmse"), _figure(row, "target_roughness_mae")
-        if albedo is not None and rough is not None:
-            text += f"; albedo RMSE {albedo:.3f}, roughness MAE {rough:.3f}"
+        scaled = _figure(row, "target_albedo_rmse_scaled")
+        if albedo is not None:
+            text += f"; albedo RMSE {albedo:.3f}" + (f" ({scaled:.3f} after its scale)" if scaled is not None else "")
+        if rough is not None:
+            text += f", roughness MAE {rough:.3f}"
         lines.append(text)
     glb, usdz = _figure(row, "roundtrip_glb_psnr_db"), _figure(row, "roundtrip_usdz_psnr_db")
     if glb is not None or usdz is not None:

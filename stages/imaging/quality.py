@@ -44,6 +44,10 @@ def ssim(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor | None = None, win
     return float(smap[centre].mean())
 
 
+#: a true albedo no larger than this everywhere is black (a metal): no albedo scale is estimated
+ALBEDO_BLACK = 1e-6
+
+
 def material_errors(pred: dict[str, torch.Tensor], truth: dict[str, torch.Tensor], energy: torch.Tensor, true_energy) -> dict:
     """Errors of a recovered material against the ground truth at the same hits, and of the
     recovered light's energy.
@@ -54,15 +58,17 @@ def material_errors(pred: dict[str, torch.Tensor], truth: dict[str, torch.Tensor
 
     Albedo and light share a scale that images cannot pin down (twice the light and half the
     albedo render the same diffuse image), so the albedo error is given as is and after the one
-    least-squares scale ``s = <a, t> / <a, a>`` of the recovered albedo, with ``s`` itself.
+    least-squares scale ``s = <a, t> / <a, a>`` of the recovered albedo, with ``s`` itself. A
+    truth without diffuse albedo (a metal: black everywhere) has no such scale (``s = 0`` would
+    grade any albedo as perfect): then ``albedo_scale`` and ``albedo_rmse_scaled`` are ``None``
+    and the error as is is the figure.
     """
     a, t = pred["albedo"].double(), truth["albedo"].double()
-    scale = float((a * t).sum() / (a * a).sum().clamp(min=1e-30))
-    out = {
-        "albedo_rmse": float(torch.sqrt(((a - t) ** 2).mean())),
-        "albedo_scale": scale,
-        "albedo_rmse_scaled": float(torch.sqrt(((scale * a - t) ** 2).mean())),
-    }
+    out = {"albedo_rmse": float(torch.sqrt(((a - t) ** 2).mean())), "albedo_scale": None, "albedo_rmse_scaled": None}
+    if float(t.abs().max()) > ALBEDO_BLACK:
+        scale = float((a * t).sum() / (a * a).sum().clamp(min=1e-30))
+        out["albedo_scale"] = scale
+        out["albedo_rmse_scaled"] = float(torch.sqrt(((scale * a - t) ** 2).mean()))
     if pred.get("roughness") is not None:
         r, rt = pred["roughness"].double(), truth["roughness"].double()
         out["roughness_rmse"] = float(torch.sqrt(((r - rt) ** 2).mean()))

@@ -119,7 +119,8 @@ def summary_rows(results: Path, cells: list[tuple[str, str, str]]) -> list[dict]
                 "target_psnr_db": it.get("psnr_db"),
                 "target_ssim": it.get("ssim"),
                 "target_renderer": it.get("target_renderer"),
-                "target_albedo_rmse": (it.get("material") or {}).get("albedo_rmse_scaled"),
+                "target_albedo_rmse": (it.get("material") or {}).get("albedo_rmse"),
+                "target_albedo_rmse_scaled": (it.get("material") or {}).get("albedo_rmse_scaled"),
                 "target_roughness_mae": (it.get("material") or {}).get("roughness_mae"),
                 "target_normal_angle_deg": (it.get("material") or {}).get("normal_angle_deg_mean"),
             }

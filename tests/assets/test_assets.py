@@ -463,6 +463,36 @@ def test_report_tables_never_mix_test_only_and_real():
         assert sub["test_only_weights"].iloc[0] == title.startswith("TEST ONLY")
 
 
+def test_report_fidelity_lines_per_cell():
+    """Each cell's recovery and round-trip figures as the report writes them; a metal's albedo has
+    no scale (its truth is black) and says only the error as is."""
+    import pandas as pd
+
+    from stages.html_report import fidelity_lines
+
+    wood = pd.DataFrame(
+        {
+            "target_psnr_db": [22.05],
+            "target_ssim": [0.741],
+            "target_renderer": ["mitsuba"],
+            "target_albedo_rmse": [0.283],
+            "target_albedo_rmse_scaled": [0.269],
+            "target_roughness_mae": [0.26],
+            "roundtrip_glb_psnr_db": [28.26],
+            "roundtrip_usdz_psnr_db": [22.61],
+            "roundtrip_glb_diffuse_psnr_db": [36.99],
+            "roundtrip_problems": [2],
+        }
+    )
+    text = fidelity_lines(wood)
+    assert "recovery on mitsuba targets" in text and "22.05 dB, SSIM 0.741" in text
+    assert "albedo RMSE 0.283 (0.269 after its scale), roughness MAE 0.260" in text
+    assert "GLB 28.26 dB, USDZ 22.61 dB; GLB diffuse alone 36.99 dB; 2 import problem(s)" in text
+    metal = wood.assign(target_albedo_rmse=[0.112], target_albedo_rmse_scaled=[None])
+    assert "albedo RMSE 0.112, roughness" in fidelity_lines(metal)
+    assert fidelity_lines(pd.DataFrame({"target_psnr_db": [None]})) == ""
+
+
 def test_html_report_opens_in_chromium(trained, tmp_path):
     """The self-contained page loads in headless Chromium with no console errors, and its 3D
     viewer draws the model (screenshot not blank)."""

@@ -241,6 +241,10 @@ def test_material_errors_against_hand_computed_figures():
     assert math.isclose(e["roughness_rmse"], 0.2, rel_tol=1e-6) and e["specular_rmse"] < 1e-9
     assert math.isclose(e["normal_angle_deg_mean"], 10.0, rel_tol=1e-4)
     assert e["light_energy_ratio"] == [0.5, 0.5, 0.25]
+    # a metal's truth has no diffuse albedo: no scale exists (s = 0 would grade any albedo perfect)
+    e = material_errors(p, {**t, "albedo": torch.zeros(4, 3)}, torch.tensor([2.0, 2.0, 2.0]), [4.0, 4.0, 8.0])
+    assert e["albedo_scale"] is None and e["albedo_rmse_scaled"] is None
+    assert math.isclose(e["albedo_rmse"], 0.25, rel_tol=1e-9)
 
 
 def test_target_stage_writes_targets_truth_and_measured_noise(mi, tmp_path):

@@ -1,0 +1,182 @@
+"""Recovery on Mitsuba's ground truth across meshes and presets: the built-in meshes and, in a
+developer checkout, every mesh of ``../shared/meshes``, each fitted with the speed/accuracy
+presets (``fast``, ``balanced``) and the defaults (``paper``: the schema's defaults, TANGO's
+settings), all under image guidance.
+
+Per mesh, once: normalise, the ray cache (32 training views and 24 held-out metric views at 96
+pixels, the recovery test's cache), Mitsuba's path-traced targets of one procedural material
+(16 spp for training, 128 spp on the metric views, the recovery test's target settings). Per
+mesh and preset: the optimisation with the preset's settings (96-pixel images; the preset never
+sets the image size) and the metrics stage on the held-out views. Printed per row and written to
+``--out`` (CSV): PSNR and SSIM over fully covered object pixels, the targets' own noise, albedo
+RMSE (as is and after the one scale albedo and light share), roughness MAE, the normal's angle,
+the light's energy against the environment's, and the optimisation's wall time.
+
+    python benchmarks/recovery.py                                  # every mesh, fast and balanced
+    python benchmarks/recovery.py --presets paper --meshes vase,shared:lamp
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED_MESHES = REPO.parent / "shared" / "meshes"
+sys.path[:0] = [str(REPO), str(REPO / "tests"), str(REPO / "tests" / "training")]
+
+COLUMNS = (
+    "mesh",
+    "faces",
+    "preset",
+    "iterations",
+    "psnr_db",
+    "ssim",
+    "target_noise_psnr_db",
+    "albedo_rmse",
+    "albedo_rmse_scaled",
+    "roughness_mae",
+    "normal_angle_deg_mean",
+    "light_energy_ratio",
+    "optimize_s",
+)
+
+
+def mesh_sources(spec: str) -> list[tuple[str, str]]:
+    """``(name, source)`` for each mesh named in ``spec``: ``builtin`` (every built-in mesh),
+    ``shared`` (every ``.obj`` of ../shared/meshes), a built-in name, or ``shared:<stem>``."""
+    from stages.geometry.shapes import BUILTIN_NAMES
+
+    out: list[tuple[str, str]] = []
+    for item in filter(None, (s.strip() for s in spec.split(","))):
+        if item == "builtin":
+            out += [(n, f"builtin:{n}") for n in BUILTIN_NAMES]
+        elif item == "shared":
+            if not SHARED_MESHES.is_dir():
+                print(f"no {SHARED_MESHES}: the shared meshes are skipped (a developer checkout has them)", flush=True)
+                continue
+            out += [(f"shared:{p.stem}", str(p)) for p in sorted(SHARED_MESHES.glob("*.obj"))]
+        elif item.startswith("shared:"):
+            path = SHARED_MESHES / f"{item.split(':', 1)[1]}.obj"
+            if not path.is_file():
+                names = ", ".join(p.stem for p in SHARED_MESHES.glob("*.obj"))
+                raise SystemExit(f"{path}: no such mesh (the shared meshes are {names})")
+            out.append((item, str(path)))
+        elif item in BUILTIN_NAMES:
+            out.append((item, f"builtin:{item}"))
+        else:
+            raise SystemExit(f"unknown mesh {item!r}: use builtin, shared, one of {', '.join(BUILTIN_NAMES)} or shared:<name>")
+    return out
+
+
+def prepare(work: Path, source: str, material: str) -> tuple[int, Path]:
+    """Normalise ``source``, build the recovery cache and render the Mitsuba targets into
+    ``work``; returns the face count and the targets' folder."""
+    from test_optimize import MITSUBA_TARGET, RECOVERY_CACHE
+
+    from stages import target as target_stage
+    from stages.config.sections import NormalizeSettings
+    from stages.geometry.meshio import save_ply
+    from stages.geometry.normalization import normalize_mesh
+    from stages.raycache import run as raycache_run
+
+    mesh = normalize_mesh(source, NormalizeSettings()).mesh
+    save_ply(work / "mesh.ply", mesh)
+    raycache_run(work / "mesh.ply", work / "train.npz", work / "eval.npz", work / "rc.json", RECOVERY_CACHE, work / "metrics.npz")
+    target_stage.run(work / "train.npz", work / "metrics.npz", material, work / "target", MITSUBA_TARGET)
+    return len(mesh.faces), work / "target"
+
+
+def fit(work: Path, material: str, preset: str) -> dict:
+    """Optimise with ``preset`` under image guidance on the prepared targets and grade the field on
+    the held-out metric views; returns one row of the table."""
+    import torch
+
+    from stages import metrics, optimize
+    from stages.config.presets import PRESETS
+    from stages.config.sections import MetricsSettings, OptimizeSettings
+
+    settings = OptimizeSettings(
+        **{
+            **PRESETS[preset],
+            "guidance": "image",
+            "target_material": material,
+            "target_renderer": "mitsuba",
+            "image_size": 96,
+            "eval_width": 96,
+            "checkpoint_every": 100_000,
+        }
+    )
+    torch.set_num_threads(int(os.environ.get("TANGO_THREADS", "2")))
+    out = work / preset
+    t0 = time.perf_counter()
+    optimize.run(work / "train.npz", work / "eval.npz", "", out, settings, "cpu", targets_path=work / "target" / "train.npz")
+    seconds = time.perf_counter() - t0
+    targets = work / "target" / "metrics.npz"
+    graded = MetricsSettings(clip=False)
+    m = metrics.run(out / "field.pt", work / "metrics.npz", "", [""], out / "metrics", graded, "cpu", targets)
+    m = m["image_target"]
+    mat = m["material"]
+    return {
+        "preset": preset,
+        "iterations": settings.iterations,
+        "psnr_db": round(m["psnr_db"], 2),
+        "ssim": round(m["ssim"], 3),
+        "target_noise_psnr_db": round(m["target_noise_psnr_db"], 1),
+        "albedo_rmse": round(mat["albedo_rmse"], 3),
+        "albedo_rmse_scaled": None if mat["albedo_rmse_scaled"] is None else round(mat["albedo_rmse_scaled"], 3),
+        "roughness_mae": round(mat.get("roughness_mae", float("nan")), 3),
+        "normal_angle_deg_mean": round(mat["normal_angle_deg_mean"], 1),
+        "light_energy_ratio": "/".join(f"{x:.2f}" for x in mat["light_energy_ratio"]),
+        "optimize_s": round(seconds, 1),
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--meshes", default="builtin,shared", help="builtin, shared, a built-in, shared:<name>; comma-separated")
+    parser.add_argument("--presets", default="fast,balanced", help="comma-separated presets (fast, balanced, paper)")
+    parser.add_argument("--material", default="wood", help="the procedural target material (wood, metal, plaster)")
+    parser.add_argument("--out", type=Path, default=REPO / "results" / "benchmarks" / "recovery.csv")
+    args = parser.parse_args()
+    from stages.config.presets import PRESETS
+
+    presets = [p.strip() for p in args.presets.split(",") if p.strip()]
+    for p in presets:
+        if p not in PRESETS:
+            raise SystemExit(f"unknown preset {p!r}; choose from {', '.join(PRESETS)}")
+    rows: list[dict] = []
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    for name, source in mesh_sources(args.meshes):
+        with tempfile.TemporaryDirectory() as d:
+            work = Path(d)
+            t0 = time.perf_counter()
+            faces, _ = prepare(work, source, args.material)
+            print(f"{name}: {faces} faces, cache and targets in {time.perf_counter() - t0:.0f} s", flush=True)
+            for preset in presets:
+                row = {"mesh": name, "faces": faces, **fit(work, args.material, preset)}
+                rows.append(row)
+                print(
+                    f"  {preset:9s} PSNR {row['psnr_db']:.2f} dB  SSIM {row['ssim']:.3f}  "
+                    f"(noise {row['target_noise_psnr_db']} dB)  "
+                    f"albedo {row['albedo_rmse']:.3f} ({row['albedo_rmse_scaled']})  roughness {row['roughness_mae']:.3f}  "
+                    f"normal {row['normal_angle_deg_mean']} deg  light {row['light_energy_ratio']}  {row['optimize_s']:.0f} s",
+                    flush=True,
+                )
+        # the table so far, rewritten whole after each mesh (temp file + rename)
+        tmp = args.out.with_suffix(".csv.part")
+        with tmp.open("w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=COLUMNS)
+            w.writeheader()
+            w.writerows(rows)
+        tmp.replace(args.out)
+    print(f"wrote {args.out}", flush=True)
+
+
+if __name__ == "__main__":
+    main()
