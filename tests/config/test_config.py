@@ -181,6 +181,11 @@ def test_speed_presets_are_the_measured_sweep_points():
     balanced = cfg.optimize_settings(prompt, "balanced")
     assert (balanced.iterations, balanced.width, balanced.light_lobes) == (600, 128, 32)
     assert balanced.image_size == cfg.optimize_settings(prompt, "base").image_size  # left out on purpose
+    # the seed replicates differ from their variant in the seed alone
+    for variant in ("base", "fast", "balanced", "it600"):
+        for seed in (1, 2):
+            replicate = cfg.optimize_settings(prompt, f"{variant}_seed{seed}")
+            assert replicate == dataclasses.replace(cfg.optimize_settings(prompt, variant), seed=seed), (variant, seed)
 
 
 def test_explain_names_the_source_of_every_key(base, tmp_path, capsys):
