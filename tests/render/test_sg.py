@@ -642,6 +642,49 @@ def test_specular_against_monte_carlo_of_the_microfacet_brdf(impl):
     assert max(scores.values()) <= 1, scores
 
 
+SPLIT_ROUGHNESS = (0.05, 0.1, 0.3, 0.5, 0.8, 1.0)
+SPLIT_COS_NV = (1.0, 0.5, 0.3, 0.1, 0.05)
+
+
+def test_split_sum_specular_against_monte_carlo_of_the_microfacet_brdf():
+    """The split-sum specular (exact energy, the isotropic lobe's shape) against the BRDF itself,
+    roughness 0.05 to 1 and n.v down to 0.05, F0 0.04 / 0.3 / 0.9: within 3% for n.v >= 0.3 and 17%
+    below (measured 2026-11-22: 1.9% and 15.8%; the isotropic closed form errs by up to 91% there)."""
+    light = make_light(32, 5.0)
+    scores = {}
+    for r in SPLIT_ROUGHNESS:
+        for cos_nv in SPLIT_COS_NV:
+            got = shading_module.specular_radiance_split_sum(
+                SPEC_NORMAL[None], spec_view(cos_nv)[None], SPEC_F0, torch.tensor([[r]], dtype=F64), light
+            )[0]
+            scores[r, cos_nv] = score(got, *specular_mc(r, cos_nv)["brdf"], 0.03 if cos_nv >= 0.3 else 0.17)
+    assert max(scores.values()) <= 1, scores
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
+def test_split_sum_specular_finite_at_the_extremes(dtype):
+    """n.v from 5e-4 (face_viewer's floor) to 1, roughness 0.01 and 1, light sharpness 1e-4 to 1e4:
+    finite, non-negative values and finite gradients for every input."""
+    g = torch.Generator().manual_seed(11)
+    cases = [(c, r) for c in (5e-4, 1e-3, 0.05, 1.0) for r in (0.01, 0.3, 1.0)]
+    n = torch.tensor([[0.0, 0.0, 1.0]] * len(cases), dtype=dtype)
+    view = torch.tensor([[math.sqrt(1 - c * c), 0.0, c] for c, _ in cases], dtype=dtype, requires_grad=True)
+    rough = torch.tensor([[r] for _, r in cases], dtype=dtype, requires_grad=True)
+    f0 = torch.full((len(cases), 3), 0.04, dtype=dtype, requires_grad=True)
+    for lam in (1e-4, 1.0, 1e4):
+        light = SGLight(
+            unit(torch.randn(8, 3, generator=g, dtype=F64)).to(dtype).requires_grad_(),
+            torch.full((8, 1), lam, dtype=dtype, requires_grad=True),
+            torch.rand(8, 3, generator=g, dtype=F64).to(dtype).requires_grad_(),
+        )
+        out = shading_module.specular_radiance_split_sum(n, view, f0, rough, light)
+        assert out.dtype == dtype and torch.isfinite(out).all() and (out >= 0).all(), lam
+        out.float().sum().backward()
+        for t in (view, rough, f0, light.axis, light.sharpness, light.amplitude):
+            assert torch.isfinite(t.grad).all(), lam
+            t.grad = None
+
+
 def test_face_viewer():
     g = torch.Generator().manual_seed(6)
     n = unit(torch.randn(5000, 3, generator=g, dtype=F64))
