@@ -14,6 +14,7 @@ the light's energy against the environment's, and the optimisation's wall time.
 
     python benchmarks/recovery.py                                  # every mesh, fast and balanced
     python benchmarks/recovery.py --presets paper --meshes vase,shared:lamp
+    python benchmarks/recovery.py --meshes builtin --presets fast --specular-lobe isotropic,split_sum
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ COLUMNS = (
     "mesh",
     "faces",
     "preset",
+    "specular_lobe",
     "iterations",
     "psnr_db",
     "ssim",
@@ -92,7 +94,7 @@ def prepare(work: Path, source: str, material: str) -> tuple[int, Path]:
     return len(mesh.faces), work / "target"
 
 
-def fit(work: Path, material: str, preset: str) -> dict:
+def fit(work: Path, material: str, preset: str, lobe: str = "isotropic") -> dict:
     """Optimise with ``preset`` under image guidance on the prepared targets and grade the field on
     the held-out metric views; returns one row of the table."""
     import torch
@@ -110,6 +112,7 @@ def fit(work: Path, material: str, preset: str) -> dict:
             "image_size": 96,
             "eval_width": 96,
             "checkpoint_every": 100_000,
+            "specular_lobe": lobe,
         }
     )
     torch.set_num_threads(int(os.environ.get("TANGO_THREADS", "2")))
@@ -124,6 +127,7 @@ def fit(work: Path, material: str, preset: str) -> dict:
     mat = m["material"]
     return {
         "preset": preset,
+        "specular_lobe": lobe,
         "iterations": settings.iterations,
         "psnr_db": round(m["psnr_db"], 2),
         "ssim": round(m["ssim"], 3),
@@ -141,6 +145,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--meshes", default="builtin,shared", help="builtin, shared, a built-in, shared:<name>; comma-separated")
     parser.add_argument("--presets", default="fast,balanced", help="comma-separated presets (fast, balanced, paper)")
+    parser.add_argument("--specular-lobe", default="isotropic", help="comma-separated specular models (isotropic, split_sum)")
     parser.add_argument("--material", default="wood", help="the procedural target material (wood, metal, plaster)")
     parser.add_argument("--out", type=Path, default=REPO / "results" / "benchmarks" / "recovery.csv")
     args = parser.parse_args()
@@ -158,11 +163,11 @@ def main() -> None:
             t0 = time.perf_counter()
             faces, _ = prepare(work, source, args.material)
             print(f"{name}: {faces} faces, cache and targets in {time.perf_counter() - t0:.0f} s", flush=True)
-            for preset in presets:
-                row = {"mesh": name, "faces": faces, **fit(work, args.material, preset)}
+            for preset, lobe in ((p, lb) for p in presets for lb in args.specular_lobe.split(",")):
+                row = {"mesh": name, "faces": faces, **fit(work, args.material, preset, lobe)}
                 rows.append(row)
                 print(
-                    f"  {preset:9s} PSNR {row['psnr_db']:.2f} dB  SSIM {row['ssim']:.3f}  "
+                    f"  {preset:9s} {lobe:9s} PSNR {row['psnr_db']:.2f} dB  SSIM {row['ssim']:.3f}  "
                     f"(noise {row['target_noise_psnr_db']} dB)  "
                     f"albedo {row['albedo_rmse']:.3f} ({row['albedo_rmse_scaled']})  roughness {row['roughness_mae']:.3f}  "
                     f"normal {row['normal_angle_deg_mean']} deg  light {row['light_energy_ratio']}  {row['optimize_s']:.0f} s",

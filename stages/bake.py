@@ -73,7 +73,7 @@ def run(
             for i in range(len(evalc)):
                 hits = evalc.view(i)
                 hits_bary = cached_barycentrics(evalc, i)
-                baked = render_baked(BakedHits(hits, hits_bary), res.atlas.uv, tex, (t, b, n), light, device)
+                baked = render_baked(BakedHits(hits, hits_bary), res.atlas.uv, tex, (t, b, n), light, device, field.specular_lobe)
                 v = store[i]
                 with torch.no_grad():
                     ref = field(v.points, v.normals, v.view).shading.rgb

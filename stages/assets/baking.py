@@ -113,9 +113,9 @@ def decode_textures(textures: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
 
 
 @torch.no_grad()
-def render_baked(hits, uv_faces, tex: dict, frames, light, device="cpu"):
-    """Shade cached hits (a :class:`~stages.geometry.raycache.ViewHits`) from the decoded textures.
-    Returns ``(N, 3)`` linear radiance."""
+def render_baked(hits, uv_faces, tex: dict, frames, light, device="cpu", lobe: str = "isotropic"):
+    """Shade cached hits (a :class:`~stages.geometry.raycache.ViewHits`) from the decoded textures
+    with the specular model ``lobe`` (the field's). Returns ``(N, 3)`` linear radiance."""
     t, b, n = frames
     f = hits.face
     tri_uv = uv_faces[f]
@@ -136,7 +136,7 @@ def render_baked(hits, uv_faces, tex: dict, frames, light, device="cpu"):
     nn_ = face_viewer(tt(world), tt(view))
     spec = tt(sample_bilinear(tex["specular"], uv))
     rough = tt(np.clip(sample_bilinear(tex["roughness"], uv), 0.01, 1.0))
-    return shade(nn_, tt(view), tt(sample_bilinear(tex["albedo"], uv)), light, spec, rough).rgb
+    return shade(nn_, tt(view), tt(sample_bilinear(tex["albedo"], uv)), light, spec, rough, lobe).rgb
 
 
 class BakedHits:

@@ -174,6 +174,7 @@ class FieldSettings:
     light_rgb: bool
     light_energy: float
     light_init_sharpness: float | None
+    specular_lobe: str
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -221,6 +222,9 @@ class OptimizeSettings(ClipChoice, Settings):
     light_rgb: bool = True
     light_energy: float = 6.25
     light_init_sharpness: float | None = None
+    #: the specular model: "isotropic" (TANGO's closed form) or "split_sum" (exact energy from the
+    #: tabulated directional albedo, the isotropic lobe's shape; see stages/render/shading.py)
+    specular_lobe: str = "isotropic"
     # guidance
     guidance: str = "clip"
     clip_model: str = "ViT-B-32"
@@ -257,6 +261,8 @@ class OptimizeSettings(ClipChoice, Settings):
             p.append(f"target_material must be one of {MATERIALS}, got {self.target_material!r}")
         if self.target_renderer not in TARGET_RENDERERS:
             p.append(f"target_renderer must be one of {TARGET_RENDERERS}, got {self.target_renderer!r}")
+        if self.specular_lobe not in ("isotropic", "split_sum"):
+            p.append(f"specular_lobe must be 'isotropic' or 'split_sum', got {self.specular_lobe!r}")
         if self.target_light not in LIGHTS:
             p.append(f"target_light must be one of {LIGHTS}, got {self.target_light!r}")
         if self.views_per_step < 1 or self.crops < 0 or self.supersample < 1 or self.checkpoint_every < 1:

@@ -81,6 +81,7 @@ class StyleField(nn.Module):
                 init_sharpness=s.light_init_sharpness,
             )
         self.symmetry = s.symmetry
+        self.specular_lobe = s.specular_lobe
 
     def symmetric_points(self, points: Tensor) -> Tensor:
         """The points as the networks see them (``(x, y, |z|)`` under the symmetry prior)."""
@@ -125,4 +126,4 @@ class StyleField(nn.Module):
         """The renderer's half of the forward pass: ``material`` and unit shading ``normal`` (from
         :meth:`surface`) seen along ``view``, under the learned light or ``light``."""
         light = light if light is not None else self.light()
-        return shade(normal, view, material.albedo, light, material.specular, material.roughness)
+        return shade(normal, view, material.albedo, light, material.specular, material.roughness, self.specular_lobe)

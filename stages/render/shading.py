@@ -21,6 +21,9 @@ from .specular_albedo import directional_albedo
 NDF_SHARPNESS = 2.0
 #: Schlick's Fresnel ``F0 + (1 - F0) (1 - cos)^FRESNEL_POWER``
 FRESNEL_POWER = 5
+#: the specular models of :func:`shade`: TANGO's closed form (:func:`specular_radiance`) and the
+#: split sum with exact energy (:func:`specular_radiance_split_sum`)
+SPECULAR_LOBES = ("isotropic", "split_sum")
 
 
 @dataclass(frozen=True)
@@ -266,8 +269,10 @@ def shade(
     light: SGLight,
     specular: Tensor | None = None,
     roughness: Tensor | None = None,
+    lobe: str = "isotropic",
 ) -> Shading:
-    """Diffuse and (when ``specular`` and ``roughness`` are given) specular radiance per point.
+    """Diffuse and (when ``specular`` and ``roughness`` are given) specular radiance per point,
+    the specular term by the model ``lobe`` names (:data:`SPECULAR_LOBES`).
 
     A diffuse-only material (the ablation without specular/roughness) skips the specular
     computation entirely.
@@ -275,4 +280,8 @@ def shade(
     diffuse = diffuse_radiance(normal, albedo, light)
     if specular is None or roughness is None:
         return Shading(diffuse, torch.zeros_like(diffuse))
-    return Shading(diffuse, specular_radiance(normal, view, specular, roughness, light))
+    if lobe == "isotropic":
+        return Shading(diffuse, specular_radiance(normal, view, specular, roughness, light))
+    if lobe == "split_sum":
+        return Shading(diffuse, specular_radiance_split_sum(normal, view, specular, roughness, light))
+    raise ValueError(f"unknown specular lobe {lobe!r}; choose one of {', '.join(SPECULAR_LOBES)}")

@@ -112,6 +112,31 @@ def test_outputs_and_metadata(cache, tmp_path):
     assert sheet.size == (4 * 32, 2 * 32)
 
 
+def test_specular_lobe_reaches_every_render_of_the_field():
+    """``specular_lobe`` is a setting of the field: its forward pass (training, metrics, relighting,
+    the bake's reference) shades with that model; an unknown name fails in the settings."""
+    from stages.core.errors import ConfigError
+    from stages.render.shading import shade
+
+    g = torch.Generator().manual_seed(3)
+    points = torch.rand(64, 3, generator=g) - 0.5
+    normals = torch.nn.functional.normalize(torch.randn(64, 3, generator=g), dim=-1)
+    view = torch.nn.functional.normalize(normals + 0.5 * torch.randn(64, 3, generator=g), dim=-1)
+    specular = {}
+    for lobe in ("isotropic", "split_sum"):
+        field = StyleField(OptimizeSettings(width=16, specular_lobe=lobe).field_settings())
+        with torch.no_grad():
+            out = field(points, normals, view)
+            want = shade(
+                out.normal, view, out.material.albedo, field.light(), out.material.specular, out.material.roughness, lobe
+            )
+        torch.testing.assert_close(out.shading.specular, want.specular, rtol=0, atol=0)
+        specular[lobe] = out.shading.specular
+    assert not torch.allclose(specular["isotropic"], specular["split_sum"])  # the same weights, two models
+    with pytest.raises(ConfigError, match="specular_lobe"):
+        OptimizeSettings(specular_lobe="asg")
+
+
 def test_switched_off_parts_are_not_built():
     full = StyleField(OptimizeSettings(width=32).field_settings())
     plain = StyleField(
