@@ -211,6 +211,14 @@ def specular_radiance(normal: Tensor, view: Tensor, specular: Tensor, roughness:
     lam, mu = ndf_sg(roughness)
     w_axis, w_lam, w_mu = warp_ndf_to_light(normal, view, lam, mu, cos_nv)
     m = fresnel_schlick(specular, cos_nv) * smith_schlick_over_cosines(cos_nv, cos_nv, roughness)
+    integral = w_mu * (_warped_lobe_per_light_lobe(normal, w_axis, w_lam, light) @ light.amplitude)
+    return m * torch.clamp(integral, min=0.0)
+
+
+def _warped_lobe_per_light_lobe(normal: Tensor, w_axis: Tensor, w_lam: Tensor, light: SGLight) -> Tensor:
+    """``int G_w(l) G_k(l) max(n . l, 0) dl`` of the unit-amplitude warped lobe ``(w_axis (N, 3),
+    w_lam (N, 1))`` with each unit-amplitude light lobe ``k`` -> ``(N, K)``, in the closed form of
+    :func:`_cosine_weighted_hemisphere` (the light's amplitudes are applied by the caller)."""
     cos_wl = w_axis @ light.axis.T  # (N, K)
     cos_nl = normal @ light.axis.T
     cos_nw = (normal * w_axis).sum(-1, keepdim=True)  # (N, 1)
@@ -218,9 +226,7 @@ def specular_radiance(normal: Tensor, view: Tensor, specular: Tensor, roughness:
     lam_p, log_p = _product_terms(w_lam, lam_l, cos_wl)
     safe = torch.where(lam_p > 0, lam_p, torch.ones_like(lam_p))
     cos_pn = torch.where(lam_p > 0, (w_lam * cos_nw + lam_l * cos_nl) / safe, torch.ones_like(lam_p))
-    per_lobe = _cosine_weighted_hemisphere(lam_p, cos_pn.clamp(-1.0, 1.0), log_p)
-    integral = w_mu * (per_lobe @ light.amplitude)
-    return m * torch.clamp(integral, min=0.0)
+    return _cosine_weighted_hemisphere(lam_p, cos_pn.clamp(-1.0, 1.0), log_p)
 
 
 def specular_radiance_split_sum(normal: Tensor, view: Tensor, specular: Tensor, roughness: Tensor, light: SGLight) -> Tensor:
@@ -245,15 +251,8 @@ def specular_radiance_split_sum(normal: Tensor, view: Tensor, specular: Tensor, 
     cos_nv = (normal * view).sum(-1, keepdim=True)
     lam, mu = ndf_sg(roughness)
     w_axis, w_lam, _ = warp_ndf_to_light(normal, view, lam, mu, cos_nv)
-    cos_wl = w_axis @ light.axis.T  # (N, K)
-    cos_nl = normal @ light.axis.T
+    lit = _warped_lobe_per_light_lobe(normal, w_axis, w_lam, light) @ light.amplitude  # (N, C)
     cos_nw = (normal * w_axis).sum(-1, keepdim=True)  # (N, 1)
-    lam_l = light.sharpness.T  # (1, K)
-    lam_p, log_p = _product_terms(w_lam, lam_l, cos_wl)
-    safe = torch.where(lam_p > 0, lam_p, torch.ones_like(lam_p))
-    cos_pn = torch.where(lam_p > 0, (w_lam * cos_nw + lam_l * cos_nl) / safe, torch.ones_like(lam_p))
-    per_lobe = _cosine_weighted_hemisphere(lam_p, cos_pn.clamp(-1.0, 1.0), log_p)
-    lit = per_lobe @ light.amplitude  # (N, C)
     whole = _cosine_weighted_hemisphere(w_lam, cos_nw.clamp(-1.0, 1.0), torch.zeros_like(w_lam))  # (N, 1)
     tiny = torch.finfo(whole.dtype).tiny
     brightest = light.amplitude.sum(0, keepdim=True)  # (1, C): no average of the light exceeds it
