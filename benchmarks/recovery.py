@@ -145,7 +145,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--meshes", default="builtin,shared", help="builtin, shared, a built-in, shared:<name>; comma-separated")
     parser.add_argument("--presets", default="fast,balanced", help="comma-separated presets (fast, balanced, paper)")
-    parser.add_argument("--specular-lobe", default="isotropic", help="comma-separated specular models (isotropic, split_sum)")
+    parser.add_argument(
+        "--specular-lobe", default="fitted", help="comma-separated specular models (isotropic, split_sum, fitted)"
+    )
     parser.add_argument("--material", default="wood", help="the procedural target material (wood, metal, plaster)")
     parser.add_argument("--out", type=Path, default=REPO / "results" / "benchmarks" / "recovery.csv")
     args = parser.parse_args()

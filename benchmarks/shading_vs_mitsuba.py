@@ -7,8 +7,8 @@ Mitsuba's ``envmap``; a white Lambertian surface (Mitsuba's ``diffuse``) for the
 TANGO's microfacet BRDF evaluated exactly per direction (``stages/reference/tango_bsdf.py``) for
 the specular term, for each roughness and ``F0``. Mitsuba path-traces one bounce (a convex
 sphere neither shadows nor lights itself); we evaluate ``diffuse_radiance`` and
-``specular_radiance`` (and the ``split_sum`` option's ``specular_radiance_split_sum``, printed
-under each row) at the ray cache's hits, the very pixels Mitsuba rendered.
+``specular_radiance`` (and the ``split_sum`` and ``fitted`` options' ``specular_radiance_split_sum``
+and ``specular_radiance_fitted``, printed under each row) at the ray cache's hits, the very pixels Mitsuba rendered.
 
 Per bin of ``n . v`` it prints ``sum(ours) / sum(Mitsuba) - 1`` over fully covered pixels, with
 Mitsuba's Monte Carlo standard error of that ratio (from two independent halves), and saves a
@@ -44,7 +44,12 @@ def main() -> None:
     from stages.reference.mitsuba import choose_variant, import_mitsuba, sensor
     from stages.reference.targets import ENV_TO_WORLD, _mesh, mitsuba_rows
     from stages.render.envmap import equirect_directions
-    from stages.render.shading import diffuse_radiance, specular_radiance, specular_radiance_split_sum
+    from stages.render.shading import (
+        diffuse_radiance,
+        specular_radiance,
+        specular_radiance_fitted,
+        specular_radiance_split_sum,
+    )
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--width", type=int, default=256)
@@ -139,6 +144,9 @@ def main() -> None:
             # the split-sum option (exact energy, the isotropic lobe's shape) on the same render
             ours_ss = specular_radiance_split_sum(tn, tv, spec, rough, light).numpy()
             show(f"  split sum F0 {f0} r {r}", table(ours_ss, a, b, full))
+            # the fitted option (exact energy, moment-fitted lobe corrected by the BRDF per light lobe)
+            ours_fit = specular_radiance_fitted(tn, tv, spec, rough, light).numpy()
+            show(f"  fitted    F0 {f0} r {r}", table(ours_fit, a, b, full))
     print(f"pixels per bin: {[c for _, _, c in results['diffuse']]}; {time.perf_counter() - t_start:.0f} s")
 
     import matplotlib

@@ -70,11 +70,12 @@ class Objective:
         return self.procedural_colors(v.points[sel], v.normals[sel], v.view[sel])
 
     def procedural_colors(self, points, normals, view) -> torch.Tensor:
-        """Linear radiance ``(N, 3)`` of the procedural target under the SG light at cached hits."""
+        """Linear radiance ``(N, 3)`` of the procedural target under the SG light at cached hits,
+        shaded with the specular model the field uses (``optimize.specular_lobe``)."""
         flip = (normals * view).sum(-1, keepdim=True) < 0
         n = face_viewer(torch.where(flip, -normals, normals), view)
         m = procedural_material(self.s.target_material, points)
-        return shade(n, view, m.albedo, self.target_light, m.specular, m.roughness).rgb
+        return shade(n, view, m.albedo, self.target_light, m.specular, m.roughness, self.s.specular_lobe).rgb
 
     def loss(self, globals_, crops, globals_t=None, crops_t=None) -> tuple[torch.Tensor, dict]:
         if self.guide is not None:

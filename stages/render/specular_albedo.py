@@ -65,8 +65,27 @@ def roughness_grid() -> np.ndarray:
     return np.exp(np.linspace(math.log(R_MIN), 0.0, R_NODES))
 
 
-def _entry_terms(nv: np.ndarray, roughness: float) -> tuple[np.ndarray, np.ndarray]:
-    """``A`` and ``B`` for every ``nv (M,)`` at one roughness, by quadrature over ``h``.
+def concentration_of(mean_length: np.ndarray) -> np.ndarray:
+    """The vMF concentration ``kappa`` whose mean resultant length ``coth(kappa) - 1/kappa`` is
+    ``mean_length`` in (0, 1): Newton's method from Banerjee et al.'s start (2005), and
+    ``1 / (1 - R)`` where ``R > 1 - 1e-3`` (there ``coth`` is 1 to within ``exp(-2000)``)."""
+    rbar = np.clip(np.asarray(mean_length, dtype=np.float64), 1e-9, 1.0 - 1e-15)
+    near_one = rbar > 1.0 - 1e-3
+    r = np.where(near_one, 0.5, rbar)
+    k = r * (3.0 - r * r) / (1.0 - r * r)
+    for _ in range(50):
+        e = np.exp(-2.0 * k)  # coth k = (1 + e) / (1 - e), 1 / sinh^2 k = 4 e / (1 - e)^2
+        f = (1.0 + e) / (1.0 - e) - 1.0 / k - r
+        fp = 1.0 / k**2 - 4.0 * e / (1.0 - e) ** 2
+        k = np.maximum(k - f / fp, 1e-9)
+    return np.where(near_one, 1.0 / (1.0 - rbar), k)
+
+
+def _entry_terms(nv: np.ndarray, roughness: float) -> dict[str, np.ndarray]:
+    """``A`` and ``B`` for every ``nv (M,)`` at one roughness, by quadrature over ``h``, with the
+    moments of each part's lobe ``f_r (n.l)`` over reflected directions ``l``: the angle
+    ``theta`` of its mean direction from ``n`` (towards the mirror side) and the concentration
+    ``kappa`` of the vMF with the same mean resultant length (:func:`concentration_of`).
 
     With ``lam = 2 / r^4`` and the NDF amplitude ``1 / (pi r^4) = lam / (2 pi)``, the substitution
     ``u = lam (1 - cos theta_h)`` turns ``D(h) dh`` into ``exp(-u) / (2 pi) du dphi`` exactly, which
@@ -81,44 +100,64 @@ def _entry_terms(nv: np.ndarray, roughness: float) -> tuple[np.ndarray, np.ndarr
     phi = math.pi * (xp + 1.0)
     wp = math.pi * wp
     cos_t = 1.0 - u / lam
-    sin_t = np.sqrt(np.clip(1.0 - cos_t**2, 0.0, None))
+    # sin from 1 - cos = u / lam without cancellation: sin^2 = (u / lam)(2 - u / lam)
+    sin_t = np.sqrt(np.clip(u / lam * (2.0 - u / lam), 0.0, None))
     hx = sin_t[:, None] * np.cos(phi)[None, :]
     hz = np.broadcast_to(cos_t[:, None], hx.shape)
     weight = (np.exp(-u) * wu)[:, None] * wp[None, :] / (2.0 * math.pi)  # D(h) dh
-    a_out = np.empty_like(nv)
-    b_out = np.empty_like(nv)
+    out = {key: np.empty_like(nv) for key in ("a", "b", "theta_a", "kappa_a", "theta_b", "kappa_b")}
     for i, c in enumerate(nv):
         s = math.sqrt(max(1.0 - c * c, 0.0))
         vh = s * hx + c * hz  # v = (s, 0, c), h = (hx, hy, hz): v . h has no y part
         nl = 2.0 * vh * hz - c  # l = 2 (v.h) h - v, n = z
+        lx = 2.0 * vh * hx - s  # the y part of l averages to 0 by symmetry
         ok = (vh > 0.0) & (nl > 0.0)
         g1_l = np.where(ok, nl / (nl * (1.0 - k) + k), 0.0)
         common = np.where(ok, weight * g1_l * vh / (c * (1.0 - k) + k), 0.0)  # D G (v.h) / (n.v) dh
         fres = np.clip(1.0 - vh, 0.0, 1.0) ** 5
-        a_out[i] = float((common * (1.0 - fres)).sum())
-        b_out[i] = float((common * fres).sum())
-    return a_out, b_out
+        for part, w in (("a", common * (1.0 - fres)), ("b", common * fres)):
+            total = float(w.sum())
+            out[part][i] = total
+            if total > 0.0:
+                mx, mz = float((w * lx).sum()) / total, float((w * nl).sum()) / total
+            else:  # no energy in this part (B of the sharpest lobes at normal view): a mirror lobe
+                mx, mz = -s, c
+            out["theta_" + part][i] = math.atan2(-mx, mz)
+            out["kappa_" + part][i] = float(concentration_of(np.array(math.hypot(mx, mz))))
+    return out
 
 
 def build_table() -> dict[str, np.ndarray]:
-    """``{"nv", "roughness", "a", "b"}``: the grids and ``A, B (NV_NODES, R_NODES)`` by quadrature."""
+    """``{"nv", "roughness", "a", "b", "theta_a", "kappa_a", "theta_b", "kappa_b"}``: the grids and
+    each column ``(NV_NODES, R_NODES)`` by quadrature (:func:`_entry_terms`)."""
     nv, rough = nv_grid(), roughness_grid()
-    a = np.empty((len(nv), len(rough)))
-    b = np.empty_like(a)
+    columns = {key: np.empty((len(nv), len(rough))) for key in TABLE_COLUMNS}
     for j, r in enumerate(rough):
-        a[:, j], b[:, j] = _entry_terms(nv, float(r))
-    return {"nv": nv, "roughness": rough, "a": a, "b": b}
+        for key, values in _entry_terms(nv, float(r)).items():
+            columns[key][:, j] = values
+    return {"nv": nv, "roughness": rough, **columns}
+
+
+#: the table's columns (each ``(NV_NODES, R_NODES)``); ``a, b`` and ``kappa_*`` are interpolated in
+#: the log, ``theta_*`` as is
+TABLE_COLUMNS = ("a", "b", "theta_a", "kappa_a", "theta_b", "kappa_b")
 
 
 @functools.cache
-def _table(device: str, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
+def _table(device: str, dtype: torch.dtype) -> dict[str, Tensor]:
     if not TABLE_PATH.is_file():
         raise FileNotFoundError(
             f"{TABLE_PATH}: the specular albedo table is missing; rebuild it with `python -m stages.render.specular_albedo`"
         )
     with np.load(TABLE_PATH) as z:
-        a, b = np.log(np.maximum(z["a"], LOG_FLOOR)), np.log(np.maximum(z["b"], LOG_FLOOR))
-    return (torch.as_tensor(a, dtype=dtype, device=device), torch.as_tensor(b, dtype=dtype, device=device))
+        missing = [key for key in TABLE_COLUMNS if key not in z.files]
+        if missing:
+            raise ValueError(
+                f"{TABLE_PATH} lacks the columns {missing} (an older table); rebuild it with "
+                "`python -m stages.render.specular_albedo`"
+            )
+        grids = {key: z[key] if key.startswith("theta") else np.log(np.maximum(z[key], LOG_FLOOR)) for key in TABLE_COLUMNS}
+    return {key: torch.as_tensor(value, dtype=dtype, device=device) for key, value in grids.items()}
 
 
 def _bilinear(grid: Tensor, x: Tensor, y: Tensor) -> Tensor:
@@ -135,15 +174,37 @@ def _bilinear(grid: Tensor, x: Tensor, y: Tensor) -> Tensor:
     return (g00 * (1 - fy) + g01 * fy) * (1 - fx) + (g10 * (1 - fy) + g11 * fy) * fx
 
 
+def _lookup(cos_nv: Tensor, roughness: Tensor, keys: tuple[str, ...]) -> list[Tensor]:
+    """The table's columns ``keys`` at ``cos_nv`` and ``roughness`` (any matching shapes): bilinear in
+    ``log(n . v)`` and ``log(r)``, computed in float32 at least, returned in the input's dtype."""
+    work = torch.float32 if cos_nv.dtype in (torch.float16, torch.bfloat16) else cos_nv.dtype
+    table = _table(str(cos_nv.device), work)
+    t = (1.0 - torch.log(cos_nv.to(work).clamp(NV_MIN, 1.0)) / math.log(NV_MIN)) * (NV_NODES - 1)
+    s = (1.0 - torch.log(roughness.to(work).clamp(R_MIN, 1.0)) / math.log(R_MIN)) * (R_NODES - 1)
+    out = []
+    for key in keys:
+        value = _bilinear(table[key], t, s)
+        out.append((value if key.startswith("theta") else torch.exp(value)).to(cos_nv.dtype))
+    return out
+
+
 def directional_albedo(cos_nv: Tensor, roughness: Tensor) -> tuple[Tensor, Tensor]:
     """``A, B`` at ``cos_nv (...)`` in ``[5e-4, 1]`` and ``roughness (...)`` in ``[0.01, 1]``
     (clamped to the table) -> two tensors of the same shape; the specular albedo is
     ``F0 A + B``. Bilinear in ``log(n . v)`` and ``log(r)`` on ``log A`` and ``log B``; gradients flow
     to both."""
-    a, b = _table(str(cos_nv.device), torch.float32 if cos_nv.dtype in (torch.float16, torch.bfloat16) else cos_nv.dtype)
-    t = (1.0 - torch.log(cos_nv.to(a.dtype).clamp(NV_MIN, 1.0)) / math.log(NV_MIN)) * (NV_NODES - 1)
-    s = (1.0 - torch.log(roughness.to(a.dtype).clamp(R_MIN, 1.0)) / math.log(R_MIN)) * (R_NODES - 1)
-    return torch.exp(_bilinear(a, t, s)).to(cos_nv.dtype), torch.exp(_bilinear(b, t, s)).to(cos_nv.dtype)
+    a, b = _lookup(cos_nv, roughness, ("a", "b"))
+    return a, b
+
+
+def lobe_moments(cos_nv: Tensor, roughness: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """``theta_a, kappa_a, theta_b, kappa_b`` at ``cos_nv`` and ``roughness`` (as
+    :func:`directional_albedo`): for the ``A`` part (weighted by ``1 - (1 - v.h)^5``) and the ``B``
+    part (by ``(1 - v.h)^5``) of the BRDF's lobe ``f_r (n . l)``, the angle of its mean direction
+    from the normal towards the mirror side, in [0, pi/2], and the concentration of the vMF with the
+    same mean resultant length (0.3 for the broadest lobe to ~1e8 for the sharpest)."""
+    theta_a, kappa_a, theta_b, kappa_b = _lookup(cos_nv, roughness, ("theta_a", "kappa_a", "theta_b", "kappa_b"))
+    return theta_a, kappa_a, theta_b, kappa_b
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -30,6 +30,7 @@ import numpy as np
 import pytest
 import torch
 from scipy import integrate
+from test_specular_albedo import monte_carlo_albedo
 
 from stages.render import sg as sg_module
 from stages.render import shading as shading_module
@@ -661,8 +662,61 @@ def test_split_sum_specular_against_monte_carlo_of_the_microfacet_brdf():
     assert max(scores.values()) <= 1, scores
 
 
+def test_fitted_specular_against_monte_carlo_of_the_microfacet_brdf():
+    """The fitted lobe (exact energy, a vMF with the BRDF lobe's first moment, corrected by the BRDF
+    at each light lobe) against the BRDF itself, roughness 0.05 to 1 and n.v down to 0.05, F0 0.04 /
+    0.3 / 0.9: within 5% everywhere (the issue's target; measured 2026-11-22 against quadrature: 4.9%)."""
+    light = make_light(32, 5.0)
+    scores = {}
+    for r in SPLIT_ROUGHNESS:
+        for cos_nv in SPLIT_COS_NV:
+            got = shading_module.specular_radiance_fitted(
+                SPEC_NORMAL[None], spec_view(cos_nv)[None], SPEC_F0, torch.tensor([[r]], dtype=F64), light
+            )[0]
+            scores[r, cos_nv] = score(got, *specular_mc(r, cos_nv)["brdf"], 0.05)
+    assert max(scores.values()) <= 1, scores
+
+
+def textbook_brdf_times_cosine(n, v, l_dir, f0, r):
+    """``f_r(l, v) (n . l)`` of TANGO's BRDF from its definition: ``D F G / (4 (n.l)(n.v)) (n.l)`` with
+    ``D = exp(2 / r^4 (h.n - 1)) / (pi r^4)``, Schlick's ``F`` at ``v.h``, Smith-Schlick ``G1(x) = x /
+    (x (1 - k) + k)``, ``k = (r + 1)^2 / 8``; ``(C,)`` for ``f0 (C,)``, 0 below the horizon."""
+    h = unit(l_dir + v)
+    nl, nv = float(l_dir @ n), float(v @ n)
+    if nl <= 0:
+        return torch.zeros_like(f0)
+    k = (r + 1) ** 2 / 8
+    g = (nl / (nl * (1 - k) + k)) * (nv / (nv * (1 - k) + k))
+    fres = f0 + (1 - f0) * (1 - float(h @ v)) ** 5
+    return ndf(h @ n, r) * fres * g / (4 * nl * nv) * nl
+
+
+@pytest.mark.parametrize("r", [0.5, 1.0])
+@pytest.mark.parametrize("cos_nv", [1.0, 0.5, 0.1])
+def test_fitted_specular_limits(r, cos_nv):
+    """Exact in both limits of the light's width: a light lobe far sharper than the BRDF lobe
+    (sharpness 1e6) gives the BRDF at its axis times the lobe's solid angle ``2 pi / nu``, and a
+    uniform light (sharpness 1e-6) gives the directional albedo (Monte Carlo of the textbook BRDF)."""
+    n, v = SPEC_NORMAL, spec_view(cos_nv)
+    f0 = SPEC_F0[0]
+    for xi in (unit(torch.tensor([-0.4, 0.2, 0.8], dtype=F64)), unit(torch.tensor([0.3, -0.6, 0.5], dtype=F64))):
+        nu = 1e6
+        sharp = SGLight(xi[None], torch.tensor([[nu]], dtype=F64), torch.ones(1, 3, dtype=F64))
+        got = shading_module.specular_radiance_fitted(n[None], v[None], f0[None], torch.tensor([[r]], dtype=F64), sharp)[0]
+        want = textbook_brdf_times_cosine(n, v, xi, f0, r) * 2 * math.pi / nu
+        torch.testing.assert_close(got, want, rtol=1e-3, atol=0)
+    uniform = SGLight(n[None], torch.tensor([[1e-6]], dtype=F64), torch.ones(1, 3, dtype=F64))
+    got = shading_module.specular_radiance_fitted(n[None], v[None], f0[None], torch.tensor([[r]], dtype=F64), uniform)[0]
+    for c, value in enumerate(f0.tolist()):
+        mc, se = monte_carlo_albedo(cos_nv, r, value, n=400_000)
+        assert abs(float(got[c]) - mc) <= 0.01 * mc + 5 * se, (c, float(got[c]), mc, se)
+
+
 @pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
-def test_split_sum_specular_finite_at_the_extremes(dtype):
+@pytest.mark.parametrize(
+    "impl", [shading_module.specular_radiance_split_sum, shading_module.specular_radiance_fitted], ids=["split_sum", "fitted"]
+)
+def test_exact_energy_specular_finite_at_the_extremes(dtype, impl):
     """n.v from 5e-4 (face_viewer's floor) to 1, roughness 0.01 and 1, light sharpness 1e-4 to 1e4:
     finite, non-negative values and finite gradients for every input."""
     g = torch.Generator().manual_seed(11)
@@ -677,7 +731,7 @@ def test_split_sum_specular_finite_at_the_extremes(dtype):
             torch.full((8, 1), lam, dtype=dtype, requires_grad=True),
             torch.rand(8, 3, generator=g, dtype=F64).to(dtype).requires_grad_(),
         )
-        out = shading_module.specular_radiance_split_sum(n, view, f0, rough, light)
+        out = impl(n, view, f0, rough, light)
         assert out.dtype == dtype and torch.isfinite(out).all() and (out >= 0).all(), lam
         out.float().sum().backward()
         for t in (view, rough, f0, light.axis, light.sharpness, light.amplitude):

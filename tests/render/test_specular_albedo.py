@@ -51,7 +51,8 @@ def monte_carlo_albedo(nv: float, r: float, f0: float, n: int = 1_000_000, seed:
 @pytest.mark.parametrize("nv", [0.05, 0.3, 1.0])
 @pytest.mark.parametrize("r", [0.05, 0.3, 1.0])
 def test_quadrature_matches_monte_carlo(nv, r):
-    a, b = sa._entry_terms(np.array([nv]), r)
+    terms = sa._entry_terms(np.array([nv]), r)
+    a, b = terms["a"], terms["b"]
     for f0 in (0.04, 1.0):
         mc, se = monte_carlo_albedo(nv, r, f0)
         quad = f0 * a[0] + b[0]
@@ -61,11 +62,61 @@ def test_quadrature_matches_monte_carlo(nv, r):
 def test_shipped_table_is_what_the_code_builds():
     with np.load(sa.TABLE_PATH) as z:
         assert np.array_equal(z["nv"], sa.nv_grid()) and np.array_equal(z["roughness"], sa.roughness_grid())
-        assert z["a"].shape == (sa.NV_NODES, sa.R_NODES) == z["b"].shape
+        for key in sa.TABLE_COLUMNS:
+            assert z[key].shape == (sa.NV_NODES, sa.R_NODES), key
         for j in (0, sa.R_NODES // 2, sa.R_NODES - 1):
-            a, b = sa._entry_terms(sa.nv_grid(), float(sa.roughness_grid()[j]))
-            np.testing.assert_allclose(z["a"][:, j], a, rtol=1e-12, atol=0)
-            np.testing.assert_allclose(z["b"][:, j], b, rtol=1e-12, atol=0)
+            built = sa._entry_terms(sa.nv_grid(), float(sa.roughness_grid()[j]))
+            for key in sa.TABLE_COLUMNS:
+                np.testing.assert_allclose(z[key][:, j], built[key], rtol=1e-12, atol=0, err_msg=key)
+
+
+def monte_carlo_mean_direction(nv: float, r: float, part: str, n: int = 1_000_000, seed: int = 1) -> tuple[float, float, float]:
+    """The mean of ``l`` under the lobe ``f_r (n.l)`` of the ``A`` part (Fresnel weight ``1 - (1 -
+    v.h)^5``) or the ``B`` part (``(1 - v.h)^5``) of TANGO's BRDF, sampled as
+    :func:`monte_carlo_albedo` (half vectors from the NDF), the BRDF written out here: ``(x, z)``
+    with ``v = (sqrt(1 - nv^2), 0, nv)`` and ``n = z``, and the standard error of its angle (the
+    ratio estimator's, by the delta method)."""
+    rng = np.random.default_rng(seed)
+    lam = 2.0 / r**4
+    u = -np.log1p(-rng.random(n) * -math.expm1(-2.0 * lam))
+    phi = 2.0 * math.pi * rng.random(n)
+    cos_t = 1.0 - u / lam
+    sin_t = np.sqrt(np.clip(1.0 - cos_t**2, 0.0, None))
+    h = np.stack([sin_t * np.cos(phi), sin_t * np.sin(phi), cos_t], axis=1)
+    v = np.array([math.sqrt(1.0 - nv * nv), 0.0, nv])
+    vh = h @ v
+    l_dir = 2.0 * vh[:, None] * h - v
+    nl = l_dir[:, 2]
+    ok = (vh > 0) & (nl > 0)
+    k = (r + 1.0) ** 2 / 8.0
+    schlick = (1.0 - np.clip(vh, 0, 1)) ** 5
+    fres = schlick if part == "b" else 1.0 - schlick
+    # f_r (n.l) / pdf(l) with pdf(l) = D(h) / (4 v.h) (up to the constant normalisation, which cancels)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        w = np.where(ok, fres * (nl / (nl * (1 - k) + k)) / (nv * (1 - k) + k) * vh, 0.0)
+    mx, mz = (w * l_dir[:, 0]).sum() / w.sum(), (w * l_dir[:, 2]).sum() / w.sum()
+    # the angle's error: the error of the mean's component across it, over the mean's length
+    across = (l_dir[:, 0] - mx) * mz - (l_dir[:, 2] - mz) * mx
+    se = float(np.std(w * across) / (math.sqrt(n) * w.mean()) / (mx * mx + mz * mz))
+    return float(mx), float(mz), se
+
+
+@pytest.mark.parametrize("nv", [0.05, 0.3, 1.0])
+@pytest.mark.parametrize("r", [0.1, 0.5, 1.0])
+def test_lobe_moments_match_monte_carlo(nv, r):
+    """The table's mean direction (angle from n) and vMF concentration of each part's lobe, looked
+    up at (n.v, r), against the mean of l by Monte Carlo; the concentration against the mean
+    resultant length ``coth(kappa) - 1/kappa`` of a vMF, written out here."""
+    got = sa.lobe_moments(torch.tensor([nv], dtype=torch.float64), torch.tensor([r], dtype=torch.float64))
+    for part, theta, kappa in (("a", got[0], got[1]), ("b", got[2], got[3])):
+        mx, mz, se = monte_carlo_mean_direction(nv, r, part)
+        assert abs(float(theta) - math.atan2(-mx, mz)) < 0.005 + 5 * se, (part, float(theta), math.atan2(-mx, mz), se)
+        kappa = float(kappa)
+        # 1 - R = 1 / kappa - (coth(kappa) - 1), coth(kappa) - 1 = 2 e / (1 - e), e = exp(-2 kappa)
+        e = math.exp(-2.0 * kappa)
+        spread = 1.0 / kappa - 2.0 * e / (1.0 - e)
+        spread_mc = 1.0 - math.hypot(mx, mz)
+        assert abs(spread - spread_mc) <= 0.03 * spread_mc, (part, spread, spread_mc)
 
 
 def test_interpolation_between_nodes():
@@ -76,7 +127,8 @@ def test_interpolation_between_nodes():
     nodes = sa.roughness_grid()
     worst = 0.0
     for r in np.sqrt(nodes[:-1] * nodes[1:])[[0, 8, 21, 34, 47, 62]]:
-        a, b = sa._entry_terms(nv, float(r))
+        terms = sa._entry_terms(nv, float(r))
+        a, b = terms["a"], terms["b"]
         ta, tb = sa.directional_albedo(torch.tensor(nv), torch.full((len(nv),), float(r), dtype=torch.float64))
         for f0 in (0.04, 1.0):
             exact = f0 * a + b
@@ -89,6 +141,11 @@ def test_interpolation_between_nodes():
 def test_finite_values_and_gradients_at_the_extremes(dtype):
     nv = torch.tensor([5e-4, 1e-3, 0.05, 0.5, 1.0, 0.0, 1.2], dtype=dtype, requires_grad=True)
     r = torch.tensor([0.01, 1.0, 0.05, 0.5, 0.01, 1.0, 0.3], dtype=dtype, requires_grad=True)
+    a, b = sa.directional_albedo(nv, r)
+    moments = sa.lobe_moments(nv, r)
+    assert all(m.dtype == dtype and torch.isfinite(m).all() for m in moments)
+    assert all((m >= 0).all() for m in moments) and all((m <= math.pi / 2 + 1e-2).all() for m in moments[::2])
+    sum(m.float().sum() for m in moments).backward(retain_graph=True)
     a, b = sa.directional_albedo(nv, r)
     assert a.dtype == dtype and torch.isfinite(a).all() and torch.isfinite(b).all()
     assert (a >= 0).all() and (b >= 0).all() and (a + b <= 1.0 + 1e-2).all()  # energy never created

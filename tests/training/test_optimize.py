@@ -12,7 +12,7 @@ import torch
 
 from stages import optimize
 from stages.config.layout import OPTIMIZE_FILES
-from stages.config.sections import NormalizeSettings, OptimizeSettings, RaycacheSettings, TargetSettings
+from stages.config.sections import SPECULAR_LOBES, NormalizeSettings, OptimizeSettings, RaycacheSettings, TargetSettings
 from stages.core.provenance import Timer
 from stages.geometry.meshio import save_ply
 from stages.geometry.normalization import normalize_mesh
@@ -123,7 +123,7 @@ def test_specular_lobe_reaches_every_render_of_the_field():
     normals = torch.nn.functional.normalize(torch.randn(64, 3, generator=g), dim=-1)
     view = torch.nn.functional.normalize(normals + 0.5 * torch.randn(64, 3, generator=g), dim=-1)
     specular = {}
-    for lobe in ("isotropic", "split_sum"):
+    for lobe in SPECULAR_LOBES:
         field = StyleField(OptimizeSettings(width=16, specular_lobe=lobe).field_settings())
         with torch.no_grad():
             out = field(points, normals, view)
@@ -132,7 +132,8 @@ def test_specular_lobe_reaches_every_render_of_the_field():
             )
         torch.testing.assert_close(out.shading.specular, want.specular, rtol=0, atol=0)
         specular[lobe] = out.shading.specular
-    assert not torch.allclose(specular["isotropic"], specular["split_sum"])  # the same weights, two models
+    for lobe in SPECULAR_LOBES[1:]:  # the same weights, different models
+        assert not torch.allclose(specular["isotropic"], specular[lobe]), lobe
     with pytest.raises(ConfigError, match="specular_lobe"):
         OptimizeSettings(specular_lobe="asg")
 
