@@ -31,7 +31,7 @@ def child(faces: str, size: int, decimate_to: int | None) -> dict:
     from stages.assets.baking import bake_field
     from stages.config.sections import BakeSettings, OptimizeSettings
     from stages.core.provenance import origin_record
-    from stages.export import faceted, package_usdz, write_glb, write_usd
+    from stages.export import export_mesh, package_usdz, write_glb, write_usd
     from stages.geometry.meshio import TriMesh, save_ply
     from stages.geometry.normalization import normalization_transform
     from stages.geometry.shapes import knot
@@ -68,7 +68,7 @@ def child(faces: str, size: int, decimate_to: int | None) -> dict:
         t["write_textures"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         atlas = {"uv": res.atlas.uv, "tangent": res.tangents, "handedness": res.handedness}
-        geom = faceted(mesh, atlas, tf)
+        geom = export_mesh(mesh, atlas, tf)
         origin = origin_record(guidance="clip", weights="random untrained field (benchmark)", test_only=True)
         write_usd(d / "model.usda", geom, 1.0, "light.exr", origin)
         package_usdz(d / "model.usda", d / "model.usdz", [f"textures/{k}.png" for k in res.textures] + ["light.exr"])

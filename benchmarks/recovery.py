@@ -15,6 +15,12 @@ the light's energy against the environment's, and the optimisation's wall time.
     python benchmarks/recovery.py                                  # every mesh, fast and balanced
     python benchmarks/recovery.py --presets paper --meshes vase,shared:lamp
     python benchmarks/recovery.py --meshes builtin --presets fast --specular-lobe isotropic,split_sum
+    python benchmarks/recovery.py --decimate 5000 --shading-normals flat,smooth   # the robustness study
+
+With ``--decimate N`` each mesh is fitted on its N-face version (MeshLab's quadric collapse, the
+decimate stage) while Mitsuba renders the targets from the full-resolution mesh, as the workflow's
+target stage does: TANGO's robustness study, graded against the object rather than its
+approximation.
 """
 
 from __future__ import annotations
@@ -34,8 +40,10 @@ sys.path[:0] = [str(REPO), str(REPO / "tests"), str(REPO / "tests" / "training")
 COLUMNS = (
     "mesh",
     "faces",
+    "full_faces",
     "preset",
     "specular_lobe",
+    "shading_normals",
     "iterations",
     "psnr_db",
     "ssim",
@@ -76,25 +84,31 @@ def mesh_sources(spec: str) -> list[tuple[str, str]]:
     return out
 
 
-def prepare(work: Path, source: str, material: str) -> tuple[int, Path]:
-    """Normalise ``source``, build the recovery cache and render the Mitsuba targets into
-    ``work``; returns the face count and the targets' folder."""
+def prepare(work: Path, source: str, material: str, decimate: int | None = None) -> tuple[int, int]:
+    """Normalise ``source`` (and decimate it to ``decimate`` faces), build the recovery cache on
+    the mesh to fit and render the Mitsuba targets of the full-resolution mesh into ``work``;
+    returns the fitted and the full-resolution face counts."""
     from test_optimize import MITSUBA_TARGET, RECOVERY_CACHE
 
     from stages import target as target_stage
-    from stages.config.sections import NormalizeSettings
+    from stages.config.sections import DecimateSettings, NormalizeSettings
+    from stages.geometry.decimation import decimate_mesh
     from stages.geometry.meshio import save_ply
     from stages.geometry.normalization import normalize_mesh
     from stages.raycache import run as raycache_run
 
-    mesh = normalize_mesh(source, NormalizeSettings()).mesh
+    full = normalize_mesh(source, NormalizeSettings()).mesh
+    save_ply(work / "full.ply", full)
+    mesh = full
+    if decimate is not None and decimate < len(full.faces):
+        mesh = decimate_mesh(full, DecimateSettings(enabled=True, target_faces=decimate)).mesh
     save_ply(work / "mesh.ply", mesh)
     raycache_run(work / "mesh.ply", work / "train.npz", work / "eval.npz", work / "rc.json", RECOVERY_CACHE, work / "metrics.npz")
-    target_stage.run(work / "train.npz", work / "metrics.npz", material, work / "target", MITSUBA_TARGET)
-    return len(mesh.faces), work / "target"
+    target_stage.run(work / "train.npz", work / "metrics.npz", material, work / "target", MITSUBA_TARGET, work / "full.ply")
+    return len(mesh.faces), len(full.faces)
 
 
-def fit(work: Path, material: str, preset: str, lobe: str = "isotropic") -> dict:
+def fit(work: Path, material: str, preset: str, lobe: str = "fitted", normals: str = "flat") -> dict:
     """Optimise with ``preset`` under image guidance on the prepared targets and grade the field on
     the held-out metric views; returns one row of the table."""
     import torch
@@ -113,10 +127,11 @@ def fit(work: Path, material: str, preset: str, lobe: str = "isotropic") -> dict
             "eval_width": 96,
             "checkpoint_every": 100_000,
             "specular_lobe": lobe,
+            "shading_normals": normals,
         }
     )
     torch.set_num_threads(int(os.environ.get("TANGO_THREADS", "2")))
-    out = work / preset
+    out = work / f"{preset}-{lobe}-{normals}"
     t0 = time.perf_counter()
     optimize.run(work / "train.npz", work / "eval.npz", "", out, settings, "cpu", targets_path=work / "target" / "train.npz")
     seconds = time.perf_counter() - t0
@@ -128,6 +143,7 @@ def fit(work: Path, material: str, preset: str, lobe: str = "isotropic") -> dict
     return {
         "preset": preset,
         "specular_lobe": lobe,
+        "shading_normals": normals,
         "iterations": settings.iterations,
         "psnr_db": round(m["psnr_db"], 2),
         "ssim": round(m["ssim"], 3),
@@ -148,6 +164,8 @@ def main() -> None:
     parser.add_argument(
         "--specular-lobe", default="fitted", help="comma-separated specular models (isotropic, split_sum, fitted)"
     )
+    parser.add_argument("--shading-normals", default="flat", help="comma-separated shading normals (flat, smooth)")
+    parser.add_argument("--decimate", type=int, default=None, help="fit each mesh's N-face version (full-resolution targets)")
     parser.add_argument("--material", default="wood", help="the procedural target material (wood, metal, plaster)")
     parser.add_argument("--out", type=Path, default=REPO / "results" / "benchmarks" / "recovery.csv")
     args = parser.parse_args()
@@ -163,13 +181,16 @@ def main() -> None:
         with tempfile.TemporaryDirectory() as d:
             work = Path(d)
             t0 = time.perf_counter()
-            faces, _ = prepare(work, source, args.material)
-            print(f"{name}: {faces} faces, cache and targets in {time.perf_counter() - t0:.0f} s", flush=True)
-            for preset, lobe in ((p, lb) for p in presets for lb in args.specular_lobe.split(",")):
-                row = {"mesh": name, "faces": faces, **fit(work, args.material, preset, lobe)}
+            faces, full_faces = prepare(work, source, args.material, args.decimate)
+            took = time.perf_counter() - t0
+            print(f"{name}: {faces} faces fitted ({full_faces} rendered), cache and targets in {took:.0f} s", flush=True)
+            lobes, normals_list = args.specular_lobe.split(","), args.shading_normals.split(",")
+            combos = [(p, lb, nm) for p in presets for lb in lobes for nm in normals_list]
+            for preset, lobe, normals in combos:
+                row = {"mesh": name, "faces": faces, "full_faces": full_faces, **fit(work, args.material, preset, lobe, normals)}
                 rows.append(row)
                 print(
-                    f"  {preset:9s} {lobe:9s} PSNR {row['psnr_db']:.2f} dB  SSIM {row['ssim']:.3f}  "
+                    f"  {preset:9s} {lobe:9s} {normals:6s} PSNR {row['psnr_db']:.2f} dB  SSIM {row['ssim']:.3f}  "
                     f"(noise {row['target_noise_psnr_db']} dB)  "
                     f"albedo {row['albedo_rmse']:.3f} ({row['albedo_rmse_scaled']})  roughness {row['roughness_mae']:.3f}  "
                     f"normal {row['normal_angle_deg_mean']} deg  light {row['light_energy_ratio']}  {row['optimize_s']:.0f} s",

@@ -20,7 +20,6 @@ from .config.sections import BakeSettings
 from .core.cli import stage_main
 from .core.errors import StageInputError
 from .core.provenance import ORIGIN_KEY, Timer, atomic_path, metadata, staged_outputs, write_json_atomic
-from .geometry.atlas import face_frames
 from .geometry.meshio import load_ply
 from .geometry.raycache import RayCache
 from .imaging.images import compose, gather_points, global_spec
@@ -61,19 +60,20 @@ def run(
             write_hdr(staging / "light.hdr", res.light_equirect)
             with atomic_path(staging / "atlas.npz") as tmp:
                 with open(tmp, "wb") as fh:
-                    np.savez(fh, uv=res.atlas.uv.astype(np.float32), tangent=res.tangents, handedness=res.handedness)
+                    np.savez(fh, uv=res.atlas.uv.astype(np.float32), **res.frames.arrays())
         # fidelity: baked asset vs neural field from the evaluation views
         with timer("fidelity"):
             evalc = RayCache(eval_path)
-            store = ViewStore(evalc, torch.device(device))
+            store = ViewStore(evalc, torch.device(device), field.normals)
             tex = decode_textures(res.textures)
-            t, b, n, _ = face_frames(mesh, res.atlas.uv)
             light = field.light()
             preds, refs = [], []
             for i in range(len(evalc)):
                 hits = evalc.view(i)
                 hits_bary = cached_barycentrics(evalc, i)
-                baked = render_baked(BakedHits(hits, hits_bary), res.atlas.uv, tex, (t, b, n), light, device, field.specular_lobe)
+                baked = render_baked(
+                    BakedHits(hits, hits_bary), res.atlas.uv, tex, res.frames, light, device, field.specular_lobe
+                )
                 v = store[i]
                 with torch.no_grad():
                     ref = field(v.points, v.normals, v.view).shading.rgb

@@ -15,7 +15,7 @@ from pathlib import Path
 
 from PIL import Image
 
-from .assets.formats import faceted, package_usdz, read_atlas, validate_glb, validate_usd, write_glb, write_usd
+from .assets.formats import export_mesh, package_usdz, read_atlas, validate_glb, validate_usd, write_glb, write_usd
 from .config.layout import TEXTURE_FILES
 from .config.sections import ExportSettings
 from .core.cli import stage_main
@@ -48,7 +48,7 @@ def run(
     mesh = load_ply(mesh_path)
     atlas = read_atlas(bake_dir / "atlas.npz")
     tf = Similarity.from_json(json.loads(Path(transform_path).read_text()))
-    geom = faceted(mesh, atlas, tf if settings.units == "original" else None)
+    geom = export_mesh(mesh, atlas, tf if settings.units == "original" else None)
     with staged_outputs(out_dir) as staging:
         with timer("copy"):
             for rel in TEXTURE_FILES.values():
@@ -85,6 +85,8 @@ def run(
         stats = {
             "faces": len(mesh.faces),
             "vertices_exported": len(geom.positions),
+            "corners": 3 * len(geom.indices),
+            "file_bytes": {f: (staging / f).stat().st_size for f in ("model.glb", "model.usdz", "model.usda")},
             "texture_size": texture_size,
             "usd_validation": usd,
             "usd_validators": usd[0]["validators"],

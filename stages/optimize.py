@@ -140,7 +140,7 @@ def run(
 
 def _write_outputs(opt: Optimizer, eval_path: Path, out_dir: Path, settings: OptimizeSettings, prompt: str) -> dict:
     field_ = opt.field.eval()
-    evalc = ViewStore(RayCache(eval_path), opt.device)
+    evalc = ViewStore(RayCache(eval_path), opt.device, opt.field.normals)
     renders = {k: [] for k in RENDER_KINDS}
     targets = []
     sims = []

@@ -56,7 +56,7 @@ def run(field_path: Path, eval_path: Path, out_dir: Path, settings: RelightSetti
     dev = torch.device(device)
     light = type(light)(light.axis.to(dev), light.sharpness.to(dev), light.amplitude.to(dev))
     field, _ = load_field(field_path, dev)
-    store = ViewStore(RayCache(eval_path), dev)
+    store = ViewStore(RayCache(eval_path), dev, field.normals)
     out_dir = Path(out_dir)
     with staged_outputs(out_dir) as staging:
         with timer("render"):

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .assets.formats import faceted, read_atlas
+from .assets.formats import export_mesh, read_atlas
 from .config.sections import RoundtripSettings
 from .core.cli import stage_main
 from .core.errors import StageInputError
@@ -61,7 +61,7 @@ class Lobes:
 
 def field_renders(field, cache: RayCache, views: list[int], device: str) -> list[Lobes]:
     """Our render of the trained field at every hit of the given views."""
-    store = ViewStore(cache, torch.device(device))
+    store = ViewStore(cache, torch.device(device), field.normals)
     out = []
     for i in views:
         v = store[i]
@@ -111,7 +111,7 @@ def run(
         mesh = load_ply(mesh_path)
         atlas = read_atlas(bake_dir / "atlas.npz")
         tf = Similarity.from_json(json.loads(Path(transform_path).read_text()))
-        geom = faceted(mesh, atlas, tf if units == "original" else None)
+        geom = export_mesh(mesh, atlas, tf if units == "original" else None)
         field, _ = load_field(field_path, device)
         cache = RayCache(eval_path)
     views = pick_views(len(cache), settings.views)

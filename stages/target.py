@@ -24,11 +24,11 @@ from .config.sections import MATERIALS, TargetSettings
 from .core.cli import stage_main
 from .core.errors import StageInputError
 from .core.provenance import Timer, metadata, staged_outputs, write_json_atomic
-from .geometry.meshio import TriMesh
+from .geometry.meshio import TriMesh, load_ply
 from .geometry.raycache import RayCache
 from .imaging.sheets import contact_sheet, save_png
 from .imaging.targets import save_targets
-from .reference.targets import TargetRenderer
+from .reference.targets import TargetRenderer, target_normals
 from .render.color import srgb_encode
 
 log = logging.getLogger(__name__)
@@ -37,7 +37,8 @@ log = logging.getLogger(__name__)
 def describe(kind: str, settings: TargetSettings, variant: str) -> str:
     """The one line that names these targets wherever a result made from them goes."""
     return (
-        f"Mitsuba 3 ({variant}) path-traced {kind} (principled BSDF, textures, normal map) under "
+        f"Mitsuba 3 ({variant}) path-traced {kind} (principled BSDF, textures, normal map, "
+        f"{settings.shading_normals} normals) under "
         f"{settings.environment}, {settings.spp} spp (metric views {settings.metric_spp}), max depth {settings.max_depth}"
     )
 
@@ -59,17 +60,23 @@ def run(
     material: str,
     out_dir: Path,
     settings: TargetSettings,
+    mesh_path: Path | None = None,
 ) -> dict:
-    """Render the targets of both caches and write them (atomically, all or nothing)."""
+    """Render the targets of both caches and write them (atomically, all or nothing). The scene's
+    mesh is ``mesh_path`` (the full-resolution normalised mesh; the workflow always passes it),
+    else the mesh the caches traced."""
     timer = Timer()
-    for p in (train_path, metrics_path):
+    for p in (train_path, metrics_path, *([mesh_path] if mesh_path is not None else [])):
         if not Path(p).is_file():
-            raise StageInputError(p, "file not found", "Run the raycache stage first.")
+            raise StageInputError(p, "file not found", "Run the normalize and raycache stages first.")
     if material not in MATERIALS:
         raise StageInputError(material, "not a procedural material", f"Use one of {', '.join(MATERIALS)}.")
     with timer("load"):
         train, metric = RayCache(train_path), RayCache(metrics_path)
-        mesh = TriMesh(train.arrays["vertices"].astype(np.float64), train.arrays["faces"].astype(np.int64))
+        if mesh_path is not None:
+            mesh = load_ply(mesh_path)
+        else:
+            mesh = TriMesh(train.arrays["vertices"].astype(np.float64), train.arrays["faces"].astype(np.int64))
     with timer("scene"):
         renderer = TargetRenderer(mesh, material, settings)
     text = describe(material, settings, renderer.variant)
@@ -79,7 +86,9 @@ def run(
     with timer("render_metrics"):
         tm = renderer.render_cache(metric, settings.metric_spp, settings.seed * 1_000_003 + 500_009)
     with timer("truth"):
-        truth = renderer.truth_at_hits(metric)
+        truth, met = renderer.truth_at_hits(metric)
+    # a hit whose ray misses the rendered (finer) mesh is no object pixel of the truth
+    tm.coverage[~met] = 0.0
     out_dir = Path(out_dir)
     summary = {}
     for name, t in (("train", tt), ("metrics", tm)):
@@ -90,6 +99,7 @@ def run(
             "noise_rms_srgb": float(np.sqrt((t.noise_mse * t.pixels).sum() / max(t.pixels.sum(), 1))),
             "noise_measured_on": "fully covered object pixels, sRGB: half the squared difference of two half-sample renders",
             "partly_covered_hits": float((t.coverage < 0.999).mean()),
+            **({"hits_missing_the_rendered_mesh": int((~met).sum())} if name == "metrics" else {}),
             "uncovered_hits": int((t.coverage <= 0).sum()),
             "render_seconds": t.seconds,
         }
@@ -133,6 +143,12 @@ def run(
                 extra={
                     "material": material,
                     "description": text,
+                    "rendered_mesh": {
+                        "path": str(mesh_path) if mesh_path is not None else str(train_path),
+                        "faces": len(mesh.faces),
+                        "cache_faces": len(train.arrays["faces"]),
+                        "shading_normals": target_normals(settings).describe(),
+                    },
                     "renderer": {"name": "Mitsuba 3", "version": renderer.mi.__version__, "variant": renderer.variant},
                     "environment_energy": renderer.env_energy.tolist(),
                     "principled_specular": g.specular,
@@ -145,6 +161,9 @@ def run(
 
 def main(argv: list[str] | None = None) -> int:
     def arguments(parser):
+        parser.add_argument(
+            "--mesh", type=Path, default=None, help="full-resolution mesh to render (.ply); default: the caches' mesh"
+        )
         parser.add_argument("--train", required=True, type=Path, help="training ray cache (.npz)")
         parser.add_argument("--metrics", required=True, type=Path, help="metric-view ray cache (.npz)")
         parser.add_argument("--material", required=True, choices=MATERIALS)
@@ -152,7 +171,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.add_argument("--settings", default="{}", help="JSON of the target settings")
 
     def body(args):
-        run(args.train, args.metrics, args.material, args.out_dir, TargetSettings.from_json(args.settings))
+        run(args.train, args.metrics, args.material, args.out_dir, TargetSettings.from_json(args.settings), args.mesh)
 
     return stage_main("target", __doc__, arguments, body, argv)
 

@@ -78,8 +78,9 @@ def run_snakemake(workdir: Path, *args: str, timeout: int = 600) -> subprocess.C
 
 @pytest.fixture(scope="session")
 def trained_cell(tmp_path_factory):
-    """A cell trained for two steps with the tiny test CLIP on the built-in candle, baked and
-    exported: ``mesh.ply, transform.json, train/eval.npz, opt/, bake/, export/``."""
+    """A cell trained for two steps with the tiny test CLIP on the built-in candle (smooth shading
+    normals: its creases and MikkTSpace frames reach the assets), baked and exported:
+    ``mesh.ply, transform.json, train/eval.npz, opt/, bake/, export/``."""
     from stages import bake, export, optimize
     from stages.config.sections import BakeSettings, ExportSettings, NormalizeSettings, OptimizeSettings, RaycacheSettings
     from stages.geometry.meshio import save_ply
@@ -97,7 +98,16 @@ def trained_cell(tmp_path_factory):
         d / "rc.json",
         RaycacheSettings(views=4, resolution=64, eval_azimuths=4, eval_elevations_deg=(0.0, 30.0), eval_resolution=48),
     )
-    s = OptimizeSettings(iterations=2, clip_tiny_test=True, image_size=64, width=16, crops=1, light_lobes=8, eval_width=32)
+    s = OptimizeSettings(
+        iterations=2,
+        clip_tiny_test=True,
+        image_size=64,
+        width=16,
+        crops=1,
+        light_lobes=8,
+        eval_width=32,
+        shading_normals="smooth",
+    )
     optimize.run(d / "train.npz", d / "eval.npz", "a candle made of wax", d / "opt", s, "cpu")
     bake.run(
         d / "mesh.ply",

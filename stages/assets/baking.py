@@ -15,13 +15,12 @@ centres, and the baked textures rendered back for the fidelity check.
    neural field's renders: PSNR over object pixels.
 
 Conventions. Image row 0 is the top; texel ``(row, col)`` has centre ``u = (col + 0.5) / S``,
-``v = (row + 0.5) / S`` (glTF's texture coordinates). USD's ``st = (u, 1 - v)``. The tangent
-frame is per face, computed from positions and ``st`` (``T = dP/ds``, ``B = dP/dt``),
-Gram-Schmidt-orthonormalised against the flat face normal, with handedness
-``w = sign((N x T) . B)`` and bitangent ``w (N x T)``: the frame that MikkTSpace produces on a mesh
-whose faces do not share vertices (the exported meshes are faceted, as TANGO shades them), and the
-one the exporters hand to glTF viewers as the TANGENT attribute. The normal texture stores
-``((n.T, n.B, n.N) + 1) / 2`` (+X right, +Y up: OpenGL/glTF/USD convention).
+``v = (row + 0.5) / S`` (glTF's texture coordinates). USD's ``st = (u, 1 - v)``. The normal map's
+frame is :class:`~stages.geometry.tangents.CornerFrames`: the field's shading normals per corner
+(flat or smooth, ``optimize.shading_normals``) and MikkTSpace tangents, interpolated per pixel with
+bitangent ``w (N x T)``, the frame glTF viewers and Blender rebuild from the exported normals and
+tangents. The normal texture stores the unit ``c`` with ``normalize(c.x T + c.y B + c.z N)`` = the
+predicted normal (+X right, +Y up: OpenGL/glTF/USD convention), written as ``(c + 1) / 2``.
 """
 
 from __future__ import annotations
@@ -32,9 +31,10 @@ import numpy as np
 import torch
 
 from ..config.sections import BakeSettings
-from ..geometry.atlas import Atlas, dilate, face_frames, rasterize_atlas, sample_bilinear, unwrap
+from ..geometry.atlas import Atlas, dilate, rasterize_atlas, sample_bilinear, unwrap
 from ..geometry.meshio import TriMesh
 from ..geometry.raycache import dequantize_bary
+from ..geometry.tangents import CornerFrames, from_tangent_space, to_tangent_space
 from ..render.color import srgb_decode, srgb_encode, to_u8
 from ..render.envmap import equirect_directions
 from ..render.shading import face_viewer, shade
@@ -44,8 +44,7 @@ from ..render.shading import face_viewer, shade
 class BakeResult:
     atlas: Atlas
     textures: dict[str, np.ndarray]  # uint8 (S, S, 3) images as written
-    tangents: np.ndarray  # (F, 3)
-    handedness: np.ndarray  # (F,)
+    frames: CornerFrames
     coverage: float
     light_equirect: np.ndarray
 
@@ -61,8 +60,9 @@ def bake_field(mesh: TriMesh, field, settings: BakeSettings, device="cpu", chunk
     uvb = bary[filled].astype(np.float64)
     tri = mesh.vertices[mesh.faces[fi]]
     points = tri[:, 0] + uvb[:, :1] * (tri[:, 1] - tri[:, 0]) + uvb[:, 1:] * (tri[:, 2] - tri[:, 0])
-    t, b, n, w = face_frames(mesh, atlas.uv)
-    normals = n[fi]
+    frames = CornerFrames.build(mesh.vertices, mesh.faces, atlas.uv, field.normals)
+    t, b, n = frames.at(fi, uvb)
+    normals = n / np.linalg.norm(n, axis=1, keepdims=True)
     albedo, spec, rough, pred = [], [], [], []
     p_t = torch.from_numpy(points.astype(np.float32)).to(device)
     n_t = torch.from_numpy(normals.astype(np.float32)).to(device)
@@ -82,10 +82,9 @@ def bake_field(mesh: TriMesh, field, settings: BakeSettings, device="cpu", chunk
         spc[filled] = torch.cat(spec).cpu().double().numpy()
         rgh[filled] = torch.cat(rough).cpu().double().numpy()
     pn = torch.cat(pred).cpu().double().numpy()
-    ts = np.stack([(pn * t[fi]).sum(1), (pn * b[fi]).sum(1), (pn * n[fi]).sum(1)], axis=1)
     nrm = np.zeros((s, s, 3))
     nrm[..., 2] = 1.0
-    nrm[filled] = ts / np.linalg.norm(ts, axis=1, keepdims=True)
+    nrm[filled] = to_tangent_space(pn, t, b, n)
     base, spc, rgh, nrm = (dilate(x, filled, settings.dilation) for x in (base, spc, rgh, nrm))
     mr = np.concatenate([np.ones((s, s, 1)), rgh, np.zeros((s, s, 1))], axis=-1)  # R unused, G rough, B metal
     textures = {
@@ -98,7 +97,7 @@ def bake_field(mesh: TriMesh, field, settings: BakeSettings, device="cpu", chunk
     h = settings.light_width // 2
     dirs = equirect_directions(h, settings.light_width).to(device)
     env = light.radiance(dirs.reshape(-1, 3)).reshape(h, settings.light_width, 3).cpu().numpy().astype(np.float32)
-    return BakeResult(atlas, textures, t, w, float(filled.mean()), env)
+    return BakeResult(atlas, textures, frames, float(filled.mean()), env)
 
 
 # ------------------------------------------------------------------------ texture sampling / fidelity
@@ -113,21 +112,19 @@ def decode_textures(textures: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
 
 
 @torch.no_grad()
-def render_baked(hits, uv_faces, tex: dict, frames, light, device="cpu", lobe: str = "isotropic"):
-    """Shade cached hits (a :class:`~stages.geometry.raycache.ViewHits`) from the decoded textures
-    with the specular model ``lobe`` (the field's). Returns ``(N, 3)`` linear radiance."""
-    t, b, n = frames
+def render_baked(hits, uv_faces, tex: dict, frames: CornerFrames, light, device="cpu", lobe: str = "isotropic"):
+    """Shade cached hits (a :class:`BakedHits`) from the decoded textures read through the bake's
+    ``frames``, with the specular model ``lobe`` (the field's). Returns ``(N, 3)`` linear radiance."""
     f = hits.face
     tri_uv = uv_faces[f]
     # barycentrics of the hit from its point (cache stores quantised Embree barycentrics)
     bu = hits.bary
     uv = tri_uv[:, 0] + bu[:, :1] * (tri_uv[:, 1] - tri_uv[:, 0]) + bu[:, 1:] * (tri_uv[:, 2] - tri_uv[:, 0])
     ts = sample_bilinear(tex["normal"], uv)
-    world = ts[:, :1] * t[f] + ts[:, 1:2] * b[f] + ts[:, 2:3] * n[f]
-    world /= np.linalg.norm(world, axis=1, keepdims=True)
+    world = from_tangent_space(ts, *frames.at(f, bu))
     view = -hits.direction.astype(np.float64)
-    # two-sided, as in training: flip normals seen from behind
-    flip = (n[f] * view).sum(1, keepdims=True) < 0
+    # two-sided, as in training: flip normals of faces seen from behind
+    flip = (frames.face_normals[f] * view).sum(1, keepdims=True) < 0
     world = np.where(flip, -world, world)
 
     def tt(x):

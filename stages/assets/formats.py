@@ -1,8 +1,12 @@
-"""Asset file formats: faceted geometry, USD (``model.usda`` + packaged ``model.usdz``) and binary
+"""Asset file formats: indexed geometry, USD (``model.usda`` + packaged ``model.usdz``) and binary
 glTF 2.0 (``model.glb``) writers, and their validators (usd-core's, the Khronos glTF-Validator).
 
-Geometry is faceted (each face has its own three vertices and its flat normal), which is how
-TANGO shades the mesh and makes the per-face tangent frame of the bake exact for viewers. It is
+Geometry (:class:`ExportMesh`) carries the bake's frame (:class:`~stages.geometry.tangents.CornerFrames`):
+the shading normals the field was trained with (flat, as TANGO shades, or smooth) and MikkTSpace
+tangents, so viewers rebuild the frame the normal map was baked in. Vertices are shared wherever
+position, normal, UV and tangent agree and split only at UV seams, creases (every edge, for flat
+normals) and handedness changes; a viewer or Blender computing its own MikkTSpace on them welds
+the same corners and gets the same frame. It is
 returned to the input's units and position through the normalisation's inverse transform (the
 rotation that made the input's up axis +Y is kept, so ``upAxis`` is Y), or left in the
 normalised frame (``units: normalized``).
@@ -36,6 +40,7 @@ from pathlib import Path
 import numpy as np
 
 from ..config.layout import TEXTURE_FILES
+from ..core.errors import StageInputError
 from ..core.provenance import ORIGIN_METADATA_KEY, atomic_path
 from ..geometry.meshio import TriMesh
 from ..geometry.normalization import Similarity
@@ -46,41 +51,71 @@ DOME_ROTATE_Y_DEG = -90.0
 
 
 @dataclass
-class Faceted:
-    """Per-corner arrays of a faceted mesh: ``positions, normals (3F, 3)``, ``uv (3F, 2)`` (glTF
-    convention), ``tangents (3F, 4)``."""
+class ExportMesh:
+    """Indexed geometry in export space: per vertex ``positions, normals (V, 3)``, ``uv (V, 2)``
+    (glTF convention), ``tangents (V, 4)`` (xyz and the handedness ``w``), and ``indices (F, 3)``.
+    A vertex is a distinct combination of all four, so vertices are shared inside UV charts and
+    smooth regions and split only at UV seams, creases and handedness changes."""
 
     positions: np.ndarray
     normals: np.ndarray
     uv: np.ndarray
     tangents: np.ndarray
+    indices: np.ndarray
+
+    def corners(self) -> ExportMesh:
+        """The same mesh with every face corner its own vertex (what importers report per loop)."""
+        i = self.indices.reshape(-1)
+        return ExportMesh(self.positions[i], self.normals[i], self.uv[i], self.tangents[i], np.arange(len(i)).reshape(-1, 3))
+
+
+#: arrays of the bake's ``atlas.npz``: ``uv (F, 3, 2)`` and the frame (:meth:`CornerFrames.arrays`)
+ATLAS_KEYS = ("uv", "normal", "tangent", "handedness", "face_normal")
 
 
 def read_atlas(path: Path) -> dict[str, np.ndarray]:
-    """The bake's ``atlas.npz`` (``uv (F, 3, 2)``, ``tangent (F, 3)``, ``handedness (F,)``)."""
+    """The bake's ``atlas.npz`` (:data:`ATLAS_KEYS`); an older bake's file (per-face tangents only)
+    is refused with what to do."""
     with np.load(path) as z:
-        return {k: z[k] for k in z.files}
+        atlas = {k: z[k] for k in z.files}
+    missing = [k for k in ATLAS_KEYS if k not in atlas]
+    if missing or atlas["tangent"].ndim != 3:
+        raise StageInputError(
+            path,
+            f"has no per-corner frame (missing {', '.join(missing) or 'corner tangents'}): written by an older bake",
+            "Rerun the bake stage (snakemake --forcerun bake).",
+        )
+    return atlas
 
 
-def faceted(mesh: TriMesh, atlas: dict, transform: Similarity | None) -> Faceted:
-    """Corners of every face in export space (see the module docstring for the frame)."""
+def export_mesh(mesh: TriMesh, atlas: dict, transform: Similarity | None) -> ExportMesh:
+    """The traced mesh with the bake's UVs and frame (corner normals, MikkTSpace tangents and
+    handedness from ``atlas.npz``) in export space (see the module docstring), its corners welded
+    where all their attributes are equal (as float32, exactly: what a viewer would share too)."""
     pos = mesh.vertices[mesh.faces].reshape(-1, 3)
-    n = np.repeat(mesh.face_normals, 3, axis=0)
-    t = np.repeat(atlas["tangent"], 3, axis=0)
+    n = atlas["normal"].reshape(-1, 3)
+    t = atlas["tangent"].reshape(-1, 3)
     w = np.repeat(atlas["handedness"], 3)
     if transform is not None:
         # x' = R x_original = x_normalized / scale + R c: original units and position, +Y up
         pos = pos / transform.scale + transform.rotation @ transform.centroid
-    return Faceted(
-        pos.astype(np.float32),
-        n.astype(np.float32),
-        atlas["uv"].reshape(-1, 2).astype(np.float32),
-        np.concatenate([t, w[:, None]], axis=1).astype(np.float32),
+    corner = np.concatenate([pos, n, atlas["uv"].reshape(-1, 2), t, w[:, None]], axis=1).astype(np.float32)
+    _, first, inverse = np.unique(corner, axis=0, return_index=True, return_inverse=True)
+    order = np.argsort(first)  # vertices in the order faces first use them
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    v = corner[first[order]]
+    return ExportMesh(
+        np.ascontiguousarray(v[:, 0:3]),
+        np.ascontiguousarray(v[:, 3:6]),
+        np.ascontiguousarray(v[:, 6:8]),
+        np.ascontiguousarray(v[:, 8:12]),
+        rank[inverse.reshape(-1)].reshape(-1, 3).astype(np.int64),
     )
 
 
 # ------------------------------------------------------------------------------------------ USD
-def write_usd(path: Path, geom: Faceted, meters_per_unit: float, light_file: str | None, origin: dict) -> None:
+def write_usd(path: Path, geom: ExportMesh, meters_per_unit: float, light_file: str | None, origin: dict) -> None:
     """Write ``model.usda``: a Mesh with ``st`` and normals, a UsdPreviewSurface bound to it, and
     a DomeLight with the learned light. Texture paths are relative to the file. ``origin`` (the
     guidance and weights that made the material) goes into the root layer's ``customLayerData``
@@ -101,10 +136,9 @@ def write_usd(path: Path, geom: Faceted, meters_per_unit: float, light_file: str
     UsdGeom.Xform.Define(stage, "/Asset/Geometry")
     UsdGeom.Scope.Define(stage, "/Asset/Looks")
     mesh = UsdGeom.Mesh.Define(stage, "/Asset/Geometry/Mesh")
-    count = len(geom.positions)
     mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(geom.positions))
-    mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(count // 3, 3, np.int32)))
-    mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(np.arange(count, dtype=np.int32)))
+    mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(len(geom.indices), 3, np.int32)))
+    mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(geom.indices.reshape(-1).astype(np.int32)))
     mesh.CreateNormalsAttr(Vt.Vec3fArray.FromNumpy(geom.normals))
     mesh.SetNormalsInterpolation(UsdGeom.Tokens.vertex)
     mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
@@ -248,7 +282,7 @@ def validate_glb(path: Path) -> dict:
 
 
 # ----------------------------------------------------------------------------------------- glTF
-def write_glb(path: Path, geom: Faceted, textures_dir: Path, meters_per_unit: float, name: str, origin: dict) -> None:
+def write_glb(path: Path, geom: ExportMesh, textures_dir: Path, meters_per_unit: float, name: str, origin: dict) -> None:
     """Write a self-contained binary glTF 2.0 file (see the module docstring for the mapping);
     ``origin`` goes into ``asset.extras.tango_stylize``."""
     import pygltflib as g
@@ -267,7 +301,9 @@ def write_glb(path: Path, geom: Faceted, textures_dir: Path, meters_per_unit: fl
 
     def add_accessor(arr: np.ndarray, kind: str, target=g.ARRAY_BUFFER, minmax=False) -> int:
         view = add_view(np.ascontiguousarray(arr).tobytes(), target)
-        ctype = g.FLOAT if arr.dtype == np.float32 else g.UNSIGNED_INT
+        ctype = {np.dtype(np.float32): g.FLOAT, np.dtype(np.uint32): g.UNSIGNED_INT, np.dtype(np.uint16): g.UNSIGNED_SHORT}[
+            arr.dtype
+        ]
         acc = g.Accessor(bufferView=view, componentType=ctype, count=len(arr), type=kind)
         if minmax:
             acc.min = arr.min(0).astype(float).tolist()
@@ -281,7 +317,9 @@ def write_glb(path: Path, geom: Faceted, textures_dir: Path, meters_per_unit: fl
         TANGENT=add_accessor(geom.tangents, g.VEC4),
         TEXCOORD_0=add_accessor(geom.uv, g.VEC2),
     )
-    indices = add_accessor(np.arange(len(pos), dtype=np.uint32), g.SCALAR, target=g.ELEMENT_ARRAY_BUFFER)
+    # 16-bit indices where they suffice (glTF allows both; the 65535th index is reserved for restarts)
+    index_type = np.uint16 if len(pos) < 65535 else np.uint32
+    indices = add_accessor(geom.indices.reshape(-1).astype(index_type), g.SCALAR, target=g.ELEMENT_ARRAY_BUFFER)
     images, textures = [], []
     for key in ("basecolor", "metallic_roughness", "normal", "specular"):
         view = add_view((textures_dir / f"{key}.png").read_bytes())

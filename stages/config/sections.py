@@ -26,6 +26,11 @@ LIGHTS = ("studio", "sky")
 #: closed form, the split sum with exact energy, and the fitted lobe with exact energy corrected by
 #: the BRDF at each light lobe
 SPECULAR_LOBES = ("isotropic", "split_sum", "fitted")
+#: shading normals (``optimize.shading_normals``, :mod:`stages.geometry.normals`): TANGO's face
+#: normals, or vertex normals interpolated across faces with creases kept
+SHADING_NORMALS = ("flat", "smooth")
+#: corner weights of a smooth vertex normal (``optimize.normal_weighting``)
+NORMAL_WEIGHTINGS = ("angle", "area")
 #: who renders image targets (``optimize.target_renderer``)
 TARGET_RENDERERS = ("mitsuba", "sg")
 #: the procedural environment maps ``relight.envmap: builtin:<name>`` names (:mod:`stages.render.envmap`)
@@ -179,6 +184,9 @@ class FieldSettings:
     light_energy: float
     light_init_sharpness: float | None
     specular_lobe: str
+    shading_normals: str
+    crease_angle_deg: float
+    normal_weighting: str
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -232,6 +240,13 @@ class OptimizeSettings(ClipChoice, Settings):
     #: stages/render/shading.py and the README's measurements (fitted: the most accurate at the
     #: isotropic model's cost, and no worse in recovery; measured 2026-11-22)
     specular_lobe: str = "fitted"
+    #: the normals the field shades with and its normal network starts from (SHADING_NORMALS):
+    #: "flat" (TANGO: face normals) or "smooth" (vertex normals interpolated across each face,
+    #: edges sharper than crease_angle_deg kept, corners weighted by normal_weighting); carried
+    #: through training, baking (the tangent frame), export and relighting
+    shading_normals: str = "flat"
+    crease_angle_deg: float = 60.0
+    normal_weighting: str = "angle"
     # guidance
     guidance: str = "clip"
     clip_model: str = "ViT-B-32"
@@ -270,6 +285,12 @@ class OptimizeSettings(ClipChoice, Settings):
             p.append(f"target_renderer must be one of {TARGET_RENDERERS}, got {self.target_renderer!r}")
         if self.specular_lobe not in SPECULAR_LOBES:
             p.append(f"specular_lobe must be one of {', '.join(SPECULAR_LOBES)}, got {self.specular_lobe!r}")
+        if self.shading_normals not in SHADING_NORMALS:
+            p.append(f"shading_normals must be one of {', '.join(SHADING_NORMALS)}, got {self.shading_normals!r}")
+        if self.normal_weighting not in NORMAL_WEIGHTINGS:
+            p.append(f"normal_weighting must be one of {', '.join(NORMAL_WEIGHTINGS)}, got {self.normal_weighting!r}")
+        if not 0.0 <= self.crease_angle_deg <= 180.0:
+            p.append(f"crease_angle_deg must be in [0, 180], got {self.crease_angle_deg}")
         if self.target_light not in LIGHTS:
             p.append(f"target_light must be one of {LIGHTS}, got {self.target_light!r}")
         if self.views_per_step < 1 or self.crops < 0 or self.supersample < 1 or self.checkpoint_every < 1:
@@ -382,6 +403,11 @@ class TargetSettings(Settings):
     texture_size: int = 1024
     #: steepest slope of the normal map's bumps (0 = no normal map)
     bump_slope: float = 0.3
+    #: the truth's shading normals on the full-resolution mesh (SHADING_NORMALS): "smooth" (vertex
+    #: normals, edges sharper than crease_angle_deg kept: the object the mesh approximates) or
+    #: "flat" (faceted, as TANGO shades)
+    shading_normals: str = "smooth"
+    crease_angle_deg: float = 60.0
     #: Mitsuba variant: auto | scalar_rgb | llvm_ad_rgb
     variant: str = "auto"
     seed: int = 0
@@ -398,6 +424,10 @@ class TargetSettings(Settings):
             problems.append(f"texture_size must be in [16, 8192], got {self.texture_size}")
         if not 0.0 <= self.bump_slope <= 2.0:
             problems.append(f"bump_slope must be in [0, 2], got {self.bump_slope}")
+        if self.shading_normals not in SHADING_NORMALS:
+            problems.append(f"shading_normals must be one of {', '.join(SHADING_NORMALS)}, got {self.shading_normals!r}")
+        if not 0.0 <= self.crease_angle_deg <= 180.0:
+            problems.append(f"crease_angle_deg must be in [0, 180], got {self.crease_angle_deg}")
         if not 16 <= self.environment_height <= 8192:
             problems.append(f"environment_height must be in [16, 8192], got {self.environment_height}")
         if self.variant not in MITSUBA_VARIANTS:

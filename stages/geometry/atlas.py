@@ -67,32 +67,6 @@ def rasterize_atlas(uv: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
     return hits.face.reshape(size, size), hits.bary.reshape(size, size, 2)
 
 
-def face_frames(mesh: TriMesh, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per-face unit tangent ``T``, bitangent ``B = w (N x T)`` and normal ``N``, ``(F, 3)`` each,
-    and handedness ``w (F,)`` folded into ``B``; see the module docstring. Faces with a degenerate
-    UV or 3D triangle get an arbitrary orthonormal frame around ``N``."""
-    p = mesh.vertices[mesh.faces]
-    n = mesh.face_normals
-    st = np.stack([uv[..., 0], 1.0 - uv[..., 1]], axis=-1)
-    e1, e2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
-    d1, d2 = st[:, 1] - st[:, 0], st[:, 2] - st[:, 0]
-    det = d1[:, 0] * d2[:, 1] - d2[:, 0] * d1[:, 1]
-    ok = np.abs(det) > 1e-20
-    r = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)[:, None]
-    t = (e1 * d2[:, 1:2] - e2 * d1[:, 1:2]) * r
-    b = (e2 * d1[:, 0:1] - e1 * d2[:, 0:1]) * r
-    t = t - n * (n * t).sum(1, keepdims=True)
-    tn = np.linalg.norm(t, axis=1, keepdims=True)
-    bad = ~ok | (tn[:, 0] < 1e-20) | (np.linalg.norm(n, axis=1) < 0.5)
-    fallback = np.where(np.abs(n[:, :1]) < 0.9, np.array([[1.0, 0, 0]]), np.array([[0, 1.0, 0]]))
-    fallback = fallback - n * (n * fallback).sum(1, keepdims=True)
-    t = np.where(bad[:, None], fallback, t)
-    t /= np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-30)
-    w = np.where((np.cross(n, t) * b).sum(1) < 0, -1.0, 1.0)
-    w[bad] = 1.0
-    return t, np.cross(n, t) * w[:, None], n, w
-
-
 def dilate(values: np.ndarray, filled: np.ndarray, passes: int) -> np.ndarray:
     """Grow ``values (S, S, C)`` from ``filled (S, S) bool`` texels into empty neighbours
     (8-neighbourhood mean), ``passes`` times; remaining empty texels take the filled mean."""

@@ -55,6 +55,7 @@ import numpy as np
 
 from ..config.sections import DecimateSettings
 from .meshio import TriMesh
+from .normals import weld_positions
 
 log = logging.getLogger(__name__)
 
@@ -101,30 +102,11 @@ def weld_vertices(mesh: TriMesh, relative_tolerance: float = 1e-6) -> WeldResult
     member that comes first in the input). Faces with a repeated vertex afterwards are dropped, and
     so are vertices no face uses; the order of vertices and faces is kept otherwise, so a mesh
     without duplicates comes back unchanged."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-    from scipy.spatial import cKDTree
-
     vertices = np.asarray(mesh.vertices, np.float64)
     diagonal = float(np.linalg.norm(np.ptp(vertices, axis=0))) if len(vertices) else 0.0
     tolerance = float(relative_tolerance) * diagonal
-    unique, first, inverse = np.unique(vertices, axis=0, return_index=True, return_inverse=True)
-    order = np.argsort(first)  # keep the input's vertex order: a mesh without duplicates comes back unchanged
-    rank = np.empty_like(order)
-    rank[order] = np.arange(len(order))
-    unique, inverse = unique[order], rank[inverse.reshape(-1)]
-    exact_merged = len(vertices) - len(unique)
-    near_merged = 0
-    if tolerance > 0 and len(unique) > 1:
-        pairs = cKDTree(unique).query_pairs(tolerance, output_type="ndarray")
-        if len(pairs):
-            n = len(unique)
-            graph = coo_matrix((np.ones(len(pairs), np.int8), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
-            count, labels = connected_components(graph, directed=False)
-            first = np.full(count, n, np.int64)
-            np.minimum.at(first, labels, np.arange(n))
-            near_merged = n - count
-            unique, inverse = unique[first], labels[inverse]
+    unique, inverse, exact_merged = weld_positions(vertices, relative_tolerance)
+    near_merged = len(vertices) - exact_merged - len(unique)
     faces = inverse[mesh.faces]
     keep = (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 2] != faces[:, 0])
     faces = faces[keep]

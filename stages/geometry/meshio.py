@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from ..core.errors import StageInputError
+from .normals import unit_face_normals
 from .shapes import BUILTIN_NAMES, builtin_mesh
 
 log = logging.getLogger(__name__)
@@ -33,10 +34,7 @@ class TriMesh:
     @property
     def face_normals(self) -> np.ndarray:
         """``(F, 3) float64`` unit normals by the right-hand rule; zero for degenerate faces."""
-        tri = self.vertices[self.faces]
-        n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-        norm = np.linalg.norm(n, axis=1, keepdims=True)
-        return np.divide(n, norm, out=np.zeros_like(n), where=norm > 0)
+        return unit_face_normals(self.vertices, self.faces)
 
     @property
     def face_areas(self) -> np.ndarray:

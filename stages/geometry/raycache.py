@@ -47,6 +47,7 @@ from .cameras import (
     world_rays,
 )
 from .meshio import TriMesh
+from .normals import NormalSpec, interpolate_normals
 from .tracing import EmbreeTracer
 
 #: bytes stored per hit: pixel index (uint32), face id (int32), barycentrics (2 x uint16)
@@ -172,7 +173,9 @@ def trace_views(mesh: TriMesh, views: ViewSet, tracer=None) -> tuple[dict[str, n
 @dataclass(frozen=True)
 class ViewHits:
     """Hits of one cached view: ``pixel (N,) int64``, ``face (N,) int64``, ``point (N, 3)``,
-    ``normal (N, 3)`` (flat face normals), ``direction (N, 3)`` unit ray directions, all float32."""
+    ``normal (N, 3)`` (the shading normals asked for: flat face normals by default),
+    ``face_normal (N, 3)`` (flat, which side the viewer sees), ``direction (N, 3)`` unit ray
+    directions, all float32; none flipped towards the camera."""
 
     pixel: np.ndarray
     face: np.ndarray
@@ -181,6 +184,7 @@ class ViewHits:
     direction: np.ndarray
     c2w: np.ndarray
     width: int
+    face_normal: np.ndarray
 
 
 class RayCache:
@@ -192,11 +196,21 @@ class RayCache:
             self.arrays = {k: z[k] for k in z.files}
         self.width = int(self.arrays["width"])
         self.fov_deg = float(self.arrays["fov_deg"])
+        self._corners: dict[NormalSpec, np.ndarray] = {}
 
     def __len__(self) -> int:
         return len(self.arrays["offsets"]) - 1
 
-    def view(self, i: int) -> ViewHits:
+    def corner_normals(self, spec: NormalSpec) -> np.ndarray:
+        """``(F, 3, 3) float32`` shading normals per face corner of the cached mesh (computed once
+        per ``spec``)."""
+        if spec not in self._corners:
+            a = self.arrays
+            self._corners[spec] = spec.corner_normals(a["vertices"].astype(np.float64), a["faces"]).astype(np.float32)
+        return self._corners[spec]
+
+    def view(self, i: int, normals: NormalSpec | None = None) -> ViewHits:
+        """Hits of view ``i`` with the shading ``normals`` of ``spec`` (flat when None)."""
         a = self.arrays
         lo, hi = a["offsets"][i], a["offsets"][i + 1]
         pixel = a["pixel"][lo:hi].astype(np.int64)
@@ -206,15 +220,11 @@ class RayCache:
         point = tri[:, 0] + uv[:, :1] * (tri[:, 1] - tri[:, 0]) + uv[:, 1:] * (tri[:, 2] - tri[:, 0])
         cam = camera_space_directions(self.width, self.fov_deg)[pixel]
         direction = (cam @ a["c2w"][i][:3, :3].T).astype(np.float32)
-        return ViewHits(
-            pixel,
-            face,
-            point.astype(np.float32),
-            a["face_normals"][face],
-            direction,
-            a["c2w"][i],
-            self.width,
-        )
+        flat = a["face_normals"][face]
+        shading = flat
+        if normals is not None and normals.mode != "flat":
+            shading = interpolate_normals(self.corner_normals(normals), face, uv, flat).astype(np.float32)
+        return ViewHits(pixel, face, point.astype(np.float32), shading, direction, a["c2w"][i], self.width, flat)
 
     def mask(self, i: int) -> np.ndarray:
         """``(W, W) bool`` coverage of view ``i``."""

@@ -8,17 +8,20 @@ import numpy as np
 import torch
 
 from ..config.layout import RENDER_KINDS
+from ..geometry.normals import NormalSpec
 from ..geometry.raycache import RayCache
 from ..model.field import StyleField
 from ..render.color import linear_to_srgb
+from ..render.shading import face_viewer
 from .images import compose, gather_points, global_spec, index_map, render_cached_view
 from .targets import TargetSet
 
 
 @dataclass
 class CachedView:
-    """Tensors of one cached view on the device: hit ``points``, flat ``normals`` and unit
-    ``view`` directions (surface -> eye) ``(N, 3)``, plus the ``(W, W)`` hit-index map and mask."""
+    """Tensors of one cached view on the device: hit ``points``, shading ``normals`` (flat or
+    smooth, turned to the side of the face the viewer sees) and unit ``view`` directions
+    (surface -> eye) ``(N, 3)``, plus the ``(W, W)`` hit-index map and mask."""
 
     points: torch.Tensor
     normals: torch.Tensor
@@ -32,12 +35,19 @@ class CachedView:
 
 class ViewStore:
     """The views of one :class:`~stages.geometry.raycache.RayCache` as :class:`CachedView`, built
-    on first use and kept on ``device``, with the image targets of a
-    :class:`~stages.imaging.targets.TargetSet` attached when one is given."""
+    on first use and kept on ``device``, shaded with the ``normals`` a field was trained with
+    (:attr:`~stages.model.field.StyleField.normals`), with the image targets of a
+    :class:`~stages.imaging.targets.TargetSet` attached when one is given.
 
-    def __init__(self, cache: RayCache, device, targets: TargetSet | None = None) -> None:
+    Normals are oriented by the *face* the viewer sees (two-sided surfaces: the inside of an open
+    vase), then a smooth normal that still faces away from the eye (near a silhouette, where it
+    leans past the face) is bent just into view (:func:`~stages.render.shading.face_viewer`),
+    as renderers with shading normals do."""
+
+    def __init__(self, cache: RayCache, device, normals: NormalSpec, targets: TargetSet | None = None) -> None:
         self.cache = cache
         self.device = device
+        self.normals = normals
         self.targets = targets
         self._views: dict[int, CachedView] = {}
 
@@ -54,16 +64,20 @@ class ViewStore:
 
     def __getitem__(self, i: int) -> CachedView:
         if i not in self._views:
-            h = self.cache.view(i)
+            h = self.cache.view(i, self.normals)
             idx = index_map(h.pixel, self.cache.width)
+            view = torch.from_numpy(-h.direction).to(self.device)
+            back = (torch.from_numpy(h.face_normal).to(self.device) * view).sum(-1, keepdim=True) < 0
+            shading = torch.from_numpy(h.normal).to(self.device)
+            normals = face_viewer(torch.where(back, -shading, shading), view)
             target = coverage = None
             if self.targets is not None:
                 target = torch.from_numpy(self.targets.view(i)).to(self.device)
                 coverage = torch.from_numpy(self.targets.view(i, "coverage")).to(self.device)
             self._views[i] = CachedView(
                 torch.from_numpy(h.point).to(self.device),
-                torch.from_numpy(h.normal).to(self.device),
-                torch.from_numpy(-h.direction).to(self.device),
+                normals,
+                view,
                 idx,
                 idx >= 0,
                 target,

@@ -11,6 +11,7 @@ import torch
 from torch import Tensor, nn
 
 from ..config.sections import FieldSettings
+from ..geometry.normals import NormalSpec
 from ..render.shading import SGLight, Shading, face_viewer, shade
 from .networks import Material, NormalNet, SGLightModule, SVBRDFNet, make_encoding, symmetric
 
@@ -82,18 +83,22 @@ class StyleField(nn.Module):
             )
         self.symmetry = s.symmetry
         self.specular_lobe = s.specular_lobe
+        #: the shading normals the field is trained and rendered with (every ViewStore and the bake use them)
+        self.normals = NormalSpec(s.shading_normals, s.crease_angle_deg, s.normal_weighting)
 
     def symmetric_points(self, points: Tensor) -> Tensor:
         """The points as the networks see them (``(x, y, |z|)`` under the symmetry prior)."""
         return symmetric(points) if self.symmetry else points
 
     def surface(self, points: Tensor, normals: Tensor, view: Tensor | None = None) -> tuple[Material, Tensor]:
-        """The networks at hit ``points (N, 3)`` with flat ``normals (N, 3)``: the material and
-        the unit shading normal.
+        """The networks at hit ``points (N, 3)`` with shading ``normals (N, 3)`` (:attr:`normals`):
+        the material and the unit shading normal.
 
-        With ``view (N, 3)`` (unit, surface -> eye), geometric normals are first turned towards
-        the viewer (two-sided surfaces: the inside of an open vase is visible) and the predicted
-        normal is kept in the viewer's hemisphere (:func:`~stages.render.shading.face_viewer`).
+        With ``view (N, 3)`` (unit, surface -> eye), normals facing away are first turned towards
+        the viewer (two-sided surfaces: the inside of an open vase is visible; a no-op for the
+        normals of a :class:`~stages.imaging.views.ViewStore`, which orients them by the face the
+        viewer sees) and the predicted normal is kept in the viewer's hemisphere
+        (:func:`~stages.render.shading.face_viewer`).
         Without it (texture baking) the normals are taken as given and the prediction returned as is.
         """
         if view is not None:

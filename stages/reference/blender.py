@@ -210,12 +210,13 @@ def _angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def check_import(result: JobResult, geom, meters_per_unit: float) -> dict:
     """Compare what Blender imported with what we exported (``geom``: the
-    :class:`~stages.assets.formats.Faceted` corners in export space). Returns the measured
+    :class:`~stages.assets.formats.ExportMesh` in export space, compared per face corner). Returns the measured
     figures and ``problems`` (empty when the asset arrived intact): one mesh with every face and
     corner, positions where they belong in metres and Z-up (units, up axis), UVs (Blender's
-    ``v`` is ``1 - v`` of glTF), flat normals, Blender's own MikkTSpace tangents and bitangents
+    ``v`` is ``1 - v`` of glTF), the shading normals, Blender's own MikkTSpace tangents and bitangents
     against the frame the normal map was baked in (handedness), and the Principled BSDF's wiring."""
     report, c = result.report, result.corners
+    geom = geom.corners()
     meshes = [o for o in report.get("objects", []) if o["type"] == "MESH"]
     problems = []
     out: dict = {"blender": report.get("blender"), "mesh_objects": len(meshes)}

@@ -143,7 +143,8 @@ def measure_limits(renderer: TargetRenderer, cache: RayCache, spp: int, lobes: t
             images[name].append(rgb)
             if name == "target":
                 cover.append(alpha)
-    full = np.concatenate(cover) >= FULL_COVERAGE
+    truth, met = renderer.truth_at_hits(cache)
+    full = (np.concatenate(cover) >= FULL_COVERAGE) & met
     hits = {k: np.concatenate(v)[full] for k, v in images.items()}
     srgb = {k: srgb_encode(v) for k, v in hits.items()}
 
@@ -160,7 +161,6 @@ def measure_limits(renderer: TargetRenderer, cache: RayCache, spp: int, lobes: t
         "interreflection_mse": max(mse("direct", "target") - 2 * noise, 0.0),
         "shadows_mse": max(mse("unshadowed", "direct") - 2 * noise, 0.0),
     }
-    truth = renderer.truth_at_hits(cache)
     direction = np.concatenate([cache.view(i).direction for i in range(len(cache))])
     view = torch.from_numpy(-direction[full]).double()
     normal = face_viewer(torch.from_numpy(truth["normal"][full]).double(), view)

@@ -2,8 +2,10 @@
 
 The scene, all of it rendered by Mitsuba (nobody here wrote its light transport or its BSDF):
 
-* **geometry**: the cached mesh, faceted (flat face normals, as our renderer shades it), with an
-  xatlas texture atlas (:mod:`stages.geometry.atlas`);
+* **geometry**: the full-resolution mesh (the normalised one, also for a decimated cell: the truth
+  is the object, not its approximation), shaded with smooth vertex normals that keep creases
+  (``target.shading_normals``, :mod:`stages.geometry.normals`) or flat, with an xatlas texture
+  atlas (:mod:`stages.geometry.atlas`);
 * **material**: Mitsuba's ``principled`` BSDF (GGX microfacets, Disney diffuse, dielectric or
   metallic Fresnel) wrapped in ``normalmap`` and ``twosided``, with textures for base colour,
   roughness and metallic, baked from the procedural material ``kind``
@@ -21,8 +23,9 @@ coverage, so training composes it exactly as it composes the model's renders, an
 only fully covered object pixels.
 
 The material's ground truth in TANGO's terms (:func:`tango_equivalent`: diffuse albedo
-``base (1 - metallic)``, specular colour ``F0``, roughness) is sampled at every hit of the metric
-views from the same textures Mitsuba reads, for the material-error figures.
+``base (1 - metallic)``, specular colour ``F0``, roughness) is sampled where each hit's ray of the
+metric views meets the rendered mesh, from the same textures Mitsuba reads, for the
+material-error figures.
 """
 
 from __future__ import annotations
@@ -37,7 +40,9 @@ import torch
 from ..config.sections import TargetSettings
 from ..geometry.atlas import dilate, rasterize_atlas, sample_bilinear, unwrap
 from ..geometry.meshio import TriMesh
-from ..geometry.raycache import RayCache, dequantize_bary
+from ..geometry.normals import NormalSpec, interpolate_normals
+from ..geometry.raycache import RayCache
+from ..geometry.tracing import EmbreeTracer
 from ..model.procedural import procedural_material
 from ..render.color import srgb_encode
 from ..render.envmap import load_env, radiant_energy
@@ -118,17 +123,22 @@ def bumped_normals(points: np.ndarray, normals: np.ndarray, slope: float) -> np.
     return bent / np.linalg.norm(bent, axis=1, keepdims=True)
 
 
-def mitsuba_frames(mesh: TriMesh, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The shading frame Mitsuba's ``normalmap`` uses on a flat-shaded face: ``s`` = ``dp/du``
-    made orthogonal to the face normal ``n`` and normalised, ``t = n x s`` (whatever the UV
-    handedness; measured in tests/reference). Per face ``(F, 3)`` each."""
+def uv_dp_du(mesh: TriMesh, uv: np.ndarray) -> np.ndarray:
+    """``dp/du (F, 3)`` of each face from its positions and atlas ``uv (F, 3, 2)`` (Mitsuba's
+    ``si.dp_du``; zero where the UV triangle is degenerate)."""
     p = mesh.vertices[mesh.faces].astype(np.float64)
-    n = mesh.face_normals.astype(np.float64)
     e1, e2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
     d1, d2 = uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]
     det = d1[:, 0] * d2[:, 1] - d2[:, 0] * d1[:, 1]
-    safe = np.where(np.abs(det) > 1e-20, det, 1.0)
-    dp_du = (e1 * d2[:, 1:2] - e2 * d1[:, 1:2]) / safe[:, None]
+    ok = np.abs(det) > 1e-20
+    return np.where(ok[:, None], (e1 * d2[:, 1:2] - e2 * d1[:, 1:2]) / np.where(ok, det, 1.0)[:, None], 0.0)
+
+
+def mitsuba_frames(dp_du: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The shading frame Mitsuba's ``normalmap`` uses at points with unit shading normal ``n``
+    (the face normal of a flat mesh, the interpolated vertex normal of a smooth one) and ``dp_du``:
+    ``s`` = ``dp/du`` made orthogonal to ``n`` and normalised, ``t = n x s`` (whatever the UV
+    handedness; measured in tests/reference). ``(N, 3)`` each."""
     s = dp_du - (dp_du * n).sum(1, keepdims=True) * n
     norm = np.linalg.norm(s, axis=1, keepdims=True)
     fallback = np.where(np.abs(n[:, :1]) < 0.9, np.array([[1.0, 0, 0]]), np.array([[0, 1.0, 0]]))
@@ -141,7 +151,8 @@ def mitsuba_frames(mesh: TriMesh, uv: np.ndarray) -> tuple[np.ndarray, np.ndarra
 @dataclass
 class GroundTruth:
     """The scene's material as textures ``(S, S, C)`` (linear; row 0 at ``v = 0``, as Mitsuba and
-    glTF read them), the atlas ``uv (F, 3, 2)`` and the per-face normal-map frames."""
+    glTF read them), the atlas ``uv (F, 3, 2)``, each face's ``dp_du (F, 3)`` and the shading
+    ``corner_normals (F, 3, 3)`` Mitsuba interpolates (flat: the face normal three times)."""
 
     uv: np.ndarray
     base_color: np.ndarray
@@ -149,13 +160,18 @@ class GroundTruth:
     roughness: np.ndarray
     normal: np.ndarray  # tangent space, in [-1, 1]
     specular: float
-    frames: tuple[np.ndarray, np.ndarray, np.ndarray]
+    dp_du: np.ndarray
+    corner_normals: np.ndarray
+
+    def shading_normals(self, face: np.ndarray, bary: np.ndarray) -> np.ndarray:
+        """Unit shading normals ``(N, 3)`` at hits, as Mitsuba interpolates them."""
+        return interpolate_normals(self.corner_normals, face, bary, self.corner_normals[face, 0])
 
     def at_hits(self, face: np.ndarray, bary: np.ndarray, back: np.ndarray) -> dict:
         """TANGO-equivalent maps and the world shading normal at hits (``face (N,)``,
-        ``bary (N, 2)``, ``back (N,) bool``: seen from behind, where ``twosided`` mirrors the
-        perturbed normal through the face's plane and the viewer sees ``-mirror``, i.e. the
-        normal facing the viewer). Sampled bilinearly, as Mitsuba does."""
+        ``bary (N, 2)``, ``back (N,) bool``: seen from behind the shading normal, where
+        ``twosided`` mirrors the perturbed normal through the shading plane and the viewer sees
+        ``-mirror``, i.e. the normal facing the viewer). Sampled bilinearly, as Mitsuba does."""
         tri = self.uv[face]
         uv = tri[:, 0] + bary[:, :1] * (tri[:, 1] - tri[:, 0]) + bary[:, 1:] * (tri[:, 2] - tri[:, 0])
         out = tango_equivalent(
@@ -165,17 +181,18 @@ class GroundTruth:
             self.specular,
         )
         ts = sample_bilinear(self.normal, uv)
-        s, t, n = (f[face] for f in self.frames)
+        s, t, n = mitsuba_frames(self.dp_du[face], self.shading_normals(face, bary))
         world = ts[:, :1] * s + ts[:, 1:2] * t + ts[:, 2:3] * n
         world /= np.linalg.norm(world, axis=1, keepdims=True)
-        # seen from behind: the mirror image through the face's plane, turned to face the viewer
+        # seen from behind: the mirror image through the shading plane, turned to face the viewer
         mirrored = world - 2.0 * (world * n).sum(1, keepdims=True) * n
         out["normal"] = np.where(back[:, None], -mirrored, world)
         return out
 
 
 def ground_truth(mesh: TriMesh, kind: str, settings: TargetSettings) -> GroundTruth:
-    """Unwrap ``mesh`` and bake the procedural material ``kind`` and its bumps into textures."""
+    """Unwrap ``mesh`` and bake the procedural material ``kind`` and its bumps (around the
+    shading normals of ``settings.shading_normals``) into textures."""
     size = settings.texture_size
     atlas = unwrap(mesh, size, padding=4)
     face, bary = rasterize_atlas(atlas.uv, size)
@@ -185,8 +202,10 @@ def ground_truth(mesh: TriMesh, kind: str, settings: TargetSettings) -> GroundTr
     tri = mesh.vertices[mesh.faces[fi]].astype(np.float64)
     points = tri[:, 0] + b[:, :1] * (tri[:, 1] - tri[:, 0]) + b[:, 1:] * (tri[:, 2] - tri[:, 0])
     mat = principled_material(kind, points)
-    frames = mitsuba_frames(mesh, atlas.uv)
-    s, t, n = (f[fi] for f in frames)
+    dp_du = uv_dp_du(mesh, atlas.uv)
+    corners = target_normals(settings).corner_normals(mesh.vertices, mesh.faces)
+    shading = interpolate_normals(corners, fi, b, corners[fi, 0])
+    s, t, n = mitsuba_frames(dp_du[fi], shading)
     bent = bumped_normals(points, n, settings.bump_slope)
     local = np.stack([(bent * s).sum(1), (bent * t).sum(1), (bent * n).sum(1)], axis=1)
 
@@ -204,17 +223,27 @@ def ground_truth(mesh: TriMesh, kind: str, settings: TargetSettings) -> GroundTr
         texture(mat.roughness, 1.0),
         normal,
         mat.specular,
-        frames,
+        dp_du,
+        corners,
     )
 
 
-def _mesh(mi, mesh: TriMesh, uv: np.ndarray, bsdf):
-    """A Mitsuba mesh with one vertex per face corner (flat normals, the atlas's texcoords)."""
+def target_normals(settings: TargetSettings) -> NormalSpec:
+    """The truth's shading normals (``target.shading_normals``, ``target.crease_angle_deg``)."""
+    return NormalSpec(settings.shading_normals, settings.crease_angle_deg)
+
+
+def _mesh(mi, mesh: TriMesh, uv: np.ndarray, bsdf, corner_normals: np.ndarray | None = None):
+    """A Mitsuba mesh with one vertex per face corner, the atlas's texcoords, and flat normals or,
+    given ``corner_normals (F, 3, 3)``, those per corner (Mitsuba interpolates them)."""
     corners = mesh.vertices[mesh.faces].reshape(-1, 3).astype(np.float32)
     nf = len(mesh.faces)
-    m = mi.Mesh("target", 3 * nf, nf, has_vertex_normals=False, has_vertex_texcoords=True)
+    smooth = corner_normals is not None
+    m = mi.Mesh("target", 3 * nf, nf, has_vertex_normals=smooth, has_vertex_texcoords=True)
     params = mi.traverse(m)
     params["vertex_positions"] = mi.Float(np.ascontiguousarray(corners.ravel()))
+    if smooth:
+        params["vertex_normals"] = mi.Float(np.ascontiguousarray(corner_normals.reshape(-1).astype(np.float32)))
     params["faces"] = mi.UInt32(np.arange(3 * nf, dtype=np.uint32))
     params["vertex_texcoords"] = mi.Float(np.ascontiguousarray(uv.reshape(-1, 2).astype(np.float32).ravel()))
     params.update()
@@ -231,7 +260,7 @@ def _bitmap(mi, img: np.ndarray) -> dict:
     }
 
 
-def scene_dict(mi, mesh: TriMesh, gt: GroundTruth, env: np.ndarray, max_depth: int) -> dict:
+def scene_dict(mi, mesh: TriMesh, gt: GroundTruth, env: np.ndarray, max_depth: int, smooth: bool) -> dict:
     """The Mitsuba scene description (see the module docstring); sensors are added per view."""
     principled = {
         "type": "principled",
@@ -247,7 +276,7 @@ def scene_dict(mi, mesh: TriMesh, gt: GroundTruth, env: np.ndarray, max_depth: i
     return {
         "type": "scene",
         "integrator": {"type": "path", "max_depth": int(max_depth), "hide_emitters": True},
-        "object": _mesh(mi, mesh, gt.uv, mi.load_dict(bsdf)),
+        "object": _mesh(mi, mesh, gt.uv, mi.load_dict(bsdf), gt.corner_normals if smooth else None),
         "light": {
             "type": "envmap",
             "bitmap": mi.Bitmap(np.ascontiguousarray(mitsuba_rows(env))),
@@ -287,7 +316,9 @@ class TargetRenderer:
         self.seconds_textures = time.perf_counter() - t0
         self.env = load_env(settings.environment, settings.environment_height)
         self.env_energy = radiant_energy(self.env)
-        self.scene = self.mi.load_dict(scene_dict(self.mi, mesh, self.truth, self.env, settings.max_depth))
+        smooth = settings.shading_normals == "smooth"
+        self.scene = self.mi.load_dict(scene_dict(self.mi, mesh, self.truth, self.env, settings.max_depth, smooth))
+        self.mesh = mesh
 
     def sensor_dict(self, c2w: np.ndarray, fov_deg: float, width: int, spp: int) -> dict:
         """Our camera as a Mitsuba sensor with ``spp`` random samples per pixel and an RGBA film."""
@@ -325,14 +356,26 @@ class TargetRenderer:
             time.perf_counter() - t0,
         )
 
-    def truth_at_hits(self, cache: RayCache) -> dict:
-        """The TANGO-equivalent material and world shading normal at every hit of ``cache``."""
-        a = cache.arrays
-        face = a["face"].astype(np.int64)
-        bary = dequantize_bary(a["bary"]).astype(np.float64)
-        direction = np.concatenate([cache.view(i).direction for i in range(len(cache))])
-        back = (a["face_normals"][face] * direction).sum(1) > 0
-        return self.truth.at_hits(face, bary, back)
+    def truth_at_hits(self, cache: RayCache) -> tuple[dict, np.ndarray]:
+        """The TANGO-equivalent material and world shading normal where each hit's ray meets the
+        rendered mesh (which may be finer than the cache's: the full-resolution mesh of a
+        decimated one), and ``(N,) bool``: whether it meets it at all (the truth of a miss is
+        zero)."""
+        tracer = EmbreeTracer(self.mesh)
+        face, bary, direction = [], [], []
+        for i in range(len(cache)):
+            h = cache.view(i)
+            origins = np.broadcast_to(h.c2w[:3, 3], h.direction.shape).astype(np.float64)
+            hits = tracer.trace(origins, h.direction.astype(np.float64))
+            face.append(hits.face)
+            bary.append(hits.bary)
+            direction.append(h.direction.astype(np.float64))
+        face, bary, direction = np.concatenate(face), np.concatenate(bary).astype(np.float64), np.concatenate(direction)
+        met = face >= 0
+        f = np.where(met, face, 0)
+        back = (self.truth.shading_normals(f, bary) * direction).sum(1) > 0
+        truth = self.truth.at_hits(f, bary, back)
+        return {k: np.where(met[:, None], v, 0.0) for k, v in truth.items()}, met
 
 
 #: a pixel counts as an object pixel of the figures when Mitsuba's alpha says it is fully covered

@@ -46,9 +46,9 @@ class Optimizer:
         """``targets``: the Mitsuba image targets of ``train`` (``target_renderer: mitsuba``)."""
         self.s = settings
         self.device = torch.device(device)
-        self.views = ViewStore(train, self.device, targets)
-        self.prompt = prompt
         self.field = StyleField(settings.field_settings()).to(self.device)
+        self.views = ViewStore(train, self.device, self.field.normals, targets)
+        self.prompt = prompt
         self.opt = torch.optim.AdamW(self.field.parameters(), lr=settings.lr, weight_decay=settings.weight_decay)
         self.sched = torch.optim.lr_scheduler.MultiStepLR(self.opt, milestones=list(settings.milestones), gamma=settings.gamma)
         self.np_rng = np.random.default_rng(settings.seed)

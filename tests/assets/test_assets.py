@@ -24,7 +24,8 @@ from stages.config.sections import (
     RaycacheSettings,
     RelightSettings,
 )
-from stages.geometry.atlas import dilate, face_frames, rasterize_atlas, unwrap
+from stages.geometry.atlas import dilate, rasterize_atlas, unwrap
+from stages.geometry.normals import NormalSpec
 from stages.model.networks import Material, SGLightModule
 from stages.raycache import run as raycache_run
 from stages.render.hdrio import read_exr, read_hdr, write_exr, write_hdr
@@ -38,10 +39,11 @@ def analytic_albedo(p: torch.Tensor) -> torch.Tensor:
 class AnalyticField(torch.nn.Module):
     """Colour = a smooth function of position; a known constant tilt of the normal."""
 
-    def __init__(self, tilt: float = 0.2):
+    def __init__(self, tilt: float = 0.2, normals: NormalSpec | None = None):
         super().__init__()
         self.light = SGLightModule(8)
         self.tilt = tilt
+        self.normals = normals or NormalSpec()
 
     def surface(self, p, n, view=None):
         """The field's interface for baking (:meth:`StyleField.surface`): material and normal."""
@@ -98,23 +100,33 @@ def test_bake_analytic_field_texels(sphere_mesh):
     assert np.abs(nz - [0, 0, 1]).max() < 2.5 / 255
 
 
-def test_tangent_frames_and_normal_map_round_trip(sphere_mesh):
-    field = AnalyticField(tilt=0.3)
+@pytest.mark.parametrize("mode", ["flat", "smooth"])
+def test_tangent_frames_and_normal_map_round_trip(sphere_mesh, mode):
+    """Decoding the normal map the way MikkTSpace prescribes (interpolated, unnormalised tangent T
+    and normal N, bitangent w (N x T), written out here) gives back the field's world normal."""
+    field = AnalyticField(tilt=0.3, normals=NormalSpec(mode))
     res = bake_field(sphere_mesh, field, BakeSettings(texture_size=256, dilation=1, light_width=32))
-    t, b, n, w = face_frames(sphere_mesh, res.atlas.uv)
-    for u, v in ((t, b), (t, n), (b, n)):
-        assert np.abs((u * v).sum(1)).max() < 1e-9
-    assert set(np.unique(w)) <= {-1.0, 1.0}
-    # decoding the normal map through the frames gives back the field's world-space normal
-    face, _ = rasterize_atlas(res.atlas.uv, 256)
+    fr = res.frames
+    assert np.abs((fr.tangents * fr.normals).sum(-1)).max() < 1e-9  # tangents lie in each corner's plane
+    np.testing.assert_allclose(np.linalg.norm(fr.tangents, axis=-1), 1.0, atol=1e-9)
+    assert set(np.unique(fr.handedness)) <= {-1.0, 1.0}
+    face, bary = rasterize_atlas(res.atlas.uv, 256)
     filled = face >= 0
-    f = face[filled]
+    f, uv = face[filled], bary[filled].astype(np.float64)
+    c = np.stack([1 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], 1)[..., None]
+    t = (c * fr.tangents[f]).sum(1)
+    n = (c * fr.normals[f]).sum(1)
+    b = fr.handedness[f][:, None] * np.cross(n, t)
     ts = decode_textures(res.textures)["normal"][filled]
-    world = ts[:, :1] * t[f] + ts[:, 1:2] * b[f] + ts[:, 2:3] * n[f]
+    world = ts[:, :1] * t + ts[:, 1:2] * b + ts[:, 2:3] * n
     world /= np.linalg.norm(world, axis=1, keepdims=True)
-    want = n[f] + 0.3 * np.array([1.0, 0, 0])
+    want = n / np.linalg.norm(n, axis=1, keepdims=True) + 0.3 * np.array([1.0, 0, 0])
     want /= np.linalg.norm(want, axis=1, keepdims=True)
     assert np.degrees(np.arccos(np.clip((world * want).sum(1), -1, 1))).max() < 1.0
+    if mode == "smooth":  # the icosphere's smooth normals are its radial directions
+        p = (c[..., 0:1] * sphere_mesh.vertices[sphere_mesh.faces[f]]).sum(1)
+        radial = p / np.linalg.norm(p, axis=1, keepdims=True)
+        assert np.degrees(np.arccos(np.clip((n / np.linalg.norm(n, axis=1, keepdims=True) * radial).sum(1), -1, 1))).max() < 0.6
 
 
 def test_dilation_fills_and_keeps():

@@ -4,6 +4,7 @@ Blender is missing; in CI it must be there."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 
@@ -15,13 +16,13 @@ from PIL import Image
 
 from stages import roundtrip
 from stages.assets.baking import BakedHits, cached_barycentrics, decode_textures, render_baked
-from stages.assets.formats import faceted, read_atlas, write_glb
+from stages.assets.formats import export_mesh, read_atlas, write_glb
 from stages.config.sections import RoundtripSettings
-from stages.geometry.atlas import face_frames
 from stages.geometry.cameras import camera_positions, camera_space_directions, look_at
 from stages.geometry.meshio import load_ply
 from stages.geometry.normalization import Similarity
 from stages.geometry.raycache import RayCache
+from stages.geometry.tangents import CornerFrames
 from stages.model.lightfit import fit_sg_light
 from stages.reference import blender
 from stages.render.envmap import equirect_directions, load_env
@@ -107,7 +108,7 @@ def imported(ready, trained_cell, tmp_path_factory):
     mesh = load_ply(d / "mesh.ply")
     atlas = read_atlas(d / "bake" / "atlas.npz")
     tf = Similarity.from_json(json.loads((d / "transform.json").read_text()))
-    geom = faceted(mesh, atlas, tf)
+    geom = export_mesh(mesh, atlas, tf)
     work = tmp_path_factory.mktemp("imported")
     jobs = {fmt: blender.run_job({"asset": str(d / "export" / f"model.{fmt}")}, work / fmt) for fmt in ("glb", "usdz")}
     return geom, jobs
@@ -119,7 +120,7 @@ def test_assets_arrive_in_blender(imported, fmt):
     geom, jobs = imported
     checks = blender.check_import(jobs[fmt], geom, 1.0)
     assert checks["problems"] == []
-    assert checks["faces"] == len(geom.positions) // 3
+    assert checks["faces"] == len(geom.indices)
     assert checks["position_error_rel"] < 1e-6 and checks["uv_error"] < 1e-6
     assert checks["tangent_error_deg_p99"] < 0.5 and checks["handedness_agreement"] == 1.0
     wiring = checks["wiring"]
@@ -136,10 +137,10 @@ def test_assets_arrive_in_blender(imported, fmt):
 @pytest.mark.slow
 def test_import_checks_catch_wrong_assets(imported):
     geom, jobs = imported
-    flipped = type(geom)(geom.positions, geom.normals, geom.uv, geom.tangents * np.array([1, 1, 1, -1], np.float32))
+    flipped = dataclasses.replace(geom, tangents=geom.tangents * np.array([1, 1, 1, -1], np.float32))
     assert any("handedness" in p for p in blender.check_import(jobs["glb"], flipped, 1.0)["problems"])
     assert any("positions" in p for p in blender.check_import(jobs["glb"], geom, 0.01)["problems"])
-    vflip = type(geom)(geom.positions, geom.normals, geom.uv * np.array([1, -1], np.float32) + [0, 1], geom.tangents)
+    vflip = dataclasses.replace(geom, uv=geom.uv * np.array([1, -1], np.float32) + [0, 1])
     assert any("UVs" in p for p in blender.check_import(jobs["glb"], vflip, 1.0)["problems"])
 
 
@@ -157,7 +158,7 @@ def test_normal_map_handedness_under_cycles(ready, trained_cell, tmp_path):
     Image.fromarray(np.zeros_like(np.asarray(Image.open(tex / "specular.png")))).save(tex / "specular.png")
     mesh = load_ply(d / "mesh.ply")
     atlas = read_atlas(d / "bake" / "atlas.npz")
-    geom = faceted(mesh, atlas, None)
+    geom = export_mesh(mesh, atlas, None)
     write_glb(tmp_path / "model.glb", geom, tex, 1.0, "tilted", {"label": "test"})
     light, _ = fit_sg_light(load_env("builtin:sunset", 32), lobes=24, iterations=300)
     dirs = equirect_directions(256, 512).reshape(-1, 3)
@@ -176,7 +177,7 @@ def test_normal_map_handedness_under_cycles(ready, trained_cell, tmp_path):
         environment=tmp_path / "light.hdr",
     )
     res = blender.run_job({"asset": str(tmp_path / "model.glb"), "inspect": False, "render": job}, tmp_path / "job")
-    frames = face_frames(mesh, atlas["uv"])[:3]
+    frames = CornerFrames.from_arrays(atlas)
 
     def ours(flip):
         textures = {k: np.asarray(Image.open(tex / f"{k}.png")).astype(np.float64) for k in ("basecolor", "specular", "normal")}

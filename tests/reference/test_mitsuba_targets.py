@@ -145,7 +145,7 @@ def test_normal_map_frame_is_mitsubas(mi, mirrored):
     target[2] = math.sqrt(1 - target[0] ** 2 - target[1] ** 2)
     v = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], np.float64)
     mesh = TriMesh(v, np.array([[0, 1, 2], [0, 2, 3]]))
-    s, t, n = (f[0] for f in tref.mitsuba_frames(mesh, uv[mesh.faces]))
+    s, t, n = (f[0] for f in tref.mitsuba_frames(tref.uv_dp_du(mesh, uv[mesh.faces]), mesh.face_normals))
     local = np.array([target @ s, target @ t, target @ n])
     lights = [np.array([0.6, 0.0, 0.8]), np.array([-0.6, 0.0, 0.8]), np.array([0.0, 0.6, 0.8]), np.array([0.0, -0.6, 0.8])]
     got = np.array([_quad(mi, uv, local, light)[0] for light in lights])
@@ -199,6 +199,50 @@ def test_ground_truth_at_hits_is_what_mitsuba_shows(mi, tmp_path):
 
     assert render_albedo(gt.base_color) < 0.01
     assert render_albedo(gt.base_color[::-1].copy()) > 0.02
+
+
+@pytest.mark.parametrize("mode", ["smooth", "flat"])
+def test_mitsuba_shades_with_the_normals_we_interpolate(mi, tmp_path, mode):
+    """A coarse sphere (icosphere 2, 320 faces) given our corner normals, white diffuse under a
+    directional light of irradiance pi: Mitsuba's radiance at each cached hit is ``max(n . l, 0)``
+    with ``n`` the normal GroundTruth.shading_normals interpolates there (smooth or flat). The
+    other mode's normals (the mutation) are measurably off."""
+    mesh = icosphere(2)
+    s = RaycacheSettings(metrics_azimuths=3, metrics_elevations_deg=(0.0, 40.0), metrics_resolution=48)
+    arrays, _ = trace_views(mesh, metric_views(s), EmbreeTracer(mesh))
+    np.savez(tmp_path / "m.npz", **arrays)
+    cache = RayCache(tmp_path / "m.npz")
+    corners = {
+        m: tref.target_normals(TargetSettings(shading_normals=m)).corner_normals(mesh.vertices, mesh.faces)
+        for m in ("smooth", "flat")
+    }
+    uv = np.zeros((len(mesh.faces), 3, 2))
+    light = np.array([0.3, 0.8, 0.52])
+    light /= np.linalg.norm(light)
+    bsdf = mi.load_dict({"type": "diffuse", "reflectance": {"type": "rgb", "value": [1.0, 1.0, 1.0]}})
+    scene = mi.load_dict(
+        {
+            "type": "scene",
+            "integrator": {"type": "direct"},
+            "object": tref._mesh(mi, mesh, uv, bsdf, corners["smooth"] if mode == "smooth" else None),
+            "sun": {"type": "directional", "direction": (-light).tolist(), "irradiance": {"type": "rgb", "value": [math.pi] * 3}},
+        }
+    )
+    errors = {"smooth": [], "flat": []}
+    for i in range(len(cache)):
+        h = cache.view(i)
+        cam = mi.load_dict(mref.sensor(h.c2w, cache.fov_deg, cache.width, 64, centred=False, alpha=True, mi=mi))
+        img = np.array(mi.render(scene, sensor=cam, seed=i, spp=64), dtype=np.float64).reshape(-1, 4)[h.pixel]
+        full = img[:, 3] > 0.999
+        bary = cached_barycentrics(cache, i)
+        for m in errors:
+            gt = tref.GroundTruth(uv, *(np.zeros((1, 1, 1)),) * 4, 0.5, np.zeros((len(mesh.faces), 3)), corners[m])
+            want = np.clip(gt.shading_normals(h.face, bary) @ light, 0, None)
+            errors[m].append(np.abs(img[full, 0] - want[full]))
+    err = {m: float(np.concatenate(e).mean()) for m, e in errors.items()}
+    other = "flat" if mode == "smooth" else "smooth"
+    assert err[mode] < 0.006, err
+    assert err[other] > 2 * err[mode] and err[other] > 0.01, err
 
 
 def test_bumped_normals_are_unit_with_the_requested_steepest_slope():

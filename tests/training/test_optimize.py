@@ -138,6 +138,48 @@ def test_specular_lobe_reaches_every_render_of_the_field():
         OptimizeSettings(specular_lobe="asg")
 
 
+def test_shading_normals_reach_every_view_of_the_field(cache):
+    """``shading_normals`` is a setting of the field, and every ViewStore built for it (training,
+    metrics, relighting, the bake's reference) serves its normals: smooth ones are the corner
+    normals interpolated at the hits, turned to the side of the face the viewer sees and never
+    facing away from the eye; flat ones are the face normals, turned the same way."""
+    from stages.core.errors import ConfigError
+    from stages.imaging.views import ViewStore
+
+    rc = RayCache(cache / "eval.npz")
+    a = rc.arrays
+    served = {}
+    for mode in ("flat", "smooth"):
+        field = StyleField(OptimizeSettings(width=16, shading_normals=mode).field_settings())
+        assert field.normals.mode == mode
+        store = ViewStore(rc, "cpu", field.normals)
+        v, h = store[1], rc.view(1, field.normals)
+        n, view = v.normals.numpy(), v.view.numpy()
+        assert np.isfinite(n).all() and ((n * view).sum(1) >= 5e-4 - 1e-6).all()
+        np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0, atol=1e-5)
+        # the side: the face normal's, whatever the shading normal does near a silhouette
+        side = np.sign((h.face_normal * view).sum(1))
+        assert ((n * h.face_normal).sum(1) * side > 0).all()
+        served[mode] = n
+    # written out here: corner normals interpolated with the cached barycentrics
+    lo, hi = a["offsets"][1], a["offsets"][2]
+    face = a["face"][lo:hi]
+    uv = a["bary"][lo:hi].astype(np.float64) / 65535.0
+    corners = rc.corner_normals(StyleField(OptimizeSettings(width=16, shading_normals="smooth").field_settings()).normals)
+    c = corners[face].astype(np.float64)
+    mixed = (1 - uv[:, :1] - uv[:, 1:]) * c[:, 0] + uv[:, :1] * c[:, 1] + uv[:, 1:] * c[:, 2]
+    mixed /= np.linalg.norm(mixed, axis=1, keepdims=True)
+    view = -rc.view(1).direction
+    mixed *= np.sign((a["face_normals"][face] * view).sum(1))[:, None]
+    inside = (mixed * view).sum(1) > 1e-3  # where face_viewer leaves the normal alone
+    np.testing.assert_allclose(served["smooth"][inside], mixed[inside], atol=1e-5)
+    assert np.degrees(np.arccos(np.clip((served["smooth"] * served["flat"]).sum(1), -1, 1))).mean() > 0.5
+    with pytest.raises(ConfigError, match="shading_normals"):
+        OptimizeSettings(shading_normals="phong")
+    with pytest.raises(ConfigError, match="crease_angle_deg"):
+        OptimizeSettings(crease_angle_deg=200.0)
+
+
 def test_switched_off_parts_are_not_built():
     full = StyleField(OptimizeSettings(width=32).field_settings())
     plain = StyleField(

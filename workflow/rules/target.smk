@@ -1,5 +1,6 @@
 rule target:
     input:
+        mesh=f"{RESULTS}/{{mesh}}/normalize/mesh.ply",
         train=f"{RESULTS}/{{mesh}}/raycache/train.npz",
         metrics=f"{RESULTS}/{{mesh}}/raycache/metrics.npz",
     output:
@@ -19,5 +20,5 @@ rule target:
         out_dir=lambda wildcards: f"{RESULTS}/{wildcards.mesh}/target/{wildcards.material}",
         settings=stage_settings_json("target"),
     shell:
-        "python -m stages.target --train {input.train:q} --metrics {input.metrics:q} "
+        "python -m stages.target --mesh {input.mesh:q} --train {input.train:q} --metrics {input.metrics:q} "
         "--material {wildcards.material} --out-dir {params.out_dir:q} --settings {params.settings:q} 2> {log:q}"
