@@ -67,7 +67,7 @@ def child(faces: str, size: int, decimate_to: int | None) -> dict:
         write_exr(d / "light.exr", res.light_equirect)
         t["write_textures"] = time.perf_counter() - t0
         t0 = time.perf_counter()
-        atlas = {"uv": res.atlas.uv, "tangent": res.tangents, "handedness": res.handedness}
+        atlas = {"uv": res.atlas.uv, **res.frames.arrays()}
         geom = export_mesh(mesh, atlas, tf)
         origin = origin_record(guidance="clip", weights="random untrained field (benchmark)", test_only=True)
         write_usd(d / "model.usda", geom, 1.0, "light.exr", origin)

@@ -6,11 +6,12 @@ settings), all under image guidance.
 Per mesh, once: normalise, the ray cache (32 training views and 24 held-out metric views at 96
 pixels, the recovery test's cache), Mitsuba's path-traced targets of one procedural material
 (16 spp for training, 128 spp on the metric views, the recovery test's target settings). Per
-mesh and preset: the optimisation with the preset's settings (96-pixel images; the preset never
-sets the image size) and the metrics stage on the held-out views. Printed per row and written to
-``--out`` (CSV): PSNR and SSIM over fully covered object pixels, the targets' own noise, albedo
-RMSE (as is and after the one scale albedo and light share), roughness MAE, the normal's angle,
-the light's energy against the environment's, and the optimisation's wall time.
+mesh and preset: the optimisation with the preset's settings (96-pixel images, or
+``--resolution``, which also sets the cache's; the preset never sets the image size) and the
+metrics stage on the held-out views. Printed per row and written to ``--out`` (CSV): PSNR and
+SSIM over fully covered object pixels, the targets' own noise, albedo RMSE (as is and after the
+one scale albedo and light share), roughness MAE, the normal's angle, the light's energy against
+the environment's, and the optimisation's wall time.
 
     python benchmarks/recovery.py                                  # every mesh, fast and balanced
     python benchmarks/recovery.py --presets paper --meshes vase,shared:lamp
@@ -27,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import dataclasses
 import os
 import sys
 import tempfile
@@ -84,7 +86,7 @@ def mesh_sources(spec: str) -> list[tuple[str, str]]:
     return out
 
 
-def prepare(work: Path, source: str, material: str, decimate: int | None = None) -> tuple[int, int]:
+def prepare(work: Path, source: str, material: str, decimate: int | None = None, resolution: int = 96) -> tuple[int, int]:
     """Normalise ``source`` (and decimate it to ``decimate`` faces), build the recovery cache on
     the mesh to fit and render the Mitsuba targets of the full-resolution mesh into ``work``;
     returns the fitted and the full-resolution face counts."""
@@ -103,12 +105,14 @@ def prepare(work: Path, source: str, material: str, decimate: int | None = None)
     if decimate is not None and decimate < len(full.faces):
         mesh = decimate_mesh(full, DecimateSettings(enabled=True, target_faces=decimate)).mesh
     save_ply(work / "mesh.ply", mesh)
-    raycache_run(work / "mesh.ply", work / "train.npz", work / "eval.npz", work / "rc.json", RECOVERY_CACHE, work / "metrics.npz")
+    sizes = {k: resolution for k in ("resolution", "eval_resolution", "metrics_resolution")}
+    cache = dataclasses.replace(RECOVERY_CACHE, **sizes)
+    raycache_run(work / "mesh.ply", work / "train.npz", work / "eval.npz", work / "rc.json", cache, work / "metrics.npz")
     target_stage.run(work / "train.npz", work / "metrics.npz", material, work / "target", MITSUBA_TARGET, work / "full.ply")
     return len(mesh.faces), len(full.faces)
 
 
-def fit(work: Path, material: str, preset: str, lobe: str = "fitted", normals: str = "flat") -> dict:
+def fit(work: Path, material: str, preset: str, lobe: str = "fitted", normals: str = "smooth", resolution: int = 96) -> dict:
     """Optimise with ``preset`` under image guidance on the prepared targets and grade the field on
     the held-out metric views; returns one row of the table."""
     import torch
@@ -123,8 +127,8 @@ def fit(work: Path, material: str, preset: str, lobe: str = "fitted", normals: s
             "guidance": "image",
             "target_material": material,
             "target_renderer": "mitsuba",
-            "image_size": 96,
-            "eval_width": 96,
+            "image_size": resolution,
+            "eval_width": resolution,
             "checkpoint_every": 100_000,
             "specular_lobe": lobe,
             "shading_normals": normals,
@@ -164,8 +168,9 @@ def main() -> None:
     parser.add_argument(
         "--specular-lobe", default="fitted", help="comma-separated specular models (isotropic, split_sum, fitted)"
     )
-    parser.add_argument("--shading-normals", default="flat", help="comma-separated shading normals (flat, smooth)")
+    parser.add_argument("--shading-normals", default="smooth", help="comma-separated shading normals (flat, smooth)")
     parser.add_argument("--decimate", type=int, default=None, help="fit each mesh's N-face version (full-resolution targets)")
+    parser.add_argument("--resolution", type=int, default=96, help="pixels of the cached views and of the fitted images")
     parser.add_argument("--material", default="wood", help="the procedural target material (wood, metal, plaster)")
     parser.add_argument("--out", type=Path, default=REPO / "results" / "benchmarks" / "recovery.csv")
     args = parser.parse_args()
@@ -181,13 +186,18 @@ def main() -> None:
         with tempfile.TemporaryDirectory() as d:
             work = Path(d)
             t0 = time.perf_counter()
-            faces, full_faces = prepare(work, source, args.material, args.decimate)
+            faces, full_faces = prepare(work, source, args.material, args.decimate, args.resolution)
             took = time.perf_counter() - t0
             print(f"{name}: {faces} faces fitted ({full_faces} rendered), cache and targets in {took:.0f} s", flush=True)
             lobes, normals_list = args.specular_lobe.split(","), args.shading_normals.split(",")
             combos = [(p, lb, nm) for p in presets for lb in lobes for nm in normals_list]
             for preset, lobe, normals in combos:
-                row = {"mesh": name, "faces": faces, "full_faces": full_faces, **fit(work, args.material, preset, lobe, normals)}
+                row = {
+                    "mesh": name,
+                    "faces": faces,
+                    "full_faces": full_faces,
+                    **fit(work, args.material, preset, lobe, normals, args.resolution),
+                }
                 rows.append(row)
                 print(
                     f"  {preset:9s} {lobe:9s} {normals:6s} PSNR {row['psnr_db']:.2f} dB  SSIM {row['ssim']:.3f}  "

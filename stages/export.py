@@ -48,7 +48,7 @@ def run(
     mesh = load_ply(mesh_path)
     atlas = read_atlas(bake_dir / "atlas.npz")
     tf = Similarity.from_json(json.loads(Path(transform_path).read_text()))
-    geom = export_mesh(mesh, atlas, tf if settings.units == "original" else None)
+    geom = export_mesh(mesh, atlas, tf if settings.units == "original" else None, settings.weld)
     with staged_outputs(out_dir) as staging:
         with timer("copy"):
             for rel in TEXTURE_FILES.values():
@@ -64,7 +64,9 @@ def run(
             with atomic_path(staging / "model.usda") as tmp:
                 tmp.unlink()
                 write_usd(tmp, geom, settings.meters_per_unit, "light.exr", origin)
-            package_usdz(staging / "model.usda", staging / "model.usdz", [*TEXTURE_FILES.values(), "light.exr"])
+            package_usdz(
+                staging / "model.usda", staging / "model.usdz", [*TEXTURE_FILES.values(), "light.exr"], settings.usdz_root
+            )
         with timer("gltf"):
             write_glb(staging / "model.glb", geom, staging / "textures", settings.meters_per_unit, name, origin)
         with timer("validate"):

@@ -11,6 +11,7 @@ The cache format and its reader are :mod:`stages.geometry.raycache`.
 from __future__ import annotations
 
 import logging
+import math
 from pathlib import Path
 
 from .config.sections import RaycacheSettings
@@ -100,10 +101,22 @@ def run(
             inputs={"mesh": in_mesh},
             outputs={"train": out_train, "eval": out_eval, "metrics": out_metrics},
             timings={**timer.seconds, "total": timer.total()},
-            extra={"stats": summary, "bytes_per_hit": BYTES_PER_HIT},
+            extra={"stats": summary, "bytes_per_hit": BYTES_PER_HIT, "anchor": anchor_record(settings)},
         ),
     )
     return summary
+
+
+def anchor_record(settings: RaycacheSettings) -> dict:
+    """The anchor (front) view the caches were traced around, in both units, and what set it."""
+    az, el, source = settings.anchor()
+    return {
+        "azimuth_deg": math.degrees(az),
+        "elevation_deg": math.degrees(el),
+        "azimuth_rad": az,
+        "elevation_rad": el,
+        "set_by": source,
+    }
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -111,7 +111,7 @@ def run(
         mesh = load_ply(mesh_path)
         atlas = read_atlas(bake_dir / "atlas.npz")
         tf = Similarity.from_json(json.loads(Path(transform_path).read_text()))
-        geom = export_mesh(mesh, atlas, tf if units == "original" else None)
+        geom = export_mesh(mesh, atlas, tf if units == "original" else None, export_meta["settings"].get("weld", True))
         field, _ = load_field(field_path, device)
         cache = RayCache(eval_path)
     views = pick_views(len(cache), settings.views)

@@ -88,10 +88,11 @@ def read_atlas(path: Path) -> dict[str, np.ndarray]:
     return atlas
 
 
-def export_mesh(mesh: TriMesh, atlas: dict, transform: Similarity | None) -> ExportMesh:
+def export_mesh(mesh: TriMesh, atlas: dict, transform: Similarity | None, weld: bool = True) -> ExportMesh:
     """The traced mesh with the bake's UVs and frame (corner normals, MikkTSpace tangents and
     handedness from ``atlas.npz``) in export space (see the module docstring), its corners welded
-    where all their attributes are equal (as float32, exactly: what a viewer would share too)."""
+    where all their attributes are equal (as float32, exactly: what a viewer would share too), or
+    with ``weld=False`` every corner its own vertex."""
     pos = mesh.vertices[mesh.faces].reshape(-1, 3)
     n = atlas["normal"].reshape(-1, 3)
     t = atlas["tangent"].reshape(-1, 3)
@@ -100,6 +101,11 @@ def export_mesh(mesh: TriMesh, atlas: dict, transform: Similarity | None) -> Exp
         # x' = R x_original = x_normalized / scale + R c: original units and position, +Y up
         pos = pos / transform.scale + transform.rotation @ transform.centroid
     corner = np.concatenate([pos, n, atlas["uv"].reshape(-1, 2), t, w[:, None]], axis=1).astype(np.float32)
+    if not weld:
+        c = corner
+        return ExportMesh(
+            c[:, 0:3].copy(), c[:, 3:6].copy(), c[:, 6:8].copy(), c[:, 8:12].copy(), np.arange(len(c)).reshape(-1, 3)
+        )
     _, first, inverse = np.unique(corner, axis=0, return_index=True, return_inverse=True)
     order = np.argsort(first)  # vertices in the order faces first use them
     rank = np.empty_like(order)
@@ -200,16 +206,24 @@ def write_usd(path: Path, geom: ExportMesh, meters_per_unit: float, light_file: 
     stage.GetRootLayer().Save()
 
 
-def package_usdz(usda: Path, usdz: Path, files: list[str]) -> None:
-    """Package ``usda`` (first, as the root layer) and ``files`` (paths relative to it, stored
-    under the same relative paths) into ``usdz``, atomically, with usd-core's zip writer (which
-    aligns entries as the usdz format requires)."""
+def package_usdz(usda: Path, usdz: Path, files: list[str], root: str = "usdc") -> None:
+    """Package ``usda`` (first, as the root layer: converted to USD's binary crate format,
+    ``<stem>.usdc``, as usdz files usually carry it, or with ``root="usda"`` as the text itself)
+    and ``files`` (paths relative to it, stored under the same relative paths) into ``usdz``,
+    atomically, with usd-core's zip writer (which aligns entries as the usdz format requires)."""
+    import tempfile
+
     from pxr import Sdf
 
-    with atomic_path(usdz) as tmp:
+    with atomic_path(usdz) as tmp, tempfile.TemporaryDirectory() as d:
         tmp.unlink()
+        crate = usda
+        if root == "usdc":
+            crate = Path(d) / f"{usda.stem}.usdc"
+            if not Sdf.Layer.FindOrOpen(str(usda)).Export(str(crate)):
+                raise RuntimeError(f"usd-core could not write {usda} as a binary crate layer")
         writer = Sdf.ZipFileWriter.CreateNew(str(tmp))
-        writer.AddFile(str(usda), usda.name)
+        writer.AddFile(str(crate), crate.name)
         for rel in files:
             writer.AddFile(str(usda.parent / rel), rel)
         writer.Save()

@@ -24,7 +24,7 @@ bounding-box diagonal (rounding on export; clusters are merged transitively, at 
 their first vertex). Faces that welding makes degenerate are dropped; a mesh without duplicates
 is left exactly as it was. Only the decimation input is welded: the original, unwelded mesh is
 what the Hausdorff distances are measured against, and nothing downstream needs the seam split
-(the bake charts the traced mesh itself, and the export writes its own faceted geometry). A mesh
+(the bake charts the traced mesh itself, and the export splits vertices where its attributes differ). A mesh
 already at or below the target is kept exactly as is.
 
 The collapse. Boundaries are preserved (``preserveboundary``) and face flips are prevented

@@ -79,21 +79,14 @@ class ViewSet:
 
 def training_views(s: RaycacheSettings) -> ViewSet:
     rng = np.random.default_rng(s.seed)
-    az, el = sample_views(
-        s.views,
-        anchor_azimuth=s.anchor_azimuth,
-        anchor_elevation=s.anchor_elevation,
-        std=s.std,
-        rng=rng,
-    )
-    return ViewSet(az, el, np.full(len(az), s.radius), s.fov_deg, s.resolution, s.anchor_azimuth, s.anchor_elevation)
+    anchor_az, anchor_el, _ = s.anchor()
+    az, el = sample_views(s.views, anchor_azimuth=anchor_az, anchor_elevation=anchor_el, std=s.std, rng=rng)
+    return ViewSet(az, el, np.full(len(az), s.radius), s.fov_deg, s.resolution, anchor_az, anchor_el)
 
 
 def evaluation_views(s: RaycacheSettings) -> ViewSet:
     az, el = grid_views(s.eval_azimuths, s.eval_elevations_deg)
-    return ViewSet(
-        az, el, np.full(len(az), s.eval_radius), s.eval_fov_deg, s.eval_resolution, s.anchor_azimuth, s.anchor_elevation
-    )
+    return ViewSet(az, el, np.full(len(az), s.eval_radius), s.eval_fov_deg, s.eval_resolution, *s.anchor()[:2])
 
 
 def metric_views(s: RaycacheSettings) -> ViewSet:
@@ -104,8 +97,7 @@ def metric_views(s: RaycacheSettings) -> ViewSet:
         np.full(len(az), s.metrics_radius),
         s.metrics_fov_deg,
         s.metrics_resolution,
-        s.anchor_azimuth,
-        s.anchor_elevation,
+        *s.anchor()[:2],
     )
 
 

@@ -8,7 +8,9 @@ normal map's +Y; glTF's ``v`` is ``1 - t``).
 1. Per face: ``dP/ds`` and ``dP/dt`` from its positions and ``st`` (unit), and its orientation
    ``w = sign(ds x dt)`` (+1 where the UV map preserves orientation).
 2. Corners with identical position, normal and ``st`` are one vertex (MikkTSpace welds by value, so
-   an unindexed, faceted mesh gets the same frame as an indexed one).
+   an unindexed, faceted mesh gets the same frame as an indexed one). With flat normals no corner
+   is shared between faces: Blender derives a flat face's normal itself, and rounding keeps even
+   coplanar faces apart, so each face gets its own frame there.
 3. Around each vertex, faces connected through shared edges and of equal orientation form a group;
    each corner's ``dP/ds`` is projected onto the plane of its vertex normal and normalised, weighted
    by the corner's angle measured in that plane, and summed over the group: the group's tangent.
@@ -42,9 +44,12 @@ def face_uv_derivatives(positions: np.ndarray, st: np.ndarray) -> tuple[np.ndarr
     return _unit(os_), _unit(ot_), w
 
 
-def mikktspace(positions: np.ndarray, normals: np.ndarray, st: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def mikktspace(positions: np.ndarray, normals: np.ndarray, st: np.ndarray, shared: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """MikkTSpace tangents ``(F, 3, 3)`` (unit, orthogonal to each corner's normal) and the
-    handedness ``w (F,)`` from per-corner ``positions, normals (F, 3, 3)`` and ``st (F, 3, 2)``."""
+    handedness ``w (F,)`` from per-corner ``positions, normals (F, 3, 3)`` and ``st (F, 3, 2)``.
+    ``shared=False``: no corner is shared between faces (each face its own frame: what MikkTSpace
+    computes on a mesh whose faces share no vertex, and what Blender computes for flat-shaded
+    faces, whose normals it derives per face so that rounding keeps coplanar faces apart)."""
     p = np.asarray(positions, np.float64)
     n = np.asarray(normals, np.float64)
     st = np.asarray(st, np.float64)
@@ -52,6 +57,8 @@ def mikktspace(positions: np.ndarray, normals: np.ndarray, st: np.ndarray) -> tu
     os_, _, w = face_uv_derivatives(p, st)
     # 2. vertices by value (position, normal, st), as MikkTSpace welds them
     key = np.concatenate([p, n, st], axis=-1).reshape(3 * nf, -1).astype(np.float32)
+    if not shared:
+        key = np.concatenate([key, np.repeat(np.arange(nf, dtype=np.float32), 3)[:, None]], axis=1)
     _, vid = np.unique(key, axis=0, return_inverse=True)
     vid = vid.reshape(nf, 3)
     # 3. groups: corners at one vertex joined across shared edges of faces of equal orientation
@@ -128,7 +135,8 @@ class CornerFrames:
         p = np.asarray(vertices, np.float64)[faces]
         n = spec.corner_normals(vertices, faces)
         st = np.stack([uv[..., 0], 1.0 - uv[..., 1]], axis=-1).astype(np.float64)
-        t, w = mikktspace(p, n, st)
+        # flat normals: each face its own frame (Blender's for flat-shaded faces; module docstring)
+        t, w = mikktspace(p, n, st, shared=spec.mode != "flat")
         return cls(n, t, w, unit_face_normals(vertices, faces))
 
     def at(self, face: np.ndarray, bary: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -177,8 +177,15 @@ def test_bake_fidelity_and_metadata(trained):
 
 
 def test_usd_reopens_with_material_and_textures(trained):
+    import zipfile
+
     from pxr import Usd, UsdGeom, UsdShade
 
+    # the usdz's root layer is the binary crate (its first entry), the usda beside it text
+    with zipfile.ZipFile(trained / "export" / "model.usdz") as z:
+        first = z.namelist()[0]
+        assert first == "model.usdc" and z.read(first)[:8] == b"PXR-USDC"
+    assert (trained / "export" / "model.usda").read_bytes().startswith(b"#usda")
     for name in ("model.usda", "model.usdz"):
         stage = Usd.Stage.Open(str(trained / "export" / name))
         assert UsdGeom.GetStageUpAxis(stage) == "Y" and UsdGeom.GetStageMetersPerUnit(stage) == 1.0
@@ -275,6 +282,46 @@ def test_glb_reloads_with_all_textures(trained):
     assert len(geom.faces) == 13440
     assert geom.visual.material.baseColorTexture is not None
     assert geom.visual.material.normalTexture is not None
+
+
+def test_welded_export_shares_vertices_and_keeps_every_corner(trained):
+    """The welded GLB holds each distinct (position, normal, UV, tangent) once; read back through
+    its indices (pygltflib, not our code) it gives every corner of the faceted layout exactly, and
+    a smooth closed mesh needs about one vertex per two faces plus its seams."""
+    import pygltflib
+
+    from stages.assets.formats import export_mesh, read_atlas
+    from stages.geometry.meshio import load_ply
+    from stages.geometry.normalization import Similarity
+
+    mesh = load_ply(trained / "mesh.ply")
+    atlas = read_atlas(trained / "bake" / "atlas.npz")
+    tf = Similarity.from_json(json.loads((trained / "transform.json").read_text()))
+    faceted = export_mesh(mesh, atlas, tf, weld=False)
+    welded = export_mesh(mesh, atlas, tf)
+    assert len(faceted.positions) == 3 * len(mesh.faces)
+    assert len(welded.positions) < 0.75 * len(mesh.faces)  # the candle: 13,440 faces, 6,722 positions
+    assert len({tuple(r) for r in np.concatenate([welded.positions, welded.normals, welded.uv, welded.tangents], 1)}) == len(
+        welded.positions
+    )
+    g = pygltflib.GLTF2().load(str(trained / "export" / "model.glb"))
+    blob = g.binary_blob()
+    prim = g.meshes[0].primitives[0]
+
+    def read(index, dtype, width):
+        acc = g.accessors[index]
+        view = g.bufferViews[acc.bufferView]
+        data = np.frombuffer(blob, dtype, acc.count * width, view.byteOffset + (acc.byteOffset or 0))
+        return data.reshape(acc.count, width) if width > 1 else data
+
+    idx_acc = g.accessors[prim.indices]
+    idx = read(prim.indices, np.uint16 if idx_acc.componentType == pygltflib.UNSIGNED_SHORT else np.uint32, 1).astype(np.int64)
+    assert g.accessors[prim.attributes.POSITION].count == len(welded.positions)
+    for attr, ref, width in (("POSITION", faceted.positions, 3), ("NORMAL", faceted.normals, 3), ("TEXCOORD_0", faceted.uv, 2)):
+        np.testing.assert_array_equal(read(getattr(prim.attributes, attr), np.float32, width)[idx], ref)
+    np.testing.assert_array_equal(read(prim.attributes.TANGENT, np.float32, 4)[idx], faceted.tangents)
+    size = json.loads((trained / "export" / "meta.json").read_text())["stats"]["file_bytes"]
+    assert size["model.glb"] == (trained / "export" / "model.glb").stat().st_size
 
 
 def test_khronos_gltf_validator(trained):

@@ -160,3 +160,37 @@ def test_every_up_axis_the_settings_accept_has_a_rotation():
     for r in UP_AXIS_ROTATIONS.values():
         np.testing.assert_allclose(r @ r.T, np.eye(3), atol=1e-15)
         assert np.linalg.det(r) == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize("up", sorted(UP_AXIS_ROTATIONS))
+@pytest.mark.parametrize("name", ["vase", "candle"])
+def test_auto_up_axis_finds_the_base_of_a_standing_object_in_every_orientation(tmp_path, name, up):
+    """The built-in vase and candle stand on a flat base: written with any of the six up axes
+    into an OBJ (a format without a convention), ``up_axis: auto`` guesses that axis, the
+    normalised mesh is the +y-up one, and the metadata says it was a guess, with its evidence."""
+    v, f = builtin_mesh(name)
+    rot = UP_AXIS_ROTATIONS[up]
+    path = tmp_path / f"{name}.obj"
+    trimesh.Trimesh(v @ rot, f, process=False).export(path)  # rot turns the file back to +y up
+    result = normalize_mesh(path, NormalizeSettings(up_axis="auto"))
+    rec = result.stats["up_axis"]
+    assert rec["axis"] == up and rec["method"] == "guess" and rec["candidates"][up]["stable"]
+    assert rec["margin"] is None or rec["margin"] > 1.0
+    reference = normalize_mesh(f"builtin:{name}", NormalizeSettings())
+    np.testing.assert_allclose(result.mesh.vertices, reference.mesh.vertices, atol=1e-6)
+
+
+def test_auto_up_axis_follows_the_format_or_the_setting(tmp_path):
+    v, f = builtin_mesh("candle")
+    glb = tmp_path / "c.glb"
+    trimesh.Trimesh(v, f, process=False).export(glb)
+    rec = normalize_mesh(glb, NormalizeSettings(up_axis="auto")).stats["up_axis"]
+    assert rec["axis"] == "+y" and rec["method"] == "format convention" and "glTF" in rec["reason"]
+    assert normalize_mesh("builtin:knot", NormalizeSettings(up_axis="auto")).stats["up_axis"]["method"] == "built-in"
+    assert normalize_mesh("builtin:knot", NormalizeSettings(up_axis="-z")).stats["up_axis"] == {
+        "axis": "-z",
+        "method": "setting",
+        "reason": "normalize.up_axis",
+    }
+    with pytest.raises(Exception, match="auto"):
+        NormalizeSettings(up_axis="up")

@@ -247,3 +247,38 @@ def test_front_view_is_the_view_nearest_the_recorded_anchor(tmp_path, anchor):
     np.savez(tmp_path / "old.npz", **old)
     with pytest.raises(StageInputError, match="anchor"):
         RayCache(tmp_path / "old.npz").front_view()
+
+
+def test_anchor_in_degrees_moves_the_pool_and_the_front_view_and_is_recorded(tmp_path):
+    """``anchor_deg`` (per mesh, degrees) replaces the radian anchor: view 0 of the pool sits at
+    it, the caches record it, the front view follows it, and the metadata says what set it."""
+    import json
+    import math
+
+    from stages.core.errors import ConfigError
+    from stages.geometry.meshio import save_ply
+
+    s = RaycacheSettings(views=3, resolution=16, eval_resolution=16, metrics_resolution=16, anchor_deg=(-90.0, 20.0))
+    az, el, source = s.anchor()
+    assert (az, el) == pytest.approx((-math.pi / 2, math.radians(20.0))) and source == "raycache.anchor_deg"
+    assert RaycacheSettings().anchor()[2].startswith("default")
+    assert "radians" in RaycacheSettings(anchor_azimuth=0.5).anchor()[2]
+    save_ply(tmp_path / "m.ply", icosphere(2))
+    raycache.run(tmp_path / "m.ply", tmp_path / "t.npz", tmp_path / "e.npz", tmp_path / "meta.json", s)
+    train = RayCache(tmp_path / "t.npz")
+    assert train.arrays["azimuth"][0] == pytest.approx(-math.pi / 2) and train.arrays["elevation"][0] == pytest.approx(
+        math.radians(20)
+    )
+    # camera 0 looks from azimuth -90 deg: from -z (azimuth measured from +x towards +z)
+    eye = train.arrays["c2w"][0][:3, 3]
+    np.testing.assert_allclose(
+        eye / np.linalg.norm(eye), [0.0, math.sin(math.radians(20)), -math.cos(math.radians(20))], atol=1e-9
+    )
+    meta = json.loads((tmp_path / "meta.json").read_text())
+    assert meta["anchor"]["set_by"] == "raycache.anchor_deg" and meta["anchor"]["azimuth_deg"] == pytest.approx(-90.0)
+    evalc = RayCache(tmp_path / "e.npz")
+    front = evalc.arrays["c2w"][evalc.front_view()][:3, 3]
+    assert front[2] < -0.5 * np.linalg.norm(front)  # the evaluation view on the -z side
+    for bad in ((0.0, 90.0), (10.0,)):
+        with pytest.raises(ConfigError, match="anchor_deg"):
+            RaycacheSettings(anchor_deg=bad)
