@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import types
 import typing
 from typing import Any, Self
 
@@ -36,7 +37,9 @@ class Settings:
         hints = typing.get_type_hints(cls)
         for name, value in data.items():
             hint = hints[name]
-            if hint is tuple or typing.get_origin(hint) is tuple:
+            # a tuple, or an optional one (``tuple[...] | None``) given a list
+            options = typing.get_args(hint) if isinstance(hint, types.UnionType) else (hint,)
+            if isinstance(value, list) and any(h is tuple or typing.get_origin(h) is tuple for h in options):
                 value = tuple(value)
             kwargs[name] = value
         return cls(**kwargs)

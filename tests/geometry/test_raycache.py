@@ -262,6 +262,7 @@ def test_anchor_in_degrees_moves_the_pool_and_the_front_view_and_is_recorded(tmp
     az, el, source = s.anchor()
     assert (az, el) == pytest.approx((-math.pi / 2, math.radians(20.0))) and source == "raycache.anchor_deg"
     assert RaycacheSettings().anchor()[2].startswith("default")
+    assert RaycacheSettings.from_dict({"anchor_deg": [90, 15]}).anchor_deg == (90, 15)  # a config's list
     assert "radians" in RaycacheSettings(anchor_azimuth=0.5).anchor()[2]
     save_ply(tmp_path / "m.ply", icosphere(2))
     raycache.run(tmp_path / "m.ply", tmp_path / "t.npz", tmp_path / "e.npz", tmp_path / "meta.json", s)
