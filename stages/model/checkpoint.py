@@ -14,6 +14,9 @@ from .field import StyleField
 
 #: version of the ``field.pt`` layout
 FIELD_FORMAT = 1
+#: settings a ``field.pt`` written before they existed was trained with (their defaults changed
+#: when they came: it must be rebuilt as it was trained, not with today's defaults)
+SETTINGS_BEFORE_THEY_EXISTED = {"specular_lobe": "isotropic", "shading_normals": "flat"}
 
 
 def save_field(path: str | Path, field: StyleField, settings: OptimizeSettings, prompt: str, origin: dict[str, Any]) -> None:
@@ -37,7 +40,7 @@ def load_field(path: str | Path, device="cpu") -> tuple[StyleField, OptimizeSett
     every stage that uses the field copies into its own outputs."""
     data = torch.load(path, map_location=device, weights_only=False)
     origin = checked_origin(data.get(ORIGIN_KEY), path, "the optimize stage")
-    settings = OptimizeSettings.from_dict(data["settings"])
+    settings = OptimizeSettings.from_dict({**SETTINGS_BEFORE_THEY_EXISTED, **data["settings"]})
     f = StyleField(settings.field_settings()).to(device)
     f.load_state_dict(data["state_dict"])
     f.origin = origin

@@ -106,6 +106,15 @@ def test_outputs_and_metadata(cache, tmp_path):
     assert light["equirect"].shape == (128, 256, 3) and (light["equirect"] > 0).all()
     field, settings = load_field(tmp_path / "field.pt")
     assert settings == s and isinstance(field, StyleField)
+    # a field.pt written before specular_lobe and shading_normals existed is rebuilt as it was
+    # trained (TANGO's isotropic lobe, flat normals), not with today's defaults
+    data = torch.load(tmp_path / "field.pt", weights_only=False)
+    for key in ("specular_lobe", "shading_normals"):
+        del data["settings"][key]
+    torch.save(data, tmp_path / "old.pt")
+    old_field, old = load_field(tmp_path / "old.pt")
+    assert (old.specular_lobe, old.shading_normals) == ("isotropic", "flat")
+    assert (old_field.specular_lobe, old_field.normals.mode) == ("isotropic", "flat")
     from PIL import Image
 
     sheet = Image.open(tmp_path / "renders" / "rgb.png")
