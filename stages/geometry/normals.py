@@ -209,6 +209,14 @@ def interpolate_normals(corner: np.ndarray, face: np.ndarray, bary: np.ndarray, 
     return _unit_or(mixed, fallback)
 
 
+def perpendicular(n: np.ndarray) -> np.ndarray:
+    """An arbitrary vector ``(N, 3)`` orthogonal to each unit ``n (N, 3)`` (not normalised): +x, or
+    +y where ``n`` is within about 25 degrees of the x axis, made orthogonal to ``n``. The frame of
+    a face or corner whose texture derivatives are degenerate."""
+    axis = np.where(np.abs(n[:, :1]) < 0.9, np.array([[1.0, 0, 0]]), np.array([[0, 1.0, 0]]))
+    return axis - n * (n * axis).sum(-1, keepdims=True)
+
+
 def _unit_or(x: np.ndarray, fallback: np.ndarray) -> np.ndarray:
     norm = np.linalg.norm(x, axis=-1, keepdims=True)
     tiny = norm <= 1e-12

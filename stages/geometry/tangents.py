@@ -28,7 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .normals import NormalSpec, corner_groups, unit_face_normals
+from .normals import NormalSpec, corner_groups, perpendicular, unit_face_normals
 
 
 def face_uv_derivatives(positions: np.ndarray, st: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -78,9 +78,7 @@ def mikktspace(positions: np.ndarray, normals: np.ndarray, st: np.ndarray, share
     norm = np.linalg.norm(t, axis=-1, keepdims=True)
     bad = norm[..., 0] <= 1e-12
     if bad.any():
-        nb = n[bad]
-        axis = np.where(np.abs(nb[:, :1]) < 0.9, np.array([[1.0, 0, 0]]), np.array([[0, 1.0, 0]]))
-        t[bad] = axis - nb * (nb * axis).sum(-1, keepdims=True)
+        t[bad] = perpendicular(n[bad])
         norm = np.linalg.norm(t, axis=-1, keepdims=True)
     return t / np.maximum(norm, 1e-300), w
 

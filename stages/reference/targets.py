@@ -40,7 +40,7 @@ import torch
 from ..config.sections import TargetSettings
 from ..geometry.atlas import dilate, rasterize_atlas, sample_bilinear, unwrap
 from ..geometry.meshio import TriMesh
-from ..geometry.normals import NormalSpec, interpolate_normals
+from ..geometry.normals import NormalSpec, interpolate_normals, perpendicular
 from ..geometry.raycache import RayCache
 from ..geometry.tracing import EmbreeTracer
 from ..model.procedural import procedural_material
@@ -141,9 +141,7 @@ def mitsuba_frames(dp_du: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.nda
     handedness; measured in tests/reference). ``(N, 3)`` each."""
     s = dp_du - (dp_du * n).sum(1, keepdims=True) * n
     norm = np.linalg.norm(s, axis=1, keepdims=True)
-    fallback = np.where(np.abs(n[:, :1]) < 0.9, np.array([[1.0, 0, 0]]), np.array([[0, 1.0, 0]]))
-    fallback = fallback - (fallback * n).sum(1, keepdims=True) * n
-    s = np.where(norm > 1e-20, s, fallback)
+    s = np.where(norm > 1e-20, s, perpendicular(n))
     s /= np.linalg.norm(s, axis=1, keepdims=True)
     return s, np.cross(n, s), n
 
