@@ -16,6 +16,7 @@ include: "workflow/rules/export.smk"
 include: "workflow/rules/relight.smk"
 include: "workflow/rules/metrics.smk"
 include: "workflow/rules/roundtrip.smk"
+include: "workflow/rules/lod.smk"
 include: "workflow/rules/report.smk"
 
 

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .assets.baking import BakedHits, bake_field, cached_barycentrics, decode_textures, render_baked
+from .assets.baking import bake_field, decode_textures, render_baked_views
 from .config.sections import BakeSettings
 from .core.cli import stage_main
 from .core.errors import StageInputError
@@ -67,17 +67,13 @@ def run(
             store = ViewStore(evalc, torch.device(device), field.normals)
             tex = decode_textures(res.textures)
             light = field.light()
+            baked = render_baked_views(evalc, res.atlas.uv, tex, res.frames, light, device, field.specular_lobe)
             preds, refs = [], []
             for i in range(len(evalc)):
-                hits = evalc.view(i)
-                hits_bary = cached_barycentrics(evalc, i)
-                baked = render_baked(
-                    BakedHits(hits, hits_bary), res.atlas.uv, tex, res.frames, light, device, field.specular_lobe
-                )
                 v = store[i]
                 with torch.no_grad():
                     ref = field(v.points, v.normals, v.view).shading.rgb
-                preds.append(linear_to_srgb(baked))
+                preds.append(linear_to_srgb(baked[i]))
                 refs.append(linear_to_srgb(ref))
             bake_psnr = psnr(torch.cat(preds), torch.cat(refs))
             # the preview: the baked asset from the evaluation view nearest the anchor (front) view

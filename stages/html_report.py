@@ -132,6 +132,15 @@ def fidelity_lines(row) -> str:
         if problems:
             text += f"; {int(problems)} import problem(s), see roundtrip/meta.json"
         lines.append(text)
+    if "lod_faces" in row and isinstance(row["lod_faces"].iloc[0], str):
+        levels = zip(
+            row["lod_faces"].iloc[0].split("/"),
+            str(row["lod_glb_bytes"].iloc[0]).split("/"),
+            str(row["lod_fidelity_psnr_db"].iloc[0]).split("/"),
+            strict=True,
+        )
+        parts = [f"lod{k} {int(f):,} faces, {int(b) / 1e6:.2f} MB GLB, {q} dB" for k, (f, b, q) in enumerate(levels)]
+        lines.append("levels of detail (baked render vs the full neural render, object pixels): " + "; ".join(parts))
     return "".join(f"<br><small class='fidelity'>{html.escape(t)}</small>" for t in lines)
 
 

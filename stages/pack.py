@@ -45,7 +45,9 @@ def pack_readme(rows: list[dict]) -> str:
         ]
     lines += [
         "Each folder <mesh>/<prompt>/<variant>/ holds model.usdz, model.usda, model.glb, textures/,",
-        "light.exr/.hdr (the learned environment light), preview.png and meta.json (full provenance).",
+        "light.exr/.hdr (the learned environment light), preview.png and meta.json (full provenance);",
+        "where levels of detail were made, lod/ holds lodK/model.{glb,usdz,usda} per level and",
+        "model_lods.usdz (USD variant set LOD) and model_lods.glb (MSFT_lod) with all of them.",
         "The origin is also inside each model: glTF asset.extras.tango_stylize, USD customLayerData.",
         "",
         "Assets and what made them:",
@@ -54,7 +56,10 @@ def pack_readme(rows: list[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def run(results: Path, cells: list[tuple[str, str, str]], out_zip: Path, out_index: Path) -> list[dict]:
+def run(
+    results: Path, cells: list[tuple[str, str, str]], out_zip: Path, out_index: Path, lod_cells: list[tuple[str, str, str]] = ()
+) -> list[dict]:
+    """Pack the export folder of every cell (and the ``lod`` folder of each of ``lod_cells``)."""
     rows = []
     entries = []
     for mesh, prompt, variant in cells:
@@ -67,6 +72,17 @@ def run(results: Path, cells: list[tuple[str, str, str]], out_zip: Path, out_ind
         files = sorted(p for p in asset.rglob("*") if p.is_file() and not p.name.startswith("."))
         rel = [str(p.relative_to(asset)) for p in files]
         entries += [(p, f"{mesh}/{prompt}/{variant}/{r}") for p, r in zip(files, rel, strict=True)]
+        levels = ""
+        if (mesh, prompt, variant) in set(lod_cells):
+            lod = asset.parent / "lod"
+            lod_meta = lod / "meta.json"
+            if not lod_meta.is_file():
+                raise StageInputError(lod_meta, "file not found", "Run the lod stage first.")
+            lod_files = sorted(p for p in lod.rglob("*") if p.is_file() and not p.name.startswith("."))
+            lod_rel = [f"lod/{p.relative_to(lod)}" for p in lod_files]
+            entries += [(p, f"{mesh}/{prompt}/{variant}/{r}") for p, r in zip(lod_files, lod_rel, strict=True)]
+            rel += lod_rel
+            levels = ";".join(f"{r['level']}:{r['faces']}" for r in json.loads(lod_meta.read_text())["stats"]["levels"])
         rows.append(
             {
                 "mesh": mesh,
@@ -85,6 +101,7 @@ def run(results: Path, cells: list[tuple[str, str, str]], out_zip: Path, out_ind
                 "usd_validation_warnings": meta["stats"]["usd_validation_warnings"],
                 "gltf_validation_errors": meta["stats"]["gltf_validation_errors"],
                 "gltf_validation_warnings": meta["stats"]["gltf_validation_warnings"],
+                "lod_levels": levels,
             }
         )
     buf = io.StringIO()
@@ -109,9 +126,10 @@ def main(argv: list[str] | None = None) -> int:
         parser.add_argument("--zip", required=True, type=Path)
         parser.add_argument("--index", required=True, type=Path)
         parser.add_argument("--cells", nargs="+", required=True)
+        parser.add_argument("--lod-cells", nargs="*", default=[], help="cells whose lod folder is packed too")
 
     def body(args):
-        run(args.results, parse_cells(args.cells), args.zip, args.index)
+        run(args.results, parse_cells(args.cells), args.zip, args.index, parse_cells(args.lod_cells))
 
     return stage_main("pack", __doc__, arguments, body, argv)
 

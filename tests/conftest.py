@@ -125,3 +125,26 @@ def trained_cell(tmp_path_factory):
         ExportSettings(),
     )
     return d
+
+
+@pytest.fixture(scope="session")
+def lod_cell(trained_cell):
+    """The trained cell's levels of detail (50% and 10% of the candle's faces), in ``lod/``."""
+    from stages import lod
+    from stages.config.sections import BakeSettings, ExportSettings, LodSettings
+
+    d = trained_cell
+    lod.run(
+        d / "mesh.ply",
+        d / "opt" / "field.pt",
+        d / "eval.npz",
+        d / "transform.json",
+        d / "bake",
+        d / "export" / "meta.json",
+        d / "lod",
+        LodSettings(enabled=True, levels=(0.5, 0.1)),
+        BakeSettings(texture_size=256, eval_width=48),
+        ExportSettings(),
+        "candle",
+    )
+    return d

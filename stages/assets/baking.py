@@ -33,8 +33,10 @@ import torch
 from ..config.sections import BakeSettings
 from ..geometry.atlas import Atlas, dilate, rasterize_atlas, sample_bilinear, unwrap
 from ..geometry.meshio import TriMesh
+from ..geometry.normals import NormalSpec, interpolate_normals
 from ..geometry.raycache import dequantize_bary
 from ..geometry.tangents import CornerFrames, from_tangent_space, to_tangent_space
+from ..geometry.tracing import EmbreeTracer
 from ..render.color import srgb_decode, srgb_encode, to_u8
 from ..render.envmap import equirect_directions
 from ..render.shading import face_viewer, shade
@@ -49,55 +51,166 @@ class BakeResult:
     light_equirect: np.ndarray
 
 
-@torch.no_grad()
-def bake_field(mesh: TriMesh, field, settings: BakeSettings, device="cpu", chunk: int = 65536) -> BakeResult:
-    """Unwrap ``mesh``, rasterise the atlas and evaluate ``field`` at every covered texel."""
-    size = settings.size_for(len(mesh.faces))
-    atlas = unwrap(mesh, size, settings.padding)
+@dataclass
+class AtlasTexels:
+    """The covered texels of an atlas: ``filled (S, S) bool``, and per covered texel (row-major
+    order) its ``face (M,)``, barycentrics ``bary (M, 2)`` (Embree's ``(u, v)``) and 3D ``points (M, 3)``."""
+
+    atlas: Atlas
+    filled: np.ndarray
+    face: np.ndarray
+    bary: np.ndarray
+    points: np.ndarray
+
+
+def atlas_texels(mesh: TriMesh, size: int, padding: int) -> AtlasTexels:
+    """Unwrap ``mesh`` into a ``size``-texel atlas and locate every covered texel centre on it."""
+    atlas = unwrap(mesh, size, padding)
     face, bary = rasterize_atlas(atlas.uv, size)
     filled = face >= 0
     fi = face[filled].astype(np.int64)
     uvb = bary[filled].astype(np.float64)
     tri = mesh.vertices[mesh.faces[fi]]
     points = tri[:, 0] + uvb[:, :1] * (tri[:, 1] - tri[:, 0]) + uvb[:, 1:] * (tri[:, 2] - tri[:, 0])
-    frames = CornerFrames.build(mesh.vertices, mesh.faces, atlas.uv, field.normals)
-    t, b, n = frames.at(fi, uvb)
-    normals = n / np.linalg.norm(n, axis=1, keepdims=True)
-    albedo, spec, rough, pred = [], [], [], []
+    return AtlasTexels(atlas, filled, fi, uvb, points)
+
+
+@torch.no_grad()
+def evaluate_surface(field, points: np.ndarray, normals: np.ndarray, device="cpu", chunk: int = 65536) -> dict[str, np.ndarray]:
+    """The field's material and predicted world normal at ``points (M, 3)`` with shading
+    ``normals (M, 3)`` (float64 arrays): ``albedo, specular (M, 3)``, ``roughness (M, 1)`` (the
+    last two absent for a diffuse-only field) and ``normal (M, 3)``."""
+    out: dict[str, list] = {"albedo": [], "specular": [], "roughness": [], "normal": []}
     p_t = torch.from_numpy(points.astype(np.float32)).to(device)
     n_t = torch.from_numpy(normals.astype(np.float32)).to(device)
     for lo in range(0, len(p_t), chunk):
         mat, normal = field.surface(p_t[lo : lo + chunk], n_t[lo : lo + chunk])
-        albedo.append(mat.albedo)
+        out["albedo"].append(mat.albedo)
         if mat.specular is not None:
-            spec.append(mat.specular)
-            rough.append(mat.roughness)
-        pred.append(normal)
-    s = size
+            out["specular"].append(mat.specular)
+            out["roughness"].append(mat.roughness)
+        out["normal"].append(normal)
+    return {k: torch.cat(v).cpu().double().numpy() for k, v in out.items() if v}
+
+
+def texture_images(texels: AtlasTexels, surface: dict[str, np.ndarray], tangent_normal: np.ndarray, dilation: int) -> dict:
+    """The four 8-bit texture images (see the module docstring) from the per-texel ``surface``
+    (:func:`evaluate_surface`) and the normal in tangent space, with empty texels dilated."""
+    s = texels.atlas.size
+    filled = texels.filled
     base = np.zeros((s, s, 3))
-    base[filled] = torch.cat(albedo).cpu().double().numpy()
+    base[filled] = surface["albedo"]
     spc = np.zeros((s, s, 3))
     rgh = np.ones((s, s, 1))
-    if spec:
-        spc[filled] = torch.cat(spec).cpu().double().numpy()
-        rgh[filled] = torch.cat(rough).cpu().double().numpy()
-    pn = torch.cat(pred).cpu().double().numpy()
+    if "specular" in surface:
+        spc[filled] = surface["specular"]
+        rgh[filled] = surface["roughness"]
     nrm = np.zeros((s, s, 3))
     nrm[..., 2] = 1.0
-    nrm[filled] = to_tangent_space(pn, t, b, n)
-    base, spc, rgh, nrm = (dilate(x, filled, settings.dilation) for x in (base, spc, rgh, nrm))
+    nrm[filled] = tangent_normal
+    base, spc, rgh, nrm = (dilate(x, filled, dilation) for x in (base, spc, rgh, nrm))
     mr = np.concatenate([np.ones((s, s, 1)), rgh, np.zeros((s, s, 1))], axis=-1)  # R unused, G rough, B metal
-    textures = {
+    return {
         "basecolor": to_u8(srgb_encode(base)),
         "metallic_roughness": to_u8(mr),
         "specular": to_u8(srgb_encode(spc)),
         "normal": to_u8(0.5 + 0.5 * nrm),
     }
+
+
+def light_image(field, width: int, device="cpu") -> np.ndarray:
+    """The field's learned SG light as an equirectangular ``(width / 2, width, 3)`` float32 image."""
     light = field.light()
-    h = settings.light_width // 2
-    dirs = equirect_directions(h, settings.light_width).to(device)
-    env = light.radiance(dirs.reshape(-1, 3)).reshape(h, settings.light_width, 3).cpu().numpy().astype(np.float32)
-    return BakeResult(atlas, textures, frames, float(filled.mean()), env)
+    h = width // 2
+    dirs = equirect_directions(h, width).to(device)
+    with torch.no_grad():
+        env = light.radiance(dirs.reshape(-1, 3))
+    return env.reshape(h, width, 3).cpu().numpy().astype(np.float32)
+
+
+def bake_field(mesh: TriMesh, field, settings: BakeSettings, device="cpu") -> BakeResult:
+    """Unwrap ``mesh``, rasterise the atlas and evaluate ``field`` at every covered texel."""
+    texels = atlas_texels(mesh, settings.size_for(len(mesh.faces)), settings.padding)
+    frames = CornerFrames.build(mesh.vertices, mesh.faces, texels.atlas.uv, field.normals)
+    t, b, n = frames.at(texels.face, texels.bary)
+    normals = n / np.linalg.norm(n, axis=1, keepdims=True)
+    surface = evaluate_surface(field, texels.points, normals, device)
+    textures = texture_images(texels, surface, to_tangent_space(surface["normal"], t, b, n), settings.dilation)
+    env = light_image(field, settings.light_width, device)
+    return BakeResult(texels.atlas, textures, frames, float(texels.filled.mean()), env)
+
+
+# ------------------------------------------------------------------------ levels of detail (high-to-low)
+@dataclass
+class Projection:
+    """Texel points of a coarse level carried to the fine surface: ``points, normals (M, 3)`` on
+    the fine mesh (shading normals of its ``spec``, turned to the coarse normal's side), ``found
+    (M,) bool`` (a fine surface within the search distance; elsewhere the coarse point and normal
+    are kept) and the signed ``offset (M,)`` along the coarse normal (NaN where not found)."""
+
+    points: np.ndarray
+    normals: np.ndarray
+    found: np.ndarray
+    offset: np.ndarray
+
+
+def project_to_surface(fine: TriMesh, points: np.ndarray, normals: np.ndarray, search: float, spec: NormalSpec) -> Projection:
+    """The classic high-to-low bake's ray casts: from each coarse ``points (M, 3)`` along its unit
+    ``normals (M, 3)``, forwards and backwards, the nearer hit on ``fine`` within ``search``
+    (ray length; ties go forwards). The fine hit's shading normal is ``spec``'s (flat, or its
+    smooth corner normals interpolated), flipped where it faces away from the coarse normal (an
+    inconsistently wound fine mesh; the field is two-sided)."""
+    tracer = EmbreeTracer(fine)
+    fwd = tracer.trace(points, normals)
+    bwd = tracer.trace(points, -normals)
+    d_f = np.where(fwd.depth <= search, fwd.depth, np.inf)
+    d_b = np.where(bwd.depth <= search, bwd.depth, np.inf)
+    use_b = d_b < d_f
+    found = np.isfinite(np.minimum(d_f, d_b))
+    face = np.where(use_b, bwd.face, fwd.face).astype(np.int64)
+    bary = np.where(use_b[:, None], bwd.bary, fwd.bary).astype(np.float64)
+    offset = np.where(use_b, -d_b, d_f).astype(np.float64)
+    offset[~found] = np.nan
+    out_p = points.astype(np.float64).copy()
+    out_n = normals.astype(np.float64).copy()
+    if found.any():
+        f, b = face[found], bary[found]
+        tri = fine.vertices[fine.faces[f]]
+        out_p[found] = tri[:, 0] + b[:, :1] * (tri[:, 1] - tri[:, 0]) + b[:, 1:] * (tri[:, 2] - tri[:, 0])
+        flat = fine.face_normals[f]
+        n = flat if spec.mode == "flat" else interpolate_normals(spec.corner_normals(fine.vertices, fine.faces), f, b, flat)
+        n = np.where(((n * normals[found]).sum(1) < 0)[:, None], -n, n)
+        out_n[found] = n
+    return Projection(out_p, out_n, found, offset)
+
+
+@dataclass
+class LevelBake:
+    """A coarse level baked from the field through the fine surface: its atlas texels, frame,
+    textures (as :class:`BakeResult`'s) and the projection that found the fine surface."""
+
+    texels: AtlasTexels
+    frames: CornerFrames
+    textures: dict[str, np.ndarray]
+    projection: Projection
+
+
+def bake_level(
+    fine: TriMesh, coarse: TriMesh, field, size: int, settings: BakeSettings, search: float, device="cpu"
+) -> LevelBake:
+    """Bake ``field`` (trained on ``fine``) onto ``coarse``, a decimated version of it, in a
+    ``size``-texel atlas: each texel's point on ``coarse`` is carried to ``fine`` along the coarse
+    shading normal (:func:`project_to_surface`), the field is evaluated there with the fine
+    surface's shading normal, and the predicted normal is written in the coarse level's own frame,
+    so its normal map carries the detail the coarse geometry lost."""
+    texels = atlas_texels(coarse, size, settings.padding)
+    frames = CornerFrames.build(coarse.vertices, coarse.faces, texels.atlas.uv, field.normals)
+    t, b, n = frames.at(texels.face, texels.bary)
+    unit = n / np.linalg.norm(n, axis=1, keepdims=True)
+    proj = project_to_surface(fine, texels.points, unit, search, field.normals)
+    surface = evaluate_surface(field, proj.points, proj.normals, device)
+    textures = texture_images(texels, surface, to_tangent_space(surface["normal"], t, b, n), settings.dilation)
+    return LevelBake(texels, frames, textures, proj)
 
 
 # ------------------------------------------------------------------------ texture sampling / fidelity
@@ -134,6 +247,15 @@ def render_baked(hits, uv_faces, tex: dict, frames: CornerFrames, light, device=
     spec = tt(sample_bilinear(tex["specular"], uv))
     rough = tt(np.clip(sample_bilinear(tex["roughness"], uv), 0.01, 1.0))
     return shade(nn_, tt(view), tt(sample_bilinear(tex["albedo"], uv)), light, spec, rough, lobe).rgb
+
+
+def render_baked_views(cache, uv_faces, tex: dict, frames: CornerFrames, light, device="cpu", lobe: str = "isotropic") -> list:
+    """:func:`render_baked` for every view of the ray ``cache`` traced on the baked mesh: per view
+    the linear radiance ``(N, 3)`` of its hits (in the cache's hit order)."""
+    return [
+        render_baked(BakedHits(cache.view(i), cached_barycentrics(cache, i)), uv_faces, tex, frames, light, device, lobe)
+        for i in range(len(cache))
+    ]
 
 
 class BakedHits:

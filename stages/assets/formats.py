@@ -39,7 +39,6 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config.layout import TEXTURE_FILES
 from ..core.errors import StageInputError
 from ..core.provenance import ORIGIN_METADATA_KEY, atomic_path
 from ..geometry.meshio import TriMesh
@@ -121,22 +120,78 @@ def export_mesh(mesh: TriMesh, atlas: dict, transform: Similarity | None, weld: 
 
 
 # ------------------------------------------------------------------------------------------ USD
-def write_usd(path: Path, geom: ExportMesh, meters_per_unit: float, light_file: str | None, origin: dict) -> None:
+@dataclass
+class Level:
+    """One level of detail of an asset: its ``geom``, the folder of its four textures (relative to
+    the written file for USD, any path for glTF) and its variant/node ``name``."""
+
+    name: str
+    geom: ExportMesh
+    textures: str
+
+
+def write_usd(
+    path: Path,
+    geom: ExportMesh | list[Level],
+    meters_per_unit: float,
+    light_file: str | None,
+    origin: dict,
+    extra_data: dict | None = None,
+) -> None:
     """Write ``model.usda``: a Mesh with ``st`` and normals, a UsdPreviewSurface bound to it, and
     a DomeLight with the learned light. Texture paths are relative to the file. ``origin`` (the
     guidance and weights that made the material) goes into the root layer's ``customLayerData``
-    under ``tango_stylize`` and its label into the layer's documentation."""
-    from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdShade, Vt
+    under ``tango_stylize`` (beside ``extra_data``) and its label into the layer's documentation.
+
+    With a list of :class:`Level` (levels of detail, finest first) the mesh and its material live
+    in the variants of a variant set ``LOD`` on ``/Asset`` (one variant per level, named after it,
+    the first selected), so a user or a renderer switches levels by the variant selection."""
+    from pxr import Usd, UsdGeom
 
     stage = Usd.Stage.CreateNew(str(path))
     layer = stage.GetRootLayer()
     layer.documentation = f"tango-stylize asset. {origin['label']}"
-    layer.customLayerData = {ORIGIN_METADATA_KEY: {k: v for k, v in origin.items() if v is not None}}
+    data = {ORIGIN_METADATA_KEY: {k: v for k, v in origin.items() if v is not None}}
+    layer.customLayerData = {**data, **_usd_dictionary(extra_data or {})}
     UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
     UsdGeom.SetStageMetersPerUnit(stage, meters_per_unit)
     root = UsdGeom.Xform.Define(stage, "/Asset")
     stage.SetDefaultPrim(root.GetPrim())
     Usd.ModelAPI(root.GetPrim()).SetKind("component")
+    if isinstance(geom, ExportMesh):
+        _usd_model(stage, geom, "textures")
+    else:
+        variants = root.GetPrim().GetVariantSets().AddVariantSet("LOD")
+        for level in geom:
+            variants.AddVariant(level.name)
+            variants.SetVariantSelection(level.name)
+            with variants.GetVariantEditContext():
+                _usd_model(stage, level.geom, level.textures)
+        variants.SetVariantSelection(geom[0].name)
+    if light_file:
+        _usd_dome_light(stage, light_file)
+    stage.GetRootLayer().Save()
+
+
+def _usd_dictionary(d: dict) -> dict:
+    """``d`` with its lists as the typed arrays a USD dictionary holds (strings or doubles)."""
+    from pxr import Vt
+
+    def value(v):
+        if isinstance(v, dict):
+            return _usd_dictionary(v)
+        if isinstance(v, list | tuple):
+            return Vt.StringArray([str(x) for x in v]) if any(isinstance(x, str) for x in v) else Vt.DoubleArray(list(v))
+        return v
+
+    return {k: value(v) for k, v in d.items()}
+
+
+def _usd_model(stage, geom: ExportMesh, textures: str) -> None:
+    """``/Asset/Geometry/Mesh`` and its material ``/Asset/Looks/TangoMaterial`` reading the four
+    textures from the folder ``textures`` (relative to the layer)."""
+    from pxr import Gf, Sdf, UsdGeom, UsdShade, Vt
+
     # typed parents: importers (Blender's among them) drop an untyped prim from the transform
     # hierarchy, and the up-axis correction applied at /Asset with it
     UsdGeom.Xform.Define(stage, "/Asset/Geometry")
@@ -166,10 +221,10 @@ def write_usd(path: Path, geom: ExportMesh, meters_per_unit: float, light_file: 
     varname.Set("st")
     reader.CreateInput("varname", Sdf.ValueTypeNames.String).ConnectToSource(varname)
 
-    def texture(name: str, file: str, color_space: str, scale=None, bias=None):
+    def texture(name: str, key: str, color_space: str, scale=None, bias=None):
         tex = UsdShade.Shader.Define(stage, f"/Asset/Looks/TangoMaterial/{name}")
         tex.CreateIdAttr("UsdUVTexture")
-        tex.CreateInput("file", Sdf.ValueTypeNames.Asset).Set(file)
+        tex.CreateInput("file", Sdf.ValueTypeNames.Asset).Set(f"{textures}/{key}.png")
         tex.CreateInput("sourceColorSpace", Sdf.ValueTypeNames.Token).Set(color_space)
         tex.CreateInput("wrapS", Sdf.ValueTypeNames.Token).Set("clamp")
         tex.CreateInput("wrapT", Sdf.ValueTypeNames.Token).Set("clamp")
@@ -179,31 +234,33 @@ def write_usd(path: Path, geom: ExportMesh, meters_per_unit: float, light_file: 
             tex.CreateInput("bias", Sdf.ValueTypeNames.Float4).Set(Gf.Vec4f(*bias))
         return tex
 
-    base = texture("BaseColorTexture", TEXTURE_FILES["basecolor"], "sRGB")
+    base = texture("BaseColorTexture", "basecolor", "sRGB")
     base.CreateOutput("rgb", Sdf.ValueTypeNames.Float3)
     surf.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).ConnectToSource(base.ConnectableAPI(), "rgb")
-    spec = texture("SpecularTexture", TEXTURE_FILES["specular"], "sRGB")
+    spec = texture("SpecularTexture", "specular", "sRGB")
     spec.CreateOutput("rgb", Sdf.ValueTypeNames.Float3)
     surf.CreateInput("specularColor", Sdf.ValueTypeNames.Color3f).ConnectToSource(spec.ConnectableAPI(), "rgb")
-    rough = texture("RoughnessTexture", TEXTURE_FILES["metallic_roughness"], "raw")
+    rough = texture("RoughnessTexture", "metallic_roughness", "raw")
     rough.CreateOutput("g", Sdf.ValueTypeNames.Float)
     surf.CreateInput("roughness", Sdf.ValueTypeNames.Float).ConnectToSource(rough.ConnectableAPI(), "g")
-    nrm = texture("NormalTexture", TEXTURE_FILES["normal"], "raw", (2.0, 2.0, 2.0, 1.0), (-1.0, -1.0, -1.0, 0.0))
+    nrm = texture("NormalTexture", "normal", "raw", (2.0, 2.0, 2.0, 1.0), (-1.0, -1.0, -1.0, 0.0))
     nrm.CreateOutput("rgb", Sdf.ValueTypeNames.Float3)
     surf.CreateInput("normal", Sdf.ValueTypeNames.Normal3f).ConnectToSource(nrm.ConnectableAPI(), "rgb")
     UsdShade.MaterialBindingAPI.Apply(mesh.GetPrim()).Bind(mat)
 
-    if light_file:
-        UsdGeom.Xform.Define(stage, "/Asset/Lights")
-        dome = UsdLux.DomeLight.Define(stage, "/Asset/Lights/LearnedLight")
-        # OpenEXR's latlong (USD's dome convention) puts longitude 0 at +z and pi/2 at +x, with
-        # u = (pi - longitude) / 2 pi; our maps put u = azimuth / 2 pi at (cos a, 0, sin a): a
-        # quarter turn apart (DOME_ROTATE_Y_DEG; Blender's importer checks it in the tests)
-        UsdGeom.Xformable(dome.GetPrim()).AddRotateYOp().Set(DOME_ROTATE_Y_DEG)
-        dome.CreateTextureFileAttr().Set(light_file)
-        dome.CreateTextureFormatAttr().Set(UsdLux.Tokens.latlong)
-        dome.CreateIntensityAttr().Set(1.0)
-    stage.GetRootLayer().Save()
+
+def _usd_dome_light(stage, light_file: str) -> None:
+    from pxr import UsdGeom, UsdLux
+
+    UsdGeom.Xform.Define(stage, "/Asset/Lights")
+    dome = UsdLux.DomeLight.Define(stage, "/Asset/Lights/LearnedLight")
+    # OpenEXR's latlong (USD's dome convention) puts longitude 0 at +z and pi/2 at +x, with
+    # u = (pi - longitude) / 2 pi; our maps put u = azimuth / 2 pi at (cos a, 0, sin a): a
+    # quarter turn apart (DOME_ROTATE_Y_DEG; Blender's importer checks it in the tests)
+    UsdGeom.Xformable(dome.GetPrim()).AddRotateYOp().Set(DOME_ROTATE_Y_DEG)
+    dome.CreateTextureFileAttr().Set(light_file)
+    dome.CreateTextureFormatAttr().Set(UsdLux.Tokens.latlong)
+    dome.CreateIntensityAttr().Set(1.0)
 
 
 def package_usdz(usda: Path, usdz: Path, files: list[str], root: str = "usdc") -> None:
@@ -296,12 +353,26 @@ def validate_glb(path: Path) -> dict:
 
 
 # ----------------------------------------------------------------------------------------- glTF
-def write_glb(path: Path, geom: ExportMesh, textures_dir: Path, meters_per_unit: float, name: str, origin: dict) -> None:
+def write_glb(
+    path: Path,
+    geom: ExportMesh,
+    textures_dir: Path,
+    meters_per_unit: float,
+    name: str,
+    origin: dict,
+    lods: list[tuple[ExportMesh, Path]] = (),
+    screen_coverage: list[float] | None = None,
+) -> None:
     """Write a self-contained binary glTF 2.0 file (see the module docstring for the mapping);
-    ``origin`` goes into ``asset.extras.tango_stylize``."""
+    ``origin`` goes into ``asset.extras.tango_stylize``.
+
+    ``lods`` (coarser levels, each geometry with its textures' folder) makes the file an
+    ``MSFT_lod`` asset: the scene's node holds the finest level and lists one node per coarser
+    level (outside the scene) in ``extensions.MSFT_lod.ids``, each with its own mesh and material,
+    and ``extras.MSFT_screencoverage`` (one threshold per level, finest first) says when to switch.
+    A viewer without the extension shows the finest level."""
     import pygltflib as g
 
-    pos = geom.positions * np.float32(meters_per_unit)
     blobs: list[bytes] = []
     views: list[g.BufferView] = []
     accessors: list[g.Accessor] = []
@@ -325,45 +396,60 @@ def write_glb(path: Path, geom: ExportMesh, textures_dir: Path, meters_per_unit:
         accessors.append(acc)
         return len(accessors) - 1
 
-    attrs = g.Attributes(
-        POSITION=add_accessor(pos, g.VEC3, minmax=True),
-        NORMAL=add_accessor(geom.normals, g.VEC3),
-        TANGENT=add_accessor(geom.tangents, g.VEC4),
-        TEXCOORD_0=add_accessor(geom.uv, g.VEC2),
-    )
-    # 16-bit indices where they suffice (glTF allows both; the 65535th index is reserved for restarts)
-    index_type = np.uint16 if len(pos) < 65535 else np.uint32
-    indices = add_accessor(geom.indices.reshape(-1).astype(index_type), g.SCALAR, target=g.ELEMENT_ARRAY_BUFFER)
-    images, textures = [], []
-    for key in ("basecolor", "metallic_roughness", "normal", "specular"):
-        view = add_view((textures_dir / f"{key}.png").read_bytes())
-        images.append(g.Image(bufferView=view, mimeType="image/png", name=key))
-        textures.append(g.Texture(source=len(images) - 1, sampler=0))
-    material = g.Material(
-        name="TangoMaterial",
-        pbrMetallicRoughness=g.PbrMetallicRoughness(
-            baseColorTexture=g.TextureInfo(index=0),
-            metallicRoughnessTexture=g.TextureInfo(index=1),
-            metallicFactor=1.0,  # the texture's blue channel (0) is the metalness
-            roughnessFactor=1.0,
-        ),
-        normalTexture=g.NormalMaterialTexture(index=2),
-        doubleSided=True,
-        extensions={
-            "KHR_materials_specular": {
-                "specularFactor": 1.0,
-                "specularColorFactor": [25.0, 25.0, 25.0],
-                "specularColorTexture": {"index": 3},
-            }
-        },
-    )
+    images, textures, materials, meshes, nodes = [], [], [], [], []
+    for k, (level, tex_dir) in enumerate([(geom, textures_dir), *lods]):
+        pos = level.positions * np.float32(meters_per_unit)
+        attrs = g.Attributes(
+            POSITION=add_accessor(pos, g.VEC3, minmax=True),
+            NORMAL=add_accessor(level.normals, g.VEC3),
+            TANGENT=add_accessor(level.tangents, g.VEC4),
+            TEXCOORD_0=add_accessor(level.uv, g.VEC2),
+        )
+        # 16-bit indices where they suffice (glTF allows both; the 65535th index is reserved for restarts)
+        index_type = np.uint16 if len(pos) < 65535 else np.uint32
+        indices = add_accessor(level.indices.reshape(-1).astype(index_type), g.SCALAR, target=g.ELEMENT_ARRAY_BUFFER)
+        first = len(textures)
+        for key in ("basecolor", "metallic_roughness", "normal", "specular"):
+            view = add_view((Path(tex_dir) / f"{key}.png").read_bytes())
+            images.append(g.Image(bufferView=view, mimeType="image/png", name=key if not lods else f"lod{k}_{key}"))
+            textures.append(g.Texture(source=len(images) - 1, sampler=0))
+        materials.append(
+            g.Material(
+                name="TangoMaterial" if not lods else f"TangoMaterial_lod{k}",
+                pbrMetallicRoughness=g.PbrMetallicRoughness(
+                    baseColorTexture=g.TextureInfo(index=first),
+                    metallicRoughnessTexture=g.TextureInfo(index=first + 1),
+                    metallicFactor=1.0,  # the texture's blue channel (0) is the metalness
+                    roughnessFactor=1.0,
+                ),
+                normalTexture=g.NormalMaterialTexture(index=first + 2),
+                doubleSided=True,
+                extensions={
+                    "KHR_materials_specular": {
+                        "specularFactor": 1.0,
+                        "specularColorFactor": [25.0, 25.0, 25.0],
+                        "specularColorTexture": {"index": first + 3},
+                    }
+                },
+            )
+        )
+        label = name if not lods else f"{name}_lod{k}"
+        meshes.append(g.Mesh(name=label, primitives=[g.Primitive(attributes=attrs, indices=indices, material=k)]))
+        nodes.append(g.Node(mesh=k, name=label))
+    used = ["KHR_materials_specular"]
+    if lods:
+        if screen_coverage is None or len(screen_coverage) != len(lods) + 1:
+            raise ValueError(f"MSFT_lod needs one screen coverage per level ({len(lods) + 1}), got {screen_coverage}")
+        nodes[0].extensions = {"MSFT_lod": {"ids": list(range(1, len(nodes)))}}
+        nodes[0].extras = {"MSFT_screencoverage": [float(c) for c in screen_coverage]}
+        used.append("MSFT_lod")
     gltf = g.GLTF2(
         asset=g.Asset(version="2.0", generator="tango-stylize", extras={ORIGIN_METADATA_KEY: origin}),
         scene=0,
         scenes=[g.Scene(nodes=[0])],
-        nodes=[g.Node(mesh=0, name=name)],
-        meshes=[g.Mesh(name=name, primitives=[g.Primitive(attributes=attrs, indices=indices, material=0)])],
-        materials=[material],
+        nodes=nodes,
+        meshes=meshes,
+        materials=materials,
         textures=textures,
         images=images,
         samplers=[
@@ -377,7 +463,7 @@ def write_glb(path: Path, geom: ExportMesh, textures_dir: Path, meters_per_unit:
         accessors=accessors,
         bufferViews=views,
         buffers=[g.Buffer(byteLength=sum(len(b) for b in blobs))],
-        extensionsUsed=["KHR_materials_specular"],
+        extensionsUsed=used,
     )
     gltf.set_binary_blob(b"".join(blobs))
     with atomic_path(path) as tmp:

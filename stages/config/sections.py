@@ -527,6 +527,51 @@ class RoundtripSettings(Settings):
             raise ConfigError("roundtrip: " + "; ".join(problems))
 
 
+@dataclass(frozen=True, kw_only=True)
+class LodSettings(Settings):
+    """Settings of the lod stage (config section ``lod``): levels of detail for artists. The field
+    trained on the traced mesh is baked onto decimated versions of that mesh (a high-to-low bake:
+    each texel of a level looks along its normal for the traced surface and takes the field's
+    material and normal there), and every level is exported on its own and in one USD (variant set
+    ``LOD``) and one GLB (``MSFT_lod``). Off by default."""
+
+    section = "lod"
+    enabled: bool = False
+    #: face fractions of the traced mesh, one level each (lod1, lod2, ...), decreasing, in (0, 1)
+    levels: tuple[float, ...] = (0.5, 0.1, 0.02)
+    #: texture width of every level; null: the full bake's (the detail moves into the normal map)
+    texture_size: int | None = None
+    #: how far a texel's ray looks for the traced surface, in Hausdorff distances between the
+    #: level and the traced mesh (both directions along the level's normal)
+    cage: float = 2.0
+    #: fewest faces of a level (a level below it is refused)
+    min_faces: int = 8
+    #: glTF MSFT_lod switching: the screen coverage at which the full mesh is needed; level k is
+    #: shown below ``full_coverage * levels[k-1]`` (the same triangles per screen area as the full
+    #: mesh at full_coverage)
+    full_coverage: float = 0.5
+
+    def __post_init__(self) -> None:
+        problems = []
+        lv = list(self.levels)
+        if not lv or any(not 0.0 < f < 1.0 for f in lv) or any(a <= b for a, b in zip(lv, lv[1:], strict=False)):
+            problems.append(f"levels must be face fractions in (0, 1), strictly decreasing, got {lv}")
+        if self.texture_size is not None and not 16 <= self.texture_size <= 16384:
+            problems.append(f"texture_size must be in [16, 16384] or null, got {self.texture_size}")
+        if not self.cage > 0:
+            problems.append(f"cage must be > 0, got {self.cage}")
+        if self.min_faces < 4:
+            problems.append(f"min_faces must be >= 4, got {self.min_faces}")
+        if not 0.0 < self.full_coverage <= 1.0:
+            problems.append(f"full_coverage must be in (0, 1], got {self.full_coverage}")
+        if problems:
+            raise ConfigError("lod: " + "; ".join(problems))
+
+    def screen_coverage(self) -> list[float]:
+        """MSFT_screencoverage: the coverage above which each level (lod0 first) is shown."""
+        return [self.full_coverage * f for f in self.levels] + [0.0]
+
+
 #: every config section that holds a stage's settings, and its class
 SECTIONS: dict[str, type[Settings]] = {
     cls.section: cls
@@ -539,6 +584,7 @@ SECTIONS: dict[str, type[Settings]] = {
         BakeSettings,
         ExportSettings,
         RoundtripSettings,
+        LodSettings,
         RelightSettings,
         MetricsSettings,
     )

@@ -32,7 +32,7 @@ SCHEMA_PATH = REPO_ROOT / "workflow" / "schemas" / "config.schema.yaml"
 #: stages whose settings are per mesh (overridable in a mesh entry)
 MESH_STAGES = ("normalize", "decimate", "raycache", "target")
 #: stages after optimize whose settings are per grid cell (overridable per prompt and variant)
-CELL_STAGES = ("bake", "export", "relight", "metrics", "roundtrip")
+CELL_STAGES = ("bake", "export", "relight", "metrics", "roundtrip", "lod")
 
 
 @cache

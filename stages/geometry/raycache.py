@@ -182,13 +182,30 @@ class ViewHits:
 class RayCache:
     """Read access to one cache file written by the raycache stage."""
 
-    def __init__(self, path: str | Path) -> None:
+    def __init__(self, path: str | Path, arrays: dict[str, np.ndarray] | None = None) -> None:
+        """The cache file at ``path``, or (``arrays`` given, as :func:`trace_views` returns them) a
+        cache held in memory, ``path`` naming where it came from."""
         self.path = Path(path)
-        with np.load(self.path) as z:
-            self.arrays = {k: z[k] for k in z.files}
+        if arrays is None:
+            with np.load(self.path) as z:
+                arrays = {k: z[k] for k in z.files}
+        self.arrays = arrays
         self.width = int(self.arrays["width"])
         self.fov_deg = float(self.arrays["fov_deg"])
         self._corners: dict[NormalSpec, np.ndarray] = {}
+
+    def view_set(self) -> ViewSet:
+        """The cameras the cache was traced from (to trace another mesh from the same views)."""
+        a = self.arrays
+        return ViewSet(
+            a["azimuth"],
+            a["elevation"],
+            a["radius"],
+            self.fov_deg,
+            self.width,
+            float(a["anchor_azimuth"]),
+            float(a["anchor_elevation"]),
+        )
 
     def __len__(self) -> int:
         return len(self.arrays["offsets"]) - 1

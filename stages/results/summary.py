@@ -47,6 +47,7 @@ ORIGIN_FILES = (
     ("metrics", "meta.json"),
     ("metrics", "metrics.json"),
     ("roundtrip", "meta.json"),
+    ("lod", "meta.json"),
 )
 
 
@@ -136,6 +137,15 @@ def summary_rows(results: Path, cells: list[tuple[str, str, str]]) -> list[dict]
                 "roundtrip_problems": rts.get("problems"),
                 "roundtrip_transport": rts.get("transport"),
                 "seconds_roundtrip": rt["timings_s"]["total"] if rt else None,
+            }
+        )
+        lod = (_read(cdir / "lod" / "meta.json") or {}).get("stats", {}).get("levels", [])
+        row.update(
+            {
+                # one entry per level (lod0 = the full mesh), "/"-separated
+                "lod_faces": "/".join(str(r["faces"]) for r in lod) or None,
+                "lod_glb_bytes": "/".join(str(r["file_bytes"]["model.glb"]) for r in lod) or None,
+                "lod_fidelity_psnr_db": "/".join(f"{r['fidelity_psnr_db']:.2f}" for r in lod) or None,
             }
         )
         for stage in MESH_STAGES:

@@ -550,6 +550,16 @@ def test_report_fidelity_lines_per_cell():
     metal = wood.assign(target_albedo_rmse=[0.112], target_albedo_rmse_scaled=[None])
     assert "albedo RMSE 0.112, roughness" in fidelity_lines(metal)
     assert fidelity_lines(pd.DataFrame({"target_psnr_db": [None]})) == ""
+    lod = pd.DataFrame(
+        {
+            "lod_faces": ["20352/10176/407"],
+            "lod_glb_bytes": ["2670000/1400000/310000"],
+            "lod_fidelity_psnr_db": ["48.90/41.20/30.05"],
+        }
+    )
+    assert "lod0 20,352 faces, 2.67 MB GLB, 48.90 dB; lod1 10,176 faces, 1.40 MB GLB, 41.20 dB; lod2 407 faces" in fidelity_lines(
+        lod
+    )
 
 
 def test_html_report_opens_in_chromium(trained, tmp_path):

@@ -55,6 +55,7 @@ def test_configfile_replaces_default_and_dag_is_per_mesh(tmp_path):
     for rule in ("optimize", "bake", "export", "relight", "metrics"):
         assert counts[rule] == 3 * 3 * 2, rule
     assert counts["report"] == counts["pack"] == counts["html_report"] == 1
+    assert counts["lod"] == 3 * 2  # levels of detail: the wood prompt's cells only
     assert "silver" not in proc.stdout  # the default config's prompts are not merged in
 
 
@@ -176,6 +177,24 @@ def test_smoke_run(tmp_path):
     for rel in ("export/model.usdz", "export/model.glb", "relight/material_edit.png"):
         assert (res / "vase" / "wood" / "full" / rel).is_file()
     check_test_only_marks(res)
+    # levels of detail for the wood cells only (a prompt-level override), packed with their assets
+    import zipfile
+
+    for mesh in ("vase", "candle", "knot"):
+        for prompt in ("wood", "gold", "ice"):
+            lod = res / mesh / prompt / "full" / "lod"
+            assert (lod / "meta.json").is_file() == (prompt == "wood"), lod
+        meta = json.loads((res / mesh / "wood" / "second" / "lod" / "meta.json").read_text())
+        faces = [r["faces"] for r in meta["stats"]["levels"]]
+        assert len(faces) == 3 and faces[0] > faces[1] > faces[2]
+        assert meta["origin"]["test_only"] is True
+    with zipfile.ZipFile(res / "report" / "asset_pack.zip") as z:
+        names = set(z.namelist())
+    assert "knot/wood/full/lod/model_lods.usdz" in names and "knot/wood/full/lod/lod2/model.glb" in names
+    assert not any("/gold/" in n and "/lod/" in n for n in names)
+    index = pd.read_csv(res / "report" / "asset_index.csv")
+    assert index.loc[index["prompt"] == "wood", "lod_levels"].str.startswith("lod0:").all()
+    assert index.loc[index["prompt"] != "wood", "lod_levels"].isna().all()
     # nothing half-written anywhere
     assert not list(res.rglob(".*.tmp-*")) and not list(res.rglob(".staging-*"))
     # a second run has nothing to do

@@ -227,6 +227,37 @@ def roundtrip_metas():
     ]
 
 
+def lod_inputs(wildcards):
+    cell = f"{RESULTS}/{wildcards.mesh}/{wildcards.prompt}/{wildcards.variant}"
+    return {
+        "mesh": traced_mesh(wildcards),
+        "transform": f"{mesh_dir(wildcards.mesh)}/normalize/transform.json",
+        "field": f"{cell}/optimize/field.pt",
+        "eval": f"{mesh_dir(wildcards.mesh)}/raycache/eval.npz",
+        "atlas": f"{cell}/bake/atlas.npz",
+        "export_meta": f"{cell}/export/meta.json",
+    }
+
+
+def lod_metas():
+    """The levels-of-detail metadata of every cell that has them enabled (section ``lod``)."""
+    return [
+        f"{RESULTS}/{c.mesh}/{c.prompt}/{c.variant}/lod/meta.json"
+        for c in CFG.cells
+        if CFG.cell_stage_settings("lod", c.prompt, c.variant).enabled
+    ]
+
+
+def lod_cells_option():
+    """``--lod-cells`` and the cells with levels of detail, or nothing."""
+    cells = [
+        f"{c.mesh}/{c.prompt}/{c.variant}"
+        for c in CFG.cells
+        if CFG.cell_stage_settings("lod", c.prompt, c.variant).enabled
+    ]
+    return f"--lod-cells {' '.join(cells)}" if cells else ""
+
+
 def decimation_pairs_json(wildcards):
     return json.dumps(CFG.decimation_pairs())
 

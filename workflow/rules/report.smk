@@ -6,6 +6,7 @@ rule report:
         cell_metas("relight/meta.json"),
         cell_metas("metrics/metrics.json"),
         roundtrip_metas(),
+        lod_metas(),
     output:
         summary=report(
             f"{RESULTS}/report/summary.csv",
@@ -54,6 +55,7 @@ rule report:
 rule pack:
     input:
         cell_metas("export/meta.json"),
+        lod_metas(),
     output:
         zip=f"{RESULTS}/report/asset_pack.zip",
         index=f"{RESULTS}/report/asset_index.csv",
@@ -65,10 +67,11 @@ rule pack:
         CONDA_ENV
     params:
         cells=cell_ids(),
+        lod_cells=lod_cells_option(),
         results=results_root,
     shell:
         "python -m stages.pack --results {params.results:q} --zip {output.zip:q} "
-        "--index {output.index:q} --cells {params.cells} 2> {log:q}"
+        "--index {output.index:q} --cells {params.cells} {params.lod_cells} 2> {log:q}"
 
 
 rule html_report:
