@@ -119,7 +119,7 @@ def run(
             f"faces, fewer than lod.min_faces = {settings.min_faces}",
             "Drop those levels from lod.levels, or lower lod.min_faces.",
         )
-    size = settings.texture_size or int(bake_meta["stats"]["texture_size"])
+    full_size = int(bake_meta["stats"]["texture_size"])
     tf_export = tf if export_settings.units == "original" else None
     light = field.light()
     lobe = field.specular_lobe
@@ -163,7 +163,7 @@ def run(
                     "fraction": 1.0,
                     "faces": faces,
                     "vertices_exported": len(geom0.positions),
-                    "texture_size": int(bake_meta["stats"]["texture_size"]),
+                    "texture_size": full_size,
                     "bake_seconds": float(bake_meta["timings_s"]["bake"]),
                     "file_bytes": {k: export_stats["file_bytes"][k] for k in ("model.glb", "model.usdz")},
                     "files": "export/model.glb, export/model.usdz (the export stage's)",
@@ -178,6 +178,7 @@ def run(
             low = dec.mesh
             hausdorff = float(dec.stats["hausdorff_max"])
             search = settings.cage * hausdorff + 1e-6
+            size = settings.level_texture_size(full_size, fraction)
             with t_dec("bake"):
                 res = bake_level(mesh, low, field, size, bake_settings, search, device)
             with t_dec("write"):

@@ -539,8 +539,12 @@ class LodSettings(Settings):
     enabled: bool = False
     #: face fractions of the traced mesh, one level each (lod1, lod2, ...), decreasing, in (0, 1)
     levels: tuple[float, ...] = (0.5, 0.1, 0.02)
-    #: texture width of every level; null: the full bake's (the detail moves into the normal map)
+    #: texture width of every level; null: the full bake's width times the square root of the
+    #: level's face fraction, as a power of two of at least min_texture_size (a level is shown at
+    #: that fraction of the full mesh's screen area, see full_coverage, so its texels per screen
+    #: pixel stay the full asset's)
     texture_size: int | None = None
+    min_texture_size: int = 64
     #: how far a texel's ray looks for the traced surface, in Hausdorff distances between the
     #: level and the traced mesh (both directions along the level's normal)
     cage: float = 2.0
@@ -558,6 +562,8 @@ class LodSettings(Settings):
             problems.append(f"levels must be face fractions in (0, 1), strictly decreasing, got {lv}")
         if self.texture_size is not None and not 16 <= self.texture_size <= 16384:
             problems.append(f"texture_size must be in [16, 16384] or null, got {self.texture_size}")
+        if not 16 <= self.min_texture_size <= 16384:
+            problems.append(f"min_texture_size must be in [16, 16384], got {self.min_texture_size}")
         if not self.cage > 0:
             problems.append(f"cage must be > 0, got {self.cage}")
         if self.min_faces < 4:
@@ -566,6 +572,13 @@ class LodSettings(Settings):
             problems.append(f"full_coverage must be in (0, 1], got {self.full_coverage}")
         if problems:
             raise ConfigError("lod: " + "; ".join(problems))
+
+    def level_texture_size(self, full_size: int, fraction: float) -> int:
+        """Texture width of a level with ``fraction`` of the faces when the full bake is ``full_size``."""
+        if self.texture_size is not None:
+            return int(self.texture_size)
+        size = 2 ** round(math.log2(full_size * math.sqrt(fraction)))
+        return int(min(max(size, self.min_texture_size), full_size))
 
     def screen_coverage(self) -> list[float]:
         """MSFT_screencoverage: the coverage above which each level (lod0 first) is shown."""

@@ -141,6 +141,13 @@ def test_lod_settings_refuse_bad_levels():
         with pytest.raises(ConfigError, match="levels"):
             LodSettings(levels=levels)
     assert LodSettings(levels=(0.5, 0.1)).screen_coverage() == [0.25, 0.05, 0.0]
+    # texture width: the full bake's times sqrt(fraction), a power of two, floored, never above the full
+    sizes = [LodSettings().level_texture_size(1024, f) for f in (0.5, 0.1, 0.02)]
+    assert sizes == [1024, 256, 128]  # 724, 324, 145 before rounding to powers of two
+    assert (
+        LodSettings().level_texture_size(256, 0.02) == 64 and LodSettings(min_texture_size=16).level_texture_size(256, 0.02) == 32
+    )
+    assert LodSettings(texture_size=300).level_texture_size(1024, 0.02) == 300
 
 
 def test_lod_stage_files_and_figures(lod_cell):

@@ -206,6 +206,9 @@ def test_smoke_run(tmp_path):
 def test_keep_going_finishes_other_meshes(tmp_path):
     cfg = yaml.safe_load(SMOKE.read_text())
     cfg["meshes"] = {"vase": {"builtin": "vase"}, "broken": {"path": str(tmp_path / "missing.obj")}}
+    # one cell per mesh is enough to show the good mesh's work going on (the smoke run covers the grid)
+    cfg["prompts"] = {"wood": "a {object} made of wood"}
+    cfg["variants"] = {"full": {}}
     path = tmp_path / "cfg.yaml"
     path.write_text(yaml.safe_dump(cfg))
     proc = run_snakemake(tmp_path, "--cores", "2", "--keep-going", "--configfile", str(path))
@@ -213,6 +216,7 @@ def test_keep_going_finishes_other_meshes(tmp_path):
     assert "not found" in proc.stdout + proc.stderr  # the DAG-time warning
     res = tmp_path / "results"
     assert (res / "vase" / "raycache" / "meta.json").is_file()
+    assert (res / "vase" / "wood" / "full" / "export" / "meta.json").is_file()
     assert not (res / "broken" / "normalize" / "mesh.ply").exists()
     log = (res / "broken" / "logs" / "normalize.log").read_text()
     assert "missing.obj: file not found" in log
