@@ -25,7 +25,7 @@ from .geometry.raycache import RayCache
 from .imaging.images import compose, gather_points, global_spec
 from .imaging.quality import psnr
 from .imaging.sheets import save_png
-from .imaging.views import ViewStore
+from .imaging.views import ViewStore, radiance_at_hits
 from .model.checkpoint import load_field
 from .render.color import linear_to_srgb, to_u8
 from .render.hdrio import write_exr, write_hdr
@@ -68,13 +68,8 @@ def run(
             tex = decode_textures(res.textures)
             light = field.light()
             baked = render_baked_views(evalc, res.atlas.uv, tex, res.frames, light, device, field.specular_lobe)
-            preds, refs = [], []
-            for i in range(len(evalc)):
-                v = store[i]
-                with torch.no_grad():
-                    ref = field(v.points, v.normals, v.view).shading.rgb
-                preds.append(linear_to_srgb(baked[i]))
-                refs.append(linear_to_srgb(ref))
+            preds = [linear_to_srgb(b) for b in baked]
+            refs = [linear_to_srgb(r) for r in radiance_at_hits(field, store)]
             bake_psnr = psnr(torch.cat(preds), torch.cat(refs))
             # the preview: the baked asset from the evaluation view nearest the anchor (front) view
             front = evalc.front_view()

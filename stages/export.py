@@ -15,7 +15,7 @@ from pathlib import Path
 
 from PIL import Image
 
-from .assets.formats import export_mesh, package_usdz, read_atlas, validate_glb, validate_usd, write_glb, write_usd
+from .assets.formats import export_mesh, read_atlas, write_model_files
 from .config.layout import TEXTURE_FILES
 from .config.sections import ExportSettings
 from .core.cli import stage_main
@@ -60,28 +60,8 @@ def run(
                     shutil.copyfile(bake_dir / fname, tmp)
             with atomic_path(staging / "preview.png") as tmp:
                 shutil.copyfile(preview, tmp)
-        with timer("usd"):
-            with atomic_path(staging / "model.usda") as tmp:
-                tmp.unlink()
-                write_usd(tmp, geom, settings.meters_per_unit, "light.exr", origin)
-            package_usdz(
-                staging / "model.usda", staging / "model.usdz", [*TEXTURE_FILES.values(), "light.exr"], settings.usdz_root
-            )
-        with timer("gltf"):
-            write_glb(staging / "model.glb", geom, staging / "textures", settings.meters_per_unit, name, origin)
-        with timer("validate"):
-            usd = [validate_usd(staging / "model.usda"), validate_usd(staging / "model.usdz")]
-            gltf = validate_glb(staging / "model.glb")
-        messages = [f"{r['file']}: {m}" for r in usd for m in r["messages"]]
-        for line in messages:
-            log.warning("usd-core validation: %s", line)
-        if not gltf["ran"]:
-            log.warning("the Khronos glTF-Validator did not run: %s; model.glb is unchecked", gltf["reason"])
-        else:
-            for line in gltf["messages"]:
-                log.warning("glTF validation: %s", line)
-        if any(r["errors"] for r in usd) or gltf.get("errors"):
-            raise RuntimeError("asset validation failed:\n" + "\n".join(messages + gltf.get("messages", [])))
+        checked = write_model_files(staging, geom, settings.meters_per_unit, settings.usdz_root, name, origin, timer)
+        usd, gltf = checked["usd"], checked["gltf"]
         with Image.open(staging / TEXTURE_FILES["basecolor"]) as img:
             texture_size = int(img.size[0])
         stats = {

@@ -18,6 +18,7 @@ differs). ``levels.png`` shows the front evaluation view: the neural render, the
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import shutil
@@ -28,7 +29,18 @@ import torch
 from PIL import Image
 
 from .assets.baking import bake_level, decode_textures, render_baked_views
-from .assets.formats import Level, export_mesh, package_usdz, read_atlas, validate_glb, validate_usd, write_glb, write_usd
+from .assets.formats import (
+    Level,
+    check_reports,
+    export_mesh,
+    package_usdz,
+    read_atlas,
+    validate_glb,
+    validate_usd,
+    write_glb,
+    write_model_files,
+    write_usd,
+)
 from .config.layout import TEXTURE_FILES
 from .config.sections import BakeSettings, DecimateSettings, ExportSettings, LodSettings
 from .core.cli import stage_main
@@ -39,8 +51,9 @@ from .geometry.meshio import load_ply, save_ply
 from .geometry.normalization import Similarity
 from .geometry.raycache import RayCache, trace_views
 from .geometry.tangents import CornerFrames
+from .imaging.quality import psnr
 from .imaging.sheets import contact_sheet, save_png
-from .imaging.views import ViewStore
+from .imaging.views import ViewStore, radiance_at_hits
 from .model.checkpoint import load_field
 from .render.color import linear_to_srgb
 
@@ -52,22 +65,20 @@ COMBINED = ("model_lods.usda", "model_lods.usdz", "model_lods.glb")
 VALIDATION_KEYS = ("ran", "validators", "validator", "errors", "warnings", "infos", "messages")
 
 
-def _level_fidelity(reference: list[tuple[np.ndarray, np.ndarray]], cache: RayCache, rendered: list) -> dict:
+def _level_fidelity(reference: list[tuple[np.ndarray, torch.Tensor]], cache: RayCache, rendered: list) -> dict:
     """PSNR (sRGB) of ``rendered`` (per view, linear, in ``cache``'s hit order) against the
     ``reference`` (per view: pixels and sRGB colours) over the pixels both cover, and the
     silhouettes' intersection over union."""
-    se, count, inter, union = 0.0, 0, 0, 0
+    ours, theirs, inter, union = [], [], 0, 0
     for i, (ref_pix, ref_rgb) in enumerate(reference):
         pix = cache.arrays["pixel"][cache.arrays["offsets"][i] : cache.arrays["offsets"][i + 1]].astype(np.int64)
         common, a, b = np.intersect1d(ref_pix, pix, assume_unique=True, return_indices=True)
-        ours = linear_to_srgb(rendered[i]).cpu().numpy().astype(np.float64)[b]
-        se += float(((ours - ref_rgb[a]) ** 2).sum())
-        count += 3 * len(common)
+        ours.append(linear_to_srgb(rendered[i])[torch.from_numpy(b)])
+        theirs.append(ref_rgb[torch.from_numpy(a)])
         inter += len(common)
         union += len(ref_pix) + len(pix) - len(common)
-    mse = se / max(count, 1)
     return {
-        "fidelity_psnr_db": float(10 * np.log10(1.0 / max(mse, 1e-12))),
+        "fidelity_psnr_db": psnr(torch.cat(ours), torch.cat(theirs)),
         "silhouette_iou": inter / max(union, 1),
         "pixels_compared": inter,
     }
@@ -92,11 +103,15 @@ def run(
     export_settings: ExportSettings,
     name: str = "model",
     device: str = "cpu",
+    decimate_settings: DecimateSettings | None = None,
 ) -> dict:
-    """Bake, export and grade every level of detail of one grid cell into ``out_dir``."""
+    """Bake, export and grade every level of detail of one grid cell into ``out_dir``; the levels
+    are decimated with the mesh's ``decimate_settings`` (welding, sampling) at their own targets."""
+    decimate_settings = decimate_settings or DecimateSettings()
     timer = Timer()
     bake_dir, out_dir = Path(bake_dir), Path(out_dir)
-    needed = [mesh_path, field_path, eval_path, transform_path, export_meta, bake_dir / "atlas.npz", bake_dir / "light.exr"]
+    needed = [mesh_path, field_path, eval_path, transform_path, export_meta, bake_dir / "atlas.npz"]
+    needed += [bake_dir / "light.exr", bake_dir / "light.hdr"]
     needed += [bake_dir / f for f in TEXTURE_FILES.values()]
     for p in needed:
         if not Path(p).is_file():
@@ -128,12 +143,7 @@ def run(
     with timer("reference"):
         evalc = RayCache(eval_path)
         store = ViewStore(evalc, torch.device(device), field.normals)
-        reference = []
-        for i in range(len(evalc)):
-            v = store[i]
-            with torch.no_grad():
-                rgb = linear_to_srgb(field(v.points, v.normals, v.view).shading.rgb)
-            reference.append((evalc.view(i).pixel, rgb.cpu().numpy().astype(np.float64)))
+        reference = [(evalc.view(i).pixel, linear_to_srgb(rgb)) for i, rgb in enumerate(radiance_at_hits(field, store))]
         front = evalc.front_view()
         cameras = evalc.view_set()
 
@@ -145,7 +155,7 @@ def run(
         image = _front_image(arrays["pixel"][lo:hi].astype(np.int64), linear_to_srgb(rendered[front]).cpu().numpy(), evalc.width)
         return _level_fidelity(reference, cache, rendered), image
 
-    rows, levels, images = [], [], [_front_image(reference[front][0], reference[front][1], evalc.width)]
+    rows, levels, images = [], [], [_front_image(reference[front][0], reference[front][1].cpu().numpy(), evalc.width)]
     with staged_outputs(out_dir) as staging:
         # lod0: the full bake, as the export stage shipped it
         with timer("lod0"):
@@ -174,7 +184,8 @@ def run(
             tag = f"lod{k}"
             t_dec = Timer()
             with t_dec("decimate"):
-                dec = decimate_mesh(mesh, DecimateSettings(enabled=True, target_faces=target), f"{mesh_path} ({tag})")
+                level_settings = dataclasses.replace(decimate_settings, enabled=True, target_faces=target)
+                dec = decimate_mesh(mesh, level_settings, f"{mesh_path} ({tag})")
             low = dec.mesh
             hausdorff = float(dec.stats["hausdorff_max"])
             search = settings.cage * hausdorff + 1e-6
@@ -196,22 +207,12 @@ def run(
                 with atomic_path(staging / tag / "atlas.npz") as tmp:
                     with open(tmp, "wb") as fh:
                         np.savez(fh, uv=res.texels.atlas.uv.astype(np.float32), **res.frames.arrays())
-                with atomic_path(staging / tag / "model.usda") as tmp:
-                    tmp.unlink()
-                    write_usd(tmp, geom, export_settings.meters_per_unit, "light.exr", origin)
-                package_usdz(
-                    staging / tag / "model.usda",
-                    staging / tag / "model.usdz",
-                    [*TEXTURE_FILES.values(), "light.exr"],
-                    export_settings.usdz_root,
-                )
-                write_glb(
-                    staging / tag / "model.glb", geom, staging / tag / "textures", export_settings.meters_per_unit, name, origin
-                )
+                mpu, root = export_settings.meters_per_unit, export_settings.usdz_root
+                checked = write_model_files(staging / tag, geom, mpu, root, name, origin)
             with t_dec("grade"):
                 fidelity, image = grade(low, res.texels.atlas.uv, res.textures, res.frames)
                 images.append(image)
-            found = res.projection.found
+            found, opposite = res.projection.found, res.projection.opposite
             offset = np.abs(res.projection.offset[found])
             rows.append(
                 {
@@ -223,6 +224,7 @@ def run(
                     "hausdorff_max": hausdorff,
                     "search_distance": search,
                     "texels_on_traced_surface": float(found.mean()),
+                    "texels_on_faces_turned_away": float(opposite.mean()),
                     "offset_p95": float(np.percentile(offset, 95)) if len(offset) else None,
                     "vertices_exported": len(geom.positions),
                     "texture_size": size,
@@ -231,6 +233,10 @@ def run(
                     "bake_seconds": t_dec.seconds["bake"],
                     "file_bytes": {f: (staging / tag / f).stat().st_size for f in ("model.glb", "model.usdz")},
                     "files": f"lod/{tag}/model.glb, lod/{tag}/model.usdz, lod/{tag}/model.usda",
+                    "validation": {
+                        **{r["file"]: {k: r[k] for k in VALIDATION_KEYS if k in r} for r in checked["usd"]},
+                        "model.glb": {k: checked["gltf"][k] for k in VALIDATION_KEYS if k in checked["gltf"]},
+                    },
                     **fidelity,
                 }
             )
@@ -275,26 +281,19 @@ def run(
                 screen_coverage=coverage,
             )
         with timer("validate"):
-            checked = {}
-            for rel in [f"lod{k}/model.usdz" for k in range(1, len(levels))] + ["model_lods.usda", "model_lods.usdz"]:
-                checked[rel] = validate_usd(staging / rel)
-            for rel in [f"lod{k}/model.glb" for k in range(1, len(levels))] + ["model_lods.glb"]:
-                checked[rel] = validate_glb(staging / rel)
-        problems = [f"{rel}: {m}" for rel, r in checked.items() for m in r.get("messages", [])]
-        for line in problems:
-            log.warning("validation: %s", line)
-        if any(r.get("errors") for r in checked.values()):
-            raise RuntimeError("asset validation failed:\n" + "\n".join(problems))
-        unchecked = [rel for rel, r in checked.items() if r.get("ran") is False]
-        if unchecked:
-            log.warning("the Khronos glTF-Validator did not run (%s): %s unchecked", checked[unchecked[0]]["reason"], unchecked)
+            checked = {rel: validate_usd(staging / rel) for rel in ("model_lods.usda", "model_lods.usdz")}
+            checked["model_lods.glb"] = validate_glb(staging / "model_lods.glb")
+        check_reports(checked, out_dir)
         with timer("figure"):
             save_png(staging / "levels.png", contact_sheet(images, len(images)))
         stats = {
             "levels": rows,
             "screen_coverage": coverage,
             "combined_file_bytes": {f: (staging / f).stat().st_size for f in COMBINED},
-            "validation": {rel: {k: r[k] for k in VALIDATION_KEYS if k in r} for rel, r in checked.items()},
+            "validation": {
+                **{f"{r['level']}/{f}": v for r in rows[1:] for f, v in r["validation"].items()},
+                **{rel: {k: r[k] for k in VALIDATION_KEYS if k in r} for rel, r in checked.items()},
+            },
             "fidelity": "sRGB PSNR over the pixels both the level and the traced mesh cover, evaluation views: "
             "the level's textures through its exported frame (our renderer) vs the trained field on the traced mesh",
             "figure": "levels.png: front evaluation view; the neural render on the traced mesh, then lod0, lod1, ...",
@@ -310,6 +309,12 @@ def run(
                 extra={"stats": stats, ORIGIN_KEY: origin},
             ),
         )
+    # a level folder of an earlier run with more levels is not part of this asset any more
+    keep = {r["level"] for r in rows}
+    for old in sorted(Path(out_dir).glob("lod*")):
+        if old.is_dir() and old.name not in keep:
+            log.info("removing %s: not a level of this run", old)
+            shutil.rmtree(old)
     return stats
 
 
@@ -331,6 +336,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.add_argument("--settings", default="{}", help="JSON of the lod settings")
         parser.add_argument("--bake-settings", default="{}", help="JSON of the bake settings (padding, dilation)")
         parser.add_argument("--export-settings", default="{}", help="JSON of the export settings (units, weld)")
+        parser.add_argument("--decimate-settings", default="{}", help="JSON of the mesh's decimate settings (welding, sampling)")
 
     def body(args):
         run(
@@ -346,6 +352,7 @@ def main(argv: list[str] | None = None) -> int:
             ExportSettings.from_json(args.export_settings),
             args.name,
             args.device,
+            DecimateSettings.from_json(args.decimate_settings),
         )
 
     return stage_main("lod", __doc__, arguments, body, argv, device="cpu")

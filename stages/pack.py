@@ -78,11 +78,18 @@ def run(
             lod_meta = lod / "meta.json"
             if not lod_meta.is_file():
                 raise StageInputError(lod_meta, "file not found", "Run the lod stage first.")
-            lod_files = sorted(p for p in lod.rglob("*") if p.is_file() and not p.name.startswith("."))
+            rows_lod = json.loads(lod_meta.read_text())["stats"]["levels"]
+            # the stage's own files and the folders of the levels it lists (nothing left by older runs)
+            folders = {r["level"] for r in rows_lod}
+            lod_files = sorted(
+                p
+                for p in lod.rglob("*")
+                if p.is_file() and not p.name.startswith(".") and (p.parent == lod or p.relative_to(lod).parts[0] in folders)
+            )
             lod_rel = [f"lod/{p.relative_to(lod)}" for p in lod_files]
             entries += [(p, f"{mesh}/{prompt}/{variant}/{r}") for p, r in zip(lod_files, lod_rel, strict=True)]
             rel += lod_rel
-            levels = ";".join(f"{r['level']}:{r['faces']}" for r in json.loads(lod_meta.read_text())["stats"]["levels"])
+            levels = ";".join(f"{r['level']}:{r['faces']}" for r in rows_lod)
         rows.append(
             {
                 "mesh": mesh,

@@ -33,12 +33,19 @@ from .results.summary import (
 log = logging.getLogger(__name__)
 
 
-def run(results: Path, cells: list[tuple[str, str, str]], out_dir: Path, decimated: dict | None = None) -> list[dict]:
+def run(
+    results: Path,
+    cells: list[tuple[str, str, str]],
+    out_dir: Path,
+    decimated: dict | None = None,
+    lod_cells: list[tuple[str, str, str]] | None = None,
+) -> list[dict]:
     """Write summary.csv/json, overview.png, the speed/accuracy table and plot, ablation bars,
     loss curves and image grids into ``out_dir``. ``decimated``: decimated mesh id -> the id of
-    the same source at full resolution (for the robustness grid)."""
+    the same source at full resolution (for the robustness grid). ``lod_cells``: the cells whose
+    levels of detail are read (None: every cell that has them)."""
     results = Path(results)
-    rows = summary_rows(results, cells)
+    rows = summary_rows(results, cells, lod_cells)
     frame = pd.DataFrame(rows)
     out_dir = Path(out_dir)
     with atomic_path(out_dir / "summary.csv") as tmp:
@@ -64,9 +71,13 @@ def main(argv: list[str] | None = None) -> int:
         parser.add_argument("--out-dir", type=Path, default=Path("results/report"))
         parser.add_argument("--cells", nargs="+", required=True, help="mesh/prompt/variant ...")
         parser.add_argument("--decimated", default="{}", help="JSON: decimated mesh id -> full-resolution mesh id")
+        parser.add_argument(
+            "--lod-cells", nargs="*", default=None, help="the cells with levels of detail (default: any that has them)"
+        )
 
     def body(args):
-        run(args.results, parse_cells(args.cells), args.out_dir, json.loads(args.decimated))
+        lod = None if args.lod_cells is None else parse_cells(args.lod_cells)
+        run(args.results, parse_cells(args.cells), args.out_dir, json.loads(args.decimated), lod)
 
     return stage_main("report", __doc__, arguments, body, argv)
 

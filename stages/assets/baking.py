@@ -146,30 +146,43 @@ class Projection:
     """Texel points of a coarse level carried to the fine surface: ``points, normals (M, 3)`` on
     the fine mesh (shading normals of its ``spec``, turned to the coarse normal's side), ``found
     (M,) bool`` (a fine surface within the search distance; elsewhere the coarse point and normal
-    are kept) and the signed ``offset (M,)`` along the coarse normal (NaN where not found)."""
+    are kept), ``opposite (M,) bool`` (found only on faces turned away from the coarse normal) and
+    the signed ``offset (M,)`` along the coarse normal (NaN where not found)."""
 
     points: np.ndarray
     normals: np.ndarray
     found: np.ndarray
+    opposite: np.ndarray
     offset: np.ndarray
 
 
 def project_to_surface(fine: TriMesh, points: np.ndarray, normals: np.ndarray, search: float, spec: NormalSpec) -> Projection:
     """The classic high-to-low bake's ray casts: from each coarse ``points (M, 3)`` along its unit
-    ``normals (M, 3)``, forwards and backwards, the nearer hit on ``fine`` within ``search``
-    (ray length; ties go forwards). The fine hit's shading normal is ``spec``'s (flat, or its
-    smooth corner normals interpolated), flipped where it faces away from the coarse normal (an
-    inconsistently wound fine mesh; the field is two-sided)."""
+    ``normals (M, 3)``, forwards and backwards, the nearest hit on ``fine`` within ``search`` (ray
+    length) on a face that faces the coarse normal's way; only where neither ray meets such a face,
+    the nearest hit at all (an inconsistently wound fine mesh; the field is two-sided). A face
+    turned away is, on a consistently wound mesh, the far wall of a thin part (a tube's other
+    side, a vase's inner wall), whose material is not this texel's. Ties go forwards. The fine
+    hit's shading normal is ``spec``'s (flat, or its smooth corner normals interpolated), turned
+    to the coarse normal's side."""
     tracer = EmbreeTracer(fine)
     fwd = tracer.trace(points, normals)
     bwd = tracer.trace(points, -normals)
-    d_f = np.where(fwd.depth <= search, fwd.depth, np.inf)
-    d_b = np.where(bwd.depth <= search, bwd.depth, np.inf)
-    use_b = d_b < d_f
-    found = np.isfinite(np.minimum(d_f, d_b))
+
+    def reach_and_side(hits):
+        reach = hits.depth <= search
+        same = reach & ((fine.face_normals[np.maximum(hits.face, 0)] * normals).sum(1) >= 0)
+        return reach, same
+
+    reach_f, same_f = reach_and_side(fwd)
+    reach_b, same_b = reach_and_side(bwd)
+    nearer_b = bwd.depth < fwd.depth
+    same = same_f | same_b
+    use_b = np.where(same, same_b & (~same_f | nearer_b), reach_b & (~reach_f | nearer_b))
+    found = reach_f | reach_b
     face = np.where(use_b, bwd.face, fwd.face).astype(np.int64)
     bary = np.where(use_b[:, None], bwd.bary, fwd.bary).astype(np.float64)
-    offset = np.where(use_b, -d_b, d_f).astype(np.float64)
+    offset = np.where(use_b, -bwd.depth, fwd.depth).astype(np.float64)
     offset[~found] = np.nan
     out_p = points.astype(np.float64).copy()
     out_n = normals.astype(np.float64).copy()
@@ -181,7 +194,7 @@ def project_to_surface(fine: TriMesh, points: np.ndarray, normals: np.ndarray, s
         n = flat if spec.mode == "flat" else interpolate_normals(spec.corner_normals(fine.vertices, fine.faces), f, b, flat)
         n = np.where(((n * normals[found]).sum(1) < 0)[:, None], -n, n)
         out_n[found] = n
-    return Projection(out_p, out_n, found, offset)
+    return Projection(out_p, out_n, found, found & ~same, offset)
 
 
 @dataclass

@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import shutil
 import subprocess
 from dataclasses import dataclass
@@ -39,11 +40,13 @@ from pathlib import Path
 
 import numpy as np
 
+from ..config.layout import TEXTURE_FILES
 from ..core.errors import StageInputError
 from ..core.provenance import ORIGIN_METADATA_KEY, atomic_path
 from ..geometry.meshio import TriMesh
 from ..geometry.normalization import Similarity
 
+log = logging.getLogger(__name__)
 REPO_ROOT = Path(__file__).resolve().parents[2]
 #: rotation of the USD DomeLight about +Y that shows our equirectangular light as our renderer sees it
 DOME_ROTATE_Y_DEG = -90.0
@@ -314,6 +317,49 @@ def validate_usd(path: Path) -> dict:
         "infos": count[kinds.Info],
         "messages": [f"{e.GetName()}: {e.GetMessage()}" for e in issues if e.GetType() in (kinds.Error, kinds.Warn)],
     }
+
+
+def write_model_files(
+    folder: Path, geom: ExportMesh, meters_per_unit: float, usdz_root: str, name: str, origin: dict, timer=None
+) -> dict:
+    """Write one asset's ``model.usda``, ``model.usdz`` and ``model.glb`` into ``folder`` (which
+    already holds ``textures/*.png`` and ``light.exr``), each atomically, and validate all three:
+    returns ``{"usd": [usd-core's report on model.usda, on model.usdz], "gltf": the Khronos
+    report}``. Warnings are logged; any validator error raises (the folder is the caller's staging
+    folder, so nothing half-checked is committed). ``timer`` (a :class:`~stages.core.provenance.Timer`)
+    times the ``usd``, ``gltf`` and ``validate`` parts."""
+    from contextlib import nullcontext
+
+    def part(key):
+        return timer(key) if timer is not None else nullcontext()
+
+    folder = Path(folder)
+    with part("usd"):
+        with atomic_path(folder / "model.usda") as tmp:
+            tmp.unlink()
+            write_usd(tmp, geom, meters_per_unit, "light.exr", origin)
+        package_usdz(folder / "model.usda", folder / "model.usdz", [*TEXTURE_FILES.values(), "light.exr"], usdz_root)
+    with part("gltf"):
+        write_glb(folder / "model.glb", geom, folder / "textures", meters_per_unit, name, origin)
+    with part("validate"):
+        usd = [validate_usd(folder / "model.usda"), validate_usd(folder / "model.usdz")]
+        gltf = validate_glb(folder / "model.glb")
+    check_reports({r["file"]: r for r in usd} | {"model.glb": gltf}, folder)
+    return {"usd": usd, "gltf": gltf}
+
+
+def check_reports(reports: dict[str, dict], where: Path) -> None:
+    """Log every validator message of ``reports`` (file -> :func:`validate_usd` or
+    :func:`validate_glb` report) and a warning for a glTF-Validator that did not run; raise when any
+    reports an error."""
+    lines = [f"{where.name}/{name}: {m}" for name, r in reports.items() for m in r.get("messages", [])]
+    for line in lines:
+        log.warning("validation: %s", line)
+    for name, r in reports.items():
+        if r.get("ran") is False:
+            log.warning("the Khronos glTF-Validator did not run: %s; %s is unchecked", r["reason"], name)
+    if any(r.get("errors") for r in reports.values()):
+        raise RuntimeError("asset validation failed:\n" + "\n".join(lines))
 
 
 #: the Khronos glTF-Validator as the repository installs it (``npm ci``; see package.json)

@@ -540,9 +540,9 @@ class LodSettings(Settings):
     #: face fractions of the traced mesh, one level each (lod1, lod2, ...), decreasing, in (0, 1)
     levels: tuple[float, ...] = (0.5, 0.1, 0.02)
     #: texture width of every level; null: the full bake's width times the square root of the
-    #: level's face fraction, as a power of two of at least min_texture_size (a level is shown at
-    #: that fraction of the full mesh's screen area, see full_coverage, so its texels per screen
-    #: pixel stay the full asset's)
+    #: level's face fraction, to the nearest power of two (ties up), at least min_texture_size (a
+    #: level is first shown at that fraction of the screen area the full mesh switches at, see
+    #: full_coverage, so there its texels per screen pixel are about the full asset's)
     texture_size: int | None = None
     min_texture_size: int = 64
     #: how far a texel's ray looks for the traced surface, in Hausdorff distances between the
@@ -550,9 +550,9 @@ class LodSettings(Settings):
     cage: float = 2.0
     #: fewest faces of a level (a level below it is refused)
     min_faces: int = 8
-    #: glTF MSFT_lod switching: the screen coverage at which the full mesh is needed; level k is
-    #: shown below ``full_coverage * levels[k-1]`` (the same triangles per screen area as the full
-    #: mesh at full_coverage)
+    #: glTF MSFT_lod switching: a reference screen coverage (share of the screen the object
+    #: covers); level k takes over below ``full_coverage * levels[k-1]``, where it has the same
+    #: triangles per screen area as the full mesh at full_coverage (and more while it is larger)
     full_coverage: float = 0.5
 
     def __post_init__(self) -> None:
@@ -577,7 +577,9 @@ class LodSettings(Settings):
         """Texture width of a level with ``fraction`` of the faces when the full bake is ``full_size``."""
         if self.texture_size is not None:
             return int(self.texture_size)
-        size = 2 ** round(math.log2(full_size * math.sqrt(fraction)))
+        # the nearest power of two, a tie (a fraction of exactly 1/4^k x 2) going up, whatever
+        # the rounding of the logarithm
+        size = 2 ** math.floor(math.log2(full_size * math.sqrt(fraction)) + 0.5 + 1e-9)
         return int(min(max(size, self.min_texture_size), full_size))
 
     def screen_coverage(self) -> list[float]:

@@ -120,3 +120,10 @@ def render_views(field, store, background: str) -> torch.Tensor:
 
     bg = 1.0 if background == "white" else 0.0
     return torch.stack([render_cached_view(store[i], store.width, store.width, colors, bg) for i in range(len(store))])
+
+
+@torch.no_grad()
+def radiance_at_hits(field, store: ViewStore) -> list[torch.Tensor]:
+    """The field's linear radiance at every hit of every view of ``store``: per view ``(N, 3)``, in
+    the ray cache's hit order (the reference that baked renders are compared with)."""
+    return [field(store[i].points, store[i].normals, store[i].view).shading.rgb for i in range(len(store))]

@@ -51,11 +51,14 @@ ORIGIN_FILES = (
 )
 
 
-def check_origins(cell_dir: Path) -> dict:
+def check_origins(cell_dir: Path, skip: tuple[str, ...] = ()) -> dict:
     """The cell's origin (from its optimisation), after checking that every downstream output that
-    exists repeats it: a mismatch means outputs of different runs were mixed."""
+    exists repeats it (except the folders in ``skip``, outputs of stages the run does not use): a
+    mismatch means outputs of different runs were mixed."""
     origin = read_origin(cell_dir / "optimize" / "meta.json")
     for folder, name in ORIGIN_FILES[1:]:
+        if folder in skip:
+            continue
         path = cell_dir / folder / name
         if path.is_file() and read_origin(path) != origin:
             raise StageInputError(
@@ -66,13 +69,17 @@ def check_origins(cell_dir: Path) -> dict:
     return origin
 
 
-def summary_rows(results: Path, cells: list[tuple[str, str, str]]) -> list[dict]:
+def summary_rows(
+    results: Path, cells: list[tuple[str, str, str]], lod_cells: list[tuple[str, str, str]] | None = None
+) -> list[dict]:
     rows = []
     for mesh, prompt, variant in cells:
         mdir = results / mesh
         cdir = mdir / prompt / variant
         opt = _need(cdir / "optimize" / "meta.json")
-        origin = check_origins(cdir)
+        # levels of detail: only where the run makes them (a folder left from a run with them on is not read)
+        with_lod = lod_cells is None or (mesh, prompt, variant) in set(lod_cells)
+        origin = check_origins(cdir, () if with_lod else ("lod",))
         bake = _read(cdir / "bake" / "meta.json") or {}
         export = _read(cdir / "export" / "meta.json") or {}
         norm = _need(mdir / "normalize" / "meta.json")
@@ -139,7 +146,7 @@ def summary_rows(results: Path, cells: list[tuple[str, str, str]]) -> list[dict]
                 "seconds_roundtrip": rt["timings_s"]["total"] if rt else None,
             }
         )
-        lod = (_read(cdir / "lod" / "meta.json") or {}).get("stats", {}).get("levels", [])
+        lod = (_read(cdir / "lod" / "meta.json") or {}).get("stats", {}).get("levels", []) if with_lod else []
         row.update(
             {
                 # one entry per level (lod0 = the full mesh), "/"-separated

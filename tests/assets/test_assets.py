@@ -252,7 +252,7 @@ def test_export_fails_on_validation_errors(trained, tmp_path, monkeypatch):
         _broken_usda(tmp_path / "broken.usda")
         return {**real(tmp_path / "broken.usda"), "file": Path(path).name}
 
-    monkeypatch.setattr(export, "validate_usd", faulty)
+    monkeypatch.setattr(formats, "validate_usd", faulty)
     out = tmp_path / "export"
     with pytest.raises(RuntimeError, match="MismatchedPropertyType"):
         export.run(

@@ -249,13 +249,13 @@ def lod_metas():
 
 
 def lod_cells_option():
-    """``--lod-cells`` and the cells with levels of detail, or nothing."""
+    """``--lod-cells`` and the cells with levels of detail (none: the flag alone)."""
     cells = [
         f"{c.mesh}/{c.prompt}/{c.variant}"
         for c in CFG.cells
         if CFG.cell_stage_settings("lod", c.prompt, c.variant).enabled
     ]
-    return f"--lod-cells {' '.join(cells)}" if cells else ""
+    return " ".join(["--lod-cells", *cells])
 
 
 def decimation_pairs_json(wildcards):

@@ -21,9 +21,11 @@ rule lod:
         settings=cell_settings_json("lod"),
         bake_settings=cell_settings_json("bake"),
         export_settings=cell_settings_json("export"),
+        decimate_settings=stage_settings_json("decimate"),
     shell:
         "python -m stages.lod --mesh {input.mesh:q} --field {input.field:q} --eval {input.eval:q} "
         "--transform {input.transform:q} --bake-dir {params.bake_dir:q} --export-meta {input.export_meta:q} "
         "--out-dir {params.out_dir:q} --name {params.name:q} --settings {params.settings:q} "
         "--bake-settings {params.bake_settings:q} --export-settings {params.export_settings:q} "
+        "--decimate-settings {params.decimate_settings:q} "
         "--threads {threads} 2> {log:q}"
