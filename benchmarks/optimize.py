@@ -63,7 +63,7 @@ def build_cache(tmp: Path) -> tuple[Path, str]:
     return tmp / "train.npz", name
 
 
-def vit_b32_random() -> ClipGuide:
+def vit_b32_random(bf16: bool = False) -> ClipGuide:
     from stages.guidance.compat import import_open_clip
 
     open_clip = import_open_clip()
@@ -75,7 +75,7 @@ def vit_b32_random() -> ClipGuide:
         weights_id="ViT-B-32 random (timing only)",
         test_only=True,
         device="cpu",
-        bf16=False,
+        bf16=bf16,
     )
 
 
@@ -221,6 +221,28 @@ def clip_time(guide: ClipGuide, images: int, steps: int) -> float:
     return statistics.mean(ts[1:])
 
 
+def clip_precision(steps: int) -> dict[str, float]:
+    """CLIP ViT-B-32 (the same random weights) in float32 and under bfloat16 autocast, side by side:
+    forward+backward seconds for 5 images at 224, and the cosines between the two precisions' image
+    embeddings and image gradients (random images, the paper's 1 + 4 split)."""
+    torch.manual_seed(0)
+    fp32 = vit_b32_random()
+    torch.manual_seed(0)
+    bf16 = vit_b32_random(bf16=True)
+    out = {"fp32_s": clip_time(fp32, 5, steps), "bf16_s": clip_time(bf16, 5, steps), "bf16_ran": float(bf16.bf16)}
+    text = fp32.embed_text("a person")
+    x0 = torch.rand(5, 3, 224, 224, generator=torch.Generator().manual_seed(1))
+    embs, grads = [], []
+    for guide in (fp32, bf16):
+        x = x0.clone().requires_grad_()
+        embs.append(guide.embed_images(x).detach().flatten())
+        guide.similarity(x[:1], text).add(guide.similarity(x[1:], text)).backward()
+        grads.append(x.grad.flatten())
+    out["cos_embedding"] = float(torch.nn.functional.cosine_similarity(embs[0], embs[1], dim=0))
+    out["cos_gradient"] = float(torch.nn.functional.cosine_similarity(grads[0], grads[1], dim=0))
+    return out
+
+
 def supersampling_error(opt: Optimizer) -> dict[int, float]:
     """RMSE of the global image at 1 and 2 samples per pixel against 4 (same field, view 0)."""
     v = opt.views[0]
@@ -244,8 +266,18 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--steps", type=int, default=8)
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--clip-only", action="store_true", help="only CLIP in float32 against bfloat16 autocast")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
+    cp = clip_precision(args.steps)
+    print(
+        f"# CLIP ViT-B-32 fwd+bwd, 5 images: float32 {cp['fp32_s']:.3f} s, bfloat16 autocast {cp['bf16_s']:.3f} s "
+        f"(x{cp['fp32_s'] / cp['bf16_s']:.2f}; bf16 ran: {bool(cp['bf16_ran'])}); cosine float32 vs bfloat16: "
+        f"embeddings {cp['cos_embedding']:.5f}, image gradients {cp['cos_gradient']:.4f}",
+        flush=True,
+    )
+    if args.clip_only:
+        return
     with tempfile.TemporaryDirectory() as d:
         train, mesh_name = build_cache(Path(d))
         guide = vit_b32_random()
@@ -318,6 +350,10 @@ def main() -> None:
         "s_per_iter_nocrops_spp2": rows[(256, 0, 2)],
         "rmse_spp1_vs_spp4": err[1],
         "rmse_spp2_vs_spp4": err[2],
+        "clip_fp32_s": cp["fp32_s"],
+        "clip_bf16_s": cp["bf16_s"],
+        "clip_cos_embedding_bf16": cp["cos_embedding"],
+        "clip_cos_gradient_bf16": cp["cos_gradient"],
     }
     print(" ".join(f"{k}={v:.4g}" for k, v in kv.items()))
     # the last line: the figures the speed issue asks for, and the precision that ran

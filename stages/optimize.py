@@ -124,6 +124,7 @@ def run(
                 "guidance": settings.guidance,
                 "weights": opt.objective.weights_id,
                 "test_only_weights": opt.objective.test_only,
+                "clip_precision": opt.objective.clip_precision,
                 ORIGIN_KEY: opt.objective.origin,
                 "resumed_from_iteration": resumed_from,
                 "seconds_per_iteration": loop_s / iters_here,

@@ -110,8 +110,26 @@ def resolve_weights(spec: ClipSpec) -> tuple[str, str, bool]:
     return path, weights_id, quick_gelu
 
 
+def bf16_support(device: torch.device) -> tuple[bool, str]:
+    """Whether bfloat16 autocast runs natively on ``device``, and why: on CUDA always; on a CPU when
+    oneDNN has bfloat16 kernels for it (AVX-512 BF16 or AMX, as on this project's machines), where
+    bfloat16 matrix products run several times faster than float32 ones (benchmarks/optimize.py);
+    elsewhere emulated bfloat16 would be slower than float32, so it is not used."""
+    if device.type == "cuda":
+        return True, "CUDA"
+    if device.type == "cpu":
+        if torch.backends.mkldnn.is_available() and torch.ops.mkldnn._is_mkldnn_bf16_supported():
+            return True, "CPU with native bfloat16 (oneDNN: AVX-512 BF16 / AMX)"
+        return False, "this CPU has no native bfloat16 (no AVX-512 BF16 or AMX for oneDNN)"
+    return False, f"no bfloat16 autocast on {device.type}"
+
+
 class ClipGuide:
-    """A frozen CLIP that embeds prompts and images (images in [0, 1], ``(B, 3, S, S)``)."""
+    """A frozen CLIP that embeds prompts and images (images in [0, 1], ``(B, 3, S, S)``).
+
+    With ``bf16`` the image tower runs under bfloat16 autocast where the device supports it
+    natively (:func:`bf16_support`); elsewhere it runs in float32 and says so (a warning and
+    :attr:`precision`, which the optimisation's metadata records)."""
 
     def __init__(self, model, tokenizer, *, image_size: int, weights_id: str, test_only: bool, device, bf16: bool):
         self.model = model.eval().requires_grad_(False).to(device)
@@ -120,7 +138,12 @@ class ClipGuide:
         self.weights_id = weights_id
         self.test_only = test_only
         self.device = torch.device(device)
-        self.bf16 = bf16 and self.device.type == "cuda"
+        supported, why = bf16_support(self.device)
+        self.bf16 = bf16 and supported
+        if bf16 and not supported:
+            log.warning("bf16 asked for, but %s: CLIP runs in float32", why)
+        #: what ran, for the metadata: "bfloat16 autocast (<why>)" or "float32" (and why, when bf16 was asked for)
+        self.precision = f"bfloat16 autocast ({why})" if self.bf16 else ("float32" if not bf16 else f"float32 ({why})")
 
     def embed_text(self, text: str) -> Tensor:
         with torch.no_grad():
@@ -130,7 +153,7 @@ class ClipGuide:
 
     def embed_images(self, images: Tensor) -> Tensor:
         x = clip_normalize(images, CLIP_MEAN, CLIP_STD)
-        with torch.autocast("cuda", dtype=torch.bfloat16, enabled=self.bf16):
+        with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.bf16):
             emb = self.model.encode_image(x)
         return emb.float()
 

@@ -35,6 +35,8 @@ class Objective:
         self.guide = None
         self.weights_id = None
         self.test_only = False
+        #: what the guidance CLIP ran in (None: no CLIP, image guidance)
+        self.clip_precision = None
         if settings.guidance == "clip":
             self.guide = guide or load_clip(settings.clip_spec(), device=device, bf16=settings.bf16)
             if self.guide.image_size != settings.image_size:
@@ -45,6 +47,7 @@ class Objective:
             self.text = self.guide.embed_text(prompt)
             self.weights_id = self.guide.weights_id
             self.test_only = self.guide.test_only
+            self.clip_precision = self.guide.precision
         elif settings.target_renderer == "mitsuba":
             if not targets:
                 raise ConfigError(

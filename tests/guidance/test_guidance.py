@@ -68,3 +68,42 @@ def test_unavailable_weights_fail_within_5_seconds(monkeypatch, tmp_path, offlin
 def test_unknown_pretrained_tag():
     with pytest.raises(ClipWeightsUnavailable, match="no pretrained weights"):
         load_clip(ClipSpec(model="ViT-B-32", pretrained="no-such-tag"))
+
+
+def _clip_pair():
+    spec = ClipSpec(model=TINY_MODEL, pretrained="", tiny_test=True)
+    return load_clip(spec, bf16=False), load_clip(spec, bf16=True)
+
+
+def test_bf16_autocast_on_cpu_agrees_with_float32():
+    """The same random tiny CLIP in float32 and under bfloat16 autocast (where the CPU runs it
+    natively): image embeddings and the gradient of the similarity with respect to the images
+    point the same way (cosines written out here), and stay finite for black, white and
+    saturated noise images; the guide says which precision ran."""
+    fp32, bf16 = _clip_pair()
+    supported, why = guidance.bf16_support(torch.device("cpu"))
+    if not supported:
+        assert bf16.precision.startswith("float32") and why in bf16.precision and not bf16.bf16
+        pytest.skip(f"no native bfloat16 here: {why}")
+    assert fp32.precision == "float32" and bf16.precision.startswith("bfloat16 autocast")
+    g = torch.Generator().manual_seed(0)
+    text = fp32.embed_text("a vase made of wood")
+    for images in (torch.rand(4, 3, 64, 64, generator=g), torch.zeros(2, 3, 64, 64), torch.ones(2, 3, 64, 64)):
+        grads, embs = [], []
+        for guide in (fp32, bf16):
+            x = images.clone().requires_grad_()
+            emb = guide.embed_images(x)
+            guide.similarity(x, text).backward()
+            assert torch.isfinite(emb).all() and torch.isfinite(x.grad).all()
+            embs.append(emb.detach().flatten())
+            grads.append(x.grad.flatten())
+        cos_emb = float(embs[0] @ embs[1] / (embs[0].norm() * embs[1].norm()))
+        cos_grad = float(grads[0] @ grads[1] / (grads[0].norm() * grads[1].norm()))
+        assert cos_emb > 0.999 and cos_grad > 0.98, (cos_emb, cos_grad)
+
+
+def test_bf16_is_not_silently_ignored(monkeypatch):
+    """Asked for where the device has no native bfloat16: float32 runs, and the precision says why."""
+    monkeypatch.setattr(guidance, "bf16_support", lambda device: (False, "no native bfloat16 in this test"))
+    _, bf16 = _clip_pair()
+    assert not bf16.bf16 and bf16.precision == "float32 (no native bfloat16 in this test)"

@@ -156,6 +156,7 @@ def test_smoke_run(tmp_path):
                 cell = res / mesh / prompt / variant / "optimize"
                 meta = json.loads((cell / "meta.json").read_text())
                 assert meta["test_only_weights"] is True and "TEST ONLY" in meta["weights"]
+                assert meta["clip_precision"] == "float32"  # bf16 is off unless asked for
                 assert meta["prompt"] == f"a {mesh} made of {prompt}"
                 assert (cell / "renders" / "rgb.png").is_file() and (cell / "field.pt").is_file()
                 assert not (cell / "checkpoint.pt").exists()
