@@ -90,16 +90,16 @@ def mlp_flops_per_point(field) -> float:
     return 6.0 * macs
 
 
-def matmul_rate(width: int, rows: int = 65536, repeats: int = 5) -> float:
-    a = torch.randn(rows, width)
-    w = torch.randn(width, width)
-    torch.mm(a, w)
+def matmul_rate(rows: int, inner: int, cols: int, dtype: torch.dtype = torch.float32, repeats: int = 5) -> float:
+    """FLOP/s of the best of ``repeats`` ``(rows x inner) @ (inner x cols)`` products in ``dtype``."""
+    a, b = torch.randn(rows, inner, dtype=dtype), torch.randn(inner, cols, dtype=dtype)
+    torch.mm(a, b)
     ts = []
     for _ in range(repeats):
         t0 = time.perf_counter()
-        torch.mm(a, w)
+        torch.mm(a, b)
         ts.append(time.perf_counter() - t0)
-    return 2.0 * rows * width * width / min(ts)
+    return 2.0 * rows * inner * cols / min(ts)
 
 
 class PointwiseCounter(TorchDispatchMode):
@@ -127,18 +127,10 @@ def counted(fn) -> tuple[int, int]:
     return mm.get_total_flops(), pw.flops
 
 
-def peak_matmul_rate(dtype: torch.dtype, n: int = 2048, repeats: int = 5) -> float:
-    """FLOP/s of the best of ``repeats`` square ``n x n`` matrix products in ``dtype``: the
-    machine's peak for this build and thread count (oneDNN uses AVX-512 BF16 / AMX for bfloat16
-    where the CPU has them)."""
-    a, b = torch.randn(n, n, dtype=dtype), torch.randn(n, n, dtype=dtype)
-    torch.mm(a, b)
-    ts = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        torch.mm(a, b)
-        ts.append(time.perf_counter() - t0)
-    return 2.0 * n**3 / min(ts)
+def peak_matmul_rate(dtype: torch.dtype, n: int = 2048) -> float:
+    """The machine's peak matrix-multiply rate for this build and thread count: square ``n x n``
+    products in ``dtype`` (oneDNN uses AVX-512 BF16 / AMX for bfloat16 where the CPU has them)."""
+    return matmul_rate(n, n, n, dtype)
 
 
 def step_flops(opt: Optimizer, guide: ClipGuide, steps: int) -> dict[str, float]:
@@ -286,7 +278,7 @@ def main() -> None:
         s_per_iter, points = step_time(opt, args.steps)
         split = timed_split(opt, args.steps)
         clip_s = clip_time(guide, 5, args.steps)
-        rate = matmul_rate(256)
+        rate = matmul_rate(65536, 256, 256)  # the MLPs' shapes
         flops = mlp_flops_per_point(opt.field)
         mlp_floor = flops * points / rate
         floor_s = clip_s + mlp_floor

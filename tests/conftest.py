@@ -127,24 +127,31 @@ def trained_cell(tmp_path_factory):
     return d
 
 
-@pytest.fixture(scope="session")
-def lod_cell(trained_cell):
-    """The trained cell's levels of detail (50% and 10% of the candle's faces), in ``lod/``."""
+def run_lod(cell: Path, out: Path, settings, bake=None):
+    """The lod stage on a trained cell's files (see :func:`trained_cell`), writing into ``out``."""
     from stages import lod
-    from stages.config.sections import BakeSettings, ExportSettings, LodSettings
+    from stages.config.sections import BakeSettings, ExportSettings
 
-    d = trained_cell
-    lod.run(
+    d = cell
+    return lod.run(
         d / "mesh.ply",
         d / "opt" / "field.pt",
         d / "eval.npz",
         d / "transform.json",
         d / "bake",
         d / "export" / "meta.json",
-        d / "lod",
-        LodSettings(enabled=True, levels=(0.5, 0.1)),
-        BakeSettings(texture_size=256, eval_width=48),
+        out,
+        settings,
+        bake or BakeSettings(texture_size=256, eval_width=48),
         ExportSettings(),
         "candle",
     )
-    return d
+
+
+@pytest.fixture(scope="session")
+def lod_cell(trained_cell):
+    """The trained cell's levels of detail (50% and 10% of the candle's faces), in ``lod/``."""
+    from stages.config.sections import LodSettings
+
+    run_lod(trained_cell, trained_cell / "lod", LodSettings(enabled=True, levels=(0.5, 0.1)))
+    return trained_cell

@@ -9,12 +9,11 @@ import shutil
 import numpy as np
 import pytest
 import torch
-from conftest import icosphere, require_tool
+from conftest import icosphere, require_tool, run_lod
 
-from stages import lod
 from stages.assets import formats
 from stages.assets.baking import bake_level, decode_textures, project_to_surface
-from stages.config.sections import BakeSettings, ConfigError, ExportSettings, LodSettings
+from stages.config.sections import BakeSettings, ConfigError, LodSettings
 from stages.core.errors import StageInputError
 from stages.geometry.atlas import rasterize_atlas
 from stages.geometry.meshio import TriMesh, load_ply
@@ -251,35 +250,12 @@ def test_lod_rerun_with_fewer_levels_leaves_no_stale_level(lod_cell, tmp_path):
     d = lod_cell
     out = tmp_path / "lod"
     shutil.copytree(d / "lod", out)
-    lod.run(
-        d / "mesh.ply",
-        d / "opt" / "field.pt",
-        d / "eval.npz",
-        d / "transform.json",
-        d / "bake",
-        d / "export" / "meta.json",
-        out,
-        LodSettings(levels=(0.3,)),
-        BakeSettings(texture_size=256, eval_width=48),
-        ExportSettings(),
-    )
+    run_lod(d, out, LodSettings(levels=(0.3,)))
     assert (out / "lod1" / "meta.json").is_file() and not (out / "lod2").exists()
     assert [r["level"] for r in json.loads((out / "meta.json").read_text())["stats"]["levels"]] == ["lod0", "lod1"]
 
 
 def test_lod_stage_refuses_levels_below_min_faces(trained_cell, tmp_path):
-    d = trained_cell
     with pytest.raises(StageInputError, match="min_faces"):
-        lod.run(
-            d / "mesh.ply",
-            d / "opt" / "field.pt",
-            d / "eval.npz",
-            d / "transform.json",
-            d / "bake",
-            d / "export" / "meta.json",
-            tmp_path / "lod",
-            LodSettings(levels=(0.5, 1e-4)),
-            BakeSettings(texture_size=64),
-            ExportSettings(),
-        )
+        run_lod(trained_cell, tmp_path / "lod", LodSettings(levels=(0.5, 1e-4)), BakeSettings(texture_size=64))
     assert not (tmp_path / "lod" / "meta.json").exists()
