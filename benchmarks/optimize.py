@@ -17,12 +17,16 @@ CLIP ViT-B-32 at 224x224, networks of width 256, 32 light lobes) it measures:
   bfloat16 (``floor_fp32_s``, ``floor_bf16_s``), and ``ratio_to_floor = s_per_iter`` over the
   best of them. The last line prints these with the precision that ran.
 
-It then shows the trade between MLP width and step time, the cost of local crops, and the
-cost and benefit of supersampling (error of 1 and 2 samples per pixel against 4, same field).
+First, CLIP alone along its paths (open_clip's modules or the batched tower, float32 or
+bfloat16 autocast): seconds and the cosines of embeddings and image gradients against open_clip
+in float32. It then shows the trade between MLP width and step time, the cost of local crops, the
+cost and benefit of supersampling (error of 1 and 2 samples per pixel against 4, same field), and
+the CPU levers (``LEVERS``: CLIP's tower, bfloat16 for CLIP and for the networks) on the real
+step, side by side. ``--bf16`` measures the main step with both bfloat16 levers on.
 CLIP has random weights here (timing does not depend on them). The mesh is
 ``../shared/meshes/person.obj`` when present, else the built-in vase.
 
-    python benchmarks/optimize.py [--steps 5] [--threads 2]
+    python benchmarks/optimize.py [--steps 8] [--threads 2] [--bf16] [--clip-only] [--no-levers]
 """
 
 from __future__ import annotations
@@ -63,19 +67,23 @@ def build_cache(tmp: Path) -> tuple[Path, str]:
     return tmp / "train.npz", name
 
 
-def vit_b32_random(bf16: bool = False) -> ClipGuide:
+def vit_b32_random(bf16: bool = False, tower: str = "batched", device: str = "cpu") -> ClipGuide:
+    """ViT-B-32 with random weights drawn from seed 0 (every call the same weights)."""
     from stages.guidance.compat import import_open_clip
 
     open_clip = import_open_clip()
-    model = open_clip.create_model("ViT-B-32", pretrained=None)
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(0)
+        model = open_clip.create_model("ViT-B-32", pretrained=None)
     return ClipGuide(
         model,
         open_clip.get_tokenizer("ViT-B-32"),
         image_size=224,
         weights_id="ViT-B-32 random (timing only)",
         test_only=True,
-        device="cpu",
+        device=device,
         bf16=bf16,
+        tower=tower,
     )
 
 
@@ -213,25 +221,58 @@ def clip_time(guide: ClipGuide, images: int, steps: int) -> float:
     return statistics.mean(ts[1:])
 
 
-def clip_precision(steps: int) -> dict[str, float]:
-    """CLIP ViT-B-32 (the same random weights) in float32 and under bfloat16 autocast, side by side:
-    forward+backward seconds for 5 images at 224, and the cosines between the two precisions' image
-    embeddings and image gradients (random images, the paper's 1 + 4 split)."""
-    torch.manual_seed(0)
-    fp32 = vit_b32_random()
-    torch.manual_seed(0)
-    bf16 = vit_b32_random(bf16=True)
-    out = {"fp32_s": clip_time(fp32, 5, steps), "bf16_s": clip_time(bf16, 5, steps), "bf16_ran": float(bf16.bf16)}
-    text = fp32.embed_text("a person")
+#: CLIP's paths compared side by side: (tower, bfloat16); the first is the reference
+CLIP_PATHS = (("open_clip", False), ("batched", False), ("open_clip", True), ("batched", True))
+
+
+def clip_paths(steps: int) -> list[dict]:
+    """CLIP ViT-B-32 (the same random weights) along each of :data:`CLIP_PATHS`, side by side:
+    forward+backward seconds for 5 images at 224 (the paper's 1 + 4 split), and the cosines of its
+    image embeddings and image gradients against open_clip's own modules in float32."""
+    guides = [vit_b32_random(bf16=bf16, tower=tower) for tower, bf16 in CLIP_PATHS]
+    text = guides[0].embed_text("a person")
     x0 = torch.rand(5, 3, 224, 224, generator=torch.Generator().manual_seed(1))
-    embs, grads = [], []
-    for guide in (fp32, bf16):
+    rows, ref = [], None
+    for (tower, bf16), guide in zip(CLIP_PATHS, guides, strict=True):
         x = x0.clone().requires_grad_()
-        embs.append(guide.embed_images(x).detach().flatten())
+        emb = guide.embed_images(x).detach().flatten()
         guide.similarity(x[:1], text).add(guide.similarity(x[1:], text)).backward()
-        grads.append(x.grad.flatten())
-    out["cos_embedding"] = float(torch.nn.functional.cosine_similarity(embs[0], embs[1], dim=0))
-    out["cos_gradient"] = float(torch.nn.functional.cosine_similarity(grads[0], grads[1], dim=0))
+        ref = ref or (emb, x.grad.flatten())
+        cos = torch.nn.functional.cosine_similarity
+        rows.append(
+            {
+                "tower": tower,
+                "precision": guide.precision,
+                "bf16": bf16,
+                "s": clip_time(guide, 5, steps),
+                "cos_embedding": float(cos(emb.double(), ref[0].double(), dim=0)),
+                "cos_gradient": float(cos(x.grad.flatten().double(), ref[1].double(), dim=0)),
+            }
+        )
+    return rows
+
+
+#: the CPU levers measured on the real step at the paper's counts: name -> settings overrides
+LEVERS = {
+    "reference (open_clip tower, float32)": {"clip_tower": "open_clip"},
+    "batched CLIP tower (default)": {},
+    "+ bf16 CLIP": {"bf16": True},
+    "+ bf16 networks": {"bf16_networks": True},
+    "+ bf16 CLIP and networks": {"bf16": True, "bf16_networks": True},
+}
+
+
+def lever_steps(train: Path, steps: int) -> dict[str, dict]:
+    """The real step (``Optimizer.step``) and its split under each of :data:`LEVERS`, side by side."""
+    out = {}
+    for name, over in LEVERS.items():
+        s = OptimizeSettings(crops=4, width=256, light_lobes=32, **over)
+        guide = vit_b32_random(bf16=s.bf16, tower=s.clip_tower)
+        opt = make_optimizer(s, train, guide)
+        t, _ = step_time(opt, steps)
+        split = timed_split(opt, max(2, steps // 2))
+        short = {True: "bf16", False: "fp32"}
+        out[name] = {"s": t, **split, "precision": f"clip {short[guide.bf16]}, networks {short[opt.field.bf16]}"}
     return out
 
 
@@ -258,23 +299,28 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--steps", type=int, default=8)
     parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--clip-only", action="store_true", help="only CLIP in float32 against bfloat16 autocast")
+    parser.add_argument("--clip-only", action="store_true", help="only CLIP's towers and precisions")
+    parser.add_argument("--bf16", action="store_true", help="the measured step (last line) with bf16 CLIP and networks")
+    parser.add_argument("--no-levers", action="store_true", help="skip the table of CPU levers")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    cp = clip_precision(args.steps)
-    print(
-        f"# CLIP ViT-B-32 fwd+bwd, 5 images: float32 {cp['fp32_s']:.3f} s, bfloat16 autocast {cp['bf16_s']:.3f} s "
-        f"(x{cp['fp32_s'] / cp['bf16_s']:.2f}; bf16 ran: {bool(cp['bf16_ran'])}); cosine float32 vs bfloat16: "
-        f"embeddings {cp['cos_embedding']:.5f}, image gradients {cp['cos_gradient']:.4f}",
-        flush=True,
-    )
+    clip_rows = clip_paths(args.steps)
+    print("# CLIP ViT-B-32 forward+backward to 5 images at 224; cosines against open_clip's modules in float32")
+    print(f"{'tower':<11}{'precision':<58}{'s':>8}{'speed-up':>9}{'cos emb':>10}{'cos grad':>10}")
+    for r in clip_rows:
+        print(
+            f"{r['tower']:<11}{r['precision'][:57]:<58}{r['s']:>8.3f}{clip_rows[0]['s'] / r['s']:>9.2f}"
+            f"{r['cos_embedding']:>10.5f}{r['cos_gradient']:>10.5f}",
+            flush=True,
+        )
     if args.clip_only:
         return
     with tempfile.TemporaryDirectory() as d:
         train, mesh_name = build_cache(Path(d))
-        guide = vit_b32_random()
-        paper = OptimizeSettings(crops=4, width=256, light_lobes=32)
+        paper = OptimizeSettings(crops=4, width=256, light_lobes=32, bf16=args.bf16, bf16_networks=args.bf16)
+        guide = vit_b32_random(bf16=paper.bf16, tower=paper.clip_tower)
         opt = make_optimizer(paper, train, guide)
+        precision = f"clip:{'bf16' if guide.bf16 else 'fp32'},networks:{'bf16' if opt.field.bf16 else 'fp32'}"
         s_per_iter, points = step_time(opt, args.steps)
         split = timed_split(opt, args.steps)
         clip_s = clip_time(guide, 5, args.steps)
@@ -283,6 +329,7 @@ def main() -> None:
         mlp_floor = flops * points / rate
         floor_s = clip_s + mlp_floor
         print(f"# mesh {mesh_name}, ray cache 512x512, torch threads {args.threads}, CLIP ViT-B-32 (random weights)")
+        print(f"# the measured step: CLIP {guide.precision}, {guide.tower} tower; networks {opt.network_precision}")
         print("# paper counts: 1 view, 1 global + 4 crops at 224, width 256, 32 lobes")
         print(f"{'part':<22}{'s/iter':>10}")
         for k in ("gather", "mlp", "shading", "clip", "optimizer"):
@@ -321,6 +368,17 @@ def main() -> None:
             print(f"{width:>6}{crops:>6}{spp:>5}{p:>9.0f}{t:>9.3f}{mlp_flops_per_point(o.field) / 1e6:>10.2f}")
         err = supersampling_error(opt)
         print(f"# supersampling benefit: RMSE vs 4 spp: 1 spp {err[1]:.4f}, 2 spp {err[2]:.4f}")
+        if not args.no_levers:
+            levers = lever_steps(train, max(3, args.steps // 2))
+            print("# CPU levers on the real step (paper counts), side by side in this run")
+            print(f"{'lever':<44}{'s/iter':>8}{'x ref':>7}{'mlp':>7}{'shading':>8}{'clip':>7}  precision")
+            ref_s = next(iter(levers.values()))["s"]
+            for name, r in levers.items():
+                print(
+                    f"{name:<44}{r['s']:>8.3f}{ref_s / r['s']:>7.2f}{r['mlp']:>7.3f}{r['shading']:>8.3f}{r['clip']:>7.3f}"
+                    f"  {r['precision']}",
+                    flush=True,
+                )
     kv = {
         "s_per_iter": s_per_iter,
         "clip_s": clip_s,
@@ -342,10 +400,9 @@ def main() -> None:
         "s_per_iter_nocrops_spp2": rows[(256, 0, 2)],
         "rmse_spp1_vs_spp4": err[1],
         "rmse_spp2_vs_spp4": err[2],
-        "clip_fp32_s": cp["fp32_s"],
-        "clip_bf16_s": cp["bf16_s"],
-        "clip_cos_embedding_bf16": cp["cos_embedding"],
-        "clip_cos_gradient_bf16": cp["cos_gradient"],
+        **{f"clip_{r['tower']}_{'bf16' if r['bf16'] else 'fp32'}_s": r["s"] for r in clip_rows},
+        "clip_cos_embedding_bf16": clip_rows[-1]["cos_embedding"],
+        "clip_cos_gradient_bf16": clip_rows[-1]["cos_gradient"],
     }
     print(" ".join(f"{k}={v:.4g}" for k, v in kv.items()))
     # the last line: the figures the speed issue asks for, and the precision that ran
@@ -355,7 +412,7 @@ def main() -> None:
         "floor_bf16_s": floors["bf16"],
         "ratio_to_floor": s_per_iter / best,
     }
-    print(" ".join(f"{k}={v:.4g}" for k, v in last.items()) + " precision=float32")
+    print(" ".join(f"{k}={v:.4g}" for k, v in last.items()) + f" precision={precision}")
 
 
 if __name__ == "__main__":

@@ -17,6 +17,7 @@ the environment's, and the optimisation's wall time.
     python benchmarks/recovery.py --presets paper --meshes vase,shared:lamp
     python benchmarks/recovery.py --meshes builtin --presets fast --specular-lobe isotropic,split_sum
     python benchmarks/recovery.py --decimate 5000 --shading-normals flat,smooth   # the robustness study
+    python benchmarks/recovery.py --meshes builtin --presets fast --precision float32,bf16  # bfloat16 networks
 
 With ``--decimate N`` each mesh is fitted on its N-face version (MeshLab's quadric collapse, the
 decimate stage) while Mitsuba renders the targets from the full-resolution mesh, as the workflow's
@@ -29,6 +30,7 @@ from __future__ import annotations
 import argparse
 import csv
 import dataclasses
+import json
 import os
 import sys
 import tempfile
@@ -46,6 +48,7 @@ COLUMNS = (
     "preset",
     "specular_lobe",
     "shading_normals",
+    "precision",
     "iterations",
     "psnr_db",
     "ssim",
@@ -112,7 +115,15 @@ def prepare(work: Path, source: str, material: str, decimate: int | None = None,
     return len(mesh.faces), len(full.faces)
 
 
-def fit(work: Path, material: str, preset: str, lobe: str = "fitted", normals: str = "smooth", resolution: int = 96) -> dict:
+def fit(
+    work: Path,
+    material: str,
+    preset: str,
+    lobe: str = "fitted",
+    normals: str = "smooth",
+    resolution: int = 96,
+    precision: str = "float32",
+) -> dict:
     """Optimise with ``preset`` under image guidance on the prepared targets and grade the field on
     the held-out metric views; returns one row of the table."""
     import torch
@@ -132,10 +143,11 @@ def fit(work: Path, material: str, preset: str, lobe: str = "fitted", normals: s
             "checkpoint_every": 100_000,
             "specular_lobe": lobe,
             "shading_normals": normals,
+            "bf16_networks": precision == "bf16",
         }
     )
     torch.set_num_threads(int(os.environ.get("TANGO_THREADS", "2")))
-    out = work / f"{preset}-{lobe}-{normals}"
+    out = work / f"{preset}-{lobe}-{normals}-{precision}"
     t0 = time.perf_counter()
     optimize.run(work / "train.npz", work / "eval.npz", "", out, settings, "cpu", targets_path=work / "target" / "train.npz")
     seconds = time.perf_counter() - t0
@@ -148,6 +160,7 @@ def fit(work: Path, material: str, preset: str, lobe: str = "fitted", normals: s
         "preset": preset,
         "specular_lobe": lobe,
         "shading_normals": normals,
+        "precision": json.loads((out / "meta.json").read_text())["network_precision"],
         "iterations": settings.iterations,
         "psnr_db": round(m["psnr_db"], 2),
         "ssim": round(m["ssim"], 3),
@@ -168,6 +181,7 @@ def main() -> None:
     parser.add_argument(
         "--specular-lobe", default="fitted", help="comma-separated specular models (isotropic, split_sum, fitted)"
     )
+    parser.add_argument("--precision", default="float32", help="comma-separated network precisions (float32, bf16)")
     parser.add_argument("--shading-normals", default="smooth", help="comma-separated shading normals (flat, smooth)")
     parser.add_argument("--decimate", type=int, default=None, help="fit each mesh's N-face version (full-resolution targets)")
     parser.add_argument("--resolution", type=int, default=96, help="pixels of the cached views and of the fitted images")
@@ -190,17 +204,18 @@ def main() -> None:
             took = time.perf_counter() - t0
             print(f"{name}: {faces} faces fitted ({full_faces} rendered), cache and targets in {took:.0f} s", flush=True)
             lobes, normals_list = args.specular_lobe.split(","), args.shading_normals.split(",")
-            combos = [(p, lb, nm) for p in presets for lb in lobes for nm in normals_list]
-            for preset, lobe, normals in combos:
+            precisions = args.precision.split(",")
+            combos = [(p, lb, nm, pr) for p in presets for lb in lobes for nm in normals_list for pr in precisions]
+            for preset, lobe, normals, precision in combos:
                 row = {
                     "mesh": name,
                     "faces": faces,
                     "full_faces": full_faces,
-                    **fit(work, args.material, preset, lobe, normals, args.resolution),
+                    **fit(work, args.material, preset, lobe, normals, args.resolution, precision),
                 }
                 rows.append(row)
                 print(
-                    f"  {preset:9s} {lobe:9s} {normals:6s} PSNR {row['psnr_db']:.2f} dB  SSIM {row['ssim']:.3f}  "
+                    f"  {preset:9s} {lobe:9s} {normals:6s} {precision:8s} PSNR {row['psnr_db']:.2f} dB  SSIM {row['ssim']:.3f}  "
                     f"(noise {row['target_noise_psnr_db']} dB)  "
                     f"albedo {row['albedo_rmse']:.3f} ({row['albedo_rmse_scaled']})  roughness {row['roughness_mae']:.3f}  "
                     f"normal {row['normal_angle_deg_mean']} deg  light {row['light_energy_ratio']}  {row['optimize_s']:.0f} s",

@@ -125,6 +125,8 @@ def run(
                 "weights": opt.objective.weights_id,
                 "test_only_weights": opt.objective.test_only,
                 "clip_precision": opt.objective.clip_precision,
+                "clip_tower": opt.objective.clip_tower,
+                "network_precision": opt.network_precision,
                 ORIGIN_KEY: opt.objective.origin,
                 "resumed_from_iteration": resumed_from,
                 "seconds_per_iteration": loop_s / iters_here,

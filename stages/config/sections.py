@@ -33,6 +33,9 @@ SHADING_NORMALS = ("flat", "smooth")
 NORMAL_WEIGHTINGS = ("angle", "area")
 #: who renders image targets (``optimize.target_renderer``)
 TARGET_RENDERERS = ("mitsuba", "sg")
+#: CLIP image-tower paths (stages/guidance/vit.py): "batched" (the same function on contiguous
+#: matrix products) or "open_clip" (its own modules, the reference)
+CLIP_TOWERS = ("batched", "open_clip")
 #: the procedural environment maps ``relight.envmap: builtin:<name>`` names (:mod:`stages.render.envmap`)
 PROCEDURAL_ENVMAPS = ("sunset", "overcast", "night", "sun_sky")
 ENCODINGS = ("nerf", "fourier", "none")
@@ -272,7 +275,16 @@ class OptimizeSettings(ClipChoice, Settings):
     clip_pretrained: str = "openai"
     clip_checkpoint: str | None = None
     clip_tiny_test: bool = False
+    #: CLIP's image tower under bfloat16 autocast where the device runs bfloat16 natively
+    #: (stages.core.cli.bf16_support); what ran goes into the metadata (clip_precision)
     bf16: bool = False
+    #: CLIP's image tower (CLIP_TOWERS): "batched" (attention and patch embedding as contiguous
+    #: matrix products, frozen weights cast once under bf16: the same function, faster on a CPU)
+    #: or "open_clip" (its own modules)
+    clip_tower: str = "batched"
+    #: the SVBRDF and normal networks' matrix products under bfloat16 autocast during training
+    #: (encodings, activations' outputs and the renderer stay float32); metadata network_precision
+    bf16_networks: bool = False
     target_material: str = "wood"
     #: who renders the image targets: "mitsuba" (path-traced ground truth, the target stage) or
     #: "sg" (our own SG renderer under target_light: fast, but the renderer grades itself)
@@ -310,6 +322,8 @@ class OptimizeSettings(ClipChoice, Settings):
             p.append(f"normal_weighting must be one of {', '.join(NORMAL_WEIGHTINGS)}, got {self.normal_weighting!r}")
         if not 0.0 <= self.crease_angle_deg <= 180.0:
             p.append(f"crease_angle_deg must be in [0, 180], got {self.crease_angle_deg}")
+        if self.clip_tower not in CLIP_TOWERS:
+            p.append(f"clip_tower must be one of {', '.join(CLIP_TOWERS)}, got {self.clip_tower!r}")
         if self.target_light not in LIGHTS:
             p.append(f"target_light must be one of {LIGHTS}, got {self.target_light!r}")
         if self.views_per_step < 1 or self.crops < 0 or self.supersample < 1 or self.checkpoint_every < 1:

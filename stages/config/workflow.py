@@ -29,6 +29,8 @@ log = logging.getLogger(__name__)
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 SCHEMA_PATH = REPO_ROOT / "workflow" / "schemas" / "config.schema.yaml"
+#: where the NVIDIA driver lists the GPUs it sees (one folder per GPU)
+NVIDIA_GPUS = Path("/proc/driver/nvidia/gpus")
 #: stages whose settings are per mesh (overridable in a mesh entry)
 MESH_STAGES = ("normalize", "decimate", "raycache", "target")
 #: stages after optimize whose settings are per grid cell (overridable per prompt and variant)
@@ -128,6 +130,22 @@ class WorkflowConfig:
                 self.cell_stage_settings(stage, cell.prompt, cell.variant)
 
     # ---- ids -------------------------------------------------------------------------------
+    @property
+    def device(self) -> str:
+        """Where the torch stages run: ``auto``, ``cpu`` or ``cuda`` (their ``--device``)."""
+        return self.raw.get("device", "auto")
+
+    def gpu_jobs(self, driver: Path = NVIDIA_GPUS) -> int:
+        """The ``gpu`` resource a torch job asks for: 1 when it will run on a GPU (``cuda``, or
+        ``auto`` where the NVIDIA driver lists a GPU under ``driver``), else 0. Decided without
+        importing torch (the DAG stays torch-free); ``auto`` still falls back to the CPU inside
+        the stage if torch cannot use the GPU."""
+        if self.device == "cpu":
+            return 0
+        if self.device == "cuda":
+            return 1
+        return int(driver.is_dir() and any(driver.iterdir()))
+
     @property
     def grid_meshes(self) -> list[str]:
         """Mesh ids that appear in the grid, in config order."""

@@ -12,9 +12,12 @@ import argparse
 import logging
 import sys
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from .errors import stage_errors
+
+if TYPE_CHECKING:
+    import torch
 
 
 def setup_logging(verbose: bool = False) -> None:
@@ -27,7 +30,7 @@ def setup_logging(verbose: bool = False) -> None:
     )
 
 
-def resolve_device(name: str = "auto"):
+def resolve_device(name: str = "auto") -> torch.device:
     """``torch.device`` of ``name``; ``"auto"`` is CUDA when available, else the CPU.
 
     torch is imported here, when a torch stage asks, so that this module (and the workflow's
@@ -38,6 +41,22 @@ def resolve_device(name: str = "auto"):
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     return torch.device(name)
+
+
+def bf16_support(device: torch.device) -> tuple[bool, str]:
+    """Whether bfloat16 autocast runs natively on ``device``, and why: on CUDA always; on a CPU when
+    oneDNN has bfloat16 kernels for it (AVX-512 BF16 or AMX, as on this project's machines), where
+    bfloat16 matrix products run several times faster than float32 ones (benchmarks/optimize.py);
+    elsewhere emulated bfloat16 would be slower than float32, so it is not used."""
+    import torch
+
+    if device.type == "cuda":
+        return True, "CUDA"
+    if device.type == "cpu":
+        if torch.backends.mkldnn.is_available() and torch.ops.mkldnn._is_mkldnn_bf16_supported():
+            return True, "CPU with native bfloat16 (oneDNN: AVX-512 BF16 / AMX)"
+        return False, "this CPU has no native bfloat16 (no AVX-512 BF16 or AMX for oneDNN)"
+    return False, f"no bfloat16 autocast on {device.type}"
 
 
 def stage_main(

@@ -18,8 +18,10 @@ from torch import Tensor
 from torch.nn import functional as F
 
 from ..config.sections import ClipSpec
+from ..core.cli import bf16_support
 from ..core.errors import StageInputError
 from .compat import import_open_clip
+from .vit import CLIP_TOWERS, use_fast_tower
 
 log = logging.getLogger(__name__)
 
@@ -110,28 +112,32 @@ def resolve_weights(spec: ClipSpec) -> tuple[str, str, bool]:
     return path, weights_id, quick_gelu
 
 
-def bf16_support(device: torch.device) -> tuple[bool, str]:
-    """Whether bfloat16 autocast runs natively on ``device``, and why: on CUDA always; on a CPU when
-    oneDNN has bfloat16 kernels for it (AVX-512 BF16 or AMX, as on this project's machines), where
-    bfloat16 matrix products run several times faster than float32 ones (benchmarks/optimize.py);
-    elsewhere emulated bfloat16 would be slower than float32, so it is not used."""
-    if device.type == "cuda":
-        return True, "CUDA"
-    if device.type == "cpu":
-        if torch.backends.mkldnn.is_available() and torch.ops.mkldnn._is_mkldnn_bf16_supported():
-            return True, "CPU with native bfloat16 (oneDNN: AVX-512 BF16 / AMX)"
-        return False, "this CPU has no native bfloat16 (no AVX-512 BF16 or AMX for oneDNN)"
-    return False, f"no bfloat16 autocast on {device.type}"
-
-
 class ClipGuide:
     """A frozen CLIP that embeds prompts and images (images in [0, 1], ``(B, 3, S, S)``).
 
     With ``bf16`` the image tower runs under bfloat16 autocast where the device supports it
     natively (:func:`bf16_support`); elsewhere it runs in float32 and says so (a warning and
-    :attr:`precision`, which the optimisation's metadata records)."""
+    :attr:`precision`, which the optimisation's metadata records).
 
-    def __init__(self, model, tokenizer, *, image_size: int, weights_id: str, test_only: bool, device, bf16: bool):
+    ``tower`` (:data:`~stages.config.sections.CLIP_TOWERS`): ``"batched"`` runs the image tower's
+    attention and patch embedding as contiguous matrix products, with the frozen weights cast to
+    bfloat16 once under ``bf16`` (the same function, faster on a CPU: :mod:`stages.guidance.vit`);
+    ``"open_clip"`` leaves open_clip's own modules."""
+
+    def __init__(
+        self,
+        model,
+        tokenizer,
+        *,
+        image_size: int,
+        weights_id: str,
+        test_only: bool,
+        device,
+        bf16: bool,
+        tower: str = "batched",
+    ):
+        if tower not in CLIP_TOWERS:
+            raise ValueError(f"CLIP tower must be one of {', '.join(CLIP_TOWERS)}, got {tower!r}")
         self.model = model.eval().requires_grad_(False).to(device)
         self.tokenizer = tokenizer
         self.image_size = image_size
@@ -144,6 +150,9 @@ class ClipGuide:
             log.warning("bf16 asked for, but %s: CLIP runs in float32", why)
         #: what ran, for the metadata: "bfloat16 autocast (<why>)" or "float32" (and why, when bf16 was asked for)
         self.precision = f"bfloat16 autocast ({why})" if self.bf16 else ("float32" if not bf16 else f"float32 ({why})")
+        #: the image tower's path, and how many of its modules the fast path changed
+        self.tower = tower
+        self.tower_changes = use_fast_tower(self.model.visual, self.bf16) if tower == "batched" else 0
 
     def embed_text(self, text: str) -> Tensor:
         with torch.no_grad():
@@ -191,8 +200,9 @@ def _image_size(model) -> int:
     return int(size[0] if isinstance(size, tuple | list) else size)
 
 
-def load_clip(spec: ClipSpec, device="cpu", bf16: bool = False) -> ClipGuide:
-    """Load the CLIP of ``spec`` on ``device``; fails fast when weights are unavailable."""
+def load_clip(spec: ClipSpec, device="cpu", bf16: bool = False, tower: str = "batched") -> ClipGuide:
+    """Load the CLIP of ``spec`` on ``device``; fails fast when weights are unavailable.
+    ``bf16`` and ``tower``: see :class:`ClipGuide`."""
     if spec.tiny_test:
         model, tok = tiny_test_clip()
         log.warning("using %s", TEST_ONLY_WEIGHTS)
@@ -204,6 +214,7 @@ def load_clip(spec: ClipSpec, device="cpu", bf16: bool = False) -> ClipGuide:
             test_only=True,
             device=device,
             bf16=bf16,
+            tower=tower,
         )
     path, weights_id, quick_gelu = resolve_weights(spec)
     open_clip = import_open_clip()

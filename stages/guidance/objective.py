@@ -37,8 +37,9 @@ class Objective:
         self.test_only = False
         #: what the guidance CLIP ran in (None: no CLIP, image guidance)
         self.clip_precision = None
+        self.clip_tower = None
         if settings.guidance == "clip":
-            self.guide = guide or load_clip(settings.clip_spec(), device=device, bf16=settings.bf16)
+            self.guide = guide or load_clip(settings.clip_spec(), device=device, bf16=settings.bf16, tower=settings.clip_tower)
             if self.guide.image_size != settings.image_size:
                 raise ConfigError(
                     f"optimize.image_size is {settings.image_size} but CLIP {self.guide.weights_id} "
@@ -48,6 +49,7 @@ class Objective:
             self.weights_id = self.guide.weights_id
             self.test_only = self.guide.test_only
             self.clip_precision = self.guide.precision
+            self.clip_tower = self.guide.tower
         elif settings.target_renderer == "mitsuba":
             if not targets:
                 raise ConfigError(

@@ -5,15 +5,19 @@ hits to shaded colour that training, evaluation, relighting (a light override), 
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor, nn
 
 from ..config.sections import FieldSettings
+from ..core.cli import bf16_support
 from ..geometry.normals import NormalSpec
 from ..render.shading import SGLight, Shading, face_viewer, shade
 from .networks import Material, NormalNet, SGLightModule, SVBRDFNet, make_encoding, symmetric
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -85,6 +89,20 @@ class StyleField(nn.Module):
         self.specular_lobe = s.specular_lobe
         #: the shading normals the field is trained and rendered with (every ViewStore and the bake use them)
         self.normals = NormalSpec(s.shading_normals, s.crease_angle_deg, s.normal_weighting)
+        #: the networks' matrix products under bfloat16 autocast (:meth:`use_bf16`; off: float32)
+        self.bf16 = False
+
+    def use_bf16(self, enabled: bool, device: torch.device) -> str:
+        """Run the networks' matrix products under bfloat16 autocast in training mode (the
+        optimisation's option ``bf16_networks``; evaluation, baking and relighting run float32)
+        where ``device`` runs bfloat16 natively; the encodings, the heads' outputs
+        (sigmoid, tanh), the normals and the renderer stay float32. Returns what runs, for the
+        metadata: ``"bfloat16 autocast (<why>)"``, ``"float32"`` or ``"float32 (<why not>)"``."""
+        supported, why = bf16_support(torch.device(device))
+        self.bf16 = enabled and supported
+        if enabled and not supported:
+            log.warning("bf16_networks asked for, but %s: the networks run in float32", why)
+        return f"bfloat16 autocast ({why})" if self.bf16 else ("float32" if not enabled else f"float32 ({why})")
 
     def symmetric_points(self, points: Tensor) -> Tensor:
         """The points as the networks see them (``(x, y, |z|)`` under the symmetry prior)."""
@@ -105,11 +123,13 @@ class StyleField(nn.Module):
             flip = (normals * view).sum(-1, keepdim=True) < 0
             normals = torch.where(flip, -normals, normals)
         p = self.symmetric_points(points)
-        if self.normal_net is not None:
-            normals = self.normal_net(p, normals)
+        with torch.autocast(points.device.type, dtype=torch.bfloat16, enabled=self.bf16 and self.training):
+            if self.normal_net is not None:
+                normals = self.normal_net(p, normals)
+            material = self.svbrdf(p)
         if view is not None:
             normals = face_viewer(normals, view)
-        return self.svbrdf(p), normals
+        return material, normals
 
     def forward(
         self,

@@ -42,7 +42,8 @@ class FourierFeatures(nn.Module):
         self.out_dim = in_dim + 2 * count
 
     def forward(self, x: Tensor) -> Tensor:
-        proj = 2.0 * math.pi * x @ self.B.T
+        with torch.autocast(x.device.type, enabled=False):  # large phases: never in bfloat16
+            proj = 2.0 * math.pi * x.float() @ self.B.T
         return torch.cat([x, torch.cos(proj), torch.sin(proj)], dim=-1)
 
 
@@ -141,11 +142,12 @@ class SVBRDFNet(nn.Module):
     def forward(self, points: Tensor) -> Material:
         """``points (N, 3)`` (already symmetrised if the prior is on) -> :class:`Material`."""
         h = self.trunk(self.encoding(points))
-        albedo = torch.sigmoid(self.diffuse(h))
+        # heads' outputs back to float32 (a no-op unless the products ran under bfloat16 autocast)
+        albedo = torch.sigmoid(self.diffuse(h).float())
         if self.specular is None:
             return Material(albedo, None, None)
-        spec = torch.sigmoid(self.specular(h))
-        rough = self.min_roughness + (1.0 - self.min_roughness) * torch.sigmoid(self.roughness(h))
+        spec = torch.sigmoid(self.specular(h).float())
+        rough = self.min_roughness + (1.0 - self.min_roughness) * torch.sigmoid(self.roughness(h).float())
         return Material(albedo, spec, rough)
 
 
@@ -185,7 +187,7 @@ class NormalNet(nn.Module):
 
     def forward(self, points: Tensor, normals: Tensor) -> Tensor:
         """``points (N, 3)``, unit ``normals (N, 3)`` -> unit predicted normals ``(N, 3)``."""
-        d = self.max_delta * torch.tanh(self.mlp(torch.cat([self.encoding(points), normals], dim=-1)))
+        d = self.max_delta * torch.tanh(self.mlp(torch.cat([self.encoding(points), normals], dim=-1)).float())
         t, b = tangent_frame(normals)
         out = normals + d[:, :1] * t + d[:, 1:] * b
         return out / torch.linalg.vector_norm(out, dim=-1, keepdim=True)

@@ -47,6 +47,8 @@ class Optimizer:
         self.s = settings
         self.device = torch.device(device)
         self.field = StyleField(settings.field_settings()).to(self.device)
+        #: what the networks' products ran in during training, for the metadata
+        self.network_precision = self.field.use_bf16(settings.bf16_networks, self.device)
         self.views = ViewStore(train, self.device, self.field.normals, targets)
         self.prompt = prompt
         self.opt = torch.optim.AdamW(self.field.parameters(), lr=settings.lr, weight_decay=settings.weight_decay)

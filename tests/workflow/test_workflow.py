@@ -10,6 +10,7 @@ import pytest
 import yaml
 from conftest import REPO, run_snakemake
 
+from stages.config.workflow import load_config_file
 from stages.geometry.raycache import RayCache
 
 SMOKE = REPO / "tests" / "smoke" / "config.yaml"
@@ -57,6 +58,38 @@ def test_configfile_replaces_default_and_dag_is_per_mesh(tmp_path):
     assert counts["report"] == counts["pack"] == counts["html_report"] == 1
     assert counts["lod"] == 3 * 2  # levels of detail: the wood prompt's cells only
     assert "silver" not in proc.stdout  # the default config's prompts are not merged in
+
+
+TORCH_RULES = ("optimize", "bake", "relight", "metrics", "lod", "roundtrip")
+
+
+@pytest.mark.parametrize("device", ["cuda", "cpu"])
+def test_device_reaches_every_torch_job_and_gpu_jobs_ask_for_the_gpu(tmp_path, device):
+    """``device`` goes to every torch stage's ``--device``; on a GPU each of their jobs asks for
+    gpu=1, and the workflow profile (loaded by default) holds the limit of one at a time."""
+    proc = run_snakemake(tmp_path, "-n", "-p", "--cores", "2", "--configfile", str(SMOKE), "--config", f"device={device}")
+    assert proc.returncode == 0, proc.stderr
+    assert "Using workflow specific profile profiles/default" in proc.stdout + proc.stderr
+    jobs = re.findall(r"^(?:local)?rule (\w+):\n(.*?)(?:\n\n|\Z)", proc.stdout, re.S | re.M)
+    torch_jobs = [body for rule, body in jobs if rule in TORCH_RULES]
+    assert len(torch_jobs) == 3 * 3 * 2 * 4 + 3 * 2  # optimize, bake, relight, metrics per cell; lod for wood
+    for body in torch_jobs:
+        assert f"gpu={int(device == 'cuda')}" in body, body
+        assert f"--device {device}" in body, body
+    assert all("gpu=" not in body for rule, body in jobs if rule not in TORCH_RULES)
+    profile = yaml.safe_load((REPO / "profiles" / "default" / "config.yaml").read_text())
+    assert profile["resources"] == ["gpu=1"]
+
+
+def test_gpu_jobs_without_torch(tmp_path):
+    """``auto`` asks for the GPU only where the NVIDIA driver lists one (decided without torch)."""
+    cfg = load_config_file(SMOKE)
+    driver = tmp_path / "gpus"
+    assert cfg.device == "auto" and cfg.gpu_jobs(driver) == 0
+    driver.mkdir()
+    assert cfg.gpu_jobs(driver) == 0
+    (driver / "0000:01:00.0").mkdir()
+    assert cfg.gpu_jobs(driver) == 1
 
 
 def test_invalid_config_fails_at_dag_build(tmp_path):

@@ -12,9 +12,12 @@ rule bake:
     conda:
         CONDA_ENV
     threads: 2
+    resources:
+        gpu=GPU_JOBS,
     params:
+        device=DEVICE,
         out_dir=cell_dir("bake"),
         settings=cell_settings_json("bake"),
     shell:
         "python -m stages.bake --mesh {input.mesh:q} --field {input.field:q} --eval {input.eval:q} "
-        "--out-dir {params.out_dir:q} --settings {params.settings:q} --threads {threads} 2> {log:q}"
+        "--out-dir {params.out_dir:q} --settings {params.settings:q} --threads {threads} --device {params.device} 2> {log:q}"

@@ -24,6 +24,10 @@ except ConfigError as exc:
     raise WorkflowError(f"invalid configuration: {exc}") from None
 
 RESULTS = "results"
+# where the torch stages run, and the gpu resource each of their jobs asks for (1 on a GPU):
+# profiles/default allows one such job at a time unless --resources gpu=N says otherwise
+DEVICE = CFG.device
+GPU_JOBS = CFG.gpu_jobs()
 # all jobs share one environment (the project installed from the repository root)
 CONDA_ENV = "../envs/tango.yaml"
 ID_REGEX = "[A-Za-z0-9][A-Za-z0-9_.-]*"

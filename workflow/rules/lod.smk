@@ -14,7 +14,10 @@ rule lod:
     conda:
         CONDA_ENV
     threads: 2
+    resources:
+        gpu=GPU_JOBS,
     params:
+        device=DEVICE,
         bake_dir=cell_dir("bake"),
         out_dir=cell_dir("lod"),
         name=asset_name,
@@ -28,4 +31,4 @@ rule lod:
         "--out-dir {params.out_dir:q} --name {params.name:q} --settings {params.settings:q} "
         "--bake-settings {params.bake_settings:q} --export-settings {params.export_settings:q} "
         "--decimate-settings {params.decimate_settings:q} "
-        "--threads {threads} 2> {log:q}"
+        "--threads {threads} --device {params.device} 2> {log:q}"

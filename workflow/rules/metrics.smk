@@ -14,7 +14,10 @@ rule metrics:
     conda:
         CONDA_ENV
     threads: 2
+    resources:
+        gpu=GPU_JOBS,
     params:
+        device=DEVICE,
         prompt=prompt_text,
         candidates=candidates_json,
         out_dir=cell_dir("metrics"),
@@ -23,4 +26,4 @@ rule metrics:
     shell:
         "python -m stages.metrics --field {input.field:q} --metrics-cache {input.cache:q} "
         "--prompt {params.prompt:q} --candidates {params.candidates:q} --out-dir {params.out_dir:q} "
-        "--settings {params.settings:q} {params.targets} --threads {threads} 2> {log:q}"
+        "--settings {params.settings:q} {params.targets} --threads {threads} --device {params.device} 2> {log:q}"

@@ -12,7 +12,10 @@ rule optimize:
     conda:
         CONDA_ENV
     threads: 2
+    resources:
+        gpu=GPU_JOBS,
     params:
+        device=DEVICE,
         prompt=prompt_text,
         out_dir=cell_dir("optimize"),
         settings=optimize_settings_json,
@@ -20,4 +23,4 @@ rule optimize:
     shell:
         "python -m stages.optimize --train {input.train:q} --eval {input.eval:q} "
         "--prompt {params.prompt:q} --out-dir {params.out_dir:q} --settings {params.settings:q} "
-        "{params.targets} --threads {threads} 2> {log:q}"
+        "{params.targets} --threads {threads} --device {params.device} 2> {log:q}"

@@ -13,9 +13,12 @@ rule relight:
     conda:
         CONDA_ENV
     threads: 2
+    resources:
+        gpu=GPU_JOBS,
     params:
+        device=DEVICE,
         out_dir=cell_dir("relight"),
         settings=cell_settings_json("relight"),
     shell:
         "python -m stages.relight --field {input.field:q} --eval {input.eval:q} "
-        "--out-dir {params.out_dir:q} --settings {params.settings:q} --threads {threads} 2> {log:q}"
+        "--out-dir {params.out_dir:q} --settings {params.settings:q} --threads {threads} --device {params.device} 2> {log:q}"

@@ -11,7 +11,10 @@ rule roundtrip:
     conda:
         CONDA_ENV
     threads: 2
+    resources:
+        gpu=GPU_JOBS,
     params:
+        device=DEVICE,
         bake_dir=cell_dir("bake"),
         export_dir=cell_dir("export"),
         out_dir=cell_dir("roundtrip"),
@@ -20,4 +23,4 @@ rule roundtrip:
         "python -m stages.roundtrip --mesh {input.mesh:q} --transform {input.transform:q} "
         "--field {input.field:q} --eval {input.eval:q} --bake-dir {params.bake_dir:q} "
         "--export-dir {params.export_dir:q} --out-dir {params.out_dir:q} "
-        "--settings {params.settings:q} --threads {threads} 2> {log:q}"
+        "--settings {params.settings:q} --threads {threads} --device {params.device} 2> {log:q}"

@@ -1,0 +1,131 @@
+"""The paper's optimisation on one GPU, in one command: wall time, seconds per iteration, peak
+GPU memory and where the time goes.
+
+At the paper's defaults (a 512x512 ray cache of 8 views, CLIP ViT-B-32 at 224 with random weights:
+no weights can be downloaded on the lent machines and timing does not depend on them, networks of
+width 256, 32 light lobes, 1 view with 1 global image and 4 crops per step) it runs
+``--iterations`` (1,500) real training steps (``Optimizer.step``) on CUDA and prints:
+
+* the wall time of the whole loop and its seconds per iteration (after ``--warmup`` steps, which
+  load kernels and fill caches), against the target of 60 s for 1,500 iterations;
+* the peak GPU memory allocated by torch (``torch.cuda.max_memory_allocated``) against 4 GiB;
+* a profile of ``--profile-steps`` steps: the top CUDA kernels by device time, host-to-device and
+  device-to-host copies per step, and the share of the step the GPU was busy (low: the Python
+  overhead of small kernels dominates);
+* the levers side by side (``--levers``): bfloat16 for CLIP and the networks, TF32 products.
+
+The mesh is ``../shared/meshes/person.obj`` when present, else the built-in vase. Without CUDA it
+stops with a message (tests/gpu holds the GPU tests; both skip or stop on a CPU machine).
+
+    python benchmarks/gpu.py [--iterations 1500] [--levers] [--bf16] [--tf32]
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from optimize import build_cache, vit_b32_random  # noqa: E402
+
+from stages.config.sections import OptimizeSettings  # noqa: E402
+from stages.core.provenance import Timer  # noqa: E402
+from stages.geometry.raycache import RayCache  # noqa: E402
+from stages.training.optimizer import Optimizer  # noqa: E402
+
+TARGET_S = 60.0
+TARGET_GIB = 4.0
+
+
+def run(train: Path, iterations: int, warmup: int, bf16: bool, tf32: bool) -> dict:
+    torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = tf32
+    s = OptimizeSettings(iterations=iterations, bf16=bf16, bf16_networks=bf16)
+    guide = vit_b32_random(bf16=s.bf16, tower=s.clip_tower, device="cuda")
+    opt = Optimizer(s, RayCache(train), "a person made of wood", "cuda", guide=guide)
+    for _ in range(warmup):
+        opt.step(Timer())
+    torch.cuda.synchronize()
+    torch.cuda.reset_peak_memory_stats()
+    t0 = time.perf_counter()
+    for _ in range(iterations):
+        opt.step(Timer())
+    torch.cuda.synchronize()
+    wall = time.perf_counter() - t0
+    return {
+        "wall_s": wall,
+        "s_per_iter": wall / iterations,
+        "peak_gib": torch.cuda.max_memory_allocated() / 2**30,
+        "precision": f"clip {guide.precision}; networks {opt.network_precision}; tf32 {tf32}",
+        "opt": opt,
+    }
+
+
+def profile(opt: Optimizer, steps: int) -> None:
+    from torch.profiler import ProfilerActivity
+    from torch.profiler import profile as torch_profile
+
+    torch.cuda.synchronize()
+    t0 = time.perf_counter()
+    with torch_profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
+        for _ in range(steps):
+            opt.step(Timer())
+        torch.cuda.synchronize()
+    wall = time.perf_counter() - t0
+    events = prof.key_averages()
+    device_us = sum(e.self_device_time_total for e in events if e.device_type == torch.autograd.DeviceType.CUDA)
+    copies = {k: 0 for k in ("HtoD", "DtoH")}
+    for e in events:
+        for k in copies:
+            if f"Memcpy {k}" in e.key:
+                copies[k] += e.count
+    print(f"# profile of {steps} steps: GPU busy {device_us / 1e6 / wall:.0%} of the wall time")
+    print(f"# copies per step: host->device {copies['HtoD'] / steps:.1f}, device->host {copies['DtoH'] / steps:.1f}")
+    print(events.table(sort_by="self_cuda_time_total", row_limit=15))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--iterations", type=int, default=1500)
+    parser.add_argument("--warmup", type=int, default=10)
+    parser.add_argument("--profile-steps", type=int, default=20)
+    parser.add_argument("--bf16", action="store_true", help="bfloat16 autocast for CLIP and the networks")
+    parser.add_argument("--tf32", action="store_true", help="TF32 matrix products for the float32 parts")
+    parser.add_argument("--levers", action="store_true", help="also time 200 iterations under each lever")
+    args = parser.parse_args()
+    if not torch.cuda.is_available():
+        raise SystemExit("benchmarks/gpu.py needs a CUDA device (torch sees none); on a CPU use benchmarks/optimize.py")
+    name = torch.cuda.get_device_name()
+    with tempfile.TemporaryDirectory() as d:
+        t0 = time.perf_counter()
+        train, mesh = build_cache(Path(d))
+        took = time.perf_counter() - t0
+        print(f"# {name}; torch {torch.__version__}; mesh {mesh}; ray cache 512x512 in {took:.1f} s", flush=True)
+        main_run = run(train, args.iterations, args.warmup, args.bf16, args.tf32)
+        print(f"# {main_run['precision']}", flush=True)
+        profile(main_run["opt"], args.profile_steps)
+        rows = []
+        if args.levers:
+            for bf16, tf32 in ((False, False), (False, True), (True, False)):
+                r = run(train, 200, args.warmup, bf16, tf32)
+                rows.append((f"bf16={bf16} tf32={tf32}", r))
+        if rows:
+            print(f"{'lever':<24}{'s/iter':>9}{'x fp32':>8}{'peak GiB':>10}")
+            base = rows[0][1]["s_per_iter"]
+            for label, r in rows:
+                print(f"{label:<24}{r['s_per_iter']:>9.4f}{base / r['s_per_iter']:>8.2f}{r['peak_gib']:>10.2f}")
+    pts = statistics.mean(row["points"] for row in main_run["opt"].history[-args.iterations :])
+    print(
+        f"iterations={args.iterations} wall_s={main_run['wall_s']:.1f} target_s={TARGET_S * args.iterations / 1500:.1f} "
+        f"s_per_iter={main_run['s_per_iter']:.4f} peak_gib={main_run['peak_gib']:.2f} target_gib={TARGET_GIB} "
+        f"points_per_iter={pts:.0f} device={name.replace(' ', '_')}"
+    )
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,188 @@
+"""On a CUDA device: the renderer and a training step against CPU float64 references, bfloat16
+finite at the extremes, and the tiny and offline-demo workflows end to end on the GPU.
+
+Every test here is marked ``gpu`` and skips without CUDA (CI machines have none; a lent GPU runs
+them with ``pytest -m gpu tests/gpu``). Relative errors are ``|out - ref| / |ref|`` over the whole
+tensor, against float64 on the CPU: float32 lands far under 1e-3 (TF32 is off here), bfloat16
+products between 1e-3 and 1e-2.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+import torch
+from conftest import REPO, run_snakemake
+
+from stages.config.sections import SPECULAR_LOBES, ClipSpec, NormalizeSettings, OptimizeSettings, RaycacheSettings
+from stages.geometry.meshio import save_ply
+from stages.geometry.normalization import normalize_mesh
+from stages.geometry.raycache import RayCache
+from stages.guidance.clip import TINY_MODEL, load_clip
+from stages.model.field import StyleField
+from stages.model.networks import SGLightModule
+from stages.raycache import run as raycache_run
+from stages.render.shading import shade
+from stages.training.optimizer import Optimizer
+
+pytestmark = [pytest.mark.gpu, pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")]
+CUDA = torch.device("cuda")
+
+
+@pytest.fixture(autouse=True)
+def no_tf32():
+    """Full float32 products (TF32 would be a reduced precision of its own)."""
+    old = torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32
+    torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = False
+    yield
+    torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32 = old
+
+
+def rel(out: torch.Tensor, ref: torch.Tensor) -> float:
+    out = out.detach().double().cpu()
+    assert torch.isfinite(out).all()
+    return float((out - ref.detach().cpu()).norm() / ref.detach().cpu().norm())
+
+
+def shading_inputs(n: int, seed: int) -> dict[str, torch.Tensor]:
+    """Random unit normals (both poles and a grazing view among them), views in the normal's
+    hemisphere, materials with roughness from 0.01 to 1 (float64, CPU)."""
+    g = torch.Generator().manual_seed(seed)
+    nrm = torch.nn.functional.normalize(torch.randn(n, 3, generator=g, dtype=torch.float64), dim=-1)
+    nrm[:2] = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, -1.0]], dtype=torch.float64)
+    view = torch.nn.functional.normalize(nrm + torch.randn(n, 3, generator=g, dtype=torch.float64), dim=-1)
+    view = torch.where((view * nrm).sum(-1, keepdim=True) < 0, -view, view)
+    view[2] = torch.nn.functional.normalize(torch.cross(nrm[2], torch.tensor([1.0, 0, 0], dtype=torch.float64), dim=0), dim=0)
+    rough = torch.rand(n, 1, generator=g, dtype=torch.float64) * 0.99 + 0.01
+    rough[:4] = torch.tensor([[0.01], [1.0], [0.01], [1.0]], dtype=torch.float64)
+    return {
+        "normal": nrm,
+        "view": view,
+        "albedo": torch.rand(n, 3, generator=g, dtype=torch.float64),
+        "specular": torch.rand(n, 3, generator=g, dtype=torch.float64),
+        "roughness": rough,
+    }
+
+
+@pytest.mark.parametrize("lobe", SPECULAR_LOBES)
+def test_renderer_on_cuda_matches_cpu_float64(lobe):
+    """shade() in float32 on the GPU against float64 on the CPU: radiance and its gradients to
+    the material, the normal and the light (fresh random inputs, grazing views, both poles,
+    roughness at both ends, 32 lobes of a random light)."""
+    x64 = shading_inputs(4096, seed=1)
+    light = SGLightModule(32).double()
+    with torch.no_grad():
+        light.sharpness_raw.add_(
+            torch.randn(light.sharpness_raw.shape, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
+        )
+    results = {}
+    for dev, dtype in ((torch.device("cpu"), torch.float64), (CUDA, torch.float32)):
+        lm = SGLightModule(32).to(dev, dtype)
+        lm.load_state_dict({k: v.to(dev, dtype) for k, v in light.state_dict().items()})
+        x = {k: v.to(dev, dtype).requires_grad_() for k, v in x64.items()}
+        out = shade(x["normal"], x["view"], x["albedo"], lm(), x["specular"], x["roughness"], lobe)
+        rgb = out.diffuse + out.specular
+        weights = torch.linspace(0.5, 1.5, rgb.numel(), device=dev, dtype=dtype).view_as(rgb)
+        (rgb * weights).sum().backward()
+        results[dev.type] = (rgb, {k: v.grad for k, v in x.items()}, [p.grad for p in lm.parameters()])
+    (ref, gref, lref), (out, gout, lout) = results["cpu"], results["cuda"]
+    assert rel(out, ref) < 1e-5
+    for k in gref:
+        assert rel(gout[k], gref[k]) < 1e-4, k
+    for a, b in zip(lout, lref, strict=True):
+        assert rel(a, b) < 1e-4
+
+
+def test_field_forward_backward_on_cuda_matches_cpu_float64():
+    """The field's networks, shading and an image loss: loss and every parameter's gradient in
+    float32 on the GPU against float64 on the CPU."""
+    s = OptimizeSettings(width=64, light_lobes=16)
+    ref_field = StyleField(s.field_settings()).double()
+    x = shading_inputs(8192, seed=3)
+    pts = torch.rand(8192, 3, generator=torch.Generator().manual_seed(4), dtype=torch.float64) * 2 - 1
+    target = torch.rand(8192, 3, generator=torch.Generator().manual_seed(5), dtype=torch.float64)
+    grads, losses = {}, {}
+    for dev, dtype in ((torch.device("cpu"), torch.float64), (CUDA, torch.float32)):
+        f = StyleField(s.field_settings()).to(dev, dtype)
+        f.load_state_dict({k: v.to(dev, dtype) for k, v in ref_field.state_dict().items()})
+        out = f(pts.to(dev, dtype), x["normal"].to(dev, dtype), x["view"].to(dev, dtype))
+        loss = ((out.shading.rgb - target.to(dev, dtype)) ** 2).mean()
+        loss.backward()
+        losses[dev.type] = loss
+        grads[dev.type] = {k: p.grad for k, p in f.named_parameters() if p.grad is not None}
+    assert rel(losses["cuda"], losses["cpu"]) < 1e-5
+    assert grads["cuda"].keys() == grads["cpu"].keys()
+    for k, g in grads["cpu"].items():
+        assert rel(grads["cuda"][k], g) < 1e-3, k
+
+
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory):
+    d = tmp_path_factory.mktemp("rc")
+    save_ply(d / "vase.ply", normalize_mesh("builtin:vase", NormalizeSettings()).mesh)
+    raycache_run(
+        d / "vase.ply",
+        d / "train.npz",
+        d / "eval.npz",
+        d / "meta.json",
+        RaycacheSettings(views=6, resolution=64, eval_azimuths=4, eval_elevations_deg=(0.0, 30.0), eval_resolution=48),
+    )
+    return d
+
+
+def test_training_steps_on_cuda_match_cpu(cache):
+    """Three real steps of the optimiser (image guidance, our own targets) on the GPU and on the
+    CPU from the same seed: the same views and crops, losses within float32 rounding."""
+    s = OptimizeSettings(guidance="image", target_renderer="sg", image_size=64, width=32, crops=2, light_lobes=8, iterations=3)
+    losses = {}
+    for dev in ("cpu", "cuda"):
+        opt = Optimizer(s, RayCache(cache / "train.npz"), "", dev)
+        losses[dev] = [opt.step(_timer())["loss"] for _ in range(3)]
+    for a, b in zip(losses["cuda"], losses["cpu"], strict=True):
+        assert math.isfinite(a) and abs(a - b) <= 1e-4 * abs(b) + 1e-7, losses
+
+
+def _timer():
+    from stages.core.provenance import Timer
+
+    return Timer()
+
+
+def test_bf16_finite_at_the_extremes_on_cuda():
+    """bfloat16 networks and CLIP on the GPU: finite values and gradients at the box's corners,
+    both poles and a grazing normal, and for black and white images."""
+    s = OptimizeSettings(width=64)
+    f = StyleField(s.field_settings()).to(CUDA)
+    assert f.use_bf16(True, CUDA).startswith("bfloat16 autocast")
+    corners = torch.cartesian_prod(*[torch.tensor([-1.0, 1.0])] * 3)
+    pts = torch.cat([corners, torch.zeros(1, 3), torch.full((1, 3), 1e-7)]).to(CUDA)
+    nrm = torch.nn.functional.normalize(torch.randn(len(pts), 3), dim=-1)
+    nrm[:3] = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, -1.0], [0.0, 1.0, 1e-7]])
+    mat, n = f.surface(pts, nrm.to(CUDA))
+    (mat.albedo.sum() + mat.specular.sum() + mat.roughness.sum() + n.sum()).backward()
+    assert all(torch.isfinite(t).all() for t in (mat.albedo, mat.specular, mat.roughness, n))
+    assert all(torch.isfinite(p.grad).all() for p in f.svbrdf.parameters())
+    guide = load_clip(ClipSpec(model=TINY_MODEL, pretrained="", tiny_test=True), device=CUDA, bf16=True)
+    assert guide.bf16
+    text = guide.embed_text("a vase made of wood")
+    for images in (torch.zeros(2, 3, 64, 64), torch.ones(2, 3, 64, 64)):
+        x = images.to(CUDA).requires_grad_()
+        guide.similarity(x, text).backward()
+        assert torch.isfinite(x.grad).all()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("configfile", ["config/tiny.yaml", "config/demo-offline.yaml"])
+def test_workflow_end_to_end_on_cuda(tmp_path, configfile):
+    """The tiny and the offline-demo experiments with ``device: cuda``: every job succeeds and
+    every optimisation ran on the GPU (its metadata says so)."""
+    proc = run_snakemake(
+        tmp_path, "--cores", "4", "--configfile", str(REPO / configfile), "--config", "device=cuda", timeout=3000
+    )
+    assert proc.returncode == 0, proc.stderr[-4000:]
+    metas = list((tmp_path / "results").glob("*/*/*/optimize/meta.json"))
+    assert metas
+    for m in metas:
+        assert json.loads(m.read_text())["device"].startswith("cuda"), m

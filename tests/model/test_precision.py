@@ -1,0 +1,91 @@
+"""The networks under bfloat16 autocast (``optimize.bf16_networks``): close to float32, finite in
+value and gradient at the extremes, float32 where the renderer reads, float32 outside training,
+and never silently ignored."""
+
+from __future__ import annotations
+
+import copy
+
+import pytest
+import torch
+
+from stages.config.sections import OptimizeSettings
+from stages.core.cli import bf16_support
+from stages.model import field as field_module
+from stages.model.field import StyleField
+from stages.model.networks import FourierFeatures
+
+CPU = torch.device("cpu")
+
+
+def _extreme_inputs():
+    """Points on the normalised box's corners and faces, at the origin, tiny and off-centre;
+    normals at both poles (where the tangent frame switches), grazing and random."""
+    g = torch.Generator().manual_seed(0)
+    corners = torch.cartesian_prod(*[torch.tensor([-1.0, 1.0])] * 3)
+    pts = torch.cat(
+        [
+            corners,
+            torch.zeros(1, 3),
+            torch.full((1, 3), 1e-7),
+            torch.tensor([[0.99, -0.999, 0.5]]),
+            torch.rand(200, 3, generator=g) * 2 - 1,
+        ]
+    )
+    nrm = torch.randn(len(pts), 3, generator=g)
+    nrm[:4] = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 1e-7]])
+    return pts, nrm / nrm.norm(dim=-1, keepdim=True)
+
+
+@pytest.mark.parametrize("encoding", ["nerf", "fourier"])
+def test_bf16_networks_close_to_float32_and_finite(encoding):
+    supported, why = bf16_support(CPU)
+    if not supported:
+        pytest.skip(f"no native bfloat16 here: {why}")
+    s = OptimizeSettings(material_encoding=encoding, normal_encoding=encoding, width=64)
+    fp32 = StyleField(s.field_settings())
+    bf16 = copy.deepcopy(fp32)
+    assert bf16.use_bf16(True, CPU).startswith("bfloat16 autocast") and fp32.use_bf16(False, CPU) == "float32"
+    # a trained-looking field: heads away from their constant initialisation
+    with torch.no_grad():
+        for a, b in zip(fp32.parameters(), bf16.parameters(), strict=True):
+            a.add_(0.05 * torch.randn(a.shape, generator=torch.Generator().manual_seed(a.numel())))
+            b.copy_(a)
+    pts, nrm = _extreme_inputs()
+    outs = []
+    for f in (fp32, bf16):
+        mat, n = f.surface(pts, nrm)
+        for t in (mat.albedo, mat.specular, mat.roughness, n):
+            assert t.dtype == torch.float32 and torch.isfinite(t).all()
+        assert ((mat.roughness >= s.min_roughness) & (mat.roughness <= 1)).all()
+        torch.testing.assert_close(n.norm(dim=-1), torch.ones(len(n)), rtol=0, atol=1e-5)
+        (mat.albedo.sum() + mat.specular.sum() + mat.roughness.sum() + (n * nrm).sum()).backward()
+        nets = [*f.svbrdf.parameters(), *f.normal_net.parameters()]
+        assert all(p.grad is not None and torch.isfinite(p.grad).all() for p in nets)
+        outs.append((mat, n))
+    (m32, n32), (m16, n16) = outs
+    for a, b in ((m32.albedo, m16.albedo), (m32.specular, m16.specular), (m32.roughness, m16.roughness)):
+        assert (a - b).abs().max() < 0.02
+    angle = torch.rad2deg(torch.acos((n32 * n16).sum(-1).clamp(-1, 1)))
+    assert angle.max() < 1.0, angle.max()
+    assert (m32.albedo - m16.albedo).abs().max() > 0  # bfloat16 really ran
+    # outside training (evaluation, baking, relighting): float32, bit for bit
+    bf16.eval(), fp32.eval()
+    torch.testing.assert_close(bf16.surface(pts, nrm)[0].albedo, fp32.surface(pts, nrm)[0].albedo, rtol=0, atol=0)
+
+
+def test_fourier_phases_stay_float32_under_autocast():
+    """Random Fourier features multiply coordinates by large frequencies: their projection never
+    runs in bfloat16 (the phase error would be radians)."""
+    enc = FourierFeatures(64, sigma=20.0, generator=torch.Generator().manual_seed(0))
+    x = torch.rand(100, 3) * 2 - 1
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        y = enc(x)
+    assert y.dtype == torch.float32
+    torch.testing.assert_close(y, enc(x), rtol=0, atol=0)
+
+
+def test_bf16_networks_not_silently_ignored(monkeypatch):
+    monkeypatch.setattr(field_module, "bf16_support", lambda device: (False, "no native bfloat16 in this test"))
+    f = StyleField(OptimizeSettings(width=16).field_settings())
+    assert f.use_bf16(True, CPU) == "float32 (no native bfloat16 in this test)" and not f.bf16
