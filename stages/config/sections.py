@@ -254,6 +254,11 @@ class OptimizeSettings(ClipChoice, Settings):
     light_rgb: bool = True
     light_energy: float = 6.25
     light_init_sharpness: float | None = None
+    #: lighting as the scene requires ("light_lobes: auto"): after this many iterations (the
+    #: warm-up) the lobes whose energy is below light_prune_share of the light's total in every
+    #: channel are dropped for the rest of the run; null: every lobe is kept (TANGO)
+    light_prune_after: int | None = None
+    light_prune_share: float = 0.01
     #: the specular model (SPECULAR_LOBES): "isotropic" (TANGO's closed form), "split_sum" (exact
     #: energy from the tabulated directional albedo, the isotropic lobe's shape) or "fitted" (exact
     #: energy, a lobe fitted to the BRDF's moments, corrected by the BRDF at each light lobe); see
@@ -285,6 +290,9 @@ class OptimizeSettings(ClipChoice, Settings):
     #: the SVBRDF and normal networks' matrix products under bfloat16 autocast during training
     #: (encodings, activations' outputs and the renderer stay float32); metadata network_precision
     bf16_networks: bool = False
+    #: the renderer through torch.compile while training (inductor; on a CPU it needs a C++
+    #: compiler): fused pointwise loops, compiled once per process (metadata shading_path)
+    compile_shading: bool = False
     target_material: str = "wood"
     #: who renders the image targets: "mitsuba" (path-traced ground truth, the target stage) or
     #: "sg" (our own SG renderer under target_light: fast, but the renderer grades itself)
@@ -322,6 +330,10 @@ class OptimizeSettings(ClipChoice, Settings):
             p.append(f"normal_weighting must be one of {', '.join(NORMAL_WEIGHTINGS)}, got {self.normal_weighting!r}")
         if not 0.0 <= self.crease_angle_deg <= 180.0:
             p.append(f"crease_angle_deg must be in [0, 180], got {self.crease_angle_deg}")
+        if self.light_prune_after is not None and self.light_prune_after < 1:
+            p.append(f"light_prune_after must be >= 1 or null, got {self.light_prune_after}")
+        if not 0.0 < self.light_prune_share < 1.0:
+            p.append(f"light_prune_share must be in (0, 1), got {self.light_prune_share}")
         if self.clip_tower not in CLIP_TOWERS:
             p.append(f"clip_tower must be one of {', '.join(CLIP_TOWERS)}, got {self.clip_tower!r}")
         if self.target_light not in LIGHTS:

@@ -91,6 +91,19 @@ class StyleField(nn.Module):
         self.normals = NormalSpec(s.shading_normals, s.crease_angle_deg, s.normal_weighting)
         #: the networks' matrix products under bfloat16 autocast (:meth:`use_bf16`; off: float32)
         self.bf16 = False
+        #: the renderer compiled by torch.compile for training (:meth:`use_compiled_shading`)
+        self.compiled_shade = None
+
+    def use_compiled_shading(self, enabled: bool) -> str:
+        """Shade through ``torch.compile(shade, dynamic=True)`` in training mode (the optimisation's
+        option ``compile_shading``): inductor fuses the renderer's many small pointwise operations
+        into a few loops. The same function (``tests/model/test_precision.py`` compares them);
+        compiling costs time once per process (measured in the README). Returns what runs."""
+        if not enabled:
+            self.compiled_shade = None
+            return "eager"
+        self.compiled_shade = torch.compile(shade, dynamic=True)
+        return "torch.compile (inductor)"
 
     def use_bf16(self, enabled: bool, device: torch.device) -> str:
         """Run the networks' matrix products under bfloat16 autocast in training mode (the
@@ -103,6 +116,14 @@ class StyleField(nn.Module):
         if enabled and not supported:
             log.warning("bf16_networks asked for, but %s: the networks run in float32", why)
         return f"bfloat16 autocast ({why})" if self.bf16 else ("float32" if not enabled else f"float32 ({why})")
+
+    def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
+        """As ``nn.Module``'s, and a light whose lobes were pruned (``light_prune_after``) is
+        shrunk to the saved number of lobes first (its parameters are new objects then)."""
+        saved = state_dict.get("light.axis_raw")
+        if saved is not None and saved.shape[0] < self.light.lobes:
+            self.light.keep(torch.arange(saved.shape[0]))
+        return super().load_state_dict(state_dict, strict, assign)
 
     def symmetric_points(self, points: Tensor) -> Tensor:
         """The points as the networks see them (``(x, y, |z|)`` under the symmetry prior)."""
@@ -151,4 +172,5 @@ class StyleField(nn.Module):
         """The renderer's half of the forward pass: ``material`` and unit shading ``normal`` (from
         :meth:`surface`) seen along ``view``, under the learned light or ``light``."""
         light = light if light is not None else self.light()
-        return shade(normal, view, material.albedo, light, material.specular, material.roughness, self.specular_lobe)
+        fn = self.compiled_shade if self.compiled_shade is not None and self.training else shade
+        return fn(normal, view, material.albedo, light, material.specular, material.roughness, self.specular_lobe)

@@ -249,5 +249,33 @@ class SGLightModule(nn.Module):
 
     def energy(self) -> Tensor:
         """Total energy per channel ``(3,)``: the sum of the lobes' sphere integrals."""
+        return self.lobe_energy().sum(0)
+
+    def lobe_energy(self) -> Tensor:
+        """Each lobe's energy per channel ``(K, 3)``: its sphere integral (:func:`sg_integral`)."""
         light = self()
-        return sg_integral(light.sharpness, light.amplitude).sum(0)
+        return sg_integral(light.sharpness, light.amplitude)
+
+    def negligible(self, share: float) -> Tensor:
+        """``(K,)`` bool: lobes whose energy is below ``share`` of the light's total in every
+        channel (never all of them: the brightest lobe always stays)."""
+        with torch.no_grad():
+            e = self.lobe_energy()
+            small = (e < share * e.sum(0, keepdim=True)).all(-1)
+            small[e.sum(-1).argmax()] = False
+        return small
+
+    def keep(self, index: Tensor) -> list[tuple[nn.Parameter, nn.Parameter]]:
+        """Keep only the lobes ``index`` (indices into the current ``K``), as new parameters;
+        returns the ``(old, new)`` parameter pairs so that an optimiser can follow them."""
+        pairs = []
+        for name in ("axis_raw", "sharpness_raw", "amplitude_raw"):
+            old = getattr(self, name)
+            new = nn.Parameter(old.detach()[index.to(old.device)].clone())
+            setattr(self, name, new)
+            pairs.append((old, new))
+        return pairs
+
+    @property
+    def lobes(self) -> int:
+        return int(self.axis_raw.shape[0])

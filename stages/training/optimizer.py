@@ -49,6 +49,7 @@ class Optimizer:
         self.field = StyleField(settings.field_settings()).to(self.device)
         #: what the networks' products ran in during training, for the metadata
         self.network_precision = self.field.use_bf16(settings.bf16_networks, self.device)
+        self.shading_path = self.field.use_compiled_shading(settings.compile_shading)
         self.views = ViewStore(train, self.device, self.field.normals, targets)
         self.prompt = prompt
         self.opt = torch.optim.AdamW(self.field.parameters(), lr=settings.lr, weight_decay=settings.weight_decay)
@@ -59,6 +60,8 @@ class Optimizer:
         self.history: list[dict] = []
         self.objective = Objective(settings, prompt, self.device, guide, targets.description if targets else None)
         self.points_last = 0
+        #: when the light was pruned (``light_prune_after``): iteration, lobes kept and dropped
+        self.light_pruned: dict | None = None
 
     # -- checkpoints
     def state(self) -> dict:
@@ -70,16 +73,42 @@ class Optimizer:
             "scheduler": self.sched.state_dict(),
             "rng": _rng_state(self.np_rng, self.tgen),
             "history": self.history,
+            "light_pruned": self.light_pruned,
         }
 
     def load(self, state: dict) -> None:
+        lobes = self.field.light.lobes
         self.field.load_state_dict(state["field"])
+        if self.field.light.lobes != lobes:  # pruned before the checkpoint: the light's parameters are new
+            self.opt.param_groups[0]["params"] = list(self.field.parameters())
         self.opt.load_state_dict(state["optimizer"])
+        self.light_pruned = state.get("light_pruned")
         self.sched.load_state_dict(state["scheduler"])
         self.np_rng.bit_generator.state = state["rng"]["numpy"]
         self.tgen.set_state(state["rng"]["torch"])
         self.iteration = int(state["iteration"])
         self.history = list(state["history"])
+
+    # -- the scene's needs
+    def prune_light(self) -> int:
+        """Drop the light's negligible lobes (:meth:`~stages.model.networks.SGLightModule.negligible`
+        at ``light_prune_share``), carrying the optimiser's moments of the kept ones; returns how
+        many were dropped."""
+        small = self.field.light.negligible(self.s.light_prune_share)
+        index = torch.nonzero(~small).flatten()
+        dropped = int(small.sum())
+        if dropped:
+            group = self.opt.param_groups[0]["params"]
+            for old, new in self.field.light.keep(index):
+                moments = self.opt.state.pop(old, None)
+                if moments is not None:
+                    self.opt.state[new] = {
+                        k: v[index] if torch.is_tensor(v) and v.dim() > 0 and v.shape[0] == old.shape[0] else v
+                        for k, v in moments.items()
+                    }
+                group[next(i for i, p in enumerate(group) if p is old)] = new
+        self.light_pruned = {"iteration": self.iteration, "kept": len(index), "dropped": dropped}
+        return dropped
 
     # -- one step
     def image_specs(self, v: CachedView) -> list[ImageSpec]:
@@ -139,6 +168,9 @@ class Optimizer:
         self.iteration += 1
         self.points_last = npts
         row = {"iteration": self.iteration, "loss": float(loss.detach()), "lr": lr, "points": npts, **stats}
+        row["light_lobes"] = self.field.light.lobes
+        if self.iteration == s.light_prune_after:
+            self.prune_light()
         self.history.append(row)
         return row
 

@@ -89,3 +89,31 @@ def test_bf16_networks_not_silently_ignored(monkeypatch):
     monkeypatch.setattr(field_module, "bf16_support", lambda device: (False, "no native bfloat16 in this test"))
     f = StyleField(OptimizeSettings(width=16).field_settings())
     assert f.use_bf16(True, CPU) == "float32 (no native bfloat16 in this test)" and not f.bf16
+
+
+@pytest.mark.slow
+def test_compiled_shading_equals_eager_in_training_only():
+    """``compile_shading``: the field shades through torch.compile while training, with the same
+    colours and gradients as the eager renderer; evaluation (baking, relighting) stays eager."""
+    s = OptimizeSettings(width=16, light_lobes=4, specular_lobe="isotropic")
+    eager = StyleField(s.field_settings())
+    compiled = copy.deepcopy(eager)
+    assert compiled.use_compiled_shading(True) == "torch.compile (inductor)" and eager.use_compiled_shading(False) == "eager"
+    pts, nrm = _extreme_inputs()
+    view = torch.nn.functional.normalize(nrm + 0.3 * torch.randn(nrm.shape, generator=torch.Generator().manual_seed(1)), dim=-1)
+    outs = []
+    for f in (eager, compiled):
+        rgb = f(pts, nrm, view).shading.rgb
+        (rgb * torch.linspace(0, 1, rgb.numel()).view_as(rgb)).sum().backward()
+        outs.append((rgb.detach(), [p.grad for p in f.parameters()]))
+    torch.testing.assert_close(outs[1][0], outs[0][0], rtol=1e-5, atol=1e-6)
+    for a, b in zip(outs[1][1], outs[0][1], strict=True):
+        assert float((a - b).norm() / b.norm()) < 1e-4  # float32 sums in another order
+
+    def not_in_evaluation(*args, **kwargs):
+        raise AssertionError("the compiled renderer ran outside training")
+
+    compiled.compiled_shade = not_in_evaluation
+    compiled.eval()
+    with torch.no_grad():
+        torch.testing.assert_close(compiled(pts, nrm, view).shading.rgb, eager.eval()(pts, nrm, view).shading.rgb)

@@ -1,0 +1,113 @@
+"""The ``fast`` preset's whole optimize job on a built-in mesh, under CLIP ViT-B-32 at 224, per
+CPU lever, side by side: the job's wall time as a user sees it (``python -m stages.optimize`` in
+a fresh process: start-up, CLIP loading, 300 iterations, the evaluation renders and the outputs)
+against the target of 2 minutes.
+
+``compiled shading`` runs first with inductor's cache as it finds it (cold on a fresh machine)
+and again as ``compiled (warm)``, when the compiled code is cached on disk. The ray cache is the
+default one (64 views at 512x512) of ``--mesh`` (built-in vase). No CLIP
+weights reach our machines, so ViT-B-32 runs with random weights saved once as a local
+checkpoint (``optimize.clip_checkpoint``): timing does not depend on the weights. Quality under
+bfloat16 is measured where it can be, on image targets (``benchmarks/recovery.py --precision``)
+and as the cosines of CLIP's outputs (``benchmarks/optimize.py --clip-only``).
+
+    python benchmarks/fast_job.py [--mesh vase] [--levers float32,bf16] [--threads 2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+TARGET_S = 120.0
+#: lever name -> optimize settings on top of the fast preset
+LEVERS = {
+    "float32": {},
+    "bf16": {"bf16": True, "bf16_networks": True},
+    "bf16, compiled shading": {"bf16": True, "bf16_networks": True, "compile_shading": True},
+    "bf16, compiled (warm)": {"bf16": True, "bf16_networks": True, "compile_shading": True},
+    "float32, open_clip tower": {"clip_tower": "open_clip"},
+}
+
+
+def prepare(work: Path, mesh: str) -> Path:
+    """Normalised mesh, the default ray cache and a random ViT-B-32 checkpoint in ``work``."""
+    import torch
+
+    from stages.config.sections import NormalizeSettings, RaycacheSettings
+    from stages.geometry.meshio import save_ply
+    from stages.geometry.normalization import normalize_mesh
+    from stages.guidance.compat import import_open_clip
+    from stages.raycache import run as raycache_run
+
+    save_ply(work / "mesh.ply", normalize_mesh(f"builtin:{mesh}", NormalizeSettings()).mesh)
+    raycache_run(work / "mesh.ply", work / "train.npz", work / "eval.npz", work / "rc.json", RaycacheSettings())
+    open_clip = import_open_clip()
+    torch.manual_seed(0)
+    torch.save(open_clip.create_model("ViT-B-32", pretrained=None).state_dict(), work / "vit-b-32-random.pt")
+    return work / "vit-b-32-random.pt"
+
+
+def job(work: Path, checkpoint: Path, name: str, overrides: dict, threads: int) -> dict:
+    from stages.config.presets import PRESETS
+    from stages.config.sections import OptimizeSettings
+
+    settings = OptimizeSettings(**{**PRESETS["fast"], "clip_checkpoint": str(checkpoint), "checkpoint_every": 1000, **overrides})
+    out = work / name.replace(" ", "_").replace(",", "")
+    cmd = [sys.executable, "-m", "stages.optimize", "--train", str(work / "train.npz"), "--eval", str(work / "eval.npz")]
+    cmd += ["--prompt", "a vase made of wood", "--out-dir", str(out), "--settings", json.dumps(settings.to_dict())]
+    cmd += ["--threads", str(threads), "--device", "cpu"]
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    if proc.returncode:
+        raise SystemExit(f"{name}: the optimize job failed:\n{proc.stderr[-3000:]}")
+    meta = json.loads((out / "meta.json").read_text())
+    return {
+        "wall_s": wall,
+        "loop_s": meta["timings_s"]["loop"],
+        "timings_s": meta["timings_s"],
+        "s_per_iter": meta["seconds_per_iteration"],
+        "points": meta["points_per_iteration"],
+        "precision": f"clip {meta['clip_precision'].split(' (')[0]}, networks {meta['network_precision'].split(' (')[0]}, "
+        f"shading {meta['shading_path']}",
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--mesh", default="vase")
+    parser.add_argument("--levers", default=",".join(LEVERS), help=f"comma-separated, of: {', '.join(LEVERS)}")
+    parser.add_argument("--threads", type=int, default=2)
+    args = parser.parse_args()
+    names = [n.strip() for n in args.levers.split(",") if n.strip()]
+    with tempfile.TemporaryDirectory() as d:
+        work = Path(d)
+        t0 = time.perf_counter()
+        ckpt = prepare(work, args.mesh)
+        print(f"# built-in {args.mesh}: default ray cache and a random ViT-B-32 checkpoint in {time.perf_counter() - t0:.0f} s")
+        print(f"{'lever':<26}{'job s':>8}{'loop s':>8}{'s/iter':>8}{'points':>8}  precision", flush=True)
+        rows = {}
+        for name in names:
+            r = rows[name] = job(work, ckpt, name, LEVERS[name], args.threads)
+            print(
+                f"{name:<26}{r['wall_s']:>8.1f}{r['loop_s']:>8.1f}{r['s_per_iter']:>8.3f}{r['points']:>8}  {r['precision']}",
+                flush=True,
+            )
+    best = min(rows, key=lambda k: rows[k]["wall_s"])
+    print(
+        f"fast_job_s={rows[best]['wall_s']:.1f} target_s={TARGET_S:.0f} lever={best.replace(' ', '_').replace(',', '')} "
+        + " ".join(f"{k.replace(' ', '_').replace(',', '')}_s={v['wall_s']:.1f}" for k, v in rows.items())
+    )
+
+
+if __name__ == "__main__":
+    main()
