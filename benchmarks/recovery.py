@@ -18,6 +18,7 @@ the environment's, and the optimisation's wall time.
     python benchmarks/recovery.py --meshes builtin --presets fast --specular-lobe isotropic,split_sum
     python benchmarks/recovery.py --decimate 5000 --shading-normals flat,smooth   # the robustness study
     python benchmarks/recovery.py --meshes builtin --presets fast --precision float32,bf16  # bfloat16 networks
+    python benchmarks/recovery.py --meshes builtin --presets balanced --set light_prune_after=200  # light "auto"
 
 With ``--decimate N`` each mesh is fitted on its N-face version (MeshLab's quadric collapse, the
 decimate stage) while Mitsuba renders the targets from the full-resolution mesh, as the workflow's
@@ -36,6 +37,8 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+
+import yaml
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_MESHES = REPO.parent / "shared" / "meshes"
@@ -58,6 +61,7 @@ COLUMNS = (
     "roughness_mae",
     "normal_angle_deg_mean",
     "light_energy_ratio",
+    "light_lobes",
     "optimize_s",
 )
 
@@ -123,6 +127,7 @@ def fit(
     normals: str = "smooth",
     resolution: int = 96,
     precision: str = "float32",
+    overrides: dict | None = None,
 ) -> dict:
     """Optimise with ``preset`` under image guidance on the prepared targets and grade the field on
     the held-out metric views; returns one row of the table."""
@@ -144,6 +149,7 @@ def fit(
             "specular_lobe": lobe,
             "shading_normals": normals,
             "bf16_networks": precision == "bf16",
+            **(overrides or {}),
         }
     )
     torch.set_num_threads(int(os.environ.get("TANGO_THREADS", "2")))
@@ -151,6 +157,7 @@ def fit(
     t0 = time.perf_counter()
     optimize.run(work / "train.npz", work / "eval.npz", "", out, settings, "cpu", targets_path=work / "target" / "train.npz")
     seconds = time.perf_counter() - t0
+    meta = json.loads((out / "meta.json").read_text())
     targets = work / "target" / "metrics.npz"
     graded = MetricsSettings(clip=False)
     m = metrics.run(out / "field.pt", work / "metrics.npz", "", [""], out / "metrics", graded, "cpu", targets)
@@ -160,7 +167,7 @@ def fit(
         "preset": preset,
         "specular_lobe": lobe,
         "shading_normals": normals,
-        "precision": json.loads((out / "meta.json").read_text())["network_precision"],
+        "precision": meta["network_precision"],
         "iterations": settings.iterations,
         "psnr_db": round(m["psnr_db"], 2),
         "ssim": round(m["ssim"], 3),
@@ -170,6 +177,7 @@ def fit(
         "roughness_mae": round(mat.get("roughness_mae", float("nan")), 3),
         "normal_angle_deg_mean": round(mat["normal_angle_deg_mean"], 1),
         "light_energy_ratio": "/".join(f"{x:.2f}" for x in mat["light_energy_ratio"]),
+        "light_lobes": meta["light_lobes"],
         "optimize_s": round(seconds, 1),
     }
 
@@ -181,6 +189,7 @@ def main() -> None:
     parser.add_argument(
         "--specular-lobe", default="fitted", help="comma-separated specular models (isotropic, split_sum, fitted)"
     )
+    parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="optimize settings for every fit (YAML values)")
     parser.add_argument("--precision", default="float32", help="comma-separated network precisions (float32, bf16)")
     parser.add_argument("--shading-normals", default="smooth", help="comma-separated shading normals (flat, smooth)")
     parser.add_argument("--decimate", type=int, default=None, help="fit each mesh's N-face version (full-resolution targets)")
@@ -205,20 +214,22 @@ def main() -> None:
             print(f"{name}: {faces} faces fitted ({full_faces} rendered), cache and targets in {took:.0f} s", flush=True)
             lobes, normals_list = args.specular_lobe.split(","), args.shading_normals.split(",")
             precisions = args.precision.split(",")
+            overrides = {k: yaml.safe_load(v) for k, v in (item.split("=", 1) for item in args.set)}
             combos = [(p, lb, nm, pr) for p in presets for lb in lobes for nm in normals_list for pr in precisions]
             for preset, lobe, normals, precision in combos:
                 row = {
                     "mesh": name,
                     "faces": faces,
                     "full_faces": full_faces,
-                    **fit(work, args.material, preset, lobe, normals, args.resolution, precision),
+                    **fit(work, args.material, preset, lobe, normals, args.resolution, precision, overrides),
                 }
                 rows.append(row)
                 print(
                     f"  {preset:9s} {lobe:9s} {normals:6s} {precision:8s} PSNR {row['psnr_db']:.2f} dB  SSIM {row['ssim']:.3f}  "
                     f"(noise {row['target_noise_psnr_db']} dB)  "
                     f"albedo {row['albedo_rmse']:.3f} ({row['albedo_rmse_scaled']})  roughness {row['roughness_mae']:.3f}  "
-                    f"normal {row['normal_angle_deg_mean']} deg  light {row['light_energy_ratio']}  {row['optimize_s']:.0f} s",
+                    f"normal {row['normal_angle_deg_mean']} deg  light {row['light_energy_ratio']} ({row['light_lobes']} lobes)  "
+                    f"{row['optimize_s']:.0f} s",
                     flush=True,
                 )
         # the table so far, rewritten whole after each mesh (temp file + rename)
