@@ -44,14 +44,17 @@ def resolve_device(name: str = "auto") -> torch.device:
 
 
 def bf16_support(device: torch.device) -> tuple[bool, str]:
-    """Whether bfloat16 autocast runs natively on ``device``, and why: on CUDA always; on a CPU when
+    """Whether bfloat16 autocast runs natively on ``device``, and why: on a GPU that has it (Ampere
+    and later; emulated bfloat16 on older GPUs is slower than float32); on a CPU when
     oneDNN has bfloat16 kernels for it (AVX-512 BF16 or AMX, as on this project's machines), where
     bfloat16 matrix products run several times faster than float32 ones (benchmarks/optimize.py);
     elsewhere emulated bfloat16 would be slower than float32, so it is not used."""
     import torch
 
     if device.type == "cuda":
-        return True, "CUDA"
+        if torch.cuda.is_bf16_supported(including_emulation=False):
+            return True, "CUDA with native bfloat16"
+        return False, "this GPU has no native bfloat16 (before Ampere)"
     if device.type == "cpu":
         if torch.backends.mkldnn.is_available() and torch.ops.mkldnn._is_mkldnn_bf16_supported():
             return True, "CPU with native bfloat16 (oneDNN: AVX-512 BF16 / AMX)"

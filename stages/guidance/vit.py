@@ -55,8 +55,9 @@ def self_attention(
 
 
 class BatchedMultiheadAttention(nn.MultiheadAttention):
-    """``nn.MultiheadAttention`` whose unmasked self-attention in evaluation mode runs
-    :func:`self_attention` (see the module's docstring); same parameters, same state dict."""
+    """``nn.MultiheadAttention`` whose unmasked self-attention without dropout (evaluation mode,
+    or ``dropout=0``) runs :func:`self_attention` (see the module's docstring); same parameters,
+    same state dict."""
 
     def forward(self, query, key, value, key_padding_mask=None, need_weights=True, attn_mask=None, **kwargs):
         plain = (
@@ -115,7 +116,10 @@ class PatchEmbedding(nn.Module):
 def use_fast_tower(visual: nn.Module, bf16: bool = False) -> int:
     """Put CLIP's image tower ``visual`` (frozen) on the fast path in place, see the module's
     docstring: batched attention, the patch embedding as a linear map, and with ``bf16`` the
-    weights autocast would cast stored in bfloat16 once. Returns how many modules changed."""
+    weights autocast would cast stored in bfloat16 once. Returns how many modules changed.
+
+    With ``bf16`` the model is changed for good: it must then only run under bfloat16 autocast
+    (as :class:`~stages.guidance.clip.ClipGuide` does); load a fresh model for anything else."""
     count = 0
     for m in visual.modules():
         if type(m) is nn.MultiheadAttention:

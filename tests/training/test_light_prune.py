@@ -58,16 +58,34 @@ def test_negligible_lobes_by_energy_and_dropping_removes_exactly_their_radiance(
 
 
 def test_pruning_carries_the_optimiser_moments(cache):  # noqa: F811
-    s = OptimizeSettings(iterations=4, light_prune_after=2, light_prune_share=0.2, **TINY)
+    """Lobes 1, 4 and 6 dimmed after two steps: pruning keeps 0, 2, 3, 5 and 7, and each kept
+    lobe keeps its own AdamW moments (not a prefix of the old ones); the run goes on."""
+    s = OptimizeSettings(iterations=4, **TINY)
     opt = Optimizer(s, RayCache(cache / "train.npz"), "a vase made of wood", "cpu")
     for _ in range(2):
-        opt.step(Timer())  # the second step prunes: 8 lobes of 1/8 each, all below 0.2 but the brightest
-    assert opt.light_pruned == {"iteration": 2, "kept": 1, "dropped": 7} and opt.field.light.lobes == 1
+        opt.step(Timer())
+    light = opt.field.light
+    with torch.no_grad():
+        amp = torch.nn.functional.softplus(light.amplitude_raw)
+        amp[[1, 4, 6]] *= 1e-4
+        light.amplitude_raw.copy_(_inv_softplus(amp))
+    before = {
+        name: {k: v.clone() for k, v in opt.opt.state[getattr(light, name)].items()}
+        for name in ("axis_raw", "sharpness_raw", "amplitude_raw")
+    }
+    assert opt.prune_light() == 3
+    assert opt.light_pruned == {"iteration": 2, "kept": 5, "dropped": 3} and light.lobes == 5
+    kept = torch.tensor([0, 2, 3, 5, 7])
+    for name, moments in before.items():
+        new = opt.opt.state[getattr(light, name)]
+        for k in ("exp_avg", "exp_avg_sq"):
+            torch.testing.assert_close(new[k], moments[k][kept], rtol=0, atol=0, msg=f"{name} {k}")
+        torch.testing.assert_close(new["step"], moments["step"])
     params = list(opt.field.parameters())
     assert all(any(p is q for q in opt.opt.param_groups[0]["params"]) for p in params)
-    assert all(opt.opt.state[p]["exp_avg"].shape == p.shape for p in params)
+    assert len(opt.opt.param_groups[0]["params"]) == len(params)
     row = opt.step(Timer())
-    assert row["light_lobes"] == 1 and torch.isfinite(torch.tensor(row["loss"]))
+    assert row["light_lobes"] == 5 and torch.isfinite(torch.tensor(row["loss"]))
 
 
 @pytest.mark.parametrize("killed_at", [5, 7])
