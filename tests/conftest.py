@@ -155,3 +155,24 @@ def lod_cell(trained_cell):
 
     run_lod(trained_cell, trained_cell / "lod", LodSettings(enabled=True, levels=(0.5, 0.1)))
     return trained_cell
+
+
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory):
+    """The built-in vase, normalised, and a small ray cache of it (6 views at 64 pixels, 8
+    evaluation views at 48): ``vase.ply``, ``train.npz``, ``eval.npz``, ``meta.json``."""
+    from stages.config.sections import NormalizeSettings, RaycacheSettings
+    from stages.geometry.meshio import save_ply
+    from stages.geometry.normalization import normalize_mesh
+    from stages.raycache import run as raycache_run
+
+    d = tmp_path_factory.mktemp("rc")
+    save_ply(d / "vase.ply", normalize_mesh("builtin:vase", NormalizeSettings()).mesh)
+    raycache_run(
+        d / "vase.ply",
+        d / "train.npz",
+        d / "eval.npz",
+        d / "meta.json",
+        RaycacheSettings(views=6, resolution=64, eval_azimuths=4, eval_elevations_deg=(0.0, 30.0), eval_resolution=48),
+    )
+    return d

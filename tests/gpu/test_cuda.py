@@ -16,14 +16,11 @@ import pytest
 import torch
 from conftest import REPO, run_snakemake
 
-from stages.config.sections import SPECULAR_LOBES, ClipSpec, NormalizeSettings, OptimizeSettings, RaycacheSettings
-from stages.geometry.meshio import save_ply
-from stages.geometry.normalization import normalize_mesh
+from stages.config.sections import SPECULAR_LOBES, ClipSpec, OptimizeSettings
 from stages.geometry.raycache import RayCache
 from stages.guidance.clip import TINY_MODEL, load_clip
 from stages.model.field import StyleField
 from stages.model.networks import SGLightModule
-from stages.raycache import run as raycache_run
 from stages.render.shading import shade
 from stages.training.optimizer import Optimizer
 
@@ -116,20 +113,6 @@ def test_field_forward_backward_on_cuda_matches_cpu_float64():
     assert grads["cuda"].keys() == grads["cpu"].keys()
     for k, g in grads["cpu"].items():
         assert rel(grads["cuda"][k], g) < 1e-3, k
-
-
-@pytest.fixture(scope="module")
-def cache(tmp_path_factory):
-    d = tmp_path_factory.mktemp("rc")
-    save_ply(d / "vase.ply", normalize_mesh("builtin:vase", NormalizeSettings()).mesh)
-    raycache_run(
-        d / "vase.ply",
-        d / "train.npz",
-        d / "eval.npz",
-        d / "meta.json",
-        RaycacheSettings(views=6, resolution=64, eval_azimuths=4, eval_elevations_deg=(0.0, 30.0), eval_resolution=48),
-    )
-    return d
 
 
 def test_training_steps_on_cuda_match_cpu(cache):

@@ -9,7 +9,7 @@ import json
 
 import pytest
 import torch
-from test_optimize import TINY, cache  # noqa: F401  (the module's ray-cache fixture)
+from test_optimize import TINY
 
 from stages import optimize
 from stages.config.sections import OptimizeSettings
@@ -57,7 +57,7 @@ def test_negligible_lobes_by_energy_and_dropping_removes_exactly_their_radiance(
     assert int((~equal.negligible(0.5)).sum()) == 1
 
 
-def test_pruning_carries_the_optimiser_moments(cache):  # noqa: F811
+def test_pruning_carries_the_optimiser_moments(cache):
     """Lobes 1, 4 and 6 dimmed after two steps: pruning keeps 0, 2, 3, 5 and 7, and each kept
     lobe keeps its own AdamW moments (not a prefix of the old ones); the run goes on."""
     s = OptimizeSettings(iterations=4, **TINY)
@@ -89,7 +89,7 @@ def test_pruning_carries_the_optimiser_moments(cache):  # noqa: F811
 
 
 @pytest.mark.parametrize("killed_at", [5, 7])
-def test_kill_and_resume_across_the_pruning(cache, tmp_path, killed_at):  # noqa: F811
+def test_kill_and_resume_across_the_pruning(cache, tmp_path, killed_at):
     """Pruning at 4, checkpoints every 3: killed at 5 the resumed run starts before the pruning
     (from 3), killed at 7 after it (from 6, a checkpoint with fewer lobes); both end equal to an
     uninterrupted run, and every later file has the pruned light."""

@@ -33,20 +33,6 @@ TINY = dict(
 )
 
 
-@pytest.fixture(scope="module")
-def cache(tmp_path_factory):
-    d = tmp_path_factory.mktemp("rc")
-    save_ply(d / "vase.ply", normalize_mesh("builtin:vase", NormalizeSettings()).mesh)
-    raycache_run(
-        d / "vase.ply",
-        d / "train.npz",
-        d / "eval.npz",
-        d / "meta.json",
-        RaycacheSettings(views=6, resolution=64, eval_azimuths=4, eval_elevations_deg=(0.0, 30.0), eval_resolution=48),
-    )
-    return d
-
-
 def params(module) -> dict[str, torch.Tensor]:
     return {k: v.detach().clone() for k, v in module.state_dict().items()}
 
