@@ -21,12 +21,13 @@ First, CLIP alone along its paths (open_clip's modules or the batched tower, flo
 bfloat16 autocast): seconds and the cosines of embeddings and image gradients against open_clip
 in float32. It then shows the trade between MLP width and step time, the cost of local crops, the
 cost and benefit of supersampling (error of 1 and 2 samples per pixel against 4, same field), and
-the CPU levers (``LEVERS``: CLIP's tower, bfloat16 for CLIP and for the networks) on the real
-step, side by side. ``--bf16`` measures the main step with both bfloat16 levers on.
+the CPU levers (``LEVERS``: CLIP's tower, bfloat16 for CLIP and for the networks, the compiled
+renderer, hash-grid encodings with width-64 networks) on the real step, side by side (``--lever``
+picks some by name; the reference always runs). ``--bf16`` measures the main step with both bfloat16 levers on.
 CLIP has random weights here (timing does not depend on them). The mesh is
 ``../shared/meshes/person.obj`` when present, else the built-in vase.
 
-    python benchmarks/optimize.py [--steps 8] [--threads 2] [--bf16] [--clip-only] [--no-levers]
+    python benchmarks/optimize.py [--steps 8] [--threads 2] [--bf16] [--clip-only] [--no-levers] [--lever hash ...]
 """
 
 from __future__ import annotations
@@ -261,14 +262,26 @@ LEVERS = {
     "+ bf16 networks": {"bf16_networks": True},
     "+ bf16 CLIP and networks": {"bf16": True, "bf16_networks": True},
     "+ bf16 and compiled shading": {"bf16": True, "bf16_networks": True, "compile_shading": True},
+    "NeRF encodings, width 64": {"width": 64},
+    "hash grids, width 64": {"material_encoding": "hashgrid", "normal_encoding": "hashgrid", "width": 64},
+    "hash grids, width 64, + bf16 CLIP and networks": {
+        "material_encoding": "hashgrid",
+        "normal_encoding": "hashgrid",
+        "width": 64,
+        "bf16": True,
+        "bf16_networks": True,
+    },
 }
 
 
-def lever_steps(train: Path, steps: int) -> dict[str, dict]:
-    """The real step (``Optimizer.step``) and its split under each of :data:`LEVERS`, side by side."""
+def lever_steps(train: Path, steps: int, only: list[str] | None = None) -> dict[str, dict]:
+    """The real step (``Optimizer.step``) and its split under each of :data:`LEVERS` (those whose
+    name contains one of ``only``, and the reference), side by side."""
     out = {}
-    for name, over in LEVERS.items():
-        s = OptimizeSettings(crops=4, width=256, light_lobes=32, **over)
+    for i, (name, over) in enumerate(LEVERS.items()):
+        if i and only and not any(o in name for o in only):
+            continue
+        s = OptimizeSettings(**{"crops": 4, "width": 256, "light_lobes": 32, **over})
         guide = vit_b32_random(bf16=s.bf16, tower=s.clip_tower)
         opt = make_optimizer(s, train, guide)
         t0 = time.perf_counter()
@@ -308,6 +321,7 @@ def main() -> None:
     parser.add_argument("--clip-only", action="store_true", help="only CLIP's towers and precisions")
     parser.add_argument("--bf16", action="store_true", help="the measured step (last line) with bf16 CLIP and networks")
     parser.add_argument("--no-levers", action="store_true", help="skip the table of CPU levers")
+    parser.add_argument("--lever", action="append", help="only the levers whose name contains this (repeatable)")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     clip_rows = clip_paths(args.steps)
@@ -375,13 +389,13 @@ def main() -> None:
         err = supersampling_error(opt)
         print(f"# supersampling benefit: RMSE vs 4 spp: 1 spp {err[1]:.4f}, 2 spp {err[2]:.4f}")
         if not args.no_levers:
-            levers = lever_steps(train, max(3, args.steps // 2))
+            levers = lever_steps(train, max(3, args.steps // 2), args.lever)
             print("# CPU levers on the real step (paper counts), side by side in this run")
-            print(f"{'lever':<44}{'s/iter':>8}{'x ref':>7}{'mlp':>7}{'shading':>8}{'clip':>7}{'1st s':>7}  precision")
+            print(f"{'lever':<48}{'s/iter':>8}{'x ref':>7}{'mlp':>7}{'shading':>8}{'clip':>7}{'1st s':>7}  precision")
             ref_s = next(iter(levers.values()))["s"]
             for name, r in levers.items():
                 print(
-                    f"{name:<44}{r['s']:>8.3f}{ref_s / r['s']:>7.2f}{r['mlp']:>7.3f}{r['shading']:>8.3f}{r['clip']:>7.3f}"
+                    f"{name:<48}{r['s']:>8.3f}{ref_s / r['s']:>7.2f}{r['mlp']:>7.3f}{r['shading']:>8.3f}{r['clip']:>7.3f}"
                     f"{r['first_s']:>7.1f}"
                     f"  {r['precision']}",
                     flush=True,

@@ -17,13 +17,15 @@ the environment's, and the optimisation's wall time.
     python benchmarks/recovery.py --presets paper --meshes vase,shared:lamp
     python benchmarks/recovery.py --meshes builtin --presets fast --specular-lobe isotropic,split_sum
     python benchmarks/recovery.py --decimate 5000 --shading-normals flat,smooth   # the robustness study
+    python benchmarks/recovery.py --meshes shared --presets fast --decimate none,budget  # the face budget
     python benchmarks/recovery.py --meshes builtin --presets fast --precision float32,bf16  # bfloat16 networks
     python benchmarks/recovery.py --meshes builtin --presets balanced --set light_prune_after=200  # light "auto"
 
-With ``--decimate N`` each mesh is fitted on its N-face version (MeshLab's quadric collapse, the
-decimate stage) while Mitsuba renders the targets from the full-resolution mesh, as the workflow's
-target stage does: TANGO's robustness study, graded against the object rather than its
-approximation.
+With ``--decimate N`` (or ``budget``: the face budget of the cache, as the decimate stage's
+``mode: budget`` computes it; a comma-separated list fits each level in turn) each mesh is fitted
+on its N-face version (MeshLab's quadric collapse, the decimate stage) while Mitsuba renders the
+targets from the full-resolution mesh, as the workflow's target stage does: TANGO's robustness
+study, graded against the object rather than its approximation.
 """
 
 from __future__ import annotations
@@ -46,6 +48,7 @@ sys.path[:0] = [str(REPO), str(REPO / "tests"), str(REPO / "tests" / "training")
 
 COLUMNS = (
     "mesh",
+    "decimate",
     "faces",
     "full_faces",
     "preset",
@@ -93,15 +96,16 @@ def mesh_sources(spec: str) -> list[tuple[str, str]]:
     return out
 
 
-def prepare(work: Path, source: str, material: str, decimate: int | None = None, resolution: int = 96) -> tuple[int, int]:
-    """Normalise ``source`` (and decimate it to ``decimate`` faces), build the recovery cache on
-    the mesh to fit and render the Mitsuba targets of the full-resolution mesh into ``work``;
-    returns the fitted and the full-resolution face counts."""
+def prepare(work: Path, source: str, material: str, decimate: int | str | None = None, resolution: int = 96) -> tuple[int, int]:
+    """Normalise ``source`` (and decimate it to ``decimate`` faces, or with ``"budget"`` to the
+    face budget of the recovery cache, the decimate stage's ``mode: budget``), build the recovery
+    cache on the mesh to fit and render the Mitsuba targets of the full-resolution mesh into
+    ``work``; returns the fitted and the full-resolution face counts."""
     from test_optimize import MITSUBA_TARGET, RECOVERY_CACHE
 
     from stages import target as target_stage
     from stages.config.sections import DecimateSettings, NormalizeSettings
-    from stages.geometry.decimation import decimate_mesh
+    from stages.geometry.decimation import decimate_mesh, face_budget
     from stages.geometry.meshio import save_ply
     from stages.geometry.normalization import normalize_mesh
     from stages.raycache import run as raycache_run
@@ -109,11 +113,13 @@ def prepare(work: Path, source: str, material: str, decimate: int | None = None,
     full = normalize_mesh(source, NormalizeSettings()).mesh
     save_ply(work / "full.ply", full)
     mesh = full
+    sizes = {k: resolution for k in ("resolution", "eval_resolution", "metrics_resolution")}
+    cache = dataclasses.replace(RECOVERY_CACHE, **sizes)
+    if decimate == "budget":
+        decimate = face_budget(float(full.face_areas.sum()), cache).faces
     if decimate is not None and decimate < len(full.faces):
         mesh = decimate_mesh(full, DecimateSettings(enabled=True, target_faces=decimate)).mesh
     save_ply(work / "mesh.ply", mesh)
-    sizes = {k: resolution for k in ("resolution", "eval_resolution", "metrics_resolution")}
-    cache = dataclasses.replace(RECOVERY_CACHE, **sizes)
     raycache_run(work / "mesh.ply", work / "train.npz", work / "eval.npz", work / "rc.json", cache, work / "metrics.npz")
     target_stage.run(work / "train.npz", work / "metrics.npz", material, work / "target", MITSUBA_TARGET, work / "full.ply")
     return len(mesh.faces), len(full.faces)
@@ -192,7 +198,12 @@ def main() -> None:
     parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="optimize settings for every fit (YAML values)")
     parser.add_argument("--precision", default="float32", help="comma-separated network precisions (float32, bf16)")
     parser.add_argument("--shading-normals", default="smooth", help="comma-separated shading normals (flat, smooth)")
-    parser.add_argument("--decimate", type=int, default=None, help="fit each mesh's N-face version (full-resolution targets)")
+    parser.add_argument(
+        "--decimate",
+        default="none",
+        help="comma-separated: none, N (fit each mesh's N-face version) or budget (its face budget at the cache's "
+        "resolution); full-resolution targets",
+    )
     parser.add_argument("--resolution", type=int, default=96, help="pixels of the cached views and of the fitted images")
     parser.add_argument("--material", default="wood", help="the procedural target material (wood, metal, plaster)")
     parser.add_argument("--out", type=Path, default=REPO / "results" / "benchmarks" / "recovery.csv")
@@ -206,32 +217,35 @@ def main() -> None:
     rows: list[dict] = []
     args.out.parent.mkdir(parents=True, exist_ok=True)
     for name, source in mesh_sources(args.meshes):
-        with tempfile.TemporaryDirectory() as d:
-            work = Path(d)
-            t0 = time.perf_counter()
-            faces, full_faces = prepare(work, source, args.material, args.decimate, args.resolution)
-            took = time.perf_counter() - t0
-            print(f"{name}: {faces} faces fitted ({full_faces} rendered), cache and targets in {took:.0f} s", flush=True)
-            lobes, normals_list = args.specular_lobe.split(","), args.shading_normals.split(",")
-            precisions = args.precision.split(",")
-            overrides = {k: yaml.safe_load(v) for k, v in (item.split("=", 1) for item in args.set)}
-            combos = [(p, lb, nm, pr) for p in presets for lb in lobes for nm in normals_list for pr in precisions]
-            for preset, lobe, normals, precision in combos:
-                row = {
-                    "mesh": name,
-                    "faces": faces,
-                    "full_faces": full_faces,
-                    **fit(work, args.material, preset, lobe, normals, args.resolution, precision, overrides),
-                }
-                rows.append(row)
-                print(
-                    f"  {preset:9s} {lobe:9s} {normals:6s} {precision:8s} PSNR {row['psnr_db']:.2f} dB  SSIM {row['ssim']:.3f}  "
-                    f"(noise {row['target_noise_psnr_db']} dB)  "
-                    f"albedo {row['albedo_rmse']:.3f} ({row['albedo_rmse_scaled']})  roughness {row['roughness_mae']:.3f}  "
-                    f"normal {row['normal_angle_deg_mean']} deg  light {row['light_energy_ratio']} ({row['light_lobes']} lobes)  "
-                    f"{row['optimize_s']:.0f} s",
-                    flush=True,
-                )
+        for level in (x.strip() for x in args.decimate.split(",") if x.strip()):
+            decimate = None if level == "none" else level if level == "budget" else int(level)
+            with tempfile.TemporaryDirectory() as d:
+                work = Path(d)
+                t0 = time.perf_counter()
+                faces, full_faces = prepare(work, source, args.material, decimate, args.resolution)
+                took = time.perf_counter() - t0
+                print(f"{name}: {faces} faces fitted ({full_faces} rendered), cache and targets in {took:.0f} s", flush=True)
+                lobes, normals_list = args.specular_lobe.split(","), args.shading_normals.split(",")
+                precisions = args.precision.split(",")
+                overrides = {k: yaml.safe_load(v) for k, v in (item.split("=", 1) for item in args.set)}
+                combos = [(p, lb, nm, pr) for p in presets for lb in lobes for nm in normals_list for pr in precisions]
+                for preset, lobe, normals, precision in combos:
+                    row = {
+                        "mesh": name,
+                        "decimate": level,
+                        "faces": faces,
+                        "full_faces": full_faces,
+                        **fit(work, args.material, preset, lobe, normals, args.resolution, precision, overrides),
+                    }
+                    rows.append(row)
+                    print(
+                        f"  {preset:9s} {lobe:9s} {normals:6s} {precision:8s} PSNR {row['psnr_db']:.2f} dB  "
+                        f"SSIM {row['ssim']:.3f}  (noise {row['target_noise_psnr_db']} dB)  "
+                        f"albedo {row['albedo_rmse']:.3f} ({row['albedo_rmse_scaled']})  roughness {row['roughness_mae']:.3f}  "
+                        f"normal {row['normal_angle_deg_mean']} deg  light {row['light_energy_ratio']} "
+                        f"({row['light_lobes']} lobes)  {row['optimize_s']:.0f} s",
+                        flush=True,
+                    )
         # the table so far, rewritten whole after each mesh (temp file + rename)
         tmp = args.out.with_suffix(".csv.part")
         with tmp.open("w", newline="") as f:

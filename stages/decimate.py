@@ -1,6 +1,7 @@
 """decimate: quadric edge collapse (MeshLab, via pymeshlab) to a target face count.
 
-Used for the robustness study (TANGO Sec. 4.2: meshes decimated to 5,000 faces). The output stays
+Used for the robustness study (TANGO Sec. 4.2: meshes decimated to 5,000 faces), and with
+``mode: budget`` to the face budget of the mesh's ray cache (a mesh within it passes unchanged). The output stays
 in the normalised mesh's frame, welds seams first, and relaxes boundaries when a preserved boundary
 stops the collapse above the target; why, and what the stats record, is in
 :mod:`stages.geometry.decimation`.
@@ -8,25 +9,48 @@ stops the collapse above the target; why, and what the stats record, is in
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import logging
 from pathlib import Path
 
-from .config.sections import DecimateSettings
+from .config.sections import DecimateSettings, RaycacheSettings
 from .core.cli import stage_main
 from .core.errors import StageInputError
 from .core.provenance import Timer, atomic_path, metadata, write_json_atomic
-from .geometry.decimation import decimate_mesh
+from .geometry.decimation import decimate_mesh, face_budget
 from .geometry.meshio import load_ply, save_ply
 
 log = logging.getLogger(__name__)
 
 
-def run(in_mesh: Path, out_mesh: Path, out_meta: Path, settings: DecimateSettings) -> dict:
+def run(
+    in_mesh: Path, out_mesh: Path, out_meta: Path, settings: DecimateSettings, raycache: RaycacheSettings | None = None
+) -> dict:
+    """Decimate ``in_mesh`` to ``settings.target_faces``, or with ``mode: budget`` to the face
+    budget of the ray cache ``raycache`` (required then)."""
     timer = Timer()
     with timer("load"):
         if not Path(in_mesh).is_file():
             raise StageInputError(in_mesh, "file not found", "Run the normalize stage first.")
         mesh = load_ply(in_mesh)
+    budget = None
+    if settings.mode == "budget":
+        if raycache is None:
+            why = "decimate.mode is budget but no ray-cache settings were given"
+            raise StageInputError(in_mesh, why, "Pass --raycache-settings (the workflow does).")
+        budget = face_budget(float(mesh.face_areas.sum()), raycache, settings.pixels_per_face)
+        settings = dataclasses.replace(settings, target_faces=budget.faces)
+        log.info(
+            "%s: face budget %d (area %.4g over %.3g pixels of side %.4g, %s views); the mesh has %d faces",
+            in_mesh,
+            budget.faces,
+            budget.area,
+            budget.pixels_per_face,
+            budget.footprint,
+            budget.view_set,
+            len(mesh.faces),
+        )
     with timer("decimate"):
         result = decimate_mesh(mesh, settings, name=str(in_mesh))
     with timer("write"):
@@ -51,11 +75,15 @@ def run(in_mesh: Path, out_mesh: Path, out_meta: Path, settings: DecimateSetting
         out_meta,
         metadata(
             stage="decimate",
-            settings=settings.to_dict(),
+            settings={**settings.to_dict(), **({"raycache": raycache.to_dict()} if budget else {})},
             inputs={"mesh": in_mesh},
             outputs={"mesh": out_mesh},
             timings={**timer.seconds, "total": timer.total()},
-            extra={"stats": s, "frame": "same as the input (normalised mesh); reuse its transform"},
+            extra={
+                "stats": s,
+                "face_budget": budget.to_dict() if budget else None,
+                "frame": "same as the input (normalised mesh); reuse its transform",
+            },
         ),
     )
     return s
@@ -67,9 +95,11 @@ def main(argv: list[str] | None = None) -> int:
         parser.add_argument("--mesh", required=True, type=Path, help="output decimated mesh (.ply)")
         parser.add_argument("--meta", required=True, type=Path, help="output metadata (.json)")
         parser.add_argument("--settings", default="{}", help="JSON of the decimate settings")
+        parser.add_argument("--raycache-settings", default=None, help="JSON of the mesh's ray-cache settings (mode budget)")
 
     def body(args):
-        run(args.input, args.mesh, args.meta, DecimateSettings.from_json(args.settings))
+        raycache = RaycacheSettings.from_dict(json.loads(args.raycache_settings)) if args.raycache_settings else None
+        run(args.input, args.mesh, args.meta, DecimateSettings.from_json(args.settings), raycache)
 
     return stage_main("decimate", __doc__, arguments, body, argv)
 

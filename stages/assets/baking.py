@@ -63,9 +63,10 @@ class AtlasTexels:
     points: np.ndarray
 
 
-def atlas_texels(mesh: TriMesh, size: int, padding: int) -> AtlasTexels:
-    """Unwrap ``mesh`` into a ``size``-texel atlas and locate every covered texel centre on it."""
-    atlas = unwrap(mesh, size, padding)
+def atlas_texels(mesh: TriMesh, size: int, padding: int, max_chart_share: float | None = None) -> AtlasTexels:
+    """Unwrap ``mesh`` into a ``size``-texel atlas (:func:`~stages.geometry.atlas.unwrap`) and
+    locate every covered texel centre on it."""
+    atlas = unwrap(mesh, size, padding, max_chart_share)
     face, bary = rasterize_atlas(atlas.uv, size)
     filled = face >= 0
     fi = face[filled].astype(np.int64)
@@ -130,7 +131,7 @@ def light_image(field, width: int, device="cpu") -> np.ndarray:
 
 def bake_field(mesh: TriMesh, field, settings: BakeSettings, device="cpu") -> BakeResult:
     """Unwrap ``mesh``, rasterise the atlas and evaluate ``field`` at every covered texel."""
-    texels = atlas_texels(mesh, settings.size_for(len(mesh.faces)), settings.padding)
+    texels = atlas_texels(mesh, settings.size_for(len(mesh.faces)), settings.padding, settings.max_chart_share)
     frames = CornerFrames.build(mesh.vertices, mesh.faces, texels.atlas.uv, field.normals)
     t, b, n = frames.at(texels.face, texels.bary)
     normals = n / np.linalg.norm(n, axis=1, keepdims=True)
@@ -216,7 +217,7 @@ def bake_level(
     shading normal (:func:`project_to_surface`), the field is evaluated there with the fine
     surface's shading normal, and the predicted normal is written in the coarse level's own frame,
     so its normal map carries the detail the coarse geometry lost."""
-    texels = atlas_texels(coarse, size, settings.padding)
+    texels = atlas_texels(coarse, size, settings.padding, settings.max_chart_share)
     frames = CornerFrames.build(coarse.vertices, coarse.faces, texels.atlas.uv, field.normals)
     t, b, n = frames.at(texels.face, texels.bary)
     unit = n / np.linalg.norm(n, axis=1, keepdims=True)

@@ -38,7 +38,9 @@ TARGET_RENDERERS = ("mitsuba", "sg")
 CLIP_TOWERS = ("batched", "open_clip")
 #: the procedural environment maps ``relight.envmap: builtin:<name>`` names (:mod:`stages.render.envmap`)
 PROCEDURAL_ENVMAPS = ("sunset", "overcast", "night", "sun_sky")
-ENCODINGS = ("nerf", "fourier", "none")
+ENCODINGS = ("nerf", "fourier", "hashgrid", "none")
+#: decimate.mode: to a face count, or to the ray cache's face budget
+DECIMATE_MODES = ("faces", "budget")
 
 
 @dataclass(frozen=True)
@@ -99,10 +101,20 @@ class DecimateSettings(Settings):
     #: if the collapse stops above the target with boundaries preserved, collapse again with
     #: boundary vertices free to slide along the boundary (topology kept); the reason is recorded
     relax_boundary: bool = True
+    #: DECIMATE_MODES: "faces" decimates to target_faces (the robustness study); "budget" to the
+    #: face budget of the mesh's ray cache (stages.geometry.decimation.face_budget: the faces
+    #: whose mean area covers pixels_per_face pixels at the cache's camera distance), and a mesh
+    #: already within its budget passes unchanged ("model only what the scene requires")
+    mode: str = "faces"
+    pixels_per_face: float = 1.0
 
     def __post_init__(self) -> None:
         if self.target_faces < 4:
             raise ConfigError(f"decimate.target_faces must be >= 4, got {self.target_faces}")
+        if self.mode not in DECIMATE_MODES:
+            raise ConfigError(f"decimate.mode must be one of {', '.join(DECIMATE_MODES)}, got {self.mode!r}")
+        if not 0.01 <= self.pixels_per_face <= 1e4:
+            raise ConfigError(f"decimate.pixels_per_face must be in [0.01, 1e4], got {self.pixels_per_face}")
         if not 0 <= self.weld_tolerance < 0.01:
             raise ConfigError(f"decimate.weld_tolerance must be in [0, 0.01) (of the diagonal), got {self.weld_tolerance}")
 
@@ -199,6 +211,12 @@ class FieldSettings:
     normal_fourier_count: int
     normal_fourier_sigma: float
     normal_max_delta: float
+    hashgrid_levels: int
+    hashgrid_features: int
+    hashgrid_log2_size: int
+    hashgrid_min_resolution: int
+    hashgrid_max_resolution: int
+    hashgrid_step_scale: float
     light_lobes: int
     light_rgb: bool
     light_energy: float
@@ -250,6 +268,16 @@ class OptimizeSettings(ClipChoice, Settings):
     normal_fourier_count: int = 128
     normal_fourier_sigma: float = 0.5
     normal_max_delta: float = 0.3
+    #: the multiresolution hash grid (an encoding "hashgrid", Mueller et al. 2022; each network
+    #: that uses it has its own table): levels, features per level, log2 of the entries per
+    #: level, coarsest and finest grid resolution over [-1, 1]^3, and how many times the
+    #: networks' step the table's optimiser step is (stages/model/networks.py HashGridEncoding)
+    hashgrid_levels: int = 16
+    hashgrid_features: int = 2
+    hashgrid_log2_size: int = 17
+    hashgrid_min_resolution: int = 16
+    hashgrid_max_resolution: int = 1024
+    hashgrid_step_scale: float = 20.0
     light_lobes: int = 32
     light_rgb: bool = True
     light_energy: float = 6.25
@@ -310,7 +338,13 @@ class OptimizeSettings(ClipChoice, Settings):
             p.append(f"guidance must be 'clip' or 'image', got {self.guidance!r}")
         for name in ("material_encoding", "normal_encoding"):
             if getattr(self, name) not in ENCODINGS:
-                p.append(f"{name} must be nerf, fourier or none, got {getattr(self, name)!r}")
+                p.append(f"{name} must be one of {', '.join(ENCODINGS)}, got {getattr(self, name)!r}")
+        if not (1 <= self.hashgrid_levels <= 32 and 1 <= self.hashgrid_features <= 8 and 10 <= self.hashgrid_log2_size <= 24):
+            p.append("hashgrid_levels must be in 1..32, hashgrid_features in 1..8 and hashgrid_log2_size in 10..24")
+        if not 2 <= self.hashgrid_min_resolution <= self.hashgrid_max_resolution <= 2**20:
+            p.append("hashgrid resolutions must satisfy 2 <= hashgrid_min_resolution <= hashgrid_max_resolution <= 2^20")
+        if not self.hashgrid_step_scale > 0:
+            p.append(f"hashgrid_step_scale must be > 0, got {self.hashgrid_step_scale}")
         if self.background not in ("black", "white", "noise"):
             p.append(f"background must be black, white or noise, got {self.background!r}")
         lo, hi = self.crop_scale
@@ -368,6 +402,10 @@ class BakeSettings(Settings):
     padding: int = 4
     #: dilation passes that grow charts into empty texels
     dilation: int = 8
+    #: the largest chart's area as a share of the surface (xatlas's max_chart_area); null:
+    #: xatlas's unbounded charts. Bounding them makes large smooth meshes unwrap many times
+    #: faster for more seams (benchmarks/bake_charts.py; the README's measurements)
+    max_chart_share: float | None = None
     #: width of the equirectangular light image (height = width / 2)
     light_width: int = 512
     #: resolution of the fidelity renders (evaluation views)
@@ -378,6 +416,8 @@ class BakeSettings(Settings):
             raise ConfigError(f"bake.texture_size must be in [16, 16384], got {self.texture_size}")
         if not 16 <= self.min_size <= self.max_size:
             raise ConfigError("bake: need 16 <= min_size <= max_size")
+        if self.max_chart_share is not None and not 0.0 < self.max_chart_share <= 1.0:
+            raise ConfigError(f"bake.max_chart_share must be in (0, 1] or null, got {self.max_chart_share}")
 
     def size_for(self, faces: int) -> int:
         """Texture size: the configured one, or the power of two nearest to

@@ -44,6 +44,14 @@ allows, or welding or relaxation switched off), the stage logs a WARNING naming 
 target, the faces reached and the reason, and sets ``stats.target_reached = false`` and
 ``stats.target_shortfall_reason``. The two-sided Hausdorff distance between the original and the
 decimated mesh is measured by MeshLab's sampler and recorded.
+
+The face budget (``mode: budget``, :func:`face_budget`). A mesh with far more faces than its views
+have pixels carries detail no view resolves: each face then covers a fraction of a pixel, the
+ray cache stores the same hits, and only the bake (xatlas charts every face), the exports and
+the tracing pay for it. The budget is the surface area over the area that ``pixels_per_face``
+pixels cover at the cache's camera distance, in the finest of the cache's view sets; a mesh above
+it is decimated to it, one within it passes unchanged. TANGO's robustness result (Sec. 4.2) is
+that the normal network restores detail lost to decimation; the README measures the trade.
 """
 
 from __future__ import annotations
@@ -53,11 +61,48 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..config.sections import DecimateSettings
+from ..config.sections import DecimateSettings, RaycacheSettings
 from .meshio import TriMesh
 from .normals import weld_positions
 
 log = logging.getLogger(__name__)
+
+
+def pixel_footprint(resolution: int, fov_deg: float, distance: float) -> float:
+    """Side of one pixel, in scene units, on a plane facing a pinhole camera at ``distance``
+    (square image of ``resolution`` pixels across a full field of view of ``fov_deg``):
+    ``2 distance tan(fov / 2) / resolution``. Exact at the image centre; off-axis pixels and
+    surfaces not facing the camera cover more of the surface per pixel, never less."""
+    return 2.0 * distance * np.tan(np.radians(fov_deg) / 2.0) / resolution
+
+
+@dataclass(frozen=True)
+class FaceBudget:
+    faces: int  # the budget
+    area: float  # the mesh's surface area (normalised frame)
+    footprint: float  # the finest pixel side over the cache's view sets
+    view_set: str  # which view set sets it
+    pixels_per_face: float
+
+    def to_dict(self) -> dict:
+        return dict(self.__dict__)
+
+
+def face_budget(area: float, cache: RaycacheSettings, pixels_per_face: float = 1.0) -> FaceBudget:
+    """The faces a mesh of surface ``area`` (normalised frame, radius 1) needs for the views of
+    ``cache`` to resolve it: ``ceil(area / (pixels_per_face s^2))`` with ``s`` the finest
+    :func:`pixel_footprint` at the object's centre (camera distance = the view set's radius)
+    among the training, evaluation and metric views. At least 4."""
+    sets = {
+        "training": pixel_footprint(cache.resolution, cache.fov_deg, cache.radius),
+        "evaluation": pixel_footprint(cache.eval_resolution, cache.eval_fov_deg, cache.eval_radius),
+        "metrics": pixel_footprint(cache.metrics_resolution, cache.metrics_fov_deg, cache.metrics_radius),
+    }
+    view_set = min(sets, key=sets.get)
+    s = sets[view_set]
+    faces = max(4, int(np.ceil(area / (pixels_per_face * s * s))))
+    return FaceBudget(faces, float(area), float(s), view_set, float(pixels_per_face))
+
 
 #: the collapse counts as having reached the target when it leaves at most this fraction more faces
 TARGET_TOLERANCE = 0.01

@@ -52,6 +52,14 @@ class StyleField(nn.Module):
         super().__init__()
         s = settings
         gen = torch.Generator().manual_seed(s.seed + 7919)
+        hashgrid = {
+            "levels": s.hashgrid_levels,
+            "features": s.hashgrid_features,
+            "log2_size": s.hashgrid_log2_size,
+            "min_resolution": s.hashgrid_min_resolution,
+            "max_resolution": s.hashgrid_max_resolution,
+            "step_scale": s.hashgrid_step_scale,
+        }
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(s.seed)
             mat_enc = make_encoding(
@@ -60,6 +68,7 @@ class StyleField(nn.Module):
                 count=s.material_fourier_count,
                 sigma=s.material_fourier_sigma,
                 generator=gen,
+                hashgrid=hashgrid,
             )
             self.svbrdf = SVBRDFNet(
                 mat_enc,
@@ -77,6 +86,7 @@ class StyleField(nn.Module):
                     count=s.normal_fourier_count,
                     sigma=s.normal_fourier_sigma,
                     generator=gen,
+                    hashgrid=hashgrid,
                 )
                 self.normal_net = NormalNet(nrm_enc, width=s.width, max_delta=s.normal_max_delta)
             self.light = SGLightModule(

@@ -79,6 +79,48 @@ def test_atlas_uvs_and_rasterisation(sphere_mesh):
     np.testing.assert_allclose(rec, np.stack([(cols + 0.5) / 256, (rows + 0.5) / 256], 1), atol=1e-4)
 
 
+def uv_charts(mesh, uv: np.ndarray) -> np.ndarray:
+    """Chart id per face, from the atlas alone: faces are in one chart when they share an edge
+    (the same two vertices) with the same texture coordinates at both ends."""
+    parent = np.arange(len(mesh.faces))
+
+    def find(i):
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    seen = {}
+    for f, tri in enumerate(mesh.faces):
+        for k in range(3):
+            a, b = int(tri[k]), int(tri[(k + 1) % 3])
+            ua, ub = tuple(np.round(uv[f, k], 7)), tuple(np.round(uv[f, (k + 1) % 3], 7))
+            key = (min(a, b), max(a, b), *(ua + ub if a < b else ub + ua))
+            if key in seen:
+                parent[find(f)] = find(seen[key])
+            else:
+                seen[key] = f
+    return np.array([find(f) for f in range(len(mesh.faces))])
+
+
+def test_bounded_charts(sphere_mesh):
+    """``max_chart_share`` bounds every chart's surface area to that share of the surface (charts
+    read back from the texture coordinates), and bounding them makes more, smaller charts."""
+    free = unwrap(sphere_mesh, 256, 2)
+    bounded = unwrap(sphere_mesh, 256, 2, max_chart_share=0.02)
+    areas = sphere_mesh.face_areas
+    total = areas.sum()
+    for atlas in (free, bounded):
+        assert atlas.charts == len(np.unique(uv_charts(sphere_mesh, atlas.uv)))
+    ids = uv_charts(sphere_mesh, bounded.uv)
+    chart_area = np.bincount(np.unique(ids, return_inverse=True)[1], weights=areas)
+    assert chart_area.max() <= 0.02 * total * (1 + 1e-6)
+    assert bounded.charts > free.charts and bounded.charts >= 1 / 0.02
+    # the free atlas has a chart larger than the bound: the option is what bounded them
+    free_area = np.bincount(np.unique(uv_charts(sphere_mesh, free.uv), return_inverse=True)[1], weights=areas)
+    assert free_area.max() > 0.02 * total
+
+
 def test_bake_analytic_field_texels(sphere_mesh):
     field = AnalyticField(tilt=0.0)
     res = bake_field(sphere_mesh, field, BakeSettings(texture_size=256, dilation=2, light_width=32))

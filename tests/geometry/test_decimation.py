@@ -11,8 +11,9 @@ import pytest
 from conftest import icosphere, shared_mesh
 
 from stages import decimate
-from stages.config.sections import DecimateSettings, NormalizeSettings
-from stages.geometry.decimation import decimate_mesh, edge_counts, weld_vertices
+from stages.config.sections import DecimateSettings, NormalizeSettings, RaycacheSettings
+from stages.core.errors import ConfigError
+from stages.geometry.decimation import decimate_mesh, edge_counts, face_budget, pixel_footprint, weld_vertices
 from stages.geometry.meshio import TriMesh, load_ply, save_ply
 from stages.geometry.normalization import normalize_mesh
 
@@ -240,3 +241,71 @@ def test_unwelded_shared_mesh_reaches_target():
     assert abs(s["faces_after"] - 5000) <= 50
     assert 0 < s["hausdorff_max"] < 0.05
     check_shared_frame(mesh, result.mesh, s)
+
+
+def test_pixel_footprint_is_a_pinhole_pixel():
+    """Against a pinhole camera written out: focal length ``f = (R / 2) / tan(fov / 2)`` pixels; the
+    rays through two neighbouring pixel centres astride the axis hit a plane at distance ``d``
+    ``d / f`` apart."""
+    for res, fov, d in ((512, 60.0, 2.0), (96, 45.0, 2.5), (1000, 10.0, 7.0)):
+        f = (res / 2) / np.tan(np.radians(fov) / 2)
+        rays = [np.array([px / f, 1.0]) for px in (-0.5, 0.5)]  # through pixel offsets px from the axis
+        hits = [d * r[0] / r[1] for r in rays]
+        assert pixel_footprint(res, fov, d) == pytest.approx(hits[1] - hits[0], rel=1e-12)
+
+
+def test_face_budget_of_a_sphere():
+    """Unit sphere (area 4 pi) under the default cache: the finest view set is the training one
+    (512 px, 60 degrees, radius 2; evaluation views are the same), so the budget is
+    ``ceil(4 pi / s^2)`` faces of one pixel each; four pixels per face quarter it; finer
+    evaluation views set the budget when they are the finest."""
+    s = 2 * 2.0 * np.tan(np.radians(30.0)) / 512
+    b = face_budget(4 * np.pi, RaycacheSettings())
+    assert b.view_set == "training" and b.faces == int(np.ceil(4 * np.pi / s**2))
+    assert face_budget(4 * np.pi, RaycacheSettings(), 4.0).faces == int(np.ceil(np.pi / s**2))
+    fine = face_budget(4 * np.pi, RaycacheSettings(resolution=64, eval_resolution=128, metrics_resolution=64))
+    assert fine.view_set == "evaluation" and fine.footprint == pytest.approx(2 * 2.0 * np.tan(np.radians(30.0)) / 128)
+    assert face_budget(1e-9, RaycacheSettings()).faces == 4
+
+
+def _budget_stage(tmp_path, mesh, cache, **settings):
+    src = tmp_path / "in.ply"
+    save_ply(src, mesh)
+    args = ["--input", str(src), "--mesh", str(tmp_path / "out.ply"), "--meta", str(tmp_path / "meta.json")]
+    args += ["--settings", json.dumps({"mode": "budget", "hausdorff_samples": 5000, **settings})]
+    args += ["--raycache-settings", json.dumps(cache.to_dict())]
+    assert decimate.main(args) == 0
+    return load_ply(tmp_path / "out.ply"), json.loads((tmp_path / "meta.json").read_text())
+
+
+def test_budget_mode_decimates_a_mesh_finer_than_its_views(tmp_path):
+    sphere = icosphere(5)  # 20,480 faces
+    cache = RaycacheSettings(resolution=48, eval_resolution=48, metrics_resolution=32)
+    out, meta = _budget_stage(tmp_path, sphere, cache)
+    budget = meta["face_budget"]
+    area = float(sphere.face_areas.sum())
+    s = 2 * 2.0 * np.tan(np.radians(30.0)) / 48
+    assert budget["faces"] == int(np.ceil(area / s**2)) and budget["view_set"] in ("training", "evaluation")
+    assert len(sphere.faces) > budget["faces"] >= len(out.faces) * 0.98  # reached (MeshLab lands within 1%)
+    assert meta["stats"]["target_reached"] and meta["settings"]["target_faces"] == budget["faces"]
+    assert meta["settings"]["raycache"]["resolution"] == 48
+    # the surface stays where it was: well under a pixel of the views that set the budget
+    assert meta["stats"]["hausdorff_max"] < s
+
+
+def test_budget_mode_keeps_a_mesh_within_its_budget(tmp_path):
+    sphere = icosphere(3)  # 1,280 faces, far below the default cache's budget
+    out, meta = _budget_stage(tmp_path, sphere, RaycacheSettings())
+    assert meta["face_budget"]["faces"] > len(sphere.faces) and meta["stats"]["skipped"]
+    np.testing.assert_array_equal(out.faces, sphere.faces)
+    np.testing.assert_allclose(out.vertices, sphere.vertices, rtol=0, atol=0)
+
+
+def test_budget_mode_needs_the_cache_settings(tmp_path):
+    src = tmp_path / "in.ply"
+    save_ply(src, icosphere(2))
+    with pytest.raises(Exception, match="no ray-cache settings"):
+        decimate.run(src, tmp_path / "o.ply", tmp_path / "m.json", DecimateSettings(mode="budget"))
+    assert not (tmp_path / "o.ply").exists()
+    with pytest.raises(ConfigError, match="decimate.mode"):
+        DecimateSettings(mode="auto")

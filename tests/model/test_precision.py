@@ -37,7 +37,7 @@ def _extreme_inputs():
     return pts, nrm / nrm.norm(dim=-1, keepdim=True)
 
 
-@pytest.mark.parametrize("encoding", ["nerf", "fourier"])
+@pytest.mark.parametrize("encoding", ["nerf", "fourier", "hashgrid"])
 def test_bf16_networks_close_to_float32_and_finite(encoding):
     supported, why = bf16_support(CPU)
     if not supported:

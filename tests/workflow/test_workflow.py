@@ -92,6 +92,25 @@ def test_gpu_jobs_without_torch(tmp_path):
     assert cfg.gpu_jobs(driver) == 1
 
 
+def test_face_budget_mode_reads_the_mesh_cache_settings(tmp_path):
+    """``decimate.mode: budget`` inserts the decimate stage, hands it the mesh's own ray-cache
+    settings (which set the budget: a cache edit reruns it) and traces its output; a mesh
+    decimated to a face count gets no cache settings (a cache edit does not rerun it)."""
+    cfg = yaml.safe_load(SMOKE.read_text())
+    cfg["meshes"]["vase"] = {"builtin": "vase", "decimate": {"enabled": True, "mode": "budget"}, "raycache": {"resolution": 40}}
+    path = tmp_path / "budget.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    proc = run_snakemake(tmp_path, "-n", "-p", "--cores", "2", "--configfile", str(path))
+    assert proc.returncode == 0, proc.stderr
+    assert job_counts(proc.stdout)["decimate"] == 2
+    jobs = re.findall(r"^(?:local)?rule (\w+):\n(.*?)(?:\n\n|\Z)", proc.stdout, re.S | re.M)
+    decimations = {("vase/" in body): body for rule, body in jobs if rule == "decimate"}
+    assert "--raycache-settings" in decimations[True] and '"resolution": 40' in decimations[True]
+    assert "--raycache-settings" not in decimations[False]
+    traced = [body for rule, body in jobs if rule == "raycache" and "vase/" in body]
+    assert len(traced) == 1 and "vase/decimate/mesh.ply" in traced[0]
+
+
 def test_invalid_config_fails_at_dag_build(tmp_path):
     bad = yaml.safe_load(SMOKE.read_text())
     bad["raycache"]["resoluton"] = 64

@@ -1,6 +1,7 @@
 # Config validation, wildcard constraints and input/param helpers -- nothing else.
 # The logic lives in stages/config/ (no torch: building the DAG imports only that layer and core).
 import json
+import shlex
 from pathlib import Path
 
 from stages.config.layout import OPTIMIZE_FILES, TEXTURES
@@ -73,6 +74,18 @@ def stage_settings_json(stage):
 
     settings.__name__ = f"{stage}_settings_json"
     return settings
+
+
+def budget_raycache_json(wildcards):
+    """Params function of decimate: with ``decimate.mode: budget``, the mesh's ray-cache settings
+    (which set the face budget) as a quoted option; else nothing, so that ray-cache edits do not
+    rerun a decimation that does not read them."""
+    if CFG.stage_settings(wildcards.mesh, "decimate").mode != "budget":
+        return ""
+    cache = json.dumps(
+        CFG.stage_settings(wildcards.mesh, "raycache").to_dict(), sort_keys=True
+    )
+    return f"--raycache-settings {shlex.quote(cache)}"
 
 
 def traced_mesh(wildcards):

@@ -12,6 +12,7 @@ rule decimate:
         CONDA_ENV
     params:
         settings=stage_settings_json("decimate"),
+        raycache=budget_raycache_json,
     shell:
         "python -m stages.decimate --input {input.mesh:q} --mesh {output.mesh:q} "
-        "--meta {output.meta:q} --settings {params.settings:q} 2> {log:q}"
+        "--meta {output.meta:q} --settings {params.settings:q} {params.raycache} 2> {log:q}"
