@@ -4,8 +4,9 @@ xatlas grows charts as large as its cost function allows; on a large smooth mesh
 scanned statue) they cover thousands of faces each, and parametrising and packing them is most of
 the bake (``benchmarks/xatlas_options.py``: 88-135 s for the 81,920-face knot at 1024 texels, no
 option of xatlas's near 20 s). Bounding a chart's area to a share of the surface trades seams for
-time. For each mesh (the generated 81,920-face knot tube and, in a developer checkout, the shared
-meshes named) and each share, this runs the bake's own code (``bake_field``: unwrap, rasterise,
+time, and more charts lose more texels to the padding between them (``bake.padding``). For each
+mesh (the generated 81,920-face knot tube and, in a developer checkout, the shared meshes named),
+each share and each padding, this runs the bake's own code (``bake_field``: unwrap, rasterise,
 evaluate the field at every covered texel, dilate) at one texture size and prints the unwrap's
 and the whole bake's seconds, charts, atlas utilisation, covered texels and the fidelity (PSNR of
 the baked textures rendered from 24 evaluation views at 256 pixels against the neural field, over
@@ -14,7 +15,7 @@ scale: the ``fast`` preset's networks (width 64, 6 NeRF frequencies) with their 
 perturbed by seeded noise (std 0.3), whose albedo varies by 0.2 across the object and by about
 0.08 over 0.01 units (a few texels of a 1024 atlas). Side by side in one run.
 
-    python benchmarks/bake_charts.py [--size 1024] [--shares none,0.01,0.001,0.0002] [--meshes knot80k,shared:person]
+    python benchmarks/bake_charts.py [--size 1024] [--shares none,0.01,0.003] [--paddings 4,1] [--meshes knot80k,shared:person]
 """
 
 from __future__ import annotations
@@ -62,12 +63,14 @@ def main() -> None:
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--size", type=int, default=1024)
-    parser.add_argument("--shares", default="none,0.01,0.001,0.0002")
+    parser.add_argument("--shares", default="none,0.01,0.003")
+    parser.add_argument("--paddings", default="4,1", help="xatlas's padding between charts, texels (the bake's default 4)")
     parser.add_argument("--meshes", default="knot80k,shared:person,shared:horse")
     parser.add_argument("--threads", type=int, default=2)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     shares = [None if s == "none" else float(s) for s in args.shares.split(",")]
+    paddings = [int(p) for p in args.paddings.split(",")]
     field = StyleField(OptimizeSettings(width=64, material_frequencies=6, normal_frequencies=6).field_settings()).eval()
     noise = torch.Generator().manual_seed(0)
     with torch.no_grad():
@@ -83,8 +86,9 @@ def main() -> None:
         return out
 
     baking.unwrap = timed_unwrap
-    print(f"# texture {args.size}, padding 4, dilation 8; a field with texel-scale detail; fidelity over 24 views at 256 px")
-    print(f"{'mesh':<14}{'faces':>7}{'share':>8}{'unwrap s':>10}{'bake s':>8}{'charts':>8}{'util':>6}{'texels':>8}{'PSNR dB':>9}")
+    print(f"# texture {args.size}, dilation 8; a field with texel-scale detail; fidelity over 24 views at 256 px")
+    head = f"{'mesh':<14}{'faces':>7}{'share':>8}{'pad':>4}{'unwrap s':>10}{'bake s':>8}"
+    print(f"{head}{'charts':>8}{'util':>6}{'texels':>8}{'PSNR dB':>9}")
     kv = {}
     for name in args.meshes.split(","):
         mesh = load(name)
@@ -101,21 +105,22 @@ def main() -> None:
                 store = ViewStore(evalc, torch.device("cpu"), field.normals)
                 refs = torch.cat([linear_to_srgb(r) for r in radiance_at_hits(field, store)])
                 light = field.light()
-                for share in shares:
+                for share, pad in ((s, p) for s in shares for p in paddings):
                     t0 = time.perf_counter()
-                    res = baking.bake_field(mesh, field, BakeSettings(texture_size=args.size, max_chart_share=share))
+                    bake = BakeSettings(texture_size=args.size, max_chart_share=share, padding=pad)
+                    res = baking.bake_field(mesh, field, bake)
                     bake_s = time.perf_counter() - t0
                     tex = baking.decode_textures(res.textures)
                     baked = baking.render_baked_views(evalc, res.atlas.uv, tex, res.frames, light, "cpu", field.specular_lobe)
                     fidelity = psnr(torch.cat([linear_to_srgb(b) for b in baked]), refs)
                     label = "none" if share is None else f"{share:g}"
                     print(
-                        f"{name:<14}{len(mesh.faces):>7}{label:>8}{unwrap_s[-1]:>10.1f}{bake_s:>8.1f}{res.atlas.charts:>8}"
+                        f"{name:<14}{len(mesh.faces):>7}{label:>8}{pad:>4}{unwrap_s[-1]:>10.1f}{bake_s:>8.1f}{res.atlas.charts:>8}"
                         f"{res.atlas.utilization:>6.2f}{res.coverage:>8.3f}{fidelity:>9.2f}",
                         flush=True,
                     )
-                    kv[f"bake_s_{name}_{label}"] = bake_s
-                    kv[f"psnr_{name}_{label}"] = fidelity
+                    kv[f"bake_s_{name}_{label}_pad{pad}"] = bake_s
+                    kv[f"psnr_{name}_{label}_pad{pad}"] = fidelity
     print(" ".join(f"{k}={v:.4g}" for k, v in kv.items()))
 
 

@@ -271,6 +271,14 @@ LEVERS = {
         "bf16": True,
         "bf16_networks": True,
     },
+    "hash grids, width 64, + bf16 and compiled shading": {
+        "material_encoding": "hashgrid",
+        "normal_encoding": "hashgrid",
+        "width": 64,
+        "bf16": True,
+        "bf16_networks": True,
+        "compile_shading": True,
+    },
 }
 
 
