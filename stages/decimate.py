@@ -14,6 +14,8 @@ import json
 import logging
 from pathlib import Path
 
+import numpy as np
+
 from .config.sections import DecimateSettings, RaycacheSettings
 from .core.cli import stage_main
 from .core.errors import StageInputError
@@ -39,16 +41,21 @@ def run(
         if raycache is None:
             why = "decimate.mode is budget but no ray-cache settings were given"
             raise StageInputError(in_mesh, why, "Pass --raycache-settings (the workflow does).")
-        budget = face_budget(float(mesh.face_areas.sum()), raycache, settings.pixels_per_face)
+        extent = float(np.linalg.norm(mesh.vertices, axis=1).max())
+        try:
+            budget = face_budget(float(mesh.face_areas.sum()), raycache, settings.pixels_per_face, extent)
+        except ValueError as exc:
+            raise StageInputError(in_mesh, str(exc), "Set decimate.mode: faces for this mesh.") from exc
         settings = dataclasses.replace(settings, target_faces=budget.faces)
         log.info(
-            "%s: face budget %d (area %.4g over %.3g pixels of side %.4g, %s views); the mesh has %d faces",
+            "%s: face budget %d (area %.4g over %.3g pixels of side %.4g, %s views at depth %.3g); the mesh has %d faces",
             in_mesh,
             budget.faces,
             budget.area,
             budget.pixels_per_face,
             budget.footprint,
             budget.view_set,
+            budget.depth,
             len(mesh.faces),
         )
     with timer("decimate"):

@@ -41,6 +41,19 @@ PROCEDURAL_ENVMAPS = ("sunset", "overcast", "night", "sun_sky")
 ENCODINGS = ("nerf", "fourier", "hashgrid", "none")
 #: decimate.mode: to a face count, or to the ray cache's face budget
 DECIMATE_MODES = ("faces", "budget")
+#: the ray-cache settings a face budget reads (stages.geometry.decimation.face_budget): only they
+#: go to the decimate job, so that other cache edits do not rerun it
+FACE_BUDGET_FIELDS = (
+    "resolution",
+    "fov_deg",
+    "radius",
+    "eval_resolution",
+    "eval_fov_deg",
+    "eval_radius",
+    "metrics_resolution",
+    "metrics_fov_deg",
+    "metrics_radius",
+)
 
 
 @dataclass(frozen=True)
@@ -162,13 +175,13 @@ class RaycacheSettings(Settings):
         problems = []
         if self.views < 1:
             problems.append(f"views must be >= 1, got {self.views}")
-        for name in ("resolution", "eval_resolution"):
+        for name in ("resolution", "eval_resolution", "metrics_resolution"):
             if not 8 <= getattr(self, name) <= 8192:
                 problems.append(f"{name} must be in [8, 8192], got {getattr(self, name)}")
-        for name in ("fov_deg", "eval_fov_deg"):
+        for name in ("fov_deg", "eval_fov_deg", "metrics_fov_deg"):
             if not 0.0 < getattr(self, name) < 180.0:
                 problems.append(f"{name} must be in (0, 180), got {getattr(self, name)}")
-        for name in ("radius", "eval_radius", "std"):
+        for name in ("radius", "eval_radius", "metrics_radius", "std"):
             if not getattr(self, name) > 0:
                 problems.append(f"{name} must be > 0, got {getattr(self, name)}")
         if self.backend not in ("embree", "trimesh"):
@@ -341,8 +354,14 @@ class OptimizeSettings(ClipChoice, Settings):
                 p.append(f"{name} must be one of {', '.join(ENCODINGS)}, got {getattr(self, name)!r}")
         if not (1 <= self.hashgrid_levels <= 32 and 1 <= self.hashgrid_features <= 8 and 10 <= self.hashgrid_log2_size <= 24):
             p.append("hashgrid_levels must be in 1..32, hashgrid_features in 1..8 and hashgrid_log2_size in 10..24")
-        if not 2 <= self.hashgrid_min_resolution <= self.hashgrid_max_resolution <= 2**20:
-            p.append("hashgrid resolutions must satisfy 2 <= hashgrid_min_resolution <= hashgrid_max_resolution <= 2^20")
+        elif self.hashgrid_levels * self.hashgrid_features * 2**self.hashgrid_log2_size > 2**26:
+            p.append(
+                "a hash grid of hashgrid_levels x hashgrid_features x 2^hashgrid_log2_size must hold at most 2^26 "
+                f"(67M) parameters per network, got {self.hashgrid_levels * self.hashgrid_features * 2**self.hashgrid_log2_size}"
+            )
+        if not 2 <= self.hashgrid_min_resolution <= self.hashgrid_max_resolution <= 2**16:
+            # float32 coordinates resolve 2^-24 of the box: 2^16 cells leave 8 bits inside a cell
+            p.append("hashgrid resolutions must satisfy 2 <= hashgrid_min_resolution <= hashgrid_max_resolution <= 65536")
         if not self.hashgrid_step_scale > 0:
             p.append(f"hashgrid_step_scale must be > 0, got {self.hashgrid_step_scale}")
         if self.background not in ("black", "white", "noise"):

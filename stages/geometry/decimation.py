@@ -49,8 +49,8 @@ The face budget (``mode: budget``, :func:`face_budget`). A mesh with far more fa
 have pixels carries detail no view resolves: each face then covers a fraction of a pixel, the
 ray cache stores the same hits, and only the bake (xatlas charts every face), the exports and
 the tracing pay for it. The budget is the surface area over the area that ``pixels_per_face``
-pixels cover at the cache's camera distance, in the finest of the cache's view sets; a mesh above
-it is decimated to it, one within it passes unchanged. TANGO's robustness result (Sec. 4.2) is
+pixels cover where the surface can come nearest to the cameras of the finest of the cache's view
+sets; a mesh above it is decimated to it, one within it passes unchanged. TANGO's robustness result (Sec. 4.2) is
 that the normal network restores detail lost to decimation; the README measures the trade.
 """
 
@@ -68,12 +68,13 @@ from .normals import weld_positions
 log = logging.getLogger(__name__)
 
 
-def pixel_footprint(resolution: int, fov_deg: float, distance: float) -> float:
-    """Side of one pixel, in scene units, on a plane facing a pinhole camera at ``distance``
-    (square image of ``resolution`` pixels across a full field of view of ``fov_deg``):
-    ``2 distance tan(fov / 2) / resolution``. Exact at the image centre; off-axis pixels and
-    surfaces not facing the camera cover more of the surface per pixel, never less."""
-    return 2.0 * distance * np.tan(np.radians(fov_deg) / 2.0) / resolution
+def pixel_footprint(resolution: int, fov_deg: float, depth: float) -> float:
+    """Side of one pixel, in scene units, on a surface facing a pinhole camera at ``depth`` (square
+    image of ``resolution`` pixels across a full field of view of ``fov_deg``):
+    ``2 depth tan(fov / 2) / resolution``. A pinhole maps a plane parallel to the image uniformly,
+    so this holds for every pixel at that depth; surfaces tilted away from the camera, or
+    deeper, get more scene per pixel, never less."""
+    return 2.0 * depth * np.tan(np.radians(fov_deg) / 2.0) / resolution
 
 
 @dataclass(frozen=True)
@@ -81,6 +82,7 @@ class FaceBudget:
     faces: int  # the budget
     area: float  # the mesh's surface area (normalised frame)
     footprint: float  # the finest pixel side over the cache's view sets
+    depth: float  # the nearest the surface comes to that view set's cameras
     view_set: str  # which view set sets it
     pixels_per_face: float
 
@@ -88,20 +90,33 @@ class FaceBudget:
         return dict(self.__dict__)
 
 
-def face_budget(area: float, cache: RaycacheSettings, pixels_per_face: float = 1.0) -> FaceBudget:
-    """The faces a mesh of surface ``area`` (normalised frame, radius 1) needs for the views of
-    ``cache`` to resolve it: ``ceil(area / (pixels_per_face s^2))`` with ``s`` the finest
-    :func:`pixel_footprint` at the object's centre (camera distance = the view set's radius)
-    among the training, evaluation and metric views. At least 4."""
+def face_budget(area: float, cache: RaycacheSettings, pixels_per_face: float = 1.0, extent: float = 1.0) -> FaceBudget:
+    """The faces a mesh of surface ``area`` needs for the views of ``cache`` to resolve it:
+    ``ceil(area / (pixels_per_face s^2))`` with ``s`` the finest :func:`pixel_footprint` any of
+    its views (training, evaluation, metric) can have on the surface. Each view set's cameras lie
+    on a sphere of its radius ``r`` around the origin, and the surface within ``extent`` of the
+    origin (1 for a normalised mesh), so no surface point is nearer a camera than ``r - extent``:
+    the footprint at that depth is a lower bound, and a face of budgeted size covers at least
+    ``pixels_per_face`` pixels in every view. At least 4 faces. A view set whose cameras are
+    within ``extent`` of the origin can come arbitrarily close to the surface: no budget then
+    (``ValueError``; decimate to a face count instead)."""
     sets = {
-        "training": pixel_footprint(cache.resolution, cache.fov_deg, cache.radius),
-        "evaluation": pixel_footprint(cache.eval_resolution, cache.eval_fov_deg, cache.eval_radius),
-        "metrics": pixel_footprint(cache.metrics_resolution, cache.metrics_fov_deg, cache.metrics_radius),
+        "training": (cache.resolution, cache.fov_deg, cache.radius),
+        "evaluation": (cache.eval_resolution, cache.eval_fov_deg, cache.eval_radius),
+        "metrics": (cache.metrics_resolution, cache.metrics_fov_deg, cache.metrics_radius),
     }
-    view_set = min(sets, key=sets.get)
-    s = sets[view_set]
+    inside = [name for name, (_, _, radius) in sets.items() if radius <= extent]
+    if inside:
+        raise ValueError(
+            f"the {' and '.join(inside)} cameras are within the mesh's extent ({extent:.3g}) of its centre: "
+            "they can come arbitrarily close to the surface, so no face budget bounds what they resolve; "
+            "use decimate.mode: faces with a target_faces, or a larger camera radius"
+        )
+    footprint = {name: pixel_footprint(res, fov, radius - extent) for name, (res, fov, radius) in sets.items()}
+    view_set = min(footprint, key=footprint.get)
+    s = footprint[view_set]
     faces = max(4, int(np.ceil(area / (pixels_per_face * s * s))))
-    return FaceBudget(faces, float(area), float(s), view_set, float(pixels_per_face))
+    return FaceBudget(faces, float(area), float(s), float(sets[view_set][2] - extent), view_set, float(pixels_per_face))
 
 
 #: the collapse counts as having reached the target when it leaves at most this fraction more faces

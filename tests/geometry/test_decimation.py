@@ -13,6 +13,7 @@ from conftest import icosphere, shared_mesh
 from stages import decimate
 from stages.config.sections import DecimateSettings, NormalizeSettings, RaycacheSettings
 from stages.core.errors import ConfigError
+from stages.geometry.cameras import camera_space_directions
 from stages.geometry.decimation import decimate_mesh, edge_counts, face_budget, pixel_footprint, weld_vertices
 from stages.geometry.meshio import TriMesh, load_ply, save_ply
 from stages.geometry.normalization import normalize_mesh
@@ -243,29 +244,38 @@ def test_unwelded_shared_mesh_reaches_target():
     check_shared_frame(mesh, result.mesh, s)
 
 
-def test_pixel_footprint_is_a_pinhole_pixel():
-    """Against a pinhole camera written out: focal length ``f = (R / 2) / tan(fov / 2)`` pixels; the
-    rays through two neighbouring pixel centres astride the axis hit a plane at distance ``d``
-    ``d / f`` apart."""
-    for res, fov, d in ((512, 60.0, 2.0), (96, 45.0, 2.5), (1000, 10.0, 7.0)):
-        f = (res / 2) / np.tan(np.radians(fov) / 2)
-        rays = [np.array([px / f, 1.0]) for px in (-0.5, 0.5)]  # through pixel offsets px from the axis
-        hits = [d * r[0] / r[1] for r in rays]
-        assert pixel_footprint(res, fov, d) == pytest.approx(hits[1] - hits[0], rel=1e-12)
+def test_pixel_footprint_is_the_cameras_pixel():
+    """Against the ray cache's own cameras (``camera_space_directions``): the rays through
+    neighbouring pixel centres meet a plane at ``depth`` in front of the camera ``footprint``
+    apart, at the image centre and at its corner alike (a pinhole maps a parallel plane
+    uniformly)."""
+    for res, fov, depth in ((512, 60.0, 1.0), (96, 45.0, 1.5), (1000, 10.0, 7.0)):
+        dirs = camera_space_directions(res, fov).reshape(res, res, 3)
+        hits = dirs * (depth / -dirs[..., 2:])  # on the plane z = -depth
+        for r, c in ((res // 2, res // 2 - 1), (0, 0)):
+            assert pixel_footprint(res, fov, depth) == pytest.approx(hits[r, c + 1, 0] - hits[r, c, 0], rel=1e-9)
+            assert pixel_footprint(res, fov, depth) == pytest.approx(hits[r, c, 1] - hits[r + 1, c, 1], rel=1e-9)
 
 
 def test_face_budget_of_a_sphere():
-    """Unit sphere (area 4 pi) under the default cache: the finest view set is the training one
-    (512 px, 60 degrees, radius 2; evaluation views are the same), so the budget is
-    ``ceil(4 pi / s^2)`` faces of one pixel each; four pixels per face quarter it; finer
-    evaluation views set the budget when they are the finest."""
-    s = 2 * 2.0 * np.tan(np.radians(30.0)) / 512
+    """Unit sphere (area 4 pi, extent 1) under the default cache: the nearest its surface comes to
+    the training cameras (radius 2) is depth 1, where a 512-pixel, 60-degree pixel is
+    ``2 tan(30 deg) / 512`` wide (the evaluation views are the same; the metric views, 224
+    pixels at 45 degrees from 2.5, are coarser), so the budget is ``ceil(4 pi / s^2)`` faces of
+    one pixel each; four pixels per face quarter it; finer metric views set it when they are the
+    finest; cameras within the mesh's extent have no budget."""
+    s = 2 * 1.0 * np.tan(np.radians(30.0)) / 512
     b = face_budget(4 * np.pi, RaycacheSettings())
-    assert b.view_set == "training" and b.faces == int(np.ceil(4 * np.pi / s**2))
+    assert b.view_set == "training" and b.depth == 1.0 and b.faces == int(np.ceil(4 * np.pi / s**2))
     assert face_budget(4 * np.pi, RaycacheSettings(), 4.0).faces == int(np.ceil(np.pi / s**2))
-    fine = face_budget(4 * np.pi, RaycacheSettings(resolution=64, eval_resolution=128, metrics_resolution=64))
-    assert fine.view_set == "evaluation" and fine.footprint == pytest.approx(2 * 2.0 * np.tan(np.radians(30.0)) / 128)
+    fine = face_budget(4 * np.pi, RaycacheSettings(resolution=64, eval_resolution=64, metrics_resolution=512))
+    assert fine.view_set == "metrics" and fine.depth == 1.5
+    assert fine.footprint == pytest.approx(2 * 1.5 * np.tan(np.radians(22.5)) / 512)
+    # a mesh reaching out to 1.2 is seen from nearer: depth 0.8
+    assert face_budget(4 * np.pi, RaycacheSettings(), extent=1.2).depth == pytest.approx(0.8)
     assert face_budget(1e-9, RaycacheSettings()).faces == 4
+    with pytest.raises(ValueError, match="training cameras are within"):
+        face_budget(4 * np.pi, RaycacheSettings(radius=0.9))
 
 
 def _budget_stage(tmp_path, mesh, cache, **settings):
@@ -280,15 +290,15 @@ def _budget_stage(tmp_path, mesh, cache, **settings):
 
 def test_budget_mode_decimates_a_mesh_finer_than_its_views(tmp_path):
     sphere = icosphere(5)  # 20,480 faces
-    cache = RaycacheSettings(resolution=48, eval_resolution=48, metrics_resolution=32)
+    cache = RaycacheSettings(resolution=24, eval_resolution=24, metrics_resolution=16)
     out, meta = _budget_stage(tmp_path, sphere, cache)
     budget = meta["face_budget"]
     area = float(sphere.face_areas.sum())
-    s = 2 * 2.0 * np.tan(np.radians(30.0)) / 48
+    s = 2 * (2.0 - np.linalg.norm(sphere.vertices, axis=1).max()) * np.tan(np.radians(30.0)) / 24
     assert budget["faces"] == int(np.ceil(area / s**2)) and budget["view_set"] in ("training", "evaluation")
     assert len(sphere.faces) > budget["faces"] >= len(out.faces) * 0.98  # reached (MeshLab lands within 1%)
     assert meta["stats"]["target_reached"] and meta["settings"]["target_faces"] == budget["faces"]
-    assert meta["settings"]["raycache"]["resolution"] == 48
+    assert meta["settings"]["raycache"]["resolution"] == 24
     # the surface stays where it was: well under a pixel of the views that set the budget
     assert meta["stats"]["hausdorff_max"] < s
 

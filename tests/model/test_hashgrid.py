@@ -15,7 +15,7 @@ import torch
 from stages.config.sections import OptimizeSettings
 from stages.core.errors import ConfigError
 from stages.model.field import StyleField
-from stages.model.networks import HashGridEncoding
+from stages.model.networks import HashGridEncoding, _GridInterpolation
 
 SMALL = dict(levels=6, features=2, log2_size=12, min_resolution=4, max_resolution=96)
 
@@ -24,13 +24,13 @@ def paper_encoding(x: torch.Tensor, table: torch.Tensor, *, levels, features, lo
     """The paper's encoding, one point, level and corner at a time (float64; ``table`` is the
     effective ``(levels * T, F)`` table). Returns ``(N, levels * F)``."""
     size = 2**log2_size
-    b = math.exp((math.log(max_resolution) - math.log(min_resolution)) / (levels - 1))
     out = []
     for p in x.tolist():
         u = [min(max((c + 1.0) / 2.0, 0.0), 1.0) for c in p]
         feats = []
         for level in range(levels):
-            n = math.floor(min_resolution * b**level)
+            # N_min b^l with b^(levels-1) = N_max / N_min (1e-9: float rounding of an integer)
+            n = math.floor(min_resolution * (max_resolution / min_resolution) ** (level / (levels - 1)) + 1e-9)
             lo = [min(math.floor(c * n), n - 1) for c in u]
             f = [c * n - v for c, v in zip(u, lo, strict=True)]
             acc = torch.zeros(features, dtype=torch.float64)
@@ -67,11 +67,14 @@ def _encoding(**kw):
 
 def test_levels_resolutions_and_dense_levels():
     enc = _encoding()
-    b = math.exp((math.log(96) - math.log(4)) / 5)
-    assert enc.resolution.tolist() == [math.floor(4 * b**level) for level in range(6)]
-    # one-to-one where (N+1)^3 <= 4096: resolutions 4, 7, 12 (125, 512, 2197 vertices), hashed above
-    assert enc.dense.tolist() == [True, True, True, False, False, False]
+    # 4 (96/4)^(l/5): 4, 7.5, 14.2, 26.9, 50.7, 96
+    assert enc.resolution.tolist() == [4, 7, 14, 26, 50, 96]
+    # one-to-one where (N+1)^3 <= 4096: resolutions 4, 7, 14 (125, 512, 3375 vertices), hashed above
+    assert enc.dense_levels == 3
     assert enc.out_dim == 3 + 6 * 2
+    # the finest level is the maximum resolution, not one less (16 b^15 rounds to 1023.99999...)
+    assert HashGridEncoding().resolution.tolist()[::5] == [16, 64, 256, 1024]  # 16 x 4^(l/5), exactly
+    assert HashGridEncoding(min_resolution=16, max_resolution=4096).resolution[-1] == 4096
 
 
 def test_values_and_table_gradient_equal_the_paper_loop():
@@ -114,7 +117,7 @@ def test_continuous_across_cell_faces():
     finest = float(enc.resolution[-1])
     face = 2.0 * 37.0 / finest - 1.0  # a vertex plane of the finest level, in [-1, 1]
     x = torch.tensor([[face, 0.1, -0.2]])
-    d = torch.tensor([[1e-5, 0.0, 0.0]])
+    d = torch.tensor([[1e-6, 0.0, 0.0]])
     torch.testing.assert_close(enc(x - d), enc(x + d), rtol=0, atol=1e-3)
 
 
@@ -186,7 +189,27 @@ def test_far_corner_stays_inside_a_level_that_fills_its_table():
     or past the end."""
     kw = dict(levels=2, features=2, log2_size=12, min_resolution=15, max_resolution=15)
     enc = _encoding(**kw)
-    assert enc.dense.all() and (enc.resolution + 1).pow(3).eq(2**12).all()
+    assert enc.dense_levels == 2 and (enc.resolution + 1).pow(3).eq(2**12).all()
     x = torch.tensor([[1.0, 1.0, 1.0], [-1.0, 1.0, 1.0]])
     table = enc.raw.detach().double() * enc.step_scale
     torch.testing.assert_close(enc(x)[:, 3:].double(), paper_encoding(x.double(), table, **kw), rtol=1e-5, atol=1e-5)
+
+
+def test_interpolation_gradients_by_gradcheck():
+    """The written-out gather/scatter against numerical derivatives in float64, with rows shared
+    by several corners and points (the scatter-add must sum them)."""
+    g = torch.Generator().manual_seed(7)
+    table = torch.randn(10, 3, dtype=torch.float64, generator=g, requires_grad=True)
+    index = torch.randint(0, 10, (2, 5, 8), generator=g)
+    assert len(index.unique()) < index.numel()
+    w = torch.rand(2, 5, 8, dtype=torch.float64, generator=g, requires_grad=True)
+    assert torch.autograd.gradcheck(_GridInterpolation.apply, (table, index, w))
+
+
+def test_float64_table_runs_in_float64():
+    enc = _encoding().double()
+    x = _points().double()
+    y = enc(x)
+    assert y.dtype == torch.float64
+    table = enc.raw.detach() * enc.step_scale
+    torch.testing.assert_close(y[:, 3:], paper_encoding(x, table, **SMALL), rtol=1e-10, atol=1e-10)

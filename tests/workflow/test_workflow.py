@@ -106,6 +106,7 @@ def test_face_budget_mode_reads_the_mesh_cache_settings(tmp_path):
     jobs = re.findall(r"^(?:local)?rule (\w+):\n(.*?)(?:\n\n|\Z)", proc.stdout, re.S | re.M)
     decimations = {("vase/" in body): body for rule, body in jobs if rule == "decimate"}
     assert "--raycache-settings" in decimations[True] and '"resolution": 40' in decimations[True]
+    assert '"views"' not in decimations[True]  # only what the budget reads: other cache edits do not rerun it
     assert "--raycache-settings" not in decimations[False]
     traced = [body for rule, body in jobs if rule == "raycache" and "vase/" in body]
     assert len(traced) == 1 and "vase/decimate/mesh.ply" in traced[0]

@@ -5,7 +5,7 @@ import shlex
 from pathlib import Path
 
 from stages.config.layout import OPTIMIZE_FILES, TEXTURES
-from stages.config.sections import MATERIALS
+from stages.config.sections import FACE_BUDGET_FIELDS, MATERIALS
 from stages.config.workflow import WorkflowConfig
 from stages.core.errors import ConfigError
 
@@ -78,14 +78,13 @@ def stage_settings_json(stage):
 
 def budget_raycache_json(wildcards):
     """Params function of decimate: with ``decimate.mode: budget``, the mesh's ray-cache settings
-    (which set the face budget) as a quoted option; else nothing, so that ray-cache edits do not
-    rerun a decimation that does not read them."""
+    that set the face budget (FACE_BUDGET_FIELDS) as a quoted option; else nothing, so that
+    other ray-cache edits do not rerun a decimation that does not read them."""
     if CFG.stage_settings(wildcards.mesh, "decimate").mode != "budget":
         return ""
-    cache = json.dumps(
-        CFG.stage_settings(wildcards.mesh, "raycache").to_dict(), sort_keys=True
-    )
-    return f"--raycache-settings {shlex.quote(cache)}"
+    cache = CFG.stage_settings(wildcards.mesh, "raycache").to_dict()
+    fields = {k: cache[k] for k in FACE_BUDGET_FIELDS}
+    return f"--raycache-settings {shlex.quote(json.dumps(fields, sort_keys=True))}"
 
 
 def traced_mesh(wildcards):
