@@ -17,12 +17,13 @@ the environment's, and the optimisation's wall time.
     python benchmarks/recovery.py --presets paper --meshes vase,shared:lamp
     python benchmarks/recovery.py --meshes builtin --presets fast --specular-lobe isotropic,split_sum
     python benchmarks/recovery.py --decimate 5000 --shading-normals flat,smooth   # the robustness study
-    python benchmarks/recovery.py --meshes shared --presets fast --decimate none,budget  # the face budget
+    python benchmarks/recovery.py --meshes shared --presets fast --decimate none,budget,budget:4  # face budgets
     python benchmarks/recovery.py --meshes builtin --presets fast --precision float32,bf16  # bfloat16 networks
     python benchmarks/recovery.py --meshes builtin --presets balanced --set light_prune_after=200  # light "auto"
 
 With ``--decimate N`` (or ``budget``: the face budget of the cache, as the decimate stage's
-``mode: budget`` computes it; a comma-separated list fits each level in turn) each mesh is fitted
+``mode: budget`` computes it, ``budget:P`` with ``P`` pixels per face; a comma-separated list
+fits each level in turn) each mesh is fitted
 on its N-face version (MeshLab's quadric collapse, the decimate stage) while Mitsuba renders the
 targets from the full-resolution mesh, as the workflow's target stage does: TANGO's robustness
 study, graded against the object rather than its approximation.
@@ -101,6 +102,7 @@ def prepare(work: Path, source: str, material: str, decimate: int | str | None =
     face budget of the recovery cache, the decimate stage's ``mode: budget``), build the recovery
     cache on the mesh to fit and render the Mitsuba targets of the full-resolution mesh into
     ``work``; returns the fitted and the full-resolution face counts."""
+    import numpy as np
     from test_optimize import MITSUBA_TARGET, RECOVERY_CACHE
 
     from stages import target as target_stage
@@ -115,8 +117,10 @@ def prepare(work: Path, source: str, material: str, decimate: int | str | None =
     mesh = full
     sizes = {k: resolution for k in ("resolution", "eval_resolution", "metrics_resolution")}
     cache = dataclasses.replace(RECOVERY_CACHE, **sizes)
-    if decimate == "budget":
-        decimate = face_budget(float(full.face_areas.sum()), cache).faces
+    if isinstance(decimate, str) and decimate.startswith("budget"):  # "budget" or "budget:<pixels per face>"
+        per_face = float(decimate.split(":", 1)[1]) if ":" in decimate else 1.0
+        extent = float(np.linalg.norm(full.vertices, axis=1).max())
+        decimate = face_budget(float(full.face_areas.sum()), cache, per_face, extent).faces
     if decimate is not None and decimate < len(full.faces):
         mesh = decimate_mesh(full, DecimateSettings(enabled=True, target_faces=decimate)).mesh
     save_ply(work / "mesh.ply", mesh)
@@ -201,8 +205,8 @@ def main() -> None:
     parser.add_argument(
         "--decimate",
         default="none",
-        help="comma-separated: none, N (fit each mesh's N-face version) or budget (its face budget at the cache's "
-        "resolution); full-resolution targets",
+        help="comma-separated: none, N (fit each mesh's N-face version) or budget[:P] (its face budget for the "
+        "cache, P pixels per face, default 1); full-resolution targets",
     )
     parser.add_argument("--resolution", type=int, default=96, help="pixels of the cached views and of the fitted images")
     parser.add_argument("--material", default="wood", help="the procedural target material (wood, metal, plaster)")
@@ -218,7 +222,7 @@ def main() -> None:
     args.out.parent.mkdir(parents=True, exist_ok=True)
     for name, source in mesh_sources(args.meshes):
         for level in (x.strip() for x in args.decimate.split(",") if x.strip()):
-            decimate = None if level == "none" else level if level == "budget" else int(level)
+            decimate = None if level == "none" else level if level.startswith("budget") else int(level)
             with tempfile.TemporaryDirectory() as d:
                 work = Path(d)
                 t0 = time.perf_counter()
