@@ -15,6 +15,7 @@ rule bake:
     resources:
         gpu=GPU_JOBS,
     params:
+        code=code_digest("stages.bake"),
         device=DEVICE,
         out_dir=cell_dir("bake"),
         settings=cell_settings_json("bake"),

@@ -4,6 +4,7 @@ import json
 import shlex
 from pathlib import Path
 
+from stages.config.code import code_digest
 from stages.config.layout import OPTIMIZE_FILES, TEXTURES
 from stages.config.sections import FACE_BUDGET_FIELDS, MATERIALS
 from stages.config.workflow import WorkflowConfig

@@ -11,6 +11,7 @@ rule decimate:
     conda:
         CONDA_ENV
     params:
+        code=code_digest("stages.decimate"),
         settings=stage_settings_json("decimate"),
         raycache=budget_raycache_json,
     shell:

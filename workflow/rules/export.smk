@@ -10,6 +10,7 @@ rule export:
     conda:
         CONDA_ENV
     params:
+        code=code_digest("stages.export"),
         bake_dir=cell_dir("bake"),
         out_dir=cell_dir("export"),
         name=asset_name,

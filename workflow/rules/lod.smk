@@ -17,6 +17,7 @@ rule lod:
     resources:
         gpu=GPU_JOBS,
     params:
+        code=code_digest("stages.lod"),
         device=DEVICE,
         bake_dir=cell_dir("bake"),
         out_dir=cell_dir("lod"),

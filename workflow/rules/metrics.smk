@@ -17,6 +17,7 @@ rule metrics:
     resources:
         gpu=GPU_JOBS,
     params:
+        code=code_digest("stages.metrics"),
         device=DEVICE,
         prompt=prompt_text,
         candidates=candidates_json,

@@ -12,6 +12,7 @@ rule normalize:
     conda:
         CONDA_ENV
     params:
+        code=code_digest("stages.normalize"),
         source=mesh_source,
         settings=stage_settings_json("normalize"),
     shell:

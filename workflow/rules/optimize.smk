@@ -15,6 +15,7 @@ rule optimize:
     resources:
         gpu=GPU_JOBS,
     params:
+        code=code_digest("stages.optimize"),
         device=DEVICE,
         prompt=prompt_text,
         out_dir=cell_dir("optimize"),

@@ -13,6 +13,7 @@ rule raycache:
     conda:
         CONDA_ENV
     params:
+        code=code_digest("stages.raycache"),
         settings=stage_settings_json("raycache"),
     shell:
         "python -m stages.raycache --input {input.mesh:q} --train {output.train:q} "

@@ -16,6 +16,7 @@ rule relight:
     resources:
         gpu=GPU_JOBS,
     params:
+        code=code_digest("stages.relight"),
         device=DEVICE,
         out_dir=cell_dir("relight"),
         settings=cell_settings_json("relight"),

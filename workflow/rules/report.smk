@@ -43,6 +43,7 @@ rule report:
     conda:
         CONDA_ENV
     params:
+        code=code_digest("stages.report"),
         cells=cell_ids(),
         results=results_root,
         out_dir=output_folder,
@@ -67,6 +68,7 @@ rule pack:
     conda:
         CONDA_ENV
     params:
+        code=code_digest("stages.pack"),
         cells=cell_ids(),
         lod_cells=lod_cells_option(),
         results=results_root,
@@ -89,6 +91,7 @@ rule html_report:
     conda:
         CONDA_ENV
     params:
+        code=code_digest("stages.html_report"),
         cells=cell_ids(),
         results=results_root_from_assets,
         report_dir=output_folder,

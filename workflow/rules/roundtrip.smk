@@ -14,6 +14,7 @@ rule roundtrip:
     resources:
         gpu=GPU_JOBS,
     params:
+        code=code_digest("stages.roundtrip"),
         device=DEVICE,
         bake_dir=cell_dir("bake"),
         export_dir=cell_dir("export"),

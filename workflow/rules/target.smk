@@ -17,6 +17,7 @@ rule target:
         CONDA_ENV
     threads: 2
     params:
+        code=code_digest("stages.target"),
         out_dir=lambda wildcards: f"{RESULTS}/{wildcards.mesh}/target/{wildcards.material}",
         settings=stage_settings_json("target"),
     shell:
