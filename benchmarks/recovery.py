@@ -102,12 +102,11 @@ def prepare(work: Path, source: str, material: str, decimate: int | str | None =
     face budget of the recovery cache, the decimate stage's ``mode: budget``), build the recovery
     cache on the mesh to fit and render the Mitsuba targets of the full-resolution mesh into
     ``work``; returns the fitted and the full-resolution face counts."""
-    import numpy as np
     from test_optimize import MITSUBA_TARGET, RECOVERY_CACHE
 
     from stages import target as target_stage
     from stages.config.sections import DecimateSettings, NormalizeSettings
-    from stages.geometry.decimation import decimate_mesh, face_budget
+    from stages.geometry.decimation import decimate_mesh, mesh_face_budget
     from stages.geometry.meshio import save_ply
     from stages.geometry.normalization import normalize_mesh
     from stages.raycache import run as raycache_run
@@ -119,8 +118,7 @@ def prepare(work: Path, source: str, material: str, decimate: int | str | None =
     cache = dataclasses.replace(RECOVERY_CACHE, **sizes)
     if isinstance(decimate, str) and decimate.startswith("budget"):  # "budget" or "budget:<pixels per face>"
         per_face = float(decimate.split(":", 1)[1]) if ":" in decimate else 1.0
-        extent = float(np.linalg.norm(full.vertices, axis=1).max())
-        decimate = face_budget(float(full.face_areas.sum()), cache, per_face, extent).faces
+        decimate = mesh_face_budget(full, cache, per_face).faces
     if decimate is not None and decimate < len(full.faces):
         mesh = decimate_mesh(full, DecimateSettings(enabled=True, target_faces=decimate)).mesh
     save_ply(work / "mesh.ply", mesh)

@@ -14,13 +14,11 @@ import json
 import logging
 from pathlib import Path
 
-import numpy as np
-
 from .config.sections import DecimateSettings, RaycacheSettings
 from .core.cli import stage_main
 from .core.errors import StageInputError
 from .core.provenance import Timer, atomic_path, metadata, write_json_atomic
-from .geometry.decimation import decimate_mesh, face_budget
+from .geometry.decimation import decimate_mesh, mesh_face_budget
 from .geometry.meshio import load_ply, save_ply
 
 log = logging.getLogger(__name__)
@@ -41,9 +39,8 @@ def run(
         if raycache is None:
             why = "decimate.mode is budget but no ray-cache settings were given"
             raise StageInputError(in_mesh, why, "Pass --raycache-settings (the workflow does).")
-        extent = float(np.linalg.norm(mesh.vertices, axis=1).max())
         try:
-            budget = face_budget(float(mesh.face_areas.sum()), raycache, settings.pixels_per_face, extent)
+            budget = mesh_face_budget(mesh, raycache, settings.pixels_per_face)
         except ValueError as exc:
             raise StageInputError(in_mesh, str(exc), "Set decimate.mode: faces for this mesh.") from exc
         settings = dataclasses.replace(settings, target_faces=budget.faces)

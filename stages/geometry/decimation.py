@@ -119,6 +119,12 @@ def face_budget(area: float, cache: RaycacheSettings, pixels_per_face: float = 1
     return FaceBudget(faces, float(area), float(s), float(sets[view_set][2] - extent), view_set, float(pixels_per_face))
 
 
+def mesh_face_budget(mesh: TriMesh, cache: RaycacheSettings, pixels_per_face: float = 1.0) -> FaceBudget:
+    """:func:`face_budget` of ``mesh``: its surface area, its extent the farthest vertex from the origin."""
+    extent = float(np.linalg.norm(mesh.vertices, axis=1).max())
+    return face_budget(float(mesh.face_areas.sum()), cache, pixels_per_face, extent)
+
+
 #: the collapse counts as having reached the target when it leaves at most this fraction more faces
 TARGET_TOLERANCE = 0.01
 #: boundary quadric weight of the relaxed collapse: MeshLab's default. Boundary vertices may move, and
