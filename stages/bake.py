@@ -19,6 +19,7 @@ from .assets.baking import bake_field, decode_textures, render_baked_views
 from .config.sections import BakeSettings
 from .core.cli import stage_main
 from .core.errors import StageInputError
+from .core.progress import heartbeat, job_label
 from .core.provenance import ORIGIN_KEY, Timer, atomic_path, metadata, staged_outputs, write_json_atomic
 from .geometry.meshio import load_ply
 from .geometry.raycache import RayCache
@@ -49,7 +50,8 @@ def run(
     with timer("load"):
         mesh = load_ply(mesh_path)
         field, opt_settings = load_field(field_path, device)
-    with timer("bake"):
+    job = job_label("bake", out_dir)
+    with timer("bake"), heartbeat(job, f"unwrapping and baking {len(mesh.faces)} faces"):
         res = bake_field(mesh, field, settings, device)
     out_dir = Path(out_dir)
     with staged_outputs(out_dir) as staging:
@@ -62,7 +64,7 @@ def run(
                 with open(tmp, "wb") as fh:
                     np.savez(fh, uv=res.atlas.uv.astype(np.float32), **res.frames.arrays())
         # fidelity: baked asset vs neural field from the evaluation views
-        with timer("fidelity"):
+        with timer("fidelity"), heartbeat(job, "rendering the baked asset for the fidelity check"):
             evalc = RayCache(eval_path)
             store = ViewStore(evalc, torch.device(device), field.normals)
             tex = decode_textures(res.textures)

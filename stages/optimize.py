@@ -19,12 +19,12 @@ from pathlib import Path
 import numpy as np
 import torch
 from torch.nn import functional as F
-from tqdm import tqdm
 
 from .config.layout import OPTIMIZE_FILES, RENDER_KINDS
 from .config.sections import OptimizeSettings
 from .core.cli import resolve_device, stage_main
 from .core.errors import StageInputError
+from .core.progress import Progress, job_label
 from .core.provenance import ORIGIN_KEY, Timer, atomic_path, metadata, staged_outputs, write_json_atomic
 from .geometry.raycache import RayCache
 from .guidance.objective import render_target
@@ -81,28 +81,20 @@ def run(
             log.info("resumed from %s at iteration %d", ckpt, opt.iteration)
         else:
             log.warning("ignoring %s: written under other settings", ckpt)
-    bar = tqdm(
-        total=settings.iterations,
-        initial=opt.iteration,
-        desc="optimize",
-        mininterval=2.0,
-        unit="it",
-        dynamic_ncols=False,
-    )
+    progress = Progress(job_label("optimize", out_dir), settings.iterations, initial=opt.iteration)
     done_here = 0
     t_loop = time.perf_counter()
     while opt.iteration < settings.iterations:
         row = opt.step(timer)
-        bar.update(1)
-        bar.set_postfix(loss=f"{row['loss']:.4f}", refresh=False)
         done_here += 1
         if opt.iteration % settings.checkpoint_every == 0 and opt.iteration < settings.iterations:
             with timer("checkpoint"):
                 save_checkpoint(ckpt, **opt.state())
+        progress.update(loss=f"{row['loss']:.4f}")
         if stop_after is not None and done_here >= stop_after:
-            bar.close()
+            progress.close()
             return {"stopped_at": opt.iteration}
-    bar.close()
+    progress.close()
     loop_s = time.perf_counter() - t_loop
     # every output is staged and moved into place together, the metadata last; the checkpoint
     # goes only after that, so a kill at any point leaves either a resumable run or finished outputs

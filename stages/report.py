@@ -39,13 +39,16 @@ def run(
     out_dir: Path,
     decimated: dict | None = None,
     lod_cells: list[tuple[str, str, str]] | None = None,
+    mesh_dirs: dict[str, dict[str, str]] | None = None,
 ) -> list[dict]:
     """Write summary.csv/json, overview.png, the speed/accuracy table and plot, ablation bars,
     loss curves and image grids into ``out_dir``. ``decimated``: decimated mesh id -> the id of
     the same source at full resolution (for the robustness grid). ``lod_cells``: the cells whose
-    levels of detail are read (None: every cell that has them)."""
+    levels of detail are read (None: every cell that has them). ``mesh_dirs``: mesh id -> stage
+    -> the folder of its mesh-level work (the workflow's results/meshes/<mesh>/<key>/<stage>;
+    default: ``results/<mesh>/<stage>``)."""
     results = Path(results)
-    rows = summary_rows(results, cells, lod_cells)
+    rows = summary_rows(results, cells, lod_cells, mesh_dirs)
     frame = pd.DataFrame(rows)
     out_dir = Path(out_dir)
     with atomic_path(out_dir / "summary.csv") as tmp:
@@ -72,12 +75,15 @@ def main(argv: list[str] | None = None) -> int:
         parser.add_argument("--cells", nargs="+", required=True, help="mesh/prompt/variant ...")
         parser.add_argument("--decimated", default="{}", help="JSON: decimated mesh id -> full-resolution mesh id")
         parser.add_argument(
+            "--mesh-dirs", default="{}", help="JSON: mesh id -> stage -> folder of its mesh-level work (normalize, ...)"
+        )
+        parser.add_argument(
             "--lod-cells", nargs="*", default=None, help="the cells with levels of detail (default: any that has them)"
         )
 
     def body(args):
         lod = None if args.lod_cells is None else parse_cells(args.lod_cells)
-        run(args.results, parse_cells(args.cells), args.out_dir, json.loads(args.decimated), lod)
+        run(args.results, parse_cells(args.cells), args.out_dir, json.loads(args.decimated), lod, json.loads(args.mesh_dirs))
 
     return stage_main("report", __doc__, arguments, body, argv)
 

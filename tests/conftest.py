@@ -69,6 +69,14 @@ def snakemake_command(workdir: Path, *args: str) -> list[str]:
     return [sys.executable, "-m", "snakemake", "--snakefile", str(REPO / "Snakefile"), "--directory", str(workdir), *args]
 
 
+def mesh_work_dir(workdir: Path, mesh: str, stage: str) -> Path:
+    """The one folder of ``mesh``'s ``stage`` work under ``workdir/results/meshes/<mesh>/<key>/``
+    (the workflow's shared mesh-level work); a path that does not exist when there is none."""
+    found = sorted((workdir / "results" / "meshes" / mesh).glob(f"*/{stage}"))
+    assert len(found) <= 1, f"{mesh}/{stage} made under {len(found)} keys: {found}"
+    return found[0] if found else workdir / "results" / "meshes" / mesh / "absent" / stage
+
+
 def run_snakemake(workdir: Path, *args: str, timeout: int = 600) -> subprocess.CompletedProcess:
     """Run the workflow in ``workdir`` (see :func:`snakemake_command`, :func:`snakemake_env`)."""
     return subprocess.run(

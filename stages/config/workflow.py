@@ -10,8 +10,10 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import hashlib
 import json
 import logging
+import re
 import sys
 from dataclasses import dataclass
 from functools import cache
@@ -23,7 +25,7 @@ import yaml
 from ..core.cli import stage_main
 from ..core.errors import ConfigError
 from .presets import PRESETS
-from .sections import SECTIONS, OptimizeSettings
+from .sections import FACE_BUDGET_FIELDS, SECTIONS, OptimizeSettings
 
 log = logging.getLogger(__name__)
 
@@ -35,6 +37,32 @@ NVIDIA_GPUS = Path("/proc/driver/nvidia/gpus")
 MESH_STAGES = ("normalize", "decimate", "raycache", "target")
 #: stages after optimize whose settings are per grid cell (overridable per prompt and variant)
 CELL_STAGES = ("bake", "export", "relight", "metrics", "roundtrip", "lod")
+#: the folder under ``results/`` that holds mesh-level work (normalize, decimate, raycache,
+#: target), shared by every experiment; so no experiment may be called this
+MESH_WORK = "meshes"
+#: an experiment's name: a folder under ``results/``
+EXPERIMENT_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.+-]*")
+
+
+def settings_digest(obj: Any) -> str:
+    """12 hex digits of the SHA-256 of ``obj`` as canonical JSON (sorted keys): the key of a
+    piece of mesh-level work, equal exactly when the settings that shape it are equal."""
+    return hashlib.sha256(json.dumps(obj, sort_keys=True, separators=(",", ":")).encode()).hexdigest()[:12]
+
+
+def experiment_name(config: dict, configfiles: list[str | Path]) -> str:
+    """The experiment's name: the config's ``experiment`` key, else the stem of its config file
+    (the stems joined by ``+`` when several files make up the config). Its outputs live in
+    ``results/<name>/``."""
+    name = config.get("experiment") or "+".join(Path(f).stem for f in configfiles) or "config"
+    if not EXPERIMENT_RE.fullmatch(str(name)) or name == MESH_WORK:
+        raise ConfigError(
+            f"experiment name {name!r} (from {'the key `experiment`' if config.get('experiment') else 'the config file name'}) "
+            f"must be letters, digits, '_', '.', '+' or '-', starting with a letter or digit, and not "
+            f"{MESH_WORK!r} (results/{MESH_WORK}/ holds the mesh-level work all experiments share): "
+            "set `experiment: <name>` in the config"
+        )
+    return str(name)
 
 
 @cache
@@ -120,6 +148,7 @@ class WorkflowConfig:
             if problems:
                 raise ConfigError(f"{source}: " + "; ".join(problems))
         self.pairs = list(dict.fromkeys(pairs))
+        self._keys: dict[str, dict[str, str]] = {}
         # Build every mesh's stage settings now so bad values fail when the DAG is built.
         for mesh_id in self.meshes:
             for stage in MESH_STAGES:
@@ -292,6 +321,47 @@ class WorkflowConfig:
         if s.guidance == "image" and s.target_renderer == "mitsuba":
             return s.target_material
         return None
+
+    def face_budget_fields(self, mesh_id: str) -> dict[str, Any]:
+        """With ``decimate.mode: budget``, the mesh's ray-cache settings that set its face budget
+        (:data:`FACE_BUDGET_FIELDS`), which the decimate job reads; else nothing, so that other
+        ray-cache edits neither rerun nor re-key a decimation that does not read them."""
+        if self.stage_settings(mesh_id, "decimate").mode != "budget":
+            return {}
+        cache = self.stage_settings(mesh_id, "raycache").to_dict()
+        return {k: cache[k] for k in FACE_BUDGET_FIELDS}
+
+    def mesh_work_keys(self, mesh_id: str) -> dict[str, str]:
+        """The key of each piece of the mesh's mesh-level work (``normalize``, ``decimate`` when
+        enabled, ``raycache``, ``target``): a digest of the mesh's source and of the settings of
+        that stage and of every stage before it. Two experiments whose keys are equal share the
+        folder ``results/meshes/<mesh>/<key>/<stage>/`` and so never recompute each other's work;
+        a changed setting gives a new key (and leaves the old folder to the experiments using it)."""
+        if mesh_id not in self._keys:
+            keys = {
+                "normalize": settings_digest(
+                    {"source": self.mesh_source(mesh_id), "normalize": self.stage_settings(mesh_id, "normalize").to_dict()}
+                )
+            }
+            traced = keys["normalize"]
+            if self.decimated(mesh_id):
+                keys["decimate"] = traced = settings_digest(
+                    {
+                        "normalize": keys["normalize"],
+                        "decimate": self.stage_settings(mesh_id, "decimate").to_dict(),
+                        "raycache": self.face_budget_fields(mesh_id),
+                    }
+                )
+            keys["raycache"] = settings_digest({"mesh": traced, "raycache": self.stage_settings(mesh_id, "raycache").to_dict()})
+            keys["target"] = settings_digest(
+                {
+                    "normalize": keys["normalize"],
+                    "raycache": keys["raycache"],
+                    "target": self.stage_settings(mesh_id, "target").to_dict(),
+                }
+            )
+            self._keys[mesh_id] = keys
+        return self._keys[mesh_id]
 
     def decimated(self, mesh_id: str) -> bool:
         return bool(self.stage_settings(mesh_id, "decimate").enabled)

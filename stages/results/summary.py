@@ -70,20 +70,30 @@ def check_origins(cell_dir: Path, skip: tuple[str, ...] = ()) -> dict:
 
 
 def summary_rows(
-    results: Path, cells: list[tuple[str, str, str]], lod_cells: list[tuple[str, str, str]] | None = None
+    results: Path,
+    cells: list[tuple[str, str, str]],
+    lod_cells: list[tuple[str, str, str]] | None = None,
+    mesh_dirs: dict[str, dict[str, str]] | None = None,
 ) -> list[dict]:
+    """One row per cell. ``mesh_dirs``: mesh id -> stage -> folder of the mesh-level work the
+    cell used (the workflow's shared ``results/meshes/<mesh>/<key>/<stage>``); a stage not
+    named there is read from ``results/<mesh>/<stage>``."""
     rows = []
     for mesh, prompt, variant in cells:
-        mdir = results / mesh
-        cdir = mdir / prompt / variant
+        mesh_work = (mesh_dirs or {}).get(mesh, {})
+
+        def stage_dir(stage: str, mesh: str = mesh, mesh_work: dict = mesh_work) -> Path:
+            return Path(mesh_work[stage]) if stage in mesh_work else results / mesh / stage
+
+        cdir = results / mesh / prompt / variant
         opt = _need(cdir / "optimize" / "meta.json")
         # levels of detail: only where the run makes them (a folder left from a run with them on is not read)
         with_lod = lod_cells is None or (mesh, prompt, variant) in set(lod_cells)
         origin = check_origins(cdir, () if with_lod else ("lod",))
         bake = _read(cdir / "bake" / "meta.json") or {}
         export = _read(cdir / "export" / "meta.json") or {}
-        norm = _need(mdir / "normalize" / "meta.json")
-        dec = _read(mdir / "decimate" / "meta.json")
+        norm = _need(stage_dir("normalize") / "meta.json")
+        dec = _read(stage_dir("decimate") / "meta.json") if not mesh_work or "decimate" in mesh_work else None
         row = {
             "mesh": mesh,
             "prompt": prompt,
@@ -156,7 +166,7 @@ def summary_rows(
             }
         )
         for stage in MESH_STAGES:
-            meta = _read(mdir / stage / "meta.json")
+            meta = _read(stage_dir(stage) / "meta.json")
             row[f"seconds_{stage}"] = meta["timings_s"]["total"] if meta else None
         for stage, folder in zip(CELL_STAGES, ("optimize", "bake", "export", "relight", "metrics"), strict=True):
             meta = _read(cdir / folder / "meta.json")

@@ -166,7 +166,8 @@ def test_workflow_end_to_end_on_cuda(tmp_path, configfile):
         tmp_path, "--cores", "4", "--configfile", str(REPO / configfile), "--config", "device=cuda", timeout=3000
     )
     assert proc.returncode == 0, proc.stderr[-4000:]
-    metas = list((tmp_path / "results").glob("*/*/*/optimize/meta.json"))
+    # results/<experiment>/<mesh>/<prompt>/<variant>/optimize
+    metas = list((tmp_path / "results").glob("*/*/*/*/optimize/meta.json"))
     assert metas
     for m in metas:
         assert json.loads(m.read_text())["device"].startswith("cuda"), m

@@ -15,6 +15,7 @@ import yaml
 from conftest import REPO
 
 from stages.config.code import code_digest, module_closure
+from stages.config.workflow import WorkflowConfig
 
 
 def copy_repo(dst: Path) -> Path:
@@ -77,7 +78,8 @@ def test_snakemake_reruns_exactly_the_jobs_whose_code_changed(tmp_path):
     the normalize job does not)."""
     root = copy_repo(tmp_path)
     (root / "cfg.yaml").write_text(yaml.safe_dump(TINY))
-    target = "results/vase/raycache/meta.json"
+    key = WorkflowConfig(TINY).mesh_work_keys("vase")["raycache"]
+    target = f"results/meshes/vase/{key}/raycache/meta.json"
     first = snakemake(root, target)
     assert first.returncode == 0, first.stderr
     module = root / "stages" / "geometry" / "raycache.py"

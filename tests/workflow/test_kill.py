@@ -17,8 +17,9 @@ import torch
 import yaml
 from conftest import REPO, run_snakemake, snakemake_command, snakemake_env
 
-CELL = Path("results/vase/wood/base")
+CELL = Path("results/kill/vase/wood/base")
 CONFIG = {
+    "experiment": "kill",
     "meshes": {"vase": {"builtin": "vase"}},
     "prompts": {"wood": "a {object} made of wood"},
     "raycache": {

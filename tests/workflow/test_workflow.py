@@ -8,7 +8,7 @@ import re
 import numpy as np
 import pytest
 import yaml
-from conftest import REPO, run_snakemake
+from conftest import REPO, mesh_work_dir, run_snakemake
 
 from stages.config.workflow import load_config_file
 from stages.geometry.raycache import RayCache
@@ -109,7 +109,7 @@ def test_face_budget_mode_reads_the_mesh_cache_settings(tmp_path):
     assert '"views"' not in decimations[True]  # only what the budget reads: other cache edits do not rerun it
     assert "--raycache-settings" not in decimations[False]
     traced = [body for rule, body in jobs if rule == "raycache" and "vase/" in body]
-    assert len(traced) == 1 and "vase/decimate/mesh.ply" in traced[0]
+    assert len(traced) == 1 and re.search(r"meshes/vase/[0-9a-f]{12}/decimate/mesh.ply", traced[0])
 
 
 def test_invalid_config_fails_at_dag_build(tmp_path):
@@ -181,27 +181,32 @@ def check_test_only_marks(res) -> None:
 def test_smoke_run(tmp_path):
     proc = run_snakemake(tmp_path, "--cores", "2", "--configfile", str(SMOKE), timeout=1500)
     assert proc.returncode == 0, proc.stderr[-3000:]
-    res = tmp_path / "results"
+    # the experiment's cells and report in results/smoke (the config's `experiment`), mesh-level
+    # work in results/meshes/<mesh>/<key>/<stage>
+    res = tmp_path / "results" / "smoke"
     for mesh in ("vase", "candle", "knot"):
-        meta = json.loads((res / mesh / "raycache" / "meta.json").read_text())
+        raycache = mesh_work_dir(tmp_path, mesh, "raycache")
+        meta = json.loads((raycache / "meta.json").read_text())
         assert meta["stats"]["train"]["views"] == 4 and meta["stats"]["eval"]["views"] == 8
         assert meta["stats"]["train"]["width"] == 48
-        cache = RayCache(res / mesh / "raycache" / "train.npz")
+        cache = RayCache(raycache / "train.npz")
         assert len(cache) == 4 and cache.arrays["offsets"][-1] > 0
         assert np.abs(np.linalg.norm(cache.view(0).point, axis=1)).max() <= 1.0 + 1e-3
         for stage in ("normalize", "raycache"):
-            log = (res / mesh / "logs" / f"{stage}.log").read_text()
-            assert " INFO " in log
-            assert (res / mesh / "benchmarks" / f"{stage}.tsv").is_file()
-        tf = json.loads((res / mesh / "normalize" / "transform.json").read_text())
+            work = mesh_work_dir(tmp_path, mesh, stage).parent
+            assert " INFO " in (work / "logs" / f"{stage}.log").read_text()
+            assert (work / "benchmarks" / f"{stage}.tsv").is_file()
+        tf = json.loads((mesh_work_dir(tmp_path, mesh, "normalize") / "transform.json").read_text())
         assert len(tf["inverse_matrix"]) == 4
     # the knot is decimated and traced at the decimated level; the vase is not decimated
-    dec = json.loads((res / "knot" / "decimate" / "meta.json").read_text())
+    decimate = mesh_work_dir(tmp_path, "knot", "decimate")
+    dec = json.loads((decimate / "meta.json").read_text())
     assert abs(dec["stats"]["faces_after"] - 3000) <= 30
-    traced = json.loads((res / "knot" / "raycache" / "meta.json").read_text())
-    assert traced["inputs"]["mesh"]["path"].endswith("knot/decimate/mesh.ply")
-    assert len(RayCache(res / "knot" / "raycache" / "train.npz").arrays["faces"]) == dec["stats"]["faces_after"]
-    assert not (res / "vase" / "decimate").exists()
+    knot_cache = mesh_work_dir(tmp_path, "knot", "raycache")
+    traced = json.loads((knot_cache / "meta.json").read_text())
+    assert traced["inputs"]["mesh"]["path"].endswith(str(decimate.relative_to(tmp_path) / "mesh.ply"))
+    assert len(RayCache(knot_cache / "train.npz").arrays["faces"]) == dec["stats"]["faces_after"]
+    assert not list((tmp_path / "results" / "meshes" / "vase").glob("*/decimate"))
     # every grid cell optimised, with outputs marked as made by the test-only CLIP
     for mesh in ("vase", "candle", "knot"):
         for prompt in ("wood", "gold", "ice"):
@@ -250,7 +255,7 @@ def test_smoke_run(tmp_path):
     assert index.loc[index["prompt"] == "wood", "lod_levels"].str.startswith("lod0:").all()
     assert index.loc[index["prompt"] != "wood", "lod_levels"].isna().all()
     # nothing half-written anywhere
-    assert not list(res.rglob(".*.tmp-*")) and not list(res.rglob(".staging-*"))
+    assert not list(res.parent.rglob(".*.tmp-*")) and not list(res.parent.rglob(".staging-*"))
     # a second run has nothing to do
     again = run_snakemake(tmp_path, "--cores", "2", "--configfile", str(SMOKE))
     assert again.returncode == 0 and "Nothing to be done" in again.stdout + again.stderr
@@ -269,8 +274,8 @@ def test_keep_going_finishes_other_meshes(tmp_path):
     assert proc.returncode != 0
     assert "not found" in proc.stdout + proc.stderr  # the DAG-time warning
     res = tmp_path / "results"
-    assert (res / "vase" / "raycache" / "meta.json").is_file()
-    assert (res / "vase" / "wood" / "full" / "export" / "meta.json").is_file()
-    assert not (res / "broken" / "normalize" / "mesh.ply").exists()
-    log = (res / "broken" / "logs" / "normalize.log").read_text()
+    assert (mesh_work_dir(tmp_path, "vase", "raycache") / "meta.json").is_file()
+    assert (res / cfg["experiment"] / "vase" / "wood" / "full" / "export" / "meta.json").is_file()
+    assert not (mesh_work_dir(tmp_path, "broken", "normalize") / "mesh.ply").exists()
+    log = (mesh_work_dir(tmp_path, "broken", "normalize").parent / "logs" / "normalize.log").read_text()
     assert "missing.obj: file not found" in log

@@ -2,7 +2,7 @@ rule bake:
     input:
         mesh=traced_mesh,
         field=f"{CELL}/optimize/field.pt",
-        eval=f"{RESULTS}/{{mesh}}/raycache/eval.npz",
+        eval=mesh_work_input("raycache", "eval.npz"),
     output:
         **bake_outputs(),
     log:

@@ -6,8 +6,8 @@ from pathlib import Path
 
 from stages.config.code import code_digest
 from stages.config.layout import OPTIMIZE_FILES, TEXTURES
-from stages.config.sections import FACE_BUDGET_FIELDS, MATERIALS
-from stages.config.workflow import WorkflowConfig
+from stages.config.sections import MATERIALS
+from stages.config.workflow import MESH_WORK, WorkflowConfig, experiment_name
 from stages.core.errors import ConfigError
 
 DEFAULT_CONFIGFILE = "config/config.yaml"
@@ -19,13 +19,20 @@ if not workflow.overwrite_configfiles:
     configfile: DEFAULT_CONFIGFILE
 
 
-_source = ", ".join(map(str, workflow.overwrite_configfiles)) or DEFAULT_CONFIGFILE
+_configfiles = list(map(str, workflow.overwrite_configfiles)) or [DEFAULT_CONFIGFILE]
+_source = ", ".join(_configfiles)
 try:
     CFG = WorkflowConfig(config, _source)
+    EXPERIMENT = experiment_name(config, _configfiles)
 except ConfigError as exc:
     raise WorkflowError(f"invalid configuration: {exc}") from None
 
-RESULTS = "results"
+# The experiment's cells and report live in results/<experiment>/; mesh-level work (normalize,
+# decimate, raycache, target) in results/meshes/<mesh>/<key>/<stage>/, keyed by a digest of
+# the settings that shape it (CFG.mesh_work_keys), so experiments share it when they agree.
+RESULTS = f"results/{EXPERIMENT}"
+MESHES = f"results/{MESH_WORK}"
+MESH_WORK_DIR = f"{MESHES}/{{mesh}}/{{key}}"
 # where the torch stages run, and the gpu resource each of their jobs asks for (1 on a GPU):
 # profiles/default allows one such job at a time unless --resources gpu=N says otherwise
 DEVICE = CFG.device
@@ -36,6 +43,7 @@ ID_REGEX = "[A-Za-z0-9][A-Za-z0-9_.-]*"
 
 
 wildcard_constraints:
+    key="[0-9a-f]{12}",
     material="|".join(MATERIALS),
     mesh=ID_REGEX,
     prompt=ID_REGEX,
@@ -50,8 +58,35 @@ for _mesh in CFG.grid_meshes:
         )
 
 
-def mesh_dir(mesh):
-    return f"{RESULTS}/{mesh}"
+def mesh_work(mesh, stage):
+    """The folder of the mesh's ``stage`` output (normalize, decimate, raycache, target) under
+    this experiment's settings: results/meshes/<mesh>/<key>/<stage>."""
+    return f"{MESHES}/{mesh}/{CFG.mesh_work_keys(mesh)[stage]}/{stage}"
+
+
+def mesh_work_input(stage, name):
+    """Input function: the file ``name`` of the job's mesh's ``stage`` output."""
+
+    def path(wildcards):
+        return f"{mesh_work(wildcards.mesh, stage)}/{name}"
+
+    path.__name__ = f"{stage}_{name.replace('.', '_')}"
+    return path
+
+
+def check_key(stage, wildcards):
+    """A mesh-level job is built only under its own settings' key: a path asked for with another
+    key (an old folder, a hand-typed target) is an error, not a job run under the wrong settings.
+    """
+    if "key" not in wildcards.keys():
+        return  # a per-cell job reading a mesh stage's settings (lod: decimate)
+    want = CFG.mesh_work_keys(wildcards.mesh)[stage]
+    if wildcards.key != want:
+        raise WorkflowError(
+            f"{MESHES}/{wildcards.mesh}/{wildcards.key}/{stage} was keyed by other {stage} settings than "
+            f"experiment {EXPERIMENT!r} has for mesh {wildcards.mesh!r} (its key: {want}); "
+            "ask for the experiment's own targets instead"
+        )
 
 
 def mesh_input(wildcards):
@@ -69,6 +104,7 @@ def stage_settings_json(stage):
     """Params function: the resolved settings of ``stage`` for the job's mesh, as JSON."""
 
     def settings(wildcards):
+        check_key(stage, wildcards)
         return json.dumps(
             CFG.stage_settings(wildcards.mesh, stage).to_dict(), sort_keys=True
         )
@@ -81,17 +117,16 @@ def budget_raycache_json(wildcards):
     """Params function of decimate: with ``decimate.mode: budget``, the mesh's ray-cache settings
     that set the face budget (FACE_BUDGET_FIELDS) as a quoted option; else nothing, so that
     other ray-cache edits do not rerun a decimation that does not read them."""
-    if CFG.stage_settings(wildcards.mesh, "decimate").mode != "budget":
+    fields = CFG.face_budget_fields(wildcards.mesh)
+    if not fields:
         return ""
-    cache = CFG.stage_settings(wildcards.mesh, "raycache").to_dict()
-    fields = {k: cache[k] for k in FACE_BUDGET_FIELDS}
     return f"--raycache-settings {shlex.quote(json.dumps(fields, sort_keys=True))}"
 
 
 def traced_mesh(wildcards):
     """Input of raycache: the decimated mesh where decimation is enabled, else the normalised one."""
     stage = "decimate" if CFG.decimated(wildcards.mesh) else "normalize"
-    return f"{mesh_dir(wildcards.mesh)}/{stage}/mesh.ply"
+    return f"{mesh_work(wildcards.mesh, stage)}/mesh.ply"
 
 
 CELL = f"{RESULTS}/{{mesh}}/{{prompt}}/{{variant}}"
@@ -132,7 +167,9 @@ def cell_targets(name):
         material = CFG.target_material(wildcards.prompt, wildcards.variant)
         if material is None:
             return {}
-        return {"targets": f"{RESULTS}/{wildcards.mesh}/target/{material}/{name}.npz"}
+        return {
+            "targets": f"{mesh_work(wildcards.mesh, 'target')}/{material}/{name}.npz"
+        }
 
     targets.__name__ = f"{name}_targets"
     return targets
@@ -184,7 +221,7 @@ def export_inputs(wildcards):
     cell = f"{RESULTS}/{wildcards.mesh}/{wildcards.prompt}/{wildcards.variant}"
     return {
         "mesh": traced_mesh(wildcards),
-        "transform": f"{mesh_dir(wildcards.mesh)}/normalize/transform.json",
+        "transform": f"{mesh_work(wildcards.mesh, 'normalize')}/transform.json",
         "preview": f"{cell}/bake/preview.png",
         "bake_meta": f"{cell}/bake/meta.json",
     }
@@ -214,7 +251,7 @@ def relight_inputs(wildcards):
     cell = f"{RESULTS}/{wildcards.mesh}/{wildcards.prompt}/{wildcards.variant}"
     inputs = {
         "field": f"{cell}/optimize/field.pt",
-        "eval": f"{mesh_dir(wildcards.mesh)}/raycache/eval.npz",
+        "eval": f"{mesh_work(wildcards.mesh, 'raycache')}/eval.npz",
     }
     env = CFG.cell_stage_settings("relight", wildcards.prompt, wildcards.variant).envmap
     if not env.startswith("builtin:"):
@@ -226,9 +263,9 @@ def roundtrip_inputs(wildcards):
     cell = f"{RESULTS}/{wildcards.mesh}/{wildcards.prompt}/{wildcards.variant}"
     return {
         "mesh": traced_mesh(wildcards),
-        "transform": f"{mesh_dir(wildcards.mesh)}/normalize/transform.json",
+        "transform": f"{mesh_work(wildcards.mesh, 'normalize')}/transform.json",
         "field": f"{cell}/optimize/field.pt",
-        "eval": f"{mesh_dir(wildcards.mesh)}/raycache/eval.npz",
+        "eval": f"{mesh_work(wildcards.mesh, 'raycache')}/eval.npz",
         "atlas": f"{cell}/bake/atlas.npz",
         "export_meta": f"{cell}/export/meta.json",
     }
@@ -248,9 +285,9 @@ def lod_inputs(wildcards):
     cell = f"{RESULTS}/{wildcards.mesh}/{wildcards.prompt}/{wildcards.variant}"
     return {
         "mesh": traced_mesh(wildcards),
-        "transform": f"{mesh_dir(wildcards.mesh)}/normalize/transform.json",
+        "transform": f"{mesh_work(wildcards.mesh, 'normalize')}/transform.json",
         "field": f"{cell}/optimize/field.pt",
-        "eval": f"{mesh_dir(wildcards.mesh)}/raycache/eval.npz",
+        "eval": f"{mesh_work(wildcards.mesh, 'raycache')}/eval.npz",
         "atlas": f"{cell}/bake/atlas.npz",
         "export_meta": f"{cell}/export/meta.json",
     }
@@ -277,6 +314,17 @@ def lod_cells_option():
 
 def decimation_pairs_json(wildcards):
     return json.dumps(CFG.decimation_pairs())
+
+
+def mesh_work_json(wildcards):
+    """Params function of report: mesh id -> stage -> the folder of its mesh-level work."""
+    dirs = {}
+    for mesh in CFG.grid_meshes:
+        stages = ["normalize", "raycache"] + (
+            ["decimate"] if CFG.decimated(mesh) else []
+        )
+        dirs[mesh] = {stage: mesh_work(mesh, stage) for stage in stages}
+    return json.dumps(dirs, sort_keys=True)
 
 
 def candidates_json(wildcards):

@@ -1,13 +1,13 @@
 rule decimate:
     input:
-        mesh=f"{RESULTS}/{{mesh}}/normalize/mesh.ply",
+        mesh=mesh_work_input("normalize", "mesh.ply"),
     output:
-        mesh=f"{RESULTS}/{{mesh}}/decimate/mesh.ply",
-        meta=f"{RESULTS}/{{mesh}}/decimate/meta.json",
+        mesh=f"{MESH_WORK_DIR}/decimate/mesh.ply",
+        meta=f"{MESH_WORK_DIR}/decimate/meta.json",
     log:
-        f"{RESULTS}/{{mesh}}/logs/decimate.log",
+        f"{MESH_WORK_DIR}/logs/decimate.log",
     benchmark:
-        f"{RESULTS}/{{mesh}}/benchmarks/decimate.tsv"
+        f"{MESH_WORK_DIR}/benchmarks/decimate.tsv"
     conda:
         CONDA_ENV
     params:

@@ -2,7 +2,7 @@ rule metrics:
     input:
         unpack(cell_targets("metrics")),
         field=f"{CELL}/optimize/field.pt",
-        cache=f"{RESULTS}/{{mesh}}/raycache/metrics.npz",
+        cache=mesh_work_input("raycache", "metrics.npz"),
     output:
         metrics=f"{CELL}/metrics/metrics.json",
         views=f"{CELL}/metrics/views.png",

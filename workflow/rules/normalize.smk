@@ -2,13 +2,13 @@ rule normalize:
     input:
         mesh=mesh_input,
     output:
-        mesh=f"{RESULTS}/{{mesh}}/normalize/mesh.ply",
-        transform=f"{RESULTS}/{{mesh}}/normalize/transform.json",
-        meta=f"{RESULTS}/{{mesh}}/normalize/meta.json",
+        mesh=f"{MESH_WORK_DIR}/normalize/mesh.ply",
+        transform=f"{MESH_WORK_DIR}/normalize/transform.json",
+        meta=f"{MESH_WORK_DIR}/normalize/meta.json",
     log:
-        f"{RESULTS}/{{mesh}}/logs/normalize.log",
+        f"{MESH_WORK_DIR}/logs/normalize.log",
     benchmark:
-        f"{RESULTS}/{{mesh}}/benchmarks/normalize.tsv"
+        f"{MESH_WORK_DIR}/benchmarks/normalize.tsv"
     conda:
         CONDA_ENV
     params:

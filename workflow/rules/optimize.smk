@@ -1,8 +1,8 @@
 rule optimize:
     input:
         unpack(cell_targets("train")),
-        train=f"{RESULTS}/{{mesh}}/raycache/train.npz",
-        eval=f"{RESULTS}/{{mesh}}/raycache/eval.npz",
+        train=mesh_work_input("raycache", "train.npz"),
+        eval=mesh_work_input("raycache", "eval.npz"),
     output:
         **optimize_outputs(),
     log:

@@ -2,14 +2,14 @@ rule raycache:
     input:
         mesh=traced_mesh,
     output:
-        train=f"{RESULTS}/{{mesh}}/raycache/train.npz",
-        eval=f"{RESULTS}/{{mesh}}/raycache/eval.npz",
-        metrics=f"{RESULTS}/{{mesh}}/raycache/metrics.npz",
-        meta=f"{RESULTS}/{{mesh}}/raycache/meta.json",
+        train=f"{MESH_WORK_DIR}/raycache/train.npz",
+        eval=f"{MESH_WORK_DIR}/raycache/eval.npz",
+        metrics=f"{MESH_WORK_DIR}/raycache/metrics.npz",
+        meta=f"{MESH_WORK_DIR}/raycache/meta.json",
     log:
-        f"{RESULTS}/{{mesh}}/logs/raycache.log",
+        f"{MESH_WORK_DIR}/logs/raycache.log",
     benchmark:
-        f"{RESULTS}/{{mesh}}/benchmarks/raycache.tsv"
+        f"{MESH_WORK_DIR}/benchmarks/raycache.tsv"
     conda:
         CONDA_ENV
     params:

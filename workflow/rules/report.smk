@@ -48,10 +48,12 @@ rule report:
         results=results_root,
         out_dir=output_folder,
         decimated=decimation_pairs_json,
+        mesh_dirs=mesh_work_json,
         lod_cells=lod_cells_option(),
     shell:
         "python -m stages.report --results {params.results:q} --out-dir {params.out_dir:q} "
-        "--cells {params.cells} --decimated {params.decimated:q} {params.lod_cells} 2> {log:q}"
+        "--cells {params.cells} --decimated {params.decimated:q} --mesh-dirs {params.mesh_dirs:q} "
+        "{params.lod_cells} 2> {log:q}"
 
 
 rule pack:

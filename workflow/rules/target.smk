@@ -1,24 +1,24 @@
 rule target:
     input:
-        mesh=f"{RESULTS}/{{mesh}}/normalize/mesh.ply",
-        train=f"{RESULTS}/{{mesh}}/raycache/train.npz",
-        metrics=f"{RESULTS}/{{mesh}}/raycache/metrics.npz",
+        mesh=mesh_work_input("normalize", "mesh.ply"),
+        train=mesh_work_input("raycache", "train.npz"),
+        metrics=mesh_work_input("raycache", "metrics.npz"),
     output:
-        train=f"{RESULTS}/{{mesh}}/target/{{material}}/train.npz",
-        metrics=f"{RESULTS}/{{mesh}}/target/{{material}}/metrics.npz",
-        targets=f"{RESULTS}/{{mesh}}/target/{{material}}/targets.png",
-        material=f"{RESULTS}/{{mesh}}/target/{{material}}/material.png",
-        meta=f"{RESULTS}/{{mesh}}/target/{{material}}/meta.json",
+        train=f"{MESH_WORK_DIR}/target/{{material}}/train.npz",
+        metrics=f"{MESH_WORK_DIR}/target/{{material}}/metrics.npz",
+        targets=f"{MESH_WORK_DIR}/target/{{material}}/targets.png",
+        material=f"{MESH_WORK_DIR}/target/{{material}}/material.png",
+        meta=f"{MESH_WORK_DIR}/target/{{material}}/meta.json",
     log:
-        f"{RESULTS}/{{mesh}}/logs/target-{{material}}.log",
+        f"{MESH_WORK_DIR}/logs/target-{{material}}.log",
     benchmark:
-        f"{RESULTS}/{{mesh}}/benchmarks/target-{{material}}.tsv"
+        f"{MESH_WORK_DIR}/benchmarks/target-{{material}}.tsv"
     conda:
         CONDA_ENV
     threads: 2
     params:
         code=code_digest("stages.target"),
-        out_dir=lambda wildcards: f"{RESULTS}/{wildcards.mesh}/target/{wildcards.material}",
+        out_dir=lambda wildcards: f"{MESHES}/{wildcards.mesh}/{wildcards.key}/target/{wildcards.material}",
         settings=stage_settings_json("target"),
     shell:
         "python -m stages.target --mesh {input.mesh:q} --train {input.train:q} --metrics {input.metrics:q} "

@@ -1,0 +1,193 @@
+#!/usr/bin/env bash
+# A single-node Slurm cluster on this machine, from Debian's packages, for trying and testing the
+# Slurm profile (profiles/slurm) without a real cluster. Run as root:
+#
+#   bash scripts/slurm-cluster.sh start     # install what is missing, start munge, MariaDB, slurmdbd,
+#                                           # slurmctld and slurmd; prints how long it took
+#   bash scripts/slurm-cluster.sh status    # sinfo and the accounting's cluster list
+#   bash scripts/slurm-cluster.sh stop      # stop every daemon it started (state is kept)
+#   bash scripts/slurm-cluster.sh purge     # stop, then delete its state, logs and configuration
+#
+# Accounting is real (slurmdbd on a local MariaDB), because the Snakemake Slurm executor asks `sacct`
+# for job states; job ids and states can then be checked with `sacct`. The node offers this
+# machine's CPUs and 90% of its memory in one partition, `main`, and no GPUs.
+#
+# It writes /etc/slurm/slurm.conf and /etc/slurm/slurmdbd.conf only when they are absent or were
+# written by this script (a marker line), so it never touches a real cluster's configuration.
+# Environment: TANGO_SLURM_STATE (default /var/lib/tango-slurm): databases, spool, logs, pid files;
+# TANGO_SLURM_INSTALL=0 to fail instead of installing missing packages with apt-get.
+set -euo pipefail
+
+state=${TANGO_SLURM_STATE:-/var/lib/tango-slurm}
+conf_dir=/etc/slurm
+marker="# written by tango-stylize scripts/slurm-cluster.sh"
+cluster=tango
+packages=(slurm-wlm slurmdbd munge mariadb-server)
+
+die() {
+    echo "slurm-cluster: $*" >&2
+    exit 1
+}
+
+need_root() {
+    [ "$(id -u)" = 0 ] || die "must run as root (it starts system daemons and writes /etc/slurm)"
+}
+
+install_missing() {
+    local missing=()
+    command -v slurmctld >/dev/null || missing+=(slurm-wlm)
+    command -v slurmdbd >/dev/null || missing+=(slurmdbd)
+    command -v munged >/dev/null || missing+=(munge)
+    command -v mariadbd >/dev/null || [ -x /usr/sbin/mariadbd ] || missing+=(mariadb-server)
+    [ ${#missing[@]} -eq 0 ] && return
+    [ "${TANGO_SLURM_INSTALL:-1}" = 1 ] || die "missing packages: ${missing[*]} (apt-get install ${packages[*]})"
+    echo "slurm-cluster: installing ${missing[*]}"
+    # the packages' own service start-up is not wanted (no init system here): policy-rc.d says no
+    printf '#!/bin/sh\nexit 101\n' > /usr/sbin/policy-rc.d && chmod +x /usr/sbin/policy-rc.d
+    apt-get update -qq
+    DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null
+    rm -f /usr/sbin/policy-rc.d
+}
+
+ours_or_absent() {
+    [ ! -e "$1" ] || grep -qF "$marker" "$1" || die "$1 exists and was not written by this script: is this machine part of a real cluster? (stop here)"
+}
+
+write_configs() {
+    ours_or_absent "$conf_dir/slurm.conf"
+    ours_or_absent "$conf_dir/slurmdbd.conf"
+    mkdir -p "$conf_dir" "$state"/{spool/ctld,spool/d,log,run,mysql}
+    local host cpus mem
+    host=$(hostname -s)
+    cpus=$(nproc)
+    mem=$(awk '/MemTotal/ {printf "%d", $2 / 1024 * 0.9}' /proc/meminfo)
+    cat > "$conf_dir/slurm.conf" <<EOF
+$marker
+ClusterName=$cluster
+SlurmctldHost=$host
+SlurmUser=root
+SlurmdUser=root
+AuthType=auth/munge
+StateSaveLocation=$state/spool/ctld
+SlurmdSpoolDir=$state/spool/d
+SlurmctldPidFile=$state/run/slurmctld.pid
+SlurmdPidFile=$state/run/slurmd.pid
+SlurmctldLogFile=$state/log/slurmctld.log
+SlurmdLogFile=$state/log/slurmd.log
+ProctrackType=proctrack/linuxproc
+TaskPlugin=task/none
+SelectType=select/cons_tres
+SelectTypeParameters=CR_Core_Memory
+SchedulerType=sched/backfill
+AccountingStorageType=accounting_storage/slurmdbd
+AccountingStorageHost=localhost
+JobAcctGatherType=jobacct_gather/linux
+JobAcctGatherFrequency=10
+JobCompType=jobcomp/filetxt
+JobCompLoc=$state/log/jobcomp.log
+# finished jobs stay visible to squeue for 10 minutes; sacct keeps them for good
+MinJobAge=600
+# a job past its time limit is signalled at once and killed 5 s later (the defaults wait longer)
+OverTimeLimit=0
+KillWait=5
+ReturnToService=2
+NodeName=$host CPUs=$cpus RealMemory=$mem State=UNKNOWN
+PartitionName=main Nodes=$host Default=YES MaxTime=INFINITE State=UP
+EOF
+    cat > "$conf_dir/slurmdbd.conf" <<EOF
+$marker
+AuthType=auth/munge
+DbdHost=localhost
+SlurmUser=root
+PidFile=$state/run/slurmdbd.pid
+LogFile=$state/log/slurmdbd.log
+StorageType=accounting_storage/mysql
+StorageHost=localhost
+StoragePort=3306
+StorageUser=root
+StorageLoc=slurm_acct_db
+EOF
+    chmod 600 "$conf_dir/slurmdbd.conf"
+}
+
+wait_for() { # seconds, description, command...
+    local n=$(($1 * 10)) what=$2
+    shift 2
+    for _ in $(seq "$n"); do
+        "$@" >/dev/null 2>&1 && return 0
+        sleep 0.1
+    done
+    die "$what did not come up (logs in $state/log)"
+}
+
+start() {
+    need_root
+    local t0=$SECONDS
+    install_missing
+    write_configs
+    # munge: one key for the one node
+    [ -s /etc/munge/munge.key ] || mungekey --create --force >/dev/null 2>&1 || mungekey -c
+    chown munge:munge /etc/munge/munge.key && chmod 400 /etc/munge/munge.key
+    mkdir -p /run/munge && chown munge:munge /run/munge
+    pgrep -x munged >/dev/null || runuser -u munge -- /usr/sbin/munged
+    wait_for 10 munged munge -n
+    # MariaDB with its data under the state folder; root connects over the local socket
+    if [ ! -d "$state/mysql/mysql" ]; then
+        mariadb-install-db --user=mysql --datadir="$state/mysql" --auth-root-authentication-method=socket >/dev/null
+    fi
+    mkdir -p /run/mysqld && chown mysql:mysql /run/mysqld
+    if ! mariadb-admin ping >/dev/null 2>&1; then
+        /usr/sbin/mariadbd --user=mysql --datadir="$state/mysql" --socket=/run/mysqld/mysqld.sock \
+            --pid-file=/run/mysqld/mariadb.pid --port=3306 --bind-address=127.0.0.1 \
+            --innodb-buffer-pool-size=64M --log-error="$state/mysql/mariadb.log" >/dev/null 2>&1 &
+    fi
+    wait_for 30 MariaDB mariadb-admin ping
+    pgrep -x slurmdbd >/dev/null || /usr/sbin/slurmdbd
+    wait_for 30 slurmdbd sacctmgr -n show cluster
+    # the cluster and an account for root, so that jobs are accounted and `sacct` finds them
+    sacctmgr -i -Q add cluster "$cluster" >/dev/null 2>&1 || true
+    sacctmgr -i -Q add account tango Cluster="$cluster" Description=tango Organization=tango >/dev/null 2>&1 || true
+    sacctmgr -i -Q add user root Account=tango Cluster="$cluster" >/dev/null 2>&1 || true
+    pgrep -x slurmctld >/dev/null || /usr/sbin/slurmctld
+    wait_for 30 slurmctld scontrol ping
+    pgrep -x slurmd >/dev/null || /usr/sbin/slurmd
+    wait_for 30 "the node" sh -c "sinfo -h -o %t | grep -Eq '^(idle|mix|alloc)'"
+    echo "slurm-cluster: up in $((SECONDS - t0)) s: $(sinfo -h -o '%P %D nodes %c CPUs %m MB %t')"
+}
+
+stop_one() { # name, pid file
+    local pid
+    pid=$(cat "$2" 2>/dev/null || pgrep -x "$1" || true)
+    [ -n "$pid" ] || return 0
+    kill $pid 2>/dev/null || true
+    for _ in $(seq 100); do kill -0 $pid 2>/dev/null || return 0; sleep 0.1; done
+    kill -9 $pid 2>/dev/null || true
+}
+
+stop() {
+    need_root
+    stop_one slurmd "$state/run/slurmd.pid"
+    stop_one slurmctld "$state/run/slurmctld.pid"
+    stop_one slurmdbd "$state/run/slurmdbd.pid"
+    stop_one mariadbd /run/mysqld/mariadb.pid
+    stop_one munged /run/munge/munged.pid
+    echo "slurm-cluster: stopped"
+}
+
+case "${1:-}" in
+    start) start ;;
+    stop) stop ;;
+    status)
+        sinfo
+        sacctmgr -n show cluster format=cluster,controlhost
+        ;;
+    purge)
+        stop
+        for f in "$conf_dir/slurm.conf" "$conf_dir/slurmdbd.conf"; do
+            [ -e "$f" ] && grep -qF "$marker" "$f" && rm -f "$f"
+        done
+        rm -rf "$state"
+        echo "slurm-cluster: state removed"
+        ;;
+    *) die "usage: $0 start|status|stop|purge" ;;
+esac
