@@ -176,7 +176,7 @@ def test_job_killed_at_its_time_limit_resumes_from_its_checkpoint(cluster, tmp_p
     checkpoints; the rerun, with time enough, resumes from the last one and finishes."""
     cfg = json.loads(json.dumps(GRID))
     cfg["variants"] = {"full": {}}
-    cfg["optimize"].update(iterations=4000, milestones=[3000], checkpoint_every=20)
+    cfg["optimize"].update(iterations=6000, milestones=[5000], checkpoint_every=20)
     config = tmp_path / "long.yaml"
     config.write_text(yaml.safe_dump(cfg))
     cell = tmp_path / "results" / "grid" / "vase" / "wood" / "full" / "optimize"
@@ -188,7 +188,7 @@ def test_job_killed_at_its_time_limit_resumes_from_its_checkpoint(cluster, tmp_p
     assert sorted(states.values()) == ["COMPLETED", "COMPLETED", "TIMEOUT"], states
     assert (cell / "checkpoint.pt").is_file() and not (cell / "meta.json").exists()
     saved = torch.load(cell / "checkpoint.pt", weights_only=False)["iteration"]
-    assert 20 <= saved < 4000
+    assert 20 <= saved < 6000
     again = slurm_run(tmp_path, config, target, "--set-resources", "optimize:runtime=30", timeout=1800)
     assert again.returncode == 0, (again.stdout + again.stderr)[-3000:]
     assert sacct_states(slurm_job_ids(again)) and set(sacct_states(slurm_job_ids(again)).values()) == {"COMPLETED"}
