@@ -184,6 +184,11 @@ def test_smoke_run(tmp_path):
     # the experiment's cells and report in results/smoke (the config's `experiment`), mesh-level
     # work in results/meshes/<mesh>/<key>/<stage>
     res = tmp_path / "results" / "smoke"
+    # progress: each optimisation's short line reaches Snakemake's terminal; the logs have theirs
+    for cell in ("vase/wood/full", "knot/ice/second"):
+        assert f"[optimize {cell}] 3/3 it, " in proc.stdout, proc.stdout[-2000:]
+    assert "optimize vase/wood/full: 3/3 it (100%)" in (res / "vase/wood/full/logs/optimize.log").read_text()
+    assert "bake vase/wood/full: unwrapping and baking" in (res / "vase/wood/full/logs/bake.log").read_text()
     for mesh in ("vase", "candle", "knot"):
         raycache = mesh_work_dir(tmp_path, mesh, "raycache")
         meta = json.loads((raycache / "meta.json").read_text())
