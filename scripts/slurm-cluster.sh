@@ -5,7 +5,7 @@
 #   bash scripts/slurm-cluster.sh start     # install what is missing, start munge, MariaDB, slurmdbd,
 #                                           # slurmctld and slurmd; prints how long it took
 #   bash scripts/slurm-cluster.sh status    # sinfo and the accounting's cluster list
-#   bash scripts/slurm-cluster.sh stop      # stop every daemon it started (state is kept)
+#   bash scripts/slurm-cluster.sh stop      # stop the daemons it started (state is kept)
 #   bash scripts/slurm-cluster.sh purge     # stop, then delete its state, logs and configuration
 #
 # Accounting is real (slurmdbd on a local MariaDB), because the Snakemake Slurm executor asks `sacct`
@@ -17,6 +17,8 @@
 # Environment: TANGO_SLURM_STATE (default /var/lib/tango-slurm): databases, spool, logs, pid files;
 # TANGO_SLURM_INSTALL=0 to fail instead of installing missing packages with apt-get.
 set -euo pipefail
+# the daemons and admin tools live in sbin, which a non-login root shell may not have on PATH
+export PATH="/usr/sbin:/sbin:$PATH"
 
 state=${TANGO_SLURM_STATE:-/var/lib/tango-slurm}
 conf_dir=/etc/slurm
@@ -42,11 +44,20 @@ install_missing() {
     [ ${#missing[@]} -eq 0 ] && return
     [ "${TANGO_SLURM_INSTALL:-1}" = 1 ] || die "missing packages: ${missing[*]} (apt-get install ${packages[*]})"
     echo "slurm-cluster: installing ${missing[*]}"
-    # the packages' own service start-up is not wanted (no init system here): policy-rc.d says no
-    printf '#!/bin/sh\nexit 101\n' > /usr/sbin/policy-rc.d && chmod +x /usr/sbin/policy-rc.d
+    # the packages' own service start-up is not wanted (this script starts what it needs): a
+    # policy-rc.d that says no, put back as it was afterwards, whatever happens
+    local policy=/usr/sbin/policy-rc.d backup=""
+    if [ -e "$policy" ]; then
+        backup=$(mktemp)
+        cp -p "$policy" "$backup"
+    fi
+    # shellcheck disable=SC2064
+    trap "if [ -n '$backup' ]; then mv -f '$backup' '$policy'; else rm -f '$policy'; fi" EXIT
+    printf '#!/bin/sh\nexit 101\n' > "$policy" && chmod +x "$policy"
     apt-get update -qq
     DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null
-    rm -f /usr/sbin/policy-rc.d
+    if [ -n "$backup" ]; then mv -f "$backup" "$policy"; else rm -f "$policy"; fi
+    trap - EXIT
 }
 
 ours_or_absent() {
@@ -64,7 +75,7 @@ write_configs() {
     cat > "$conf_dir/slurm.conf" <<EOF
 $marker
 ClusterName=$cluster
-SlurmctldHost=$host
+SlurmctldHost=$host(127.0.0.1)
 SlurmUser=root
 SlurmdUser=root
 AuthType=auth/munge
@@ -91,7 +102,7 @@ MinJobAge=600
 OverTimeLimit=0
 KillWait=5
 ReturnToService=2
-NodeName=$host CPUs=$cpus RealMemory=$mem State=UNKNOWN
+NodeName=$host NodeAddr=127.0.0.1 CPUs=$cpus RealMemory=$mem State=UNKNOWN
 PartitionName=main Nodes=$host Default=YES MaxTime=INFINITE State=UP
 EOF
     cat > "$conf_dir/slurmdbd.conf" <<EOF
@@ -120,6 +131,10 @@ wait_for() { # seconds, description, command...
     die "$what did not come up (logs in $state/log)"
 }
 
+launched() { # name, pid file: a daemon this script started (stop stops only these)
+    echo "$1 $2" >> "$state/run/launched"
+}
+
 start() {
     need_root
     local t0=$SECONDS
@@ -129,9 +144,13 @@ start() {
     [ -s /etc/munge/munge.key ] || mungekey --create --force >/dev/null 2>&1 || mungekey -c
     chown munge:munge /etc/munge/munge.key && chmod 400 /etc/munge/munge.key
     mkdir -p /run/munge && chown munge:munge /run/munge
-    pgrep -x munged >/dev/null || runuser -u munge -- /usr/sbin/munged
+    if ! munge -n >/dev/null 2>&1; then
+        runuser -u munge -- /usr/sbin/munged
+        launched munged /run/munge/munged.pid
+    fi
     wait_for 10 munged munge -n
-    # MariaDB with its data under the state folder; root connects over the local socket
+    # MariaDB with its data under the state folder; root connects over the local socket (a
+    # server already answering there is used as it is, and left running by stop)
     if [ ! -d "$state/mysql/mysql" ]; then
         mariadb-install-db --user=mysql --datadir="$state/mysql" --auth-root-authentication-method=socket >/dev/null
     fi
@@ -140,37 +159,50 @@ start() {
         /usr/sbin/mariadbd --user=mysql --datadir="$state/mysql" --socket=/run/mysqld/mysqld.sock \
             --pid-file=/run/mysqld/mariadb.pid --port=3306 --bind-address=127.0.0.1 \
             --innodb-buffer-pool-size=64M --log-error="$state/mysql/mariadb.log" >/dev/null 2>&1 &
+        launched mariadbd /run/mysqld/mariadb.pid
     fi
     wait_for 30 MariaDB mariadb-admin ping
-    pgrep -x slurmdbd >/dev/null || /usr/sbin/slurmdbd
+    if ! pgrep -x slurmdbd >/dev/null; then
+        /usr/sbin/slurmdbd
+        launched slurmdbd "$state/run/slurmdbd.pid"
+    fi
     wait_for 30 slurmdbd sacctmgr -n show cluster
     # the cluster and an account for root, so that jobs are accounted and `sacct` finds them
     sacctmgr -i -Q add cluster "$cluster" >/dev/null 2>&1 || true
     sacctmgr -i -Q add account tango Cluster="$cluster" Description=tango Organization=tango >/dev/null 2>&1 || true
     sacctmgr -i -Q add user root Account=tango Cluster="$cluster" >/dev/null 2>&1 || true
-    pgrep -x slurmctld >/dev/null || /usr/sbin/slurmctld
+    if ! pgrep -x slurmctld >/dev/null; then
+        /usr/sbin/slurmctld
+        launched slurmctld "$state/run/slurmctld.pid"
+    fi
     wait_for 30 slurmctld scontrol ping
-    pgrep -x slurmd >/dev/null || /usr/sbin/slurmd
+    if ! pgrep -x slurmd >/dev/null; then
+        /usr/sbin/slurmd
+        launched slurmd "$state/run/slurmd.pid"
+    fi
     wait_for 30 "the node" sh -c "sinfo -h -o %t | grep -Eq '^(idle|mix|alloc)'"
     echo "slurm-cluster: up in $((SECONDS - t0)) s: $(sinfo -h -o '%P %D nodes %c CPUs %m MB %t')"
 }
 
-stop_one() { # name, pid file
+stop_one() { # name, pid file: only a live process of that name
     local pid
-    pid=$(cat "$2" 2>/dev/null || pgrep -x "$1" || true)
-    [ -n "$pid" ] || return 0
-    kill $pid 2>/dev/null || true
-    for _ in $(seq 100); do kill -0 $pid 2>/dev/null || return 0; sleep 0.1; done
-    kill -9 $pid 2>/dev/null || true
+    pid=$(cat "$2" 2>/dev/null || true)
+    [ -n "$pid" ] && [ "$(cat "/proc/$pid/comm" 2>/dev/null)" = "$1" ] || return 0
+    kill "$pid" 2>/dev/null || true
+    for _ in $(seq 100); do kill -0 "$pid" 2>/dev/null || return 0; sleep 0.1; done
+    kill -9 "$pid" 2>/dev/null || true
 }
 
 stop() {
     need_root
-    stop_one slurmd "$state/run/slurmd.pid"
-    stop_one slurmctld "$state/run/slurmctld.pid"
-    stop_one slurmdbd "$state/run/slurmdbd.pid"
-    stop_one mariadbd /run/mysqld/mariadb.pid
-    stop_one munged /run/munge/munged.pid
+    local list="$state/run/launched"
+    if [ ! -s "$list" ]; then
+        echo "slurm-cluster: nothing to stop (no daemon started by this script is recorded in $list)"
+        return 0
+    fi
+    # the reverse of the start order: slurmd, slurmctld, slurmdbd, MariaDB, munged
+    tac "$list" | while read -r name pidfile; do stop_one "$name" "$pidfile"; done
+    rm -f "$list"
     echo "slurm-cluster: stopped"
 }
 

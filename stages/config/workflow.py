@@ -389,16 +389,25 @@ def parse_cell(text: str, cfg: WorkflowConfig) -> Cell:
 
 def main(argv: list[str] | None = None) -> int:
     """``python -m stages.config --configfile C --cell mesh/prompt/variant [--stage optimize]``:
-    print how one cell's settings were resolved, key by key, with where each value came from."""
+    print how one cell's settings were resolved, key by key, with where each value came from.
+    ``--mesh-work``: print the folders of the mesh-level work the experiment uses, one per line
+    (``results/meshes/<mesh>/<key>``; the folders of other keys serve other experiments or none)."""
 
     def arguments(parser):
         parser.add_argument("--configfile", type=Path, default=Path("config/config.yaml"))
-        parser.add_argument("--cell", required=True, help="mesh/prompt/variant")
+        parser.add_argument("--cell", help="mesh/prompt/variant")
         parser.add_argument("--stage", default="optimize", choices=("optimize", *CELL_STAGES, *MESH_STAGES))
         parser.add_argument("--json", action="store_true", help="print JSON instead of a table")
+        parser.add_argument("--mesh-work", action="store_true", help="print the experiment's mesh-level work folders")
 
     def body(args):
         cfg = load_config_file(args.configfile)
+        if args.mesh_work:
+            folders = {f"results/{MESH_WORK}/{m}/{key}" for m in cfg.grid_meshes for key in cfg.mesh_work_keys(m).values()}
+            sys.stdout.write("".join(f"{f}\n" for f in sorted(folders)))
+            return
+        if args.cell is None:
+            raise ConfigError("give --cell mesh/prompt/variant (or --mesh-work)")
         rows = cfg.explain(parse_cell(args.cell, cfg), args.stage)
         if args.json:
             sys.stdout.write(json.dumps([{"key": k, "value": v, "source": s} for k, v, s in rows], indent=1) + "\n")

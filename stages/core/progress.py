@@ -43,6 +43,16 @@ def duration(seconds: float) -> str:
     return f"{m}m{s:02d}s" if m else f"{s}s"
 
 
+def say(out: TextIO, text: str) -> None:
+    """One line for the terminal; a closed or broken stream (a terminal gone, a pipe closed)
+    never stops the job."""
+    try:
+        out.write(text + "\n")
+        out.flush()
+    except (OSError, ValueError):
+        pass
+
+
 def job_label(stage: str, out_dir) -> str:
     """``"optimize vase/wood/full"`` for a cell stage writing ``.../<mesh>/<prompt>/<variant>/<stage>``."""
     from pathlib import Path
@@ -113,9 +123,7 @@ class Progress:
         self.lines += 1
         self.last_log = now
         if terminal or (terminal is None and now - self.last_terminal >= self.terminal_every):
-            out = self.terminal or sys.stdout
-            out.write(self.line(short=True) + "\n")
-            out.flush()
+            say(self.terminal or sys.stdout, self.line(short=True))
             self.last_terminal = now
 
     def close(self) -> None:
@@ -141,8 +149,7 @@ def heartbeat(job: str, what: str, every: float | None = None, terminal: TextIO 
             elapsed = duration(time.monotonic() - t0)
             log.info("%s: %s: still running, %s", job, what, elapsed)
             if n % 3 == 0:
-                out.write(f"[{job}] {what}: {elapsed}\n")
-                out.flush()
+                say(out, f"[{job}] {what}: {elapsed}")
 
     thread = threading.Thread(target=beat, name=f"heartbeat-{what}", daemon=True)
     thread.start()

@@ -11,7 +11,7 @@ import pytest
 import yaml
 from conftest import run_snakemake
 
-from stages.config.workflow import WorkflowConfig, experiment_name, settings_digest
+from stages.config.workflow import WorkflowConfig, experiment_name, main, settings_digest
 from stages.core.errors import ConfigError
 
 CACHE = {
@@ -146,3 +146,14 @@ def test_two_experiments_run_one_after_the_other_without_rerunning_each_others_w
     main_dry = run_snakemake(tmp_path, "-n", "--cores", "2", "--configfile", str(tmp_path / "main.yaml"))
     assert not [j for j in planned(main_dry) if j[0] in ("normalize", "decimate", "raycache", "target")]
     assert all(out.startswith("results/main/") for rule, out in planned(main_dry) if rule not in ("all",))
+
+
+def test_mesh_work_lists_the_experiments_folders(tmp_path, capsys):
+    """``python -m stages.config --mesh-work``: the folders to keep when cleaning up."""
+    path = tmp_path / "ablations.yaml"
+    path.write_text(yaml.safe_dump(ablation_config()))
+    assert main(["--configfile", str(path), "--mesh-work"]) == 0
+    listed = capsys.readouterr().out.splitlines()
+    cfg = WorkflowConfig(ablation_config())
+    want = sorted({f"results/meshes/{m}/{k}" for m in ("vase", "candle") for k in cfg.mesh_work_keys(m).values()})
+    assert listed == want and len(want) == 6

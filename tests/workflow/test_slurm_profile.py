@@ -30,7 +30,11 @@ def job_resources(stdout: str) -> dict[str, set[str]]:
 def test_profile_resources_per_rule_and_the_gpu_switch(tmp_path):
     profile = yaml.safe_load((PROFILE / "config.yaml").read_text())
     assert profile["executor"] == "slurm" and profile["retries"] == 1
-    proc = run_snakemake(tmp_path, "-n", "--workflow-profile", str(PROFILE), "--configfile", str(SMOKE))
+    # device=cuda would make every torch job ask for the GPU locally (profiles/default); under the
+    # Slurm profile no job asks for one unless the profile says so, whatever the host has
+    proc = run_snakemake(
+        tmp_path, "-n", "--workflow-profile", str(PROFILE), "--configfile", str(SMOKE), "--config", "device=cuda"
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     res = job_resources(proc.stdout)
     assert len(res["optimize"]) == 1
@@ -39,13 +43,16 @@ def test_profile_resources_per_rule_and_the_gpu_switch(tmp_path):
     assert all("mem_mb=8192" in r and "runtime=60" in r for r in res["bake"] | res["lod"])
     for rule in ("normalize", "raycache", "export", "relight", "metrics", "report"):
         assert all("mem_mb=4096" in r and "runtime=30" in r for r in res[rule]), rule
-    # a GPU for the optimisation alone, on request
-    gpu = run_snakemake(
-        tmp_path, "-n", "--workflow-profile", str(PROFILE), "--set-resources", "optimize:gpu=1", "--configfile", str(SMOKE)
-    )
+    assert all("gpu=0" in r for rule in ("bake", "lod", "relight", "metrics") for r in res[rule])
+    # the GPU for the optimisation alone, switched on in (a copy of) the profile: the other
+    # resources stay as they were
+    profile["set-resources"]["optimize"]["gpu"] = 1
+    (tmp_path / "gpu").mkdir()
+    (tmp_path / "gpu" / "config.yaml").write_text(yaml.safe_dump(profile))
+    gpu = run_snakemake(tmp_path, "-n", "--workflow-profile", str(tmp_path / "gpu"), "--configfile", str(SMOKE))
     assert gpu.returncode == 0, gpu.stderr[-3000:]
     res = job_resources(gpu.stdout)
-    assert all("gpu=1" in r for r in res["optimize"])
+    assert all("gpu=1" in r and "runtime=120" in r and "mem_mb=8192" in r for r in res["optimize"])
     assert all("gpu=0" in r for r in res["bake"] | res["metrics"])
 
 

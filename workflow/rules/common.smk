@@ -80,12 +80,19 @@ def check_key(stage, wildcards):
     """
     if "key" not in wildcards.keys():
         return  # a per-cell job reading a mesh stage's settings (lod: decimate)
-    want = CFG.mesh_work_keys(wildcards.mesh)[stage]
+    keys = (
+        CFG.mesh_work_keys(wildcards.mesh) if wildcards.mesh in CFG.meshes else {}
+    )
+    want = keys.get(stage)
     if wildcards.key != want:
+        has = (
+            f"its key: {want}"
+            if want
+            else f"it has no {stage} work for mesh {wildcards.mesh!r}"
+        )
         raise WorkflowError(
             f"{MESHES}/{wildcards.mesh}/{wildcards.key}/{stage} was keyed by other {stage} settings than "
-            f"experiment {EXPERIMENT!r} has for mesh {wildcards.mesh!r} (its key: {want}); "
-            "ask for the experiment's own targets instead"
+            f"experiment {EXPERIMENT!r} has ({has}); ask for the experiment's own targets instead"
         )
 
 
