@@ -10,7 +10,7 @@ import pytest
 import yaml
 from conftest import REPO, mesh_work_dir, run_snakemake
 
-from stages.config.workflow import load_config_file
+from stages.config.workflow import WorkflowConfig, load_config_file
 from stages.geometry.raycache import RayCache
 
 SMOKE = REPO / "tests" / "smoke" / "config.yaml"
@@ -281,6 +281,7 @@ def test_keep_going_finishes_other_meshes(tmp_path):
     res = tmp_path / "results"
     assert (mesh_work_dir(tmp_path, "vase", "raycache") / "meta.json").is_file()
     assert (res / cfg["experiment"] / "vase" / "wood" / "full" / "export" / "meta.json").is_file()
-    assert not (mesh_work_dir(tmp_path, "broken", "normalize") / "mesh.ply").exists()
-    log = (mesh_work_dir(tmp_path, "broken", "normalize").parent / "logs" / "normalize.log").read_text()
+    broken = tmp_path / "results" / "meshes" / "broken" / WorkflowConfig(cfg).mesh_work_keys("broken")["normalize"]
+    assert not (broken / "normalize" / "mesh.ply").exists()
+    log = (broken / "logs" / "normalize.log").read_text()
     assert "missing.obj: file not found" in log
