@@ -80,9 +80,7 @@ def check_key(stage, wildcards):
     """
     if "key" not in wildcards.keys():
         return  # a per-cell job reading a mesh stage's settings (lod: decimate)
-    keys = (
-        CFG.mesh_work_keys(wildcards.mesh) if wildcards.mesh in CFG.meshes else {}
-    )
+    keys = CFG.mesh_work_keys(wildcards.mesh) if wildcards.mesh in CFG.meshes else {}
     want = keys.get(stage)
     if wildcards.key != want:
         has = (
