@@ -1,10 +1,23 @@
-// Open an HTML report in headless Chromium (Debian's /usr/bin/chromium, driven by playwright-core),
-// wait for every <model-viewer> to load its model, collect console errors and page errors, and
-// screenshot the first viewer. Prints a JSON summary. Usage: node scripts/check_report.mjs page.html shot.png
+// Open a page of the HTML report in headless Chromium (Debian's /usr/bin/chromium, driven by
+// playwright-core) and report what a reader would meet, as one JSON line on stdout.
+//
+//   node scripts/check_report.mjs index PAGE SHOT [--filter WORDS] [--mesh ID]
+//       the index: console errors, time until its script made the table interactive (ms after
+//       navigation start), rows, rows left by the text filter and by the mesh selector, a
+//       sort by the quality column, and a screenshot of the first screen
+//   node scripts/check_report.mjs cell PAGE SHOT
+//       a cell page: console errors, every file it requested, its 3D viewer loaded (with the
+//       learned light, then the studio light), and a screenshot of the viewer
+//   node scripts/check_report.mjs single PAGE SHOT
+//       a one-file report: every viewer scrolled into view and loaded; a screenshot of the first
+//
+// PAGE is a file path or an http(s) URL.
 import { chromium } from "playwright-core";
 import { pathToFileURL } from "node:url";
 
-const [page_path, shot] = process.argv.slice(2);
+const [mode, target, shot, ...rest] = process.argv.slice(2);
+const option = (name) => { const i = rest.indexOf(name); return i >= 0 ? rest[i + 1] : undefined; };
+const url = /^https?:/.test(target) ? target : pathToFileURL(target).href;
 const browser = await chromium.launch({
   executablePath: process.env.CHROMIUM || "/usr/bin/chromium",
   args: ["--no-sandbox", "--disable-gpu", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
@@ -12,22 +25,93 @@ const browser = await chromium.launch({
 });
 const page = await browser.newPage({ viewport: { width: 1400, height: 1000 } });
 const errors = [];
+const requests = [];
 page.on("console", (m) => { if (m.type() === "error") errors.push(m.text()); });
 page.on("pageerror", (e) => errors.push(String(e)));
-await page.goto(pathToFileURL(page_path).href);
-let viewers = 0;
-let loaded = false;
-try {
-  await page.waitForFunction(() => {
-    const v = [...document.querySelectorAll("model-viewer")];
-    return v.length > 0 && v.every((m) => m.loaded);
-  }, null, { timeout: 90000 });
-  loaded = true;
-} catch (e) { errors.push("timeout waiting for model-viewer: " + e); }
-viewers = await page.evaluate(() => document.querySelectorAll("model-viewer").length);
-const first = page.locator("model-viewer").first();
-await first.scrollIntoViewIfNeeded();
-await page.waitForTimeout(1500);
-await first.screenshot({ path: shot });
+page.on("requestfailed", (r) => errors.push("request failed: " + r.url() + " " + (r.failure() || {}).errorText));
+page.on("request", (r) => requests.push(r.url()));
+const out = { mode, errors, requests };
+const visible = () => page.evaluate(() => [...document.querySelectorAll("table.cells tbody tr")].filter((r) => !r.hidden).length);
+
+if (mode === "index") {
+  const t0 = Date.now();
+  await page.goto(url, { waitUntil: "load" });
+  await page.waitForFunction(() => document.body.dataset.ready !== undefined, null, { timeout: 30000 });
+  out.load_ms = Date.now() - t0;
+  out.interactive_ms = await page.evaluate(() => Number(document.body.dataset.ready));
+  out.rows = await visible();
+  await page.screenshot({ path: shot });
+  const words = option("--filter");
+  if (words !== undefined) {
+    await page.fill("#filter", words);
+    out.filtered_rows = await visible();
+    out.shown_label = await page.textContent("#shown");
+    await page.fill("#filter", "");
+  }
+  const mesh = option("--mesh");
+  if (mesh !== undefined) {
+    await page.selectOption("select[data-key=mesh]", mesh);
+    out.mesh_rows = await visible();
+    out.mesh_values = await page.evaluate(() => [...new Set([...document.querySelectorAll("table.cells tbody tr")].filter((r) => !r.hidden).map((r) => r.dataset.mesh))]);
+    await page.selectOption("select[data-key=mesh]", "");
+  }
+  const header = page.locator("table.cells th", { hasText: "quality" }).first();
+  if (await header.count()) {
+    await header.click();
+    out.sorted_quality = await page.evaluate(() => [...document.querySelector("table.cells").tBodies[0].rows].map((r) => {
+      const i = [...r.closest("table").tHead.rows[0].cells].findIndex((h) => h.textContent.startsWith("quality"));
+      return Number(r.cells[i].dataset.v);
+    }));
+  }
+  out.figures = await page.evaluate(() => document.querySelectorAll(".figure img").length);
+  out.skipped = await page.evaluate(() => [...document.querySelectorAll(".skipped")].map((p) => p.textContent));
+} else if (mode === "cell" || mode === "single") {
+  await page.goto(url, { waitUntil: "load" });
+  const viewers = page.locator("model-viewer");
+  out.viewers = await viewers.count();
+  out.loaded = 0;
+  for (let i = 0; i < out.viewers; i++) {
+    const v = viewers.nth(i);
+    await v.scrollIntoViewIfNeeded();
+    try {
+      await v.evaluate((m) => new Promise((resolve, reject) => {
+        if (m.loaded) return resolve();
+        m.addEventListener("load", () => resolve(), { once: true });
+        m.addEventListener("error", (e) => reject(new Error("model-viewer error " + JSON.stringify(e.detail))), { once: true });
+        setTimeout(() => reject(new Error("timeout")), 90000);
+      }));
+      out.loaded += 1;
+    } catch (e) { errors.push("viewer " + i + ": " + e); }
+  }
+  if (out.viewers) {
+    const first = viewers.first();
+    await first.scrollIntoViewIfNeeded();
+    const env = await first.evaluate((m) => m.environmentImage || "");
+    out.environment = env.length > 100 ? env.slice(0, 40) + "..." + env.slice(-20) : env;
+    await page.waitForTimeout(1500);
+    await first.screenshot({ path: shot });
+    const studio = page.locator("button[data-light=studio]").first();
+    if (await studio.count()) {
+      await studio.click();
+      out.environment_studio = await first.evaluate((m) => m.environmentImage);
+      await page.waitForTimeout(1000);
+      await first.screenshot({ path: shot.replace(/\.png$/, "_studio.png") });
+      await page.locator("button[data-light=learned]").first().click();
+    }
+  } else {
+    await page.screenshot({ path: shot });
+  }
+  out.galleries = await page.evaluate(() => document.querySelectorAll(".gallery").length);
+  const pick = page.locator(".gallery .picks img").nth(1);
+  if (await pick.count()) {
+    await pick.click();
+    out.gallery_switch = await page.evaluate(() => {
+      const g = document.querySelector(".gallery");
+      return g.querySelector("img.main").getAttribute("src") === g.querySelectorAll(".picks img")[1].getAttribute("src");
+    });
+  }
+} else {
+  errors.push("unknown mode " + mode + " (index, cell or single)");
+}
 await browser.close();
-process.stdout.write(JSON.stringify({ errors, viewers, loaded }) + "\n");
+process.stdout.write(JSON.stringify(out) + "\n");

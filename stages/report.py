@@ -6,6 +6,9 @@ targets), iterations, final similarity (CLIP) or held-out PSNR (image targets), 
 after decimation, bake fidelity, texture size, and the wall time of every stage.
 ``overview.png``: rows are cells, columns RGB, diffuse, roughness, specular and predicted normals
 from the evaluation view nearest the front, each row labelled.
+``speed_accuracy.csv`` and ``figures/``: comparisons of like with like only
+(:mod:`stages.results.compare`): per mesh x prompt across variants, against the reference
+variant; a figure with nothing to compare is listed in ``figures.json`` with the reason.
 """
 
 from __future__ import annotations
@@ -17,18 +20,13 @@ from pathlib import Path
 import pandas as pd
 from PIL import Image
 
+from .config.sections import ReportSettings
 from .core.cli import stage_main
 from .core.provenance import atomic_path, write_json_atomic
 from .results.cells import parse_cells
-from .results.summary import (
-    overview_image,
-    plot_bars,
-    plot_losses,
-    plot_pareto,
-    speed_accuracy,
-    summary_rows,
-    write_grids,
-)
+from .results.compare import cell_settings, comparison_groups, trade_off
+from .results.figures import ablation_figures, loss_figures, robustness_figure, speed_accuracy_figures, variant_grids
+from .results.summary import front_tile, overview_image, quality_text, speed_accuracy, summary_rows
 
 log = logging.getLogger(__name__)
 
@@ -40,13 +38,16 @@ def run(
     decimated: dict | None = None,
     lod_cells: list[tuple[str, str, str]] | None = None,
     mesh_dirs: dict[str, dict[str, str]] | None = None,
+    settings: ReportSettings | None = None,
 ) -> list[dict]:
-    """Write summary.csv/json, overview.png, the speed/accuracy table and plot, ablation bars,
-    loss curves and image grids into ``out_dir``. ``decimated``: decimated mesh id -> the id of
-    the same source at full resolution (for the robustness grid). ``lod_cells``: the cells whose
-    levels of detail are read (None: every cell that has them). ``mesh_dirs``: mesh id -> stage
-    -> the folder of its mesh-level work (the workflow's results/meshes/<mesh>/<key>/<stage>;
+    """Write summary.csv/json, overview.png, speed_accuracy.csv (one row per configuration of
+    each mesh x prompt) and the figures (``out_dir/figures/*.png``, listed with captions, or with
+    the reason one is not drawn, in ``figures.json``). ``decimated``: decimated mesh id -> the id
+    of the same source at full resolution (for the robustness figure). ``lod_cells``: the cells
+    whose levels of detail are read (None: every cell that has them). ``mesh_dirs``: mesh id ->
+    stage -> the folder of its mesh-level work (the workflow's results/meshes/<mesh>/<key>/<stage>;
     default: ``results/<mesh>/<stage>``)."""
+    settings = settings or ReportSettings()
     results = Path(results)
     rows = summary_rows(results, cells, lod_cells, mesh_dirs)
     frame = pd.DataFrame(rows)
@@ -56,15 +57,52 @@ def run(
     with atomic_path(out_dir / "overview.png") as tmp:
         Image.fromarray(overview_image(results, cells)).save(tmp, format="PNG")
     write_json_atomic(out_dir / "summary.json", rows)
-    sa = speed_accuracy(rows, results)
+
+    timed = speed_accuracy(rows, results)
+    variants = list(dict.fromkeys(c[2] for c in cells))
+    per_cell = {c: cell_settings(results.joinpath(*c)) for c in cells}
+    groups = comparison_groups(timed, per_cell, variants, settings.reference, settings.ablations)
+    trade = [t for g in groups for t in trade_off(g)]
     with atomic_path(out_dir / "speed_accuracy.csv") as tmp:
-        pd.DataFrame(sa).to_csv(tmp, index=False)
-    plot_pareto(out_dir / "pareto.png", sa)
-    plot_bars(out_dir / "ablation_bars.png", rows)
-    plot_losses(out_dir / "loss_curves.png", results, cells)
-    grids = write_grids(results, cells, out_dir, decimated or {})
-    write_json_atomic(out_dir / "figures.json", {"grids": grids})
-    log.info("summary of %d cells written to %s", len(rows), out_dir)
+        pd.DataFrame(trade).to_csv(tmp, index=False)
+
+    figures_dir = out_dir / "figures"
+    figures_dir.mkdir(parents=True, exist_ok=True)
+    for old in figures_dir.glob("*.png"):  # figures of an earlier, larger grid
+        old.unlink()
+    faces = {r["mesh"]: int(r["faces_after"]) for r in rows}
+    quality = {(t["mesh"], t["prompt"], t["variant"]): quality_text(t["quality"], t["quality_name"]) for t in timed}
+
+    def tile(cell, size):
+        return front_tile(results, cell, size=size)
+
+    panels = settings.panels_per_figure
+    entries = (
+        speed_accuracy_figures(figures_dir, groups, panels)
+        + ablation_figures(figures_dir, groups, panels)
+        + loss_figures(figures_dir, results, cells, panels)
+        + robustness_figure(figures_dir, results, cells, decimated or {}, faces, quality, tile)
+        + variant_grids(figures_dir, cells, tile)
+    )
+    for e in entries:
+        if "file" in e:
+            e["file"] = f"figures/{e['file']}"
+        else:
+            log.info("figure %r not drawn: %s", e["title"], e["skipped"])
+    group_list = [
+        {
+            "group": g.label,
+            "quality_name": g.quality_name,
+            "test_only": g.test_only,
+            "reference": g.reference,
+            "configurations": g.configurations(),
+            "factors": g.factor,
+            "ablations": g.ablations,
+        }
+        for g in groups
+    ]
+    write_json_atomic(out_dir / "figures.json", {"figures": entries, "groups": group_list})
+    log.info("summary of %d cells written to %s (%d figures)", len(rows), out_dir, sum("file" in e for e in entries))
     return rows
 
 
@@ -80,10 +118,19 @@ def main(argv: list[str] | None = None) -> int:
         parser.add_argument(
             "--lod-cells", nargs="*", default=None, help="the cells with levels of detail (default: any that has them)"
         )
+        parser.add_argument("--settings", default=None, help="JSON: the config's report section")
 
     def body(args):
         lod = None if args.lod_cells is None else parse_cells(args.lod_cells)
-        run(args.results, parse_cells(args.cells), args.out_dir, json.loads(args.decimated), lod, json.loads(args.mesh_dirs))
+        run(
+            args.results,
+            parse_cells(args.cells),
+            args.out_dir,
+            json.loads(args.decimated),
+            lod,
+            json.loads(args.mesh_dirs),
+            ReportSettings.from_json(args.settings),
+        )
 
     return stage_main("report", __doc__, arguments, body, argv)
 

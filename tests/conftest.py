@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -184,3 +185,46 @@ def cache(tmp_path_factory):
         RaycacheSettings(views=6, resolution=64, eval_azimuths=4, eval_elevations_deg=(0.0, 30.0), eval_resolution=48),
     )
     return d
+
+
+def browser_check(mode: str, page, shot, *args: str) -> dict:
+    """``scripts/check_report.mjs`` on a page: what headless Chromium met there."""
+    node, chromium = shutil.which("node"), shutil.which("chromium")
+    require_tool(
+        node is not None and chromium is not None and (REPO / "node_modules" / "playwright-core").is_dir(),
+        "Node.js, Debian's chromium or playwright-core missing (.ci/run installs them)",
+    )
+    out = subprocess.run(
+        [node, str(REPO / "scripts" / "check_report.mjs"), mode, str(page), str(shot), *args],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=True,
+    )
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def assert_not_blank(shot) -> None:
+    from PIL import Image
+
+    img = np.asarray(Image.open(shot).convert("RGB")).astype(float)
+    background = np.median(img.reshape(-1, 3), axis=0)
+    differs = np.abs(img - background).sum(-1) > 30
+    assert differs.mean() > 0.05, "the 3D canvas is blank"
+
+
+def page_references(text: str) -> list[str]:
+    """Every ``src``, ``href``, ``poster`` and ``data-*`` URL attribute of an HTML page's
+    elements (what the page loads or links; script bodies are not parsed)."""
+    from html.parser import HTMLParser
+
+    found: list[str] = []
+
+    class Parser(HTMLParser):
+        def handle_starttag(self, tag, attrs):
+            for name, value in attrs:
+                if value and name in ("src", "href", "poster", "data-glb", "data-hdr", "data-packed"):
+                    found.append(value)
+
+    Parser().feed(text)
+    return found

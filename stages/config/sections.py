@@ -672,6 +672,51 @@ class LodSettings(Settings):
         return [self.full_coverage * f for f in self.levels] + [0.0]
 
 
+#: optimize settings that switch a component of TANGO off, and their "off" value: a variant whose
+#: only differences from the reference variant are among these is an ablation (``report.ablations``)
+ABLATION_SWITCHES = {
+    "specular": False,
+    "normal_network": False,
+    "material_encoding": "none",
+    "normal_encoding": "none",
+    "crops": 0,
+    "light_rgb": False,
+}
+
+
+@dataclass(frozen=True, kw_only=True)
+class ReportSettings(Settings):
+    """Settings of the report stages (config section ``report``; one per experiment): which
+    variant the others are compared with, which variants are ablations, and the HTML form."""
+
+    section = "report"
+    #: the variant the others are measured against (speed/accuracy factors, ablation deltas);
+    #: null: the experiment's first variant
+    reference: str | None = None
+    #: the ablation variants (each removes something from the reference); null: every variant
+    #: whose settings differ from the reference only by switching components off
+    #: (:data:`ABLATION_SWITCHES`), seeds aside
+    ablations: tuple[str, ...] | None = None
+    #: one self-contained index.html (images and models inlined; for small grids) instead of a
+    #: folder with one page per cell and its assets beside it
+    single_file: bool = False
+    #: panels per figure file of the small-multiple plots (a larger grid is split over files)
+    panels_per_figure: int = 36
+    #: width in pixels of the index's thumbnails
+    thumbnail_size: int = 128
+
+    def __post_init__(self) -> None:
+        problems = []
+        if self.panels_per_figure < 1:
+            problems.append(f"panels_per_figure must be >= 1, got {self.panels_per_figure}")
+        if not 32 <= self.thumbnail_size <= 512:
+            problems.append(f"thumbnail_size must be in [32, 512], got {self.thumbnail_size}")
+        if self.ablations is not None and self.reference is not None and self.reference in self.ablations:
+            problems.append(f"the reference variant {self.reference!r} cannot be one of the ablations")
+        if problems:
+            raise ConfigError("report: " + "; ".join(problems))
+
+
 #: every config section that holds a stage's settings, and its class
 SECTIONS: dict[str, type[Settings]] = {
     cls.section: cls
@@ -687,5 +732,6 @@ SECTIONS: dict[str, type[Settings]] = {
         LodSettings,
         RelightSettings,
         MetricsSettings,
+        ReportSettings,
     )
 }

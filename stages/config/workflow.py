@@ -157,6 +157,7 @@ class WorkflowConfig:
             self.optimize_settings(cell.prompt, cell.variant)
             for stage in CELL_STAGES:
                 self.cell_stage_settings(stage, cell.prompt, cell.variant)
+        self.report_settings()
 
     # ---- ids -------------------------------------------------------------------------------
     @property
@@ -291,6 +292,21 @@ class WorkflowConfig:
             return cls.from_dict(merged)
         except ConfigError as exc:
             raise ConfigError(f"{self.source}: prompt {prompt_id!r}, variant {variant_id!r}: {exc}") from exc
+
+    def report_settings(self):
+        """The ``report`` section, its variant names checked against the config's variants."""
+        try:
+            settings = SECTIONS["report"].from_dict(self.raw.get("report"))
+        except ConfigError as exc:
+            raise ConfigError(f"{self.source}: {exc}") from exc
+        named = ([settings.reference] if settings.reference is not None else []) + list(settings.ablations or ())
+        unknown = [v for v in named if v not in self.variants]
+        if unknown:
+            raise ConfigError(
+                f"{self.source}: report names variant(s) {', '.join(repr(v) for v in unknown)} that the config does not "
+                f"define (variants: {', '.join(self.variants)})"
+            )
+        return settings
 
     def decimation_pairs(self) -> dict[str, str]:
         """Decimated mesh id -> a full-resolution mesh id with the same source (robustness)."""

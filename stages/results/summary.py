@@ -1,5 +1,6 @@
-"""Reading a results tree: per-cell summary rows, origin checks, the speed/accuracy table and its
-Pareto front, and the report's figures (overview, plots, image grids)."""
+"""Reading a results tree: per-cell summary rows, origin checks, each cell's quality figure and
+time (what the comparisons of :mod:`stages.results.compare` group), the overview image and the
+front view of a cell."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from ..core.errors import StageInputError
-from ..core.provenance import ORIGIN_KEY, atomic_path, read_origin
+from ..core.provenance import ORIGIN_KEY, read_origin
 
 log = logging.getLogger(__name__)
 
@@ -187,16 +188,10 @@ def overview_image(results: Path, cells: list[tuple[str, str, str]], tile: int =
         draw.text((label_w + j * tile + 4, 6), kind, fill="black")
     for i, (mesh, prompt, variant) in enumerate(cells):
         opt = _need(results / mesh / prompt / variant / "optimize" / "meta.json")
-        sheet = opt["sheet"]
-        cols, t, k = sheet["columns"], sheet["tile"], sheet["front_view"]
-        r, c = divmod(k, cols)
         y = header + i * tile
-        label = f"{mesh} / {prompt} / {variant}\n{weights_label(opt)[:34]}"
-        draw.text((4, y + 6), label, fill="black")
+        draw.text((4, y + 6), f"{mesh} / {prompt} / {variant}\n{weights_label(opt)[:34]}", fill="black")
         for j, kind in enumerate(OVERVIEW_KINDS):
-            img = Image.open(results / mesh / prompt / variant / "optimize" / "renders" / f"{kind}.png")
-            crop = img.crop((c * t, r * t, (c + 1) * t, (r + 1) * t)).resize((tile, tile))
-            canvas.paste(crop, (label_w + j * tile, y))
+            canvas.paste(front_tile(results, (mesh, prompt, variant), kind, tile), (label_w + j * tile, y))
     return np.asarray(canvas)
 
 
@@ -210,36 +205,20 @@ def quality_of(row: dict) -> tuple[float | None, str]:
     return None, ""
 
 
+def quality_text(value: float, name: str) -> str:
+    """A quality figure as a short label: ``24.31 dB`` (target PSNR) or ``CLIP 0.312``."""
+    return f"{value:.2f} dB" if name.startswith("target PSNR") else f"CLIP {value:.3f}"
+
+
 def _nan(x) -> bool:
     return isinstance(x, float) and x != x
 
 
-def pareto_front(points: list[tuple[float, float]]) -> list[int]:
-    """Indices of the points not dominated in (lower time, higher quality), by time."""
-    order = sorted(range(len(points)), key=lambda i: (points[i][0], -points[i][1]))
-    front, best = [], -float("inf")
-    for i in order:
-        if points[i][1] > best:
-            front.append(i)
-            best = points[i][1]
-    return front
-
-
-def knee_point(points: list[tuple[float, float]], front: list[int]) -> int | None:
-    """The front point farthest from the straight line joining the front's ends (normalised
-    axes): where more time stops buying much quality."""
-    if len(front) < 3:
-        return front[-1] if front else None
-    xs = np.array([points[i][0] for i in front])
-    ys = np.array([points[i][1] for i in front])
-    x = (xs - xs.min()) / max(np.ptp(xs), 1e-12)
-    y = (ys - ys.min()) / max(np.ptp(ys), 1e-12)
-    d = np.abs((y[-1] - y[0]) * x - (x[-1] - x[0]) * y + x[-1] * y[0] - y[-1] * x[0])
-    return front[int(np.argmax(d))]
-
-
 def speed_accuracy(rows: list[dict], results: Path) -> list[dict]:
-    """Per cell: wall time of the optimisation, its peak memory (Snakemake benchmark), quality."""
+    """Per cell with a quality figure and an optimisation time: the wall time, the peak memory
+    (Snakemake's benchmark file, when there is one) and the quality, with the cell's ids, the
+    quality's name and whether test-only weights made it (what :mod:`stages.results.compare`
+    groups on)."""
     out = []
     for r in rows:
         q, qname = quality_of(r)
@@ -253,7 +232,8 @@ def speed_accuracy(rows: list[dict], results: Path) -> list[dict]:
             peak = float(pd.read_csv(bench, sep="\t")["max_rss"].iloc[0])
         out.append(
             {
-                "cell": f"{r['mesh']}/{r['prompt']}/{r['variant']}",
+                "mesh": r["mesh"],
+                "prompt": r["prompt"],
                 "variant": r["variant"],
                 "seconds": float(r["seconds_optimize"]),
                 "peak_mb": peak,
@@ -263,93 +243,10 @@ def speed_accuracy(rows: list[dict], results: Path) -> list[dict]:
                 "test_only": bool(r.get("test_only_weights") or r.get("eval_test_only")),
             }
         )
-    if out:
-        pts = [(o["seconds"], o["quality"]) for o in out]
-        front = set(pareto_front(pts))
-        knee = knee_point(pts, sorted(front, key=lambda i: pts[i][0]))
-        for i, o in enumerate(out):
-            o["pareto"] = i in front
-            o["knee"] = i == knee
     return out
 
 
-def plot_pareto(path: Path, points: list[dict]) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(6.5, 4), dpi=110)
-    for p in points:
-        ax.scatter(p["seconds"], p["quality"], c="tab:red" if p["pareto"] else "tab:gray", s=24, zorder=3)
-        ax.annotate(p["variant"], (p["seconds"], p["quality"]), fontsize=7, xytext=(3, 3), textcoords="offset points")
-    front = sorted((p for p in points if p["pareto"]), key=lambda p: p["seconds"])
-    ax.plot([p["seconds"] for p in front], [p["quality"] for p in front], c="tab:red", lw=1, label="Pareto front")
-    knee = [p for p in points if p["knee"]]
-    if knee:
-        ax.scatter(knee[0]["seconds"], knee[0]["quality"], s=140, facecolors="none", edgecolors="k", label="knee")
-    ax.set_xscale("log")
-    ax.set_xlabel("optimisation wall time (s)")
-    ax.set_ylabel(points[0]["quality_name"] if points else "quality")
-    ax.legend(fontsize=8)
-    ax.grid(alpha=0.3)
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png")
-    plt.close(fig)
-
-
-def plot_bars(path: Path, rows: list[dict]) -> None:
-    """Mean quality per variant (ablation bars)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    by: dict[str, list[float]] = {}
-    name = ""
-    for r in rows:
-        q, qn = quality_of(r)
-        if q is not None:
-            by.setdefault(r["variant"], []).append(q)
-            name = qn
-    fig, ax = plt.subplots(figsize=(6.5, 3.5), dpi=110)
-    if by:
-        ax.bar(list(by), [float(np.mean(v)) for v in by.values()], color="tab:blue")
-        ax.set_ylabel(name, fontsize=8)
-        ax.tick_params(axis="x", labelrotation=30, labelsize=8)
-    else:
-        ax.text(0.5, 0.5, "no quality metric available", ha="center", va="center")
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png")
-    plt.close(fig)
-
-
-def plot_losses(path: Path, results: Path, cells: list[tuple[str, str, str]]) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    import pandas as pd
-
-    fig, ax = plt.subplots(figsize=(6.5, 3.5), dpi=110)
-    for mesh, prompt, variant in cells:
-        f = results / mesh / prompt / variant / "optimize" / "loss.csv"
-        if f.is_file():
-            d = pd.read_csv(f)
-            ax.plot(d["iteration"], d["loss"], lw=0.8, label=f"{mesh}/{prompt}/{variant}")
-    ax.set_xlabel("iteration")
-    ax.set_ylabel("loss")
-    if len(cells) <= 12:
-        ax.legend(fontsize=6)
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png")
-    plt.close(fig)
-
-
-def _front_tile(results: Path, cell: tuple[str, str, str], kind: str = "rgb", size: int = 160):
+def front_tile(results: Path, cell: tuple[str, str, str], kind: str = "rgb", size: int = 160):
     from PIL import Image
 
     mesh, prompt, variant = cell
@@ -359,58 +256,3 @@ def _front_tile(results: Path, cell: tuple[str, str, str], kind: str = "rgb", si
     t = sh["tile"]
     img = Image.open(results / mesh / prompt / variant / "optimize" / "renders" / f"{kind}.png")
     return img.crop((c * t, r * t, (c + 1) * t, (r + 1) * t)).resize((size, size))
-
-
-def labelled_grid(results: Path, rows_: list[str], cols: list[str], cell_of, title: str, size: int = 160):
-    """An image grid with row and column labels; ``cell_of(row, col)`` -> cell or None."""
-    from PIL import Image, ImageDraw
-
-    lw, hh = 160, 36
-    canvas = Image.new("RGB", (lw + size * len(cols), hh + size * len(rows_)), "white")
-    d = ImageDraw.Draw(canvas)
-    d.text((4, 4), title, fill="black")
-    for j, c in enumerate(cols):
-        d.text((lw + j * size + 4, 20), c, fill="black")
-    for i, r in enumerate(rows_):
-        d.text((4, hh + i * size + 6), r, fill="black")
-        for j, c in enumerate(cols):
-            cell = cell_of(r, c)
-            if cell is not None:
-                canvas.paste(_front_tile(results, cell, size=size), (lw + j * size, hh + i * size))
-    return canvas
-
-
-def write_grids(results: Path, cells: list[tuple[str, str, str]], out_dir: Path, decimated: dict) -> list[str]:
-    """Per mesh: rows = variants, columns = prompts. Robustness: original vs decimated mesh
-    side by side (meshes sharing a source, one decimated), rows = prompts x variants."""
-    files = []
-    meshes = list(dict.fromkeys(c[0] for c in cells))
-    prompts = list(dict.fromkeys(c[1] for c in cells))
-    variants = list(dict.fromkeys(c[2] for c in cells))
-    present = set(cells)
-    for mesh in meshes:
-        img = labelled_grid(
-            results,
-            variants,
-            prompts,
-            lambda v, p, mesh=mesh: (mesh, p, v) if (mesh, p, v) in present else None,
-            f"{mesh}: rows variants, columns prompts",
-        )
-        name = f"grid_{mesh}.png"
-        with atomic_path(out_dir / name) as tmp:
-            img.save(tmp, format="PNG")
-        files.append(name)
-    pairs = [(orig, dec) for dec, orig in decimated.items() if orig in meshes and dec in meshes]
-    if pairs:
-        rows_ = [f"{p}/{v}" for p in prompts for v in variants]
-        cols = [m for pair in pairs for m in pair]
-
-        def cell_of(r, m):
-            p, v = r.split("/")
-            return (m, p, v) if (m, p, v) in present else None
-
-        img = labelled_grid(results, rows_, cols, cell_of, "robustness: original | decimated")
-        with atomic_path(out_dir / "robustness.png") as tmp:
-            img.save(tmp, format="PNG")
-        files.append("robustness.png")
-    return files

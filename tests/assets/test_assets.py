@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from conftest import REPO, icosphere, require_tool
+from conftest import REPO, assert_not_blank, browser_check, icosphere, page_references, require_tool
 
 from stages import export, optimize, pack, relight, report
 from stages.assets import formats
@@ -440,19 +440,28 @@ def test_summary_and_pack(trained, tmp_path):
     assert "WARNING: TEST ONLY. 1 of 1 assets" in readme and "candle/wax/base: TEST ONLY" in readme
 
 
-def test_html_report_without_model_viewer_shows_previews(trained, tmp_path, caplog):
-    """Without Node.js's packages the report is still written: static previews, a warning in the
-    log and a notice on the page; the test-only banner comes first."""
+@pytest.mark.parametrize("single_file", [False, True])
+def test_html_report_without_model_viewer_shows_previews(trained, tmp_path, caplog, single_file):
+    """Without Node.js's packages the report is still written, as a folder or as one file:
+    static previews, a warning in the log and a notice on the pages; the test-only banner
+    comes first."""
     from stages import html_report
+    from stages.config.sections import ReportSettings
 
     results, cell = results_with_cell(trained, tmp_path)
     report.run(results, [("candle", "wax", "base")], results / "report")
-    page = results / "report" / "index.html"
-    n = html_report.run(results, results / "report", [("candle", "wax", "base")], page, model_viewer=tmp_path / "absent.js")
-    text = page.read_text()
-    assert n == 0 and "<model-viewer" not in text and "id='no-viewer'" in text
-    assert "class='preview'" in text and "data:image/png;base64," in text
-    assert text.index("TEST ONLY: 1 of 1 cells") < text.index("<h2>Summary</h2>")
+    out = html_report.run(
+        results, results / "report", [("candle", "wax", "base")], ReportSettings(single_file=single_file), tmp_path / "absent.js"
+    )
+    index = (results / "report" / "index.html").read_text()
+    pages = [index] if single_file else [index, (results / "report/cells/candle/wax/base/index.html").read_text()]
+    assert out["viewers"] == 0
+    for text in pages:
+        assert "<model-viewer" not in text and "id='no-viewer'" in text
+        assert text.index("TEST ONLY: 1 of 1 cells") < text.index("<h2")
+    assert "class='preview viewer-img'" in pages[-1]
+    assert ("data:image/png;base64," in index) == single_file
+    assert (results / "report" / "cells").exists() != single_file
     assert any(r.levelname == "WARNING" and "static previews" in r.getMessage() for r in caplog.records)
 
 
@@ -536,7 +545,7 @@ def test_metrics_mark_weights_and_rank_prompts(trained, tmp_path):
 
 
 def test_pareto_front_and_knee():
-    from stages.results.summary import knee_point, pareto_front
+    from stages.results.compare import knee_point, pareto_front
 
     pts = [(1.0, 20.0), (2.0, 30.0), (3.0, 25.0), (4.0, 33.0), (8.0, 34.0), (16.0, 34.5), (5.0, 10.0)]
     front = pareto_front(pts)
@@ -548,7 +557,7 @@ def test_pareto_front_and_knee():
 def test_report_tables_never_mix_test_only_and_real():
     import pandas as pd
 
-    from stages.html_report import group_rows
+    from stages.results.site import group_rows
 
     frame = pd.DataFrame(
         {
@@ -569,7 +578,7 @@ def test_report_fidelity_lines_per_cell():
     no scale (its truth is black) and says only the error as is."""
     import pandas as pd
 
-    from stages.html_report import fidelity_lines
+    from stages.results.site import fidelity_lines
 
     wood = pd.DataFrame(
         {
@@ -604,43 +613,34 @@ def test_report_fidelity_lines_per_cell():
     )
 
 
-def test_html_report_opens_in_chromium(trained, tmp_path):
-    """The self-contained page loads in headless Chromium with no console errors, and its 3D
-    viewer draws the model (screenshot not blank)."""
+@pytest.mark.parametrize("single_file", [False, True])
+def test_html_report_opens_in_chromium(trained, tmp_path, single_file):
+    """A small report of a trained cell, as a folder and as one file, loads in headless Chromium
+    from disk with no console errors, and its 3D viewer draws the model (screenshot not blank).
+    The synthetic 150-cell report is tested in tests/results/test_site.py."""
     from stages import html_report
+    from stages.config.sections import ReportSettings
 
-    node, chromium = shutil.which("node"), shutil.which("chromium")
     require_tool(
         (REPO / "node_modules" / "@google" / "model-viewer").is_dir(),
         "node_modules missing (scripts/setup.sh runs npm ci when npm exists)",
     )
     results, cell = results_with_cell(trained, tmp_path)
     report.run(results, [("candle", "wax", "base")], results / "report")
-    page = results / "report" / "index.html"
-    assert html_report.run(results, results / "report", [("candle", "wax", "base")], page) == 1
+    out = html_report.run(results, results / "report", [("candle", "wax", "base")], ReportSettings(single_file=single_file))
+    assert out["viewers"] == 1
+    index = results / "report" / "index.html"
+    page = index if single_file else results / "report" / "cells" / "candle" / "wax" / "base" / "index.html"
     text = page.read_text()
-    assert "<script src" not in text and "<link" not in text  # nothing loaded from elsewhere
-    assert "<model-viewer" in text and "data:model/gltf-binary;base64," in text
-    require_tool(
-        node is not None and chromium is not None and (REPO / "node_modules" / "playwright-core").is_dir(),
-        "Node.js, Debian's chromium or playwright-core missing (.ci/run installs them)",
-    )
-    shot = tmp_path / "shot.png"
-    out = subprocess.run(
-        [node, str(REPO / "scripts" / "check_report.mjs"), str(page), str(shot)],
-        capture_output=True,
-        text=True,
-        timeout=300,
-        check=True,
-    )
-    result = json.loads(out.stdout.strip().splitlines()[-1])
-    assert result["errors"] == [] and result["loaded"] and result["viewers"] == 1
-    from PIL import Image
-
-    img = np.asarray(Image.open(shot).convert("RGB")).astype(float)
-    background = np.median(img.reshape(-1, 3), axis=0)
-    differs = np.abs(img - background).sum(-1) > 30
-    assert differs.mean() > 0.05, "the 3D canvas is blank"
+    refs = page_references(text)
+    assert refs and not any(r.startswith(("http:", "https:", "//", "/", "file:")) for r in refs)  # nothing from elsewhere
+    if single_file:
+        assert "<script src" not in text and "data:model/gltf-binary;base64," in text
+        assert all(r.startswith(("data:", "#")) for r in refs)
+    result = browser_check("single" if single_file else "cell", page, tmp_path / "shot.png")
+    assert result["errors"] == [] and result["viewers"] == result["loaded"] == 1
+    assert result["environment"].endswith("light.hdr") or "#light.hdr" in result["environment"]
+    assert_not_blank(tmp_path / "shot.png")
 
 
 def test_image_guided_metrics_psnr_ssim(trained, tmp_path):
@@ -678,6 +678,6 @@ def test_decimation_shortfall_reaches_summary_and_report(trained, tmp_path):
     report.run(results, [("candle", "wax", "base")], results / "report")
     row = pd.read_csv(results / "report" / "summary.csv").iloc[0]
     assert not row["decimation_target_reached"] and row["decimation_shortfall"] == reason
-    page = results / "report" / "index.html"
-    html_report.run(results, results / "report", [("candle", "wax", "base")], page, model_viewer=tmp_path / "absent.js")
-    assert "DECIMATION SHORT OF TARGET: mesh candle has 1000 faces for a target of 500" in page.read_text()
+    html_report.run(results, results / "report", [("candle", "wax", "base")], model_viewer=tmp_path / "absent.js")
+    for page in (results / "report" / "index.html", results / "report" / "cells" / "candle" / "wax" / "base" / "index.html"):
+        assert "DECIMATION SHORT OF TARGET: mesh candle has 1000 faces for a target of 500" in page.read_text()

@@ -356,6 +356,17 @@ def output_folder(wildcards, output):
     return str(Path(output[0]).parent)
 
 
+#: the report section (reference variant, ablations, the HTML form), validated with the config
+REPORT = CFG.report_settings()
+REPORT_SETTINGS_JSON = json.dumps(REPORT.to_dict(), sort_keys=True)
+#: the HTML report's folders beside index.html (none when it is one self-contained file)
+REPORT_SITE = (
+    []
+    if REPORT.single_file
+    else [directory(f"{RESULTS}/report/cells"), directory(f"{RESULTS}/report/viewer")]
+)
+
+
 def cell_ids():
     return " ".join(f"{c.mesh}/{c.prompt}/{c.variant}" for c in CFG.cells)
 

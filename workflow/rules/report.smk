@@ -20,20 +20,11 @@ rule report:
             category="Summary",
         ),
         speed_accuracy=f"{RESULTS}/report/speed_accuracy.csv",
-        pareto=report(
-            f"{RESULTS}/report/pareto.png",
-            caption="../report/pareto.rst",
-            category="Speed/accuracy",
-        ),
-        bars=report(
-            f"{RESULTS}/report/ablation_bars.png",
-            caption="../report/bars.rst",
-            category="Ablations",
-        ),
-        losses=report(
-            f"{RESULTS}/report/loss_curves.png",
-            caption="../report/losses.rst",
-            category="Training",
+        plots=report(
+            directory(f"{RESULTS}/report/figures"),
+            patterns=["{name}.png"],
+            caption="../report/figures.rst",
+            category="Figures",
         ),
         figures=f"{RESULTS}/report/figures.json",
     log:
@@ -50,10 +41,11 @@ rule report:
         decimated=decimation_pairs_json,
         mesh_dirs=mesh_work_json,
         lod_cells=lod_cells_option(),
+        settings=REPORT_SETTINGS_JSON,
     shell:
         "python -m stages.report --results {params.results:q} --out-dir {params.out_dir:q} "
         "--cells {params.cells} --decimated {params.decimated:q} --mesh-dirs {params.mesh_dirs:q} "
-        "{params.lod_cells} 2> {log:q}"
+        "--settings {params.settings:q} {params.lod_cells} 2> {log:q}"
 
 
 rule pack:
@@ -86,6 +78,7 @@ rule html_report:
         assets=cell_metas("export/meta.json"),
     output:
         html=f"{RESULTS}/report/index.html",
+        site=REPORT_SITE,
     log:
         f"{RESULTS}/report/logs/html_report.log",
     benchmark:
@@ -97,6 +90,7 @@ rule html_report:
         cells=cell_ids(),
         results=results_root_from_assets,
         report_dir=output_folder,
+        settings=REPORT_SETTINGS_JSON,
     shell:
         "python -m stages.html_report --results {params.results:q} --report-dir {params.report_dir:q} "
-        "--out {output.html:q} --cells {params.cells} 2> {log:q}"
+        "--cells {params.cells} --settings {params.settings:q} 2> {log:q}"

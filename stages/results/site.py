@@ -1,0 +1,563 @@
+"""The HTML report: a folder that scales, or one self-contained page for small grids.
+
+**Folder** (the default): ``index.html`` holds the summary (sortable and filterable in the page,
+no CDN, no network), a thumbnail and a link per cell, and the figures (``figures/*.png``, loaded
+lazily). Each cell has its own page, ``cells/<mesh>/<prompt>/<variant>/index.html``, with its
+renders, material maps, loss curve, metrics, relighting and material-editing figures, and its 3D
+viewer, which loads when it scrolls into view. Every asset a page shows lies beside it and is
+referenced by a relative path, so the folder can be zipped, served or opened from disk; a cell
+page loads only its own assets. A browser opening a page from disk may not fetch files, so the
+viewer then reads the cell's model and light from ``assets.js`` (the same bytes as base64, loaded
+by a script tag); over HTTP it fetches ``model.glb`` and ``light.hdr`` themselves.
+
+**Single file** (``report.single_file: true``): one ``index.html`` with every image and model
+inlined as data URIs: the same table, figures and cell sections on one page.
+
+The 3D viewer is Google's <model-viewer> from the npm package (``node_modules``), copied into the
+folder (or inlined). It lights the model with the cell's learned environment (``light.hdr``), with a
+toggle to a neutral studio light. Without the package the pages show each cell's static preview
+and say why.
+
+Every page shows the guidance and weights that made its cells; when any cell was made with the
+test-only random CLIP or fitted to image targets, a banner at the top says so first.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import json
+import logging
+import os
+import shutil
+from collections.abc import Callable
+from pathlib import Path
+
+import pandas as pd
+
+from ..core.provenance import atomic_path
+
+log = logging.getLogger(__name__)
+
+#: the summary columns the index table shows (all of them are in summary.csv)
+INDEX_COLUMNS = (
+    ("prompt_text", "prompt"),
+    ("quality", "quality"),
+    ("seconds_optimize", "optimise (s)"),
+    ("iterations", "iterations"),
+    ("faces_after", "faces"),
+    ("bake_psnr_db", "bake (dB)"),
+    ("weights", "weights"),
+)
+#: a cell's files the pages show: (folder, file, name in the cell's page folder)
+CELL_FILES = (
+    ("optimize/renders", "rgb.png", "render_rgb.png"),
+    ("optimize/renders", "diffuse.png", "render_diffuse.png"),
+    ("optimize/renders", "roughness.png", "render_roughness.png"),
+    ("optimize/renders", "specular.png", "render_specular.png"),
+    ("optimize/renders", "normal.png", "render_normal.png"),
+    ("optimize/renders", "target.png", "render_target.png"),
+    ("optimize/renders", "light.png", "render_light.png"),
+    ("optimize", "loss.png", "loss.png"),
+    ("export", "model.glb", "model.glb"),
+    ("export", "light.hdr", "light.hdr"),
+    ("export", "preview.png", "preview.png"),
+    ("relight", "relit.png", "relit.png"),
+    ("relight", "material_edit.png", "material_edit.png"),
+    ("relight", "light_fit.png", "light_fit.png"),
+    ("metrics", "views.png", "metric_views.png"),
+    ("metrics", "targets.png", "metric_targets.png"),
+    ("roundtrip", "compare.png", "roundtrip_compare.png"),
+)
+#: the pages' style sheet and scripts (read when a report is written)
+WEB = Path(__file__).resolve().parent / "web"
+MIME = {".png": "image/png", ".glb": "model/gltf-binary", ".hdr": "image/vnd.radiance"}
+
+
+# ---- shared pieces ---------------------------------------------------------------------------
+def esc(x) -> str:
+    return html.escape(str(x), quote=True)
+
+
+def data_uri(path: Path, mime: str | None = None) -> str:
+    mime = mime or MIME.get(Path(path).suffix.lower(), "application/octet-stream")
+    return f"data:{mime};base64," + base64.b64encode(Path(path).read_bytes()).decode("ascii")
+
+
+def table(frame: pd.DataFrame) -> str:
+    return frame.to_html(index=False, float_format=lambda x: f"{x:.4g}", na_rep="", border=0, escape=True)
+
+
+def group_rows(frame: pd.DataFrame) -> list[tuple[str, pd.DataFrame]]:
+    """Split rows so that real, test-only and image-guided numbers never share a table."""
+
+    def flag(column: str) -> pd.Series:
+        if column not in frame:
+            return pd.Series(False, index=frame.index)
+        return frame[column].apply(lambda x: bool(x) if x is not None and x == x else False)
+
+    test = flag("test_only_weights") | flag("eval_test_only")
+    image = frame["guidance"].astype(str).str.startswith("image")
+    groups = [
+        ("CLIP-guided with real weights", frame[~test & ~image]),
+        ("Image-guided (procedural targets; verification, no CLIP)", frame[image & ~test]),
+        ("TEST ONLY: tiny random CLIP (not real stylisations; never compare with the above)", frame[test]),
+    ]
+    return [(t, f) for t, f in groups if len(f)]
+
+
+def origin_banner(frame: pd.DataFrame) -> str:
+    """A page's first lines when any of its cells is not a real CLIP stylisation."""
+    out = []
+    n = len(frame)
+    test = int(frame["test_only_weights"].astype(bool).sum()) if "test_only_weights" in frame else 0
+    image = int((frame["image_guided"].astype(bool) & ~frame["test_only_weights"].astype(bool)).sum()) if n else 0
+    if test:
+        out.append(
+            f"<p class='banner note'>TEST ONLY: {test} of {n} cells were made with a tiny CLIP with random weights "
+            "(a test model). Their renders and assets are not real stylisations of their prompts.</p>"
+        )
+    if image:
+        out.append(
+            f"<p class='banner note'>IMAGE-GUIDED: {image} of {n} cells were fitted to renders of procedural target "
+            "materials (a verification run without CLIP), not stylised from their prompts.</p>"
+        )
+    if "decimation_target_reached" in frame:
+        short = frame[frame["decimation_target_reached"].astype(str).str.lower() == "false"].drop_duplicates("mesh")
+        for _, r in short.iterrows():
+            out.append(
+                f"<p class='banner note'>DECIMATION SHORT OF TARGET: mesh {esc(r['mesh'])} has "
+                f"{int(r['faces_after'])} faces for a target of {int(r['decimation_target'])}: "
+                f"{esc(r['decimation_shortfall'])}. Its robustness comparison is not at the intended level.</p>"
+            )
+    return "".join(out)
+
+
+def _figure(row, column: str) -> float | None:
+    if column not in row or not len(row) or pd.isna(row[column].iloc[0]):
+        return None
+    return float(row[column].iloc[0])
+
+
+def fidelity_lines(row) -> str:
+    """The cell's recovery (image targets, held-out views) and Blender round-trip figures."""
+    lines = []
+    psnr, ssim = _figure(row, "target_psnr_db"), _figure(row, "target_ssim")
+    if psnr is not None:
+        renderer = str(row["target_renderer"].iloc[0]) if "target_renderer" in row else "?"
+        text = f"recovery on {renderer} targets (held-out views, object pixels): {psnr:.2f} dB"
+        text += f", SSIM {ssim:.3f}" if ssim is not None else ""
+        albedo, rough = _figure(row, "target_albedo_rmse"), _figure(row, "target_roughness_mae")
+        scaled = _figure(row, "target_albedo_rmse_scaled")
+        if albedo is not None:
+            text += f"; albedo RMSE {albedo:.3f}" + (f" ({scaled:.3f} after its scale)" if scaled is not None else "")
+        if rough is not None:
+            text += f", roughness MAE {rough:.3f}"
+        lines.append(text)
+    glb, usdz = _figure(row, "roundtrip_glb_psnr_db"), _figure(row, "roundtrip_usdz_psnr_db")
+    if glb is not None or usdz is not None:
+        parts = [f"{name} {value:.2f} dB" for name, value in (("GLB", glb), ("USDZ", usdz)) if value is not None]
+        diffuse = _figure(row, "roundtrip_glb_diffuse_psnr_db")
+        text = "Blender round trip (Cycles vs our render, object pixels): " + ", ".join(parts)
+        text += f"; GLB diffuse alone {diffuse:.2f} dB" if diffuse is not None else ""
+        problems = _figure(row, "roundtrip_problems")
+        if problems:
+            text += f"; {int(problems)} import problem(s), see roundtrip/meta.json"
+        lines.append(text)
+    if "lod_faces" in row and isinstance(row["lod_faces"].iloc[0], str):
+        levels = zip(
+            row["lod_faces"].iloc[0].split("/"),
+            str(row["lod_glb_bytes"].iloc[0]).split("/"),
+            str(row["lod_fidelity_psnr_db"].iloc[0]).split("/"),
+            strict=True,
+        )
+        parts = [f"lod{k} {int(f):,} faces, {int(b) / 1e6:.2f} MB GLB, {q} dB" for k, (f, b, q) in enumerate(levels)]
+        lines.append("levels of detail (baked render vs the full neural render, object pixels): " + "; ".join(parts))
+    return "".join(f"<br><small class='fidelity'>{esc(t)}</small>" for t in lines)
+
+
+def cell_key(cell: tuple[str, str, str]) -> str:
+    return "/".join(cell)
+
+
+def cell_files(results: Path, cell: tuple[str, str, str]) -> dict[str, Path]:
+    """The cell's files that exist, by their name in the cell's page folder (see CELL_FILES),
+    plus its texture maps (``texture_<map>.png``) from the export."""
+    cdir = Path(results).joinpath(*cell)
+    found = {name: cdir / folder / f for folder, f, name in CELL_FILES if (cdir / folder / f).is_file()}
+    for tex in sorted((cdir / "export" / "textures").glob("*.png")):
+        found[f"texture_{tex.stem}.png"] = tex
+    return found
+
+
+def _quality(row: pd.Series) -> tuple[float | None, str]:
+    for column, name in (("target_psnr_db", "target PSNR (dB)"), ("clip_score", "CLIP score")):
+        if column in row and pd.notna(row[column]):
+            return float(row[column]), name
+    return None, ""
+
+
+def _cell_value(row: pd.Series, column: str) -> tuple[str, str]:
+    """(shown text, sort value) of one index cell."""
+    if column == "quality":
+        q, name = _quality(row)
+        return ("", "") if q is None else (f"{q:.4g} <small>{esc(name)}</small>", f"{q:.9g}")
+    value = row.get(column)
+    if value is None or (isinstance(value, float) and value != value):
+        return "", ""
+    if isinstance(value, float):
+        return f"{value:.4g}", f"{value:.9g}"
+    return esc(value), esc(value)
+
+
+def index_table(frame: pd.DataFrame, link: Callable[[tuple], str], thumb: Callable[[tuple], str | None]) -> str:
+    """The filterable, sortable cell tables (one per origin kind: they never share a table)."""
+    out = []
+    for title, sub in group_rows(frame):
+        cls = " class='note'" if title.startswith("TEST ONLY") else ""
+        out.append(f"<h3{cls}>{esc(title)}</h3><table class='cells'><thead><tr><th>preview</th><th>cell</th>")
+        out.extend(f"<th>{esc(label)}</th>" for _, label in INDEX_COLUMNS)
+        out.append("</tr></thead><tbody>")
+        for _, r in sub.iterrows():
+            cell = (str(r["mesh"]), str(r["prompt"]), str(r["variant"]))
+            text = " ".join([*cell, str(r.get("prompt_text", "")), str(r.get("origin", ""))]).lower()
+            out.append(
+                f"<tr data-mesh='{esc(cell[0])}' data-prompt='{esc(cell[1])}' data-variant='{esc(cell[2])}' "
+                f"data-text='{esc(text)}'>"
+            )
+            src = thumb(cell)
+            img = f"<img loading='lazy' alt='' src='{src}'>" if src else ""
+            out.append(f"<td data-v=''><a href='{link(cell)}'>{img}</a></td>")
+            out.append(f"<td class='text'><a href='{link(cell)}'>{esc(cell_key(cell))}</a></td>")
+            for column, _ in INDEX_COLUMNS:
+                shown, value = _cell_value(r, column)
+                out.append(
+                    f"<td class='text' data-v='{value}'>{shown}</td>"
+                    if column in ("prompt_text", "weights")
+                    else f"<td data-v='{value}'>{shown}</td>"
+                )
+            out.append("</tr>")
+        out.append("</tbody></table>")
+    return "".join(out)
+
+
+def filters(frame: pd.DataFrame) -> str:
+    parts = ["<div class='filters'><label>filter <input id='filter' type='search' placeholder='words in any column'></label>"]
+    for key in ("mesh", "prompt", "variant"):
+        options = "".join(f"<option>{esc(v)}</option>" for v in dict.fromkeys(frame[key].astype(str)))
+        parts.append(f"<label>{key} <select data-key='{key}'><option value=''>all</option>{options}</select></label>")
+    parts.append(f"<span><b id='shown'>{len(frame)}</b> of {len(frame)} cells shown</span></div>")
+    return "".join(parts)
+
+
+def figures_section(report_dir: Path, url: Callable[[Path], str]) -> str:
+    """The figures listed in figures.json: each drawn one (lazy image, link to full size), or the
+    reason it is not drawn."""
+    fj = Path(report_dir) / "figures.json"
+    entries = json.loads(fj.read_text()).get("figures", []) if fj.is_file() else []
+    out = ["<h2>Figures</h2>"]
+    overview = Path(report_dir) / "overview.png"
+    for e in entries:
+        out.append(f"<div class='figure'><h3>{esc(e['title'])}</h3>")
+        if "file" in e and (Path(report_dir) / e["file"]).is_file():
+            src = url(Path(report_dir) / e["file"])
+            out.append(f"<a href='{src}'><img loading='lazy' alt='{esc(e['title'])}' src='{src}'></a>")
+            out.append(f"<p><small>{esc(e.get('caption', ''))}</small></p>")
+        else:
+            out.append(f"<p class='skipped'>Not drawn: {esc(e.get('skipped', 'the figure file is missing'))}.</p>")
+        out.append("</div>")
+    if overview.is_file():
+        out.append(f"<div class='figure'><h3>Overview</h3><a href='{url(overview)}'>overview.png</a>: one row per cell")
+        out.append(" (RGB, diffuse, roughness, specular, normals of the front view).</div>")
+    return "".join(out)
+
+
+def speed_accuracy_section(report_dir: Path) -> str:
+    sa = Path(report_dir) / "speed_accuracy.csv"
+    try:
+        frame = pd.read_csv(sa) if sa.is_file() else pd.DataFrame()
+    except pd.errors.EmptyDataError:
+        frame = pd.DataFrame()
+    if not len(frame):
+        return ""
+    return (
+        "<h2>Speed / accuracy</h2><details><summary>one row per configuration of each mesh x prompt "
+        f"({len(frame)} rows; seeds of one configuration averaged)</summary>{table(frame)}</details>"
+    )
+
+
+def _group_info(report_dir: Path) -> dict[tuple[str, str], dict]:
+    fj = Path(report_dir) / "figures.json"
+    groups = json.loads(fj.read_text()).get("groups", []) if fj.is_file() else []
+    return {tuple(g["group"].split(" / ")): g for g in groups}
+
+
+def cell_body(
+    cell: tuple[str, str, str],
+    row: pd.DataFrame,
+    files: dict[str, Path],
+    url: Callable[[str], str],
+    viewer: str,
+    group: dict | None,
+) -> str:
+    """A cell's content: heading, origin, what its variant changes, 3D viewer, material maps,
+    renders, loss curve, metrics, relighting and material editing. ``url(name)`` is how the page
+    refers to the cell's file ``name``; ``viewer`` the viewer's HTML."""
+    mesh, prompt, variant = cell
+    out = [f"<h2 id='{esc('cell-' + '-'.join(cell))}'>{esc(cell_key(cell))}</h2>"]
+    if len(row):
+        r = row.iloc[0]
+        out.append(f"<p>{esc(r.get('prompt_text', ''))}</p>")
+        origin = str(r.get("origin", ""))
+        cls = " class='banner note'" if origin.startswith(("TEST ONLY", "IMAGE-GUIDED")) else ""
+        out.append(f"<p{cls}>{esc(origin)}</p>")
+    if group:
+        conf = next((c for c, vs in group["configurations"].items() if variant in vs), variant)
+        changes = group["factors"].get(conf, "")
+        ref = group.get("reference")
+        if ref is None:
+            text = "no reference variant in this mesh x prompt"
+        elif conf == ref:
+            text = "the reference variant"
+        else:
+            text = f"changes against the reference ({ref}): {changes or 'nothing but the seed'}"
+            text += " (an ablation)" if conf in group.get("ablations", []) else ""
+        replicates = group["configurations"].get(conf, [variant])
+        if len(replicates) > 1:
+            text += f"; seed replicates: {', '.join(replicates)}"
+        out.append(f"<p><small>{esc(text)}</small></p>")
+    out.append("<h3>3D viewer</h3>" + viewer)
+    if len(row):
+        out.append(fidelity_lines(row))
+    maps = [n for n in files if n.startswith("texture_")]
+    if maps:
+        out.append("<h3>Material maps</h3>" + gallery([(n, n.removeprefix("texture_").removesuffix(".png")) for n in maps], url))
+    renders = [n for n in files if n.startswith("render_")]
+    if renders:
+        out.append(
+            "<h3>Renders (evaluation views)</h3>"
+            + gallery([(n, n.removeprefix("render_").removesuffix(".png")) for n in renders], url)
+        )
+    if "loss.png" in files:
+        out.append(f"<h3>Loss</h3><img loading='lazy' alt='loss curve' src='{url('loss.png')}'>")
+    if len(row):
+        r = row.iloc[0]
+        kv = "".join(
+            f"<tr><td>{esc(k)}</td><td>{esc(f'{v:.6g}' if isinstance(v, float) else v)}</td></tr>"
+            for k, v in r.items()
+            if not (v is None or (isinstance(v, float) and v != v))
+        )
+        out.append(
+            "<h3>Metrics and provenance</h3><details><summary>all summary fields</summary>"
+            f"<table class='kv'>{kv}</table></details>"
+        )
+    for name, title in (
+        ("relit.png", "Relighting (evaluation views under a new environment)"),
+        ("light_fit.png", "The new environment and its SG fit"),
+        ("material_edit.png", "Material editing (rows: roughness x, columns: specular x)"),
+        ("metric_views.png", "Metric views"),
+        ("metric_targets.png", "Metric targets"),
+        ("roundtrip_compare.png", "Blender round trip, front view: ours | Cycles per format | 4 x |difference|"),
+    ):
+        if name in files:
+            out.append(f"<h3>{esc(title)}</h3><img loading='lazy' alt='{esc(title)}' src='{url(name)}'>")
+    return "".join(out)
+
+
+def gallery(items: list[tuple[str, str]], url: Callable[[str], str]) -> str:
+    """Clickable thumbnails over one large image (the first item shown)."""
+    picks = "".join(
+        f"<img loading='lazy' class='{'on' if i == 0 else ''}' alt='{esc(label)}' title='{esc(label)}' src='{url(name)}'>"
+        for i, (name, label) in enumerate(items)
+    )
+    first, label = items[0]
+    return (
+        f"<div class='gallery'><div class='picks'>{picks}</div><div class='caption'>{esc(label)}</div>"
+        f"<img class='main' loading='lazy' alt='{esc(label)}' src='{url(first)}'></div>"
+    )
+
+
+def viewer_html(files: dict[str, Path], url: Callable[[str], str], have_viewer: bool, packed: str | None, label: str) -> str:
+    """The 3D viewer of a cell (model-viewer, started when it scrolls into view) with its light
+    toggle; without model-viewer or a model, the static preview and why."""
+    if not have_viewer or "model.glb" not in files:
+        if "preview.png" in files:
+            return f"<img class='preview viewer-img' alt='{esc(label)}' src='{url('preview.png')}'>"
+        return "<p class='skipped'>No exported model for this cell.</p>"
+    hdr = url("light.hdr") if "light.hdr" in files else ""
+    poster = f" poster='{url('preview.png')}'" if "preview.png" in files else ""
+    packed_attr = f" data-packed='{packed}'" if packed else ""
+    buttons = (
+        "<p><button data-light='learned'>learned light (light.hdr)</button> <button data-light='studio'>studio light</button></p>"
+        if hdr
+        else "<p><small>no learned light exported: a neutral studio light</small></p>"
+    )
+    return (
+        f"<model-viewer data-glb='{url('model.glb')}' data-hdr='{hdr}'{packed_attr}{poster} alt='{esc(label)}' "
+        "camera-controls loading='lazy' reveal='auto' shadow-intensity='0.5' exposure='1' interaction-prompt='none'>"
+        f"</model-viewer>{buttons}"
+    )
+
+
+def _head(title: str, extra: str = "") -> str:
+    style = (WEB / "report.css").read_text()
+    head = f"<meta charset='utf-8'><title>{esc(title)}</title><style>{style}</style>{extra}"
+    return f"<!doctype html><html><head>{head}</head><body>"
+
+
+def _no_viewer_notice() -> str:
+    return (
+        "<p class='banner' id='no-viewer'>3D viewers are off: model-viewer (an npm package) was not installed "
+        "when this report was made, so each asset shows its static preview. Install Node.js, run 'npm ci' and "
+        "rerun the report to get them.</p>"
+    )
+
+
+def _place(src: Path, dst: Path) -> None:
+    """Put ``src`` at ``dst``: a hard link where the file system allows (no copy), else a copy."""
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        os.link(src, dst)
+    except OSError:
+        shutil.copy2(src, dst)
+
+
+def _row(frame: pd.DataFrame, cell: tuple[str, str, str]) -> pd.DataFrame:
+    mesh, prompt, variant = cell
+    return frame[(frame["mesh"] == mesh) & (frame["prompt"] == prompt) & (frame["variant"] == variant)]
+
+
+# ---- the folder ------------------------------------------------------------------------------
+def write_folder(
+    results: Path,
+    report_dir: Path,
+    cells: list[tuple[str, str, str]],
+    model_viewer: Path,
+    thumbnail: Callable[[tuple[str, str, str]], object],
+) -> dict:
+    """Write ``index.html``, ``cells/`` and ``viewer/`` under ``report_dir`` (the summary and
+    figures already there). ``thumbnail(cell)``: a PIL image. Returns counts and sizes."""
+    report_dir = Path(report_dir)
+    frame = pd.read_csv(report_dir / "summary.csv")
+    have_viewer = Path(model_viewer).is_file()
+    groups = _group_info(report_dir)
+    staging = {name: report_dir / f".{name}.partial" for name in ("cells", "viewer")}
+    for d in staging.values():
+        shutil.rmtree(d, ignore_errors=True)
+        d.mkdir(parents=True)
+    shutil.copyfile(WEB / "cell.js", staging["viewer"] / "cell.js")
+    if have_viewer:
+        shutil.copyfile(model_viewer, staging["viewer"] / "model-viewer.min.js")
+    viewers = 0
+    for cell in cells:
+        folder = staging["cells"].joinpath(*cell)
+        folder.mkdir(parents=True)
+        files = cell_files(results, cell)
+        for name, src in files.items():
+            _place(src, folder / name)
+        thumbnail(cell).save(folder / "thumb.png", format="PNG")
+        packed = None
+        if have_viewer and "model.glb" in files:
+            assets = {"glb": base64.b64encode(files["model.glb"].read_bytes()).decode("ascii")}
+            if "light.hdr" in files:
+                assets["hdr"] = base64.b64encode(files["light.hdr"].read_bytes()).decode("ascii")
+            (folder / "assets.js").write_text("window.TANGO_CELL_ASSETS = " + json.dumps(assets) + ";\n")
+            packed = "assets.js"
+            viewers += 1
+        up = "../" * (len(cell) + 1)  # cells/<mesh>/<prompt>/<variant>/ back to the report folder
+        row = _row(frame, cell)
+        scripts = (f"<script src='{up}viewer/model-viewer.min.js'></script>" if have_viewer else "") + (
+            f"<script defer src='{up}viewer/cell.js'></script>"
+        )
+        label = cell_key(cell)
+        page = [_head(f"{label}: tango-stylize report", scripts)]
+        page.append(f"<p><a href='{up}index.html'>&larr; all cells</a></p>")
+        page.append(origin_banner(row))
+        if not have_viewer:
+            page.append(_no_viewer_notice())
+        page.append(
+            cell_body(
+                cell, row, files, lambda n: n, viewer_html(files, lambda n: n, have_viewer, packed, label), groups.get(cell[:2])
+            )
+        )
+        page.append("</body></html>")
+        (folder / "index.html").write_text("".join(page))
+    # swap the finished folders in, then the index (written last: it is the rule's marker)
+    for name, d in staging.items():
+        final = report_dir / name
+        if final.exists():
+            shutil.rmtree(final)
+        d.rename(final)
+
+    def link(cell):
+        return "cells/" + "/".join(cell) + "/index.html"
+
+    def thumb(cell):
+        return "cells/" + "/".join(cell) + "/thumb.png"
+
+    index = _index_page(
+        frame, report_dir, len(cells), link, thumb, lambda p: Path(p).relative_to(report_dir).as_posix(), have_viewer
+    )
+    with atomic_path(report_dir / "index.html") as tmp:
+        tmp.write_text(index)
+    size = (report_dir / "index.html").stat().st_size
+    log.info("wrote %s (%d cells, %d viewers; index %.2f MB)", report_dir / "index.html", len(cells), viewers, size / 1e6)
+    return {"cells": len(cells), "viewers": viewers, "index_bytes": size}
+
+
+def _index_page(frame, report_dir, n_cells, link, thumb, url, have_viewer, cell_sections: str = "", head: str = "") -> str:
+    parts = [_head("tango-stylize report", head)]
+    parts.append(f"<h1>tango-stylize report: {n_cells} grid cells</h1>")
+    parts.append(origin_banner(frame))
+    if not have_viewer:
+        parts.append(_no_viewer_notice())
+    parts.append("<h2>Summary</h2>")
+    csvs = [n for n in ("summary.csv", "speed_accuracy.csv") if (Path(report_dir) / n).is_file()]
+    if csvs and not cell_sections:
+        parts.append("<p>Every column: " + ", ".join(f"<a href='{n}'>{n}</a>" for n in csvs) + "</p>")
+    parts.append(filters(frame))
+    parts.append(index_table(frame, link, thumb))
+    parts.append(speed_accuracy_section(report_dir))
+    parts.append(figures_section(report_dir, url))
+    parts.append(cell_sections)
+    parts.append(f"<script>{(WEB / 'index.js').read_text()}</script></body></html>")
+    return "".join(parts)
+
+
+# ---- one file ------------------------------------------------------------------------------
+def write_single_file(results: Path, report_dir: Path, cells: list[tuple[str, str, str]], out: Path, model_viewer: Path) -> dict:
+    """One self-contained page: the index, then every cell's section with its images and model
+    inlined (data URIs) and its viewer started when it scrolls into view."""
+    report_dir = Path(report_dir)
+    frame = pd.read_csv(report_dir / "summary.csv")
+    have_viewer = Path(model_viewer).is_file()
+    groups = _group_info(report_dir)
+    sections, viewers = [], 0
+    for cell in cells:
+        files = cell_files(results, cell)
+
+        def url(name, files=files):
+            return data_uri(files[name]) + ("#light.hdr" if name == "light.hdr" else "")
+
+        viewer = viewer_html(files, url, have_viewer, None, cell_key(cell))
+        viewers += "<model-viewer" in viewer
+        sections.append(
+            "<div class='cell-section'>" + cell_body(cell, _row(frame, cell), files, url, viewer, groups.get(cell[:2])) + "</div>"
+        )
+    extra = f"<script>{Path(model_viewer).read_text()}</script>" if have_viewer else ""
+    page = _index_page(
+        frame,
+        report_dir,
+        len(cells),
+        lambda c: "#" + esc("cell-" + "-".join(c)),
+        lambda c: None,
+        lambda p: data_uri(p),
+        have_viewer,
+        "<h2>Cells</h2>" + "".join(sections) + f"<script>{(WEB / 'cell.js').read_text()}</script>",
+        extra,
+    )
+    with atomic_path(Path(out)) as tmp:
+        tmp.write_text(page)
+    size = Path(out).stat().st_size
+    log.info("wrote %s (one file, %d cells, %d viewers, %.1f MB)", out, len(cells), viewers, size / 1e6)
+    return {"cells": len(cells), "viewers": viewers, "index_bytes": size}
