@@ -35,6 +35,7 @@ from pathlib import Path
 
 import pandas as pd
 
+from ..config.layout import RENDER_KINDS
 from ..core.provenance import atomic_path
 
 log = logging.getLogger(__name__)
@@ -51,13 +52,7 @@ INDEX_COLUMNS = (
 )
 #: a cell's files the pages show: (folder, file, name in the cell's page folder)
 CELL_FILES = (
-    ("optimize/renders", "rgb.png", "render_rgb.png"),
-    ("optimize/renders", "diffuse.png", "render_diffuse.png"),
-    ("optimize/renders", "roughness.png", "render_roughness.png"),
-    ("optimize/renders", "specular.png", "render_specular.png"),
-    ("optimize/renders", "normal.png", "render_normal.png"),
-    ("optimize/renders", "target.png", "render_target.png"),
-    ("optimize/renders", "light.png", "render_light.png"),
+    *(("optimize/renders", f"{kind}.png", f"render_{kind}.png") for kind in (*RENDER_KINDS, "target", "light")),
     ("optimize", "loss.png", "loss.png"),
     ("export", "model.glb", "model.glb"),
     ("export", "light.hdr", "light.hdr"),
@@ -401,7 +396,8 @@ def viewer_html(files: dict[str, Path], url: Callable[[str], str], have_viewer: 
 
 def _head(title: str, extra: str = "") -> str:
     style = (WEB / "report.css").read_text()
-    head = f"<meta charset='utf-8'><title>{esc(title)}</title><style>{style}</style>{extra}"
+    # an empty icon: a served report would otherwise ask the server for /favicon.ico
+    head = f"<meta charset='utf-8'><title>{esc(title)}</title><link rel='icon' href='data:,'><style>{style}</style>{extra}"
     return f"<!doctype html><html><head>{head}</head><body>"
 
 
