@@ -5,9 +5,10 @@
 //       the index: console errors, time until its script made the table interactive (ms after
 //       navigation start), rows, rows left by the text filter and by the mesh selector, a
 //       sort by the quality column, and a screenshot of the first screen
-//   node scripts/check_report.mjs cell PAGE SHOT
+//   node scripts/check_report.mjs cell PAGE SHOT [--page-shot FILE]
 //       a cell page: console errors, every file it requested, its 3D viewer loaded (with the
-//       learned light, then the studio light), and a screenshot of the viewer
+//       learned light, then the studio light: SHOT and SHOT's name + _studio), a gallery
+//       thumbnail clicked; --page-shot: the first screen of the page (the README's picture)
 //   node scripts/check_report.mjs single PAGE SHOT
 //       a one-file report: every viewer scrolled into view and loaded; a screenshot of the first
 //
@@ -97,6 +98,13 @@ if (mode === "index") {
       await page.waitForTimeout(1000);
       await first.screenshot({ path: shot.replace(/\.png$/, "_studio.png") });
       await page.locator("button[data-light=learned]").first().click();
+      await page.waitForTimeout(1000);
+    }
+    const pageShot = option("--page-shot");
+    if (pageShot !== undefined) {
+      await page.evaluate(() => window.scrollTo(0, 0));
+      await page.waitForTimeout(500);
+      await page.screenshot({ path: pageShot });
     }
   } else {
     await page.screenshot({ path: shot });

@@ -187,9 +187,9 @@ def knee_point(points: list[tuple[float, float]], front: list[int]) -> int | Non
 
 def trade_off(group: Group) -> list[dict]:
     """One row per configuration of a group: mean (and spread over its seeds) of the
-    optimisation's wall time and of the quality, whether it is on the group's Pareto front, and
-    whether it is the front's knee."""
-    time, quality = group.stats("seconds"), group.stats("quality")
+    optimisation's wall time and of the quality, the mean peak memory (when measured), whether
+    it is on the group's Pareto front, and whether it is the front's knee."""
+    time, quality, peak = group.stats("seconds"), group.stats("quality"), group.stats("peak_mb")
     confs = [c for c in group.configurations() if c in time and c in quality]
     points = [(time[c][0], quality[c][0]) for c in confs]
     front = pareto_front(points)
@@ -207,6 +207,7 @@ def trade_off(group: Group) -> list[dict]:
                 "ablation": c in group.ablations,
                 "seconds": time[c][0],
                 "seconds_std": time[c][1],
+                "peak_mb": peak[c][0] if c in peak else None,
                 "quality": quality[c][0],
                 "quality_std": quality[c][1],
                 "quality_name": group.quality_name,

@@ -274,3 +274,20 @@ def test_field_settings_are_a_typed_subset_of_the_optimize_settings():
     assert all(field[k] == opt[k] for k in field)
     s = OptimizeSettings(width=64, light_lobes=7, seed=3).field_settings()
     assert (s.width, s.light_lobes, s.seed) == (64, 7, 3)
+
+
+def test_report_section_names_existing_variants(base):
+    base["variants"] = {"full": {}, "no_normal": {"optimize": {"normal_network": False}}}
+    base["report"] = {"reference": "full", "ablations": ["no_normal"], "single_file": True}
+    settings = WorkflowConfig(base).report_settings()
+    assert settings.reference == "full" and settings.ablations == ("no_normal",) and settings.single_file
+    for bad, message in (
+        ({"reference": "nope"}, "report names variant(s) 'nope' that the config does not define"),
+        ({"ablations": ["full", "gone"]}, "'gone'"),
+        ({"reference": "full", "ablations": ["full"]}, "cannot be one of the ablations"),
+        ({"panels_per_figure": 0}, "report -> panels_per_figure"),
+        ({"colour": "red"}, "unknown key.*colour"),
+    ):
+        base["report"] = bad
+        with pytest.raises(ConfigError, match=message.replace("(", r"\(").replace(")", r"\)")):
+            WorkflowConfig(base)

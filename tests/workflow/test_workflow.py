@@ -8,7 +8,7 @@ import re
 import numpy as np
 import pytest
 import yaml
-from conftest import REPO, mesh_work_dir, run_snakemake
+from conftest import REPO, assert_not_blank, browser_check, mesh_work_dir, run_snakemake
 
 from stages.config.workflow import WorkflowConfig, load_config_file
 from stages.geometry.raycache import RayCache
@@ -174,7 +174,9 @@ def check_test_only_marks(res) -> None:
     )
     page = (res / "report" / "index.html").read_text()
     assert f"TEST ONLY: {len(cells)} of {len(cells)} cells" in page
-    assert page.count("<small class='note'>TEST ONLY") == len(cells)
+    for mesh, prompt, variant in cells:
+        cell_page = (res / "report" / "cells" / mesh / prompt / variant / "index.html").read_text()
+        assert "TEST ONLY: 1 of 1 cells" in cell_page and "<p class='banner note'>TEST ONLY: made with random" in cell_page
 
 
 @pytest.mark.slow
@@ -235,9 +237,26 @@ def test_smoke_run(tmp_path):
         summary.loc[summary["mesh"] == "knot", "faces_after"].iloc[0]
         < summary.loc[summary["mesh"] == "knot", "faces_before"].iloc[0]
     )
-    for name in ("overview.png", "asset_pack.zip", "index.html", "pareto.png", "loss_curves.png", "grid_vase.png"):
+    for name in ("overview.png", "asset_pack.zip", "index.html", "viewer/cell.js", "cells/knot/ice/second/model.glb"):
         assert (res / "report" / name).is_file(), name
     assert "TEST ONLY" in (res / "report" / "index.html").read_text()
+    # the figures compare like with like: per mesh x prompt, "second" (normal network off) is an
+    # ablation of "full"; no mesh has a decimated twin, so there is no robustness figure, and why
+    figures = json.loads((res / "report" / "figures.json").read_text())
+    drawn = {e["file"] for e in figures["figures"] if "file" in e}
+    assert {"figures/speed_accuracy.png", "figures/ablations.png", "figures/loss_curves.png", "figures/grid_vase.png"} <= drawn
+    assert all((res / "report" / f).is_file() for f in drawn)
+    skipped = {e["title"]: e["skipped"] for e in figures["figures"] if "skipped" in e}
+    skipped_robustness = skipped["Robustness: each mesh beside its decimated version"]
+    assert "decimated version" in skipped_robustness
+    assert len(figures["groups"]) == 9 and all(g["ablations"] == ["second"] for g in figures["groups"])
+    # the real report's pages in a browser: the index and a cell page with its viewer
+    r = browser_check("index", res / "report" / "index.html", tmp_path / "index.png", "--filter", "knot ice")
+    assert r["errors"] == [] and r["rows"] == 18 and r["filtered_rows"] == 2
+    assert r["skipped"] == [f"Not drawn: {skipped_robustness}."]
+    r = browser_check("cell", res / "report" / "cells" / "knot" / "ice" / "second" / "index.html", tmp_path / "cell.png")
+    assert r["errors"] == [] and r["loaded"] == 1 and r["environment"].endswith("#light.hdr")
+    assert_not_blank(tmp_path / "cell.png")
     for rel in ("export/model.usdz", "export/model.glb", "relight/material_edit.png"):
         assert (res / "vase" / "wood" / "full" / rel).is_file()
     check_test_only_marks(res)

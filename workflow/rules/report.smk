@@ -75,6 +75,7 @@ rule html_report:
     input:
         summary=f"{RESULTS}/report/summary.csv",
         figures=f"{RESULTS}/report/figures.json",
+        plots=f"{RESULTS}/report/figures",
         assets=cell_metas("export/meta.json"),
     output:
         html=f"{RESULTS}/report/index.html",
