@@ -37,6 +37,7 @@ import pandas as pd
 
 from ..config.layout import RENDER_KINDS
 from ..core.provenance import atomic_path
+from .summary import quality_of
 
 log = logging.getLogger(__name__)
 
@@ -185,17 +186,10 @@ def cell_files(results: Path, cell: tuple[str, str, str]) -> dict[str, Path]:
     return found
 
 
-def _quality(row: pd.Series) -> tuple[float | None, str]:
-    for column, name in (("target_psnr_db", "target PSNR (dB)"), ("clip_score", "CLIP score")):
-        if column in row and pd.notna(row[column]):
-            return float(row[column]), name
-    return None, ""
-
-
 def _cell_value(row: pd.Series, column: str) -> tuple[str, str]:
     """(shown text, sort value) of one index cell."""
     if column == "quality":
-        q, name = _quality(row)
+        q, name = quality_of(row)
         return ("", "") if q is None else (f"{q:.4g} <small>{esc(name)}</small>", f"{q:.9g}")
     value = row.get(column)
     if value is None or (isinstance(value, float) and value != value):
