@@ -5,7 +5,9 @@ Found without importing anything (building the DAG imports no torch): each modul
 parsed (``ast``) for its ``import``/``from ... import`` statements naming this package, resolved
 to files, and followed. The digest hashes each file's syntax tree (``ast.dump``), so comments and
 formatting do not rerun jobs; code and docstrings do. Imports inside functions count too (the
-stages import heavy dependencies lazily, and a few of their own modules the same way). Third-party
+stages import heavy dependencies lazily, and a few of their own modules the same way). The files a
+package ships besides its modules (its folders that are not packages: ``render/data/``, the
+report's ``results/web/``) count byte for byte with every module of that package. Third-party
 code is not followed: its versions are recorded in every output's metadata instead.
 """
 
@@ -88,14 +90,35 @@ def module_closure(name: str, root: Path = ROOT) -> dict[str, Path]:
     return seen
 
 
+def package_data(package_dir: Path) -> list[Path]:
+    """The files a package ships besides its modules: everything under its sub-folders that are
+    not packages themselves (no ``__init__.py``; caches aside), sorted."""
+    out: list[Path] = []
+    for sub in sorted(package_dir.iterdir()):
+        if sub.is_dir() and sub.name != "__pycache__" and not (sub / "__init__.py").is_file():
+            out += sorted(p for p in sub.rglob("*") if p.is_file() and "__pycache__" not in p.parts)
+    return out
+
+
 def code_digest(name: str, root: Path = ROOT) -> str:
     """16 hex characters: the SHA-256 of the syntax trees of :func:`module_closure` of ``name``,
-    in module order."""
+    in module order, and of the data files of every package among them (:func:`package_data`)."""
     h = hashlib.sha256()
     for mod, path in sorted(module_closure(name, root).items()):
         h.update(mod.encode())
         h.update(_tree_digest(_tree(path)))
+        if path.name == "__init__.py":
+            for data in package_data(path.parent):
+                st = data.stat()
+                h.update(data.relative_to(root).as_posix().encode())
+                h.update(_file_digest(data, st.st_mtime_ns, st.st_size))
     return h.hexdigest()[:16]
+
+
+@cache
+def _file_digest(path: Path, mtime_ns: int, size: int) -> bytes:
+    """A data file's SHA-256, computed once per version of the file."""
+    return hashlib.sha256(path.read_bytes()).digest()
 
 
 @cache

@@ -47,6 +47,24 @@ def test_digest_changes_with_code_not_with_comments(tmp_path):
     assert after["stages.report"] == before["stages.report"]  # it does not
 
 
+def test_digest_covers_package_data(tmp_path):
+    """The report's style sheet and scripts, and the renderer's tables, are code too."""
+    root = copy_repo(tmp_path)
+    stages = root / "stages"
+    names = ("stages.html_report", "stages.report", "stages.normalize", "stages.optimize")
+    before = {m: code_digest(m, stages) for m in names}
+    css = stages / "results" / "web" / "report.css"
+    css.write_text(css.read_text() + "body{color:red}\n")
+    after = {m: code_digest(m, stages) for m in names}
+    assert after["stages.html_report"] != before["stages.html_report"]
+    assert after["stages.report"] != before["stages.report"]  # the same package (stages.results)
+    assert after["stages.normalize"] == before["stages.normalize"] and after["stages.optimize"] == before["stages.optimize"]
+    table = stages / "render" / "data" / "specular_albedo.npz"
+    table.write_bytes(table.read_bytes() + b"\0")
+    assert code_digest("stages.optimize", stages) != before["stages.optimize"]
+    assert code_digest("stages.normalize", stages) == before["stages.normalize"]
+
+
 TINY = {
     "meshes": {"vase": {"builtin": "vase"}},
     "prompts": {"wood": "a {object} made of wood"},
