@@ -57,12 +57,15 @@ if (mode === "index") {
     await page.selectOption("select[data-key=mesh]", "");
   }
   const header = page.locator("table.cells th", { hasText: "quality" }).first();
+  const column = () => page.evaluate(() => [...document.querySelector("table.cells").tBodies[0].rows].map((r) => {
+    const i = [...r.closest("table").tHead.rows[0].cells].findIndex((h) => h.textContent.startsWith("quality"));
+    return r.cells[i].dataset.v === "" ? null : Number(r.cells[i].dataset.v);
+  }));
   if (await header.count()) {
     await header.click();
-    out.sorted_quality = await page.evaluate(() => [...document.querySelector("table.cells").tBodies[0].rows].map((r) => {
-      const i = [...r.closest("table").tHead.rows[0].cells].findIndex((h) => h.textContent.startsWith("quality"));
-      return Number(r.cells[i].dataset.v);
-    }));
+    out.sorted_quality = await column();
+    await header.click();
+    out.sorted_quality_desc = await column();
   }
   out.figures = await page.evaluate(() => document.querySelectorAll(".figure img").length);
   out.skipped = await page.evaluate(() => [...document.querySelectorAll(".skipped")].map((p) => p.textContent));
@@ -75,12 +78,14 @@ if (mode === "index") {
     const v = viewers.nth(i);
     await v.scrollIntoViewIfNeeded();
     try {
-      await v.evaluate((m) => new Promise((resolve, reject) => {
-        if (m.loaded) return resolve();
-        m.addEventListener("load", () => resolve(), { once: true });
+      const at = await v.evaluate((m) => new Promise((resolve, reject) => {
+        if (m.loaded) return resolve(performance.now());
+        m.addEventListener("load", () => resolve(performance.now()), { once: true });
         m.addEventListener("error", (e) => reject(new Error("model-viewer error " + JSON.stringify(e.detail))), { once: true });
         setTimeout(() => reject(new Error("timeout")), 90000);
       }));
+      // ms after navigation start when the (first) viewer had its model
+      if (out.loaded === 0) out.viewer_ms = Math.round(at);
       out.loaded += 1;
     } catch (e) { errors.push("viewer " + i + ": " + e); }
   }
@@ -108,6 +113,11 @@ if (mode === "index") {
     }
   } else {
     await page.screenshot({ path: shot });
+  }
+  if (mode === "single" && out.viewers > 1) {
+    // each viewer's own buttons: studio under the first leaves the others under their learned light
+    await page.locator("button[data-light=studio]").first().click();
+    out.environments_after_first_studio = await viewers.evaluateAll((ms) => ms.map((m) => (m.environmentImage || "").slice(-20)));
   }
   out.galleries = await page.evaluate(() => document.querySelectorAll(".gallery").length);
   const pick = page.locator(".gallery .picks img").nth(1);

@@ -73,6 +73,10 @@ def run(
     faces = {r["mesh"]: int(r["faces_after"]) for r in rows}
     quality = {(t["mesh"], t["prompt"], t["variant"]): quality_text(t["quality"], t["quality_name"]) for t in timed}
 
+    kinds = {
+        (r["mesh"], r["prompt"], r["variant"]): r["guidance"] + (", TEST ONLY" if r["test_only_weights"] else "") for r in rows
+    }
+
     def tile(cell, size):
         return front_tile(results, cell, size=size)
 
@@ -80,7 +84,7 @@ def run(
     entries = (
         speed_accuracy_figures(figures_dir, groups, panels)
         + ablation_figures(figures_dir, groups, panels)
-        + loss_figures(figures_dir, results, cells, panels)
+        + loss_figures(figures_dir, results, cells, panels, kinds)
         + robustness_figure(figures_dir, results, cells, decimated or {}, faces, quality, tile)
         + variant_grids(figures_dir, cells, tile)
     )
@@ -92,12 +96,15 @@ def run(
     group_list = [
         {
             "group": g.label,
+            "mesh": g.mesh,
+            "prompt": g.prompt,
             "quality_name": g.quality_name,
             "test_only": g.test_only,
             "reference": g.reference,
             "configurations": g.configurations(),
             "factors": g.factor,
             "ablations": g.ablations,
+            "duplicates": g.duplicates,
         }
         for g in groups
     ]

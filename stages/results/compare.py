@@ -6,7 +6,8 @@ kind (test-only or real). Within such a group the variants are sorted by what th
 against the reference variant (``report.reference``, default the first variant):
 
 - **configurations**: variants whose resolved per-cell settings are equal once the seed is set
-  aside are replicates of one configuration (their spread is the seed's);
+  aside are replicates of one configuration (their spread is the seed's); a variant equal to an
+  earlier one seed included is the same run twice (a duplicate) and is left out;
 - **factor**: the settings in which a configuration differs from the reference (a sweep factor,
   e.g. ``iterations, milestones``);
 - **ablations**: configurations that differ from the reference only by switching components off
@@ -32,6 +33,8 @@ log = logging.getLogger(__name__)
 SETTINGS_STAGES = ("optimize", "bake", "relight", "lod")
 #: settings that change neither the result nor its cost as compared (a replicate differs only here)
 NEUTRAL_KEYS = ("optimize.seed", "optimize.checkpoint_every")
+#: the setting replicates differ in
+SEED_KEY = "optimize.seed"
 
 
 def cell_settings(cell_dir: Path) -> dict[str, Any]:
@@ -93,6 +96,10 @@ class Group:
     factor: dict[str, str] = field(default_factory=dict)
     #: configurations that are ablations of the reference
     ablations: list[str] = field(default_factory=list)
+    #: variant -> an earlier variant with the same settings, seed included (the same run made
+    #: twice, e.g. a variant that switches off what the prompt's preset already switched off):
+    #: left out of every comparison rather than counted as a seed replicate
+    duplicates: dict[str, str] = field(default_factory=dict)
     reference: str | None = None
 
     @property
@@ -141,6 +148,10 @@ def comparison_groups(
         confs: list[str] = []
         for variant in g.rows:
             s = settings[(g.mesh, g.prompt, variant)]
+            twin = next((v for v in g.configuration if _same_run(settings[(g.mesh, g.prompt, v)], s)), None)
+            if twin is not None:  # the same settings, seed included: the same run twice, not a replicate
+                g.duplicates[variant] = twin
+                continue
             same = next((c for c in confs if not differing_keys(settings[(g.mesh, g.prompt, c)], s)), None)
             if same is None:
                 confs.append(variant)
@@ -161,6 +172,10 @@ def comparison_groups(
     return list(groups.values())
 
 
+def _same_run(a: dict[str, Any], b: dict[str, Any]) -> bool:
+    return not differing_keys(a, b) and _canonical(a.get(SEED_KEY)) == _canonical(b.get(SEED_KEY))
+
+
 def pareto_front(points: list[tuple[float, float]]) -> list[int]:
     """Indices of the points not dominated in (lower time, higher quality), by time."""
     order = sorted(range(len(points)), key=lambda i: (points[i][0], -points[i][1]))
@@ -175,8 +190,8 @@ def pareto_front(points: list[tuple[float, float]]) -> list[int]:
 def knee_point(points: list[tuple[float, float]], front: list[int]) -> int | None:
     """The front point farthest from the straight line joining the front's ends (normalised
     axes): where more time stops buying much quality."""
-    if len(front) < 3:
-        return front[-1] if front else None
+    if len(front) < 3:  # a front of one or two points has no bend
+        return None
     xs = np.array([points[i][0] for i in front])
     ys = np.array([points[i][1] for i in front])
     x = (xs - xs.min()) / max(np.ptp(xs), 1e-12)

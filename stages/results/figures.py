@@ -212,17 +212,24 @@ def ablation_figures(out_dir: Path, groups: list[Group], panels: int) -> list[di
     return entries
 
 
-def loss_figures(out_dir: Path, results: Path, cells: list[tuple[str, str, str]], panels: int) -> list[dict]:
-    """Loss curves as small multiples: one panel per mesh x prompt, its variants overlaid (a
-    legend when there are few), each panel on its own axes."""
+def loss_figures(
+    out_dir: Path, results: Path, cells: list[tuple[str, str, str]], panels: int, kinds: dict | None = None
+) -> list[dict]:
+    """Loss curves as small multiples: one panel per mesh x prompt and kind of run (``kinds``:
+    cell -> e.g. "CLIP" or "image-guided, TEST ONLY": losses of different guidance or weights
+    never share an axis), its variants overlaid (a legend when there are few), each panel on its
+    own axes."""
     import pandas as pd
 
     title = "Loss curves per mesh x prompt"
-    curves: dict[tuple[str, str], list[tuple[str, pd.DataFrame]]] = {}
+    kinds = kinds or {}
+    several = len(set(kinds.get(c, "") for c in cells)) > 1
+    curves: dict[tuple[str, str, str], list[tuple[str, pd.DataFrame]]] = {}
     for mesh, prompt, variant in cells:
         f = Path(results) / mesh / prompt / variant / "optimize" / "loss.csv"
         if f.is_file():
-            curves.setdefault((mesh, prompt), []).append((variant, pd.read_csv(f)))
+            key = (mesh, prompt, kinds.get((mesh, prompt, variant), ""))
+            curves.setdefault(key, []).append((variant, pd.read_csv(f)))
     if not curves:
         return [{"title": title, "skipped": "no cell has a loss record (optimize/loss.csv)"}]
     entries = []
@@ -233,7 +240,7 @@ def loss_figures(out_dir: Path, results: Path, cells: list[tuple[str, str, str]]
         for ax, key in zip(axes, chunk, strict=True):
             for variant, d in curves[key]:
                 ax.plot(d["iteration"], d["loss"], lw=0.7, label=variant)
-            ax.set_title(f"{key[0]} / {key[1]}", fontsize=8)
+            ax.set_title(f"{key[0]} / {key[1]}" + (f" ({key[2]})" if several else ""), fontsize=8)
             ax.tick_params(labelsize=6)
             if len(curves[key]) <= 8:
                 ax.legend(fontsize=5)

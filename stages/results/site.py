@@ -275,10 +275,41 @@ def speed_accuracy_section(report_dir: Path) -> str:
     )
 
 
-def _group_info(report_dir: Path) -> dict[tuple[str, str], dict]:
+def _groups(report_dir: Path) -> list[dict]:
     fj = Path(report_dir) / "figures.json"
-    groups = json.loads(fj.read_text()).get("groups", []) if fj.is_file() else []
-    return {tuple(g["group"].split(" / ")): g for g in groups}
+    return json.loads(fj.read_text()).get("groups", []) if fj.is_file() else []
+
+
+def comparison_text(cell: tuple[str, str, str], groups: list[dict]) -> str:
+    """What the report compares the cell with: its group's reference, what its configuration
+    changes against it, its seed replicates; "" when it is in no comparison (no quality figure)."""
+    mesh, prompt, variant = cell
+    for g in groups:
+        if g["mesh"] != mesh or g["prompt"] != prompt:
+            continue
+        if variant in g.get("duplicates", {}):
+            return f"the same settings as {g['duplicates'][variant]}, seed included: left out of the comparisons"
+        conf = next((c for c, vs in g["configurations"].items() if variant in vs), None)
+        if conf is None:
+            continue  # another group of this mesh x prompt (another quality measure or kind of weights)
+        ref = g.get("reference")
+        if ref is None:
+            text = "no reference variant in this mesh x prompt to compare with"
+        elif conf == ref:
+            text = "the reference variant"
+        else:
+            text = f"changes against the reference ({ref}): {g['factors'].get(conf) or 'nothing but the seed'}"
+            text += " (an ablation)" if conf in g.get("ablations", []) else ""
+        replicates = g["configurations"][conf]
+        if len(replicates) > 1:
+            text += f"; seed replicates: {', '.join(replicates)}"
+        return text
+    return ""
+
+
+def cell_anchor(cell: tuple[str, str, str]) -> str:
+    """The element id of a cell's section (``/`` cannot occur in an id part, so ids never collide)."""
+    return "cell-" + cell_key(cell)
 
 
 def cell_body(
@@ -287,34 +318,20 @@ def cell_body(
     files: dict[str, Path],
     url: Callable[[str], str],
     viewer: str,
-    group: dict | None,
+    comparison: str,
 ) -> str:
-    """A cell's content: heading, origin, what its variant changes, 3D viewer, material maps,
-    renders, loss curve, metrics, relighting and material editing. ``url(name)`` is how the page
-    refers to the cell's file ``name``; ``viewer`` the viewer's HTML."""
-    mesh, prompt, variant = cell
-    out = [f"<h2 id='{esc('cell-' + '-'.join(cell))}'>{esc(cell_key(cell))}</h2>"]
+    """A cell's content: heading, origin, what it is compared with (``comparison``), 3D viewer,
+    material maps, renders, loss curve, metrics, relighting and material editing. ``url(name)``
+    is how the page refers to the cell's file ``name``; ``viewer`` the viewer's HTML."""
+    out = [f"<h2 id='{esc(cell_anchor(cell))}'>{esc(cell_key(cell))}</h2>"]
     if len(row):
         r = row.iloc[0]
         out.append(f"<p>{esc(r.get('prompt_text', ''))}</p>")
         origin = str(r.get("origin", ""))
         cls = " class='banner note'" if origin.startswith(("TEST ONLY", "IMAGE-GUIDED")) else ""
         out.append(f"<p{cls}>{esc(origin)}</p>")
-    if group:
-        conf = next((c for c, vs in group["configurations"].items() if variant in vs), variant)
-        changes = group["factors"].get(conf, "")
-        ref = group.get("reference")
-        if ref is None:
-            text = "no reference variant in this mesh x prompt"
-        elif conf == ref:
-            text = "the reference variant"
-        else:
-            text = f"changes against the reference ({ref}): {changes or 'nothing but the seed'}"
-            text += " (an ablation)" if conf in group.get("ablations", []) else ""
-        replicates = group["configurations"].get(conf, [variant])
-        if len(replicates) > 1:
-            text += f"; seed replicates: {', '.join(replicates)}"
-        out.append(f"<p><small>{esc(text)}</small></p>")
+    if comparison:
+        out.append(f"<p><small>{esc(comparison)}</small></p>")
     out.append("<h3>3D viewer</h3>" + viewer)
     if len(row):
         out.append(fidelity_lines(row))
@@ -382,9 +399,9 @@ def viewer_html(files: dict[str, Path], url: Callable[[str], str], have_viewer: 
         else "<p><small>no learned light exported: a neutral studio light</small></p>"
     )
     return (
-        f"<model-viewer data-glb='{url('model.glb')}' data-hdr='{hdr}'{packed_attr}{poster} alt='{esc(label)}' "
-        "camera-controls loading='lazy' reveal='auto' shadow-intensity='0.5' exposure='1' interaction-prompt='none'>"
-        f"</model-viewer>{buttons}"
+        f"<div class='viewer'><model-viewer data-glb='{url('model.glb')}' data-hdr='{hdr}'{packed_attr}{poster} "
+        f"alt='{esc(label)}' camera-controls loading='lazy' reveal='auto' shadow-intensity='0.5' exposure='1' "
+        f"interaction-prompt='none'></model-viewer>{buttons}</div>"
     )
 
 
@@ -412,6 +429,15 @@ def _place(src: Path, dst: Path) -> None:
         shutil.copy2(src, dst)
 
 
+def read_summary(report_dir: Path) -> pd.DataFrame:
+    """summary.csv with its id columns as text (an id like ``01`` or ``NA`` stays what it is)."""
+    path = Path(report_dir) / "summary.csv"
+    frame = pd.read_csv(path)
+    ids = ["mesh", "prompt", "variant"]
+    frame[ids] = pd.read_csv(path, usecols=ids, dtype=str, keep_default_na=False)[ids]
+    return frame
+
+
 def _row(frame: pd.DataFrame, cell: tuple[str, str, str]) -> pd.DataFrame:
     mesh, prompt, variant = cell
     return frame[(frame["mesh"] == mesh) & (frame["prompt"] == prompt) & (frame["variant"] == variant)]
@@ -428,9 +454,9 @@ def write_folder(
     """Write ``index.html``, ``cells/`` and ``viewer/`` under ``report_dir`` (the summary and
     figures already there). ``thumbnail(cell)``: a PIL image. Returns counts and sizes."""
     report_dir = Path(report_dir)
-    frame = pd.read_csv(report_dir / "summary.csv")
+    frame = read_summary(report_dir)
     have_viewer = Path(model_viewer).is_file()
-    groups = _group_info(report_dir)
+    groups = _groups(report_dir)
     staging = {name: report_dir / f".{name}.partial" for name in ("cells", "viewer")}
     for d in staging.values():
         shutil.rmtree(d, ignore_errors=True)
@@ -465,11 +491,8 @@ def write_folder(
         page.append(origin_banner(row))
         if not have_viewer:
             page.append(_no_viewer_notice())
-        page.append(
-            cell_body(
-                cell, row, files, lambda n: n, viewer_html(files, lambda n: n, have_viewer, packed, label), groups.get(cell[:2])
-            )
-        )
+        viewer = viewer_html(files, lambda n: n, have_viewer, packed, label)
+        page.append(cell_body(cell, row, files, lambda n: n, viewer, comparison_text(cell, groups)))
         page.append("</body></html>")
         (folder / "index.html").write_text("".join(page))
     # swap the finished folders in, then the index (written last: it is the rule's marker)
@@ -519,9 +542,13 @@ def write_single_file(results: Path, report_dir: Path, cells: list[tuple[str, st
     """One self-contained page: the index, then every cell's section with its images and model
     inlined (data URIs) and its viewer started when it scrolls into view."""
     report_dir = Path(report_dir)
-    frame = pd.read_csv(report_dir / "summary.csv")
+    for name in ("cells", "viewer"):  # pages of an earlier folder-form report would go stale beside it
+        if (report_dir / name).is_dir() and Path(out).parent == report_dir:
+            log.info("removing %s: this report is one file now", report_dir / name)
+            shutil.rmtree(report_dir / name)
+    frame = read_summary(report_dir)
     have_viewer = Path(model_viewer).is_file()
-    groups = _group_info(report_dir)
+    groups = _groups(report_dir)
     sections, viewers = [], 0
     for cell in cells:
         files = cell_files(results, cell)
@@ -531,15 +558,14 @@ def write_single_file(results: Path, report_dir: Path, cells: list[tuple[str, st
 
         viewer = viewer_html(files, url, have_viewer, None, cell_key(cell))
         viewers += "<model-viewer" in viewer
-        sections.append(
-            "<div class='cell-section'>" + cell_body(cell, _row(frame, cell), files, url, viewer, groups.get(cell[:2])) + "</div>"
-        )
+        body = cell_body(cell, _row(frame, cell), files, url, viewer, comparison_text(cell, groups))
+        sections.append(f"<div class='cell-section'>{body}</div>")
     extra = f"<script>{Path(model_viewer).read_text()}</script>" if have_viewer else ""
     page = _index_page(
         frame,
         report_dir,
         len(cells),
-        lambda c: "#" + esc("cell-" + "-".join(c)),
+        lambda c: "#" + esc(cell_anchor(c)),
         lambda c: None,
         lambda p: data_uri(p),
         have_viewer,

@@ -229,7 +229,9 @@ def speed_accuracy(rows: list[dict], results: Path) -> list[dict]:
         if bench.is_file():
             import pandas as pd
 
-            peak = float(pd.read_csv(bench, sep="\t")["max_rss"].iloc[0])
+            # Snakemake writes "-" where it measured nothing (a very short job)
+            value = pd.to_numeric(pd.read_csv(bench, sep="\t")["max_rss"], errors="coerce").iloc[0]
+            peak = None if pd.isna(value) else float(value)
         out.append(
             {
                 "mesh": r["mesh"],

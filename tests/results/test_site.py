@@ -125,6 +125,8 @@ def test_index_in_chromium_from_a_zipped_copy(site, tmp_path):
     assert r["rows"] == 150 and r["filtered_rows"] == 5 and r["shown_label"] == "5"
     assert r["mesh_rows"] == 15 and r["mesh_values"] == ["shape01"]
     assert r["sorted_quality"] == sorted(r["sorted_quality"]) and len(r["sorted_quality"]) == 150
+    assert r["sorted_quality_desc"] == sorted(r["sorted_quality"], reverse=True)
+    assert r["load_ms"] < INTERACTIVE_MS, r["load_ms"]
     assert r["figures"] >= 6 and r["skipped"] == []
     # the index loads its own thumbnails and figures, never a cell page's assets or a viewer
     assert not any(u.endswith((".glb", ".hdr", "assets.js", "model-viewer.min.js")) for u in r["requests"])
@@ -187,3 +189,42 @@ def test_single_file_for_small_grids(site, tmp_path):
     r = browser_check("single", out_dir / "index.html", tmp_path / "single.png")
     assert r["errors"] == [] and r["viewers"] == r["loaded"] == 3
     assert_not_blank(tmp_path / "single.png")
+    # each viewer has its own light buttons
+    first, *others = r["environments_after_first_studio"]
+    assert first == "neutral" and others and all(e.endswith("#light.hdr") for e in others)
+
+
+def test_ids_that_look_like_numbers_keep_their_pages(site, tmp_path):
+    """Ids are text: a mesh "01", a prompt "NA" and a variant "1e3" (all valid ids) keep their
+    links, banners and comparison line (a CSV reader would make them 1, NaN and 1000.0)."""
+    import shutil
+
+    src, results = site["results"], tmp_path / "results"
+    shutil.copytree(src / "shape00" / "normalize", results / "01" / "normalize")
+    for variant, new in (("base", "base"), ("no_normal", "1e3")):
+        shutil.copytree(src / "shape00" / "wood" / variant, results / "01" / "NA" / new)
+    cells = [("01", "NA", "base"), ("01", "NA", "1e3")]
+    report.run(results, cells, results / "report")
+    html_report.run(results, results / "report", cells)
+    index = (results / "report" / "index.html").read_text()
+    assert "cells/01/NA/1e3/index.html" in page_references(index)
+    page = (results / "report" / "cells" / "01" / "NA" / "1e3" / "index.html").read_text()
+    assert "TEST ONLY: 1 of 1 cells" in page and "changes against the reference (base): normal_network (an ablation)" in page
+
+
+def test_comparison_line_finds_the_cells_own_group():
+    """A mesh x prompt can hold several groups (another quality measure, another kind of
+    weights); a cell is described by the group it is in, and a cell in none gets no line."""
+    from stages.results.site import comparison_text
+
+    groups = [
+        {"mesh": "m", "prompt": "p", "reference": "a", "configurations": {"a": ["a"], "b": ["b"]}, "factors": {"b": "lr"}},
+        {"mesh": "m", "prompt": "p", "reference": None, "configurations": {"c": ["c", "c2"]}, "factors": {"c": ""}},
+        {"mesh": "m", "prompt": "p", "reference": "a", "configurations": {"a": ["a"]}, "duplicates": {"d": "a"}, "factors": {}},
+    ]
+    assert comparison_text(("m", "p", "b"), groups) == "changes against the reference (a): lr"
+    expected = "no reference variant in this mesh x prompt to compare with; seed replicates: c, c2"
+    assert comparison_text(("m", "p", "c2"), groups) == expected
+    assert "the same settings as a, seed included" in comparison_text(("m", "p", "d"), groups)
+    assert comparison_text(("m", "p", "unmeasured"), groups) == ""
+    assert comparison_text(("other", "p", "b"), groups) == ""

@@ -60,6 +60,23 @@ def test_configfile_replaces_default_and_dag_is_per_mesh(tmp_path):
     assert "silver" not in proc.stdout  # the default config's prompts are not merged in
 
 
+@pytest.mark.parametrize("single_file", [False, True])
+def test_html_report_outputs_follow_its_form(tmp_path, single_file):
+    """As a folder the HTML report declares its cell pages and viewer folders; as one file, only
+    index.html; the report settings reach both report jobs."""
+    extra = tmp_path / "form.yaml"
+    extra.write_text(yaml.safe_dump({"report": {"single_file": single_file, "reference": "second"}}))
+    proc = run_snakemake(tmp_path, "-n", "-p", "--cores", "2", "--configfile", str(SMOKE), str(extra))
+    assert proc.returncode == 0, proc.stderr
+    block = proc.stdout[proc.stdout.index("rule html_report:") :]
+    outputs = block[block.index("output:") : block.index("\n", block.index("output:"))]
+    assert "results/smoke/report/index.html" in outputs
+    assert ("results/smoke/report/cells" in outputs) != single_file
+    assert ("results/smoke/report/viewer" in outputs) != single_file
+    assert proc.stdout.count('"reference": "second"') == 2  # report and html_report
+    assert proc.stdout.count(f'"single_file": {str(single_file).lower()}') == 2
+
+
 TORCH_RULES = ("optimize", "bake", "relight", "metrics", "lod", "roundtrip")
 
 

@@ -5,15 +5,22 @@
     // model-viewer picks its HDR loader by the URL's ending, so the name rides in the fragment
     return URL.createObjectURL(new Blob([bytes], { type })) + "#" + name;
   }
+  // each viewer's light buttons sit beside it, in the same .viewer box (one page may hold many)
+  const buttons = (mv) => (mv.closest(".viewer") || mv.parentElement).querySelectorAll("button[data-light]");
   function setLight(mv, which) {
     mv.environmentImage = which === "learned" && mv.dataset.learned ? mv.dataset.learned : "neutral";
-    for (const b of document.querySelectorAll("button[data-light]")) b.classList.toggle("on", b.dataset.light === which);
+    for (const b of buttons(mv)) b.classList.toggle("on", b.dataset.light === which);
     mv.dataset.light = which;
   }
   function start(mv) {
     if (mv.dataset.started) return;
     mv.dataset.started = "1";
-    const apply = (glb, hdr) => { mv.dataset.learned = hdr || ""; setLight(mv, hdr ? "learned" : "studio"); mv.src = glb; };
+    // keep a light chosen before the model arrived
+    const apply = (glb, hdr) => {
+      mv.dataset.learned = hdr || "";
+      setLight(mv, mv.dataset.light || (hdr ? "learned" : "studio"));
+      mv.src = glb;
+    };
     if (location.protocol === "file:" && mv.dataset.packed) {
       const s = document.createElement("script");
       s.src = mv.dataset.packed;
@@ -32,7 +39,7 @@
       const io = new IntersectionObserver((es) => { if (es.some((e) => e.isIntersecting)) { io.disconnect(); start(mv); } });
       io.observe(mv);
     } else start(mv);
-    for (const b of document.querySelectorAll("button[data-light]")) b.addEventListener("click", () => setLight(mv, b.dataset.light));
+    for (const b of buttons(mv)) b.addEventListener("click", () => setLight(mv, b.dataset.light));
   }
   for (const g of document.querySelectorAll(".gallery")) {
     const main = g.querySelector("img.main"), caption = g.querySelector(".caption");

@@ -24,9 +24,12 @@
       th.dataset.dir = up ? " \u25b2" : " \u25bc";
       const key = (r) => { const c = r.cells[col]; return c.dataset.v !== undefined ? c.dataset.v : c.textContent; };
       const num = (v) => (v === "" ? NaN : Number(v));
+      // numbers as numbers, text as text; empty cells last in either direction
       const sorted = Array.from(body.rows).sort((a, b) => {
-        const x = key(a), y = key(b), nx = num(x), ny = num(y);
-        const d = !isNaN(nx) && !isNaN(ny) ? nx - ny : isNaN(nx) !== isNaN(ny) ? (isNaN(nx) ? 1 : -1) : x.localeCompare(y);
+        const x = key(a), y = key(b);
+        if ((x === "") !== (y === "")) return x === "" ? 1 : -1;
+        const nx = num(x), ny = num(y);
+        const d = !isNaN(nx) && !isNaN(ny) ? nx - ny : x.localeCompare(y);
         return up ? d : -d;
       });
       sorted.forEach((r) => body.appendChild(r));
