@@ -58,8 +58,13 @@ def _panel_grid(n: int, width: float = 3.2, height: float = 2.6, max_columns: in
     return fig, list(axes.flat[:n])
 
 
-def _numbered(stem: str, k: int, total: int) -> str:
-    return f"{stem}.png" if total == 1 else f"{stem}_{k + 1}.png"
+def _chunk_entry(fig, out_dir: Path, stem: str, k: int, total: int, title: str, caption: str) -> dict:
+    """Lay out and write the ``k``-th of ``total`` files of a small-multiple figure
+    (``stem.png``, or ``stem_<k+1>.png`` when split) and return its figures.json entry."""
+    fig.tight_layout()
+    name = f"{stem}.png" if total == 1 else f"{stem}_{k + 1}.png"
+    _save(fig, out_dir / name)
+    return {"file": name, "title": title + (f" ({k + 1} of {total})" if total > 1 else ""), "caption": caption}
 
 
 def speed_accuracy_figures(out_dir: Path, groups: list[Group], panels: int) -> list[dict]:
@@ -121,18 +126,12 @@ def speed_accuracy_figures(out_dir: Path, groups: list[Group], panels: int) -> l
             ax.set_ylabel(g.quality_name, fontsize=6)
             ax.tick_params(labelsize=6)
             ax.grid(alpha=0.3)
-        fig.tight_layout()
-        name = _numbered("speed_accuracy", k, len(chunks))
-        _save(fig, out_dir / name)
-        entries.append(
-            {
-                "file": name,
-                "title": title + (f" ({k + 1} of {len(chunks)})" if len(chunks) > 1 else ""),
-                "caption": "Each panel is one mesh x prompt. Points: configurations (filled: on the Pareto front, dashed "
-                "red; ringed: the knee); black: the reference variant; a colour per sweep factor, joined to the "
-                "reference; bars: one standard deviation over seeds (xN = N seeds).",
-            }
+        caption = (
+            "Each panel is one mesh x prompt. Points: configurations (filled: on the Pareto front, dashed red; ringed: "
+            "the knee); black: the reference variant; a colour per sweep factor, joined to the reference; bars: one "
+            "standard deviation over seeds (xN = N seeds)."
         )
+        entries.append(_chunk_entry(fig, out_dir, "speed_accuracy", k, len(chunks), title, caption))
     skipped = len(tradeoffs) - len(drawn)
     if skipped:
         entries[-1]["caption"] += f" {skipped} mesh x prompt group(s) with a single configuration are not drawn."
@@ -171,17 +170,11 @@ def ablation_figures(out_dir: Path, groups: list[Group], panels: int) -> list[di
             ax.set_title(g.label + (" (TEST-ONLY weights)" if g.test_only else ""), fontsize=8)
             ax.set_ylabel(g.quality_name, fontsize=6)
             ax.tick_params(axis="y", labelsize=6)
-        fig.tight_layout()
-        name = _numbered("ablations", k, len(chunks))
-        _save(fig, out_dir / name)
-        entries.append(
-            {
-                "file": name,
-                "title": title + " per mesh x prompt" + (f" ({k + 1} of {len(chunks)})" if len(chunks) > 1 else ""),
-                "caption": "Black: the reference variant; blue: variants that switch a component off. Bars: mean over "
-                "seeds, whiskers one standard deviation (n = seeds). The y axis is zoomed to the bars.",
-            }
+        caption = (
+            "Black: the reference variant; blue: variants that switch a component off. Bars: mean over seeds, whiskers "
+            "one standard deviation (n = seeds). The y axis is zoomed to the bars."
         )
+        entries.append(_chunk_entry(fig, out_dir, "ablations", k, len(chunks), title + " per mesh x prompt", caption))
     # averaged: change against the reference, per quality measure and weights kind
     kinds: dict[tuple[str, bool], dict[str, list[float]]] = {}
     for g in with_ablations:
@@ -246,17 +239,11 @@ def loss_figures(
                 ax.legend(fontsize=5)
         fig.supxlabel("iteration", fontsize=8)
         fig.supylabel("loss", fontsize=8)
-        fig.tight_layout()
-        name = _numbered("loss_curves", k, len(chunks))
-        _save(fig, out_dir / name)
-        entries.append(
-            {
-                "file": name,
-                "title": title + (f" ({k + 1} of {len(chunks)})" if len(chunks) > 1 else ""),
-                "caption": "One panel per mesh x prompt with its variants; each panel has its own axes (losses of "
-                "different meshes or prompts are not on one scale). Each cell's page has its own curve.",
-            }
+        caption = (
+            "One panel per mesh x prompt with its variants; each panel has its own axes (losses of different meshes or "
+            "prompts are not on one scale). Each cell's page has its own curve."
         )
+        entries.append(_chunk_entry(fig, out_dir, "loss_curves", k, len(chunks), title, caption))
     return entries
 
 
