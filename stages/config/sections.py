@@ -56,15 +56,24 @@ FACE_BUDGET_FIELDS = (
 )
 
 
+#: what the CLIP of each config section is for (how a message about its weights names it)
+CLIP_ROLES = {
+    "optimize": "guidance CLIP (the model the optimisation follows)",
+    "metrics": "evaluation CLIP (the metrics' CLIP score and R-precision)",
+}
+
+
 @dataclass(frozen=True)
 class ClipSpec:
     """Which CLIP to load: an open_clip model name and a pretrained tag, or a local checkpoint
-    (which takes precedence), or the tiny random test model."""
+    (which takes precedence), or the tiny random test model; ``section``: the config section
+    that chose it (:data:`CLIP_ROLES`), so that a message names the keys to change."""
 
     model: str = "ViT-B-32"
     pretrained: str = "openai"
     checkpoint: str | None = None
     tiny_test: bool = False
+    section: str = "optimize"
 
 
 class ClipChoice:
@@ -72,7 +81,7 @@ class ClipChoice:
     ``clip_tiny_test``): the one way to turn them into a :class:`ClipSpec`."""
 
     def clip_spec(self) -> ClipSpec:
-        return ClipSpec(self.clip_model, self.clip_pretrained, self.clip_checkpoint, self.clip_tiny_test)
+        return ClipSpec(self.clip_model, self.clip_pretrained, self.clip_checkpoint, self.clip_tiny_test, self.section)
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -319,7 +319,7 @@ class WorkflowConfig:
         return [self.prompt_text(mesh_id, p) for p in ids]
 
     def clip_specs(self) -> list:
-        """Every real (non-test) CLIP the grid needs: guidance models and evaluation models."""
+        """Every real (non-test) CLIP the grid needs: guidance models, then evaluation models."""
         specs = set()
         for c in self.cells:
             s = self.optimize_settings(c.prompt, c.variant)
@@ -328,7 +328,7 @@ class WorkflowConfig:
             m = self.cell_stage_settings("metrics", c.prompt, c.variant)
             if m.clip and not m.clip_tiny_test:
                 specs.add(m.clip_spec())
-        return sorted(specs, key=str)
+        return sorted(specs, key=lambda spec: (spec.section != "optimize", str(spec)))
 
     def target_material(self, prompt_id: str, variant_id: str) -> str | None:
         """The procedural material whose Mitsuba targets a cell trains on, or None when the cell

@@ -17,7 +17,7 @@ import torch
 from torch import Tensor
 from torch.nn import functional as F
 
-from ..config.sections import ClipSpec
+from ..config.sections import CLIP_ROLES, ClipSpec
 from ..core.cli import bf16_support
 from ..core.errors import StageInputError
 from .compat import import_open_clip
@@ -72,44 +72,103 @@ def _cached_hub_file(hf_hub: str) -> str | None:
     return None
 
 
+def _hub_cache() -> str:
+    from huggingface_hub import constants
+
+    return str(constants.HF_HUB_CACHE)
+
+
+def weights_help(
+    spec: ClipSpec, problem: str, looked: list[str], quick_gelu: bool = False, repo: str | None = None, known: bool = True
+) -> str:
+    """What to do when the CLIP of ``spec`` cannot be had: which model (guidance or evaluation,
+    name and weights tag), why (``problem``), where it was looked for, the config keys that point
+    at a local file (with the architecture name that matches those weights: OpenAI's weights use
+    QuickGELU, ``<model>-quickgelu``), how to get that file (``known``: open_clip knows the tag),
+    and how to run without it."""
+    section = spec.section
+    arch = spec.model if not quick_gelu or spec.model.endswith("-quickgelu") else f"{spec.model}-quickgelu"
+    role = CLIP_ROLES.get(section, "CLIP")
+    lines = [f"The {role}, {spec.model} with the weights {spec.pretrained!r}, is not available: {problem}."]
+    if looked:
+        lines.append("Looked for it in: " + "; ".join(looked) + ".")
+    lines += [
+        "To use a local copy of these weights, set in the config:",
+        f"  {section}:",
+        "    clip_checkpoint: /path/to/open_clip_pytorch_model.bin",
+        f"    clip_model: {arch}" + ("  # these weights need QuickGELU, which this name selects" if arch != spec.model else ""),
+    ]
+    if known and spec.pretrained:
+        source = f"<Hugging Face cache>/models--{repo.replace('/', '--')}/snapshots/<hash>/" if repo else "open_clip's cache"
+        copy = f", or copy that models--... folder into this machine's Hugging Face cache, {_hub_cache()} (HF_HOME)"
+        lines.append(
+            "To get that file, on a machine with internet run\n"
+            f"  python -c \"import open_clip; open_clip.create_model('{spec.model}', pretrained='{spec.pretrained}')\"\n"
+            f"and copy the file it downloads (from {source}) here{copy if repo else ''}."
+        )
+    elif not known:
+        lines.append(f"Or set {section}.clip_pretrained to one of the model's tags above.")
+    if section == "metrics":
+        lines.append(
+            "Or switch the evaluation off: metrics: {clip: false} (no CLIP score or R-precision; the image-target "
+            "metrics still run)."
+        )
+    else:
+        lines.append(
+            "Or run without CLIP weights: --configfile config/demo-offline.yaml (image-guided), or add "
+            "config/overlays/offline.yaml (the tiny random test CLIP; every result is marked TEST ONLY)."
+        )
+    return "\n".join(lines)
+
+
 def resolve_weights(spec: ClipSpec) -> tuple[str, str, bool]:
     """Return ``(path, weights_id, quick_gelu)`` for ``spec``, downloading only when the hub
-    answers. Raises :class:`ClipWeightsUnavailable` (fast) when the weights cannot be had."""
-    how = (
-        "Supply a local checkpoint: on a machine with internet run\n"
-        "  python -c \"import open_clip; open_clip.create_model('ViT-B-32', pretrained='openai')\"\n"
-        "copy the downloaded file (under ~/.cache/huggingface/hub/...) here and set\n"
-        "  optimize: {clip_checkpoint: /path/to/open_clip_pytorch_model.bin}\n"
-        "in the config (with clip_model naming its architecture, e.g. ViT-B-32-quickgelu for the "
-        "OpenAI weights), or populate the Hugging Face cache (HF_HOME) on this machine."
-    )
+    answers. Raises :class:`ClipWeightsUnavailable` (fast) when the weights cannot be had, with
+    :func:`weights_help`'s message."""
+    open_clip = import_open_clip()
+    cfg = open_clip.get_pretrained_cfg(spec.model, spec.pretrained) if spec.pretrained else {}
+    quick_gelu = bool(cfg.get("quick_gelu", False))
+    repo = cfg["hf_hub"].rstrip("/") if cfg.get("hf_hub") else None
     if spec.checkpoint:
         path = Path(spec.checkpoint)
         if not path.is_file():
-            raise ClipWeightsUnavailable(f"CLIP checkpoint {path} does not exist. {how}")
+            problem = f"the file {path} set as {spec.section}.clip_checkpoint does not exist"
+            raise ClipWeightsUnavailable(weights_help(spec, problem, [str(path)], quick_gelu, repo, bool(cfg)))
         return str(path), f"{spec.model}:{path.name}", False
-    open_clip = import_open_clip()
-    cfg = open_clip.get_pretrained_cfg(spec.model, spec.pretrained)
     if not cfg:
-        raise ClipWeightsUnavailable(
-            f"open_clip has no pretrained weights {spec.pretrained!r} for model {spec.model!r} (see open_clip.list_pretrained())."
-        )
+        tags = ", ".join(repr(t) for t in open_clip.list_pretrained_tags_by_model(spec.model)) or "none"
+        problem = f"open_clip knows no weights {spec.pretrained!r} for the model {spec.model!r} (its tags: {tags})"
+        raise ClipWeightsUnavailable(weights_help(spec, problem, [], known=False))
     weights_id = f"{spec.model}/{spec.pretrained}"
-    quick_gelu = bool(cfg.get("quick_gelu", False))
-    if cfg.get("hf_hub"):
+    if repo:
         cached = _cached_hub_file(cfg["hf_hub"])
         if cached:
             return cached, weights_id, quick_gelu
+    looked = [f"the Hugging Face cache ({_hub_cache()}/models--{repo.replace('/', '--')})"] if repo else []
     if not _hub_reachable():
-        raise ClipWeightsUnavailable(
-            f"CLIP weights {weights_id} are not cached on this machine and the model hub is unreachable (offline). {how}"
-        )
+        offline = os.environ.get("HF_HUB_OFFLINE", "") not in ("", "0")
+        looked.append(f"the model hub {HUB_HOST[0]} ({'HF_HUB_OFFLINE is set' if offline else 'unreachable from here'})")
+        problem = "they are not cached on this machine and cannot be downloaded (offline)"
+        raise ClipWeightsUnavailable(weights_help(spec, problem, looked, quick_gelu, repo))
     from open_clip.pretrained import download_pretrained
 
     path = download_pretrained(cfg)
     if not path:
-        raise ClipWeightsUnavailable(f"downloading CLIP weights {weights_id} failed. {how}")
+        looked.append(f"the model hub {HUB_HOST[0]} (the download failed)")
+        raise ClipWeightsUnavailable(weights_help(spec, "downloading them failed", looked, quick_gelu, repo))
     return path, weights_id, quick_gelu
+
+
+def missing_weights(specs) -> list[str]:
+    """One :func:`weights_help` message per CLIP of ``specs`` whose weights cannot be had (the
+    guidance and the evaluation model each name their own config keys); [] when all are there."""
+    problems = []
+    for spec in specs:
+        try:
+            resolve_weights(spec)
+        except ClipWeightsUnavailable as exc:
+            problems.append(str(exc))
+    return problems
 
 
 class ClipGuide:

@@ -187,15 +187,14 @@ def targets_option(wildcards, input):
 
 def check_clip_weights():
     """Before any job runs: stop at once when real CLIP weights (for guidance or for the
-    evaluation metrics) are needed but unavailable."""
+    evaluation metrics) are needed but unavailable: one message per missing model."""
     # imported here, not at the top: it imports torch, which building the DAG never needs
-    from stages.guidance.clip import ClipWeightsUnavailable, resolve_weights
+    from stages.guidance.clip import missing_weights
 
-    for spec in CFG.clip_specs():
-        try:
-            resolve_weights(spec)
-        except ClipWeightsUnavailable as exc:
-            raise WorkflowError(str(exc)) from None
+    problems = missing_weights(CFG.clip_specs())
+    if problems:
+        lead = f"{len(problems)} of the CLIP models this run needs cannot be loaded; nothing was run."
+        raise WorkflowError("\n\n".join([lead, *problems]))
 
 
 def cell_settings_json(stage):
