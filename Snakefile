@@ -22,6 +22,7 @@ include: "workflow/rules/report.smk"
 
 onstart:
     check_clip_weights()
+    print_plan()
 
 
 rule all:

@@ -438,7 +438,11 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def load_config_file(path: str | Path) -> WorkflowConfig:
-    path = Path(path)
+    return WorkflowConfig(_read_yaml(Path(path)), str(path))
+
+
+def _read_yaml(path: Path) -> dict:
+    """A config file's mapping, or a clear error naming the file."""
     try:
         with open(path) as fh:
             data = yaml.safe_load(fh)
@@ -448,7 +452,26 @@ def load_config_file(path: str | Path) -> WorkflowConfig:
         raise ConfigError(f"{path}: not valid YAML ({exc})") from exc
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: expected a mapping at the top level, got {type(data).__name__}")
-    return WorkflowConfig(data, str(path))
+    return data
+
+
+def merge_config(base: dict, update: dict) -> dict:
+    """``base`` updated by ``update`` as Snakemake merges several --configfile files: mappings
+    key by key (recursively), anything else replaced."""
+    out = dict(base)
+    for key, value in update.items():
+        out[key] = merge_config(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) else value
+    return out
+
+
+def load_config_files(paths: list[str | Path]) -> WorkflowConfig:
+    """The config made of several files, later ones updating earlier ones (as ``snakemake
+    --configfile a.yaml b.yaml``)."""
+    paths = [Path(p) for p in paths]
+    merged: dict = {}
+    for path in paths:
+        merged = merge_config(merged, _read_yaml(path))
+    return WorkflowConfig(merged, ", ".join(str(p) for p in paths))
 
 
 if __name__ == "__main__":

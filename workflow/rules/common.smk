@@ -1,7 +1,9 @@
 # Config validation, wildcard constraints and input/param helpers -- nothing else.
 # The logic lives in stages/config/ (no torch: building the DAG imports only that layer and core).
 import json
+import os
 import shlex
+import sys
 from pathlib import Path
 
 from stages.config.code import code_digest
@@ -183,6 +185,29 @@ def cell_targets(name):
 def targets_option(wildcards, input):
     """Params function: ``--targets FILE`` when the job has Mitsuba targets, else nothing."""
     return f"--targets {input.targets}" if "targets" in input.keys() else ""
+
+
+def print_plan():
+    """Before the first job: the plan (stages/plan.py: cells, jobs to run, device, an estimate
+    of the wall time here). A plan that cannot be made never stops the run."""
+    from stages.plan import make_plan, plan_text
+
+    try:
+        pending = [
+            (job.rule.name, dict(job.wildcards.items()))
+            for job in workflow.dag.needrun_jobs()
+        ]
+    except Exception:
+        # Snakemake's DAG API changed: the plan counts from the results folder instead
+        pending = None
+    try:
+        calibrate = os.environ.get("TANGO_PLAN_CALIBRATE", "1") != "0"
+        text = plan_text(
+            make_plan(CFG, EXPERIMENT, calibrate=calibrate, pending=pending)
+        )
+    except Exception as exc:
+        text = f"(no plan: {type(exc).__name__}: {exc})\n"
+    sys.stderr.write(text)
 
 
 def check_clip_weights():

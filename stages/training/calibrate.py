@@ -1,0 +1,78 @@
+"""How long one optimisation step of given settings takes on this machine, measured.
+
+A short real run of the optimiser: the built-in vase, a training pool of a few views traced at
+the cell's ray-cache settings (a step renders ``views_per_step`` views of the pool, so its cost
+does not depend on the pool's size), the settings' CLIP architecture with random weights (the
+same arithmetic as the real weights; none need be downloaded) or, under image guidance, targets
+from our own renderer; one warm-up step, then ``steps`` timed steps.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from functools import cache
+
+from ..config.sections import NormalizeSettings, OptimizeSettings, RaycacheSettings
+from ..core.provenance import Timer
+from ..geometry.normalization import normalize_mesh
+from ..geometry.raycache import RayCache, trace_views, training_views
+from ..geometry.tracing import make_tracer
+from ..guidance.clip import TINY_MODEL, ClipGuide, register_tiny_model
+from ..guidance.compat import import_open_clip
+from .optimizer import Optimizer
+
+log = logging.getLogger(__name__)
+
+
+@cache
+def random_guide(model_name: str, bf16: bool, tower: str, device: str) -> ClipGuide:
+    """A CLIP architecture with random weights (timing only: marked test-only); made once per
+    process for each architecture and precision."""
+    import torch
+
+    open_clip = import_open_clip()
+    if model_name == TINY_MODEL:
+        register_tiny_model()
+    torch.manual_seed(0)
+    model = open_clip.create_model(model_name, pretrained=None, device=device)
+    size = model.visual.image_size
+    return ClipGuide(
+        model,
+        open_clip.get_tokenizer(model_name),
+        image_size=int(size[0] if isinstance(size, tuple | list) else size),
+        weights_id="calibration: random weights",
+        test_only=True,
+        device=device,
+        bf16=bf16,
+        tower=tower,
+    )
+
+
+@cache
+def _pool(raycache: RaycacheSettings) -> RayCache:
+    """The built-in vase traced with these ray-cache settings, once per process."""
+    mesh = normalize_mesh("builtin:vase", NormalizeSettings()).mesh
+    arrays, _ = trace_views(mesh, training_views(raycache), make_tracer(mesh, raycache.backend))
+    return RayCache("calibration: built-in vase", arrays)
+
+
+def seconds_per_step(settings: OptimizeSettings, raycache: RaycacheSettings, device, steps: int = 2) -> float:
+    """Wall seconds of one optimisation step of ``settings`` on ``device`` (mean of ``steps``
+    steps after one warm-up step)."""
+    train = _pool(dataclasses.replace(raycache, views=max(2, settings.views_per_step)))
+    guide = None
+    if settings.guidance == "clip":
+        guide = random_guide(settings.clip_model, settings.bf16, settings.clip_tower, str(device))
+    else:  # image targets from our renderer: Mitsuba's are rendered once per mesh by the target stage
+        settings = dataclasses.replace(settings, target_renderer="sg")
+    opt = Optimizer(settings, train, "a vase made of wood", device, guide=guide)
+    timer = Timer()
+    opt.step(timer)
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        opt.step(timer)
+    seconds = (time.perf_counter() - t0) / steps
+    log.info("calibration: %.3f s per step (%s, %d timed steps)", seconds, settings.clip_model, steps)
+    return seconds

@@ -1,0 +1,137 @@
+"""First contact: the doctor (what a run needs, and how to fix each missing piece), the plan (cells,
+jobs, device and an estimate of the wall time, printed when the workflow starts), and the main
+job's message without CLIP weights, followed to the letter."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import yaml
+from conftest import REPO, run_snakemake
+
+SMOKE = REPO / "tests" / "smoke" / "config.yaml"
+DEFAULT = REPO / "config" / "config.yaml"
+IN_CI = bool(os.environ.get("CI"))
+
+
+def offline_env(tmp_path: Path) -> dict[str, str]:
+    """No hub and an empty Hugging Face cache: a fresh clone without internet."""
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    env.update(HF_HUB_OFFLINE="1", HF_HOME=str(tmp_path / "hf"), HF_HUB_CACHE=str(tmp_path / "hf" / "hub"))
+    return env
+
+
+def module(name: str, *args: str, env=None, cwd=REPO) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", name, *args], capture_output=True, text=True, env=env, cwd=cwd, timeout=600)
+
+
+def test_doctor_flags_both_missing_models_within_seconds(tmp_path):
+    t0 = time.perf_counter()
+    proc = module("stages.doctor", "--configfile", str(DEFAULT), "--json", env=offline_env(tmp_path))
+    seconds = time.perf_counter() - t0
+    assert proc.returncode == 1, proc.stderr[-2000:]
+    assert seconds < 30, seconds
+    checks = {c["name"]: c for c in json.loads(proc.stdout)}
+    for name in ("torch and device", "Embree", "pymeshlab", "xatlas", "usd-core", "pygltflib"):
+        assert checks[name]["ok"], checks[name]
+    guidance, evaluation = checks["CLIP weights (guidance)"], checks["CLIP weights (evaluation)"]
+    assert guidance["status"] == evaluation["status"] == "MISSING"
+    assert "ViT-B-32 with the weights 'openai'" in guidance["detail"] and "optimize:" in guidance["fix"]
+    assert "ViT-B-16 with the weights 'openai'" in evaluation["detail"] and "metrics: {clip: false}" in evaluation["fix"]
+    assert "torch stages run on cpu" in checks["torch and device"]["detail"]
+    # the optional pieces: said what they add; CI installs every one of them
+    for name in ("Node.js and the report's viewer", "Mitsuba 3", "Blender", "Chromium", "Slurm"):
+        assert not checks[name]["needed"], name
+        if IN_CI and name != "Slurm":
+            assert checks[name]["ok"], checks[name]
+    text = module("stages.doctor", "--configfile", str(DEFAULT), env=offline_env(tmp_path)).stdout
+    assert "2 needed piece(s) missing (CLIP weights (guidance), CLIP weights (evaluation))" in text
+
+
+def test_doctor_passes_a_config_that_needs_no_weights(tmp_path):
+    proc = module("stages.doctor", "--configfile", str(SMOKE), env=offline_env(tmp_path))
+    assert proc.returncode == 0, proc.stdout + proc.stderr[-2000:]
+    assert "Everything this config's run needs is here." in proc.stdout
+    assert "CLIP weights" in proc.stdout and "needs no real CLIP weights" in proc.stdout
+
+
+def test_plan_counts_jobs_like_snakemake_and_calibrates_once(tmp_path):
+    env = offline_env(tmp_path)
+    args = ("--configfile", str(SMOKE), "--results", str(tmp_path / "results"), "--cache", str(tmp_path / "cache"), "--json")
+    proc = module("stages.plan", *args, env=env)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    plan = json.loads(proc.stdout)
+    dry = run_snakemake(tmp_path, "-n", "--cores", "2", "--configfile", str(SMOKE))
+    table = dry.stdout[dry.stdout.index("Job stats:") :]
+    counts = {}
+    for line in table.splitlines()[3:]:
+        parts = line.split()
+        if len(parts) == 2 and parts[1].isdigit() and parts[0] not in ("all", "total"):
+            counts[parts[0]] = int(parts[1])
+    assert plan["jobs"] == counts
+    assert plan["cells"] == 18 and plan["optimisations_done"] == 0 and plan["device"] == "cpu"
+    assert sum(e["cells"] for e in plan["optimisation"]) == 18
+    for e in plan["optimisation"]:
+        assert e["seconds_per_step"] > 0 and e["source"].startswith("a calibration")
+        assert e["seconds"] == e["seconds_per_step"] * e["iterations"] * e["cells"]
+    assert "paper_on_cpu" not in plan  # 3 iterations are not the paper's settings
+    again = json.loads(module("stages.plan", *args, env=env).stdout)
+    assert all(e["source"] == "a calibration of these settings (cached)" for e in again["optimisation"])
+
+
+def test_plan_names_faster_presets_for_the_paper_on_a_cpu(tmp_path):
+    args = ("--configfile", str(DEFAULT), "--no-calibrate", "--cache", str(tmp_path))
+    proc = module("stages.plan", *args, env=offline_env(tmp_path))
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    text = proc.stdout
+    assert "3 meshes x 2 prompts x 1 variants = 6 cells" in text and "run on cpu" in text
+    assert "These are the paper's settings" in text and "balanced:" in text and "fast:" in text
+    costs = json.loads((REPO / "benchmarks" / "figures" / "preset_costs.json").read_text())
+    for preset in ("balanced", "fast"):
+        for mesh, db in zip(costs["meshes"], costs["presets"][preset]["psnr_db"], strict=True):
+            assert f"{mesh} {db:.1f} dB (paper " in text
+    assert costs["conditions"] in text  # the conditions of the measurement travel with it
+
+
+def test_main_job_offline_names_both_checkpoints_and_following_it_starts(tmp_path):
+    """A fresh clone without internet: the main job stops before any job with one message per
+    model; with both keys set as the messages say, it goes on (plan printed, jobs run)."""
+    (tmp_path / "config").mkdir()
+    (tmp_path / "config" / "config.yaml").write_text(DEFAULT.read_text())
+    env = offline_env(tmp_path)
+    env["PATH"] = f"{Path(sys.executable).parent}{os.pathsep}{env.get('PATH', '')}"
+    cmd = [sys.executable, "-m", "snakemake", "--cores", "1"]
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
+    assert proc.returncode != 0 and time.perf_counter() - t0 < 60
+    out = proc.stdout + proc.stderr
+    assert "2 of the CLIP models this run needs cannot be loaded; nothing was run." in out
+    assert out.index("The guidance CLIP") < out.index("The evaluation CLIP")
+    assert "  optimize:\n    clip_checkpoint: /path/to/open_clip_pytorch_model.bin\n    clip_model: ViT-B-32-quickgelu" in out
+    assert "  metrics:\n    clip_checkpoint: /path/to/open_clip_pytorch_model.bin\n    clip_model: ViT-B-16-quickgelu" in out
+    assert not (tmp_path / "results").exists()
+    # follow the messages: both checkpoints set (files standing in for the weights); the check passes
+    for name in ("b32.bin", "b16.bin"):
+        (tmp_path / name).write_bytes(b"weights")
+    overlay = {
+        "optimize": {"clip_checkpoint": str(tmp_path / "b32.bin"), "clip_model": "ViT-B-32-quickgelu"},
+        "metrics": {"clip_checkpoint": str(tmp_path / "b16.bin"), "clip_model": "ViT-B-16-quickgelu"},
+    }
+    (tmp_path / "weights.yaml").write_text(yaml.safe_dump(overlay))
+    env["TANGO_PLAN_CALIBRATE"] = "0"
+    proc = subprocess.run(
+        [*cmd, "--until", "normalize", "--configfile", "config/config.yaml", "weights.yaml"],
+        cwd=tmp_path,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "cannot be loaded" not in proc.stderr
+    assert "Plan of experiment main" in proc.stderr and "To run now: 3 jobs (normalize 3)" in proc.stderr
