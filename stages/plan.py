@@ -29,6 +29,7 @@ import sys
 from pathlib import Path
 
 from .config.presets import PRESETS
+from .config.sections import OptimizeSettings
 from .config.workflow import WorkflowConfig, experiment_name, load_config_files
 from .core.cli import stage_main
 
@@ -39,6 +40,8 @@ PRESET_COSTS = REPO / "benchmarks" / "figures" / "preset_costs.json"
 #: rules whose jobs are one per cell (besides optimize), and those once per experiment
 PER_CELL = ("bake", "export", "relight", "metrics")
 PER_EXPERIMENT = ("report", "pack", "html_report")
+#: the settings that set what an optimisation costs (compared with the paper's, preset ``paper``)
+COST_KEYS = ("iterations", "views_per_step", "crops", "width")
 #: where calibrations are kept (per settings, device and machine)
 CACHE = Path(".cache/tango-plan")
 #: the rules that run torch (their --device)
@@ -145,9 +148,10 @@ def other_stage_seconds(results: Path) -> dict[str, float]:
 
 
 def is_paper(settings) -> bool:
-    """The paper's optimisation settings (preset ``paper``) in every key that sets the cost."""
-    d = settings.to_dict()
-    return all(json.dumps(d.get(k)) == json.dumps(list(v) if isinstance(v, tuple) else v) for k, v in PRESETS["paper"].items())
+    """The paper's cost: its schedule, views, crops and width (preset ``paper``) at CLIP's full
+    image size (whatever the material presets change besides)."""
+    paper = PRESETS["paper"]
+    return all(getattr(settings, k) == paper[k] for k in COST_KEYS) and settings.image_size >= OptimizeSettings().image_size
 
 
 def make_plan(
@@ -285,8 +289,9 @@ def plan_text(plan: dict) -> str:
     lines.append(est + ". An estimate, not a promise.")
     if plan.get("paper_on_cpu"):
         lines.append(
-            "These are the paper's settings (1,500 iterations, 224-pixel CLIP images, width 256) on a CPU. Faster presets "
-            "(preset: balanced or fast on a variant or a prompt):"
+            f"{plan['paper_on_cpu'][0]['cells']} of these optimisations run the paper's settings (1,500 iterations, "
+            "224-pixel CLIP images, 4 crops, width 256) on a CPU. Faster presets (preset: balanced or fast on a variant "
+            "or a prompt):"
         )
         for p in plan["paper_on_cpu"]:
             paper = p["paper_psnr_db"]

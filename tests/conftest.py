@@ -228,3 +228,11 @@ def page_references(text: str) -> list[str]:
 
     Parser().feed(text)
     return found
+
+
+def job_counts(stdout: str) -> dict[str, int]:
+    """Jobs per rule from the table ``snakemake -n`` prints (``Job stats:``; with ``total``)."""
+    import re
+
+    table = stdout[stdout.index("Job stats:") :]
+    return {m[1]: int(m[2]) for m in re.finditer(r"^(\w+)\s+(\d+)$", table, re.M)}

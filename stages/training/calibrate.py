@@ -19,7 +19,7 @@ from ..core.provenance import Timer
 from ..geometry.normalization import normalize_mesh
 from ..geometry.raycache import RayCache, trace_views, training_views
 from ..geometry.tracing import make_tracer
-from ..guidance.clip import TINY_MODEL, ClipGuide, register_tiny_model
+from ..guidance.clip import TINY_MODEL, ClipGuide, load_clip, register_tiny_model
 from ..guidance.compat import import_open_clip
 from .optimizer import Optimizer
 
@@ -63,7 +63,9 @@ def seconds_per_step(settings: OptimizeSettings, raycache: RaycacheSettings, dev
     steps after one warm-up step)."""
     train = _pool(dataclasses.replace(raycache, views=max(2, settings.views_per_step)))
     guide = None
-    if settings.guidance == "clip":
+    if settings.guidance == "clip" and settings.clip_tiny_test:
+        guide = load_clip(settings.clip_spec(), device, settings.bf16, settings.clip_tower)
+    elif settings.guidance == "clip":
         guide = random_guide(settings.clip_model, settings.bf16, settings.clip_tower, str(device))
     else:  # image targets from our renderer: Mitsuba's are rendered once per mesh by the target stage
         settings = dataclasses.replace(settings, target_renderer="sg")

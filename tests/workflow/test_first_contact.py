@@ -12,7 +12,7 @@ import time
 from pathlib import Path
 
 import yaml
-from conftest import REPO, run_snakemake
+from conftest import REPO, job_counts, run_snakemake, snakemake_command, snakemake_env
 
 SMOKE = REPO / "tests" / "smoke" / "config.yaml"
 DEFAULT = REPO / "config" / "config.yaml"
@@ -67,12 +67,7 @@ def test_plan_counts_jobs_like_snakemake_and_calibrates_once(tmp_path):
     assert proc.returncode == 0, proc.stderr[-3000:]
     plan = json.loads(proc.stdout)
     dry = run_snakemake(tmp_path, "-n", "--cores", "2", "--configfile", str(SMOKE))
-    table = dry.stdout[dry.stdout.index("Job stats:") :]
-    counts = {}
-    for line in table.splitlines()[3:]:
-        parts = line.split()
-        if len(parts) == 2 and parts[1].isdigit() and parts[0] not in ("all", "total"):
-            counts[parts[0]] = int(parts[1])
+    counts = {r: n for r, n in job_counts(dry.stdout).items() if r not in ("all", "total")}
     assert plan["jobs"] == counts
     assert plan["cells"] == 18 and plan["optimisations_done"] == 0 and plan["device"] == "cpu"
     assert sum(e["cells"] for e in plan["optimisation"]) == 18
@@ -103,11 +98,12 @@ def test_main_job_offline_names_both_checkpoints_and_following_it_starts(tmp_pat
     model; with both keys set as the messages say, it goes on (plan printed, jobs run)."""
     (tmp_path / "config").mkdir()
     (tmp_path / "config" / "config.yaml").write_text(DEFAULT.read_text())
-    env = offline_env(tmp_path)
-    env["PATH"] = f"{Path(sys.executable).parent}{os.pathsep}{env.get('PATH', '')}"
-    cmd = [sys.executable, "-m", "snakemake", "--cores", "1"]
+    env = {**snakemake_env(tmp_path), **offline_env(tmp_path)}
+    env["PATH"] = snakemake_env(tmp_path)["PATH"]
     t0 = time.perf_counter()
-    proc = subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
+    proc = subprocess.run(
+        snakemake_command(tmp_path, "--cores", "1"), cwd=REPO, env=env, capture_output=True, text=True, timeout=600
+    )
     assert proc.returncode != 0 and time.perf_counter() - t0 < 60
     out = proc.stdout + proc.stderr
     assert "2 of the CLIP models this run needs cannot be loaded; nothing was run." in out
@@ -124,14 +120,32 @@ def test_main_job_offline_names_both_checkpoints_and_following_it_starts(tmp_pat
     }
     (tmp_path / "weights.yaml").write_text(yaml.safe_dump(overlay))
     env["TANGO_PLAN_CALIBRATE"] = "0"
-    proc = subprocess.run(
-        [*cmd, "--until", "normalize", "--configfile", "config/config.yaml", "weights.yaml"],
-        cwd=tmp_path,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=600,
+    args = (
+        "--cores",
+        "1",
+        "--until",
+        "normalize",
+        "--configfile",
+        str(tmp_path / "config" / "config.yaml"),
+        str(tmp_path / "weights.yaml"),
     )
+    proc = subprocess.run(snakemake_command(tmp_path, *args), cwd=REPO, env=env, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "cannot be loaded" not in proc.stderr
     assert "Plan of experiment main" in proc.stderr and "To run now: 3 jobs (normalize 3)" in proc.stderr
+
+
+def test_calibration_times_real_steps_of_a_random_architecture():
+    """The calibration's path for real weights: the architecture with random weights (no download,
+    marked test-only), a few real steps of these settings, a positive finite time."""
+    import math
+
+    from stages.config.sections import OptimizeSettings, RaycacheSettings
+    from stages.guidance.clip import TINY_MODEL
+    from stages.training.calibrate import random_guide, seconds_per_step
+
+    settings = OptimizeSettings(clip_model=TINY_MODEL, image_size=64, width=16, crops=0, light_lobes=4, iterations=10)
+    seconds = seconds_per_step(settings, RaycacheSettings(views=4, resolution=64), "cpu", steps=2)
+    assert 0 < seconds < math.inf
+    guide = random_guide(TINY_MODEL, False, settings.clip_tower, "cpu")
+    assert guide.test_only and guide.weights_id == "calibration: random weights"

@@ -8,17 +8,12 @@ import re
 import numpy as np
 import pytest
 import yaml
-from conftest import REPO, assert_not_blank, browser_check, mesh_work_dir, run_snakemake
+from conftest import REPO, assert_not_blank, browser_check, job_counts, mesh_work_dir, run_snakemake
 
 from stages.config.workflow import WorkflowConfig, load_config_file
 from stages.geometry.raycache import RayCache
 
 SMOKE = REPO / "tests" / "smoke" / "config.yaml"
-
-
-def job_counts(stdout: str) -> dict[str, int]:
-    table = stdout[stdout.index("Job stats:") :]
-    return {m[1]: int(m[2]) for m in re.finditer(r"^(\w+)\s+(\d+)$", table, re.M)}
 
 
 def test_dry_run_default_config(tmp_path):
@@ -203,6 +198,10 @@ def test_smoke_run(tmp_path):
     # the experiment's cells and report in results/smoke (the config's `experiment`), mesh-level
     # work in results/meshes/<mesh>/<key>/<stage>
     res = tmp_path / "results" / "smoke"
+    # the plan, printed before the first job: the cells, the jobs to run, the device, an estimate
+    plan = proc.stderr[proc.stderr.index("Plan of experiment smoke") :]
+    assert "3 meshes x 3 prompts x 2 variants = 18 cells" in plan and "(device: auto)" in plan
+    assert "To run now: " in plan and "optimize 18" in plan and "Estimated wall time on this machine" in plan
     # progress: each optimisation's short line reaches Snakemake's terminal; the logs have theirs
     for cell in ("vase/wood/full", "knot/ice/second"):
         assert f"[optimize {cell}] 3/3 it, " in proc.stdout, proc.stdout[-2000:]
