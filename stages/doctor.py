@@ -25,7 +25,10 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from .config.workflow import load_config_files
-from .core.cli import stage_main
+from .core.cli import bf16_support, resolve_device, stage_main
+from .guidance.clip import ClipWeightsUnavailable, resolve_weights
+from .reference.blender import INSTALL_HINT, BlenderUnavailable, find_blender
+from .reference.mitsuba import find_libllvm
 
 log = logging.getLogger(__name__)
 
@@ -64,8 +67,6 @@ def _run(cmd: list[str], timeout: float = 5.0) -> str | None:
 def check_torch(cfg) -> Check:
     import torch
 
-    from .core.cli import bf16_support, resolve_device
-
     device = resolve_device(cfg.device if cfg.device != "auto" else "auto")
     build = f"CUDA {torch.version.cuda} build" if torch.version.cuda else "CPU build"
     gpu = f"{torch.cuda.device_count()} GPU(s): {torch.cuda.get_device_name(0)}" if torch.cuda.is_available() else "no GPU"
@@ -97,8 +98,6 @@ def check_clip(cfg) -> list[Check]:
     specs = cfg.clip_specs()
     if not specs:
         return [Check("CLIP weights", True, False, "this config needs no real CLIP weights (image guidance or the test CLIP)")]
-    from .guidance.clip import ClipWeightsUnavailable, resolve_weights
-
     out = []
     for spec in specs:
         role = "guidance" if spec.section == "optimize" else "evaluation"
@@ -159,8 +158,6 @@ def check_mitsuba(cfg) -> Check:
     fix = f"pip install -e '.[reference]' ({SETUP} installs it)"
     if version is None:
         return Check("Mitsuba 3", False, needed, f"mitsuba is not installed: it {use}", fix)
-    from .reference.mitsuba import find_libllvm
-
     lib = find_libllvm()
     if lib is None:
         return Check(
@@ -176,8 +173,6 @@ def check_mitsuba(cfg) -> Check:
 def check_blender(cfg) -> Check:
     needed = any(cfg.cell_stage_settings("roundtrip", c.prompt, c.variant).enabled for c in cfg.cells)
     use = "this config's roundtrip stage imports the assets into it" if needed else "the asset judge (roundtrip stage, off here)"
-    from .reference.blender import INSTALL_HINT, BlenderUnavailable, find_blender
-
     try:
         cmd = find_blender()
     except BlenderUnavailable as exc:

@@ -31,7 +31,8 @@ from pathlib import Path
 from .config.presets import PRESETS
 from .config.sections import OptimizeSettings
 from .config.workflow import WorkflowConfig, experiment_name, load_config_files
-from .core.cli import stage_main
+from .core.cli import resolve_device, stage_main
+from .training.calibrate import seconds_per_step
 
 log = logging.getLogger(__name__)
 
@@ -72,8 +73,6 @@ def job_counts(cfg: WorkflowConfig) -> dict[str, int]:
 
 def torch_device(cfg: WorkflowConfig) -> str:
     """Where the torch stages will run: what ``--device`` resolves to on this machine."""
-    from .core.cli import resolve_device
-
     return resolve_device(cfg.device).type
 
 
@@ -110,8 +109,6 @@ def step_seconds(settings, raycache, device: str, results: Path, cache: Path, ca
         return float(json.loads(cached.read_text())["seconds_per_step"]), "a calibration of these settings (cached)"
     if not calibrate:
         return None, "not calibrated (--no-calibrate)"
-    from .training.calibrate import seconds_per_step
-
     seconds = seconds_per_step(settings, raycache, device)
     cache.mkdir(parents=True, exist_ok=True)
     tmp = cached.with_suffix(".tmp")

@@ -14,6 +14,8 @@ import pytest
 from conftest import REPO, require_tool
 
 STAGES = REPO / "stages"
+#: the modules at the top of stages/ that are commands, not rules (ARCHITECTURE.md)
+COMMANDS = ("doctor", "plan")
 #: the library's layers, top to bottom (as in pyproject.toml's import contract)
 LAYERS = ("training", "assets", "results", "reference", "guidance", "imaging", "model", "render", "geometry", "config", "core")
 
@@ -42,8 +44,10 @@ def test_import_contracts_hold():
 def test_every_rule_runs_its_own_thin_stage_module():
     found = rules()
     assert {"normalize", "decimate", "raycache", "optimize", "bake", "export", "relight", "metrics"} <= set(found)
-    stage_files = {p.stem for p in STAGES.glob("*.py") if p.stem != "__init__"}
+    stage_files = {p.stem for p in STAGES.glob("*.py") if p.stem != "__init__"} - set(COMMANDS)
     assert set(found.values()) == stage_files, "every stage module is run by a rule, and only stage modules sit in stages/"
+    for command in COMMANDS:  # the commands beside them (not rules): python -m stages.<command>
+        assert callable(importlib.import_module(f"stages.{command}").main), command
     for rule, module in found.items():
         assert rule == module, f"rule {rule} runs stages.{module}: name them alike"
         mod = importlib.import_module(f"stages.{module}")
