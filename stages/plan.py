@@ -144,6 +144,13 @@ def other_stage_seconds(results: Path) -> dict[str, float]:
     return out
 
 
+def guidance_label(settings) -> str:
+    """What guides an optimisation, as the plan names it."""
+    if settings.guidance != "clip":
+        return "image targets"
+    return "the tiny test CLIP" if settings.clip_tiny_test else settings.clip_model
+
+
 def is_paper(settings) -> bool:
     """The paper's cost: its schedule, views, crops and width (preset ``paper``) at CLIP's full
     image size (whatever the material presets change besides)."""
@@ -190,7 +197,7 @@ def make_plan(
             "seconds_per_step": sec,
             "source": source,
             "paper": is_paper(s),
-            "clip_model": s.clip_model if s.guidance == "clip" else "image targets",
+            "clip_model": guidance_label(s),
         }
         if sec is not None:
             row["seconds"] = sec * s.iterations * entry["cells"]
@@ -277,6 +284,9 @@ def plan_text(plan: dict) -> str:
             f"  {e['cells']} optimisation(s) of {e['iterations']} steps ({e['clip_model']}): {per} from {e['source']} "
             f"-> {duration(e.get('seconds'))}"
         )
+    if not plan["optimisation"]:
+        lines.append("No optimisation to run.")
+        return "\n".join(lines) + "\n"
     opt, other = plan["optimisation_seconds"], plan["other_seconds"]
     est = f"Estimated wall time on this machine: {duration(opt)} of optimisation, one at a time"
     if other is not None:

@@ -85,7 +85,7 @@ def test_plan_names_faster_presets_for_the_paper_on_a_cpu(tmp_path):
     assert proc.returncode == 0, proc.stderr[-3000:]
     text = proc.stdout
     assert "3 meshes x 2 prompts x 1 variants = 6 cells" in text and "run on cpu" in text
-    assert "These are the paper's settings" in text and "balanced:" in text and "fast:" in text
+    assert "6 of these optimisations run the paper's settings" in text and "balanced:" in text and "fast:" in text
     costs = json.loads((REPO / "benchmarks" / "figures" / "preset_costs.json").read_text())
     for preset in ("balanced", "fast"):
         for mesh, db in zip(costs["meshes"], costs["presets"][preset]["psnr_db"], strict=True):

@@ -200,6 +200,12 @@ def print_plan():
     except Exception:
         # Snakemake's DAG API changed: the plan counts from the results folder instead
         pending = None
+    import logging
+
+    # a library that logs through the root logger gives it a handler (logging's basicConfig);
+    # Snakemake's own log lines would then reach the terminal twice: leave root as it was
+    root = logging.getLogger()
+    handlers, level = list(root.handlers), root.level
     try:
         calibrate = os.environ.get("TANGO_PLAN_CALIBRATE", "1") != "0"
         text = plan_text(
@@ -207,6 +213,11 @@ def print_plan():
         )
     except Exception as exc:
         text = f"(no plan: {type(exc).__name__}: {exc})\n"
+    finally:
+        for handler in root.handlers[:]:
+            if handler not in handlers:
+                root.removeHandler(handler)
+        root.setLevel(level)
     sys.stderr.write(text)
 
 
