@@ -20,8 +20,11 @@ include: "workflow/rules/lod.smk"
 include: "workflow/rules/report.smk"
 
 
+report: "workflow/report/workflow.rst"
+
+
 onstart:
-    check_clip_weights()
+    check_needed_pieces()
     print_plan()
 
 

@@ -1,4 +1,4 @@
-"""doctor: check, in a few seconds, what a run of a config needs, and say how to fix each missing piece.
+"""doctor: check, in seconds, what a run of a config needs, and say how to fix each missing piece.
 
     python -m stages.doctor [--configfile config/config.yaml [overlay.yaml ...]] [--json]
 
@@ -10,6 +10,13 @@ the glTF validator; the independent judges, Mitsuba 3 (with libLLVM for its fast
 and Blender; Chromium (the browser tests); and the cluster pieces (Slurm's commands and the
 Snakemake executor plugin). A piece is *needed* when this config's run would fail without it, else
 *optional* (what it adds is said). Exit status 1 when a needed piece is missing, else 0.
+
+A piece is not called ok because it imports: each one the run uses does the smallest real job
+first (:mod:`stages.geometry.probes`, :mod:`stages.assets.probes`, a few-pixel Mitsuba render of
+the target scene in the variant the run will use, a Blender import of a tiny GLB, the glTF
+validator on it, a headless Chromium page, a matrix product on the torch device), in parallel.
+When Mitsuba can only use its slow ``scalar_rgb`` variant, the doctor says how long this config's
+targets will take in it, from the rate it measured.
 """
 
 from __future__ import annotations
@@ -21,19 +28,40 @@ import logging
 import shutil
 import subprocess
 import sys
+import tempfile
+import time
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+from .assets.formats import GLTF_VALIDATOR, MODEL_VIEWER
+from .assets.probes import probe_gltf, probe_node_validator, probe_usd
 from .config.workflow import load_config_files
 from .core.cli import bf16_support, resolve_device, stage_main
+from .core.progress import duration
+from .geometry.probes import PROBE_GLB_FACES, PROBE_TIMEOUT_S, probe_embree, probe_pymeshlab, probe_xatlas, write_probe_glb
 from .guidance.clip import ClipWeightsUnavailable, resolve_weights
+from .reference import blender as blender_ref
 from .reference.blender import INSTALL_HINT, BlenderUnavailable, find_blender
-from .reference.mitsuba import find_libllvm
+from .reference.mitsuba import choose_variant, find_libllvm
+from .reference.targets import probe as probe_targets
 
 log = logging.getLogger(__name__)
 
 REPO = Path(__file__).resolve().parents[1]
 SETUP = "bash scripts/setup.sh"
+#: Chromium's flags for a headless page on a machine without a screen or a network (as root)
+CHROMIUM_FLAGS = (
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+)
 
 
 @dataclass
@@ -43,6 +71,9 @@ class Check:
     needed: bool
     detail: str
     fix: str = ""
+    #: what the smallest real use did (empty when the piece was not tried), and its seconds
+    tried: str = ""
+    seconds: float = 0.0
 
     @property
     def status(self) -> str:
@@ -64,6 +95,22 @@ def _run(cmd: list[str], timeout: float = 5.0) -> str | None:
     return (out.stdout or out.stderr).strip().splitlines()[0] if out.returncode == 0 and (out.stdout or out.stderr) else None
 
 
+def tried(check: Check, use: Callable[[], str], fix: str) -> Check:
+    """``check`` after its smallest real use: ``use()`` returns what it did; when it raises, the
+    piece is not ok, the error is the detail's last words and ``fix`` the fix."""
+    t0 = time.perf_counter()
+    try:
+        done = use()
+    except Exception as exc:  # noqa: BLE001 - any failure of a tool is what the doctor reports
+        check.ok = False
+        check.detail += f"; but its first real use failed: {type(exc).__name__}: {str(exc).strip()[:400]}"
+        check.fix = check.fix or fix
+    else:
+        check.tried = done
+    check.seconds = time.perf_counter() - t0
+    return check
+
+
 def check_torch(cfg) -> Check:
     import torch
 
@@ -83,15 +130,28 @@ def check_torch(cfg) -> Check:
             detail,
             "device: cuda but torch sees no GPU: install a CUDA build of torch (README, 'GPU') or set device: auto",
         )
-    return Check("torch and device", True, True, detail)
+
+    def use() -> str:
+        a = torch.randn(256, 256, device=device, requires_grad=True)
+        (a @ a).square().mean().backward()
+        if not torch.isfinite(a.grad).all():
+            raise RuntimeError("a 256 x 256 matrix product's gradient is not finite")
+        if bf16:
+            with torch.autocast(device.type, dtype=torch.bfloat16):
+                if (a @ a).dtype != torch.bfloat16:
+                    raise RuntimeError("bfloat16 autocast did not run in bfloat16")
+        return f"a matrix product and its gradient on {device.type}" + (" (and under bfloat16 autocast)" if bf16 else "")
+
+    return tried(Check("torch and device", True, True, detail), use, "reinstall torch (bash scripts/setup.sh)")
 
 
-def check_module(name: str, module: str, dist: str, what: str, fix: str, needed: bool = True) -> Check:
+def check_module(name: str, module: str, dist: str, what: str, fix: str, needed: bool, use: Callable[[], str]) -> Check:
+    """A Python package: installed (``module`` importable), then its smallest real use ``use``."""
     found = importlib.util.find_spec(module) is not None
     version = _version(dist)
-    if found:
-        return Check(name, True, needed, f"{dist} {version or '(version unknown)'}: {what}")
-    return Check(name, False, needed, f"{dist} is not installed: {what}", fix)
+    if not found:
+        return Check(name, False, needed, f"{dist} is not installed: {what}", fix)
+    return tried(Check(name, True, needed, f"{dist} {version or '(version unknown)'}: {what}"), use, fix)
 
 
 def check_clip(cfg) -> list[Check]:
@@ -112,78 +172,110 @@ def check_clip(cfg) -> list[Check]:
     return out
 
 
-def check_node() -> list[Check]:
+def check_node(glb: Path) -> Check:
+    """Node.js, model-viewer and the glTF validator; the validator run on the probe GLB."""
     node = shutil.which("node")
-    viewer = REPO / "node_modules" / "@google" / "model-viewer" / "dist" / "model-viewer-umd.min.js"
-    validator = REPO / "node_modules" / "gltf-validator"
+    name = "Node.js and the report's viewer"
     fix = f"install Node.js and npm (Debian: apt-get install nodejs npm), then rerun {SETUP} (it runs npm ci)"
     if node is None:
-        return [
-            Check(
-                "Node.js and the report's viewer",
-                False,
-                False,
-                "node not found: the report shows static previews "
-                "instead of 3D viewers, and the export skips the Khronos glTF validator",
-                fix,
-            )
-        ]
+        what = "the report shows static previews instead of 3D viewers, and the export skips the Khronos glTF validator"
+        return Check(name, False, False, f"node not found: {what}", fix)
     version = _run([node, "--version"]) or "?"
-    missing = [p.name for p in (viewer, validator) if not p.exists()]
+    missing = [p.name for p in (MODEL_VIEWER, GLTF_VALIDATOR) if not p.exists()]
     if missing:
-        return [
-            Check(
-                "Node.js and the report's viewer",
-                False,
-                False,
-                f"node {version}, but {', '.join(missing)} not installed "
-                "in node_modules: no 3D viewers in the report / no glTF validation",
-                f"run {SETUP} (or npm ci)",
-            )
-        ]
-    return [
-        Check(
-            "Node.js and the report's viewer",
-            True,
+        what = "no 3D viewers in the report / no glTF validation"
+        return Check(
+            name,
             False,
-            f"node {version}; model-viewer and the Khronos glTF validator in node_modules",
+            False,
+            f"node {version}, but {', '.join(missing)} not installed in node_modules: {what}",
+            f"run {SETUP} (or npm ci)",
         )
-    ]
+    check = Check(name, True, False, f"node {version}; model-viewer and the Khronos glTF validator in node_modules")
+    return tried(check, lambda: probe_node_validator(glb), f"run {SETUP} again (npm ci), or reinstall Node.js")
+
+
+def target_samples(cfg) -> tuple[int, int]:
+    """The Mitsuba samples this config's target jobs path-trace (training views at ``target.spp``,
+    metric views at ``target.metric_spp``, whole images), and how many target jobs there are
+    (one per mesh and material)."""
+    jobs = sorted({(c.mesh, m) for c in cfg.cells if (m := cfg.target_material(c.prompt, c.variant))})
+    total = 0
+    for mesh, _ in jobs:
+        rc, t = cfg.stage_settings(mesh, "raycache"), cfg.stage_settings(mesh, "target")
+        metric_views = rc.metrics_azimuths * len(rc.metrics_elevations_deg)
+        total += rc.views * rc.resolution**2 * t.spp + metric_views * rc.metrics_resolution**2 * t.metric_spp
+    return total, len(jobs)
 
 
 def check_mitsuba(cfg) -> Check:
+    """Mitsuba 3: installed, the variant a run uses, a few-pixel render of the target scene in it
+    and, when targets are needed, how long they take at the rate it measured."""
     needed = any(cfg.target_material(c.prompt, c.variant) for c in cfg.cells)
     use = "renders this config's image targets" if needed else "the ground-truth judge of image-guided runs (not used here)"
     version = _version("mitsuba")
     fix = f"pip install -e '.[reference]' ({SETUP} installs it)"
     if version is None:
         return Check("Mitsuba 3", False, needed, f"mitsuba is not installed: it {use}", fix)
-    lib = find_libllvm()
-    if lib is None:
+    settings = cfg.stage_settings(cfg.grid_meshes[0], "target")
+    try:
+        variant = choose_variant(settings.variant)
+    except ImportError as exc:
         return Check(
-            "Mitsuba 3",
-            True,
-            needed,
-            f"mitsuba {version} ({use}); no libLLVM 16+: only the slow scalar_rgb variant "
-            "(apt-get install libllvm19 for llvm_ad_rgb)",
+            "Mitsuba 3", False, needed, f"mitsuba {version}: {exc}", "apt-get install libllvm19, or target.variant: auto"
         )
-    return Check("Mitsuba 3", True, needed, f"mitsuba {version} with {lib} (llvm_ad_rgb): {use}")
+    lib = find_libllvm()
+    where = f"with {lib}" if variant.startswith("llvm") else "no libLLVM 16+ found" if lib is None else "scalar_rgb asked for"
+    check = Check("Mitsuba 3", True, needed, f"mitsuba {version}, variant {variant} ({where}): {use}")
+
+    def render() -> str:
+        result = probe_targets(settings)
+        said = f"rendered a 24 x 24 target probe in {variant} ({result.samples_per_second / 1e6:.2f} M samples/s)"
+        samples, jobs = target_samples(cfg)
+        if samples:
+            said += (
+                f"; this config's targets ({jobs} job(s), {samples / 1e6:.0f} M samples) take about "
+                f"{duration(samples / result.samples_per_second)} here"
+            )
+        if variant == "scalar_rgb":
+            said += " in the slow scalar_rgb variant (Debian: apt-get install libllvm19 for llvm_ad_rgb, several times faster)"
+        return said
+
+    return tried(check, render, f"{fix}; Mitsuba's own error is above")
 
 
-def check_blender(cfg) -> Check:
+def check_blender(cfg, glb: Path, work: Path) -> Check:
+    """Blender: found, then an import of the probe GLB through the roundtrip stage's job script."""
     needed = any(cfg.cell_stage_settings("roundtrip", c.prompt, c.variant).enabled for c in cfg.cells)
     use = "this config's roundtrip stage imports the assets into it" if needed else "the asset judge (roundtrip stage, off here)"
+    fix = f"{INSTALL_HINT}; or run without it: roundtrip: {{enabled: false}}"
     try:
         cmd = find_blender()
     except BlenderUnavailable as exc:
-        return Check("Blender", False, needed, f"{exc}: {use}".split(";")[0], INSTALL_HINT)
-    if len(cmd) == 1:  # a Python with bpy: read its version without importing bpy (seconds)
-        version = _run([cmd[0], "-c", "import importlib.metadata as m; print('bpy', m.version('bpy'))"])
-    else:
-        version = _run([cmd[0], "--version"], timeout=30)
-    if version is None:
-        return Check("Blender", False, needed, f"{cmd[0]} does not answer: {use}", INSTALL_HINT)
-    return Check("Blender", True, needed, f"{version} ({cmd[0]}): {use}")
+        return Check("Blender", False, needed, f"{exc}: {use}".split(";")[0], fix)
+    check = Check("Blender", True, needed, f"{cmd[0]}: {use}")
+    return tried(check, lambda: blender_ref.probe(glb, work / "blender", PROBE_GLB_FACES, PROBE_TIMEOUT_S), fix)
+
+
+def check_chromium(work: Path) -> Check:
+    """Chromium (the browser tests): a headless page whose script writes a marker into the DOM."""
+    exe = shutil.which("chromium") or shutil.which("chromium-browser")
+    if exe is None:
+        return Check("Chromium", False, False, "not found: only for the browser tests", "apt-get install chromium")
+
+    def use() -> str:
+        page = "data:text/html,<body><script>document.body.textContent='probe-'+(6*7)</script></body>"
+        args = [exe, *CHROMIUM_FLAGS, f"--user-data-dir={work / 'chromium'}", "--dump-dom", page]
+        out = subprocess.run(args, capture_output=True, text=True, timeout=PROBE_TIMEOUT_S)
+        if "probe-42" not in out.stdout:
+            raise RuntimeError(
+                f"headless Chromium did not run a page's script (exit {out.returncode}): {out.stderr.strip()[-300:]}"
+            )
+        return "ran a page's script headless"
+
+    return tried(
+        Check("Chromium", True, False, f"{exe}: only for the browser tests"), use, "apt-get install --reinstall chromium"
+    )
 
 
 def check_slurm() -> Check:
@@ -207,37 +299,81 @@ def check_slurm() -> Check:
 
 
 def run(configfiles: list[Path]) -> list[Check]:
-    """Every check, for the config made of ``configfiles`` (later files update earlier ones)."""
+    """Every check, for the config made of ``configfiles`` (later files update earlier ones); the
+    smallest real uses run in parallel threads (most wait on a child process)."""
     cfg = load_config_files(configfiles)
     cells = cfg.cells
     embree = any(cfg.stage_settings(m, "raycache").backend == "embree" for m in cfg.grid_meshes)
     meshlab = any(cfg.decimated(m) for m in cfg.grid_meshes) or any(
         cfg.cell_stage_settings("lod", c.prompt, c.variant).enabled for c in cells
     )
-    checks = [check_torch(cfg)]
-    checks += [
-        check_module("Embree", "embreex", "embreex", "ray casting (ray cache, bake)", f"pip install embreex ({SETUP})", embree),
-        check_module("pymeshlab", "pymeshlab", "pymeshlab", "decimation, LODs", f"pip install pymeshlab ({SETUP})", meshlab),
-        check_module("xatlas", "xatlas", "xatlas", "the bake's texture atlas", f"pip install xatlas ({SETUP})"),
-        check_module("usd-core", "pxr", "usd-core", "USD and USDZ export", f"pip install usd-core ({SETUP})"),
-        check_module("pygltflib", "pygltflib", "pygltflib", "glTF export", f"pip install pygltflib ({SETUP})"),
-    ]
-    checks += check_clip(cfg)
-    checks += check_node()
-    checks.append(check_mitsuba(cfg))
-    checks.append(check_blender(cfg))
-    chromium = shutil.which("chromium") or shutil.which("chromium-browser")
-    checks.append(
-        Check(
-            "Chromium",
-            chromium is not None,
-            False,
-            f"{chromium or 'not found'}: only for the browser tests",
-            "" if chromium else "apt-get install chromium",
-        )
-    )
-    checks.append(check_slurm())
-    return checks
+    with tempfile.TemporaryDirectory(prefix="tango-doctor-") as tmp:
+        work = Path(tmp)
+        glb = work / "probe.glb"
+        try:
+            write_probe_glb(glb)
+        except Exception as exc:  # noqa: BLE001 - trimesh itself broken: the GLB probes then say so
+            log.warning("could not write the probe GLB: %s", exc)
+        # the pieces that run a child process (Node.js, Blender, Chromium, Slurm) wait in threads;
+        # the in-process ones run one after another here (extension modules imported from several
+        # threads at once can deadlock)
+        with ThreadPoolExecutor(max_workers=4) as pool:
+            children = [
+                pool.submit(job)
+                for job in (
+                    lambda: check_node(glb),
+                    lambda: check_blender(cfg, glb, work),
+                    lambda: check_chromium(work),
+                    check_slurm,
+                )
+            ]
+            here = [
+                check_torch(cfg),
+                check_module(
+                    "Embree",
+                    "embreex",
+                    "embreex",
+                    "ray casting (ray cache, bake)",
+                    f"pip install embreex ({SETUP})",
+                    embree,
+                    probe_embree,
+                ),
+                check_module(
+                    "pymeshlab",
+                    "pymeshlab",
+                    "pymeshlab",
+                    "decimation, LODs",
+                    f"pip install pymeshlab ({SETUP})",
+                    meshlab,
+                    probe_pymeshlab,
+                ),
+                check_module(
+                    "xatlas", "xatlas", "xatlas", "the bake's texture atlas", f"pip install xatlas ({SETUP})", True, probe_xatlas
+                ),
+                check_module(
+                    "usd-core",
+                    "pxr",
+                    "usd-core",
+                    "USD and USDZ export",
+                    f"pip install usd-core ({SETUP})",
+                    True,
+                    lambda: probe_usd(work),
+                ),
+                check_module(
+                    "pygltflib",
+                    "pygltflib",
+                    "pygltflib",
+                    "glTF export",
+                    f"pip install pygltflib ({SETUP})",
+                    True,
+                    lambda: probe_gltf(glb),
+                ),
+                check_clip(cfg),
+                check_mitsuba(cfg),
+            ]
+            node, blender, chromium, slurm = (f.result() for f in children)
+        done = [*here[:-1], node, here[-1], blender, chromium, slurm]
+    return [c for d in done for c in (d if isinstance(d, list) else [d])]
 
 
 def report(checks: list[Check], configfiles: list[Path]) -> str:
@@ -245,6 +381,8 @@ def report(checks: list[Check], configfiles: list[Path]) -> str:
     lines = [f"tango-stylize doctor: what a run of {' + '.join(str(f) for f in configfiles)} needs"]
     for c in checks:
         lines.append(f"  {c.status:<8} {c.name:<{width}}  {c.detail}")
+        if c.tried:
+            lines.append(f"  {'':<8} {'':<{width}}  tried: {c.tried} ({c.seconds:.1f} s)")
         if c.fix and not c.ok:
             lines += [
                 f"  {'':<8} {'':<{width}}  fix: {line}" if i == 0 else f"  {'':<8} {'':<{width}}       {line}"

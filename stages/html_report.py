@@ -16,6 +16,7 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
+from .assets.formats import MODEL_VIEWER
 from .config.sections import ReportSettings
 from .core.cli import stage_main
 from .results.cells import parse_cells
@@ -23,9 +24,6 @@ from .results.site import write_folder, write_single_file
 from .results.summary import front_tile
 
 log = logging.getLogger(__name__)
-
-REPO = Path(__file__).resolve().parents[1]
-MODEL_VIEWER = REPO / "node_modules" / "@google" / "model-viewer" / "dist" / "model-viewer-umd.min.js"
 
 
 def run(

@@ -364,6 +364,8 @@ def check_reports(reports: dict[str, dict], where: Path) -> None:
 
 #: the Khronos glTF-Validator as the repository installs it (``npm ci``; see package.json)
 GLTF_VALIDATOR = REPO_ROOT / "node_modules" / "gltf-validator"
+#: the report's 3D viewer (model-viewer) as ``npm ci`` installs it
+MODEL_VIEWER = REPO_ROOT / "node_modules" / "@google" / "model-viewer" / "dist" / "model-viewer-umd.min.js"
 
 
 def validate_glb(path: Path) -> dict:

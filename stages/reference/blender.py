@@ -362,3 +362,19 @@ def compare_renders(hits: list, renders: np.ndarray, reference: list[np.ndarray]
         ours_img,
         theirs_img,
     )
+
+
+def probe(glb: Path, workdir: Path, expected_faces: int, timeout_s: float = 180.0) -> str:
+    """The smallest real use of Blender, for the doctor: import the tiny GLB ``glb`` (written by
+    :func:`stages.geometry.probes.write_probe_glb`) through the job script the roundtrip stage
+    runs, and check that one mesh with ``expected_faces`` faces and a Principled BSDF arrived.
+    Raises :class:`BlenderUnavailable` or what the job raised."""
+    res = run_job({"asset": str(Path(glb).resolve()), "inspect": True}, workdir, timeout_s)
+    meshes = [o for o in res.report.get("objects", []) if o.get("type") == "MESH"]
+    if len(meshes) != 1 or meshes[0].get("faces") != expected_faces:
+        raise RuntimeError(
+            f"Blender imported {[m.get('faces') for m in meshes]} face(s) per mesh, not one mesh of {expected_faces}"
+        )
+    if not any(m.get("principled") for m in res.report.get("materials", [])):
+        raise RuntimeError("Blender imported the GLB without a Principled BSDF material")
+    return f"Blender {res.report.get('blender')} imported a {expected_faces}-face GLB in {res.seconds:.1f} s"

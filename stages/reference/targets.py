@@ -233,17 +233,23 @@ def target_normals(settings: TargetSettings) -> NormalSpec:
 
 def _mesh(mi, mesh: TriMesh, uv: np.ndarray, bsdf, corner_normals: np.ndarray | None = None):
     """A Mitsuba mesh with one vertex per face corner, the atlas's texcoords, and flat normals or,
-    given ``corner_normals (F, 3, 3)``, those per corner (Mitsuba interpolates them)."""
+    given ``corner_normals (F, 3, 3)``, those per corner (Mitsuba interpolates them). Works in
+    every variant: the buffers are built with the types the mesh itself holds (``drjit.scalar.ArrayXf``
+    in ``scalar_rgb``, where ``mi.Float`` is a Python float; ``drjit.llvm.ad.Float`` in ``llvm_ad_rgb``)."""
     corners = mesh.vertices[mesh.faces].reshape(-1, 3).astype(np.float32)
     nf = len(mesh.faces)
     smooth = corner_normals is not None
     m = mi.Mesh("target", 3 * nf, nf, has_vertex_normals=smooth, has_vertex_texcoords=True)
     params = mi.traverse(m)
-    params["vertex_positions"] = mi.Float(np.ascontiguousarray(corners.ravel()))
+    buffers = {
+        "vertex_positions": corners.ravel(),
+        "faces": np.arange(3 * nf, dtype=np.uint32),
+        "vertex_texcoords": uv.reshape(-1, 2).astype(np.float32).ravel(),
+    }
     if smooth:
-        params["vertex_normals"] = mi.Float(np.ascontiguousarray(corner_normals.reshape(-1).astype(np.float32)))
-    params["faces"] = mi.UInt32(np.arange(3 * nf, dtype=np.uint32))
-    params["vertex_texcoords"] = mi.Float(np.ascontiguousarray(uv.reshape(-1, 2).astype(np.float32).ravel()))
+        buffers["vertex_normals"] = corner_normals.reshape(-1).astype(np.float32)
+    for key, values in buffers.items():
+        params[key] = type(params[key])(np.ascontiguousarray(values))
     params.update()
     m.set_bsdf(bsdf)
     return m
@@ -378,3 +384,39 @@ class TargetRenderer:
 
 #: a pixel counts as an object pixel of the figures when Mitsuba's alpha says it is fully covered
 ALPHA_FULL = 0.999
+
+
+@dataclass(frozen=True)
+class RenderProbe:
+    """What :func:`probe` measured: the variant, the seconds of the first render (scene set-up and,
+    in an LLVM variant, the kernels' compilation) and the rate of the second, in samples per second."""
+
+    variant: str
+    first_seconds: float
+    samples_per_second: float
+
+
+def probe(settings: TargetSettings, width: int = 24, spp: int = 16) -> RenderProbe:
+    """The smallest real use of the target renderer: the target stage's own scene (principled BSDF
+    with textures and a normal map, the configured environment and transport) on a 320-face
+    sphere, rendered twice at ``width x width`` pixels and ``spp`` samples in the variant a run
+    of ``settings`` uses (:func:`~stages.reference.mitsuba.choose_variant`). The sphere fills most
+    of the view, so every sample traces a path: the rate is a fair (slightly pessimistic) rate of a
+    target render. Raises what the renderer raises."""
+    import trimesh
+
+    s = trimesh.creation.icosphere(subdivisions=2, radius=0.8)
+    mesh = TriMesh(np.asarray(s.vertices, np.float64), np.asarray(s.faces, np.int64))
+    small = TargetSettings(**{**settings.to_dict(), "texture_size": 64, "environment_height": 32})
+    c2w = np.eye(4)
+    c2w[2, 3] = 2.0  # looking down -z at the origin
+    t0 = time.perf_counter()
+    renderer = TargetRenderer(mesh, "wood", small)
+    img = renderer.render(c2w, 60.0, width, spp, seed=0)
+    first = time.perf_counter() - t0
+    if not np.isfinite(img).all() or img[..., 3].max() <= 0:
+        raise RuntimeError(f"Mitsuba ({renderer.variant}) rendered an empty or non-finite probe image")
+    t1 = time.perf_counter()
+    renderer.render(c2w, 60.0, width, spp, seed=1)
+    rate = width * width * spp / max(time.perf_counter() - t1, 1e-9)
+    return RenderProbe(renderer.variant, first, rate)

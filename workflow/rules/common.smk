@@ -221,16 +221,42 @@ def print_plan():
     sys.stderr.write(text)
 
 
-def check_clip_weights():
+def check_needed_pieces():
     """Before any job runs: stop at once when real CLIP weights (for guidance or for the
-    evaluation metrics) are needed but unavailable: one message per missing model."""
-    # imported here, not at the top: it imports torch, which building the DAG never needs
+    evaluation metrics) are needed but unavailable, one message per missing model, and when a
+    judge the run needs (Mitsuba for image targets, Blender for the round trip) is missing.
+    """
+    # imported here, not at the top: they import torch, which building the DAG never needs
     from stages.guidance.clip import missing_weights
+    from stages.reference.judges import missing_judges
 
     problems = missing_weights(CFG.clip_specs())
+    lead = []
     if problems:
-        lead = f"{len(problems)} of the CLIP models this run needs cannot be loaded; nothing was run."
-        raise WorkflowError("\n\n".join([lead, *problems]))
+        lead.append(
+            f"{len(problems)} of the CLIP models this run needs cannot be loaded; nothing was run."
+        )
+    judges = missing_judges(*judges_needed())
+    if judges:
+        lead.append(
+            f"{len(judges)} of the tools this run needs are missing; nothing was run."
+        )
+    if lead:
+        raise WorkflowError("\n\n".join(["\n".join(lead), *problems, *judges]))
+
+
+def judges_needed():
+    """The Mitsuba variants of the meshes that get targets, and the cells with the round trip."""
+    variants = {
+        CFG.stage_settings(c.mesh, "target").variant
+        for c in CFG.cells
+        if CFG.target_material(c.prompt, c.variant)
+    }
+    roundtrips = sum(
+        CFG.cell_stage_settings("roundtrip", c.prompt, c.variant).enabled
+        for c in CFG.cells
+    )
+    return variants, roundtrips
 
 
 def cell_settings_json(stage):
