@@ -15,7 +15,7 @@ from conftest import REPO, require_tool
 
 STAGES = REPO / "stages"
 #: the modules at the top of stages/ that are commands, not rules (ARCHITECTURE.md)
-COMMANDS = ("doctor", "plan")
+COMMANDS = ("doctor", "plan", "quick")
 #: the library's layers, top to bottom (as in pyproject.toml's import contract)
 LAYERS = ("training", "assets", "results", "reference", "guidance", "imaging", "model", "render", "geometry", "config", "core")
 

@@ -38,9 +38,9 @@ def missing_judges(mitsuba_variants: set[str], roundtrip_cells: int) -> list[str
         except BlenderUnavailable as exc:
             reason = str(exc).split(";")[0]
             problems.append(
-                f"This run imports its assets into Blender (roundtrip: enabled in {roundtrip_cells} cell(s)), "
-                f"and {reason[0].lower() + reason[1:]}. To get it: {INSTALL_HINT}. "
-                "Or run without the round trip: set roundtrip: {enabled: false} in the config "
-                "(or add --config 'roundtrip={enabled: false}')."
+                f"This run imports its assets into Blender (roundtrip: enabled in {roundtrip_cells} cell(s)): "
+                f"{reason}. To get it: {INSTALL_HINT}. "
+                "Or run without the round trip: set roundtrip: {enabled: false} in the config, or add the "
+                "overlay config/overlays/no-blender.yaml after it (--configfile <config> config/overlays/no-blender.yaml)."
             )
     return problems

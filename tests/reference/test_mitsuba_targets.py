@@ -32,8 +32,9 @@ def have_mitsuba() -> bool:
         return False
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture
 def mi():
+    """Mitsuba in the variant a run chooses here (set for each test: a test may switch it)."""
     require_tool(have_mitsuba(), "Mitsuba 3 is not installed (pip install -e '.[reference]')")
     return mref.import_mitsuba(mref.choose_variant("auto"))
 
@@ -291,10 +292,12 @@ def test_material_errors_against_hand_computed_figures():
     assert math.isclose(e["albedo_rmse"], 0.25, rel_tol=1e-9)
 
 
-def test_target_stage_writes_targets_truth_and_measured_noise(mi, tmp_path):
+@pytest.mark.parametrize("variant", ["auto", "scalar_rgb"])
+def test_target_stage_writes_targets_truth_and_measured_noise(mi, tmp_path, variant):
     """The stage renders both caches, stores per-hit targets aligned with them (checked by
     TargetSet), the ground truth at the metric hits, and noise that falls with the samples:
-    4x the samples, about 6 dB more noise PSNR."""
+    4x the samples, about 6 dB more noise PSNR. In the variant a run chooses (LLVM in CI) and in
+    ``scalar_rgb`` (a machine without libLLVM 16+), whose scene is built from the same arrays."""
     from stages import target
 
     v, f = builtin_mesh("vase")
@@ -306,17 +309,17 @@ def test_target_stage_writes_targets_truth_and_measured_noise(mi, tmp_path):
         arrays, _ = trace_views(mesh, views, EmbreeTracer(mesh))
         np.savez(tmp_path / f"{name}.npz", **arrays)
     out = tmp_path / "target"
-    summary = target.run(
-        tmp_path / "train.npz", tmp_path / "metrics.npz", "wood", out, TargetSettings(spp=8, metric_spp=32, texture_size=128)
-    )
+    settings = TargetSettings(spp=8, metric_spp=32, texture_size=128, variant=variant)
+    summary = target.run(tmp_path / "train.npz", tmp_path / "metrics.npz", "wood", out, settings)
     for name in ("train.npz", "metrics.npz", "targets.png", "material.png", "meta.json"):
         assert (out / name).is_file()
     meta = json.loads((out / "meta.json").read_text())
     assert meta["renderer"]["name"] == "Mitsuba 3" and meta["renderer"]["version"]
+    assert meta["renderer"]["variant"] == mref.choose_variant(variant)
     assert meta["description"].startswith("Mitsuba 3")
     assert all(np.isfinite(summary[k]["noise_psnr_db"]) for k in ("train", "metrics"))
     # the same views at 4x the samples: the noise's variance falls 4x, its PSNR rises ~6 dB
-    renderer = tref.TargetRenderer(mesh, "wood", TargetSettings(texture_size=128))
+    renderer = tref.TargetRenderer(mesh, "wood", TargetSettings(texture_size=128, variant=variant))
     metric = RayCache(tmp_path / "metrics.npz")
     gain = renderer.render_cache(metric, 16, 7).noise_psnr_db - renderer.render_cache(metric, 4, 3).noise_psnr_db
     assert 4.5 < gain < 7.5, gain
@@ -337,3 +340,26 @@ def test_unknown_variant_and_bad_settings_fail_clearly():
         TargetSettings(variant="cuda_ad_rgb")
     with pytest.raises(ConfigError, match="builtin"):
         TargetSettings(environment="builtin:nowhere")
+
+
+@pytest.mark.parametrize("variant", ["auto", "scalar_rgb"])
+def test_probe_renders_the_target_scene_and_measures_a_rate(mi, variant):
+    """The doctor's smallest real use: the target scene rendered in the variant asked for, with a
+    positive finite rate (samples per second)."""
+    result = tref.probe(TargetSettings(variant=variant), width=8, spp=4)
+    assert result.variant == mref.choose_variant(variant)
+    assert result.first_seconds > 0 and 0 < result.samples_per_second < float("inf")
+
+
+def test_without_libllvm_auto_falls_back_to_scalar_and_llvm_says_what_to_install(monkeypatch, tmp_path):
+    """No libLLVM 16+ (DRJIT_LIBLLVM_PATH names no file): ``auto`` takes scalar_rgb, an explicit
+    LLVM variant fails naming the package, and the workflow's check before any job says the same."""
+    from stages.reference.judges import missing_judges
+
+    monkeypatch.setenv("DRJIT_LIBLLVM_PATH", str(tmp_path / "absent.so"))
+    assert mref.find_libllvm() is None and mref.choose_variant("auto") == "scalar_rgb"
+    with pytest.raises(ImportError, match="apt-get install libllvm19"):
+        mref.choose_variant("llvm_ad_rgb")
+    (problem,) = missing_judges({"llvm_ad_rgb", "auto"}, 0)
+    assert problem.startswith("target.variant: llvm_ad_rgb: Mitsuba variant llvm_ad_rgb needs libLLVM 16")
+    assert missing_judges({"auto", "scalar_rgb"}, 0) == []

@@ -1,0 +1,210 @@
+"""quick: stylise one's own mesh without writing YAML.
+
+    python -m stages.quick MESH "PROMPT" [--preset fast|balanced|paper|...] [--image-guided MATERIAL]
+                           [--test-clip] [--name NAME] [--overlay FILE ...] [--cores N] [--dry-run]
+
+1. checks the mesh the way the normalize stage reads it (a missing, empty, unreadable or faceless
+   file stops here, with what to do);
+2. writes a small experiment config, ``config/quick/<name>.yaml`` (``--config-dir`` elsewhere):
+   the mesh by its absolute path, the prompt, the preset and the guidance; the config is validated
+   like any other before it is written;
+3. prints what it will run and the command that runs it again;
+4. starts Snakemake on that config (``--dry-run``: prints the plan, with its time estimate, and
+   stops). Snakemake checks the CLIP weights before any job (without them it stops at once with one
+   message per model) and prints the plan with its time estimate.
+
+The result is an ordinary experiment: ``results/<name>/``, its report in ``results/<name>/report/``,
+and ``snakemake --workflow-profile profiles/slurm --configfile config/quick/<name>.yaml`` runs it on
+a cluster. ``--image-guided wood`` needs no CLIP weights: it recovers the procedural material from
+targets path-traced by Mitsuba (every output says so); ``--test-clip`` guides by the tiny random test
+CLIP (every output is marked TEST ONLY).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import re
+import shlex
+import subprocess
+import sys
+from pathlib import Path
+
+import yaml
+
+from .config.presets import PRESETS
+from .config.sections import MATERIALS
+from .config.workflow import experiment_name, load_config_files
+from .core.cli import stage_main
+from .core.errors import ConfigError
+from .core.provenance import atomic_path
+from .geometry.meshio import load_mesh
+
+log = logging.getLogger(__name__)
+
+#: the workflow (results and configs go under the working directory, as with snakemake itself)
+SNAKEFILE = Path(__file__).resolve().parents[1] / "Snakefile"
+#: where the configs go (relative to the working directory)
+CONFIG_DIR = Path("config/quick")
+#: the preset when none is named: the measured knee of speed against quality (stages/config/presets.py)
+DEFAULT_PRESET = "fast"
+#: the longest id the config schema accepts
+MAX_ID = 64
+
+
+def slug(text: str, limit: int) -> str:
+    """``text`` as an id the config accepts: letters, digits, ``_``, ``.`` and ``-``, starting with a
+    letter or digit, at most ``limit`` characters (``"a vase made of wood"`` -> ``"a-vase-made-of-wood"``)."""
+    s = re.sub(r"[^A-Za-z0-9_.-]+", "-", text).strip("-._")[:limit].strip("-._")
+    return s or "x"
+
+
+def experiment_config(mesh: Path, prompt: str, name: str, preset: str, image_guided: str | None, test_clip: bool) -> dict:
+    """The experiment config of one mesh and one prompt (one cell: the mesh's id is its file's stem,
+    the prompt's id the prompt made an id, :func:`slug`; variant ``base``)."""
+    mesh_id = slug(mesh.stem, 32)
+    prompt_entry: dict = {"text": prompt, "preset": preset}
+    config: dict = {
+        "experiment": name,
+        "meshes": {mesh_id: {"path": str(mesh.resolve()), "object": mesh.stem.replace("_", " ")}},
+        "prompts": {slug(prompt, 40): prompt_entry},
+    }
+    if image_guided:
+        prompt_entry["optimize"] = {"guidance": "image", "target_material": image_guided}
+        config["metrics"] = {"clip": False}  # no CLIP weights are needed: image-target metrics only
+    if test_clip:
+        config["optimize"] = {"clip_tiny_test": True}
+        config["metrics"] = {**config.get("metrics", {}), "clip_tiny_test": True}
+    return config
+
+
+def write_config(config: dict, path: Path, command: str, force: bool = False) -> None:
+    """``config`` as YAML at ``path`` (atomically), headed by the command that made it. An
+    existing file with other settings (edited by hand, or another mesh or prompt under the same
+    name) is kept unless ``force``."""
+    if path.is_file() and not force:
+        try:
+            old = yaml.safe_load(path.read_text())
+        except yaml.YAMLError:
+            old = None
+        if old != config:
+            raise ConfigError(
+                f"{path} exists with other settings (edited, or another mesh or prompt of the same name); "
+                f"run it as it is with snakemake --configfile {path}, pick another --name, or pass --force to replace it"
+            )
+    header = f"# Written by: {command}\n# An ordinary experiment config: edit it, or run it with snakemake --configfile {path}\n"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as tmp:
+        tmp.write_text(header + yaml.safe_dump(config, sort_keys=False, allow_unicode=True))
+
+
+def run(
+    mesh: Path,
+    prompt: str,
+    *,
+    preset: str = DEFAULT_PRESET,
+    image_guided: str | None = None,
+    test_clip: bool = False,
+    name: str | None = None,
+    config_dir: Path = CONFIG_DIR,
+    overlays: tuple[Path, ...] = (),
+    cores: int = 2,
+    dry_run: bool = False,
+    force: bool = False,
+    command: str = "python -m stages.quick",
+) -> int:
+    """Check ``mesh``, write its experiment config, say what will run and run it (see the module
+    docstring); returns Snakemake's exit status (or the plan's, with ``dry_run``)."""
+    if preset not in PRESETS:
+        raise ConfigError(f"unknown preset {preset!r}: use one of {', '.join(sorted(PRESETS))}")
+    if image_guided is not None and image_guided not in MATERIALS:
+        raise ConfigError(f"unknown material {image_guided!r} for --image-guided: use one of {', '.join(MATERIALS)}")
+    if not prompt.strip():
+        raise ConfigError('the prompt is empty: say what the object should look like, e.g. "a vase made of wood"')
+    if len(prompt) > 2000:
+        raise ConfigError(f"the prompt is {len(prompt)} characters long; CLIP reads about 77 tokens: shorten it")
+    checked = load_mesh(mesh)  # raises StageInputError with what to do
+    name = name or slug(f"{mesh.stem}-{prompt}", MAX_ID)
+    path = Path(config_dir) / f"{name}.yaml"
+    config = experiment_config(Path(mesh), prompt, name, preset, image_guided, test_clip)
+    existed = path.is_file()
+    write_config(config, path, command, force)
+    configfiles = [path, *overlays]
+    try:
+        cfg = load_config_files(configfiles)  # validated as the workflow will
+        experiment = experiment_name(cfg.raw, configfiles)
+    except ConfigError:
+        if not existed:
+            path.unlink()
+        raise
+    guidance = (
+        f"image-guided: recovers the procedural material '{image_guided}' from Mitsuba renders (no CLIP weights needed)"
+        if image_guided
+        else "the tiny random test CLIP (results marked TEST ONLY)"
+        if test_clip
+        else f"CLIP {cfg.optimize_settings(slug(prompt, 40), 'base').clip_model} (needs its weights)"
+    )
+    files = " ".join(str(p) for p in configfiles)
+    lines = [
+        f"mesh {mesh}: {len(checked.vertices):,} vertices, {len(checked.faces):,} faces",
+        f'prompt "{prompt}", preset {preset}, {guidance}',
+        f"config: {path} (experiment {experiment}); results in results/{experiment}/, the report in "
+        f"results/{experiment}/report/index.html",
+        f"the same run again: snakemake --cores {cores} --configfile {files}",
+        f"on a Slurm cluster: snakemake --workflow-profile profiles/slurm --configfile {files}",
+    ]
+    sys.stdout.write("\n".join(lines) + "\n")
+    sys.stdout.flush()
+    if dry_run:
+        cmd = [sys.executable, "-m", "stages.plan", "--configfile", *map(str, configfiles)]
+        cmd += ["--no-calibrate"] if os.environ.get("TANGO_PLAN_CALIBRATE") == "0" else []  # as the workflow's plan
+    else:
+        cmd = [sys.executable, "-m", "snakemake", "--snakefile", str(SNAKEFILE), "--cores", str(cores)]
+        cmd += ["--configfile", *map(str, configfiles)]
+    # the stages' own `python -m` must find this interpreter's packages first
+    env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}"}
+    return subprocess.run(cmd, env=env).returncode
+
+
+def main(argv: list[str] | None = None) -> int:
+    result = {}
+
+    def arguments(parser):
+        parser.add_argument("mesh", type=Path, help="the mesh file (OBJ, PLY, STL, OFF, GLB, GLTF)")
+        parser.add_argument("prompt", help='what it should look like, e.g. "a vase made of wood"')
+        parser.add_argument("--preset", default=DEFAULT_PRESET, help=f"optimisation preset (default {DEFAULT_PRESET})")
+        parser.add_argument("--image-guided", metavar="MATERIAL", help=f"no CLIP: recover one of {', '.join(MATERIALS)}")
+        parser.add_argument("--test-clip", action="store_true", help="the tiny random test CLIP (results marked TEST ONLY)")
+        parser.add_argument("--name", help="experiment name (default: the mesh's stem and the prompt)")
+        parser.add_argument("--config-dir", type=Path, default=CONFIG_DIR, help=f"where the config goes (default {CONFIG_DIR})")
+        parser.add_argument("--overlay", type=Path, nargs="+", default=[], help="config files laid over the written one")
+        parser.add_argument("--cores", type=int, default=2)
+        parser.add_argument("--dry-run", action="store_true", help="write the config and print the plan; run nothing")
+        parser.add_argument("--force", action="store_true", help="replace an existing config of this name with other settings")
+
+    def body(args):
+        if args.name is not None and args.name != slug(args.name, MAX_ID):
+            raise ConfigError(
+                f"--name {args.name!r}: use letters, digits, '_', '.' or '-' (for example {slug(args.name, MAX_ID)!r})"
+            )
+        result["code"] = run(
+            args.mesh,
+            args.prompt,
+            preset=args.preset,
+            image_guided=args.image_guided,
+            test_clip=args.test_clip,
+            name=args.name,
+            config_dir=args.config_dir,
+            overlays=tuple(args.overlay),
+            cores=args.cores,
+            dry_run=args.dry_run,
+            force=args.force,
+            command=shlex.join(["python", "-m", "stages.quick", *(argv if argv is not None else sys.argv[1:])]),
+        )
+
+    status = stage_main("quick", __doc__, arguments, body, argv)
+    return status or result.get("code", 0)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

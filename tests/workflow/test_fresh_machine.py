@@ -1,0 +1,173 @@
+"""A fresh machine, as a newcomer has it: a clone of the repository (no node_modules, no
+.venv-blender, no results) on a PATH without Node.js, npm, Chromium, Blender or Slurm, and no
+libLLVM 16+ for Mitsuba (``DRJIT_LIBLLVM_PATH`` names a file that does not exist, which is what
+:func:`stages.reference.mitsuba.find_libllvm` honours), offline. CI installs all of these, so
+without this test CI would never take the paths a newcomer takes.
+
+On such a machine the doctor tells the truth (Mitsuba works in ``scalar_rgb`` and it says how long
+this config's targets take there; Blender is missing and needed by the offline demo's round trip),
+the offline demo stops before any job with a message that names what to install, and one's own
+mesh runs end to end through ``python -m stages.quick`` with image guidance: targets in
+``scalar_rgb``, an export that records why the glTF validator did not run, a report of static
+previews."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+from conftest import REPO, shared_mesh
+
+#: the programs a fresh machine lacks (CI installs them)
+HIDDEN = {"node", "nodejs", "npm", "npx", "chromium", "chromium-browser", "blender", "sbatch", "squeue", "sinfo", "sacct"}
+#: a tiny run: sizes small enough for a test, laid over the config quick writes (and its preset)
+TINY = {
+    "raycache": {
+        "views": 4,
+        "resolution": 48,
+        "eval_azimuths": 4,
+        "eval_elevations_deg": [0.0, 30.0],
+        "eval_resolution": 32,
+        "metrics_azimuths": 4,
+        "metrics_elevations_deg": [0.0],
+        "metrics_resolution": 48,
+    },
+    "target": {"spp": 4, "metric_spp": 8, "texture_size": 128},
+    "bake": {"texture_size": 64, "eval_width": 32, "light_width": 64},
+    "relight": {"lobes": 4, "fit_iterations": 20, "width": 32},
+}
+#: the optimisation's tiny settings, at the prompt's level (above the prompt's preset)
+TINY_OPTIMIZE = {"iterations": 3, "milestones": [2], "image_size": 64, "width": 16, "light_lobes": 4, "eval_width": 32}
+
+
+def fresh_clone(dest: Path) -> Path:
+    """The repository's files as git sees them (tracked or new, not ignored), copied to ``dest``."""
+    listed = subprocess.run(
+        ["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard"], cwd=REPO, capture_output=True, check=True
+    ).stdout.decode()
+    for rel in filter(None, listed.split("\0")):
+        src = REPO / rel
+        if src.is_file():
+            (dest / rel).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(src, dest / rel)
+    return dest
+
+
+def bare_path(links: Path) -> str:
+    """A PATH of this interpreter's folder, then one folder of links to every program on today's
+    PATH except :data:`HIDDEN`."""
+    links.mkdir()
+    for folder in os.environ.get("PATH", "").split(os.pathsep):
+        if not os.path.isdir(folder):
+            continue
+        for entry in os.scandir(folder):
+            if entry.name in HIDDEN or (links / entry.name).exists() or not os.access(entry.path, os.X_OK):
+                continue
+            (links / entry.name).symlink_to(entry.path)
+    return f"{Path(sys.executable).parent}{os.pathsep}{links}"
+
+
+@pytest.fixture(scope="module")
+def machine(tmp_path_factory):
+    """``(clone, env)``: a fresh clone and the environment of a machine without the tools above."""
+    root = tmp_path_factory.mktemp("fresh")
+    clone = fresh_clone(root / "clone")
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "TANGO_BLENDER", "DRJIT_LIBLLVM_PATH")}
+    env.update(
+        PATH=bare_path(root / "bin"),
+        DRJIT_LIBLLVM_PATH=str(root / "no-libLLVM.so"),
+        HF_HUB_OFFLINE="1",
+        HF_HOME=str(root / "hf"),
+        XDG_CACHE_HOME=str(root / "cache"),
+        TANGO_PLAN_CALIBRATE="0",
+    )
+    for tool in HIDDEN:
+        assert shutil.which(tool, path=env["PATH"]) is None, tool
+    return clone, env
+
+
+def run(cmd: list[str], clone: Path, env: dict, timeout: float = 900) -> subprocess.CompletedProcess:
+    return subprocess.run(cmd, cwd=clone, env=env, capture_output=True, text=True, timeout=timeout)
+
+
+def test_doctor_tells_the_truth_on_a_bare_machine(machine):
+    clone, env = machine
+    proc = run([sys.executable, "-m", "stages.doctor", "--configfile", "config/demo-offline.yaml", "--json"], clone, env)
+    checks = {c["name"]: c for c in json.loads(proc.stdout)}
+    assert proc.returncode == 1, proc.stderr[-2000:]
+    mitsuba = checks["Mitsuba 3"]
+    assert mitsuba["ok"] and mitsuba["needed"], mitsuba
+    assert "variant scalar_rgb (no libLLVM 16+ found)" in mitsuba["detail"]
+    # the real use: a render in the run's variant, and what this config's targets cost there
+    assert "rendered a 24 x 24 target probe in scalar_rgb" in mitsuba["tried"]
+    assert "this config's targets (3 job(s), 488 M samples) take about" in mitsuba["tried"]
+    assert "slow scalar_rgb variant (Debian: apt-get install libllvm19" in mitsuba["tried"]
+    blender = checks["Blender"]
+    assert blender["status"] == "MISSING" and "Blender was not found" in blender["detail"]
+    assert "bash scripts/setup.sh" in blender["fix"] and "roundtrip: {enabled: false}" in blender["fix"]
+    node = checks["Node.js and the report's viewer"]
+    assert (
+        node["status"] == "optional" and node["detail"].startswith("node not found") and "apt-get install nodejs" in node["fix"]
+    )
+    assert checks["Chromium"]["status"] == "optional"
+    for name in ("torch and device", "Embree", "pymeshlab", "xatlas", "usd-core", "pygltflib"):
+        assert checks[name]["ok"] and checks[name]["tried"], checks[name]
+    text = run([sys.executable, "-m", "stages.doctor", "--configfile", "config/demo-offline.yaml"], clone, env).stdout
+    assert "1 needed piece(s) missing (Blender): the run would stop; fix them first." in text
+
+
+def test_offline_demo_stops_at_once_naming_what_to_install(machine):
+    clone, env = machine
+    t0 = time.perf_counter()
+    proc = run([sys.executable, "-m", "snakemake", "--cores", "2", "--configfile", "config/demo-offline.yaml"], clone, env)
+    out = proc.stdout + proc.stderr
+    assert proc.returncode != 0 and time.perf_counter() - t0 < 120, out[-3000:]
+    assert "1 of the tools this run needs are missing; nothing was run." in out
+    assert "roundtrip: enabled in 3 cell(s)" in out and "Blender was not found" in out
+    assert "bash scripts/setup.sh test,reference,blender" in out and "roundtrip: {enabled: false}" in out
+    assert "config/overlays/no-blender.yaml" in out
+    assert not (clone / "results").exists()
+    # following the message: the overlay switches the round trip off, and the run starts
+    cmd = [sys.executable, "-m", "snakemake", "--cores", "2", "--until", "normalize"]
+    proc = run([*cmd, "--configfile", "config/demo-offline.yaml", "config/overlays/no-blender.yaml"], clone, env)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "missing" not in proc.stderr and "To run now: 3 jobs (normalize 3)" in proc.stderr
+
+
+def test_own_mesh_image_guided_runs_end_to_end_on_a_bare_machine(machine, tmp_path):
+    """``python -m stages.quick`` on a shared mesh with image guidance, sized down by an overlay:
+    it writes an ordinary experiment config, and the run goes through on the fallbacks."""
+    clone, env = machine
+    mesh = shared_mesh("bunny.obj")
+    overlay = tmp_path / "tiny.yaml"
+    overlay.write_text(yaml.safe_dump({**TINY, "prompts": {"a-bunny-made-of-wood": {"optimize": TINY_OPTIMIZE}}}))
+    cmd = [sys.executable, "-m", "stages.quick", str(mesh), "a bunny made of wood", "--image-guided", "wood"]
+    proc = run([*cmd, "--overlay", str(overlay)], clone, env)
+    out = proc.stdout + proc.stderr
+    assert proc.returncode == 0, out[-4000:]
+    name = "bunny-a-bunny-made-of-wood"
+    config = yaml.safe_load((clone / "config" / "quick" / f"{name}.yaml").read_text())
+    assert config["meshes"]["bunny"]["path"] == str(mesh.resolve())
+    assert config["prompts"]["a-bunny-made-of-wood"]["optimize"] == {"guidance": "image", "target_material": "wood"}
+    assert "mesh " + str(mesh) + ": 3,301 vertices, 6,598 faces" in proc.stdout
+    assert f"Plan of experiment {name}" in proc.stderr
+    cell = clone / "results" / name / "bunny" / "a-bunny-made-of-wood" / "base"
+    # the targets were path-traced in Mitsuba's scalar variant: the one a machine without libLLVM has
+    (target_meta,) = (clone / "results" / "meshes" / "bunny").glob("*/target/wood/meta.json")
+    assert json.loads(target_meta.read_text())["renderer"]["variant"] == "scalar_rgb"
+    optimize = json.loads((cell / "optimize" / "meta.json").read_text())
+    assert optimize["settings"]["guidance"] == "image" and optimize["settings"]["iterations"] == 3
+    export = json.loads((cell / "export" / "meta.json").read_text())
+    assert export["stats"]["gltf_validation"] == {"ran": False, "reason": "Node.js (node) is not on PATH"}
+    index = (clone / "results" / name / "report" / "index.html").read_text()
+    assert "<model-viewer" not in index and "id='no-viewer'" in index and "image-guided" in index
+    # the same command again: the same config, nothing to redo
+    again = run([*cmd, "--overlay", str(overlay)], clone, env)
+    assert again.returncode == 0 and "Nothing to be done" in again.stdout + again.stderr, again.stderr[-2000:]

@@ -1,0 +1,89 @@
+"""One's own mesh without YAML: ``python -m stages.quick MESH "PROMPT"`` checks the mesh, writes an
+ordinary experiment config, says what will run and runs it; bad input stops before anything is
+written or run. (Its image-guided run on a fresh machine: tests/workflow/test_fresh_machine.py.)"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import yaml
+from conftest import REPO, shared_mesh, snakemake_env
+from test_fresh_machine import TINY, TINY_OPTIMIZE
+
+
+def quick(cwd: Path, *args: str, env: dict | None = None) -> subprocess.CompletedProcess:
+    env = env or {**snakemake_env(cwd), "TANGO_PLAN_CALIBRATE": "0"}
+    env.pop("PYTHONPATH", None)
+    return subprocess.run(
+        [sys.executable, "-m", "stages.quick", *args], cwd=cwd, env=env, capture_output=True, text=True, timeout=900
+    )
+
+
+def test_test_clip_run_on_an_open_shared_mesh(tmp_path):
+    """spot (open seams, a missing .mtl) with the tiny test CLIP: every output says TEST ONLY, and
+    the experiment's report lists the cell like any other."""
+    mesh = shared_mesh("spot.obj")
+    overlay = tmp_path / "tiny.yaml"
+    overlay.write_text(yaml.safe_dump({**TINY, "prompts": {"a-cow-made-of-gold": {"optimize": TINY_OPTIMIZE}}}))
+    proc = quick(tmp_path, str(mesh), "a cow made of gold", "--test-clip", "--name", "spot-gold", "--overlay", str(overlay))
+    assert proc.returncode == 0, proc.stderr[-4000:]
+    assert "the tiny random test CLIP (results marked TEST ONLY)" in proc.stdout
+    config = yaml.safe_load((tmp_path / "config" / "quick" / "spot-gold.yaml").read_text())
+    assert config["optimize"] == {"clip_tiny_test": True} and config["metrics"] == {"clip_tiny_test": True}
+    assert config["prompts"]["a-cow-made-of-gold"] == {"text": "a cow made of gold", "preset": "fast"}
+    cell = tmp_path / "results" / "spot-gold" / "spot" / "a-cow-made-of-gold" / "base"
+    meta = json.loads((cell / "optimize" / "meta.json").read_text())
+    assert meta["settings"]["clip_tiny_test"] and meta["settings"]["iterations"] == 3
+    assert "TEST ONLY" in json.dumps(meta["origin"])
+    index = (tmp_path / "results" / "spot-gold" / "report" / "index.html").read_text()
+    assert "TEST ONLY: 1 of 1 cells" in index and "a-cow-made-of-gold" in index
+
+
+def test_without_weights_it_stops_at_once_with_one_message_per_model(tmp_path):
+    env = {**snakemake_env(tmp_path), "TANGO_PLAN_CALIBRATE": "0", "HF_HUB_OFFLINE": "1", "HF_HOME": str(tmp_path / "hf")}
+    t0 = time.perf_counter()
+    proc = quick(tmp_path, str(REPO / "tests" / "data" / "absent.obj"), "a vase made of gold", env=env)
+    assert proc.returncode == 2 and "file not found" in proc.stderr  # the mesh is checked first
+    mesh = tmp_path / "pot.obj"
+    mesh.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 2 3\nf 1 2 4\nf 1 3 4\nf 2 3 4\n")
+    proc = quick(tmp_path, str(mesh), "a pot made of gold", env=env)
+    out = proc.stdout + proc.stderr
+    assert proc.returncode != 0 and time.perf_counter() - t0 < 120, out[-3000:]
+    assert "CLIP ViT-B-32 (needs its weights)" in proc.stdout
+    assert "2 of the CLIP models this run needs cannot be loaded; nothing was run." in out
+    assert "The guidance CLIP" in out and "The evaluation CLIP" in out
+    assert not (tmp_path / "results").exists()
+    # --dry-run: the config and the plan, nothing run
+    proc = quick(tmp_path, str(mesh), "a pot made of gold", "--dry-run", env=env)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "Plan of experiment pot-a-pot-made-of-gold" in proc.stdout and "1 optimisation(s) of 300 steps" in proc.stdout
+    assert not (tmp_path / "results").exists()
+
+
+def test_bad_input_is_refused_before_anything_is_written(tmp_path):
+    empty = tmp_path / "empty.obj"
+    empty.write_text("")
+    proc = quick(tmp_path, str(empty), "a vase made of wood")
+    assert proc.returncode == 2 and str(empty) in proc.stderr and "file is empty" in proc.stderr
+    mesh = tmp_path / "pot.obj"
+    mesh.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 2 3\nf 1 2 4\nf 1 3 4\nf 2 3 4\n")
+    proc = quick(tmp_path, str(mesh), "a pot", "--preset", "fastest")
+    assert proc.returncode == 2 and "unknown preset 'fastest': use one of balanced, fast, metal, paper, rough" in proc.stderr
+    proc = quick(tmp_path, str(mesh), "a pot", "--image-guided", "gold")
+    assert proc.returncode == 2 and "use one of wood, metal, plaster" in proc.stderr
+    proc = quick(tmp_path, str(mesh), "a pot", "--name", "my pot")
+    assert proc.returncode == 2 and "'my-pot'" in proc.stderr
+    proc = quick(tmp_path, str(mesh), "   ")
+    assert proc.returncode == 2 and "the prompt is empty" in proc.stderr
+    assert not (tmp_path / "config").exists() and not (tmp_path / "results").exists()
+    # an existing config of the same name with other settings is kept
+    (tmp_path / "config" / "quick").mkdir(parents=True)
+    mine = tmp_path / "config" / "quick" / "pot.yaml"
+    mine.write_text("# my edits\nexperiment: pot\n")
+    proc = quick(tmp_path, str(mesh), "a pot made of wood", "--image-guided", "wood", "--name", "pot", "--dry-run")
+    assert proc.returncode == 2 and "exists with other settings" in proc.stderr and "--force" in proc.stderr
+    assert mine.read_text() == "# my edits\nexperiment: pot\n"
