@@ -34,7 +34,7 @@ import yaml
 
 from .config.presets import PRESETS
 from .config.sections import MATERIALS
-from .config.workflow import experiment_name, load_config_files
+from .config.workflow import WorkflowConfig, experiment_name, merge_config, read_yaml
 from .core.cli import stage_main
 from .core.errors import ConfigError
 from .core.provenance import atomic_path
@@ -127,16 +127,13 @@ def run(
     name = name or slug(f"{mesh.stem}-{prompt}", MAX_ID)
     path = Path(config_dir) / f"{name}.yaml"
     config = experiment_config(Path(mesh), prompt, name, preset, image_guided, test_clip)
-    existed = path.is_file()
-    write_config(config, path, command, force)
     configfiles = [path, *overlays]
-    try:
-        cfg = load_config_files(configfiles)  # validated as the workflow will
-        experiment = experiment_name(cfg.raw, configfiles)
-    except ConfigError:
-        if not existed:
-            path.unlink()
-        raise
+    merged = config
+    for overlay in overlays:
+        merged = merge_config(merged, read_yaml(overlay))
+    cfg = WorkflowConfig(merged, ", ".join(map(str, configfiles)))  # validated as the workflow will, before writing
+    experiment = experiment_name(cfg.raw, configfiles)
+    write_config(config, path, command, force)
     guidance = (
         f"image-guided: recovers the procedural material '{image_guided}' from Mitsuba renders (no CLIP weights needed)"
         if image_guided

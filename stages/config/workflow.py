@@ -438,10 +438,10 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def load_config_file(path: str | Path) -> WorkflowConfig:
-    return WorkflowConfig(_read_yaml(Path(path)), str(path))
+    return WorkflowConfig(read_yaml(Path(path)), str(path))
 
 
-def _read_yaml(path: Path) -> dict:
+def read_yaml(path: Path) -> dict:
     """A config file's mapping, or a clear error naming the file."""
     try:
         with open(path) as fh:
@@ -470,7 +470,7 @@ def load_config_files(paths: list[str | Path]) -> WorkflowConfig:
     paths = [Path(p) for p in paths]
     merged: dict = {}
     for path in paths:
-        merged = merge_config(merged, _read_yaml(path))
+        merged = merge_config(merged, read_yaml(path))
     return WorkflowConfig(merged, ", ".join(str(p) for p in paths))
 
 

@@ -394,9 +394,11 @@ class RenderProbe:
     variant: str
     first_seconds: float
     samples_per_second: float
+    width: int
+    spp: int
 
 
-def probe(settings: TargetSettings, width: int = 24, spp: int = 16) -> RenderProbe:
+def probe(settings: TargetSettings, width: int = 48, spp: int = 32) -> RenderProbe:
     """The smallest real use of the target renderer: the target stage's own scene (principled BSDF
     with textures and a normal map, the configured environment and transport) on a 320-face
     sphere, rendered twice at ``width x width`` pixels and ``spp`` samples in the variant a run
@@ -419,4 +421,4 @@ def probe(settings: TargetSettings, width: int = 24, spp: int = 16) -> RenderPro
     t1 = time.perf_counter()
     renderer.render(c2w, 60.0, width, spp, seed=1)
     rate = width * width * spp / max(time.perf_counter() - t1, 1e-9)
-    return RenderProbe(renderer.variant, first, rate)
+    return RenderProbe(renderer.variant, first, rate, width, spp)

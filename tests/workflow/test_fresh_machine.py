@@ -106,7 +106,7 @@ def test_doctor_tells_the_truth_on_a_bare_machine(machine):
     assert mitsuba["ok"] and mitsuba["needed"], mitsuba
     assert "variant scalar_rgb (no libLLVM 16+ found)" in mitsuba["detail"]
     # the real use: a render in the run's variant, and what this config's targets cost there
-    assert "rendered a 24 x 24 target probe in scalar_rgb" in mitsuba["tried"]
+    assert "rendered a 48 x 48 target probe at 32 spp in scalar_rgb" in mitsuba["tried"]
     assert "this config's targets (3 job(s), 488 M samples) take about" in mitsuba["tried"]
     assert "slow scalar_rgb variant (Debian: apt-get install libllvm19" in mitsuba["tried"]
     blender = checks["Blender"]
