@@ -241,7 +241,7 @@ def check_mitsuba(cfg) -> Check:
                 f"{duration(samples / result.samples_per_second)} here"
             )
         if variant == "scalar_rgb":
-            said += " in the slow scalar_rgb variant (Debian: apt-get install libllvm19 for llvm_ad_rgb, several times faster)"
+            said += " in the slow scalar_rgb variant (Debian: apt-get install libllvm19 for the vectorised llvm_ad_rgb)"
         return said
 
     return tried(check, render, f"{fix}; Mitsuba's own error is above")
