@@ -62,7 +62,7 @@ log = logging.getLogger(__name__)
 #: files of the combined asset, in the stage's folder
 COMBINED = ("model_lods.usda", "model_lods.usdz", "model_lods.glb")
 #: what the metadata keeps of each validator's report
-VALIDATION_KEYS = ("ran", "validators", "validator", "errors", "warnings", "infos", "messages")
+VALIDATION_KEYS = ("ran", "reason", "validators", "validator", "errors", "warnings", "infos", "messages")
 
 
 def _level_fidelity(reference: list[tuple[np.ndarray, torch.Tensor]], cache: RayCache, rendered: list) -> dict:

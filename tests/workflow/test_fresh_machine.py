@@ -42,6 +42,7 @@ TINY = {
     "target": {"spp": 4, "metric_spp": 8, "texture_size": 128},
     "bake": {"texture_size": 64, "eval_width": 32, "light_width": 64},
     "relight": {"lobes": 4, "fit_iterations": 20, "width": 32},
+    "lod": {"enabled": True, "levels": [0.5], "texture_size": 64},
 }
 #: the optimisation's tiny settings, at the prompt's level (above the prompt's preset)
 TINY_OPTIMIZE = {"iterations": 3, "milestones": [2], "image_size": 64, "width": 16, "light_lobes": 4, "eval_width": 32}
@@ -166,6 +167,8 @@ def test_own_mesh_image_guided_runs_end_to_end_on_a_bare_machine(machine, tmp_pa
     assert optimize["settings"]["guidance"] == "image" and optimize["settings"]["iterations"] == 3
     export = json.loads((cell / "export" / "meta.json").read_text())
     assert export["stats"]["gltf_validation"] == {"ran": False, "reason": "Node.js (node) is not on PATH"}
+    lod = json.loads((cell / "lod" / "meta.json").read_text())
+    assert lod["stats"]["validation"]["model_lods.glb"] == {"ran": False, "reason": "Node.js (node) is not on PATH"}
     index = (clone / "results" / name / "report" / "index.html").read_text()
     assert "<model-viewer" not in index and "id='no-viewer'" in index and "image-guided" in index
     # the same command again: the same config, nothing to redo
