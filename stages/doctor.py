@@ -195,52 +195,56 @@ def check_node(glb: Path) -> Check:
     return tried(check, lambda: probe_node_validator(glb), f"run {SETUP} again (npm ci), or reinstall Node.js")
 
 
-def target_samples(cfg) -> tuple[int, int]:
-    """The Mitsuba samples this config's target jobs path-trace (training views at ``target.spp``,
-    metric views at ``target.metric_spp``, whole images), and how many target jobs there are
-    (one per mesh and material)."""
-    jobs = sorted({(c.mesh, m) for c in cfg.cells if (m := cfg.target_material(c.prompt, c.variant))})
-    total = 0
-    for mesh, _ in jobs:
-        rc, t = cfg.stage_settings(mesh, "raycache"), cfg.stage_settings(mesh, "target")
-        metric_views = rc.metrics_azimuths * len(rc.metrics_elevations_deg)
-        total += rc.views * rc.resolution**2 * t.spp + metric_views * rc.metrics_resolution**2 * t.metric_spp
-    return total, len(jobs)
+def target_samples(cfg, mesh: str) -> int:
+    """The Mitsuba samples one target job of ``mesh`` path-traces: every training view at
+    ``target.spp`` and every metric view at ``target.metric_spp``, whole images (as
+    :meth:`stages.reference.targets.TargetRenderer.render_cache` renders them)."""
+    rc, t = cfg.stage_settings(mesh, "raycache"), cfg.stage_settings(mesh, "target")
+    metric_views = rc.metrics_azimuths * len(rc.metrics_elevations_deg)
+    return rc.views * rc.resolution**2 * t.spp + metric_views * rc.metrics_resolution**2 * t.metric_spp
 
 
 def check_mitsuba(cfg) -> Check:
-    """Mitsuba 3: installed, the variant a run uses, a few-pixel render of the target scene in it
-    and, when targets are needed, how long they take at the rate it measured."""
-    needed = any(cfg.target_material(c.prompt, c.variant) for c in cfg.cells)
+    """Mitsuba 3: installed, the variant each target job uses (its mesh's ``target.variant``), a
+    small render of the target scene in each such variant and, when targets are needed, how long
+    this config's target jobs take at the rates it measured (rendering only)."""
+    jobs = cfg.target_jobs()
+    needed = bool(jobs)
     use = "renders this config's image targets" if needed else "the ground-truth judge of image-guided runs (not used here)"
     version = _version("mitsuba")
     fix = f"pip install -e '.[reference]' ({SETUP} installs it)"
     if version is None:
         return Check("Mitsuba 3", False, needed, f"mitsuba is not installed: it {use}", fix)
-    settings = cfg.stage_settings(cfg.grid_meshes[0], "target")
+    meshes = sorted({m for m, _ in jobs}) or cfg.grid_meshes[:1]
+    settings = {m: cfg.stage_settings(m, "target") for m in meshes}
     try:
-        variant = choose_variant(settings.variant)
+        variants = {m: choose_variant(s.variant) for m, s in settings.items()}
     except ImportError as exc:
         return Check(
             "Mitsuba 3", False, needed, f"mitsuba {version}: {exc}", "apt-get install libllvm19, or target.variant: auto"
         )
     lib = find_libllvm()
-    where = f"with {lib}" if variant.startswith("llvm") else "no libLLVM 16+ found" if lib is None else "scalar_rgb asked for"
-    check = Check("Mitsuba 3", True, needed, f"mitsuba {version}, variant {variant} ({where}): {use}")
+    names = ", ".join(sorted(set(variants.values())))
+    where = f"libLLVM: {lib}" if lib else "no libLLVM 16+ found"
+    check = Check("Mitsuba 3", True, needed, f"mitsuba {version}, variant {names} ({where}): {use}")
 
     def render() -> str:
-        result = probe_targets(settings)
-        said = (
-            f"rendered a {result.width} x {result.width} target probe at {result.spp} spp in {variant} "
-            f"({result.samples_per_second / 1e6:.2f} M samples/s)"
+        probes = {}
+        for mesh, variant in variants.items():
+            if variant not in probes:
+                probes[variant] = probe_targets(settings[mesh])
+        said = "; ".join(
+            f"rendered a {r.width} x {r.width} target probe at {r.spp} spp in {v} ({r.samples_per_second / 1e6:.2f} M samples/s)"
+            for v, r in probes.items()
         )
-        samples, jobs = target_samples(cfg)
-        if samples:
+        if jobs:
+            samples = sum(target_samples(cfg, m) for m, _ in jobs)
+            seconds = sum(target_samples(cfg, m) / probes[variants[m]].samples_per_second for m, _ in jobs)
             said += (
-                f"; this config's targets ({jobs} job(s), {samples / 1e6:.0f} M samples) take about "
-                f"{duration(samples / result.samples_per_second)} here"
+                f"; this config's targets ({len(jobs)} job(s), {samples / 1e6:.0f} M samples) take about "
+                f"{duration(seconds)} of rendering here"
             )
-        if variant == "scalar_rgb":
+        if "scalar_rgb" in probes:
             said += " in the slow scalar_rgb variant (Debian: apt-get install libllvm19 for the vectorised llvm_ad_rgb)"
         return said
 
@@ -249,9 +253,9 @@ def check_mitsuba(cfg) -> Check:
 
 def check_blender(cfg, glb: Path, work: Path) -> Check:
     """Blender: found, then an import of the probe GLB through the roundtrip stage's job script."""
-    needed = any(cfg.cell_stage_settings("roundtrip", c.prompt, c.variant).enabled for c in cfg.cells)
+    needed = bool(cfg.roundtrip_cells())
     use = "this config's roundtrip stage imports the assets into it" if needed else "the asset judge (roundtrip stage, off here)"
-    fix = f"{INSTALL_HINT}; or run without it: roundtrip: {{enabled: false}}"
+    fix = f"{INSTALL_HINT}; or run without it: roundtrip: {{enabled: false}} (or the overlay config/overlays/no-blender.yaml)"
     try:
         cmd = find_blender()
     except BlenderUnavailable as exc:
@@ -297,8 +301,17 @@ def check_slurm() -> Check:
             "from your cluster (or scripts/slurm-cluster.sh start: a one-node test cluster)",
         )
     answer = _run([tools["sinfo"], "-h", "-o", "%P %a %D"], timeout=5)
-    state = f"sinfo: {answer}" if answer else "no controller answers sinfo (scripts/slurm-cluster.sh start: a test one)"
-    return Check("Slurm", True, False, f"plugin {plugin}; {state}: {use}")
+    if not answer:
+        return Check(
+            "Slurm",
+            False,
+            False,
+            f"plugin {plugin} and Slurm's commands, but no controller answers sinfo: {use}",
+            "on a cluster, run from a login node; for a one-node test cluster: scripts/slurm-cluster.sh start",
+        )
+    check = Check("Slurm", True, False, f"plugin {plugin}; Slurm's commands: {use}")
+    check.tried = f"sinfo answered: {answer}"
+    return check
 
 
 def run(configfiles: list[Path]) -> list[Check]:
@@ -306,7 +319,6 @@ def run(configfiles: list[Path]) -> list[Check]:
     smallest real uses run in parallel threads (most wait on a child process)."""
     cfg = load_config_files(configfiles)
     cells = cfg.cells
-    embree = any(cfg.stage_settings(m, "raycache").backend == "embree" for m in cfg.grid_meshes)
     meshlab = any(cfg.decimated(m) for m in cfg.grid_meshes) or any(
         cfg.cell_stage_settings("lod", c.prompt, c.variant).enabled for c in cells
     )
@@ -338,7 +350,7 @@ def run(configfiles: list[Path]) -> list[Check]:
                     "embreex",
                     "ray casting (ray cache, bake)",
                     f"pip install embreex ({SETUP})",
-                    embree,
+                    True,  # the bake's atlas and the targets' truth trace with Embree whatever the cache's backend
                     probe_embree,
                 ),
                 check_module(

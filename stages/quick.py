@@ -1,7 +1,7 @@
 """quick: stylise one's own mesh without writing YAML.
 
     python -m stages.quick MESH "PROMPT" [--preset fast|balanced|paper|...] [--image-guided MATERIAL]
-                           [--test-clip] [--name NAME] [--overlay FILE ...] [--cores N] [--dry-run]
+                           [--test-clip] [--name NAME] [--overlay FILE]... [--cores N] [--dry-run]
 
 1. checks the mesh the way the normalize stage reads it (a missing, empty, unreadable or faceless
    file stops here, with what to do);
@@ -22,19 +22,21 @@ CLIP (every output is marked TEST ONLY).
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import os
 import re
 import shlex
 import subprocess
 import sys
+import unicodedata
 from pathlib import Path
 
 import yaml
 
 from .config.presets import PRESETS
 from .config.sections import MATERIALS
-from .config.workflow import WorkflowConfig, experiment_name, merge_config, read_yaml
+from .config.workflow import EXPERIMENT_RE, WorkflowConfig, experiment_name, load_schema, merge_config, read_yaml
 from .core.cli import stage_main
 from .core.errors import ConfigError
 from .core.provenance import atomic_path
@@ -48,27 +50,44 @@ SNAKEFILE = Path(__file__).resolve().parents[1] / "Snakefile"
 CONFIG_DIR = Path("config/quick")
 #: the preset when none is named: the measured knee of speed against quality (stages/config/presets.py)
 DEFAULT_PRESET = "fast"
-#: the longest id the config schema accepts
-MAX_ID = 64
+#: mesh ids that would put a cell's folder where the report's own folders are (results/<experiment>/report/)
+RESERVED_MESH_IDS = ("report",)
 
 
 def slug(text: str, limit: int) -> str:
     """``text`` as an id the config accepts: letters, digits, ``_``, ``.`` and ``-``, starting with a
-    letter or digit, at most ``limit`` characters (``"a vase made of wood"`` -> ``"a-vase-made-of-wood"``)."""
-    s = re.sub(r"[^A-Za-z0-9_.-]+", "-", text).strip("-._")[:limit].strip("-._")
-    return s or "x"
+    letter or digit, at most ``limit`` characters (``"a vase made of wood"`` -> ``"a-vase-made-of-wood"``;
+    accents dropped: ``"Stühle"`` -> ``"Stuhle"``). Text with no such character at all becomes
+    ``x-`` and 8 hex digits of its SHA-256, so that two such texts do not share an id."""
+    ascii_text = unicodedata.normalize("NFKD", text).encode("ascii", "ignore").decode()
+    s = re.sub(r"[^A-Za-z0-9_.-]+", "-", ascii_text).strip("-._")[:limit].strip("-._")
+    return s or f"x-{hashlib.sha256(text.encode()).hexdigest()[:8]}"
 
 
-def experiment_config(mesh: Path, prompt: str, name: str, preset: str, image_guided: str | None, test_clip: bool) -> dict:
+def max_id() -> int:
+    """The longest id the config schema accepts."""
+    return int(load_schema()["$defs"]["id"]["maxLength"])
+
+
+def mesh_entry(mesh: str) -> tuple[str, dict]:
+    """The config's id and entry for the mesh argument: a file (by its absolute path) or a built-in
+    mesh (``builtin:vase``)."""
+    if mesh.startswith("builtin:"):
+        name = mesh.split(":", 1)[1]
+        return name, {"builtin": name}
+    path = Path(mesh)
+    mesh_id = slug(path.stem, 32)
+    if mesh_id in RESERVED_MESH_IDS:
+        mesh_id += "-mesh"
+    return mesh_id, {"path": str(path.resolve()), "object": path.stem.replace("_", " ")}
+
+
+def experiment_config(mesh: str, prompt: str, name: str, preset: str, image_guided: str | None, test_clip: bool) -> dict:
     """The experiment config of one mesh and one prompt (one cell: the mesh's id is its file's stem,
     the prompt's id the prompt made an id, :func:`slug`; variant ``base``)."""
-    mesh_id = slug(mesh.stem, 32)
+    mesh_id, entry = mesh_entry(mesh)
     prompt_entry: dict = {"text": prompt, "preset": preset}
-    config: dict = {
-        "experiment": name,
-        "meshes": {mesh_id: {"path": str(mesh.resolve()), "object": mesh.stem.replace("_", " ")}},
-        "prompts": {slug(prompt, 40): prompt_entry},
-    }
+    config: dict = {"experiment": name, "meshes": {mesh_id: entry}, "prompts": {slug(prompt, 40): prompt_entry}}
     if image_guided:
         prompt_entry["optimize"] = {"guidance": "image", "target_material": image_guided}
         config["metrics"] = {"clip": False}  # no CLIP weights are needed: image-target metrics only
@@ -80,14 +99,17 @@ def experiment_config(mesh: Path, prompt: str, name: str, preset: str, image_gui
 
 def write_config(config: dict, path: Path, command: str, force: bool = False) -> None:
     """``config`` as YAML at ``path`` (atomically), headed by the command that made it. An
-    existing file with other settings (edited by hand, or another mesh or prompt under the same
-    name) is kept unless ``force``."""
-    if path.is_file() and not force:
+    existing file with the same settings is left as it is (comments and all); one with other
+    settings (edited by hand, or another mesh or prompt under the same name) is kept unless
+    ``force``."""
+    if path.is_file():
         try:
             old = yaml.safe_load(path.read_text())
         except yaml.YAMLError:
             old = None
-        if old != config:
+        if old == config:
+            return
+        if not force:
             raise ConfigError(
                 f"{path} exists with other settings (edited, or another mesh or prompt of the same name); "
                 f"run it as it is with snakemake --configfile {path}, pick another --name, or pass --force to replace it"
@@ -98,8 +120,42 @@ def write_config(config: dict, path: Path, command: str, force: bool = False) ->
         tmp.write_text(header + yaml.safe_dump(config, sort_keys=False, allow_unicode=True))
 
 
+def check_name(name: str, path: Path, force: bool) -> None:
+    """Refuse an experiment name that another experiment owns: a config of the repository's
+    (``config/<name>.yaml``), or results made from another config file."""
+    if not EXPERIMENT_RE.fullmatch(name) or len(name) > max_id():
+        raise ConfigError(f"--name {name!r}: use letters, digits, '_', '.', '+' or '-' (for example {slug(name, max_id())!r})")
+    if Path("config", f"{name}.yaml").is_file() and Path("config", f"{name}.yaml").resolve() != path.resolve():
+        raise ConfigError(f"experiment {name!r} is config/{name}.yaml's: pick another --name")
+    if Path("results", name).is_dir() and not path.is_file() and not force:
+        raise ConfigError(
+            f"results/{name}/ holds another config's experiment (no {path} made it): pick another --name, or pass --force"
+        )
+
+
+def guidance_text(cfg: WorkflowConfig, image_guided: str | None, test_clip: bool) -> str:
+    """What guides the run, in words (from the resolved settings of its first cell)."""
+    if image_guided:
+        return f"image-guided: recovers the procedural material '{image_guided}' from Mitsuba renders (no CLIP weights needed)"
+    if test_clip:
+        return "the tiny random test CLIP (results marked TEST ONLY)"
+    cell = cfg.cells[0]
+    return f"CLIP {cfg.optimize_settings(cell.prompt, cell.variant).clip_model} (needs its weights)"
+
+
+def workflow_args(cores: int | None = None) -> str:
+    """The Snakemake options the printed commands need from the working directory: the workflow
+    and its Slurm profile by absolute path unless it is the repository's root."""
+    here = Path.cwd().resolve() == SNAKEFILE.parent
+    snakefile = "" if here else f"--snakefile {SNAKEFILE} "
+    if cores is None:
+        profile = "profiles/slurm" if here else str(SNAKEFILE.parent / "profiles" / "slurm")
+        return f"{snakefile}--workflow-profile {profile}"
+    return f"{snakefile}--cores {cores}"
+
+
 def run(
-    mesh: Path,
+    mesh: str,
     prompt: str,
     *,
     preset: str = DEFAULT_PRESET,
@@ -113,8 +169,9 @@ def run(
     force: bool = False,
     command: str = "python -m stages.quick",
 ) -> int:
-    """Check ``mesh``, write its experiment config, say what will run and run it (see the module
-    docstring); returns Snakemake's exit status (or the plan's, with ``dry_run``)."""
+    """Check ``mesh`` (a file, or ``builtin:<name>``), write its experiment config, say what will
+    run and run it (see the module docstring); returns Snakemake's exit status (or the plan's,
+    with ``dry_run``). Nothing is written when an argument or the mesh is bad."""
     if preset not in PRESETS:
         raise ConfigError(f"unknown preset {preset!r}: use one of {', '.join(sorted(PRESETS))}")
     if image_guided is not None and image_guided not in MATERIALS:
@@ -124,31 +181,26 @@ def run(
     if len(prompt) > 2000:
         raise ConfigError(f"the prompt is {len(prompt)} characters long; CLIP reads about 77 tokens: shorten it")
     checked = load_mesh(mesh)  # raises StageInputError with what to do
-    name = name or slug(f"{mesh.stem}-{prompt}", MAX_ID)
+    name = name or slug(f"{mesh_entry(mesh)[0]}-{slug(prompt, 40)}", max_id())
     path = Path(config_dir) / f"{name}.yaml"
-    config = experiment_config(Path(mesh), prompt, name, preset, image_guided, test_clip)
+    check_name(name, path, force)
+    config = experiment_config(mesh, prompt, name, preset, image_guided, test_clip)
     configfiles = [path, *overlays]
     merged = config
     for overlay in overlays:
         merged = merge_config(merged, read_yaml(overlay))
     cfg = WorkflowConfig(merged, ", ".join(map(str, configfiles)))  # validated as the workflow will, before writing
     experiment = experiment_name(cfg.raw, configfiles)
+    guidance = guidance_text(cfg, image_guided, test_clip)
     write_config(config, path, command, force)
-    guidance = (
-        f"image-guided: recovers the procedural material '{image_guided}' from Mitsuba renders (no CLIP weights needed)"
-        if image_guided
-        else "the tiny random test CLIP (results marked TEST ONLY)"
-        if test_clip
-        else f"CLIP {cfg.optimize_settings(slug(prompt, 40), 'base').clip_model} (needs its weights)"
-    )
     files = " ".join(str(p) for p in configfiles)
     lines = [
         f"mesh {mesh}: {len(checked.vertices):,} vertices, {len(checked.faces):,} faces",
         f'prompt "{prompt}", preset {preset}, {guidance}',
         f"config: {path} (experiment {experiment}); results in results/{experiment}/, the report in "
         f"results/{experiment}/report/index.html",
-        f"the same run again: snakemake --cores {cores} --configfile {files}",
-        f"on a Slurm cluster: snakemake --workflow-profile profiles/slurm --configfile {files}",
+        f"the same run again: snakemake {workflow_args(cores)} --configfile {files}",
+        f"on a Slurm cluster: snakemake {workflow_args()} --configfile {files}",
     ]
     sys.stdout.write("\n".join(lines) + "\n")
     sys.stdout.flush()
@@ -167,23 +219,21 @@ def main(argv: list[str] | None = None) -> int:
     result = {}
 
     def arguments(parser):
-        parser.add_argument("mesh", type=Path, help="the mesh file (OBJ, PLY, STL, OFF, GLB, GLTF)")
+        parser.add_argument("mesh", help="the mesh file (OBJ, PLY, STL, OFF, GLB, GLTF), or builtin:vase|candle|knot")
         parser.add_argument("prompt", help='what it should look like, e.g. "a vase made of wood"')
         parser.add_argument("--preset", default=DEFAULT_PRESET, help=f"optimisation preset (default {DEFAULT_PRESET})")
         parser.add_argument("--image-guided", metavar="MATERIAL", help=f"no CLIP: recover one of {', '.join(MATERIALS)}")
         parser.add_argument("--test-clip", action="store_true", help="the tiny random test CLIP (results marked TEST ONLY)")
         parser.add_argument("--name", help="experiment name (default: the mesh's stem and the prompt)")
         parser.add_argument("--config-dir", type=Path, default=CONFIG_DIR, help=f"where the config goes (default {CONFIG_DIR})")
-        parser.add_argument("--overlay", type=Path, nargs="+", default=[], help="config files laid over the written one")
+        parser.add_argument(
+            "--overlay", type=Path, action="append", default=[], help="a config file laid over the written one (repeatable)"
+        )
         parser.add_argument("--cores", type=int, default=2)
         parser.add_argument("--dry-run", action="store_true", help="write the config and print the plan; run nothing")
         parser.add_argument("--force", action="store_true", help="replace an existing config of this name with other settings")
 
     def body(args):
-        if args.name is not None and args.name != slug(args.name, MAX_ID):
-            raise ConfigError(
-                f"--name {args.name!r}: use letters, digits, '_', '.' or '-' (for example {slug(args.name, MAX_ID)!r})"
-            )
         result["code"] = run(
             args.mesh,
             args.prompt,

@@ -36,6 +36,27 @@ def shared_mesh(name: str) -> Path:
     return path
 
 
+#: a tiny run: sizes small enough for a test, laid over the config quick writes (and its preset)
+TINY = {
+    "raycache": {
+        "views": 4,
+        "resolution": 48,
+        "eval_azimuths": 4,
+        "eval_elevations_deg": [0.0, 30.0],
+        "eval_resolution": 32,
+        "metrics_azimuths": 4,
+        "metrics_elevations_deg": [0.0],
+        "metrics_resolution": 48,
+    },
+    "target": {"spp": 4, "metric_spp": 8, "texture_size": 128},
+    "bake": {"texture_size": 64, "eval_width": 32, "light_width": 64},
+    "relight": {"lobes": 4, "fit_iterations": 20, "width": 32},
+    "lod": {"enabled": True, "levels": [0.5], "texture_size": 64},
+}
+#: the optimisation's tiny settings, at the prompt's level (above the prompt's preset)
+TINY_OPTIMIZE = {"iterations": 3, "milestones": [2], "image_size": 64, "width": 16, "light_lobes": 4, "eval_width": 32}
+
+
 def require_tool(available: bool, reason: str) -> None:
     """Skip a test whose external tool (Node.js, Chromium, a validator) is missing, except in CI
     (``CI`` set), where CI installs every such tool and a missing one must fail the run."""

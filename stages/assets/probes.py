@@ -31,6 +31,8 @@ def probe_usd(folder: Path) -> str:
     if list(counts) != [3]:
         raise RuntimeError(f"usd-core read back {list(counts)} face(s), not the one triangle written")
     report = validate_usd(path)
+    if report["errors"]:
+        raise RuntimeError(f"usd-core's validators found {report['errors']} error(s) in a valid stage: {report['messages'][:3]}")
     return f"wrote and read back a USD stage; {report['validators']} validators ran on it"
 
 

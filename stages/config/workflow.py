@@ -338,6 +338,17 @@ class WorkflowConfig:
             return s.target_material
         return None
 
+    def target_jobs(self, meshes: set[str] | None = None) -> list[tuple[str, str]]:
+        """The Mitsuba target jobs of this config, one per ``(mesh, material)`` that some cell
+        trains on, sorted; ``meshes``: only those of these meshes (e.g. the ones a run still has
+        to render)."""
+        jobs = {(c.mesh, m) for c in self.cells if (m := self.target_material(c.prompt, c.variant))}
+        return sorted(j for j in jobs if meshes is None or j[0] in meshes)
+
+    def roundtrip_cells(self) -> list[Cell]:
+        """The cells whose assets go through Blender (``roundtrip.enabled``)."""
+        return [c for c in self.cells if self.cell_stage_settings("roundtrip", c.prompt, c.variant).enabled]
+
     def face_budget_fields(self, mesh_id: str) -> dict[str, Any]:
         """With ``decimate.mode: budget``, the mesh's ray-cache settings that set its face budget
         (:data:`FACE_BUDGET_FIELDS`), which the decimate job reads; else nothing, so that other

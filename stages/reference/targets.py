@@ -41,6 +41,7 @@ from ..config.sections import TargetSettings
 from ..geometry.atlas import dilate, rasterize_atlas, sample_bilinear, unwrap
 from ..geometry.meshio import TriMesh
 from ..geometry.normals import NormalSpec, interpolate_normals, perpendicular
+from ..geometry.probes import probe_sphere
 from ..geometry.raycache import RayCache
 from ..geometry.tracing import EmbreeTracer
 from ..model.procedural import procedural_material
@@ -400,15 +401,13 @@ class RenderProbe:
 
 def probe(settings: TargetSettings, width: int = 48, spp: int = 32) -> RenderProbe:
     """The smallest real use of the target renderer: the target stage's own scene (principled BSDF
-    with textures and a normal map, the configured environment and transport) on a 320-face
-    sphere, rendered twice at ``width x width`` pixels and ``spp`` samples in the variant a run
-    of ``settings`` uses (:func:`~stages.reference.mitsuba.choose_variant`). The sphere fills most
-    of the view, so every sample traces a path: the rate is a fair (slightly pessimistic) rate of a
-    target render. Raises what the renderer raises."""
-    import trimesh
-
-    s = trimesh.creation.icosphere(subdivisions=2, radius=0.8)
-    mesh = TriMesh(np.asarray(s.vertices, np.float64), np.asarray(s.faces, np.int64))
+    with textures and a normal map, the configured environment and transport) on the doctor's
+    320-face probe sphere (:func:`stages.geometry.probes.probe_sphere`), rendered twice at
+    ``width x width`` pixels and ``spp`` samples in the variant a run of ``settings`` uses
+    (:func:`~stages.reference.mitsuba.choose_variant`). The sphere covers about 45% of the
+    pixels, like an object in a target view, and the rate counts whole images, as the target
+    stage does. Raises what the renderer raises."""
+    mesh = probe_sphere(2)
     small = TargetSettings(**{**settings.to_dict(), "texture_size": 64, "environment_height": 32})
     c2w = np.eye(4)
     c2w[2, 3] = 2.0  # looking down -z at the origin

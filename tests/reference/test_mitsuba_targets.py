@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 import torch
-from conftest import icosphere, require_tool
+from conftest import REPO, icosphere, require_tool
 
 from stages.assets.baking import cached_barycentrics
 from stages.config.sections import RaycacheSettings, TargetSettings
@@ -363,3 +363,24 @@ def test_without_libllvm_auto_falls_back_to_scalar_and_llvm_says_what_to_install
     (problem,) = missing_judges({"llvm_ad_rgb", "auto"}, 0)
     assert problem.startswith("target.variant: llvm_ad_rgb: Mitsuba variant llvm_ad_rgb needs libLLVM 16")
     assert missing_judges({"auto", "scalar_rgb"}, 0) == []
+
+
+def test_without_mitsuba_the_workflow_and_the_doctor_name_the_package(monkeypatch):
+    """A set-up without the reference extra (``bash scripts/setup.sh test``): a config with
+    targets stops before any job, and the doctor calls Mitsuba MISSING, each naming the extra."""
+    import importlib.util
+
+    from stages import doctor
+    from stages.config.workflow import load_config_files
+    from stages.reference import judges
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(judges.importlib.util, "find_spec", lambda name, *a: None if name == "mitsuba" else real(name, *a))
+    (problem,) = judges.missing_judges({"auto"}, 0)
+    assert "Mitsuba 3 (image guidance), which is not installed" in problem and "pip install -e '.[reference]'" in problem
+    assert judges.missing_judges(set(), 0) == []  # a run without targets does not need it
+    monkeypatch.setattr(doctor, "_version", lambda dist: None)
+    check = doctor.check_mitsuba(load_config_files([REPO / "config" / "demo-offline.yaml"]))
+    assert check.status == "MISSING" and "pip install -e '.[reference]'" in check.fix
+    check = doctor.check_mitsuba(load_config_files([REPO / "config" / "config.yaml"]))
+    assert check.status == "optional"

@@ -11,8 +11,7 @@ import time
 from pathlib import Path
 
 import yaml
-from conftest import REPO, shared_mesh, snakemake_env
-from test_fresh_machine import TINY, TINY_OPTIMIZE
+from conftest import REPO, TINY, TINY_OPTIMIZE, shared_mesh, snakemake_env
 
 
 def quick(cwd: Path, *args: str, env: dict | None = None) -> subprocess.CompletedProcess:
@@ -44,7 +43,8 @@ def test_test_clip_run_on_an_open_shared_mesh(tmp_path):
 
 
 def test_without_weights_it_stops_at_once_with_one_message_per_model(tmp_path):
-    env = {**snakemake_env(tmp_path), "TANGO_PLAN_CALIBRATE": "0", "HF_HUB_OFFLINE": "1", "HF_HOME": str(tmp_path / "hf")}
+    hf = {"HF_HUB_OFFLINE": "1", "HF_HOME": str(tmp_path / "hf"), "HF_HUB_CACHE": str(tmp_path / "hf" / "hub")}
+    env = {**snakemake_env(tmp_path), "TANGO_PLAN_CALIBRATE": "0", **hf}
     t0 = time.perf_counter()
     proc = quick(tmp_path, str(REPO / "tests" / "data" / "absent.obj"), "a vase made of gold", env=env)
     assert proc.returncode == 2 and "file not found" in proc.stderr  # the mesh is checked first
@@ -87,3 +87,41 @@ def test_bad_input_is_refused_before_anything_is_written(tmp_path):
     proc = quick(tmp_path, str(mesh), "a pot made of wood", "--image-guided", "wood", "--name", "pot", "--dry-run")
     assert proc.returncode == 2 and "exists with other settings" in proc.stderr and "--force" in proc.stderr
     assert mine.read_text() == "# my edits\nexperiment: pot\n"
+    # names another experiment owns: a config of the repository's, results another config made
+    (tmp_path / "config" / "tiny.yaml").write_text("experiment: tiny\n")
+    proc = quick(tmp_path, str(mesh), "a pot", "--name", "tiny", "--dry-run")
+    assert proc.returncode == 2 and "is config/tiny.yaml's: pick another --name" in proc.stderr
+    (tmp_path / "results" / "other").mkdir(parents=True)
+    proc = quick(tmp_path, str(mesh), "a pot", "--name", "other", "--dry-run")
+    assert proc.returncode == 2 and "results/other/ holds another config's experiment" in proc.stderr
+    assert sorted(p.name for p in (tmp_path / "config" / "quick").iterdir()) == ["pot.yaml"]
+
+
+def test_ids_built_ins_overlays_and_a_second_run(tmp_path):
+    """Ids from any file name or prompt, a built-in mesh, an overlay with its own variants, and the
+    same command twice (the config, comments and all, left as it is)."""
+    from stages.quick import slug
+
+    assert slug("a vase made of wood", 40) == "a-vase-made-of-wood" and slug("Stühle aus Holz", 40) == "Stuhle-aus-Holz"
+    assert slug("木の花瓶", 40) != slug("金の花瓶", 40) and slug("木の花瓶", 40).startswith("x-")
+    assert slug("-glossy", 40) == "glossy" and len(slug("a" * 500, 40)) == 40
+    report_mesh = tmp_path / "report.obj"
+    report_mesh.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 2 3\nf 1 2 4\nf 1 3 4\nf 2 3 4\n")
+    overlay = tmp_path / "variants.yaml"
+    overlay.write_text(yaml.safe_dump({"variants": {"hi": {"preset": "balanced"}}}))
+    args = (str(report_mesh), "一个木花瓶", "--test-clip", "--overlay", str(overlay), "--dry-run")
+    proc = quick(tmp_path, *args)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    (written,) = (tmp_path / "config" / "quick").iterdir()
+    config = yaml.safe_load(written.read_text())
+    assert list(config["meshes"]) == ["report-mesh"]  # not the report's own folder
+    (prompt_id,) = config["prompts"]
+    assert prompt_id == slug("一个木花瓶", 40) and written.stem == f"report-mesh-{prompt_id}"
+    assert "1 meshes x 1 prompts x 1 variants" in proc.stdout  # the overlay's variant, no 'base' assumed
+    # the same command again: nothing rewritten (a comment added by hand survives)
+    written.write_text(written.read_text() + "# my note\n")
+    assert quick(tmp_path, *args).returncode == 0 and written.read_text().endswith("# my note\n")
+    proc = quick(tmp_path, "builtin:knot", "a knot made of wood", "--image-guided", "wood", "--dry-run")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    config = yaml.safe_load((tmp_path / "config" / "quick" / "knot-a-knot-made-of-wood.yaml").read_text())
+    assert config["meshes"] == {"knot": {"builtin": "knot"}}

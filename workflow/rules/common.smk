@@ -224,7 +224,8 @@ def print_plan():
 def check_needed_pieces():
     """Before any job runs: stop at once when real CLIP weights (for guidance or for the
     evaluation metrics) are needed but unavailable, one message per missing model, and when a
-    judge the run needs (Mitsuba for image targets, Blender for the round trip) is missing.
+    judge the jobs still to run need (Mitsuba for target jobs, Blender for roundtrip jobs) is
+    missing.
     """
     # imported here, not at the top: they import torch, which building the DAG never needs
     from stages.guidance.clip import missing_weights
@@ -246,16 +247,26 @@ def check_needed_pieces():
 
 
 def judges_needed():
-    """The Mitsuba variants of the meshes that get targets, and the cells with the round trip."""
+    """The ``target.variant`` of each mesh with a target job to run, and the number of roundtrip
+    jobs to run (from Snakemake's DAG; the whole config when the DAG cannot be read), so that
+    a run that needs no judge (``--until normalize``, a report rebuilt) is never stopped."""
+    try:
+        pending = [
+            (job.rule.name, dict(job.wildcards.items()))
+            for job in workflow.dag.needrun_jobs()
+        ]
+    except Exception:
+        pending = None
+    if pending is None:
+        meshes = None
+        roundtrips = len(CFG.roundtrip_cells())
+    else:
+        meshes = {w["mesh"] for rule, w in pending if rule == "target"}
+        roundtrips = sum(rule == "roundtrip" for rule, _ in pending)
     variants = {
-        CFG.stage_settings(c.mesh, "target").variant
-        for c in CFG.cells
-        if CFG.target_material(c.prompt, c.variant)
+        CFG.stage_settings(mesh, "target").variant
+        for mesh, _ in CFG.target_jobs(meshes)
     }
-    roundtrips = sum(
-        CFG.cell_stage_settings("roundtrip", c.prompt, c.variant).enabled
-        for c in CFG.cells
-    )
     return variants, roundtrips
 
 
