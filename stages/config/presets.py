@@ -13,7 +13,7 @@ in a developer checkout): a prompt or a variant names one with ``preset:``.
 
 Speed/accuracy presets: each is a point measured by the speed/accuracy sweep
 (``config/sweep.yaml`` runs the variants ``fast`` and ``balanced`` with exactly these presets; the
-README quotes the figures). The sweep runs under **image guidance** (MSE against procedural target
+docs/measurements/sweep.md quotes the figures). The sweep runs under **image guidance** (MSE against procedural target
 renders, because no CLIP weights reach our machines), so:
 
 * the presets hold every optimisation setting of the measured point, including the schedule tuned
@@ -32,7 +32,7 @@ renders, because no CLIP weights reach our machines), so:
 On Mitsuba's ground truth the sweep's one mesh cannot choose between them (seeds spread by up to
 2 dB there, and the built-in vase is the one mesh where ``balanced`` loses);
 ``benchmarks/recovery.py`` measures both on the built-in and the shared meshes (``balanced``
-ahead by 1.8-3.6 dB on ten of eleven for 2.6x the time, 2026-11-22; the README's table).
+ahead by 1.8-3.6 dB on ten of eleven for 2.6x the time, 2026-11-22; docs/measurements/recovery.md).
 
 The demo scripts also move the camera closer for metals (radius 1.5); the camera radius is a
 per-mesh ray-cache setting, so set ``raycache: {radius: ...}`` on the mesh if wanted.

@@ -312,7 +312,7 @@ class OptimizeSettings(ClipChoice, Settings):
     #: the specular model (SPECULAR_LOBES): "isotropic" (TANGO's closed form), "split_sum" (exact
     #: energy from the tabulated directional albedo, the isotropic lobe's shape) or "fitted" (exact
     #: energy, a lobe fitted to the BRDF's moments, corrected by the BRDF at each light lobe); see
-    #: stages/render/shading.py and the README's measurements (fitted: the most accurate at the
+    #: stages/render/shading.py and docs/measurements/shading.md (fitted: the most accurate at the
     #: isotropic model's cost, and no worse in recovery; measured 2026-11-22)
     specular_lobe: str = "fitted"
     #: the normals the field shades with and its normal network starts from (SHADING_NORMALS):
@@ -320,7 +320,7 @@ class OptimizeSettings(ClipChoice, Settings):
     #: edges sharper than crease_angle_deg kept, corners weighted by normal_weighting); carried
     #: through training, baking (the tangent frame), export and relighting. Smooth since
     #: 2026-11-22: the same held-out PSNR on decimated meshes (within 0.1 dB), a lower normal
-    #: error in every fit, and assets that look smooth in every viewer (README)
+    #: error in every fit, and assets that look smooth in every viewer (docs/measurements/recovery.md)
     shading_normals: str = "smooth"
     crease_angle_deg: float = 60.0
     normal_weighting: str = "angle"
@@ -432,7 +432,7 @@ class BakeSettings(Settings):
     dilation: int = 8
     #: the largest chart's area as a share of the surface (xatlas's max_chart_area); null:
     #: xatlas's unbounded charts. Bounding them makes large smooth meshes unwrap many times
-    #: faster for more seams (benchmarks/bake_charts.py; the README's measurements)
+    #: faster for more seams (benchmarks/bake_charts.py; docs/measurements/assets.md)
     max_chart_share: float | None = None
     #: width of the equirectangular light image (height = width / 2)
     light_width: int = 512

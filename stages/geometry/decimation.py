@@ -51,7 +51,7 @@ ray cache stores the same hits, and only the bake (xatlas charts every face), th
 the tracing pay for it. The budget is the surface area over the area that ``pixels_per_face``
 pixels cover where the surface can come nearest to the cameras of the finest of the cache's view
 sets; a mesh above it is decimated to it, one within it passes unchanged. TANGO's robustness result (Sec. 4.2) is
-that the normal network restores detail lost to decimation; the README measures the trade.
+that the normal network restores detail lost to decimation; docs/measurements/geometry.md measures the trade.
 """
 
 from __future__ import annotations

@@ -108,7 +108,7 @@ class StyleField(nn.Module):
         """Shade through ``torch.compile(shade, dynamic=True)`` in training mode (the optimisation's
         option ``compile_shading``): inductor fuses the renderer's many small pointwise operations
         into a few loops. The same function (``tests/model/test_precision.py`` compares them);
-        compiling costs time once per process (measured in the README). Returns what runs."""
+        compiling costs time once per process (measured in docs/measurements/speed.md). Returns what runs."""
         if not enabled:
             self.compiled_shade = None
             return "eager"
