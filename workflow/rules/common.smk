@@ -249,7 +249,8 @@ def check_needed_pieces():
 def judges_needed():
     """The ``target.variant`` of each mesh with a target job to run, and the number of roundtrip
     jobs to run (from Snakemake's DAG; the whole config when the DAG cannot be read), so that
-    a run that needs no judge (``--until normalize``, a report rebuilt) is never stopped."""
+    a run that needs no judge (``--until normalize``, a report rebuilt) is never stopped.
+    """
     try:
         pending = [
             (job.rule.name, dict(job.wildcards.items()))
