@@ -187,19 +187,26 @@ def targets_option(wildcards, input):
     return f"--targets {input.targets}" if "targets" in input.keys() else ""
 
 
+def pending_jobs():
+    """The jobs this run still has to run, as ``(rule, wildcards)`` from Snakemake's DAG, or None
+    when the DAG cannot be read (its API changed): the plan and the check of the judges.
+    """
+    try:
+        return [
+            (job.rule.name, dict(job.wildcards.items()))
+            for job in workflow.dag.needrun_jobs()
+        ]
+    except Exception:
+        return None
+
+
 def print_plan():
     """Before the first job: the plan (stages/plan.py: cells, jobs to run, device, an estimate
     of the wall time here). A plan that cannot be made never stops the run."""
     from stages.plan import make_plan, plan_text
 
-    try:
-        pending = [
-            (job.rule.name, dict(job.wildcards.items()))
-            for job in workflow.dag.needrun_jobs()
-        ]
-    except Exception:
-        # Snakemake's DAG API changed: the plan counts from the results folder instead
-        pending = None
+    # None: the plan counts from the results folder instead
+    pending = pending_jobs()
     import logging
 
     # a library that logs through the root logger gives it a handler (logging's basicConfig);
@@ -251,13 +258,7 @@ def judges_needed():
     jobs to run (from Snakemake's DAG; the whole config when the DAG cannot be read), so that
     a run that needs no judge (``--until normalize``, a report rebuilt) is never stopped.
     """
-    try:
-        pending = [
-            (job.rule.name, dict(job.wildcards.items()))
-            for job in workflow.dag.needrun_jobs()
-        ]
-    except Exception:
-        pending = None
+    pending = pending_jobs()
     if pending is None:
         meshes = None
         roundtrips = len(CFG.roundtrip_cells())
