@@ -22,6 +22,9 @@ UP_AXES = ("+y", "-y", "+z", "-z", "+x", "-x")
 #: procedural target materials and lights of ``guidance: image`` (:mod:`stages.model.procedural`)
 MATERIALS = ("wood", "metal", "plaster")
 LIGHTS = ("studio", "sky")
+#: how the learned light's lobes start (``optimize.light_init``, :func:`stages.model.networks.initial_sharpness`):
+#: all broad, TANGO's random draw, or sharpnesses spread log-uniformly from broad to sharp
+LIGHT_INITS = ("broad", "tango", "spread")
 #: the specular models of ``optimize.specular_lobe`` (:func:`stages.render.shading.shade`): TANGO's
 #: closed form, the split sum with exact energy, and the fitted lobe with exact energy corrected by
 #: the BRDF at each light lobe
@@ -242,7 +245,9 @@ class FieldSettings:
     light_lobes: int
     light_rgb: bool
     light_energy: float
+    light_init: str
     light_init_sharpness: float | None
+    light_init_max_sharpness: float
     specular_lobe: str
     shading_normals: str
     crease_angle_deg: float
@@ -303,7 +308,16 @@ class OptimizeSettings(ClipChoice, Settings):
     light_lobes: int = 32
     light_rgb: bool = True
     light_energy: float = 6.25
+    #: how the lobes start (LIGHT_INITS): "broad" (every lobe at light_init_sharpness, or where
+    #: Fibonacci neighbours overlap at half maximum, about 2 for 16 lobes), "tango" (TANGO's draw
+    #: 20 + |N(0,1)| 100) or "spread" (log-uniform from the broad sharpness to
+    #: light_init_max_sharpness, interleaved over the sphere); docs/method/lighting.md
+    light_init: str = "spread"
     light_init_sharpness: float | None = None
+    light_init_max_sharpness: float = 1000.0
+    #: the light's own learning rate (its parameters are logarithms and directions, so a step moves
+    #: them by a factor or an angle whatever the networks' rate); null: lr. No weight decay applies
+    light_lr: float | None = 0.02
     #: lighting as the scene requires ("light_lobes: auto"): after this many iterations (the
     #: warm-up) the lobes whose energy is below light_prune_share of the light's total in every
     #: channel are dropped for the rest of the run; null: every lobe is kept (TANGO)
@@ -392,6 +406,14 @@ class OptimizeSettings(ClipChoice, Settings):
             p.append(f"normal_weighting must be one of {', '.join(NORMAL_WEIGHTINGS)}, got {self.normal_weighting!r}")
         if not 0.0 <= self.crease_angle_deg <= 180.0:
             p.append(f"crease_angle_deg must be in [0, 180], got {self.crease_angle_deg}")
+        if self.light_init not in LIGHT_INITS:
+            p.append(f"light_init must be one of {', '.join(LIGHT_INITS)}, got {self.light_init!r}")
+        if not 1e-4 <= self.light_init_max_sharpness <= 1e5:
+            p.append(f"light_init_max_sharpness must be in [1e-4, 1e5], got {self.light_init_max_sharpness}")
+        if self.light_init_sharpness is not None and not 1e-4 <= self.light_init_sharpness <= 1e5:
+            p.append(f"light_init_sharpness must be in [1e-4, 1e5] or null, got {self.light_init_sharpness}")
+        if self.light_lr is not None and not self.light_lr > 0:
+            p.append(f"light_lr must be > 0 or null, got {self.light_lr}")
         if self.light_prune_after is not None and self.light_prune_after < 1:
             p.append(f"light_prune_after must be >= 1 or null, got {self.light_prune_after}")
         if not 0.0 < self.light_prune_share < 1.0:

@@ -10,13 +10,27 @@ import torch
 
 from ..config.sections import OptimizeSettings
 from ..core.provenance import ORIGIN_KEY, atomic_path, checked_origin
+from ..render.sg import sg_integral
 from .field import StyleField
 
-#: version of the ``field.pt`` layout
-FIELD_FORMAT = 1
+#: version of the ``field.pt`` layout (2: the light's sharpness and energy as logarithms)
+FIELD_FORMAT = 2
 #: settings a ``field.pt`` written before they existed was trained with (their defaults changed
 #: when they came: it must be rebuilt as it was trained, not with today's defaults)
-SETTINGS_BEFORE_THEY_EXISTED = {"specular_lobe": "isotropic", "shading_normals": "flat"}
+SETTINGS_BEFORE_THEY_EXISTED = {"specular_lobe": "isotropic", "shading_normals": "flat", "light_init": "broad"}
+#: format 1's light: sharpness ``0.01 + softplus(sharpness_raw)``, amplitude ``softplus(amplitude_raw)``
+_FORMAT1_MIN_SHARPNESS = 0.01
+
+
+def _light_from_format1(state: dict) -> dict:
+    """A format-1 state dict with its light in format 2's terms (the same lobes: log sharpness,
+    log energy per channel, the energy being the lobe's sphere integral)."""
+    state = dict(state)
+    lam = _FORMAT1_MIN_SHARPNESS + torch.nn.functional.softplus(state.pop("light.sharpness_raw"))
+    amp = torch.nn.functional.softplus(state.pop("light.amplitude_raw"))
+    state["light.log_sharpness"] = torch.log(lam)
+    state["light.log_energy"] = torch.log(sg_integral(lam, amp).clamp(min=1e-30))
+    return state
 
 
 def save_field(path: str | Path, field: StyleField, settings: OptimizeSettings, prompt: str, origin: dict[str, Any]) -> None:
@@ -42,6 +56,9 @@ def load_field(path: str | Path, device="cpu") -> tuple[StyleField, OptimizeSett
     origin = checked_origin(data.get(ORIGIN_KEY), path, "the optimize stage")
     settings = OptimizeSettings.from_dict({**SETTINGS_BEFORE_THEY_EXISTED, **data["settings"]})
     f = StyleField(settings.field_settings()).to(device)
-    f.load_state_dict(data["state_dict"])
+    state = data["state_dict"]
+    if int(data.get("format", 1)) < 2 and "light.sharpness_raw" in state:
+        state = _light_from_format1(state)
+    f.load_state_dict(state)
     f.origin = origin
     return f.eval(), settings

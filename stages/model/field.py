@@ -93,7 +93,9 @@ class StyleField(nn.Module):
                 s.light_lobes,
                 rgb=s.light_rgb,
                 total_energy=s.light_energy,
+                init=s.light_init,
                 init_sharpness=s.light_init_sharpness,
+                max_init_sharpness=s.light_init_max_sharpness,
             )
         self.symmetry = s.symmetry
         self.specular_lobe = s.specular_lobe

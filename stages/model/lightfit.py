@@ -26,18 +26,16 @@ def fit_sg_light(env: np.ndarray, lobes: int = 64, iterations: int = 400, seed: 
         module = SGLightModule(lobes, rgb=True, total_energy=max(energy, 1e-6))
         # start a quarter of the lobes, sharper, on the brightest directions (suns, windows)
         order = torch.argsort((target * weight).sum(-1), descending=True)
-        with torch.no_grad():
-            k = max(lobes // 4, 1)
-            picks, taken = [], []
-            for idx in order.tolist():
-                d = dirs[idx]
-                if all(float(d @ t) < 0.95 for t in taken):
-                    picks.append(idx)
-                    taken.append(d)
-                if len(picks) == k:
-                    break
-            module.axis_raw[: len(picks)] = dirs[picks]
-            module.sharpness_raw[: len(picks)] = 100.0
+        k = max(lobes // 4, 1)
+        picks, taken = [], []
+        for idx in order.tolist():
+            d = dirs[idx]
+            if all(float(d @ t) < 0.95 for t in taken):
+                picks.append(idx)
+                taken.append(d)
+            if len(picks) == k:
+                break
+        module.set_lobes(torch.arange(len(picks)), dirs[picks], torch.full((len(picks), 1), 100.0))
     opt = torch.optim.Adam(module.parameters(), lr=0.03)
     scale = target.abs().max().clamp(min=1e-12)
     for _ in range(iterations):

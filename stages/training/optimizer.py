@@ -52,7 +52,7 @@ class Optimizer:
         self.shading_path = self.field.use_compiled_shading(settings.compile_shading)
         self.views = ViewStore(train, self.device, self.field.normals, targets)
         self.prompt = prompt
-        self.opt = torch.optim.AdamW(self.field.parameters(), lr=settings.lr, weight_decay=settings.weight_decay)
+        self.opt = torch.optim.AdamW(self.param_groups(), lr=settings.lr, weight_decay=settings.weight_decay)
         self.sched = torch.optim.lr_scheduler.MultiStepLR(self.opt, milestones=list(settings.milestones), gamma=settings.gamma)
         self.np_rng = np.random.default_rng(settings.seed)
         self.tgen = torch.Generator().manual_seed(settings.seed)
@@ -62,6 +62,16 @@ class Optimizer:
         self.points_last = 0
         #: when the light was pruned (``light_prune_after``): iteration, lobes kept and dropped
         self.light_pruned: dict | None = None
+
+    def param_groups(self) -> list[dict]:
+        """The optimiser's two groups: the networks at ``lr`` (with ``weight_decay``), then the
+        light at ``light_lr`` without weight decay (its parameters are logarithms and directions:
+        decay would pull every lobe towards sharpness 1 and energy 1)."""
+        light = list(self.field.light.parameters())
+        ids = {id(p) for p in light}
+        rest = [p for p in self.field.parameters() if id(p) not in ids]
+        light_lr = self.s.light_lr if self.s.light_lr is not None else self.s.lr
+        return [{"params": rest}, {"params": light, "lr": light_lr, "weight_decay": 0.0}]
 
     # -- checkpoints
     def state(self) -> dict:
@@ -80,7 +90,7 @@ class Optimizer:
         lobes = self.field.light.lobes
         self.field.load_state_dict(state["field"])
         if self.field.light.lobes != lobes:  # pruned before the checkpoint: the light's parameters are new
-            self.opt.param_groups[0]["params"] = list(self.field.parameters())
+            self.opt.param_groups[1]["params"] = list(self.field.light.parameters())
         self.opt.load_state_dict(state["optimizer"])
         self.light_pruned = state.get("light_pruned")
         self.sched.load_state_dict(state["scheduler"])
@@ -98,7 +108,7 @@ class Optimizer:
         index = torch.nonzero(~small).flatten()
         dropped = int(small.sum())
         if dropped:
-            group = self.opt.param_groups[0]["params"]
+            group = self.opt.param_groups[1]["params"]
             for old, new in self.field.light.keep(index):
                 moments = self.opt.state.pop(old, None)
                 if moments is not None:

@@ -71,8 +71,8 @@ def test_renderer_on_cuda_matches_cpu_float64(lobe):
     x64 = shading_inputs(4096, seed=1)
     light = SGLightModule(32).double()
     with torch.no_grad():
-        light.sharpness_raw.add_(
-            torch.randn(light.sharpness_raw.shape, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
+        light.log_sharpness.add_(
+            torch.randn(light.log_sharpness.shape, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
         )
     results = {}
     for dev, dtype in ((torch.device("cpu"), torch.float64), (CUDA, torch.float32)):

