@@ -34,7 +34,7 @@ from .geometry.raycache import RayCache
 from .guidance.clip import load_clip
 from .guidance.objective import Objective, render_target
 from .guidance.scores import clip_metrics
-from .imaging.quality import material_errors, psnr, ssim
+from .imaging.quality import highlights, material_errors, psnr, ssim
 from .imaging.sheets import contact_sheet, save_png
 from .imaging.targets import FULL_COVERAGE, TargetSet
 from .imaging.views import ViewStore, render_views
@@ -107,6 +107,7 @@ def run(
                     "weights": obj.weights_id,
                     "psnr_db": psnr(imgs[px], t[px]),
                     "ssim": ssim(imgs, t, mask),
+                    "highlights": highlights(imgs, t, mask),
                     "pixels": "object pixels of the held-out metric views (SSIM: windows centred on them)",
                     "target_renderer": opt_settings.target_renderer,
                     "target_material": opt_settings.target_material,

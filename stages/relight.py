@@ -7,6 +7,13 @@ override). Outputs: ``relit.png`` (the evaluation views under the new light), ``
 (TANGO's material-editing figure: the front view, rows = roughness scales, columns = specular
 scales, under the new light), ``light_fit.png`` (the map and its SG fit) and ``meta.json`` (fit
 error, mean brightness of each image).
+
+For an image-guided cell with Mitsuba targets the relighting is also *graded*: the target stage
+rendered the true material on the held-out metric views under each of
+``target.relight_environments``, and the field relit under each of them is compared with it
+(object-pixel PSNR; :mod:`stages.imaging.relit`), beside the ceiling of the true material in our
+renderer. A blurred light or shadows painted into the albedo fail this even when the
+training-light PSNR looks good.
 """
 
 from __future__ import annotations
@@ -23,7 +30,9 @@ from .core.errors import StageInputError
 from .core.provenance import ORIGIN_KEY, Timer, metadata, staged_outputs, write_json_atomic
 from .geometry.raycache import RayCache
 from .imaging.images import render_cached_view
+from .imaging.relit import grade_relighting
 from .imaging.sheets import contact_sheet, save_png
+from .imaging.targets import TargetSet, load_relit
 from .imaging.views import ViewStore
 from .model.checkpoint import load_field
 from .model.field import MaterialEdit
@@ -45,9 +54,24 @@ def render_edit(field, view, width: int, out: int, light, edit: MaterialEdit | N
     return render_cached_view(view, width, out, colors)
 
 
-def run(field_path: Path, eval_path: Path, out_dir: Path, settings: RelightSettings, device: str = "cpu") -> dict:
+def run(
+    field_path: Path,
+    eval_path: Path,
+    out_dir: Path,
+    settings: RelightSettings,
+    device: str = "cpu",
+    truth_path: Path | None = None,
+    targets_path: Path | None = None,
+    metrics_cache: Path | None = None,
+) -> dict:
+    """Relight the field (figures), and with ``truth_path`` (the target stage's ``relit.npz``, with
+    the metric-view cache ``metrics_cache`` it belongs to and that cache's targets
+    ``targets_path``, which carry the true material) grade its relighting against Mitsuba's."""
     timer = Timer()
-    for p in (field_path, eval_path):
+    graded = truth_path is not None
+    if graded and (targets_path is None or metrics_cache is None):
+        raise StageInputError(truth_path, "relit ground truth given without --targets and --metrics", "Pass all three.")
+    for p in (field_path, eval_path, *((truth_path, targets_path, metrics_cache) if graded else ())):
         if not Path(p).is_file():
             raise StageInputError(p, "file not found", "Run the optimize stage first.")
     with timer("fit"):
@@ -74,7 +98,22 @@ def run(field_path: Path, eval_path: Path, out_dir: Path, settings: RelightSetti
             top = max(float(env.max()), 1e-12)
             both = np.concatenate([env, fit], axis=0) / top
             save_png(staging / "light_fit.png", to_u8(srgb_encode(both)))
+        ground_truth = []
+        if graded:
+            with timer("ground_truth"):
+                cache = RayCache(metrics_cache)
+                metric = ViewStore(cache, dev, field.normals)
+                relit, truth = load_relit(truth_path, cache), TargetSet(targets_path, cache)
+                ground_truth = grade_relighting(field, metric, relit, truth, settings.lobes, settings.fit_iterations)
+            for g in ground_truth:
+                log.info(
+                    "relit under %s: %.2f dB against Mitsuba's truth (ceiling %.2f dB)",
+                    g["environment"],
+                    g["psnr_db"],
+                    g.get("ceiling_psnr_db", float("nan")),
+                )
         stats = {
+            "ground_truth": ground_truth,
             "envmap": settings.envmap,
             "sg_fit_relative_rms": rel_err,
             "mean_relit": float(torch.stack(views).mean()),
@@ -86,7 +125,11 @@ def run(field_path: Path, eval_path: Path, out_dir: Path, settings: RelightSetti
             metadata(
                 stage="relight",
                 settings=settings.to_dict(),
-                inputs={"field": field_path, "eval": eval_path},
+                inputs={
+                    "field": field_path,
+                    "eval": eval_path,
+                    **({"truth": truth_path, "targets": targets_path, "metrics_cache": metrics_cache} if graded else {}),
+                },
                 outputs={k: out_dir / f"{k}.png" for k in ("relit", "material_edit", "light_fit")},
                 timings={**timer.seconds, "total": timer.total()},
                 extra={"stats": stats, ORIGIN_KEY: field.origin},
@@ -101,9 +144,21 @@ def main(argv: list[str] | None = None) -> int:
         parser.add_argument("--eval", required=True, type=Path)
         parser.add_argument("--out-dir", required=True, type=Path)
         parser.add_argument("--settings", default="{}")
+        parser.add_argument("--truth", type=Path, default=None, help="the target stage's relit.npz (image-guided cells)")
+        parser.add_argument("--targets", type=Path, default=None, help="the metric views' targets (the true material)")
+        parser.add_argument("--metrics", type=Path, default=None, help="the metric-view ray cache of --truth")
 
     def body(args):
-        run(args.field, args.eval, args.out_dir, RelightSettings.from_json(args.settings), args.device)
+        run(
+            args.field,
+            args.eval,
+            args.out_dir,
+            RelightSettings.from_json(args.settings),
+            args.device,
+            args.truth,
+            args.targets,
+            args.metrics,
+        )
 
     return stage_main("relight", __doc__, arguments, body, argv, device="cpu")
 

@@ -7,7 +7,11 @@ BSDF with textures and a normal map, under an environment map that no SG sum rep
 (:mod:`stages.imaging.targets`); the metric views also carry the material's ground truth at
 every hit, so the metrics stage can grade the recovered albedo, roughness and light energy.
 
-Outputs (in ``--out-dir``): ``train.npz``, ``metrics.npz``, ``targets.png`` (the metric views),
+The metric views are also rendered under each of ``target.relight_environments`` (the same
+material and samples, another light): ``relit.npz``, the ground truth the relight stage grades the
+recovered field's relighting against.
+
+Outputs (in ``--out-dir``): ``train.npz``, ``metrics.npz``, ``relit.npz``, ``targets.png`` (the metric views),
 ``material.png`` (base colour, roughness, metallic and normal textures) and ``meta.json`` (samples
 per pixel, the measured noise of the targets, the Mitsuba version and variant, timings).
 """
@@ -27,7 +31,7 @@ from .core.provenance import Timer, metadata, staged_outputs, write_json_atomic
 from .geometry.meshio import TriMesh, load_ply
 from .geometry.raycache import RayCache
 from .imaging.sheets import contact_sheet, save_png
-from .imaging.targets import save_targets
+from .imaging.targets import save_relit, save_targets
 from .reference.targets import TargetRenderer, target_normals
 from .render.color import srgb_encode
 
@@ -89,6 +93,14 @@ def run(
         truth, met = renderer.truth_at_hits(metric)
     # a hit whose ray misses the rendered (finer) mesh is no object pixel of the truth
     tm.coverage[~met] = 0.0
+    relit = {}
+    with timer("render_relit"):
+        for j, env in enumerate(settings.relight_environments):
+            judge = TargetRenderer(mesh, material, settings, environment=env, truth=renderer.truth)
+            t = judge.render_cache(metric, settings.metric_spp, settings.seed * 1_000_003 + 700_001 + 7919 * j)
+            t.coverage[~met] = 0.0
+            relit[env] = (t, judge.env_energy)
+            log.info("relit ground truth under %s: noise PSNR %.1f dB, %.1f s", env, t.noise_psnr_db, t.seconds)
     out_dir = Path(out_dir)
     summary = {}
     for name, t in (("train", tt), ("metrics", tm)):
@@ -123,6 +135,7 @@ def run(
             staging / "metrics.npz",
             {"radiance": tm.radiance, "coverage": tm.coverage, "offsets": metric.arrays["offsets"], **truth, **common},
         )
+        save_relit(staging / "relit.npz", relit, metric.arrays["offsets"], text)
         columns = len(np.unique(np.round(metric.arrays["azimuth"], 9)))
         save_png(staging / "targets.png", _sheet(metric, tm.radiance, columns))
         g = renderer.truth
@@ -138,7 +151,7 @@ def run(
                 settings=settings.to_dict(),
                 seed=settings.seed,
                 inputs={"train": train_path, "metrics": metrics_path},
-                outputs={k: out_dir / k for k in ("train.npz", "metrics.npz", "targets.png", "material.png")},
+                outputs={k: out_dir / k for k in ("train.npz", "metrics.npz", "relit.npz", "targets.png", "material.png")},
                 timings={**timer.seconds, "textures": renderer.seconds_textures, "total": timer.total()},
                 extra={
                     "material": material,
@@ -153,6 +166,10 @@ def run(
                     "environment_energy": renderer.env_energy.tolist(),
                     "principled_specular": g.specular,
                     "views": summary,
+                    "relit": {
+                        env: {"noise_psnr_db": t.noise_psnr_db, "render_seconds": t.seconds, "environment_energy": e.tolist()}
+                        for env, (t, e) in relit.items()
+                    },
                 },
             ),
         )

@@ -20,7 +20,7 @@ from ..core.settings import Settings
 #: input up axes the normalize stage can turn into +y
 UP_AXES = ("+y", "-y", "+z", "-z", "+x", "-x")
 #: procedural target materials and lights of ``guidance: image`` (:mod:`stages.model.procedural`)
-MATERIALS = ("wood", "metal", "plaster")
+MATERIALS = ("wood", "metal", "chrome", "plaster")
 LIGHTS = ("studio", "sky")
 #: how the learned light's lobes start (``optimize.light_init``, :func:`stages.model.networks.initial_sharpness`):
 #: all broad, TANGO's random draw, or sharpnesses spread log-uniformly from broad to sharp
@@ -40,7 +40,7 @@ TARGET_RENDERERS = ("mitsuba", "sg")
 #: matrix products) or "open_clip" (its own modules, the reference)
 CLIP_TOWERS = ("batched", "open_clip")
 #: the procedural environment maps ``relight.envmap: builtin:<name>`` names (:mod:`stages.render.envmap`)
-PROCEDURAL_ENVMAPS = ("sunset", "overcast", "night", "sun_sky")
+PROCEDURAL_ENVMAPS = ("sunset", "overcast", "night", "sun_sky", "studio")
 ENCODINGS = ("nerf", "fourier", "hashgrid", "none")
 #: decimate.mode: to a face count, or to the ray cache's face budget
 DECIMATE_MODES = ("faces", "budget")
@@ -555,6 +555,10 @@ class TargetSettings(Settings):
     #: Mitsuba variant: auto | scalar_rgb | llvm_ad_rgb
     variant: str = "auto"
     seed: int = 0
+    #: environments the metric views are also rendered under (at metric_spp), the ground truth
+    #: the relight stage grades the recovered field against (builtin:<name> or an .hdr/.exr path);
+    #: empty: relighting is not graded
+    relight_environments: tuple[str, ...] = ("builtin:sunset",)
 
     def __post_init__(self) -> None:
         problems = []
@@ -564,6 +568,13 @@ class TargetSettings(Settings):
                 problems.append(f"{name} must be an even number >= 2 (two halves measure the noise), got {value}")
         if self.max_depth < 2 and self.max_depth != -1:
             problems.append(f"max_depth must be >= 2 (or -1: unlimited), got {self.max_depth}")
+        for env in self.relight_environments:
+            if env.startswith("builtin:") and env.split(":", 1)[1] not in PROCEDURAL_ENVMAPS:
+                problems.append(f"relight_environments: no procedural environment {env!r}; use one of {PROCEDURAL_ENVMAPS}")
+            elif not env.startswith("builtin:") and not env.lower().endswith((".hdr", ".exr")):
+                problems.append(f"relight_environments: {env!r} is neither builtin:<name> nor an .hdr/.exr file")
+        if len(set(self.relight_environments)) != len(self.relight_environments):
+            problems.append(f"relight_environments lists an environment twice: {list(self.relight_environments)}")
         if not 16 <= self.texture_size <= 8192:
             problems.append(f"texture_size must be in [16, 8192], got {self.texture_size}")
         if not 0.0 <= self.bump_slope <= 2.0:
@@ -712,6 +723,8 @@ ABLATION_SWITCHES = {
     "normal_encoding": "none",
     "crops": 0,
     "light_rgb": False,
+    "light_init": "broad",
+    "light_lr": None,
 }
 
 

@@ -16,6 +16,33 @@ def psnr(a: torch.Tensor, b: torch.Tensor) -> float:
     return float("inf") if mse == 0 else 10.0 * math.log10(1.0 / mse)
 
 
+#: the share of object pixels :func:`highlights` calls the highlights (the brightest 1% of the target's)
+HIGHLIGHT_SHARE = 0.01
+
+
+def highlights(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor, share: float = HIGHLIGHT_SHARE) -> dict:
+    """Whether a render shows the target's highlights: over the object pixels of images
+    ``(B, 3, H, W)`` in [0, 1] (sRGB) where ``mask (B, 1, H, W)`` holds, the brightest ``share`` of
+    the target's pixels by mean of the channels (at least one pixel). Returns their mean value in
+    the target (``target``) and in ``pred`` at the same pixels (``recovered_at_target``), and the
+    mean of ``pred``'s own brightest ``share`` (``recovered``): a blurred light leaves
+    ``recovered_at_target`` well below ``target``."""
+    m = mask.expand_as(target)[:, :1].reshape(-1)
+    t = target.mean(1).reshape(-1)[m]
+    p = pred.mean(1).reshape(-1)[m]
+    if t.numel() == 0:
+        return {"share": share, "pixels": 0, "target": None, "recovered_at_target": None, "recovered": None}
+    k = max(1, int(round(share * t.numel())))
+    top = torch.topk(t, k).indices
+    return {
+        "share": share,
+        "pixels": k,
+        "target": float(t[top].mean()),
+        "recovered_at_target": float(p[top].mean()),
+        "recovered": float(torch.topk(p, k).values.mean()),
+    }
+
+
 def ssim(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor | None = None, window: int = 11, sigma: float = 1.5) -> float:
     """Mean structural similarity (Wang et al. 2004) of images ``(B, 3, H, W)`` in [0, 1]:
     Gaussian window 11 / 1.5, constants ``(0.01)^2`` and ``(0.03)^2``, per channel, 'valid'

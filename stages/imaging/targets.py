@@ -15,12 +15,17 @@ array                     dtype        meaning
 ``description ()``        str          what rendered the targets (the result's weights id)
 ========================  ===========  ========================================================
 
+The relit ground truth (``relit.npz``, :func:`save_relit`) holds the metric views rendered under each
+of ``target.relight_environments``, numbered ``j``: ``environment_j``, ``radiance_j``, ``coverage_j``,
+``env_energy_j`` and ``noise_psnr_db_j``, with ``count`` and the cache's ``offsets``.
+
 Because the values sit at cached hits, a training step composes target images exactly as it
 composes the model's (the same pixels, crops, resizing and backgrounds).
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -44,6 +49,58 @@ def save_targets(path: str | Path, arrays: dict[str, np.ndarray]) -> None:
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as fh:
             np.savez(fh, **out)
+
+
+def save_relit(path: str | Path, relit: dict, offsets: np.ndarray, description: str) -> None:
+    """Write the relit ground truth atomically: for each environment ``j`` (in order) its name
+    ``environment_j``, per-hit ``radiance_j`` and ``coverage_j`` (float16, as the targets) and
+    ``env_energy_j``; ``relit``: environment -> (:class:`~stages.reference.targets.ViewTargets`,
+    energy)."""
+    out: dict[str, np.ndarray] = {"offsets": offsets, "description": np.array(description), "count": np.array(len(relit))}
+    for j, (env, (t, energy)) in enumerate(relit.items()):
+        out[f"environment_{j}"] = np.array(env)
+        out[f"radiance_{j}"] = np.asarray(t.radiance).astype(np.float16)
+        out[f"coverage_{j}"] = np.asarray(t.coverage).astype(np.float16)
+        out[f"env_energy_{j}"] = np.asarray(energy, np.float64)
+        out[f"noise_psnr_db_{j}"] = np.array(t.noise_psnr_db)
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as fh:
+            np.savez(fh, **out)
+
+
+@dataclass(frozen=True)
+class RelitTruth:
+    """One environment's ground truth of the metric views: per hit ``radiance (N, 3)`` and
+    ``coverage (N,)`` (float32), the environment's name and the targets' own noise."""
+
+    environment: str
+    radiance: np.ndarray
+    coverage: np.ndarray
+    noise_psnr_db: float
+
+
+def load_relit(path: str | Path, cache: RayCache) -> list[RelitTruth]:
+    """The relit ground truth of ``cache``'s views (:func:`save_relit`), checked against the cache."""
+    path = Path(path)
+    if not path.is_file():
+        raise StageInputError(path, "relit ground truth not found", "Run the target stage first (snakemake runs it).")
+    with np.load(path) as z:
+        arrays = {k: z[k] for k in z.files}
+    if not np.array_equal(arrays.get("offsets"), cache.arrays["offsets"]):
+        raise StageInputError(
+            path,
+            f"its ground truth was rendered for another ray cache than {cache.path}",
+            "Rerun the target stage for this cache (snakemake --forcerun target).",
+        )
+    return [
+        RelitTruth(
+            str(arrays[f"environment_{j}"]),
+            arrays[f"radiance_{j}"].astype(np.float32),
+            arrays[f"coverage_{j}"].astype(np.float32),
+            float(arrays[f"noise_psnr_db_{j}"]),
+        )
+        for j in range(int(arrays["count"]))
+    ]
 
 
 class TargetSet:

@@ -328,9 +328,7 @@ def broad_sharpness(lobes: int) -> float:
     return math.log(2.0) / (1.0 - math.cos(spacing))
 
 
-def initial_sharpness(
-    lobes: int, init: str = "broad", sharpness: float | None = None, max_sharpness: float = 1000.0
-) -> Tensor:
+def initial_sharpness(lobes: int, init: str = "broad", sharpness: float | None = None, max_sharpness: float = 1000.0) -> Tensor:
     """Each lobe's starting sharpness ``(lobes, 1)`` for the initialisation ``init`` (LIGHT_INITS).
 
     ``broad``: ``sharpness``, or :func:`broad_sharpness`; ``tango``: ``20 + |z| 100`` with ``z`` drawn
@@ -362,7 +360,7 @@ class SGLightModule(nn.Module):
 
     Parametrisation (multiplicative, so that an Adam step, about the learning rate in each raw
     parameter, changes sharpness and energy by a *factor*: 400 steps at 0.02 can sharpen a lobe
-    from 2 to beyond 10^4, where an additive softplus moved it by about 8): unit axes
+    from 2 to about 6000, where an additive softplus moved it by at most 8): unit axes
     ``u / |u|``; sharpness ``exp(s)`` with ``s`` clamped to ``log SHARPNESS_RANGE``; per channel the
     lobe's energy ``exp(e)`` (``e <= LOG_ENERGY_MAX``), from which the amplitude follows,
     ``mu = E / (2 pi (1 - exp(-2 lam)) / lam)`` (:func:`~stages.render.sg.sg_integral` inverted,

@@ -2,7 +2,8 @@
 
 Analytic fields over normalised positions ``(N, 3)``: a wood-like material (concentric rings
 around the y axis, warped), a brushed metal (dark diffuse, coloured specular, roughness striped
-along y), and a plaster-like diffuse-dominant material; and two lights: ``studio``, four SG lobes
+along y), a polished chrome (roughness 0.08-0.12: it mirrors a light's shape), and a plaster-like
+diffuse-dominant material; and two lights: ``studio``, four SG lobes
 (warm key, cool fill, rim, dim ambient), which a model with 4 or more lobes represents exactly, and
 ``sky``, a small sun and a sky that brightens towards the horizon and a dark ground, made of 97
 lobes with sharpnesses the model's lobes do not start from, which no model of 16-64 lobes
@@ -43,6 +44,11 @@ def procedural_material(kind: str, points: Tensor) -> Material:
         albedo = torch.full((len(points), 3), 0.06, dtype=points.dtype, device=points.device)
         spec = _mix((0.80, 0.80, 0.82), (0.95, 0.93, 0.90), stripes)
         rough = 0.25 + 0.12 * stripes
+    elif kind == "chrome":
+        swirl = (0.5 + 0.5 * torch.sin(6.0 * x + 4.0 * z + 2.0 * y))[:, None]
+        albedo = torch.full((len(points), 3), 0.02, dtype=points.dtype, device=points.device)
+        spec = _mix((0.90, 0.91, 0.93), (0.97, 0.96, 0.94), swirl)
+        rough = 0.08 + 0.04 * swirl
     elif kind == "plaster":
         t = (0.5 + 0.5 * torch.sin(2.0 * x + 1.5 * y) * torch.cos(1.5 * z))[:, None]
         albedo = _mix((0.70, 0.68, 0.62), (0.85, 0.80, 0.72), t)

@@ -80,16 +80,29 @@ FIT_BATCH = 8192
 
 
 def fit_light_to_image(
-    normal, view, albedo, specular, roughness, target, lobes: int, energy, seed: int = 0, iterations: int = 400
+    normal,
+    view,
+    albedo,
+    specular,
+    roughness,
+    target,
+    lobes: int,
+    energy,
+    seed: int = 0,
+    iterations: int = 400,
+    init: str = "broad",
 ):
     """The ``lobes``-lobe SG light that makes our renderer, given the true material and normals
     at hits (``(N, 3)``/``(N, 1)`` tensors), best match the sRGB ``target (N, 3)`` (mean squared
-    error over random batches of hits, Adam): the light a
+    error over random batches of hits, Adam at 0.02 on the light's logarithmic parametrisation,
+    lobes started as ``init``, :data:`~stages.config.sections.LIGHT_INITS`; ``broad`` by default: with
+    the material known and only the light to fit, broad lobes find a 5-degree disc and sharpen onto
+    it where lobes started sharp stay where they began, measured in ``tests/reference/test_sharp_light.py``): the light a
     perfect optimisation of TANGO's model would find. Returns the light and the seconds taken."""
     t0 = time.perf_counter()
     gen = torch.Generator().manual_seed(seed)
     torch.manual_seed(seed)
-    module = SGLightModule(lobes, rgb=True, total_energy=float(np.mean(energy)))
+    module = SGLightModule(lobes, rgb=True, total_energy=float(np.mean(energy)), init=init)
     opt = torch.optim.Adam(module.parameters(), lr=0.02)
     for _ in range(iterations):
         b = torch.randint(len(normal), (min(FIT_BATCH, len(normal)),), generator=gen)

@@ -312,14 +312,25 @@ class ViewTargets:
 class TargetRenderer:
     """A loaded Mitsuba scene that renders views of ray caches (one sensor, moved per view)."""
 
-    def __init__(self, mesh: TriMesh, kind: str, settings: TargetSettings) -> None:
+    def __init__(
+        self,
+        mesh: TriMesh,
+        kind: str,
+        settings: TargetSettings,
+        environment: str | None = None,
+        truth: GroundTruth | None = None,
+    ) -> None:
+        """The scene of ``mesh`` in the procedural material ``kind`` under ``environment`` (default
+        ``settings.environment``); ``truth``: the textures of another renderer of the same mesh and
+        material, reused instead of unwrapping and baking again (the relit judges)."""
         self.settings = settings
         self.variant = choose_variant(settings.variant)
         self.mi = import_mitsuba(self.variant)
         t0 = time.perf_counter()
-        self.truth = ground_truth(mesh, kind, settings)
+        self.truth = truth if truth is not None else ground_truth(mesh, kind, settings)
         self.seconds_textures = time.perf_counter() - t0
-        self.env = load_env(settings.environment, settings.environment_height)
+        self.environment = environment if environment is not None else settings.environment
+        self.env = load_env(self.environment, settings.environment_height)
         self.env_energy = radiant_energy(self.env)
         smooth = settings.shading_normals == "smooth"
         self.scene = self.mi.load_dict(scene_dict(self.mi, mesh, self.truth, self.env, settings.max_depth, smooth))

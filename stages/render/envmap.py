@@ -7,7 +7,9 @@ sharp horizon: the Mitsuba ground-truth targets' default light, chosen because n
 spherical Gaussians represents its disc edge or its horizon step. ``sunset``: a warm low sun, an
 orange-to-blue sky and a dim ground; ``overcast``: a soft, bright, nearly uniform sky;
 ``night``: the same layout as sunset at a twentieth of the brightness (for checks that a darker
-environment darkens a render). Rows run from the zenith (row 0) to the nadir; columns follow
+environment darkens a render); ``studio``: a dim room, a large key softbox and a strip light
+(shipped as the file ``config/envmaps/studio.hdr``, the offline demo's "user HDR" for grading
+relighting). Rows run from the zenith (row 0) to the nadir; columns follow
 the cameras' azimuth (see :func:`equirect_directions`).
 """
 
@@ -59,6 +61,8 @@ def procedural_envmap(name: str, height: int = 128) -> np.ndarray:
         img = np.where(y[..., None] >= 0, 0.9 + 0.3 * y[..., None], 0.3) * np.array([1.0, 1.0, 1.02])
     elif name == "sun_sky":
         img = _sun_sky(d, height)
+    elif name == "studio":
+        img = _studio(d)
     else:
         raise ValueError(f"unknown procedural environment {name!r}; choose one of {', '.join(PROCEDURAL)}")
     return img.astype(np.float32)
@@ -89,6 +93,31 @@ def _sun_sky(d: np.ndarray, height: int) -> np.ndarray:
     pixel = math.pi / height
     cover = np.clip((SUN_RADIUS - angle) / pixel + 0.5, 0.0, 1.0)
     return img + cover * np.array(SUN_RADIANCE)
+
+
+def _softbox(d: np.ndarray, centre: np.ndarray, half_width: float, half_height: float) -> np.ndarray:
+    """``(...)`` in [0, 1]: directions ``d`` inside an upright rectangle of angular half sizes
+    (radians) around ``centre``, its edges softened over about a degree."""
+    c = centre / np.linalg.norm(centre)
+    right = np.cross(c, [0.0, 1.0, 0.0])
+    right /= np.linalg.norm(right)
+    up = np.cross(right, c)
+    ahead = np.clip(d @ c, 1e-6, None)
+    x, y = np.arctan2(d @ right, ahead), np.arctan2(d @ up, ahead)
+    edge = math.radians(1.0)
+    inside = np.clip((half_width - np.abs(x)) / edge + 0.5, 0, 1) * np.clip((half_height - np.abs(y)) / edge + 0.5, 0, 1)
+    return np.where(d @ c > 0, inside, 0.0)
+
+
+def _studio(d: np.ndarray) -> np.ndarray:
+    """A photo studio: a dim warm room, a large cool-white key softbox high on one side, a narrow
+    warm strip light behind the object on the other and a brighter floor: hard-edged rectangles
+    that, like a sun, no SG sum represents exactly, from directions the sky maps do not use."""
+    y = d[..., 1:2]
+    room = np.where(y >= 0, 0.06 + 0.03 * y, 0.10) * np.array([1.0, 0.95, 0.88])
+    key = _softbox(d, np.array([0.8, 0.55, 0.45]), math.radians(22.0), math.radians(14.0))[..., None]
+    strip = _softbox(d, np.array([-0.7, 0.25, -0.65]), math.radians(4.0), math.radians(25.0))[..., None]
+    return room + 4.0 * key * np.array([0.95, 1.0, 1.05]) + 6.0 * strip * np.array([1.0, 0.85, 0.65])
 
 
 def load_env(spec: str, height: int = 128) -> np.ndarray:

@@ -144,6 +144,15 @@ def summary_rows(
                 "target_normal_angle_deg": (it.get("material") or {}).get("normal_angle_deg_mean"),
             }
         )
+        relit = ((_read(cdir / "relight" / "meta.json") or {}).get("stats") or {}).get("ground_truth") or []
+        row.update(
+            {
+                # one entry per environment of target.relight_environments, "/"-separated
+                "relit_environments": "/".join(g["environment"] for g in relit) or None,
+                "relit_psnr_db": "/".join(f"{g['psnr_db']:.2f}" for g in relit) or None,
+                "relit_ceiling_psnr_db": "/".join(f"{g['ceiling_psnr_db']:.2f}" for g in relit if "ceiling_psnr_db" in g) or None,
+            }
+        )
         rt = _read(cdir / "roundtrip" / "meta.json") or {}
         rts = rt.get("stats", {})
         row.update(

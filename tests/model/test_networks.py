@@ -156,3 +156,29 @@ def test_symmetry_prior():
     x = torch.tensor([[0.1, 0.2, -0.7], [0.1, 0.2, 0.7]])
     s = symmetric(x)
     torch.testing.assert_close(s[0], s[1])
+
+
+def test_field_of_format_1_loads_with_the_same_light(tmp_path):
+    """A ``field.pt`` of format 1 (the light as ``0.01 + softplus`` sharpness and softplus
+    amplitude) loads into today's logarithmic light with the same lobes: written here from format
+    1's definitions, not through the conversion."""
+    from stages.config.sections import OptimizeSettings
+    from stages.core.provenance import ORIGIN_KEY, origin_record
+    from stages.model.checkpoint import load_field
+    from stages.model.field import StyleField
+
+    s = OptimizeSettings(width=16, light_lobes=4, light_init="broad")
+    field = StyleField(s.field_settings())
+    state = field.state_dict()
+    gen = torch.Generator().manual_seed(3)
+    sharp_raw = torch.randn(4, 1, generator=gen) * 3.0
+    amp_raw = torch.randn(4, 3, generator=gen)
+    del state["light.log_sharpness"], state["light.log_energy"]
+    state["light.sharpness_raw"], state["light.amplitude_raw"] = sharp_raw, amp_raw
+    origin = origin_record(guidance="image", weights="image targets: a test", test_only=False, prompt="p")
+    torch.save({"format": 1, "settings": s.to_dict(), "prompt": "p", ORIGIN_KEY: origin, "state_dict": state}, tmp_path / "f.pt")
+    loaded, _ = load_field(tmp_path / "f.pt")
+    light = loaded.light()
+    lam = 0.01 + torch.log1p(torch.exp(sharp_raw))
+    torch.testing.assert_close(light.sharpness, lam, rtol=1e-5, atol=0)
+    torch.testing.assert_close(light.amplitude, torch.log1p(torch.exp(amp_raw)), rtol=1e-4, atol=1e-7)

@@ -18,10 +18,11 @@ from stages.geometry.raycache import RayCache, metric_views, trace_views
 from stages.geometry.shapes import builtin_mesh
 from stages.geometry.tracing import EmbreeTracer
 from stages.imaging.quality import material_errors
-from stages.imaging.targets import TargetSet
+from stages.imaging.targets import TargetSet, load_relit
 from stages.reference import mitsuba as mref
 from stages.reference import targets as tref
 from stages.render.envmap import equirect_directions, procedural_envmap, radiant_energy, solid_angles
+from stages.render.hdrio import write_hdr
 
 
 def have_mitsuba() -> bool:
@@ -309,10 +310,25 @@ def test_target_stage_writes_targets_truth_and_measured_noise(mi, tmp_path, vari
         arrays, _ = trace_views(mesh, views, EmbreeTracer(mesh))
         np.savez(tmp_path / f"{name}.npz", **arrays)
     out = tmp_path / "target"
-    settings = TargetSettings(spp=8, metric_spp=32, texture_size=128, variant=variant)
+    write_hdr(tmp_path / "user.hdr", procedural_envmap("overcast", 64))  # a user's HDR file
+    judges = ("builtin:sunset", str(tmp_path / "user.hdr"))
+    settings = TargetSettings(spp=8, metric_spp=32, texture_size=128, variant=variant, relight_environments=judges)
     summary = target.run(tmp_path / "train.npz", tmp_path / "metrics.npz", "wood", out, settings)
-    for name in ("train.npz", "metrics.npz", "targets.png", "material.png", "meta.json"):
+    for name in ("train.npz", "metrics.npz", "relit.npz", "targets.png", "material.png", "meta.json"):
         assert (out / name).is_file()
+    # the relit ground truth: the metric views under each judge environment, aligned with the cache
+    relit = load_relit(out / "relit.npz", RayCache(tmp_path / "metrics.npz"))
+    assert [r.environment for r in relit] == list(judges)
+    base = TargetSet(out / "metrics.npz", RayCache(tmp_path / "metrics.npz")).arrays["radiance"].astype(np.float32)
+    for r in relit:
+        assert r.radiance.shape == base.shape and np.isfinite(r.radiance).all() and np.isfinite(r.noise_psnr_db)
+        assert (r.coverage > 0.999).mean() > 0.9
+        assert np.abs(r.radiance - base).mean() > 0.05 * np.abs(base).mean()  # another light, another image
+    assert set(json.loads((out / "meta.json").read_text())["relit"]) == set(judges)
+    if variant == "auto":
+        _grading_tells_a_disentangled_field_from_a_baked_one(tmp_path / "metrics.npz", out, relit)
+    with pytest.raises(Exception, match="another ray cache"):
+        load_relit(out / "relit.npz", RayCache(tmp_path / "train.npz"))
     meta = json.loads((out / "meta.json").read_text())
     assert meta["renderer"]["name"] == "Mitsuba 3" and meta["renderer"]["version"]
     assert meta["renderer"]["variant"] == mref.choose_variant(variant)
@@ -384,3 +400,53 @@ def test_without_mitsuba_the_workflow_and_the_doctor_name_the_package(monkeypatc
     assert check.status == "MISSING" and "pip install -e '.[reference]'" in check.fix
     check = doctor.check_mitsuba(load_config_files([REPO / "config" / "config.yaml"]))
     assert check.status == "optional"
+
+
+class _TruthField(torch.nn.Module):
+    """A stand-in for a trained field that holds the true material at the metric hits (in cache
+    order) and shades it as the field would, under the light it is given, or, with ``baked``,
+    always under that one light (lighting painted into the material: right under the training
+    light, wrong under any other)."""
+
+    def __init__(self, truth: dict, baked=None) -> None:
+        super().__init__()
+        self.anchor = torch.nn.Parameter(torch.zeros(1))
+        self.truth, self.baked, self.at = truth, baked, 0
+        self.specular_lobe = "fitted"
+
+    def forward(self, points, normals, view, light):
+        from types import SimpleNamespace
+
+        from stages.render.shading import face_viewer, shade
+
+        n = len(points)
+        sl = slice(self.at, self.at + n)
+        self.at = (self.at + n) % len(self.truth["albedo"])
+        t = self.truth
+        nrm = face_viewer(torch.nn.functional.normalize(t["normal"][sl], dim=-1), view)
+        lit = self.baked if self.baked is not None else light
+        rgb = shade(nrm, view, t["albedo"][sl], lit, t["specular"][sl], t["roughness"][sl].clamp(0.01, 1.0), "fitted").rgb
+        return SimpleNamespace(shading=SimpleNamespace(rgb=rgb))
+
+
+def _grading_tells_a_disentangled_field_from_a_baked_one(metrics_cache, target_dir, relit):
+    """The relight grading (:func:`stages.imaging.relit.grade_relighting`) against Mitsuba's relit
+    truth: a field holding the true material scores exactly the ceiling; one whose lighting is
+    baked in (always the training light's SG fit) scores well below it under a different light."""
+    from stages.geometry.normals import NormalSpec
+    from stages.imaging.relit import grade_relighting
+    from stages.imaging.views import ViewStore
+    from stages.model.lightfit import fit_sg_light
+
+    cache = RayCache(metrics_cache)
+    targets = TargetSet(target_dir / "metrics.npz", cache)
+    truth = {k: torch.from_numpy(targets.arrays[k].astype(np.float32)) for k in ("albedo", "specular", "roughness", "normal")}
+    store = ViewStore(cache, "cpu", NormalSpec("smooth", 60.0))
+    good = grade_relighting(_TruthField(truth), store, relit, targets, 16, 100)
+    for g in good:
+        assert g["psnr_db"] == pytest.approx(g["ceiling_psnr_db"], abs=1e-6) and g["pixels"] > 0
+        assert g["ceiling_psnr_db"] > 15.0 and np.isfinite(g["sg_fit_relative_rms"])
+    training, _ = fit_sg_light(procedural_envmap("sun_sky", 128), 16, 100)
+    bad = grade_relighting(_TruthField(truth, baked=training), store, relit, targets, 16, 100)
+    for g, b in zip(good, bad, strict=True):
+        assert b["psnr_db"] < g["psnr_db"] - 3.0, (g, b)

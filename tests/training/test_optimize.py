@@ -344,3 +344,17 @@ def test_image_target_recovery_on_mitsuba_ground_truth(tmp_path):
     assert mat["roughness_mae"] < RECOVERY_MITSUBA_ROUGHNESS_MAE
     assert all(0.3 < r_ < 3.0 for r_ in mat["light_energy_ratio"])
     assert "eval_psnr_db" not in r["optimize"]  # Mitsuba targets exist for training and metric views only
+
+
+@pytest.mark.slow
+def test_metal_recovers_its_highlight_on_mitsuba_ground_truth(tmp_path):
+    """The brushed-metal candle under Mitsuba's sun and sky: the sun's highlight is in every
+    target view, and the recovered views show it. Over the brightest 1% of the target's object
+    pixels of the held-out views (saturated white there), the recovered render reaches at least
+    0.8 on average. Measured 2026-11-24 with the demo's settings: 0.89 with the light's defaults
+    (light_init spread, light_lr 0.02), 0.65 at the networks' rate from broad lobes (the light as
+    it was: every lobe ended near sharpness 2)."""
+    r = recover_mitsuba(tmp_path, mesh="builtin:candle", material="metal", target=MITSUBA_TARGET, normal_network=True)
+    h = r["metrics"]["highlights"]
+    assert h["target"] > 0.95
+    assert h["recovered_at_target"] >= 0.8, h

@@ -120,6 +120,13 @@ def stage_settings_json(stage):
     return settings
 
 
+def target_envmaps(wildcards):
+    """Input function of target: the environment files (not builtin:) its scenes read, the
+    training light and the relit judges', so that editing one renders the targets again."""
+    s = CFG.stage_settings(wildcards.mesh, "target")
+    return [e for e in (s.environment, *s.relight_environments) if not e.startswith("builtin:")]
+
+
 def budget_raycache_json(wildcards):
     """Params function of decimate: with ``decimate.mode: budget``, the mesh's ray-cache settings
     that set the face budget (FACE_BUDGET_FIELDS) as a quoted option; else nothing, so that
@@ -335,7 +342,20 @@ def relight_inputs(wildcards):
     env = CFG.cell_stage_settings("relight", wildcards.prompt, wildcards.variant).envmap
     if not env.startswith("builtin:"):
         inputs["envmap"] = env
+    material = CFG.target_material(wildcards.prompt, wildcards.variant)
+    if material is not None:  # Mitsuba's relit ground truth grades the relighting
+        target = f"{mesh_work(wildcards.mesh, 'target')}/{material}"
+        inputs["truth"] = f"{target}/relit.npz"
+        inputs["targets"] = f"{target}/metrics.npz"
+        inputs["metrics_cache"] = f"{mesh_work(wildcards.mesh, 'raycache')}/metrics.npz"
     return inputs
+
+
+def relight_truth_options(wildcards, input):
+    """Params function of relight: the relit ground truth and what it needs, when the cell has it."""
+    if "truth" not in input.keys():
+        return ""
+    return f"--truth {shlex.quote(input.truth)} --targets {shlex.quote(input.targets)} --metrics {shlex.quote(input.metrics_cache)}"
 
 
 def roundtrip_inputs(wildcards):

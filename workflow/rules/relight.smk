@@ -20,6 +20,7 @@ rule relight:
         device=DEVICE,
         out_dir=cell_dir("relight"),
         settings=cell_settings_json("relight"),
+        truth=relight_truth_options,
     shell:
         "python -m stages.relight --field {input.field:q} --eval {input.eval:q} "
-        "--out-dir {params.out_dir:q} --settings {params.settings:q} --threads {threads} --device {params.device} 2> {log:q}"
+        "--out-dir {params.out_dir:q} --settings {params.settings:q} {params.truth} --threads {threads} --device {params.device} 2> {log:q}"

@@ -3,9 +3,11 @@ rule target:
         mesh=mesh_work_input("normalize", "mesh.ply"),
         train=mesh_work_input("raycache", "train.npz"),
         metrics=mesh_work_input("raycache", "metrics.npz"),
+        envmaps=target_envmaps,
     output:
         train=f"{MESH_WORK_DIR}/target/{{material}}/train.npz",
         metrics=f"{MESH_WORK_DIR}/target/{{material}}/metrics.npz",
+        relit=f"{MESH_WORK_DIR}/target/{{material}}/relit.npz",
         targets=f"{MESH_WORK_DIR}/target/{{material}}/targets.png",
         material=f"{MESH_WORK_DIR}/target/{{material}}/material.png",
         meta=f"{MESH_WORK_DIR}/target/{{material}}/meta.json",
