@@ -25,6 +25,9 @@ LIGHTS = ("studio", "sky")
 #: how the learned light's lobes start (``optimize.light_init``, :func:`stages.model.networks.initial_sharpness`):
 #: all broad, TANGO's random draw, or sharpnesses spread log-uniformly from broad to sharp
 LIGHT_INITS = ("broad", "tango", "spread")
+#: the BRDF models (``optimize.brdf``, :mod:`stages.render.shading`): TANGO's diffuse + specular sum,
+#: or glTF 2.0's metallic-roughness BRDF (GGX, separable Smith, dielectric/metal layering)
+BRDFS = ("tango", "gltf")
 #: the specular models of ``optimize.specular_lobe`` (:func:`stages.render.shading.shade`): TANGO's
 #: closed form, the split sum with exact energy, and the fitted lobe with exact energy corrected by
 #: the BRDF at each light lobe

@@ -34,9 +34,16 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..config.sections import BRDFS
+
 log = logging.getLogger(__name__)
 
-TABLE_PATH = Path(__file__).with_name("data") / "specular_albedo.npz"
+#: the shipped tables, one per BRDF model (``optimize.brdf``)
+TABLE_PATHS = {
+    "tango": Path(__file__).with_name("data") / "specular_albedo.npz",
+    "gltf": Path(__file__).with_name("data") / "specular_albedo_gltf.npz",
+}
+TABLE_PATH = TABLE_PATHS["tango"]
 #: the table's grid: n.v from NV_MIN (the shading keeps n.v >= 5e-4, see ``face_viewer``) to 1,
 #: uniform in log(n.v), and the table holds log A and log B: near grazing a sharp lobe's albedo
 #: follows a power of n.v that changes where the horizon starts to cut the lobe, which a lookup
@@ -81,30 +88,64 @@ def concentration_of(mean_length: np.ndarray) -> np.ndarray:
     return np.where(near_one, 1.0 / (1.0 - rbar), k)
 
 
-def _entry_terms(nv: np.ndarray, roughness: float) -> dict[str, np.ndarray]:
-    """``A`` and ``B`` for every ``nv (M,)`` at one roughness, by quadrature over ``h``, with the
-    moments of each part's lobe ``f_r (n.l)`` over reflected directions ``l``: the angle
-    ``theta`` of its mean direction from ``n`` (towards the mirror side) and the concentration
-    ``kappa`` of the vMF with the same mean resultant length (:func:`concentration_of`).
+def _half_vector_nodes(roughness: float, brdf: str) -> tuple[np.ndarray, ...]:
+    """Quadrature of ``int g(h) D(h) dh`` over half vectors: ``(cos_t, sin_t, phi, weight)`` with
+    ``weight = D(h) dh`` at Gauss-Legendre nodes ``(U_NODES, PHI_NODES)``.
 
-    With ``lam = 2 / r^4`` and the NDF amplitude ``1 / (pi r^4) = lam / (2 pi)``, the substitution
-    ``u = lam (1 - cos theta_h)`` turns ``D(h) dh`` into ``exp(-u) / (2 pi) du dphi`` exactly, which
-    resolves the sharpest lobes as well as the broadest."""
-    lam = 2.0 / roughness**4
-    k = (roughness + 1.0) ** 2 / 8.0
+    ``tango`` (SG NDF, ``lam = 2 / r^4``, amplitude ``lam / (2 pi)``): ``u = lam (1 - cos theta_h)``
+    turns ``D(h) dh`` into ``exp(-u) / (2 pi) du dphi`` exactly, which resolves the sharpest lobes as
+    well as the broadest. ``gltf`` (GGX with ``alpha = r^2``): ``u = tan^2 / (alpha^2 + tan^2)`` in
+    [0, 1) is the GGX distribution's own cumulative of ``D cos``, so ``D(h) dh = du dphi / (2 pi
+    cos theta_h)`` with ``cos^2 = (1 - u) / (1 + (alpha^2 - 1) u)``: uniform in ``u``, every part of
+    the long tail weighted as it counts."""
     xu, wu = np.polynomial.legendre.leggauss(U_NODES)
-    top = min(2.0 * lam, U_MAX)
-    u = 0.5 * top * (xu + 1.0)
-    wu = 0.5 * top * wu
     xp, wp = np.polynomial.legendre.leggauss(PHI_NODES)
     phi = math.pi * (xp + 1.0)
     wp = math.pi * wp
-    cos_t = 1.0 - u / lam
-    # sin from 1 - cos = u / lam without cancellation: sin^2 = (u / lam)(2 - u / lam)
-    sin_t = np.sqrt(np.clip(u / lam * (2.0 - u / lam), 0.0, None))
+    if brdf == "tango":
+        lam = 2.0 / roughness**4
+        top = min(2.0 * lam, U_MAX)
+        u = 0.5 * top * (xu + 1.0)
+        wu = 0.5 * top * wu
+        cos_t = 1.0 - u / lam
+        # sin from 1 - cos = u / lam without cancellation: sin^2 = (u / lam)(2 - u / lam)
+        sin_t = np.sqrt(np.clip(u / lam * (2.0 - u / lam), 0.0, None))
+        dens = np.exp(-u) * wu
+    elif brdf == "gltf":
+        a2 = roughness**4
+        u = 0.5 * (xu + 1.0)
+        wu = 0.5 * wu
+        cos2 = (1.0 - u) / (1.0 + (a2 - 1.0) * u)
+        cos_t = np.sqrt(cos2)
+        sin_t = np.sqrt(np.clip(a2 * u / (1.0 + (a2 - 1.0) * u), 0.0, None))  # 1 - cos^2 without cancellation
+        dens = wu / cos_t
+    else:
+        raise ValueError(f"unknown BRDF {brdf!r}; choose one of {', '.join(BRDFS)}")
+    weight = dens[:, None] * wp[None, :] / (2.0 * math.pi)  # D(h) dh
+    return cos_t, sin_t, phi, weight
+
+
+def _shadowing(nl: np.ndarray, c: float, roughness: float, brdf: str) -> np.ndarray:
+    """``G(l, v) / (n . v)`` for ``n.l`` values ``nl`` (> 0) and ``n.v = c``: TANGO's Smith-Schlick
+    ``G1(x) = x / (x (1 - k) + k)``, ``k = (r + 1)^2 / 8``, or glTF's separable Smith-GGX
+    ``G1(x) = 2 x / (x + sqrt(alpha^2 + (1 - alpha^2) x^2))`` (glTF 2.0, Appendix B)."""
+    if brdf == "tango":
+        k = (roughness + 1.0) ** 2 / 8.0
+        return nl / (nl * (1.0 - k) + k) / (c * (1.0 - k) + k)
+    a2 = roughness**4
+    g1_l = 2.0 * nl / (nl + np.sqrt(a2 + (1.0 - a2) * nl * nl))
+    return g1_l * 2.0 / (c + math.sqrt(a2 + (1.0 - a2) * c * c))
+
+
+def _entry_terms(nv: np.ndarray, roughness: float, brdf: str = "tango") -> dict[str, np.ndarray]:
+    """``A`` and ``B`` for every ``nv (M,)`` at one roughness of the BRDF ``brdf`` (``tango`` or
+    ``gltf``), by quadrature over ``h`` (:func:`_half_vector_nodes`), with the moments of each
+    part's lobe ``f_r (n.l)`` over reflected directions ``l``: the angle ``theta`` of its mean
+    direction from ``n`` (towards the mirror side) and the concentration ``kappa`` of the vMF with
+    the same mean resultant length (:func:`concentration_of`)."""
+    cos_t, sin_t, phi, weight = _half_vector_nodes(roughness, brdf)
     hx = sin_t[:, None] * np.cos(phi)[None, :]
     hz = np.broadcast_to(cos_t[:, None], hx.shape)
-    weight = (np.exp(-u) * wu)[:, None] * wp[None, :] / (2.0 * math.pi)  # D(h) dh
     out = {key: np.empty_like(nv) for key in ("a", "b", "theta_a", "kappa_a", "theta_b", "kappa_b")}
     for i, c in enumerate(nv):
         s = math.sqrt(max(1.0 - c * c, 0.0))
@@ -112,8 +153,8 @@ def _entry_terms(nv: np.ndarray, roughness: float) -> dict[str, np.ndarray]:
         nl = 2.0 * vh * hz - c  # l = 2 (v.h) h - v, n = z
         lx = 2.0 * vh * hx - s  # the y part of l averages to 0 by symmetry
         ok = (vh > 0.0) & (nl > 0.0)
-        g1_l = np.where(ok, nl / (nl * (1.0 - k) + k), 0.0)
-        common = np.where(ok, weight * g1_l * vh / (c * (1.0 - k) + k), 0.0)  # D G (v.h) / (n.v) dh
+        shadow = _shadowing(np.where(ok, nl, 1.0), c, roughness, brdf)
+        common = np.where(ok, weight * shadow * vh, 0.0)  # D G (v.h) / (n.v) dh
         fres = np.clip(1.0 - vh, 0.0, 1.0) ** 5
         for part, w in (("a", common * (1.0 - fres)), ("b", common * fres)):
             total = float(w.sum())
@@ -127,13 +168,13 @@ def _entry_terms(nv: np.ndarray, roughness: float) -> dict[str, np.ndarray]:
     return out
 
 
-def build_table() -> dict[str, np.ndarray]:
+def build_table(brdf: str = "tango") -> dict[str, np.ndarray]:
     """``{"nv", "roughness", "a", "b", "theta_a", "kappa_a", "theta_b", "kappa_b"}``: the grids and
-    each column ``(NV_NODES, R_NODES)`` by quadrature (:func:`_entry_terms`)."""
+    each column ``(NV_NODES, R_NODES)`` by quadrature (:func:`_entry_terms`) for ``brdf``."""
     nv, rough = nv_grid(), roughness_grid()
     columns = {key: np.empty((len(nv), len(rough))) for key in TABLE_COLUMNS}
     for j, r in enumerate(rough):
-        for key, values in _entry_terms(nv, float(r)).items():
+        for key, values in _entry_terms(nv, float(r), brdf).items():
             columns[key][:, j] = values
     return {"nv": nv, "roughness": rough, **columns}
 
@@ -144,18 +185,17 @@ TABLE_COLUMNS = ("a", "b", "theta_a", "kappa_a", "theta_b", "kappa_b")
 
 
 @functools.cache
-def _table(device: str, dtype: torch.dtype) -> dict[str, Tensor]:
-    if not TABLE_PATH.is_file():
-        raise FileNotFoundError(
-            f"{TABLE_PATH}: the specular albedo table is missing; rebuild it with `python -m stages.render.specular_albedo`"
-        )
-    with np.load(TABLE_PATH) as z:
+def _table(device: str, dtype: torch.dtype, brdf: str = "tango") -> dict[str, Tensor]:
+    if brdf not in TABLE_PATHS:
+        raise ValueError(f"unknown BRDF {brdf!r}; choose one of {', '.join(BRDFS)}")
+    path = TABLE_PATHS[brdf]
+    rebuild = f"`python -m stages.render.specular_albedo --brdf {brdf}`"
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: the specular albedo table is missing; rebuild it with {rebuild}")
+    with np.load(path) as z:
         missing = [key for key in TABLE_COLUMNS if key not in z.files]
         if missing:
-            raise ValueError(
-                f"{TABLE_PATH} lacks the columns {missing} (an older table); rebuild it with "
-                "`python -m stages.render.specular_albedo`"
-            )
+            raise ValueError(f"{path} lacks the columns {missing} (an older table); rebuild it with {rebuild}")
         grids = {key: z[key] if key.startswith("theta") else np.log(np.maximum(z[key], LOG_FLOOR)) for key in TABLE_COLUMNS}
     return {key: torch.as_tensor(value, dtype=dtype, device=device) for key, value in grids.items()}
 
@@ -174,11 +214,11 @@ def _bilinear(grid: Tensor, x: Tensor, y: Tensor) -> Tensor:
     return (g00 * (1 - fy) + g01 * fy) * (1 - fx) + (g10 * (1 - fy) + g11 * fy) * fx
 
 
-def _lookup(cos_nv: Tensor, roughness: Tensor, keys: tuple[str, ...]) -> list[Tensor]:
+def _lookup(cos_nv: Tensor, roughness: Tensor, keys: tuple[str, ...], brdf: str = "tango") -> list[Tensor]:
     """The table's columns ``keys`` at ``cos_nv`` and ``roughness`` (any matching shapes): bilinear in
     ``log(n . v)`` and ``log(r)``, computed in float32 at least, returned in the input's dtype."""
     work = torch.float32 if cos_nv.dtype in (torch.float16, torch.bfloat16) else cos_nv.dtype
-    table = _table(str(cos_nv.device), work)
+    table = _table(str(cos_nv.device), work, brdf)
     t = (1.0 - torch.log(cos_nv.to(work).clamp(NV_MIN, 1.0)) / math.log(NV_MIN)) * (NV_NODES - 1)
     s = (1.0 - torch.log(roughness.to(work).clamp(R_MIN, 1.0)) / math.log(R_MIN)) * (R_NODES - 1)
     out = []
@@ -188,31 +228,33 @@ def _lookup(cos_nv: Tensor, roughness: Tensor, keys: tuple[str, ...]) -> list[Te
     return out
 
 
-def directional_albedo(cos_nv: Tensor, roughness: Tensor) -> tuple[Tensor, Tensor]:
+def directional_albedo(cos_nv: Tensor, roughness: Tensor, brdf: str = "tango") -> tuple[Tensor, Tensor]:
     """``A, B`` at ``cos_nv (...)`` in ``[5e-4, 1]`` and ``roughness (...)`` in ``[0.01, 1]``
     (clamped to the table) -> two tensors of the same shape; the specular albedo is
     ``F0 A + B``. Bilinear in ``log(n . v)`` and ``log(r)`` on ``log A`` and ``log B``; gradients flow
     to both."""
-    a, b = _lookup(cos_nv, roughness, ("a", "b"))
+    a, b = _lookup(cos_nv, roughness, ("a", "b"), brdf)
     return a, b
 
 
-def lobe_moments(cos_nv: Tensor, roughness: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+def lobe_moments(cos_nv: Tensor, roughness: Tensor, brdf: str = "tango") -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """``theta_a, kappa_a, theta_b, kappa_b`` at ``cos_nv`` and ``roughness`` (as
     :func:`directional_albedo`): for the ``A`` part (weighted by ``1 - (1 - v.h)^5``) and the ``B``
     part (by ``(1 - v.h)^5``) of the BRDF's lobe ``f_r (n . l)``, the angle of its mean direction
     from the normal towards the mirror side, in [0, pi/2], and the concentration of the vMF with the
     same mean resultant length (0.3 for the broadest lobe to ~1e8 for the sharpest)."""
-    theta_a, kappa_a, theta_b, kappa_b = _lookup(cos_nv, roughness, ("theta_a", "kappa_a", "theta_b", "kappa_b"))
+    theta_a, kappa_a, theta_b, kappa_b = _lookup(cos_nv, roughness, ("theta_a", "kappa_a", "theta_b", "kappa_b"), brdf)
     return theta_a, kappa_a, theta_b, kappa_b
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description="Rebuild the specular albedo table by quadrature.")
-    parser.add_argument("--out", type=Path, default=TABLE_PATH)
+    parser = argparse.ArgumentParser(description="Rebuild the specular albedo table of a BRDF by quadrature.")
+    parser.add_argument("--brdf", choices=BRDFS, default="tango")
+    parser.add_argument("--out", type=Path, default=None, help="default: the shipped table of --brdf")
     args = parser.parse_args(argv)
+    args.out = args.out or TABLE_PATHS[args.brdf]
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    table = build_table()
+    table = build_table(args.brdf)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     tmp = args.out.with_suffix(".part.npz")
     np.savez_compressed(tmp, **table)

@@ -49,6 +49,7 @@ INDEX_COLUMNS = (
     ("iterations", "iterations"),
     ("faces_after", "faces"),
     ("bake_psnr_db", "bake (dB)"),
+    ("relit_psnr_db", "relit (dB)"),
     ("weights", "weights"),
 )
 #: a cell's files the pages show: (folder, file, name in the cell's page folder)
@@ -150,6 +151,16 @@ def fidelity_lines(row) -> str:
         if rough is not None:
             text += f", roughness MAE {rough:.3f}"
         lines.append(text)
+    if "relit_psnr_db" in row and isinstance(row["relit_psnr_db"].iloc[0], str):
+        envs = str(row["relit_environments"].iloc[0]).split(" | ")
+        ours = str(row["relit_psnr_db"].iloc[0]).split("/")
+        ceiling = row["relit_ceiling_psnr_db"].iloc[0] if "relit_ceiling_psnr_db" in row else None
+        ceilings = str(ceiling).split("/") if isinstance(ceiling, str) else [None] * len(ours)
+        parts = [
+            f"{env}: {q} dB" + (f" (true material {c} dB)" if c is not None else "")
+            for env, q, c in zip(envs, ours, ceilings, strict=True)
+        ]
+        lines.append("relit, against Mitsuba's truth (held-out views, object pixels): " + "; ".join(parts))
     glb, usdz = _figure(row, "roundtrip_glb_psnr_db"), _figure(row, "roundtrip_usdz_psnr_db")
     if glb is not None or usdz is not None:
         parts = [f"{name} {value:.2f} dB" for name, value in (("GLB", glb), ("USDZ", usdz)) if value is not None]

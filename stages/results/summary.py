@@ -147,8 +147,9 @@ def summary_rows(
         relit = ((_read(cdir / "relight" / "meta.json") or {}).get("stats") or {}).get("ground_truth") or []
         row.update(
             {
-                # one entry per environment of target.relight_environments, "/"-separated
-                "relit_environments": "/".join(g["environment"] for g in relit) or None,
+                # one entry per environment of target.relight_environments, "/"-separated (the
+                # environments " | "-separated: a path holds slashes)
+                "relit_environments": " | ".join(g["environment"] for g in relit) or None,
                 "relit_psnr_db": "/".join(f"{g['psnr_db']:.2f}" for g in relit) or None,
                 "relit_ceiling_psnr_db": "/".join(f"{g['ceiling_psnr_db']:.2f}" for g in relit if "ceiling_psnr_db" in g) or None,
             }

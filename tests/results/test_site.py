@@ -228,3 +228,25 @@ def test_comparison_line_finds_the_cells_own_group():
     assert "the same settings as a, seed included" in comparison_text(("m", "p", "d"), groups)
     assert comparison_text(("m", "p", "unmeasured"), groups) == ""
     assert comparison_text(("other", "p", "b"), groups) == ""
+
+
+def test_relit_figures_on_the_cell_line():
+    """The relighting graded against Mitsuba (summary columns, one entry per environment) is shown
+    with its environment and the true material's ceiling; a cell without it shows no such line."""
+    import pandas as pd
+
+    from stages.results.site import fidelity_lines
+
+    row = pd.DataFrame(
+        [
+            {
+                "relit_environments": "builtin:sunset | config/envmaps/studio.hdr",
+                "relit_psnr_db": "21.50/19.25",
+                "relit_ceiling_psnr_db": "27.00/25.10",
+            }
+        ]
+    )
+    line = fidelity_lines(row)
+    assert "builtin:sunset: 21.50 dB (true material 27.00 dB)" in line
+    assert "config/envmaps/studio.hdr: 19.25 dB (true material 25.10 dB)" in line
+    assert "relit" not in fidelity_lines(pd.DataFrame([{"relit_psnr_db": float("nan")}]))

@@ -166,6 +166,11 @@ def test_own_mesh_image_guided_runs_end_to_end_on_a_bare_machine(machine, tmp_pa
     assert export["stats"]["gltf_validation"] == {"ran": False, "reason": "Node.js (node) is not on PATH"}
     lod = json.loads((cell / "lod" / "meta.json").read_text())
     assert lod["stats"]["validation"]["model_lods.glb"] == {"ran": False, "reason": "Node.js (node) is not on PATH"}
+    # the relighting was graded against Mitsuba's relit truth (target.relight_environments)
+    relit = json.loads((cell / "relight" / "meta.json").read_text())["stats"]["ground_truth"]
+    assert [g["environment"] for g in relit] == ["builtin:sunset"] and all(g["pixels"] > 0 for g in relit)
+    summary = (clone / "results" / name / "report" / "summary.csv").read_text()
+    assert "relit_psnr_db" in summary.splitlines()[0]
     index = (clone / "results" / name / "report" / "index.html").read_text()
     assert "<model-viewer" not in index and "id='no-viewer'" in index and "image-guided" in index
     # the same command again: the same config, nothing to redo

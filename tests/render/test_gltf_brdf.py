@@ -1,0 +1,212 @@
+"""glTF 2.0's metallic-roughness BRDF as a model (``optimize.brdf: gltf``): its table of energies
+against Monte Carlo, and its closed-form SG shading (:func:`stages.render.shading.shade_gltf`)
+against Monte Carlo of the BRDF written here from the specification's formulas (glTF 2.0,
+Appendix B: GGX, the separable Smith-GGX visibility, the dielectric's ``fresnel_mix`` with F0 0.04
+and the metal's ``conductor_fresnel``), under broad lights and a sun, with mutation checks."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from stages.render import shading as shading_module
+from stages.render import specular_albedo as sa
+from stages.render.shading import SGLight, shade_gltf
+
+F64 = torch.float64
+N_MC = 600_000
+
+
+def unit(x: torch.Tensor) -> torch.Tensor:
+    return x / torch.linalg.vector_norm(x, dim=-1, keepdim=True)
+
+
+def ggx_d(nh: torch.Tensor, alpha: float) -> torch.Tensor:
+    """The specification's ``D = alpha^2 chi(n.h) / (pi ((n.h)^2 (alpha^2 - 1) + 1)^2)``."""
+    a2 = alpha * alpha
+    return torch.where(nh > 0, a2 / (math.pi * (nh * nh * (a2 - 1.0) + 1.0) ** 2), torch.zeros_like(nh))
+
+
+def gltf_brdf_times_cosine(n, v, l_dir, base, metallic, r):
+    """``f(l, v) (n . l)`` per sample ``(M, 3)``, written from glTF 2.0 Appendix B: ``alpha = r^2``,
+    ``specular_brdf = V D`` with ``V = 1 / ((|n.l| + sqrt(a2 + (1 - a2)(n.l)^2)) (|n.v| + sqrt(...)))``
+    (``G / (4 |n.l| |n.v|)``, separable Smith), ``diffuse_brdf = base / pi``, the metal
+    ``specular_brdf (base + (1 - base)(1 - |v.h|)^5)``, the dielectric ``mix(diffuse_brdf,
+    specular_brdf, 0.04 + 0.96 (1 - |v.h|)^5)``, and ``mix(dielectric, metal, metallic)``; zero
+    where ``n . l <= 0``."""
+    alpha = r * r
+    a2 = alpha * alpha
+    h = unit(l_dir + v)
+    nl = l_dir @ n
+    nv = float(v @ n)
+    vh = (h @ v).abs()
+    d = ggx_d(h @ n, alpha)
+    vis = 1.0 / ((nl.abs() + torch.sqrt(a2 + (1 - a2) * nl * nl)) * (abs(nv) + math.sqrt(a2 + (1 - a2) * nv * nv)))
+    spec = (vis * d)[:, None]
+    schlick = ((1.0 - vh) ** 5)[:, None]
+    metal = spec * (base + (1.0 - base) * schlick)
+    f_dielectric = 0.04 + 0.96 * schlick
+    dielectric = (1.0 - f_dielectric) * base / math.pi + f_dielectric * spec
+    f = (1.0 - metallic) * dielectric + metallic * metal
+    return torch.where((nl > 0)[:, None], f * nl[:, None], torch.zeros_like(f))
+
+
+def sample_sg(axis, lam, count, g):
+    """Exact samples of the normalised SG of ``axis`` and sharpness ``lam`` (inverse CDF)."""
+    u, phi = torch.rand(count, generator=g, dtype=F64), 2 * math.pi * torch.rand(count, generator=g, dtype=F64)
+    c = (1 + torch.log(u + (1 - u) * math.exp(-2 * lam)) / lam).clamp(-1, 1)
+    s = torch.sqrt(1 - c * c)
+    x = unit(torch.linalg.cross(torch.tensor([0.6, 0.8, 0.1], dtype=F64), axis))
+    y = torch.linalg.cross(axis, x)
+    return (s * torch.cos(phi))[:, None] * x + (s * torch.sin(phi))[:, None] * y + c[:, None] * axis
+
+
+def sg_pdf(axis, lam, d):
+    return lam * torch.exp(lam * (d @ axis - 1)) / (2 * math.pi * -math.expm1(-2 * lam))
+
+
+def monte_carlo(n, v, base, metallic, r, light: SGLight, seed=0):
+    """``int f(l, v) (n.l) L(l) dl`` by a defensive mixture (a third each: uniform on the sphere, GGX
+    half vectors reflected, the light's lobes by energy). Returns (mean (3,), standard error (3,))."""
+    g = torch.Generator().manual_seed(seed)
+    m = N_MC // 3
+    alpha = r * r
+    # GGX: tan^2(theta_h) = alpha^2 u / (1 - u), phi uniform, around n = z
+    u, phi = torch.rand(m, generator=g, dtype=F64), 2 * math.pi * torch.rand(m, generator=g, dtype=F64)
+    cos_h = 1 / torch.sqrt(1 + alpha * alpha * u / (1 - u))
+    sin_h = torch.sqrt((1 - cos_h * cos_h).clamp(min=0))
+    h = torch.stack([sin_h * torch.cos(phi), sin_h * torch.sin(phi), cos_h], -1)
+    from_ggx = 2 * (h @ v)[:, None] * h - v
+    energy = (light.amplitude.mean(-1) / light.sharpness[:, 0] * -torch.expm1(-2 * light.sharpness[:, 0])).clamp(min=0)
+    pick = torch.multinomial(energy / energy.sum(), m, replacement=True, generator=g)
+    from_light = torch.cat(
+        [sample_sg(light.axis[k], float(light.sharpness[k]), int((pick == k).sum()), g) for k in range(len(energy))]
+    )
+    uniform = unit(torch.randn(m, 3, generator=g, dtype=F64))
+    dirs = torch.cat([uniform, unit(from_ggx), from_light])
+    hh = unit(dirs + v)
+    p_ggx = ggx_d(hh @ n, alpha) * (hh @ n).clamp(min=0) / (4 * (hh @ v).abs().clamp(min=1e-12))
+    w = energy / energy.sum()
+    p_light = sum(w[k] * sg_pdf(light.axis[k], float(light.sharpness[k]), dirs) for k in range(len(energy)))
+    pdf = (1 / (4 * math.pi) + p_ggx + p_light) / 3
+    f = gltf_brdf_times_cosine(n, v, dirs, base, metallic, r) * light.radiance(dirs)
+    x = f / pdf[:, None]
+    return x.mean(0), x.std(0) / math.sqrt(len(x))
+
+
+def broad_light(k=32, lam=5.0, seed=3) -> SGLight:
+    g = torch.Generator().manual_seed(seed)
+    axis = unit(torch.randn(k, 3, generator=g, dtype=F64))
+    amp = 0.2 + torch.rand(k, 3, generator=g, dtype=F64)
+    return SGLight(axis, torch.full((k, 1), lam, dtype=F64), amp)
+
+
+def sun_and_sky() -> SGLight:
+    """A sun of sharpness 300 (about 6 degrees) at 40 degrees elevation over 16 broad sky lobes."""
+    sky = broad_light(16, 3.0, seed=5)
+    sun = unit(torch.tensor([[0.5, 0.3, 0.75]], dtype=F64))
+    return SGLight(
+        torch.cat([sun, sky.axis]),
+        torch.cat([torch.tensor([[300.0]], dtype=F64), sky.sharpness]),
+        torch.cat([torch.tensor([[60.0, 55.0, 50.0]], dtype=F64), 0.3 * sky.amplitude]),
+    )
+
+
+N = torch.tensor([0.0, 0.0, 1.0], dtype=F64)
+BASE = torch.tensor([0.8, 0.5, 0.2], dtype=F64)
+
+
+def view_at(cos_nv: float) -> torch.Tensor:
+    return torch.tensor([math.sqrt(1 - cos_nv * cos_nv), 0.0, cos_nv], dtype=F64)
+
+
+CASES = [(r, c, m) for r in (0.15, 0.4, 0.8) for c in (1.0, 0.5, 0.2) for m in (0.0, 1.0)]
+
+
+def tolerance(r: float, metallic: float) -> float:
+    """6%, but 16% for metals of roughness 0.2-0.45: there the vMF that carries the fitted lobe's
+    shape, matched to the GGX lobe's mean resultant length, is too broad for GGX's long tails
+    (measured 2026-11-24: 15.1% at r 0.4, n.v 0.2, under 32 lobes of sharpness 5; 12.6% under
+    the sun and sky; dielectrics within 3.7%)."""
+    return 0.16 if metallic == 1.0 and 0.2 <= r <= 0.45 else 0.06
+
+
+def relative_errors(light: SGLight, shade_fn=shade_gltf) -> dict:
+    """``|closed form - MC| / MC`` per case (5 standard errors taken off), the worst channel, in
+    units of the case's :func:`tolerance`."""
+    out = {}
+    for r, cos_nv, metallic in CASES:
+        v = view_at(cos_nv)
+        mt = torch.tensor([[metallic]], dtype=F64)
+        got = shade_fn(N[None], v[None], BASE[None], mt, torch.tensor([[r]], dtype=F64), light).rgb[0]
+        mc, se = monte_carlo(N, v, BASE, metallic, r, light, seed=int(100 * r + 10 * cos_nv + metallic))
+        out[r, cos_nv, metallic] = float(((got - mc).abs() - 5 * se).clamp(min=0).div(mc).max()) / tolerance(r, metallic)
+    return out
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("light_name", ["broad", "sun_and_sky"])
+def test_closed_form_against_monte_carlo_of_the_specification(light_name):
+    """The closed form (diffuse layer, fitted GGX lobe) within :func:`tolerance` of Monte Carlo of
+    the specification's BRDF, dielectric and metal, roughness 0.15 to 0.8, n.v 1 to 0.2, under 32
+    broad lobes and under a sun with a sky."""
+    light = broad_light() if light_name == "broad" else sun_and_sky()
+    errors = relative_errors(light)
+    assert max(errors.values()) <= 1.0, errors
+
+
+def test_table_matches_monte_carlo_of_ggx():
+    """The glTF table's ``F0 A + B`` against Monte Carlo of ``int V D F (n.l) dl`` written from the
+    specification (uniform light, no diffuse: a metal of colour F0)."""
+    for nv, r in ((1.0, 0.1), (0.5, 0.4), (0.2, 0.8), (0.05, 1.0)):
+        terms = sa._entry_terms(np.array([nv]), r, "gltf")
+        uniform = SGLight(N[None], torch.tensor([[1e-6]], dtype=F64), torch.ones(1, 3, dtype=F64))
+        for f0 in (0.04, 1.0):
+            base = torch.full((3,), f0, dtype=F64)
+            mc, se = monte_carlo(N, view_at(nv), base, 1.0, r, uniform, seed=7)
+            want, err = float(mc[0]), float(se[0])
+            got = f0 * terms["a"][0] + terms["b"][0]
+            assert abs(got - want) <= 0.005 * want + 5 * err, (nv, r, f0, got, want, err)
+
+
+def test_shipped_gltf_table_is_what_the_code_builds():
+    with np.load(sa.TABLE_PATHS["gltf"]) as z:
+        for j in (0, sa.R_NODES // 2, sa.R_NODES - 1):
+            built = sa._entry_terms(sa.nv_grid(), float(sa.roughness_grid()[j]), "gltf")
+            for key in sa.TABLE_COLUMNS:
+                cond = 16 * np.finfo(float).eps * z[key][:, j] ** 2 if key.startswith("kappa") else 0.0
+                err = np.abs(z[key][:, j] - built[key])
+                assert (err <= 1e-12 * np.abs(built[key]) + 1e-15 + cond).all(), (key, err.max())
+
+
+def test_metal_has_no_diffuse_and_f0_is_the_specifications():
+    base = torch.rand(5, 3, dtype=F64)
+    torch.testing.assert_close(shading_module.gltf_f0(base, torch.zeros(5, 1, dtype=F64)), torch.full_like(base, 0.04))
+    torch.testing.assert_close(shading_module.gltf_f0(base, torch.ones(5, 1, dtype=F64)), base)
+    n = N.expand(5, 3)
+    out = shade_gltf(n, n, base, torch.ones(5, 1, dtype=F64), torch.full((5, 1), 0.5, dtype=F64), broad_light())
+    assert float(out.diffuse.abs().max()) == 0.0
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    "mutation",
+    ["no_fresnel_weight", "tango_table", "tango_density"],
+)
+def test_mutations_fail_the_monte_carlo_check(monkeypatch, mutation):
+    """Each of these mistakes moves the closed form outside the tolerance the check above holds it
+    to: the diffuse layer without ``1 - F``, TANGO's table in place of glTF's, TANGO's NDF and
+    shadowing in the fitted lobe's correction."""
+    if mutation == "no_fresnel_weight":
+        monkeypatch.setattr(shading_module, "GLTF_DIELECTRIC_F0", -0.25)  # weight (1.25)(1 - schlick): off
+    elif mutation == "tango_table":
+        original = shading_module.directional_albedo
+        monkeypatch.setattr(shading_module, "directional_albedo", lambda c, r, brdf="tango": original(c, r, "tango"))
+    else:
+        original = shading_module._log_ndf_times_visibility
+        monkeypatch.setattr(shading_module, "_log_ndf_times_visibility", lambda a, b, c, d, brdf: original(a, b, c, d, "tango"))
+    errors = relative_errors(sun_and_sky())
+    assert max(errors.values()) > 1.0, errors
