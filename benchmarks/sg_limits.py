@@ -9,6 +9,7 @@ sRGB error over fully covered object pixels, Mitsuba's own noise taken out (see
 
     python benchmarks/sg_limits.py                       # built-in meshes
     python benchmarks/sg_limits.py --shared bunny horse  # also meshes of ../shared/meshes
+    python benchmarks/sg_limits.py --builtin candle:metal --brdf tango,gltf   # both BRDFs (default)
 """
 
 from __future__ import annotations
@@ -39,7 +40,9 @@ def main() -> None:
     parser.add_argument("--spp", type=int, default=128)
     parser.add_argument("--resolution", type=int, default=128)
     parser.add_argument("--lobes", type=int, nargs="*", default=[32])
+    parser.add_argument("--brdf", default="tango,gltf", help="the model's BRDFs, comma-separated (tango, gltf)")
     args = parser.parse_args()
+    brdfs = [b for b in args.brdf.split(",") if b]
     cases = [(f"builtin:{c.split(':')[0]}", c.split(":")[1]) for c in args.builtin]
     cases += [(str(REPO.parent / "shared" / "meshes" / f"{n}.obj"), "wood") for n in args.shared]
     rc = RaycacheSettings(metrics_resolution=args.resolution)
@@ -52,22 +55,23 @@ def main() -> None:
             np.savez(Path(d) / "m.npz", **arrays)
             cache = RayCache(Path(d) / "m.npz")
             renderer = TargetRenderer(mesh, material, TargetSettings(texture_size=1024))
-            r = measure_limits(renderer, cache, args.spp, tuple(args.lobes))
-        name = f"{Path(source).stem if '/' in source else source[8:]} ({len(mesh.faces)} faces), {material}"
-        parts = []
-        for k in args.lobes:
-            lk = r[f"lobes_{k}"]
-            sh = lk["share"]
-            parts.append(
-                f"{k} lobes: {lk['psnr_db']['target']:.2f} dB (error {lk['error_mse']['target']:.2e} = interreflection "
-                f"{100 * sh['interreflection']:.0f}% + shadows {100 * sh['shadows']:.0f}% + BRDF/light/closed form "
-                f"{100 * sh['brdf_light_and_closed_form']:.0f}%)"
-            )
-        print(
-            f"{name}: noise {r['noise_mse']:.1e}, interreflection {r['interreflection_mse']:.2e}, "
-            f"shadows {r['shadows_mse']:.2e}; " + "; ".join(parts) + f"; {time.perf_counter() - t0:.0f} s",
-            flush=True,
-        )
+            for brdf in brdfs:
+                r = measure_limits(renderer, cache, args.spp, tuple(args.lobes), brdf=brdf)
+                name = f"{Path(source).stem if '/' in source else source[8:]} ({len(mesh.faces)} faces), {material}, {brdf} BRDF"
+                parts = []
+                for k in args.lobes:
+                    lk = r[f"lobes_{k}"]
+                    sh = lk["share"]
+                    parts.append(
+                        f"{k} lobes: {lk['psnr_db']['target']:.2f} dB (error {lk['error_mse']['target']:.2e} = "
+                        f"interreflection {100 * sh['interreflection']:.0f}% + shadows {100 * sh['shadows']:.0f}% + "
+                        f"BRDF/light/closed form {100 * sh['brdf_light_and_closed_form']:.0f}%)"
+                    )
+                print(
+                    f"{name}: noise {r['noise_mse']:.1e}, interreflection {r['interreflection_mse']:.2e}, "
+                    f"shadows {r['shadows_mse']:.2e}; " + "; ".join(parts) + f"; {time.perf_counter() - t0:.0f} s",
+                    flush=True,
+                )
 
 
 if __name__ == "__main__":

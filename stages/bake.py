@@ -69,7 +69,7 @@ def run(
             store = ViewStore(evalc, torch.device(device), field.normals)
             tex = decode_textures(res.textures)
             light = field.light()
-            baked = render_baked_views(evalc, res.atlas.uv, tex, res.frames, light, device, field.specular_lobe)
+            baked = render_baked_views(evalc, res.atlas.uv, tex, res.frames, light, device, field.specular_lobe, field.brdf)
             preds = [linear_to_srgb(b) for b in baked]
             refs = [linear_to_srgb(r) for r in radiance_at_hits(field, store)]
             bake_psnr = psnr(torch.cat(preds), torch.cat(refs))
@@ -86,6 +86,8 @@ def run(
             "atlas_utilization": res.atlas.utilization,
             "texel_coverage": res.coverage,
             "faces": len(mesh.faces),
+            # the BRDF the textures hold (optimize.brdf): the exporters map them accordingly
+            "brdf": field.brdf,
             "bake_psnr_db": bake_psnr,
             "bake_psnr_pixels": "object pixels of the evaluation views, sRGB, baked textures vs neural field",
         }

@@ -150,7 +150,7 @@ def run(
     def grade(level_mesh, uv, textures: dict, frames: CornerFrames) -> tuple[dict, torch.Tensor]:
         arrays, _ = trace_views(level_mesh, cameras)
         cache = RayCache(f"<{len(level_mesh.faces)}-face level traced from {eval_path}>", arrays)
-        rendered = render_baked_views(cache, uv, decode_textures(textures), frames, light, device, lobe)
+        rendered = render_baked_views(cache, uv, decode_textures(textures), frames, light, device, lobe, field.brdf)
         lo, hi = arrays["offsets"][front], arrays["offsets"][front + 1]
         image = _front_image(arrays["pixel"][lo:hi].astype(np.int64), linear_to_srgb(rendered[front]).cpu().numpy(), evalc.width)
         return _level_fidelity(reference, cache, rendered), image
@@ -208,7 +208,7 @@ def run(
                     with open(tmp, "wb") as fh:
                         np.savez(fh, uv=res.texels.atlas.uv.astype(np.float32), **res.frames.arrays())
                 mpu, root = export_settings.meters_per_unit, export_settings.usdz_root
-                checked = write_model_files(staging / tag, geom, mpu, root, name, origin)
+                checked = write_model_files(staging / tag, geom, mpu, root, name, origin, brdf=field.brdf)
             with t_dec("grade"):
                 fidelity, image = grade(low, res.texels.atlas.uv, res.textures, res.frames)
                 images.append(image)
@@ -267,7 +267,7 @@ def run(
             switch = {"tango_stylize_lod": {"levels": [r["level"] for r in rows], "msft_screencoverage": coverage}}
             with atomic_path(staging / "model_lods.usda") as tmp:
                 tmp.unlink()
-                write_usd(tmp, levels, export_settings.meters_per_unit, "light.exr", origin, switch)
+                write_usd(tmp, levels, export_settings.meters_per_unit, "light.exr", origin, switch, brdf=field.brdf)
             files = [f"{lv.textures}/{key}.png" for lv in levels for key in TEXTURE_FILES] + ["light.exr"]
             package_usdz(staging / "model_lods.usda", staging / "model_lods.usdz", files, export_settings.usdz_root)
             write_glb(
@@ -279,6 +279,7 @@ def run(
                 origin,
                 lods=[(lv.geom, staging / lv.textures) for lv in levels[1:]],
                 screen_coverage=coverage,
+                brdf=field.brdf,
             )
         with timer("validate"):
             checked = {rel: validate_usd(staging / rel) for rel in ("model_lods.usda", "model_lods.usdz")}

@@ -151,7 +151,7 @@ def run(
                 if name != "full":
                     lobes[name] = res.renders
                     continue
-                checks = check_import(res, geom, mpu)
+                checks = check_import(res, geom, mpu, export_meta.get("stats", {}).get("brdf", "tango"))
                 world = [n["node"] for n in res.report.get("world", {}).get("nodes", [])]
                 if "TEX_ENVIRONMENT" not in world:
                     checks["problems"].append("the world has no environment texture (the learned light did not arrive)")

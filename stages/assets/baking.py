@@ -39,7 +39,7 @@ from ..geometry.tangents import CornerFrames, from_tangent_space, to_tangent_spa
 from ..geometry.tracing import EmbreeTracer
 from ..render.color import srgb_decode, srgb_encode, to_u8
 from ..render.envmap import equirect_directions
-from ..render.shading import face_viewer, shade
+from ..render.shading import face_viewer, shade, shade_gltf
 
 
 @dataclass
@@ -80,8 +80,9 @@ def atlas_texels(mesh: TriMesh, size: int, padding: int, max_chart_share: float 
 def evaluate_surface(field, points: np.ndarray, normals: np.ndarray, device="cpu", chunk: int = 65536) -> dict[str, np.ndarray]:
     """The field's material and predicted world normal at ``points (M, 3)`` with shading
     ``normals (M, 3)`` (float64 arrays): ``albedo, specular (M, 3)``, ``roughness (M, 1)`` (the
-    last two absent for a diffuse-only field) and ``normal (M, 3)``."""
-    out: dict[str, list] = {"albedo": [], "specular": [], "roughness": [], "normal": []}
+    last two absent for a diffuse-only field), ``normal (M, 3)`` and, for a field of glTF's BRDF,
+    ``base (M, 3)`` and ``metallic (M, 1)``."""
+    out: dict[str, list] = {"albedo": [], "specular": [], "roughness": [], "normal": [], "base": [], "metallic": []}
     p_t = torch.from_numpy(points.astype(np.float32)).to(device)
     n_t = torch.from_numpy(normals.astype(np.float32)).to(device)
     for lo in range(0, len(p_t), chunk):
@@ -90,27 +91,36 @@ def evaluate_surface(field, points: np.ndarray, normals: np.ndarray, device="cpu
         if mat.specular is not None:
             out["specular"].append(mat.specular)
             out["roughness"].append(mat.roughness)
+        if mat.metallic is not None:  # glTF's BRDF: what was trained, baked as it is
+            out["base"].append(mat.base)
+            out["metallic"].append(mat.metallic)
         out["normal"].append(normal)
     return {k: torch.cat(v).cpu().double().numpy() for k, v in out.items() if v}
 
 
 def texture_images(texels: AtlasTexels, surface: dict[str, np.ndarray], tangent_normal: np.ndarray, dilation: int) -> dict:
     """The four 8-bit texture images (see the module docstring) from the per-texel ``surface``
-    (:func:`evaluate_surface`) and the normal in tangent space, with empty texels dilated."""
+    (:func:`evaluate_surface`) and the normal in tangent space, with empty texels dilated. Base
+    colour: TANGO's diffuse albedo, or glTF's base colour; the metallic-roughness texture's blue
+    channel: 0, or glTF's metallic; ``specular``: the F0 either way (for glTF's BRDF a preview of
+    ``lerp(0.04, base, metallic)``; its assets do not read it)."""
     s = texels.atlas.size
     filled = texels.filled
     base = np.zeros((s, s, 3))
-    base[filled] = surface["albedo"]
+    base[filled] = surface["base"] if "base" in surface else surface["albedo"]
     spc = np.zeros((s, s, 3))
     rgh = np.ones((s, s, 1))
+    metal = np.zeros((s, s, 1))
     if "specular" in surface:
         spc[filled] = surface["specular"]
         rgh[filled] = surface["roughness"]
+    if "metallic" in surface:
+        metal[filled] = surface["metallic"]
     nrm = np.zeros((s, s, 3))
     nrm[..., 2] = 1.0
     nrm[filled] = tangent_normal
-    base, spc, rgh, nrm = (dilate(x, filled, dilation) for x in (base, spc, rgh, nrm))
-    mr = np.concatenate([np.ones((s, s, 1)), rgh, np.zeros((s, s, 1))], axis=-1)  # R unused, G rough, B metal
+    base, spc, rgh, metal, nrm = (dilate(x, filled, dilation) for x in (base, spc, rgh, metal, nrm))
+    mr = np.concatenate([np.ones((s, s, 1)), rgh, metal], axis=-1)  # R unused, G rough, B metal
     return {
         "basecolor": to_u8(srgb_encode(base)),
         "metallic_roughness": to_u8(mr),
@@ -229,19 +239,25 @@ def bake_level(
 
 # ------------------------------------------------------------------------ texture sampling / fidelity
 def decode_textures(textures: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """The 8-bit textures as float arrays in the renderer's units (linear)."""
+    """The 8-bit textures as float arrays in the renderer's units (linear): ``albedo`` is the base
+    colour texture (TANGO's diffuse albedo, or glTF's base colour)."""
     return {
         "albedo": srgb_decode(textures["basecolor"] / 255.0),
         "specular": srgb_decode(textures["specular"] / 255.0),
         "roughness": textures["metallic_roughness"][..., 1:2] / 255.0,
+        "metallic": textures["metallic_roughness"][..., 2:3] / 255.0,
         "normal": textures["normal"] / 255.0 * 2.0 - 1.0,
     }
 
 
 @torch.no_grad()
-def render_baked(hits, uv_faces, tex: dict, frames: CornerFrames, light, device="cpu", lobe: str = "isotropic"):
+def render_baked(
+    hits, uv_faces, tex: dict, frames: CornerFrames, light, device="cpu", lobe: str = "isotropic", brdf: str = "tango"
+):
     """Shade cached hits (a :class:`BakedHits`) from the decoded textures read through the bake's
-    ``frames``, with the specular model ``lobe`` (the field's). Returns ``(N, 3)`` linear radiance."""
+    ``frames``, with the specular model ``lobe`` and the BRDF ``brdf`` (the field's: TANGO's sum of
+    the albedo, specular and roughness textures, or glTF's of base colour, metallic and roughness).
+    Returns ``(N, 3)`` linear radiance."""
     f = hits.face
     tri_uv = uv_faces[f]
     # barycentrics of the hit from its point (cache stores quantised Embree barycentrics)
@@ -258,16 +274,21 @@ def render_baked(hits, uv_faces, tex: dict, frames: CornerFrames, light, device=
         return torch.from_numpy(np.ascontiguousarray(x, dtype=np.float32)).to(device)
 
     nn_ = face_viewer(tt(world), tt(view))
-    spec = tt(sample_bilinear(tex["specular"], uv))
     rough = tt(np.clip(sample_bilinear(tex["roughness"], uv), 0.01, 1.0))
-    return shade(nn_, tt(view), tt(sample_bilinear(tex["albedo"], uv)), light, spec, rough, lobe).rgb
+    base = tt(sample_bilinear(tex["albedo"], uv))
+    if brdf == "gltf":
+        return shade_gltf(nn_, tt(view), base, tt(sample_bilinear(tex["metallic"], uv)), rough, light, lobe).rgb
+    spec = tt(sample_bilinear(tex["specular"], uv))
+    return shade(nn_, tt(view), base, light, spec, rough, lobe).rgb
 
 
-def render_baked_views(cache, uv_faces, tex: dict, frames: CornerFrames, light, device="cpu", lobe: str = "isotropic") -> list:
+def render_baked_views(
+    cache, uv_faces, tex: dict, frames: CornerFrames, light, device="cpu", lobe: str = "isotropic", brdf: str = "tango"
+) -> list:
     """:func:`render_baked` for every view of the ray ``cache`` traced on the baked mesh: per view
     the linear radiance ``(N, 3)`` of its hits (in the cache's hit order)."""
     return [
-        render_baked(BakedHits(cache.view(i), cached_barycentrics(cache, i)), uv_faces, tex, frames, light, device, lobe)
+        render_baked(BakedHits(cache.view(i), cached_barycentrics(cache, i)), uv_faces, tex, frames, light, device, lobe, brdf)
         for i in range(len(cache))
     ]
 

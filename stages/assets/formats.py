@@ -26,6 +26,12 @@ Material mapping:
   them, so a glTF viewer renders slightly darker diffuse at grazing angles; glTF's Fresnel uses
   the half vector per light sample where TANGO evaluates it once at the mirror direction; and the
   environment light is not part of glTF core (it ships beside the model as ``light.exr``/``.hdr``).
+
+A field trained with glTF's own BRDF (``optimize.brdf: gltf``) is written as it was trained, with
+nothing lost: glTF metallic-roughness with the baked base colour, roughness (green) and metallic
+(blue), no extension; USD's ``UsdPreviewSurface`` in its metallic workflow
+(``useSpecularWorkflow = 0``, ``diffuseColor`` = base colour, ``metallic``, ``roughness``). The
+bake's ``specular.png`` (its F0, a preview) is then not referenced by either.
 """
 
 from __future__ import annotations
@@ -140,6 +146,7 @@ def write_usd(
     light_file: str | None,
     origin: dict,
     extra_data: dict | None = None,
+    brdf: str = "tango",
 ) -> None:
     """Write ``model.usda``: a Mesh with ``st`` and normals, a UsdPreviewSurface bound to it, and
     a DomeLight with the learned light. Texture paths are relative to the file. ``origin`` (the
@@ -162,14 +169,14 @@ def write_usd(
     stage.SetDefaultPrim(root.GetPrim())
     Usd.ModelAPI(root.GetPrim()).SetKind("component")
     if isinstance(geom, ExportMesh):
-        _usd_model(stage, geom, "textures")
+        _usd_model(stage, geom, "textures", brdf)
     else:
         variants = root.GetPrim().GetVariantSets().AddVariantSet("LOD")
         for level in geom:
             variants.AddVariant(level.name)
             variants.SetVariantSelection(level.name)
             with variants.GetVariantEditContext():
-                _usd_model(stage, level.geom, level.textures)
+                _usd_model(stage, level.geom, level.textures, brdf)
         variants.SetVariantSelection(geom[0].name)
     if light_file:
         _usd_dome_light(stage, light_file)
@@ -190,9 +197,10 @@ def _usd_dictionary(d: dict) -> dict:
     return {k: value(v) for k, v in d.items()}
 
 
-def _usd_model(stage, geom: ExportMesh, textures: str) -> None:
-    """``/Asset/Geometry/Mesh`` and its material ``/Asset/Looks/TangoMaterial`` reading the four
-    textures from the folder ``textures`` (relative to the layer)."""
+def _usd_model(stage, geom: ExportMesh, textures: str, brdf: str = "tango") -> None:
+    """``/Asset/Geometry/Mesh`` and its material ``/Asset/Looks/TangoMaterial`` reading the
+    textures from the folder ``textures`` (relative to the layer): TANGO's specular workflow, or
+    for glTF's BRDF the metallic workflow (base colour, metallic, roughness)."""
     from pxr import Gf, Sdf, UsdGeom, UsdShade, Vt
 
     # typed parents: importers (Blender's among them) drop an untyped prim from the transform
@@ -216,7 +224,7 @@ def _usd_model(stage, geom: ExportMesh, textures: str) -> None:
     mat = UsdShade.Material.Define(stage, "/Asset/Looks/TangoMaterial")
     surf = UsdShade.Shader.Define(stage, "/Asset/Looks/TangoMaterial/PreviewSurface")
     surf.CreateIdAttr("UsdPreviewSurface")
-    surf.CreateInput("useSpecularWorkflow", Sdf.ValueTypeNames.Int).Set(1)
+    surf.CreateInput("useSpecularWorkflow", Sdf.ValueTypeNames.Int).Set(0 if brdf == "gltf" else 1)
     mat.CreateSurfaceOutput().ConnectToSource(surf.ConnectableAPI(), "surface")
     reader = UsdShade.Shader.Define(stage, "/Asset/Looks/TangoMaterial/StReader")
     reader.CreateIdAttr("UsdPrimvarReader_float2")
@@ -240,12 +248,16 @@ def _usd_model(stage, geom: ExportMesh, textures: str) -> None:
     base = texture("BaseColorTexture", "basecolor", "sRGB")
     base.CreateOutput("rgb", Sdf.ValueTypeNames.Float3)
     surf.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).ConnectToSource(base.ConnectableAPI(), "rgb")
-    spec = texture("SpecularTexture", "specular", "sRGB")
-    spec.CreateOutput("rgb", Sdf.ValueTypeNames.Float3)
-    surf.CreateInput("specularColor", Sdf.ValueTypeNames.Color3f).ConnectToSource(spec.ConnectableAPI(), "rgb")
     rough = texture("RoughnessTexture", "metallic_roughness", "raw")
     rough.CreateOutput("g", Sdf.ValueTypeNames.Float)
     surf.CreateInput("roughness", Sdf.ValueTypeNames.Float).ConnectToSource(rough.ConnectableAPI(), "g")
+    if brdf == "gltf":
+        rough.CreateOutput("b", Sdf.ValueTypeNames.Float)
+        surf.CreateInput("metallic", Sdf.ValueTypeNames.Float).ConnectToSource(rough.ConnectableAPI(), "b")
+    else:
+        spec = texture("SpecularTexture", "specular", "sRGB")
+        spec.CreateOutput("rgb", Sdf.ValueTypeNames.Float3)
+        surf.CreateInput("specularColor", Sdf.ValueTypeNames.Color3f).ConnectToSource(spec.ConnectableAPI(), "rgb")
     nrm = texture("NormalTexture", "normal", "raw", (2.0, 2.0, 2.0, 1.0), (-1.0, -1.0, -1.0, 0.0))
     nrm.CreateOutput("rgb", Sdf.ValueTypeNames.Float3)
     surf.CreateInput("normal", Sdf.ValueTypeNames.Normal3f).ConnectToSource(nrm.ConnectableAPI(), "rgb")
@@ -320,7 +332,14 @@ def validate_usd(path: Path) -> dict:
 
 
 def write_model_files(
-    folder: Path, geom: ExportMesh, meters_per_unit: float, usdz_root: str, name: str, origin: dict, timer=None
+    folder: Path,
+    geom: ExportMesh,
+    meters_per_unit: float,
+    usdz_root: str,
+    name: str,
+    origin: dict,
+    timer=None,
+    brdf: str = "tango",
 ) -> dict:
     """Write one asset's ``model.usda``, ``model.usdz`` and ``model.glb`` into ``folder`` (which
     already holds ``textures/*.png`` and ``light.exr``), each atomically, and validate all three:
@@ -337,10 +356,10 @@ def write_model_files(
     with part("usd"):
         with atomic_path(folder / "model.usda") as tmp:
             tmp.unlink()
-            write_usd(tmp, geom, meters_per_unit, "light.exr", origin)
+            write_usd(tmp, geom, meters_per_unit, "light.exr", origin, brdf=brdf)
         package_usdz(folder / "model.usda", folder / "model.usdz", [*TEXTURE_FILES.values(), "light.exr"], usdz_root)
     with part("gltf"):
-        write_glb(folder / "model.glb", geom, folder / "textures", meters_per_unit, name, origin)
+        write_glb(folder / "model.glb", geom, folder / "textures", meters_per_unit, name, origin, brdf=brdf)
     with part("validate"):
         usd = [validate_usd(folder / "model.usda"), validate_usd(folder / "model.usdz")]
         gltf = validate_glb(folder / "model.glb")
@@ -410,6 +429,7 @@ def write_glb(
     origin: dict,
     lods: list[tuple[ExportMesh, Path]] = (),
     screen_coverage: list[float] | None = None,
+    brdf: str = "tango",
 ) -> None:
     """Write a self-contained binary glTF 2.0 file (see the module docstring for the mapping);
     ``origin`` goes into ``asset.extras.tango_stylize``.
@@ -457,7 +477,8 @@ def write_glb(
         index_type = np.uint16 if len(pos) < 65535 else np.uint32
         indices = add_accessor(level.indices.reshape(-1).astype(index_type), g.SCALAR, target=g.ELEMENT_ARRAY_BUFFER)
         first = len(textures)
-        for key in ("basecolor", "metallic_roughness", "normal", "specular"):
+        keys = ("basecolor", "metallic_roughness", "normal") + (() if brdf == "gltf" else ("specular",))
+        for key in keys:
             view = add_view((Path(tex_dir) / f"{key}.png").read_bytes())
             images.append(g.Image(bufferView=view, mimeType="image/png", name=key if not lods else f"lod{k}_{key}"))
             textures.append(g.Texture(source=len(images) - 1, sampler=0))
@@ -467,12 +488,14 @@ def write_glb(
                 pbrMetallicRoughness=g.PbrMetallicRoughness(
                     baseColorTexture=g.TextureInfo(index=first),
                     metallicRoughnessTexture=g.TextureInfo(index=first + 1),
-                    metallicFactor=1.0,  # the texture's blue channel (0) is the metalness
+                    metallicFactor=1.0,  # the texture's blue channel is the metalness (0 for TANGO's BRDF)
                     roughnessFactor=1.0,
                 ),
                 normalTexture=g.NormalMaterialTexture(index=first + 2),
                 doubleSided=True,
-                extensions={
+                extensions={}
+                if brdf == "gltf"
+                else {
                     "KHR_materials_specular": {
                         "specularFactor": 1.0,
                         "specularColorFactor": [25.0, 25.0, 25.0],
@@ -484,7 +507,7 @@ def write_glb(
         label = name if not lods else f"{name}_lod{k}"
         meshes.append(g.Mesh(name=label, primitives=[g.Primitive(attributes=attrs, indices=indices, material=k)]))
         nodes.append(g.Node(mesh=k, name=label))
-    used = ["KHR_materials_specular"]
+    used = [] if brdf == "gltf" else ["KHR_materials_specular"]
     if lods:
         if screen_coverage is None or len(screen_coverage) != len(lods) + 1:
             raise ValueError(f"MSFT_lod needs one screen coverage per level ({len(lods) + 1}), got {screen_coverage}")

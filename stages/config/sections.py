@@ -251,6 +251,7 @@ class FieldSettings:
     light_init: str
     light_init_sharpness: float | None
     light_init_max_sharpness: float
+    brdf: str
     specular_lobe: str
     shading_normals: str
     crease_angle_deg: float
@@ -332,6 +333,12 @@ class OptimizeSettings(ClipChoice, Settings):
     #: stages/render/shading.py and docs/measurements/shading.md (fitted: the most accurate at the
     #: isotropic model's cost, and no worse in recovery; measured 2026-11-22)
     specular_lobe: str = "fitted"
+    #: the BRDF model (BRDFS): "tango" (TANGO's diffuse albedo + specular colour, the sum of a
+    #: diffuse and a microfacet term) or "gltf" (glTF 2.0's metallic-roughness BRDF: base colour,
+    #: metallic, roughness, GGX, the dielectric's F0 0.04 and (1 - F) diffuse weight, the metal's
+    #: F0 its base colour; needs specular_lobe fitted or split_sum); bake and export write what was
+    #: trained. docs/method/brdf.md
+    brdf: str = "tango"
     #: the normals the field shades with and its normal network starts from (SHADING_NORMALS):
     #: "flat" (TANGO: face normals) or "smooth" (vertex normals interpolated across each face,
     #: edges sharper than crease_angle_deg kept, corners weighted by normal_weighting); carried
@@ -409,6 +416,12 @@ class OptimizeSettings(ClipChoice, Settings):
             p.append(f"normal_weighting must be one of {', '.join(NORMAL_WEIGHTINGS)}, got {self.normal_weighting!r}")
         if not 0.0 <= self.crease_angle_deg <= 180.0:
             p.append(f"crease_angle_deg must be in [0, 180], got {self.crease_angle_deg}")
+        if self.brdf not in BRDFS:
+            p.append(f"brdf must be one of {', '.join(BRDFS)}, got {self.brdf!r}")
+        elif self.brdf == "gltf" and self.specular_lobe == "isotropic":
+            p.append("brdf gltf has no isotropic specular model (TANGO's closed form); use specular_lobe fitted or split_sum")
+        elif self.brdf == "gltf" and not self.specular:
+            p.append("brdf gltf needs its metallic and roughness heads: set specular: true (or brdf: tango)")
         if self.light_init not in LIGHT_INITS:
             p.append(f"light_init must be one of {', '.join(LIGHT_INITS)}, got {self.light_init!r}")
         if not 1e-4 <= self.light_init_max_sharpness <= 1e5:

@@ -20,9 +20,9 @@ import torch
 from ..model.lightfit import fit_sg_light
 from ..render.color import linear_to_srgb
 from ..render.envmap import load_env
-from ..render.shading import SGLight, face_viewer, shade
+from ..render.shading import SGLight, face_viewer, shade, shade_gltf
 from .quality import psnr
-from .targets import FULL_COVERAGE, RelitTruth, TargetSet
+from .targets import FULL_COVERAGE, GLTF_TRUTH_KEYS, RelitTruth, TargetSet
 from .views import ViewStore
 
 
@@ -37,13 +37,18 @@ def _field_radiance(field, store: ViewStore, light: SGLight) -> torch.Tensor:
 
 
 @torch.no_grad()
-def _truth_radiance(truth: TargetSet, store: ViewStore, light: SGLight, lobe: str) -> torch.Tensor:
-    """Linear radiance ``(N, 3)`` of our renderer given the true material and shading normals."""
+def _truth_radiance(truth: TargetSet, store: ViewStore, light: SGLight, lobe: str, brdf: str = "tango") -> torch.Tensor:
+    """Linear radiance ``(N, 3)`` of our renderer (the BRDF ``brdf``) given the true material and
+    shading normals."""
     dev = light.axis.device
     view = torch.cat([store[i].view for i in range(len(store))])
-    a = {k: torch.from_numpy(truth.arrays[k].astype(np.float32)).to(dev) for k in ("albedo", "specular", "roughness", "normal")}
+    keys = ("albedo", "specular", "roughness", "normal", *(GLTF_TRUTH_KEYS if brdf == "gltf" else ()))
+    a = {k: torch.from_numpy(truth.arrays[k].astype(np.float32)).to(dev) for k in keys}
     n = face_viewer(torch.nn.functional.normalize(a["normal"], dim=-1), view)
-    return shade(n, view, a["albedo"], light, a["specular"], a["roughness"].clamp(0.01, 1.0), lobe).rgb
+    rough = a["roughness"].clamp(0.01, 1.0)
+    if brdf == "gltf":
+        return shade_gltf(n, view, a["base"], a["metallic"], rough, light, lobe).rgb
+    return shade(n, view, a["albedo"], light, a["specular"], rough, lobe).rgb
 
 
 def grade_relighting(
@@ -68,8 +73,9 @@ def grade_relighting(
             "noise_psnr_db": r.noise_psnr_db,
             "sg_fit_relative_rms": rel,
         }
-        if truth is not None and truth.has_truth:
-            ceiling = linear_to_srgb(_truth_radiance(truth, store, light, field.specular_lobe))[full]
+        brdf = getattr(field, "brdf", "tango")
+        if truth is not None and truth.has_truth and (brdf == "tango" or all(k in truth.arrays for k in GLTF_TRUTH_KEYS)):
+            ceiling = linear_to_srgb(_truth_radiance(truth, store, light, field.specular_lobe, brdf))[full]
             row["ceiling_psnr_db"] = psnr(ceiling, goal)
         out.append(row)
     return out

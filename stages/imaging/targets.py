@@ -11,6 +11,8 @@ array                     dtype        meaning
 ``albedo, specular``      float16      optional ground truth (metric views): TANGO-equivalent
 ``(N, 3)``, ``roughness``              diffuse albedo, specular colour, roughness and the world
 ``(N, 1)``, ``normal``                 shading normal (facing the viewer)
+``base (N, 3)``,          float16      optional: the truth in glTF's terms, base colour and
+``metallic (N, 1)``                    metallic
 ``env_energy (3,)``       float64      optional: the light's radiant energy ``int L dw``
 ``description ()``        str          what rendered the targets (the result's weights id)
 ========================  ===========  ========================================================
@@ -36,6 +38,8 @@ from ..geometry.raycache import RayCache
 
 #: ground-truth arrays a target file may carry (metric views)
 TRUTH_KEYS = ("albedo", "specular", "roughness", "normal")
+#: and the truth in glTF's terms (base colour, metallic), for fields of ``optimize.brdf: gltf``
+GLTF_TRUTH_KEYS = ("base", "metallic")
 #: a hit whose pixel is at least this covered counts as an object pixel of the figures
 FULL_COVERAGE = 0.999
 
@@ -45,7 +49,7 @@ def save_targets(path: str | Path, arrays: dict[str, np.ndarray]) -> None:
     out = {}
     for key, value in arrays.items():
         value = np.asarray(value)
-        out[key] = value.astype(np.float16) if key in ("radiance", "coverage", *TRUTH_KEYS) else value
+        out[key] = value.astype(np.float16) if key in ("radiance", "coverage", *TRUTH_KEYS, *GLTF_TRUTH_KEYS) else value
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as fh:
             np.savez(fh, **out)

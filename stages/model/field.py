@@ -14,7 +14,7 @@ from torch import Tensor, nn
 from ..config.sections import FieldSettings
 from ..core.cli import bf16_support
 from ..geometry.normals import NormalSpec
-from ..render.shading import SGLight, Shading, face_viewer, shade
+from ..render.shading import SGLight, Shading, face_viewer, shade, shade_gltf
 from .networks import Material, NormalNet, SGLightModule, SVBRDFNet, make_encoding, symmetric
 
 log = logging.getLogger(__name__)
@@ -27,10 +27,19 @@ class FieldOutput:
     normal: Tensor  # (N, 3) shading normal (predicted, facing the viewer)
 
 
+def shade_material(normal: Tensor, view: Tensor, material: Material, light: SGLight, lobe: str) -> Shading:
+    """The renderer for ``material``'s BRDF: TANGO's sum (:func:`~stages.render.shading.shade`) or
+    glTF's (:func:`~stages.render.shading.shade_gltf`, from the base colour and metallic)."""
+    if material.metallic is not None:
+        return shade_gltf(normal, view, material.base, material.metallic, material.roughness, light, lobe)
+    return shade(normal, view, material.albedo, light, material.specular, material.roughness, lobe)
+
+
 @dataclass(frozen=True)
 class MaterialEdit:
     """TANGO's material editing (Fig. 6): roughness and specular colour scaled, then clamped back
-    into their valid ranges (``[min_roughness, 1]`` and ``[0, 1]``)."""
+    into their valid ranges (``[min_roughness, 1]`` and ``[0, 1]``); for a glTF material the
+    specular scale scales the metalness."""
 
     roughness_scale: float = 1.0
     specular_scale: float = 1.0
@@ -38,6 +47,9 @@ class MaterialEdit:
     def apply(self, material: Material, min_roughness: float) -> Material:
         if material.specular is None:
             return material
+        rough = (material.roughness * self.roughness_scale).clamp(min_roughness, 1.0)
+        if material.metallic is not None:  # glTF: the specular scale scales the metalness
+            return Material.gltf(material.base, (material.metallic * self.specular_scale).clamp(0.0, 1.0), rough)
         return Material(
             material.albedo,
             (material.specular * self.specular_scale).clamp(0.0, 1.0),
@@ -77,6 +89,7 @@ class StyleField(nn.Module):
                 init_specular=s.init_specular,
                 init_roughness=s.init_roughness,
                 min_roughness=s.min_roughness,
+                brdf=s.brdf,
             )
             self.normal_net = None
             if s.normal_network and s.normal_max_delta > 0:
@@ -99,6 +112,7 @@ class StyleField(nn.Module):
             )
         self.symmetry = s.symmetry
         self.specular_lobe = s.specular_lobe
+        self.brdf = s.brdf
         #: the shading normals the field is trained and rendered with (every ViewStore and the bake use them)
         self.normals = NormalSpec(s.shading_normals, s.crease_angle_deg, s.normal_weighting)
         #: the networks' matrix products under bfloat16 autocast (:meth:`use_bf16`; off: float32)
@@ -114,7 +128,7 @@ class StyleField(nn.Module):
         if not enabled:
             self.compiled_shade = None
             return "eager"
-        self.compiled_shade = torch.compile(shade, dynamic=True)
+        self.compiled_shade = torch.compile(shade_material, dynamic=True)
         return "torch.compile (inductor)"
 
     def use_bf16(self, enabled: bool, device: torch.device) -> str:
@@ -184,5 +198,5 @@ class StyleField(nn.Module):
         """The renderer's half of the forward pass: ``material`` and unit shading ``normal`` (from
         :meth:`surface`) seen along ``view``, under the learned light or ``light``."""
         light = light if light is not None else self.light()
-        fn = self.compiled_shade if self.compiled_shade is not None and self.training else shade
-        return fn(normal, view, material.albedo, light, material.specular, material.roughness, self.specular_lobe)
+        fn = self.compiled_shade if self.compiled_shade is not None and self.training else shade_material
+        return fn(normal, view, material, light, self.specular_lobe)

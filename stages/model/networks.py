@@ -16,9 +16,9 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
-from ..config.sections import LIGHT_INITS
+from ..config.sections import BRDFS, LIGHT_INITS
 from ..render.sg import one_minus_exp_neg2x_over_x, sg_integral
-from ..render.shading import SGLight
+from ..render.shading import SGLight, gltf_f0
 
 
 # ------------------------------------------------------------------------------------ encodings
@@ -211,17 +211,37 @@ def _init_constant(head: nn.Sequential, value: Tensor) -> None:
 @dataclass(frozen=True)
 class Material:
     """Per-point material: ``albedo (N, 3)`` and, unless diffuse-only, ``specular (N, 3)`` in
-    [0, 1] and ``roughness (N, 1)`` in [min_roughness, 1]."""
+    [0, 1] and ``roughness (N, 1)`` in [min_roughness, 1] (TANGO's terms: diffuse albedo,
+    specular colour F0).
+
+    A material of glTF's BRDF (``optimize.brdf: gltf``) also carries what it was made of:
+    ``base (N, 3)`` colour and ``metallic (N, 1)``; its ``albedo`` and ``specular`` are then their
+    TANGO equivalents, ``base (1 - metallic)`` and ``lerp(0.04, base, metallic)``, so that figures
+    and material errors read both models alike, while shading, baking and export use ``base`` and
+    ``metallic``."""
 
     albedo: Tensor
     specular: Tensor | None
     roughness: Tensor | None
+    base: Tensor | None = None
+    metallic: Tensor | None = None
+
+    @property
+    def brdf(self) -> str:
+        return "gltf" if self.metallic is not None else "tango"
+
+    @staticmethod
+    def gltf(base: Tensor, metallic: Tensor, roughness: Tensor) -> Material:
+        """A glTF material with its TANGO equivalents filled in."""
+        return Material(base * (1.0 - metallic), gltf_f0(base, metallic), roughness, base, metallic)
 
 
 class SVBRDFNet(nn.Module):
     """TANGO's SVBRDF MLP: a shared trunk (two layers) and three heads of three layers each for
     diffuse albedo (3), specular colour (3) and roughness (1), all bounded by sigmoids.
-    ``specular=False`` builds the diffuse head only (the paper's "-spec, rough" ablation)."""
+    ``specular=False`` builds the diffuse head only (the paper's "-spec, rough" ablation).
+    ``brdf="gltf"``: the same trunk and heads predict glTF's base colour (3), metallic (1) and
+    roughness (1) instead (:meth:`Material.gltf`)."""
 
     def __init__(
         self,
@@ -232,10 +252,16 @@ class SVBRDFNet(nn.Module):
         init_specular: float | None = None,
         init_roughness: float | None = None,
         min_roughness: float = 0.01,
+        brdf: str = "tango",
     ) -> None:
         super().__init__()
+        if brdf not in BRDFS:
+            raise ValueError(f"unknown BRDF {brdf!r}; choose one of {', '.join(BRDFS)}")
+        if brdf == "gltf" and not specular:
+            raise ValueError("the glTF BRDF needs its metallic and roughness heads (specular: true)")
         self.encoding = encoding
         self.min_roughness = min_roughness
+        self.brdf = brdf
         self.trunk = nn.Sequential(
             nn.Linear(encoding.out_dim, width),
             nn.ReLU(inplace=True),
@@ -243,9 +269,9 @@ class SVBRDFNet(nn.Module):
             nn.ReLU(inplace=True),
         )
         self.diffuse = _mlp(width, width, 3, 3)
-        self.specular = _mlp(width, width, 3, 3) if specular else None
+        self.specular = _mlp(width, width, 3, 1 if brdf == "gltf" else 3) if specular else None
         self.roughness = _mlp(width, width, 3, 1) if specular else None
-        if specular and init_specular is not None:
+        if specular and init_specular is not None and brdf == "tango":
             _init_constant(self.specular, torch.full((3,), float(init_specular)))
         if specular and init_roughness is not None:
             u = (float(init_roughness) - min_roughness) / (1.0 - min_roughness)
@@ -260,6 +286,8 @@ class SVBRDFNet(nn.Module):
             return Material(albedo, None, None)
         spec = torch.sigmoid(self.specular(h).float())
         rough = self.min_roughness + (1.0 - self.min_roughness) * torch.sigmoid(self.roughness(h).float())
+        if self.brdf == "gltf":
+            return Material.gltf(albedo, spec, rough)
         return Material(albedo, spec, rough)
 
 

@@ -208,13 +208,15 @@ def _angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.degrees(np.arccos(np.clip((a * b).sum(-1), -1.0, 1.0)))
 
 
-def check_import(result: JobResult, geom, meters_per_unit: float) -> dict:
+def check_import(result: JobResult, geom, meters_per_unit: float, brdf: str = "tango") -> dict:
     """Compare what Blender imported with what we exported (``geom``: the
     :class:`~stages.assets.formats.ExportMesh` in export space, compared per face corner). Returns the measured
     figures and ``problems`` (empty when the asset arrived intact): one mesh with every face and
     corner, positions where they belong in metres and Z-up (units, up axis), UVs (Blender's
     ``v`` is ``1 - v`` of glTF), the shading normals, Blender's own MikkTSpace tangents and bitangents
-    against the frame the normal map was baked in (handedness), and the Principled BSDF's wiring."""
+    against the frame the normal map was baked in (handedness), and the Principled BSDF's wiring
+    (TANGO's BRDF: the specular texture as the specular tint; glTF's: metallic from the blue
+    channel of the metallic-roughness texture)."""
     report, c = result.report, result.corners
     geom = geom.corners()
     meshes = [o for o in report.get("objects", []) if o["type"] == "MESH"]
@@ -264,7 +266,11 @@ def check_import(result: JobResult, geom, meters_per_unit: float) -> dict:
         "Base Color": ("basecolor", "sRGB", None),
         "Roughness": ("metallic_roughness", "Non-Color", "Green"),
         "Normal": ("normal", "Non-Color", None),
-        "Specular Tint": ("specular", "sRGB", None),
+        **(
+            {"Metallic": ("metallic_roughness", "Non-Color", "Blue")}
+            if brdf == "gltf"
+            else {"Specular Tint": ("specular", "sRGB", None)}
+        ),
     }
     if not wiring:
         problems.append("no Principled BSDF arrived")

@@ -30,7 +30,7 @@ from ..imaging.quality import psnr
 from ..imaging.targets import FULL_COVERAGE
 from ..model.networks import SGLightModule
 from ..render.color import linear_to_srgb, srgb_encode
-from ..render.shading import face_viewer, shade
+from ..render.shading import face_viewer, shade, shade_gltf
 from .targets import TargetRenderer
 
 
@@ -91,13 +91,16 @@ def fit_light_to_image(
     seed: int = 0,
     iterations: int = 400,
     init: str = "broad",
+    brdf: str = "tango",
+    metallic=None,
 ):
     """The ``lobes``-lobe SG light that makes our renderer, given the true material and normals
     at hits (``(N, 3)``/``(N, 1)`` tensors), best match the sRGB ``target (N, 3)`` (mean squared
     error over random batches of hits, Adam at 0.02 on the light's logarithmic parametrisation,
     lobes started as ``init``, :data:`~stages.config.sections.LIGHT_INITS`; ``broad`` by default: with
     the material known and only the light to fit, broad lobes find a 5-degree disc and sharpen onto
-    it where lobes started sharp stay where they began, measured in ``tests/reference/test_sharp_light.py``): the light a
+    it where lobes started sharp stay where they began, measured in ``tests/reference/test_sharp_light.py``).
+    ``brdf="gltf"``: glTF's BRDF, ``albedo`` then the base colour and ``metallic (N, 1)`` given: the light a
     perfect optimisation of TANGO's model would find. Returns the light and the seconds taken."""
     t0 = time.perf_counter()
     gen = torch.Generator().manual_seed(seed)
@@ -107,7 +110,7 @@ def fit_light_to_image(
     for _ in range(iterations):
         b = torch.randint(len(normal), (min(FIT_BATCH, len(normal)),), generator=gen)
         light = module()
-        pred = linear_to_srgb(shade(normal[b], view[b], albedo[b], light, specular[b], roughness[b]).rgb)
+        pred = linear_to_srgb(_shade_truth(normal[b], view[b], albedo[b], specular[b], roughness[b], light, brdf, metallic, b))
         loss = torch.nn.functional.mse_loss(pred, target[b])
         opt.zero_grad()
         loss.backward()
@@ -117,13 +120,24 @@ def fit_light_to_image(
     return type(light)(light.axis.detach(), light.sharpness.detach(), light.amplitude.detach()), time.perf_counter() - t0
 
 
+def _shade_truth(normal, view, albedo, specular, roughness, light, brdf: str, metallic=None, index=None):
+    """Linear radiance of the true material in our renderer: TANGO's sum, or glTF's BRDF with
+    ``albedo`` as the base colour and ``metallic[index]``."""
+    if brdf == "gltf":
+        m = metallic if index is None else metallic[index]
+        return shade_gltf(normal, view, albedo, m, roughness, light, "fitted").rgb
+    return shade(normal, view, albedo, light, specular, roughness).rgb
+
+
 def _per_hit(img: np.ndarray, cache: RayCache, i: int) -> tuple[np.ndarray, np.ndarray]:
     flat = img.reshape(-1, img.shape[-1])[cache.view(i).pixel]
     alpha = flat[:, 3] if flat.shape[1] > 3 else np.ones(len(flat))
     return np.where(alpha[:, None] > 0, flat[:, :3] / np.maximum(alpha[:, None], 1e-8), 0.0), alpha
 
 
-def measure_limits(renderer: TargetRenderer, cache: RayCache, spp: int, lobes: tuple[int, ...] = (16, 32), seed: int = 0) -> dict:
+def measure_limits(
+    renderer: TargetRenderer, cache: RayCache, spp: int, lobes: tuple[int, ...] = (16, 32), seed: int = 0, brdf: str = "tango"
+) -> dict:
     """The error budget of the best our model can do on ``cache``'s views (see the module
     docstring), in mean squared sRGB error over fully covered object pixels, each Mitsuba
     render's own noise measured (two independent renders of the target) and taken out.
@@ -135,7 +149,8 @@ def measure_limits(renderer: TargetRenderer, cache: RayCache, spp: int, lobes: t
     remains against the unshadowed image is the BRDF model, SG light and closed-form shading
     together. The three shares add up to one by construction. Also, model-free:
     ``interreflection_mse`` (target against direct) and ``shadows_mse`` (direct against
-    unshadowed)."""
+    unshadowed). ``brdf``: the model's BRDF (TANGO's sum, or glTF's from the truth's base colour
+    and metallic)."""
     mi = renderer.mi
     unshadowed = unshadowed_integrator(mi)
     direct = mi.load_dict({"type": "path", "max_depth": 2, "hide_emitters": True})
@@ -178,15 +193,20 @@ def measure_limits(renderer: TargetRenderer, cache: RayCache, spp: int, lobes: t
     view = torch.from_numpy(-direction[full]).double()
     normal = face_viewer(torch.from_numpy(truth["normal"][full]).double(), view)
     albedo, spec, rough = (torch.from_numpy(truth[k][full]).float() for k in ("albedo", "specular", "roughness"))
+    metallic = None
+    if brdf == "gltf":
+        albedo, metallic = (torch.from_numpy(truth[k][full]).float() for k in ("base", "metallic"))
     v32, n32 = view.float(), normal.float()
     rough = rough.clamp(0.01, 1.0)
     for k in lobes:
         errors, psnrs, seconds = {}, {}, 0.0
         for rung in ("target", "direct", "unshadowed"):
             goal = torch.from_numpy(srgb[rung]).float()
-            light, sec = fit_light_to_image(n32, v32, albedo, spec, rough, goal, k, renderer.env_energy, seed)
+            light, sec = fit_light_to_image(
+                n32, v32, albedo, spec, rough, goal, k, renderer.env_energy, seed, brdf=brdf, metallic=metallic
+            )
             with torch.no_grad():
-                ours = linear_to_srgb(shade(n32, v32, albedo, light, spec, rough).rgb)
+                ours = linear_to_srgb(_shade_truth(n32, v32, albedo, spec, rough, light, brdf, metallic))
             # each Mitsuba image carries its noise; ours is noise-free
             errors[rung] = max(float(((ours - goal) ** 2).mean()) - noise, 0.0)
             psnrs[rung] = psnr(ours, goal)

@@ -167,18 +167,15 @@ class GroundTruth:
         return interpolate_normals(self.corner_normals, face, bary, self.corner_normals[face, 0])
 
     def at_hits(self, face: np.ndarray, bary: np.ndarray, back: np.ndarray) -> dict:
-        """TANGO-equivalent maps and the world shading normal at hits (``face (N,)``,
+        """TANGO-equivalent maps, glTF's base colour and metallic, and the world shading normal at hits (``face (N,)``,
         ``bary (N, 2)``, ``back (N,) bool``: seen from behind the shading normal, where
         ``twosided`` mirrors the perturbed normal through the shading plane and the viewer sees
         ``-mirror``, i.e. the normal facing the viewer). Sampled bilinearly, as Mitsuba does."""
         tri = self.uv[face]
         uv = tri[:, 0] + bary[:, :1] * (tri[:, 1] - tri[:, 0]) + bary[:, 1:] * (tri[:, 2] - tri[:, 0])
-        out = tango_equivalent(
-            sample_bilinear(self.base_color, uv),
-            sample_bilinear(self.metallic, uv),
-            sample_bilinear(self.roughness, uv),
-            self.specular,
-        )
+        base, metallic = sample_bilinear(self.base_color, uv), sample_bilinear(self.metallic, uv)
+        out = tango_equivalent(base, metallic, sample_bilinear(self.roughness, uv), self.specular)
+        out["base"], out["metallic"] = base, metallic  # glTF's terms (optimize.brdf: gltf)
         ts = sample_bilinear(self.normal, uv)
         s, t, n = mitsuba_frames(self.dp_du[face], self.shading_normals(face, bary))
         world = ts[:, :1] * s + ts[:, 1:2] * t + ts[:, 2:3] * n
