@@ -20,6 +20,8 @@ the environment's, and the optimisation's wall time.
     python benchmarks/recovery.py --meshes shared --presets fast --decimate none,budget,budget:4  # face budgets
     python benchmarks/recovery.py --meshes builtin --presets fast --precision float32,bf16  # bfloat16 networks
     python benchmarks/recovery.py --meshes builtin --presets balanced --set light_prune_after=200  # light "auto"
+    python benchmarks/recovery.py --meshes builtin --material metal \
+        --variant "before:light_init=broad,light_lr=null" --variant after: --variant "gltf:brdf=gltf"
 
 With ``--decimate N`` (or ``budget``: the face budget of the cache, as the decimate stage's
 ``mode: budget`` computes it, ``budget:P`` with ``P`` pixels per face; a comma-separated list
@@ -49,6 +51,7 @@ sys.path[:0] = [str(REPO), str(REPO / "tests"), str(REPO / "tests" / "training")
 
 COLUMNS = (
     "mesh",
+    "variant",
     "decimate",
     "faces",
     "full_faces",
@@ -68,6 +71,17 @@ COLUMNS = (
     "light_lobes",
     "optimize_s",
 )
+
+
+def parse_variants(specs: list[str]) -> list[tuple[str, dict]]:
+    """``--variant NAME:KEY=VALUE[,KEY=VALUE]`` as ``(name, settings)`` (YAML values); none given:
+    one unnamed variant without settings."""
+    out = []
+    for spec in specs:
+        name, _, items = spec.partition(":")
+        pairs = [item.split("=", 1) for item in items.split(",") if item.strip()]
+        out.append((name, {k.strip(): yaml.safe_load(v) for k, v in pairs}))
+    return out or [("", {})]
 
 
 def mesh_sources(spec: str) -> list[tuple[str, str]]:
@@ -198,6 +212,13 @@ def main() -> None:
         "--specular-lobe", default="fitted", help="comma-separated specular models (isotropic, split_sum, fitted)"
     )
     parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="optimize settings for every fit (YAML values)")
+    parser.add_argument(
+        "--variant",
+        action="append",
+        default=[],
+        metavar="NAME:KEY=VALUE[,KEY=VALUE]",
+        help="a named set of optimize settings on top of --set; repeat to fit each in turn (default: one, unnamed)",
+    )
     parser.add_argument("--precision", default="float32", help="comma-separated network precisions (float32, bf16)")
     parser.add_argument("--shading-normals", default="smooth", help="comma-separated shading normals (flat, smooth)")
     parser.add_argument(
@@ -207,7 +228,7 @@ def main() -> None:
         "cache, P pixels per face, default 1); full-resolution targets",
     )
     parser.add_argument("--resolution", type=int, default=96, help="pixels of the cached views and of the fitted images")
-    parser.add_argument("--material", default="wood", help="the procedural target material (wood, metal, plaster)")
+    parser.add_argument("--material", default="wood", help="the procedural target material (wood, metal, chrome, plaster)")
     parser.add_argument("--out", type=Path, default=REPO / "results" / "benchmarks" / "recovery.csv")
     args = parser.parse_args()
     from stages.config.presets import PRESETS
@@ -230,18 +251,26 @@ def main() -> None:
                 lobes, normals_list = args.specular_lobe.split(","), args.shading_normals.split(",")
                 precisions = args.precision.split(",")
                 overrides = {k: yaml.safe_load(v) for k, v in (item.split("=", 1) for item in args.set)}
-                combos = [(p, lb, nm, pr) for p in presets for lb in lobes for nm in normals_list for pr in precisions]
-                for preset, lobe, normals, precision in combos:
+                combos = [
+                    (p, lb, nm, pr, v)
+                    for p in presets
+                    for v in parse_variants(args.variant)
+                    for lb in lobes
+                    for nm in normals_list
+                    for pr in precisions
+                ]
+                for preset, lobe, normals, precision, (variant, extra) in combos:
                     row = {
                         "mesh": name,
                         "decimate": level,
                         "faces": faces,
                         "full_faces": full_faces,
-                        **fit(work, args.material, preset, lobe, normals, args.resolution, precision, overrides),
+                        "variant": variant,
+                        **fit(work, args.material, preset, lobe, normals, args.resolution, precision, {**overrides, **extra}),
                     }
                     rows.append(row)
                     print(
-                        f"  {preset:9s} {lobe:9s} {normals:6s} {precision:8s} PSNR {row['psnr_db']:.2f} dB  "
+                        f"  {preset:9s} {variant:8s} {lobe:9s} {normals:6s} {precision:8s} PSNR {row['psnr_db']:.2f} dB  "
                         f"SSIM {row['ssim']:.3f}  (noise {row['target_noise_psnr_db']} dB)  "
                         f"albedo {row['albedo_rmse']:.3f} ({row['albedo_rmse_scaled']})  roughness {row['roughness_mae']:.3f}  "
                         f"normal {row['normal_angle_deg_mean']} deg  light {row['light_energy_ratio']} "

@@ -51,31 +51,46 @@ def _truth_radiance(truth: TargetSet, store: ViewStore, light: SGLight, lobe: st
     return shade(n, view, a["albedo"], light, a["specular"], rough, lobe).rgb
 
 
+def channel_scale(pred: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:
+    """The per-channel factor ``(3,)`` that best maps linear ``pred (N, 3)`` onto ``truth`` in
+    least squares, ``sum(p t) / sum(p p)`` (1 where ``pred`` is all zero)."""
+    num, den = (pred * truth).sum(0), (pred * pred).sum(0)
+    return torch.where(den > 0, num / den.clamp(min=torch.finfo(den.dtype).tiny), torch.ones_like(den))
+
+
 def grade_relighting(
     field, store: ViewStore, relit: list[RelitTruth], truth: TargetSet | None, lobes: int, iterations: int
 ) -> list[dict]:
     """Per environment of ``relit``: ``environment``, ``psnr_db`` (the field relit against Mitsuba's
-    truth), ``ceiling_psnr_db`` (the true material in our renderer, when ``truth`` carries it),
-    ``pixels``, ``noise_psnr_db`` (the truth's own noise) and ``sg_fit_relative_rms`` (the
-    environment's SG fit)."""
+    truth), ``psnr_scaled_db`` and ``scale`` (the same after one least-squares factor per channel,
+    :func:`channel_scale`: an image fit cannot tell an albedo from a light brighter by the same
+    factor, so the raw figure also counts that unrecoverable scale; inverse-rendering evaluations
+    align it), ``ceiling_psnr_db`` and ``ceiling_psnr_scaled_db`` (the true material in our
+    renderer, when ``truth`` carries it), ``pixels``, ``noise_psnr_db`` (the truth's own noise) and
+    ``sg_fit_relative_rms`` (the environment's SG fit)."""
     out = []
     dev = next(field.parameters()).device
     for r in relit:
         fitted, rel = fit_sg_light(load_env(r.environment), lobes, iterations)
         light = SGLight(fitted.axis.to(dev), fitted.sharpness.to(dev), fitted.amplitude.to(dev))
         full = torch.from_numpy(r.coverage >= FULL_COVERAGE).to(dev)
-        goal = linear_to_srgb(torch.from_numpy(r.radiance).to(dev))[full]
-        ours = linear_to_srgb(_field_radiance(field, store, light))[full]
+        truth_linear = torch.from_numpy(r.radiance).to(dev)[full]
+        goal = linear_to_srgb(truth_linear)
+        ours_linear = _field_radiance(field, store, light)[full]
+        scale = channel_scale(ours_linear, truth_linear)
         row = {
             "environment": r.environment,
-            "psnr_db": psnr(ours, goal),
+            "psnr_db": psnr(linear_to_srgb(ours_linear), goal),
+            "psnr_scaled_db": psnr(linear_to_srgb(ours_linear * scale), goal),
+            "scale": scale.tolist(),
             "pixels": int(full.sum()),
             "noise_psnr_db": r.noise_psnr_db,
             "sg_fit_relative_rms": rel,
         }
         brdf = getattr(field, "brdf", "tango")
         if truth is not None and truth.has_truth and (brdf == "tango" or all(k in truth.arrays for k in GLTF_TRUTH_KEYS)):
-            ceiling = linear_to_srgb(_truth_radiance(truth, store, light, field.specular_lobe, brdf))[full]
-            row["ceiling_psnr_db"] = psnr(ceiling, goal)
+            ceiling = _truth_radiance(truth, store, light, field.specular_lobe, brdf)[full]
+            row["ceiling_psnr_db"] = psnr(linear_to_srgb(ceiling), goal)
+            row["ceiling_psnr_scaled_db"] = psnr(linear_to_srgb(ceiling * channel_scale(ceiling, truth_linear)), goal)
         out.append(row)
     return out

@@ -156,9 +156,13 @@ def fidelity_lines(row) -> str:
         ours = str(row["relit_psnr_db"].iloc[0]).split("/")
         ceiling = row["relit_ceiling_psnr_db"].iloc[0] if "relit_ceiling_psnr_db" in row else None
         ceilings = str(ceiling).split("/") if isinstance(ceiling, str) else [None] * len(ours)
+        scaled = row["relit_psnr_scaled_db"].iloc[0] if "relit_psnr_scaled_db" in row else None
+        scaled = str(scaled).split("/") if isinstance(scaled, str) else [None] * len(ours)
         parts = [
-            f"{env}: {q} dB" + (f" (true material {c} dB)" if c is not None else "")
-            for env, q, c in zip(envs, ours, ceilings, strict=True)
+            f"{env}: {q} dB"
+            + (f", {a} dB after a scale per channel" if a is not None else "")
+            + (f" (true material {c} dB)" if c is not None else "")
+            for env, q, a, c in zip(envs, ours, scaled, ceilings, strict=True)
         ]
         lines.append("relit, against Mitsuba's truth (held-out views, object pixels): " + "; ".join(parts))
     glb, usdz = _figure(row, "roundtrip_glb_psnr_db"), _figure(row, "roundtrip_usdz_psnr_db")

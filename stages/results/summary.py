@@ -151,6 +151,7 @@ def summary_rows(
                 # environments " | "-separated: a path holds slashes)
                 "relit_environments": " | ".join(g["environment"] for g in relit) or None,
                 "relit_psnr_db": "/".join(f"{g['psnr_db']:.2f}" for g in relit) or None,
+                "relit_psnr_scaled_db": "/".join(f"{g['psnr_scaled_db']:.2f}" for g in relit if "psnr_scaled_db" in g) or None,
                 "relit_ceiling_psnr_db": "/".join(f"{g['ceiling_psnr_db']:.2f}" for g in relit if "ceiling_psnr_db" in g) or None,
             }
         )

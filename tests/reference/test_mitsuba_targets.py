@@ -408,10 +408,10 @@ class _TruthField(torch.nn.Module):
     always under that one light (lighting painted into the material: right under the training
     light, wrong under any other)."""
 
-    def __init__(self, truth: dict, baked=None) -> None:
+    def __init__(self, truth: dict, baked=None, gain: float = 1.0) -> None:
         super().__init__()
         self.anchor = torch.nn.Parameter(torch.zeros(1))
-        self.truth, self.baked, self.at = truth, baked, 0
+        self.truth, self.baked, self.at, self.gain = truth, baked, 0, gain
         self.specular_lobe = "fitted"
 
     def forward(self, points, normals, view, light):
@@ -426,13 +426,15 @@ class _TruthField(torch.nn.Module):
         nrm = face_viewer(torch.nn.functional.normalize(t["normal"][sl], dim=-1), view)
         lit = self.baked if self.baked is not None else light
         rgb = shade(nrm, view, t["albedo"][sl], lit, t["specular"][sl], t["roughness"][sl].clamp(0.01, 1.0), "fitted").rgb
-        return SimpleNamespace(shading=SimpleNamespace(rgb=rgb))
+        return SimpleNamespace(shading=SimpleNamespace(rgb=rgb * self.gain))
 
 
 def _grading_tells_a_disentangled_field_from_a_baked_one(metrics_cache, target_dir, relit):
     """The relight grading (:func:`stages.imaging.relit.grade_relighting`) against Mitsuba's relit
     truth: a field holding the true material scores exactly the ceiling; one whose lighting is
-    baked in (always the training light's SG fit) scores well below it under a different light."""
+    baked in (always the training light's SG fit) scores well below it under a different light;
+    one 40% too dark everywhere (an albedo and light scaled against each other, which no image fit
+    can tell apart) loses in the raw figure and scores the ceiling after the scale per channel."""
     from stages.geometry.normals import NormalSpec
     from stages.imaging.relit import grade_relighting
     from stages.imaging.views import ViewStore
@@ -450,3 +452,8 @@ def _grading_tells_a_disentangled_field_from_a_baked_one(metrics_cache, target_d
     bad = grade_relighting(_TruthField(truth, baked=training), store, relit, targets, 16, 100)
     for g, b in zip(good, bad, strict=True):
         assert b["psnr_db"] < g["psnr_db"] - 3.0, (g, b)
+    dark = grade_relighting(_TruthField(truth, gain=0.6), store, relit, targets, 16, 100)
+    for g, d in zip(good, dark, strict=True):
+        assert d["psnr_db"] < g["psnr_db"] - 2.0
+        assert d["psnr_scaled_db"] == pytest.approx(g["psnr_scaled_db"], abs=1e-3)
+        assert d["scale"] == pytest.approx([1 / 0.6 * s for s in g["scale"]], rel=1e-4)

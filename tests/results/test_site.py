@@ -242,11 +242,12 @@ def test_relit_figures_on_the_cell_line():
             {
                 "relit_environments": "builtin:sunset | config/envmaps/studio.hdr",
                 "relit_psnr_db": "21.50/19.25",
+                "relit_psnr_scaled_db": "23.00/20.00",
                 "relit_ceiling_psnr_db": "27.00/25.10",
             }
         ]
     )
     line = fidelity_lines(row)
-    assert "builtin:sunset: 21.50 dB (true material 27.00 dB)" in line
-    assert "config/envmaps/studio.hdr: 19.25 dB (true material 25.10 dB)" in line
+    assert "builtin:sunset: 21.50 dB, 23.00 dB after a scale per channel (true material 27.00 dB)" in line
+    assert "config/envmaps/studio.hdr: 19.25 dB, 20.00 dB after a scale per channel (true material 25.10 dB)" in line
     assert "relit" not in fidelity_lines(pd.DataFrame([{"relit_psnr_db": float("nan")}]))
