@@ -122,9 +122,14 @@ def stage_settings_json(stage):
 
 def target_envmaps(wildcards):
     """Input function of target: the environment files (not builtin:) its scenes read, the
-    training light and the relit judges', so that editing one renders the targets again."""
+    training light and the relit judges', so that editing one renders the targets again.
+    """
     s = CFG.stage_settings(wildcards.mesh, "target")
-    return [e for e in (s.environment, *s.relight_environments) if not e.startswith("builtin:")]
+    return [
+        e
+        for e in (s.environment, *s.relight_environments)
+        if not e.startswith("builtin:")
+    ]
 
 
 def budget_raycache_json(wildcards):
