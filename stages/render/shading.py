@@ -232,7 +232,8 @@ def diffuse_radiance_gltf(normal: Tensor, view: Tensor, diffuse_color: Tensor, l
     lam_q, _ = _product_terms(lam, torch.as_tensor(COS_LAMBDA, dtype=lam.dtype, device=lam.device), cos_n)
     safe = torch.where(lam_q > 0, lam_q, torch.ones_like(lam_q))
     cos_qv = torch.where(lam_q > 0, (COS_LAMBDA * cos_nv + lam * cos_v) / safe, cos_nv.expand_as(lam_q))
-    vh = torch.sqrt(torch.clamp((1.0 + cos_qv) / 2.0, min=0.0, max=1.0))
+    # v . h from |v + xi'| = 2 v.h; kept off 0, where the square root's gradient is infinite
+    vh = torch.sqrt(torch.clamp((1.0 + cos_qv) / 2.0, min=1e-12, max=1.0))
     weight = (1.0 - GLTF_DIELECTRIC_F0) * (1.0 - (1.0 - vh) ** FRESNEL_POWER)
     irradiance = (per_lobe * weight) @ light.amplitude
     return diffuse_color / math.pi * torch.clamp(irradiance, min=0.0)

@@ -210,3 +210,39 @@ def test_mutations_fail_the_monte_carlo_check(monkeypatch, mutation):
         monkeypatch.setattr(shading_module, "_log_ndf_times_visibility", lambda a, b, c, d, brdf: original(a, b, c, d, "tango"))
     errors = relative_errors(sun_and_sky())
     assert max(errors.values()) > 1.0, errors
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_finite_values_and_gradients_at_the_extremes(dtype):
+    """glTF's shading at grazing views (n.v down to 1e-3), both poles, roughness 0.01 and 1,
+    metallic 0 and 1, light lobes of sharpness 1e-4 to 1e4 pointing everywhere, including exactly
+    away from the view (where v . h is 0): finite radiance and finite gradients to every input."""
+    g = torch.Generator().manual_seed(11)
+    n_pts = 64
+    n = unit(torch.randn(n_pts, 3, generator=g, dtype=F64))
+    n[0] = torch.tensor([0.0, 0.0, 1.0], dtype=F64)
+    n[1] = torch.tensor([0.0, 0.0, -1.0], dtype=F64)
+    t = unit(torch.linalg.cross(n, unit(torch.randn(n_pts, 3, generator=g, dtype=F64))))
+    cos = torch.cat([torch.tensor([1e-3, 1e-2, 0.1, 1.0], dtype=F64), torch.rand(n_pts - 4, generator=g, dtype=F64)])
+    v = unit(cos[:, None] * n + torch.sqrt(1 - cos * cos)[:, None] * t)
+    base = torch.rand(n_pts, 3, generator=g, dtype=F64)
+    metallic = torch.cat([torch.zeros(n_pts // 2, 1, dtype=F64), torch.ones(n_pts - n_pts // 2, 1, dtype=F64)])
+    rough = torch.cat([torch.full((n_pts // 2, 1), 0.01, dtype=F64), torch.ones(n_pts - n_pts // 2, 1, dtype=F64)])
+    rough = rough[torch.randperm(n_pts, generator=g)]
+    axes = torch.cat([-v[:4], unit(torch.randn(8, 3, generator=g, dtype=F64))])  # four lobes opposite the view
+    lam = torch.tensor([1e-4, 1.0, 1e2, 1e4] * 3, dtype=F64)[:, None]
+    inputs = [x.to(dtype).requires_grad_() for x in (n, v, base, metallic, rough, axes, lam)]
+    nn_, vv, bb, mm, rr, ax, lm = inputs
+    light = SGLight(ax / torch.linalg.vector_norm(ax, dim=-1, keepdim=True), lm, torch.ones(12, 3, dtype=dtype))
+    out = shade_gltf(
+        nn_ / torch.linalg.vector_norm(nn_, dim=-1, keepdim=True),
+        vv / torch.linalg.vector_norm(vv, dim=-1, keepdim=True),
+        bb,
+        mm,
+        rr,
+        light,
+    )
+    assert torch.isfinite(out.rgb).all()
+    out.rgb.sum().backward()
+    for x in inputs:
+        assert torch.isfinite(x.grad).all()
