@@ -314,9 +314,10 @@ class OptimizeSettings(ClipChoice, Settings):
     light_energy: float = 6.25
     #: how the lobes start (LIGHT_INITS): "broad" (every lobe at light_init_sharpness, or where
     #: Fibonacci neighbours overlap at half maximum, about 2 for 16 lobes), "tango" (TANGO's draw
-    #: 20 + |N(0,1)| 100) or "spread" (log-uniform from the broad sharpness to
-    #: light_init_max_sharpness, interleaved over the sphere); docs/method/lighting.md
-    light_init: str = "spread"
+    #: 20 + |N(0,1)| 100, seeded by the run's seed) or "spread" (log-uniform from the broad
+    #: sharpness to light_init_max_sharpness, interleaved over the sphere). "tango" since
+    #: 2026-11-24, measured best on Mitsuba's wood vase and metal candle (docs/method/lighting.md)
+    light_init: str = "tango"
     light_init_sharpness: float | None = None
     light_init_max_sharpness: float = 1000.0
     #: the light's own learning rate (its parameters are logarithms and directions, so a step moves

@@ -92,10 +92,15 @@ def test_bf16_networks_not_silently_ignored(monkeypatch):
 
 
 @pytest.mark.slow
-def test_compiled_shading_equals_eager_in_training_only():
+@pytest.mark.parametrize(("init", "tolerance"), [("broad", 3e-4), ("tango", 3e-3)])
+def test_compiled_shading_equals_eager_in_training_only(init, tolerance):
     """``compile_shading``: the field shades through torch.compile while training, with the same
-    colours and gradients as the eager renderer; evaluation (baking, relighting) stays eager."""
-    s = OptimizeSettings(width=16, light_lobes=4, specular_lobe="isotropic")
+    colours and gradients as the eager renderer; evaluation (baking, relighting) stays eager.
+    Gradients agree to float32's rounding summed in another order: 3e-4 with broad lobes (measured
+    1.4e-4 in the gradient of a log-sharpness); a lobe
+    of sharpness ~300 (``light_init: tango``) scales the rounding of its cosines by as much
+    (measured 1.1e-3 in the gradient of its log-sharpness)."""
+    s = OptimizeSettings(width=16, light_lobes=4, specular_lobe="isotropic", light_init=init)
     eager = StyleField(s.field_settings())
     compiled = copy.deepcopy(eager)
     assert compiled.use_compiled_shading(True) == "torch.compile (inductor)" and eager.use_compiled_shading(False) == "eager"
@@ -108,9 +113,7 @@ def test_compiled_shading_equals_eager_in_training_only():
         outs.append((rgb.detach(), [p.grad for p in f.parameters()]))
     torch.testing.assert_close(outs[1][0], outs[0][0], rtol=1e-5, atol=1e-6)
     for a, b in zip(outs[1][1], outs[0][1], strict=True):
-        # float32 sums in another order; a lobe of sharpness 1000 (light_init spread) scales the
-        # rounding of its cosines by 1000 (measured 1.1e-4)
-        assert float((a - b).norm() / b.norm()) < 5e-4
+        assert float((a - b).norm() / b.norm()) < tolerance
 
     def not_in_evaluation(*args, **kwargs):
         raise AssertionError("the compiled renderer ran outside training")

@@ -216,10 +216,14 @@ def test_switched_off_parts_are_not_built():
 RECOVERY_MITSUBA_PSNR_DB = 20.0
 RECOVERY_MITSUBA_SSIM = 0.65
 RECOVERY_MITSUBA_ALBEDO_RMSE = 0.32
-RECOVERY_MITSUBA_ROUGHNESS_MAE = 0.32
+#: 0.32 until 2026-11-24; with the light that can sharpen the vase's roughness MAE rose from 0.28 to
+#: 0.32-0.34 for every sharp-light setting measured (the light takes part of the wood's sheen) while
+#: its PSNR held (21.8 to 22.1 dB) and the metal's rose by 4.7 dB (docs/measurements/light-brdf.md)
+RECOVERY_MITSUBA_ROUGHNESS_MAE = 0.36
 
-#: the Mitsuba targets of the recovery test and benchmark (fewer samples than the stage's default)
-MITSUBA_TARGET = TargetSettings(spp=16, metric_spp=128, texture_size=512)
+#: the Mitsuba targets of the recovery test and benchmark (fewer samples than the stage's default;
+#: no relit ground truth: these fits are graded under the training light)
+MITSUBA_TARGET = TargetSettings(spp=16, metric_spp=128, texture_size=512, relight_environments=())
 
 #: the fit both recovery helpers share (300 iterations, the sweep's base settings)
 RECOVERY = {
@@ -351,9 +355,9 @@ def test_metal_recovers_its_highlight_on_mitsuba_ground_truth(tmp_path):
     """The brushed-metal candle under Mitsuba's sun and sky: the sun's highlight is in every
     target view, and the recovered views show it. Over the brightest 1% of the target's object
     pixels of the held-out views (saturated white there), the recovered render reaches at least
-    0.8 on average. Measured 2026-11-24 with the demo's settings: 0.89 with the light's defaults
-    (light_init spread, light_lr 0.02), 0.65 at the networks' rate from broad lobes (the light as
-    it was: every lobe ended near sharpness 2)."""
+    0.8 on average. Measured 2026-11-24 with these settings: 0.89 with the light's defaults
+    (light_init tango, light_lr 0.02; 20.9 dB), 0.51 at the networks' rate from broad lobes (the
+    light as it was: every lobe ended near sharpness 2; 16.1 dB)."""
     r = recover_mitsuba(tmp_path, mesh="builtin:candle", material="metal", target=MITSUBA_TARGET, normal_network=True)
     h = r["metrics"]["highlights"]
     assert h["target"] > 0.95

@@ -74,7 +74,7 @@ def test_bad_input_is_refused_before_anything_is_written(tmp_path):
     proc = quick(tmp_path, str(mesh), "a pot", "--preset", "fastest")
     assert proc.returncode == 2 and "unknown preset 'fastest': use one of balanced, fast, metal, paper, rough" in proc.stderr
     proc = quick(tmp_path, str(mesh), "a pot", "--image-guided", "gold")
-    assert proc.returncode == 2 and "use one of wood, metal, plaster" in proc.stderr
+    assert proc.returncode == 2 and "use one of wood, metal, chrome, plaster" in proc.stderr
     proc = quick(tmp_path, str(mesh), "a pot", "--name", "my pot")
     assert proc.returncode == 2 and "'my-pot'" in proc.stderr
     proc = quick(tmp_path, str(mesh), "   ")
