@@ -37,9 +37,11 @@ from ..geometry.normals import NormalSpec, interpolate_normals
 from ..geometry.raycache import dequantize_bary
 from ..geometry.tangents import CornerFrames, from_tangent_space, to_tangent_space
 from ..geometry.tracing import EmbreeTracer
+from ..model.field import shade_material
+from ..model.networks import Material
 from ..render.color import srgb_decode, srgb_encode, to_u8
 from ..render.envmap import equirect_directions
-from ..render.shading import face_viewer, shade, shade_gltf
+from ..render.shading import face_viewer
 
 
 @dataclass
@@ -277,9 +279,10 @@ def render_baked(
     rough = tt(np.clip(sample_bilinear(tex["roughness"], uv), 0.01, 1.0))
     base = tt(sample_bilinear(tex["albedo"], uv))
     if brdf == "gltf":
-        return shade_gltf(nn_, tt(view), base, tt(sample_bilinear(tex["metallic"], uv)), rough, light, lobe).rgb
-    spec = tt(sample_bilinear(tex["specular"], uv))
-    return shade(nn_, tt(view), base, light, spec, rough, lobe).rgb
+        material = Material.gltf(base, tt(sample_bilinear(tex["metallic"], uv)), rough)
+    else:
+        material = Material(base, tt(sample_bilinear(tex["specular"], uv)), rough)
+    return shade_material(nn_, tt(view), material, light, lobe).rgb
 
 
 def render_baked_views(

@@ -17,10 +17,12 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from ..model.field import shade_material
 from ..model.lightfit import fit_sg_light
+from ..model.networks import Material
 from ..render.color import linear_to_srgb
 from ..render.envmap import load_env
-from ..render.shading import SGLight, face_viewer, shade, shade_gltf
+from ..render.shading import SGLight, face_viewer
 from .quality import psnr
 from .targets import FULL_COVERAGE, GLTF_TRUTH_KEYS, RelitTruth, TargetSet
 from .views import ViewStore
@@ -46,9 +48,8 @@ def _truth_radiance(truth: TargetSet, store: ViewStore, light: SGLight, lobe: st
     a = {k: torch.from_numpy(truth.arrays[k].astype(np.float32)).to(dev) for k in keys}
     n = face_viewer(torch.nn.functional.normalize(a["normal"], dim=-1), view)
     rough = a["roughness"].clamp(0.01, 1.0)
-    if brdf == "gltf":
-        return shade_gltf(n, view, a["base"], a["metallic"], rough, light, lobe).rgb
-    return shade(n, view, a["albedo"], light, a["specular"], rough, lobe).rgb
+    material = Material.gltf(a["base"], a["metallic"], rough) if brdf == "gltf" else Material(a["albedo"], a["specular"], rough)
+    return shade_material(n, view, material, light, lobe).rgb
 
 
 def channel_scale(pred: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:

@@ -28,9 +28,10 @@ import torch
 from ..geometry.raycache import RayCache
 from ..imaging.quality import psnr
 from ..imaging.targets import FULL_COVERAGE
-from ..model.networks import SGLightModule
+from ..model.field import shade_material
+from ..model.networks import Material, SGLightModule
 from ..render.color import linear_to_srgb, srgb_encode
-from ..render.shading import face_viewer, shade, shade_gltf
+from ..render.shading import face_viewer
 from .targets import TargetRenderer
 
 
@@ -125,8 +126,8 @@ def _shade_truth(normal, view, albedo, specular, roughness, light, brdf: str, me
     ``albedo`` as the base colour and ``metallic[index]``."""
     if brdf == "gltf":
         m = metallic if index is None else metallic[index]
-        return shade_gltf(normal, view, albedo, m, roughness, light, "fitted").rgb
-    return shade(normal, view, albedo, light, specular, roughness).rgb
+        return shade_material(normal, view, Material.gltf(albedo, m, roughness), light, "fitted").rgb
+    return shade_material(normal, view, Material(albedo, specular, roughness), light, "isotropic").rgb
 
 
 def _per_hit(img: np.ndarray, cache: RayCache, i: int) -> tuple[np.ndarray, np.ndarray]:

@@ -11,17 +11,15 @@ import math
 import numpy as np
 import pytest
 import torch
+from test_sg import F64, unit
+from test_sg import lobe_pdf as sg_pdf
+from test_sg import sample_lobe as sample_sg
 
 from stages.render import shading as shading_module
 from stages.render import specular_albedo as sa
 from stages.render.shading import SGLight, shade_gltf
 
-F64 = torch.float64
 N_MC = 600_000
-
-
-def unit(x: torch.Tensor) -> torch.Tensor:
-    return x / torch.linalg.vector_norm(x, dim=-1, keepdim=True)
 
 
 def ggx_d(nh: torch.Tensor, alpha: float) -> torch.Tensor:
@@ -52,20 +50,6 @@ def gltf_brdf_times_cosine(n, v, l_dir, base, metallic, r):
     dielectric = (1.0 - f_dielectric) * base / math.pi + f_dielectric * spec
     f = (1.0 - metallic) * dielectric + metallic * metal
     return torch.where((nl > 0)[:, None], f * nl[:, None], torch.zeros_like(f))
-
-
-def sample_sg(axis, lam, count, g):
-    """Exact samples of the normalised SG of ``axis`` and sharpness ``lam`` (inverse CDF)."""
-    u, phi = torch.rand(count, generator=g, dtype=F64), 2 * math.pi * torch.rand(count, generator=g, dtype=F64)
-    c = (1 + torch.log(u + (1 - u) * math.exp(-2 * lam)) / lam).clamp(-1, 1)
-    s = torch.sqrt(1 - c * c)
-    x = unit(torch.linalg.cross(torch.tensor([0.6, 0.8, 0.1], dtype=F64), axis))
-    y = torch.linalg.cross(axis, x)
-    return (s * torch.cos(phi))[:, None] * x + (s * torch.sin(phi))[:, None] * y + c[:, None] * axis
-
-
-def sg_pdf(axis, lam, d):
-    return lam * torch.exp(lam * (d @ axis - 1)) / (2 * math.pi * -math.expm1(-2 * lam))
 
 
 def monte_carlo(n, v, base, metallic, r, light: SGLight, seed=0):
