@@ -338,8 +338,11 @@ class OptimizeSettings(ClipChoice, Settings):
     #: diffuse and a microfacet term) or "gltf" (glTF 2.0's metallic-roughness BRDF: base colour,
     #: metallic, roughness, GGX, the dielectric's F0 0.04 and (1 - F) diffuse weight, the metal's
     #: F0 its base colour; needs specular_lobe fitted or split_sum); bake and export write what was
-    #: trained. docs/method/brdf.md
-    brdf: str = "tango"
+    #: trained. "gltf" since 2026-11-25: its assets round-trip through Blender better in every
+    #: demo cell (GLB +0.6 to +7.6 dB, USDZ +5.7 to +17.4 dB) and it recovers roughness better
+    #: (docs/measurements/light-brdf.md); "tango" for TANGO's own model and its "-spec, rough"
+    #: ablation (specular: false). docs/method/brdf.md
+    brdf: str = "gltf"
     #: the normals the field shades with and its normal network starts from (SHADING_NORMALS):
     #: "flat" (TANGO: face normals) or "smooth" (vertex normals interpolated across each face,
     #: edges sharper than crease_angle_deg kept, corners weighted by normal_weighting); carried
@@ -420,9 +423,20 @@ class OptimizeSettings(ClipChoice, Settings):
         if self.brdf not in BRDFS:
             p.append(f"brdf must be one of {', '.join(BRDFS)}, got {self.brdf!r}")
         elif self.brdf == "gltf" and self.specular_lobe == "isotropic":
-            p.append("brdf gltf has no isotropic specular model (TANGO's closed form); use specular_lobe fitted or split_sum")
+            p.append(
+                "brdf gltf (the default) has no isotropic specular model (TANGO's closed form); "
+                "use specular_lobe fitted or split_sum, or set brdf: tango"
+            )
         elif self.brdf == "gltf" and not self.specular:
-            p.append("brdf gltf needs its metallic and roughness heads: set specular: true (or brdf: tango)")
+            p.append(
+                "brdf gltf (the default) needs its metallic and roughness heads: "
+                "set specular: true, or brdf: tango for a diffuse-only field"
+            )
+        elif self.brdf == "gltf" and self.init_specular is not None:
+            p.append(
+                "init_specular is TANGO's specular colour, which brdf gltf (the default) does not have: "
+                "remove it, or set brdf: tango"
+            )
         if self.light_init not in LIGHT_INITS:
             p.append(f"light_init must be one of {', '.join(LIGHT_INITS)}, got {self.light_init!r}")
         if not 1e-4 <= self.light_init_max_sharpness <= 1e5:
@@ -742,6 +756,7 @@ ABLATION_SWITCHES = {
     "light_rgb": False,
     "light_init": "broad",
     "light_lr": None,
+    "brdf": "tango",
 }
 
 

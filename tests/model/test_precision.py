@@ -100,7 +100,7 @@ def test_compiled_shading_equals_eager_in_training_only(init, tolerance):
     1.4e-4 in the gradient of a log-sharpness); a lobe
     of sharpness ~300 (``light_init: tango``) scales the rounding of its cosines by as much
     (measured 1.1e-3 in the gradient of its log-sharpness)."""
-    s = OptimizeSettings(width=16, light_lobes=4, specular_lobe="isotropic", light_init=init)
+    s = OptimizeSettings(width=16, light_lobes=4, specular_lobe="isotropic", brdf="tango", light_init=init)
     eager = StyleField(s.field_settings())
     compiled = copy.deepcopy(eager)
     assert compiled.use_compiled_shading(True) == "torch.compile (inductor)" and eager.use_compiled_shading(False) == "eager"

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -31,6 +32,9 @@ BASE = {
     "optimize.normal_encoding": "nerf",
     "optimize.crops": 4,
     "optimize.light_rgb": True,
+    "optimize.light_init": "tango",
+    "optimize.light_lr": 0.02,
+    "optimize.brdf": "gltf",
     "bake.texture_size": 512,
 }
 #: what switches a component of TANGO off, written out here (not read from the code under test)
@@ -41,6 +45,9 @@ OFF = {
     "normal_encoding": "none",
     "crops": 0,
     "light_rgb": False,
+    "light_init": "broad",
+    "light_lr": None,
+    "brdf": "tango",
 }
 
 
@@ -72,7 +79,8 @@ def test_each_switch_off_is_an_ablation(switch):
     s = with_(**{switch: OFF[switch]})
     assert is_ablation(differing_keys(BASE, s), s)
     # the same key changed to something other than "off" is a sweep, not an ablation
-    other = {"specular": True, "normal_network": True, "crops": 2, "light_rgb": True}.get(switch, "fourier")
+    other = {"specular": True, "normal_network": True, "crops": 2, "light_rgb": True, "light_init": "spread"}
+    other = {**other, "light_lr": 0.01, "brdf": "gltf"}.get(switch, "fourier")
     if other != BASE[f"optimize.{switch}"]:
         s2 = with_(**{switch: other})
         assert not is_ablation(differing_keys(BASE, s2), s2)
@@ -86,6 +94,23 @@ def test_ablation_needs_only_switches():
     assert not is_ablation([], BASE)  # the reference itself
     baked = with_(**{"bake.texture_size": 256})
     assert not is_ablation(differing_keys(BASE, baked), baked)
+
+
+def test_the_ablation_config_variants_are_ablations_of_full():
+    """config/ablations.yaml: every variant but ``full`` switches components off (the diffuse-only
+    one names TANGO's BRDF, since glTF's layering has no diffuse-only form), so the report shows
+    each as an ablation."""
+    import yaml
+
+    from stages.config.sections import OptimizeSettings
+
+    variants = yaml.safe_load((Path(__file__).parents[2] / "config" / "ablations.yaml").read_text())["variants"]
+    assert set(variants) > {"full", "no_spec_rough", "no_sharp_light", "tango_brdf"}
+    for name, v in variants.items():
+        changes = v.get("optimize", {})
+        OptimizeSettings(**changes)  # valid on the defaults
+        s = with_(**changes)
+        assert is_ablation(differing_keys(BASE, s), s) == (name != "full"), name
 
 
 def test_factor_label():

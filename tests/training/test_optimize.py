@@ -202,7 +202,9 @@ def test_shading_normals_reach_every_view_of_the_field(cache):
 def test_switched_off_parts_are_not_built():
     full = StyleField(OptimizeSettings(width=32).field_settings())
     plain = StyleField(
-        OptimizeSettings(width=32, normal_network=False, specular=False, material_encoding="none", crops=0).field_settings()
+        OptimizeSettings(
+            width=32, normal_network=False, specular=False, brdf="tango", material_encoding="none", crops=0
+        ).field_settings()
     )
     assert full.normal_net is not None and plain.normal_net is None
     assert plain.svbrdf.specular is None and plain.svbrdf.roughness is None
