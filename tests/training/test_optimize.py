@@ -117,13 +117,15 @@ def test_outputs_and_metadata(cache, tmp_path):
     field, settings = load_field(tmp_path / "field.pt")
     assert settings == s and isinstance(field, StyleField)
     # a field.pt written before specular_lobe and shading_normals existed is rebuilt as it was
-    # trained (TANGO's isotropic lobe, flat normals), not with today's defaults
-    data = torch.load(tmp_path / "field.pt", weights_only=False)
-    for key in ("specular_lobe", "shading_normals"):
+    # trained (TANGO's isotropic lobe, flat normals, TANGO's BRDF), not with today's defaults
+    s_tango = OptimizeSettings(iterations=3, brdf="tango", **TINY)
+    optimize.run(cache / "train.npz", cache / "eval.npz", "a vase made of wood", tmp_path / "tango", s_tango, "cpu")
+    data = torch.load(tmp_path / "tango" / "field.pt", weights_only=False)
+    for key in ("specular_lobe", "shading_normals", "brdf"):
         del data["settings"][key]
     torch.save(data, tmp_path / "old.pt")
     old_field, old = load_field(tmp_path / "old.pt")
-    assert (old.specular_lobe, old.shading_normals) == ("isotropic", "flat")
+    assert (old.specular_lobe, old.shading_normals, old.brdf) == ("isotropic", "flat", "tango")
     assert (old_field.specular_lobe, old_field.normals.mode) == ("isotropic", "flat")
     from PIL import Image
 

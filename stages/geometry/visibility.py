@@ -1,0 +1,139 @@
+"""Visibility of a fixed direction set from points on the mesh, traced once with Embree and stored
+as bits: what casts the mesh's shadows on itself (issue 32; the shading that reads it is
+:mod:`stages.render.visibility`).
+
+Layout: for ``N`` points and a set of ``D`` unit directions (:func:`fibonacci_directions`, ``D`` a
+multiple of 8), ``visible (N, D / 8) uint8``, numpy's :func:`numpy.packbits` of one bit per direction
+in big-endian bit order: bit ``d`` is 1 when the ray from the point (moved off the surface along
+its normal by ``offset``) in direction ``d`` leaves the mesh, and 0 when the mesh blocks it or when
+``d`` lies below the point's surface (``n . d <= 0``: the surface itself blocks it, and the
+shading's clamped cosine gives it no weight). At 512 directions that is 64 bytes per point.
+
+The normal is oriented towards the side the point is seen from (a point inside an open vase sees
+the inside's hemisphere), so the same face carries two visibilities when it is seen from both
+sides; the caller decides which (:func:`viewer_side_normals`).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+#: rays per Embree call: bounds the working memory (about 100 bytes per ray) whatever N x D is
+RAYS_PER_BATCH = 1 << 20
+
+
+def fibonacci_directions(count: int) -> np.ndarray:
+    """``count`` nearly uniform unit directions ``(count, 3) float64`` on a Fibonacci spiral
+    (z from ``1 - 1/count`` to ``-1 + 1/count``, each owning ``4 pi / count`` sr). ``count`` >= 8, a
+    multiple of 8 (whole bytes when packed)."""
+    if count < 8 or count % 8:
+        raise ValueError(f"the direction count must be a multiple of 8, at least 8; got {count}")
+    i = np.arange(count, dtype=np.float64) + 0.5
+    z = 1.0 - 2.0 * i / count
+    r = np.sqrt(np.clip(1.0 - z * z, 0.0, 1.0))
+    phi = i * math.pi * (3.0 - math.sqrt(5.0))
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
+
+
+def direction_spacing(count: int) -> float:
+    """The angular spacing of :func:`fibonacci_directions`: ``sqrt(4 pi / count)`` radians (the
+    side of a square of each direction's solid angle)."""
+    return math.sqrt(4.0 * math.pi / count)
+
+
+def viewer_side_normals(normals: np.ndarray, rays: np.ndarray) -> np.ndarray:
+    """Unit face ``normals (N, 3)`` turned to the side the ``rays (N, 3)`` (eye -> surface) came
+    from: ``-n`` where ``n . ray > 0``."""
+    flip = np.einsum("ij,ij->i", normals, rays) > 0.0
+    return np.where(flip[:, None], -normals, normals)
+
+
+def surface_offset(vertices: np.ndarray) -> float:
+    """How far a shadow ray starts off the surface: 1e-4 of the mesh's bounding-box diagonal,
+    about 800 float32 ulps at the unit sphere and far below any feature the cache resolves."""
+    extent = np.ptp(np.asarray(vertices, np.float64), axis=0)
+    return 1e-4 * float(np.linalg.norm(extent))
+
+
+def trace_visibility(tracer, points: np.ndarray, normals: np.ndarray, directions: np.ndarray, offset: float) -> np.ndarray:
+    """Visibility bits ``(N, ceil(D / 8)) uint8`` (the module's layout) of ``directions (D, 3)`` from
+    ``points (N, 3)`` with oriented unit ``normals (N, 3)``, through ``tracer`` (an
+    :class:`~stages.geometry.tracing.EmbreeTracer` of the mesh). Only the directions above each
+    point's surface are traced, in batches of :data:`RAYS_PER_BATCH`."""
+    points = np.asarray(points, np.float64)
+    normals = np.asarray(normals, np.float64)
+    directions = np.asarray(directions, np.float64)
+    n, d = len(points), len(directions)
+    out = np.zeros((n, (d + 7) // 8), np.uint8)
+    per_batch = max(1, RAYS_PER_BATCH // d)
+    for lo in range(0, n, per_batch):
+        hi = min(n, lo + per_batch)
+        above = normals[lo:hi] @ directions.T > 0.0  # (B, D)
+        rows, cols = np.nonzero(above)
+        origins = points[lo:hi][rows] + offset * normals[lo:hi][rows]
+        hits = tracer.trace(origins, directions[cols])
+        visible = np.zeros((hi - lo, d), bool)
+        visible[rows, cols] = hits.face < 0
+        out[lo:hi] = np.packbits(visible, axis=1)
+    return out
+
+
+def unpack_visibility(bits: np.ndarray, count: int) -> np.ndarray:
+    """``bits (N, D / 8) uint8`` -> ``(N, D) bool`` (1: visible)."""
+    return np.unpackbits(bits, axis=1, count=count).astype(bool)
+
+
+def blocked_share(bits: np.ndarray, normals: np.ndarray, directions: np.ndarray) -> np.ndarray:
+    """Per point, the share of its hemisphere (the directions above its surface, each weighing the
+    same solid angle) that the mesh blocks -> ``(N,) float64`` in [0, 1]: 0 on a convex mesh, 1
+    inside a closed box."""
+    visible = unpack_visibility(bits, len(directions))
+    above = np.asarray(normals, np.float64) @ np.asarray(directions, np.float64).T > 0.0
+    count = above.sum(1)
+    return 1.0 - (visible & above).sum(1) / np.maximum(count, 1)
+
+
+def self_occlusion(shares: np.ndarray, weights: np.ndarray | None = None) -> dict[str, float]:
+    """The mesh's self-occlusion from per-point ``shares`` (:func:`blocked_share`), optionally
+    weighted (by the surface each point stands for): the mean, median and 95th percentile."""
+    shares = np.asarray(shares, np.float64)
+    w = np.ones_like(shares) if weights is None else np.asarray(weights, np.float64)
+    order = np.argsort(shares)
+    cum = np.cumsum(w[order]) / w.sum()
+
+    def quantile(q: float) -> float:
+        return float(shares[order][min(np.searchsorted(cum, q), len(shares) - 1)])
+
+    return {"mean": float((shares * w).sum() / w.sum()), "median": quantile(0.5), "p95": quantile(0.95)}
+
+
+def sample_lobe_directions(axis: np.ndarray, sharpness: float, count: int, seed: int) -> np.ndarray:
+    """``count`` directions ``(count, 3) float64`` drawn from the SG lobe ``exp(lam (axis . d - 1))``
+    (a von Mises-Fisher distribution), seeded: the cosine to the axis by inverting its CDF,
+    ``1 + log1p((1 - u) expm1(-2 lam)) / lam`` (exact for ``lam`` 1e-4 to 1e5), the azimuth
+    uniform. The shadow rays of a lobe too sharp for the direction set (a sun)."""
+    rng = np.random.default_rng(seed)
+    u, phi = rng.random(count), rng.random(count) * 2.0 * math.pi
+    lam = float(sharpness)
+    cos = np.clip(1.0 + np.log1p((1.0 - u) * np.expm1(-2.0 * lam)) / lam, -1.0, 1.0)
+    sin = np.sqrt(np.clip(1.0 - cos * cos, 0.0, 1.0))
+    z = np.asarray(axis, np.float64) / np.linalg.norm(axis)
+    helper = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    x = np.cross(helper, z)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    return (sin * np.cos(phi))[:, None] * x + (sin * np.sin(phi))[:, None] * y + cos[:, None] * z
+
+
+def trace_lobe_visibility(tracer, points: np.ndarray, normals: np.ndarray, directions: np.ndarray, offset: float) -> np.ndarray:
+    """A lobe's visible share at each point from shadow rays along ``directions (S, 3)`` drawn from
+    it (:func:`sample_lobe_directions`): ``sum_s v_s max(n . d_s, 0) / sum_s max(n . d_s, 0)`` ->
+    ``(N,) float32`` (the quadrature's ratio with the lobe's own samples; 1 where every sample lies
+    below the surface, where the lobe lights nothing)."""
+    bits = trace_visibility(tracer, points, normals, directions, offset)
+    visible = unpack_visibility(bits, len(directions))
+    cos = np.clip(np.asarray(normals, np.float64) @ np.asarray(directions, np.float64).T, 0.0, None)
+    whole = cos.sum(1)
+    return np.where(whole > 0, (cos * visible).sum(1) / np.maximum(whole, 1e-300), 1.0).astype(np.float32)

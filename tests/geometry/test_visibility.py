@@ -1,0 +1,133 @@
+"""Visibility bits traced with Embree against analytic answers: a sphere hanging over a floor
+blocks a cone of the floor's hemisphere, a closed box blocks all of it from inside, a convex
+mesh none of it from outside; lobe samples against the SG's own distribution."""
+
+import math
+
+import numpy as np
+import pytest
+import trimesh
+
+from stages.geometry.meshio import TriMesh
+from stages.geometry.tracing import EmbreeTracer
+from stages.geometry.visibility import (
+    blocked_share,
+    direction_spacing,
+    fibonacci_directions,
+    sample_lobe_directions,
+    self_occlusion,
+    surface_offset,
+    trace_lobe_visibility,
+    trace_visibility,
+    unpack_visibility,
+    viewer_side_normals,
+)
+
+
+def _mesh(*parts) -> TriMesh:
+    m = trimesh.util.concatenate(parts)
+    return TriMesh(np.asarray(m.vertices, np.float64), np.asarray(m.faces, np.int64))
+
+
+def _floor_and_ball(height: float, radius: float) -> TriMesh:
+    floor = trimesh.creation.box(extents=(40.0, 40.0, 0.1))
+    floor.apply_translation((0.0, 0.0, -0.05))
+    ball = trimesh.creation.icosphere(subdivisions=5, radius=radius)
+    ball.apply_translation((0.0, 0.0, height))
+    return _mesh(floor, ball)
+
+
+def test_directions_cover_the_sphere_evenly():
+    d = fibonacci_directions(1024)
+    np.testing.assert_allclose(np.linalg.norm(d, axis=1), 1.0, atol=1e-12)
+    # every octant's share and the mean: a uniform set
+    assert abs(d.mean(0)).max() < 2e-3
+    assert abs((d[:, 2] > 0).mean() - 0.5) < 1e-9
+    assert math.isclose(direction_spacing(1024), math.sqrt(4 * math.pi / 1024))
+    with pytest.raises(ValueError, match="multiple of 8"):
+        fibonacci_directions(12)
+
+
+@pytest.mark.parametrize("height,radius", [(2.0, 1.0), (3.0, 0.5), (1.2, 1.0)])
+def test_a_ball_over_a_floor_blocks_its_cone(height, radius):
+    """A point on a floor under a ball of radius r at height H: the blocked directions are the
+    cone of half-angle asin(r / H), 1 - cos of it the share of the hemisphere (uniform measure)."""
+    mesh = _floor_and_ball(height, radius)
+    dirs = fibonacci_directions(4096)
+    pts = np.array([[0.0, 0.0, 0.0], [15.0, 15.0, 0.0]])
+    nrm = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])
+    bits = trace_visibility(EmbreeTracer(mesh), pts, nrm, dirs, surface_offset(mesh.vertices))
+    share = blocked_share(bits, nrm, dirs)
+    expected = 1.0 - math.cos(math.asin(radius / height))
+    # the icosphere is inscribed in the sphere (its cone a little narrower) and 2048 directions
+    # above the floor resolve the cone's rim to about one spacing
+    assert share[0] == pytest.approx(expected, abs=0.012), (share[0], expected)
+    # far from the ball: the ball's cone from there, still tiny, and nothing else
+    far = 1.0 - math.cos(math.asin(radius / math.sqrt(2 * 15.0**2 + height**2)))
+    assert share[1] == pytest.approx(far, abs=0.003)
+    # bits below the surface are 0, and the layout is numpy's packbits of the visible set
+    visible = unpack_visibility(bits, len(dirs))
+    assert not visible[:, dirs[:, 2] <= 0].any()
+    assert (np.packbits(visible, axis=1) == bits).all()
+
+
+def test_inside_a_closed_box_everything_is_blocked_and_outside_a_convex_mesh_nothing():
+    box = trimesh.creation.box(extents=(1.0, 1.0, 1.0))
+    mesh = _mesh(box)
+    dirs = fibonacci_directions(512)
+    tracer = EmbreeTracer(mesh)
+    offset = surface_offset(mesh.vertices)
+    # the inside of the bottom face (seen from inside: normal +z) and the outside of the top face
+    pts = np.array([[0.1, -0.2, -0.5], [0.2, 0.3, 0.5], [0.5, 0.0, 0.0]])
+    nrm = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])
+    share = blocked_share(trace_visibility(tracer, pts, nrm, dirs, offset), nrm, dirs)
+    np.testing.assert_array_equal(share, [1.0, 0.0, 0.0])
+
+
+def test_viewer_side_normals_turn_to_the_eye():
+    n = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])
+    rays = np.array([[0.0, 0.0, -1.0], [0.0, 0.3, 1.0]])  # from above, from below
+    np.testing.assert_array_equal(viewer_side_normals(n, rays), [[0, 0, 1], [0, 0, -1]])
+
+
+def test_self_occlusion_statistics():
+    shares = np.array([0.0, 0.1, 0.2, 0.3, 1.0])
+    stats = self_occlusion(shares)
+    assert stats["median"] == 0.2 and stats["p95"] == 1.0 and stats["mean"] == pytest.approx(0.32)
+    # weights: a point standing for more surface counts more
+    weighted = self_occlusion(shares, np.array([10.0, 1.0, 1.0, 1.0, 1.0]))
+    assert weighted["median"] == 0.0 and weighted["mean"] == pytest.approx(1.6 / 14)
+
+
+@pytest.mark.parametrize("sharpness", [1e-4, 1.0, 30.0, 1e3, 1e5])
+def test_lobe_samples_follow_the_lobe(sharpness):
+    """The samples' mean cosine to the axis against the vMF's, coth(lam) - 1/lam, written from the
+    density exp(lam (c - 1)) on [-1, 1] (integrated by parts here, not through the sampler)."""
+    axis = np.array([0.3, -0.4, 0.5])
+    d = sample_lobe_directions(axis, sharpness, 200_000, seed=1)
+    np.testing.assert_allclose(np.linalg.norm(d, axis=1), 1.0, atol=1e-9)
+    c = d @ (axis / np.linalg.norm(axis))
+    lam = sharpness
+    expected = 1.0 / math.tanh(lam) - 1.0 / lam if lam > 1e-3 else lam / 3.0
+    spread = math.sqrt(max(np.var(c), 1e-30) / len(c))
+    assert abs(c.mean() - expected) < 5 * spread + 1e-12
+    # the azimuth is uniform: the component off the axis averages to zero
+    off = d - c[:, None] * axis / np.linalg.norm(axis)
+    assert np.linalg.norm(off.mean(0)) < 5 * math.sqrt(max((1 - c * c).mean(), 1e-30) / len(c)) + 1e-12
+
+
+def test_traced_lobe_visibility_against_the_cone():
+    """A broad-enough lobe pointing at the ball: the share of its cosine-weighted mass outside the
+    ball's cone, by rays drawn from the lobe, against the same integral by quadrature in the test."""
+    height, radius, lam = 2.0, 1.0, 8.0
+    mesh = _floor_and_ball(height, radius)
+    axis = np.array([0.0, 0.0, 1.0])
+    dirs = sample_lobe_directions(axis, lam, 4096, seed=3)
+    pts, nrm = np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0]])
+    traced = trace_lobe_visibility(EmbreeTracer(mesh), pts, nrm, dirs, surface_offset(mesh.vertices))
+    # quadrature over the polar angle: exp(lam (cos t - 1)) cos t sin t, blocked below asin(r / H)
+    t = np.linspace(0.0, math.pi / 2, 200_001)
+    f = np.exp(lam * (np.cos(t) - 1.0)) * np.cos(t) * np.sin(t)
+    cone = math.asin(radius / height)
+    expected = np.trapezoid(np.where(t > cone, f, 0.0), t) / np.trapezoid(f, t)
+    assert traced[0] == pytest.approx(expected, abs=0.03), (traced[0], expected)
