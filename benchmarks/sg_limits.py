@@ -10,6 +10,11 @@ sRGB error over fully covered object pixels, Mitsuba's own noise taken out (see
     python benchmarks/sg_limits.py                       # built-in meshes
     python benchmarks/sg_limits.py --shared bunny horse  # also meshes of ../shared/meshes
     python benchmarks/sg_limits.py --builtin candle:metal --brdf tango,gltf   # both BRDFs (default)
+    python benchmarks/sg_limits.py --builtin knot:wood --visibility off,on    # our renderer's shadows
+
+With ``--visibility on`` our renderer casts shadows (1024 stored directions, shadow rays for
+lobes too sharp for them), and each line adds how closely like agrees with like: ours shadowed
+against Mitsuba's direct light, ours unshadowed against its unshadowed light.
 """
 
 from __future__ import annotations
@@ -41,7 +46,9 @@ def main() -> None:
     parser.add_argument("--resolution", type=int, default=128)
     parser.add_argument("--lobes", type=int, nargs="*", default=[32])
     parser.add_argument("--brdf", default="tango,gltf", help="the model's BRDFs, comma-separated (tango, gltf)")
+    parser.add_argument("--visibility", default="off", help="our renderer's shadows, comma-separated (off, on)")
     args = parser.parse_args()
+    shadowed = [v == "on" for v in args.visibility.split(",") if v]
     brdfs = [b for b in args.brdf.split(",") if b]
     cases = [(f"builtin:{c.split(':')[0]}", c.split(":")[1]) for c in args.builtin]
     cases += [(str(REPO.parent / "shared" / "meshes" / f"{n}.obj"), "wood") for n in args.shared]
@@ -55,9 +62,10 @@ def main() -> None:
             np.savez(Path(d) / "m.npz", **arrays)
             cache = RayCache(Path(d) / "m.npz")
             renderer = TargetRenderer(mesh, material, TargetSettings(texture_size=1024))
-            for brdf in brdfs:
-                r = measure_limits(renderer, cache, args.spp, tuple(args.lobes), brdf=brdf)
+            for brdf, vis in ((b, v) for b in brdfs for v in shadowed):
+                r = measure_limits(renderer, cache, args.spp, tuple(args.lobes), brdf=brdf, visibility=vis)
                 name = f"{Path(source).stem if '/' in source else source[8:]} ({len(mesh.faces)} faces), {material}, {brdf} BRDF"
+                name += ", shadows cast" if vis else ""
                 parts = []
                 for k in args.lobes:
                     lk = r[f"lobes_{k}"]
@@ -66,6 +74,15 @@ def main() -> None:
                         f"{k} lobes: {lk['psnr_db']['target']:.2f} dB (error {lk['error_mse']['target']:.2e} = "
                         f"interreflection {100 * sh['interreflection']:.0f}% + shadows {100 * sh['shadows']:.0f}% + "
                         f"BRDF/light/closed form {100 * sh['brdf_light_and_closed_form']:.0f}%)"
+                    )
+                    if vis:
+                        ag = lk["agreement_db"]
+                        parts[-1] += f", like with like: shadowed {ag['shadowed']:.2f} dB, unshadowed {ag['unshadowed']:.2f} dB"
+                if vis:
+                    so = r["self_occlusion"]
+                    parts.append(
+                        f"self-occlusion mean {so['mean']:.3f}, median {so['median']:.3f}, p95 {so['p95']:.3f}; "
+                        f"visibility traced in {r['visibility']['seconds']:.1f} s"
                     )
                 print(
                     f"{name}: noise {r['noise_mse']:.1e}, interreflection {r['interreflection_mse']:.2e}, "

@@ -27,12 +27,15 @@ class FieldOutput:
     normal: Tensor  # (N, 3) shading normal (predicted, facing the viewer)
 
 
-def shade_material(normal: Tensor, view: Tensor, material: Material, light: SGLight, lobe: str) -> Shading:
+def shade_material(
+    normal: Tensor, view: Tensor, material: Material, light: SGLight, lobe: str, visibility: Tensor | None = None
+) -> Shading:
     """The renderer for ``material``'s BRDF: TANGO's sum (:func:`~stages.render.shading.shade`) or
-    glTF's (:func:`~stages.render.shading.shade_gltf`, from the base colour and metallic)."""
+    glTF's (:func:`~stages.render.shading.shade_gltf`, from the base colour and metallic);
+    ``visibility (N, K)``: each light lobe's visible share (shadows, :mod:`stages.model.shadows`)."""
     if material.metallic is not None:
-        return shade_gltf(normal, view, material.base, material.metallic, material.roughness, light, lobe)
-    return shade(normal, view, material.albedo, light, material.specular, material.roughness, lobe)
+        return shade_gltf(normal, view, material.base, material.metallic, material.roughness, light, lobe, visibility)
+    return shade(normal, view, material.albedo, light, material.specular, material.roughness, lobe, visibility)
 
 
 @dataclass(frozen=True)

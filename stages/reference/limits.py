@@ -25,11 +25,15 @@ import time
 import numpy as np
 import torch
 
+from ..geometry.meshio import TriMesh
 from ..geometry.raycache import RayCache
+from ..geometry.tracing import EmbreeTracer
+from ..geometry.visibility import self_occlusion, viewer_side_normals
 from ..imaging.quality import psnr
 from ..imaging.targets import FULL_COVERAGE
 from ..model.field import shade_material
 from ..model.networks import Material, SGLightModule
+from ..model.shadows import ShadowCache
 from ..render.color import linear_to_srgb, srgb_encode
 from ..render.shading import face_viewer
 from .targets import TargetRenderer
@@ -94,6 +98,7 @@ def fit_light_to_image(
     init: str = "broad",
     brdf: str = "tango",
     metallic=None,
+    shadows=None,
 ):
     """The ``lobes``-lobe SG light that makes our renderer, given the true material and normals
     at hits (``(N, 3)``/``(N, 1)`` tensors), best match the sRGB ``target (N, 3)`` (mean squared
@@ -102,7 +107,9 @@ def fit_light_to_image(
     the material known and only the light to fit, broad lobes find a 5-degree disc and sharpen onto
     it where lobes started sharp stay where they began, measured in ``tests/reference/test_sharp_light.py``).
     ``brdf="gltf"``: glTF's BRDF, ``albedo`` then the base colour and ``metallic (N, 1)`` given: the light a
-    perfect optimisation of TANGO's model would find. Returns the light and the seconds taken."""
+    perfect optimisation of TANGO's model would find. ``shadows``: a
+    :class:`~stages.model.shadows.ShadowCache` of the hits (shadowed shading). Returns the light
+    and the seconds taken."""
     t0 = time.perf_counter()
     gen = torch.Generator().manual_seed(seed)
     torch.manual_seed(seed)
@@ -111,7 +118,10 @@ def fit_light_to_image(
     for _ in range(iterations):
         b = torch.randint(len(normal), (min(FIT_BATCH, len(normal)),), generator=gen)
         light = module()
-        pred = linear_to_srgb(_shade_truth(normal[b], view[b], albedo[b], specular[b], roughness[b], light, brdf, metallic, b))
+        vis = None if shadows is None else shadows.shares(light, b)
+        pred = linear_to_srgb(
+            _shade_truth(normal[b], view[b], albedo[b], specular[b], roughness[b], light, brdf, metallic, b, vis)
+        )
         loss = torch.nn.functional.mse_loss(pred, target[b])
         opt.zero_grad()
         loss.backward()
@@ -121,13 +131,13 @@ def fit_light_to_image(
     return type(light)(light.axis.detach(), light.sharpness.detach(), light.amplitude.detach()), time.perf_counter() - t0
 
 
-def _shade_truth(normal, view, albedo, specular, roughness, light, brdf: str, metallic=None, index=None):
+def _shade_truth(normal, view, albedo, specular, roughness, light, brdf: str, metallic=None, index=None, visibility=None):
     """Linear radiance of the true material in our renderer: TANGO's sum, or glTF's BRDF with
-    ``albedo`` as the base colour and ``metallic[index]``."""
+    ``albedo`` as the base colour and ``metallic[index]``; ``visibility (N, K)``: shadows."""
     if brdf == "gltf":
         m = metallic if index is None else metallic[index]
-        return shade_material(normal, view, Material.gltf(albedo, m, roughness), light, "fitted").rgb
-    return shade_material(normal, view, Material(albedo, specular, roughness), light, "isotropic").rgb
+        return shade_material(normal, view, Material.gltf(albedo, m, roughness), light, "fitted", visibility).rgb
+    return shade_material(normal, view, Material(albedo, specular, roughness), light, "isotropic", visibility).rgb
 
 
 def _per_hit(img: np.ndarray, cache: RayCache, i: int) -> tuple[np.ndarray, np.ndarray]:
@@ -137,7 +147,14 @@ def _per_hit(img: np.ndarray, cache: RayCache, i: int) -> tuple[np.ndarray, np.n
 
 
 def measure_limits(
-    renderer: TargetRenderer, cache: RayCache, spp: int, lobes: tuple[int, ...] = (16, 32), seed: int = 0, brdf: str = "tango"
+    renderer: TargetRenderer,
+    cache: RayCache,
+    spp: int,
+    lobes: tuple[int, ...] = (16, 32),
+    seed: int = 0,
+    brdf: str = "tango",
+    visibility: bool = False,
+    directions: int = 1024,
 ) -> dict:
     """The error budget of the best our model can do on ``cache``'s views (see the module
     docstring), in mean squared sRGB error over fully covered object pixels, each Mitsuba
@@ -151,7 +168,14 @@ def measure_limits(
     together. The three shares add up to one by construction. Also, model-free:
     ``interreflection_mse`` (target against direct) and ``shadows_mse`` (direct against
     unshadowed). ``brdf``: the model's BRDF (TANGO's sum, or glTF's from the truth's base colour
-    and metallic)."""
+    and metallic).
+
+    ``visibility``: our renderer casts shadows (:class:`~stages.model.shadows.ShadowCache` of the
+    hits, ``directions`` stored directions) when fitted to the target and to the direct image;
+    the unshadowed image is still fitted without. The shadows' share is then what our shadows
+    leave of them, and ``agreement_db`` holds the two comparisons of like with like: ours
+    shadowed against Mitsuba's direct light, ours unshadowed against its unshadowed light. Also
+    ``self_occlusion`` (the blocked share of the hits' hemispheres: mean, median, 95th percentile)."""
     mi = renderer.mi
     unshadowed = unshadowed_integrator(mi)
     direct = mi.load_dict({"type": "path", "max_depth": 2, "hide_emitters": True})
@@ -199,15 +223,21 @@ def measure_limits(
         albedo, metallic = (torch.from_numpy(truth[k][full]).float() for k in ("base", "metallic"))
     v32, n32 = view.float(), normal.float()
     rough = rough.clamp(0.01, 1.0)
+    shadows = _hit_shadows(cache, full, directions, seed) if visibility else None
+    if shadows is not None:
+        out["visibility"] = {"directions": directions, "samples": shadows.samples, "seconds": shadows.seconds}
+        out["self_occlusion"] = self_occlusion(shadows.blocked_share())
     for k in lobes:
         errors, psnrs, seconds = {}, {}, 0.0
         for rung in ("target", "direct", "unshadowed"):
             goal = torch.from_numpy(srgb[rung]).float()
+            cast = shadows if rung != "unshadowed" else None
             light, sec = fit_light_to_image(
-                n32, v32, albedo, spec, rough, goal, k, renderer.env_energy, seed, brdf=brdf, metallic=metallic
+                n32, v32, albedo, spec, rough, goal, k, renderer.env_energy, seed, brdf=brdf, metallic=metallic, shadows=cast
             )
             with torch.no_grad():
-                ours = linear_to_srgb(_shade_truth(n32, v32, albedo, spec, rough, light, brdf, metallic))
+                vis = None if cast is None else cast.shares(light)
+                ours = linear_to_srgb(_shade_truth(n32, v32, albedo, spec, rough, light, brdf, metallic, visibility=vis))
             # each Mitsuba image carries its noise; ours is noise-free
             errors[rung] = max(float(((ours - goal) ** 2).mean()) - noise, 0.0)
             psnrs[rung] = psnr(ours, goal)
@@ -223,4 +253,16 @@ def measure_limits(
             },
             "fit_seconds": seconds,
         }
+        if shadows is not None:
+            out[f"lobes_{k}"]["agreement_db"] = {"shadowed": psnrs["direct"], "unshadowed": psnrs["unshadowed"]}
     return out
+
+
+def _hit_shadows(cache: RayCache, full: np.ndarray, directions: int, seed: int) -> ShadowCache:
+    """A shadow cache of the cache's hits where ``full``, each oriented to its viewer's side."""
+    views = [cache.view(i) for i in range(len(cache))]
+    points = np.concatenate([h.point for h in views])[full]
+    faces = np.concatenate([h.face_normal for h in views])[full]
+    rays = np.concatenate([h.direction for h in views])[full]
+    mesh = TriMesh(cache.arrays["vertices"].astype(np.float64), cache.arrays["faces"].astype(np.int64))
+    return ShadowCache(mesh, points, viewer_side_normals(faces, rays), EmbreeTracer(mesh), directions, seed=seed)

@@ -1,0 +1,127 @@
+"""Shadows for a fixed set of surface points: their visibility of a direction set, traced once,
+and each light lobe's visible share at any subset of them (issue 32).
+
+Broad lobes take the quadrature of the stored directions
+(:func:`~stages.render.visibility.lobe_visibility`: differentiable in the lobe's axis and
+sharpness); lobes too sharp for the set (a sun) take shadow rays drawn from the lobe with fixed
+seeds (:func:`~stages.geometry.visibility.trace_lobe_visibility`), traced lazily for the points
+asked for and traced again once the lobe's axis has moved by more than ``tolerance`` of its width
+``1 / sqrt(lam)`` or its sharpness by more than a factor ``2 ** tolerance``; between the two, a
+blend continuous in the sharpness (:func:`~stages.render.visibility.blend_traced`).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..geometry.visibility import (
+    blocked_share,
+    fibonacci_directions,
+    sample_lobe_directions,
+    surface_offset,
+    trace_lobe_visibility,
+    trace_visibility,
+)
+from ..render.shading import SGLight
+from ..render.visibility import blend_traced, lobe_visibility, resolvable_sharpness, unpack_bits
+
+
+class _TracedLobe:
+    """One sharp lobe's traced shares at every point, valid where traced since the lobe last
+    moved by more than the tolerance."""
+
+    def __init__(self, count: int) -> None:
+        self.axis = np.zeros(3)
+        self.sharpness = 0.0
+        self.values = np.ones(count, np.float32)
+        self.valid = np.zeros(count, bool)
+        self.traces = 0
+
+    def stale(self, axis: np.ndarray, sharpness: float, tolerance: float) -> bool:
+        if self.sharpness <= 0.0:
+            return True
+        angle = math.acos(float(np.clip(axis @ self.axis, -1.0, 1.0)))
+        return angle > tolerance / math.sqrt(sharpness) or abs(math.log2(sharpness / self.sharpness)) > tolerance
+
+
+class ShadowCache:
+    """Visibility of ``directions`` directions from ``points (N, 3)`` with ``normals (N, 3)``
+    (unit, oriented to the side each point is seen from) on ``mesh``, traced once at
+    construction; :meth:`shares` gives each lobe's visible share. ``samples`` shadow rays per point
+    for a sharp lobe, drawn with ``seed``."""
+
+    def __init__(
+        self,
+        mesh,
+        points: np.ndarray,
+        normals: np.ndarray,
+        tracer,
+        directions: int = 1024,
+        samples: int = 64,
+        seed: int = 0,
+        tolerance: float = 0.25,
+    ) -> None:
+        t0 = time.perf_counter()
+        self.points = np.asarray(points, np.float64)
+        self.normals = np.asarray(normals, np.float64)
+        self.tracer = tracer
+        self.offset = surface_offset(mesh.vertices)
+        self.directions = fibonacci_directions(directions)
+        self.bits = trace_visibility(tracer, self.points, self.normals, self.directions, self.offset)
+        self.samples, self.seed, self.tolerance = samples, seed, tolerance
+        self.resolvable = resolvable_sharpness(directions)
+        self._lobes: dict[int, _TracedLobe] = {}
+        self._dirs = torch.from_numpy(self.directions).float()
+        self._normals = torch.from_numpy(self.normals).float()
+        self._bits = torch.from_numpy(self.bits)
+        #: seconds the visibility took to trace
+        self.seconds = time.perf_counter() - t0
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+    def quadrature(self, light: SGLight, index: Tensor | None = None) -> Tensor:
+        """Each lobe's share by quadrature alone at the points ``index`` (all when None) -> ``(n, K)``."""
+        bits = self._bits if index is None else self._bits[index]
+        normal = self._normals if index is None else self._normals[index]
+        dirs = self._dirs.to(light.axis.dtype)
+        visible = unpack_bits(bits, len(self.directions), light.axis.dtype)
+        return lobe_visibility(normal.to(light.axis.dtype), visible, dirs, light.axis, light.sharpness)
+
+    def traced(self, light: SGLight, index: Tensor | None = None) -> Tensor:
+        """Each lobe's share from shadow rays drawn from it -> ``(n, K)`` (no gradient): ones for the
+        lobes the quadrature resolves, traced (lazily, see the module) for the sharper ones."""
+        idx = np.arange(len(self)) if index is None else index.cpu().numpy()
+        out = np.ones((len(idx), light.axis.shape[0]), np.float32)
+        axes = light.axis.detach().double().cpu().numpy()
+        sharp = light.sharpness.detach().double().cpu().numpy()[:, 0]
+        for k in np.flatnonzero(sharp > self.resolvable):
+            lobe = self._lobes.setdefault(int(k), _TracedLobe(len(self)))
+            axis = axes[k] / np.linalg.norm(axes[k])
+            if lobe.stale(axis, float(sharp[k]), self.tolerance):
+                lobe.axis, lobe.sharpness, lobe.valid[:] = axis, float(sharp[k]), False
+            todo = idx[~lobe.valid[idx]]
+            if len(todo):
+                rays = sample_lobe_directions(lobe.axis, lobe.sharpness, self.samples, self.seed + int(k))
+                lobe.values[todo] = trace_lobe_visibility(self.tracer, self.points[todo], self.normals[todo], rays, self.offset)
+                lobe.valid[todo] = True
+                lobe.traces += len(todo)
+            out[:, k] = lobe.values[idx]
+        return torch.from_numpy(out).to(light.axis.device)
+
+    def shares(self, light: SGLight, index: Tensor | None = None) -> Tensor:
+        """Each lobe's visible share at the points ``index`` (all when None) -> ``(n, K)`` in [0, 1]:
+        the quadrature for the lobes it resolves, shadow rays for sharper ones, blended between."""
+        quad = self.quadrature(light, index)
+        if not bool((light.sharpness > self.resolvable).any()):
+            return quad
+        return blend_traced(quad, self.traced(light, index), light.sharpness, self.resolvable)
+
+    def blocked_share(self) -> np.ndarray:
+        """Per point, the share of its hemisphere the mesh blocks (uniform over directions)."""
+        return blocked_share(self.bits, self.normals, self.directions)
