@@ -44,7 +44,7 @@ VARIANTS = {
     "base_seed1": ({"seed": 1}, -0.3, 1.02),
     "it100": ({"iterations": 100, "milestones": [60, 85]}, -2.5, 0.25),
     "no_normal": ({"normal_network": False}, -1.2, 0.8),
-    "no_spec": ({"specular": False}, -1.8, 0.9),
+    "no_spec": ({"specular": False, "brdf": "tango"}, -1.8, 0.9),
 }
 TILE = 64
 COLUMNS = 4
