@@ -20,7 +20,8 @@ from .core.errors import StageInputError
 from .core.provenance import Timer, metadata, write_json_atomic
 from .geometry.meshio import load_ply
 from .geometry.raycache import BYTES_PER_HIT, evaluation_views, metric_views, save_cache, trace_views, training_views
-from .geometry.tracing import make_tracer
+from .geometry.tracing import EmbreeTracer, make_tracer
+from .geometry.visibility import measure_self_occlusion
 
 log = logging.getLogger(__name__)
 
@@ -34,7 +35,9 @@ def run(
     out_metrics: Path | None = None,
 ) -> dict:
     """Trace the training pool, the evaluation views and (when ``out_metrics`` is given) the
-    metric views of ``in_mesh``; write one cache per set."""
+    metric views of ``in_mesh``; write one cache per set. The metadata also records the mesh's
+    self-occlusion (:func:`~stages.geometry.visibility.measure_self_occlusion`: the share of the
+    hemisphere its surface sees blocked, mean, median and 95th percentile)."""
     timer = Timer()
     with timer("load"):
         if not Path(in_mesh).is_file():
@@ -75,6 +78,15 @@ def run(
             "rays_per_second_total": st.rays / st.total_seconds,
         }
         results[name] = arrays
+    with timer("self_occlusion"):
+        # Embree whatever the backend: the measurement traces millions of rays
+        occlusion = measure_self_occlusion(mesh, tracer if settings.backend == "embree" else EmbreeTracer(mesh), settings.seed)
+    log.info(
+        "%s: self-occlusion over the surface: median %.3f, 95th percentile %.3f of the hemisphere blocked",
+        in_mesh,
+        occlusion["median"],
+        occlusion["p95"],
+    )
     with timer("write"):
         save_cache(out_train, results["train"])
         save_cache(out_eval, results["eval"])
@@ -101,7 +113,12 @@ def run(
             inputs={"mesh": in_mesh},
             outputs={"train": out_train, "eval": out_eval, "metrics": out_metrics},
             timings={**timer.seconds, "total": timer.total()},
-            extra={"stats": summary, "bytes_per_hit": BYTES_PER_HIT, "anchor": anchor_record(settings)},
+            extra={
+                "stats": summary,
+                "bytes_per_hit": BYTES_PER_HIT,
+                "anchor": anchor_record(settings),
+                "self_occlusion": occlusion,
+            },
         ),
     )
     return summary

@@ -137,3 +137,37 @@ def trace_lobe_visibility(tracer, points: np.ndarray, normals: np.ndarray, direc
     cos = np.clip(np.asarray(normals, np.float64) @ np.asarray(directions, np.float64).T, 0.0, None)
     whole = cos.sum(1)
     return np.where(whole > 0, (cos * visible).sum(1) / np.maximum(whole, 1e-300), 1.0).astype(np.float32)
+
+
+#: surface samples and directions of :func:`measure_self_occlusion`: 20,000 points put the median's
+#: and the 95th percentile's sampling error near 0.005, and 256 directions (128 above a point)
+#: resolve a blocked share to 1/128; about 5 M rays, a second or two with Embree
+SELF_OCCLUSION_POINTS = 20_000
+SELF_OCCLUSION_DIRECTIONS = 256
+
+
+def measure_self_occlusion(mesh, tracer, seed: int = 0) -> dict:
+    """The mesh's self-occlusion over its surface: :data:`SELF_OCCLUSION_POINTS` points drawn
+    uniformly by area (seeded), each side of each taken as a point of its own, and the sides from
+    which no direction escapes left out (the inside of a closed mesh, which no viewer sees); per
+    side the share of its hemisphere blocked (:func:`blocked_share`). Returns the mean, median and
+    95th percentile, and the share of sides seen (1 for an open sheet, 0.5 for a closed mesh)."""
+    rng = np.random.default_rng(seed)
+    areas = mesh.face_areas
+    if not areas.sum() > 0:
+        return {"mean": 0.0, "median": 0.0, "p95": 0.0, "sides_seen": 0.0, "points": 0}
+    face = rng.choice(len(areas), size=SELF_OCCLUSION_POINTS, p=areas / areas.sum())
+    u, v = rng.random((2, SELF_OCCLUSION_POINTS))
+    flip = u + v > 1.0
+    u, v = np.where(flip, 1.0 - u, u), np.where(flip, 1.0 - v, v)
+    tri = mesh.vertices[mesh.faces[face]]
+    points = tri[:, 0] + u[:, None] * (tri[:, 1] - tri[:, 0]) + v[:, None] * (tri[:, 2] - tri[:, 0])
+    normals = mesh.face_normals[face]
+    points, normals = np.concatenate([points, points]), np.concatenate([normals, -normals])
+    directions = fibonacci_directions(SELF_OCCLUSION_DIRECTIONS)
+    share = blocked_share(
+        trace_visibility(tracer, points, normals, directions, surface_offset(mesh.vertices)), normals, directions
+    )
+    seen = share < 1.0
+    stats = self_occlusion(share[seen]) if seen.any() else {"mean": 1.0, "median": 1.0, "p95": 1.0}
+    return {**stats, "sides_seen": float(seen.mean()), "points": int(seen.sum())}

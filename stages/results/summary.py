@@ -180,6 +180,11 @@ def summary_rows(
         for stage in MESH_STAGES:
             meta = _read(stage_dir(stage) / "meta.json")
             row[f"seconds_{stage}"] = meta["timings_s"]["total"] if meta else None
+            if stage == "raycache":
+                # the share of the hemisphere the mesh's surface sees blocked (its self-shadowing)
+                occ = (meta or {}).get("self_occlusion") or {}
+                row["self_occlusion_median"] = occ.get("median")
+                row["self_occlusion_p95"] = occ.get("p95")
         for stage, folder in zip(CELL_STAGES, ("optimize", "bake", "export", "relight", "metrics"), strict=True):
             meta = _read(cdir / folder / "meta.json")
             row[f"seconds_{stage}"] = meta["timings_s"]["total"] if meta else None

@@ -197,6 +197,9 @@ def test_cache_files_and_metadata(tmp_path):
     bpv = meta["stats"]["train"]["bytes_per_view"]
     assert bpv == pytest.approx(train.bytes_per_view())
     assert bpv == pytest.approx(12 * a["offsets"][-1] / 5)
+    # a convex mesh blocks nothing of what its outside sees; its inside is never seen
+    occ = meta["self_occlusion"]
+    assert occ["median"] == 0.0 and occ["p95"] == 0.0 and occ["sides_seen"] == pytest.approx(0.5, abs=0.01)
     # same seed -> same cache; another seed -> other views
     again = tmp_path / "again"
     raycache.run(src, again / "t.npz", again / "e.npz", again / "m.json", settings)

@@ -14,6 +14,7 @@ from stages.geometry.visibility import (
     blocked_share,
     direction_spacing,
     fibonacci_directions,
+    measure_self_occlusion,
     sample_lobe_directions,
     self_occlusion,
     surface_offset,
@@ -131,3 +132,26 @@ def test_traced_lobe_visibility_against_the_cone():
     cone = math.asin(radius / height)
     expected = np.trapezoid(np.where(t > cone, f, 0.0), t) / np.trapezoid(f, t)
     assert traced[0] == pytest.approx(expected, abs=0.03), (traced[0], expected)
+
+
+def test_self_occlusion_of_a_sheet_a_cup_and_a_ball():
+    """An open square sheet: both sides seen, nothing blocked. A ball: only its outside seen,
+    nothing blocked. A closed box with an open top (a cup, 1 x 1 x 1): the inside of its floor
+    sees the opening's solid angle, so the median side (half of its area is inside) is blocked
+    by more than the outside's 0, and the 95th percentile (the inside's corners) by most of it."""
+    square = TriMesh(np.array([[0.0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]]), np.array([[0, 1, 2], [0, 2, 3]]))
+    occ = measure_self_occlusion(square, EmbreeTracer(square))
+    assert occ["sides_seen"] == 1.0 and occ["p95"] == 0.0
+    ball = _mesh(trimesh.creation.icosphere(subdivisions=3))
+    occ = measure_self_occlusion(ball, EmbreeTracer(ball))
+    assert occ["sides_seen"] == pytest.approx(0.5, abs=0.01) and occ["p95"] == 0.0
+    box = trimesh.creation.box(extents=(1.0, 1.0, 1.0))
+    top = np.abs(box.triangles_center[:, 2] - 0.5) < 1e-9
+    cup = TriMesh(np.asarray(box.vertices, np.float64), np.asarray(box.faces, np.int64)[~top])
+    occ = measure_self_occlusion(cup, EmbreeTracer(cup))
+    # 5 faces, both sides seen everywhere (the inside through the opening)
+    assert occ["sides_seen"] == pytest.approx(1.0, abs=0.01)
+    # half the seen sides are inside, where the walls block most of the hemisphere (the floor's
+    # centre sees the opening as a square of solid angle 4 asin(1/5) = 0.81 sr, 13% of its hemisphere's
+    # uniform measure); outside nothing is blocked
+    assert occ["median"] < 0.35 and 0.6 < occ["p95"] < 1.0 and 0.25 < occ["mean"] < 0.5

@@ -180,6 +180,8 @@ def check_test_only_marks(res) -> None:
         assert f"- {mesh}/{prompt}/{variant}: TEST ONLY" in readme
     summary = pd.read_csv(res / "report" / "summary.csv")
     assert summary["test_only_weights"].all() and summary["origin"].str.startswith("TEST ONLY").all()
+    # each mesh's self-occlusion, from its raycache stage: shares of a hemisphere
+    assert summary["self_occlusion_median"].between(0.0, 1.0).all() and summary["self_occlusion_p95"].between(0.0, 1.0).all()
     assert all(
         r["test_only_weights"] and r["origin"].startswith("TEST ONLY")
         for r in json.loads((res / "report" / "summary.json").read_text())
