@@ -168,9 +168,8 @@ class GroundTruth:
 
     def at_hits(self, face: np.ndarray, bary: np.ndarray, back: np.ndarray) -> dict:
         """TANGO-equivalent maps, glTF's base colour and metallic, and the world shading normal at hits (``face (N,)``,
-        ``bary (N, 2)``, ``back (N,) bool``: seen from behind the shading normal, where
-        ``twosided`` mirrors the perturbed normal through the shading plane and the viewer sees
-        ``-mirror``, i.e. the normal facing the viewer). Sampled bilinearly, as Mitsuba does."""
+        ``bary (N, 2)``, ``back (N,) bool``: seen from behind the shading normal, where the
+        viewer sees :func:`seen_normal`). Sampled bilinearly, as Mitsuba does."""
         tri = self.uv[face]
         uv = tri[:, 0] + bary[:, :1] * (tri[:, 1] - tri[:, 0]) + bary[:, 1:] * (tri[:, 2] - tri[:, 0])
         base, metallic = sample_bilinear(self.base_color, uv), sample_bilinear(self.metallic, uv)
@@ -180,10 +179,20 @@ class GroundTruth:
         s, t, n = mitsuba_frames(self.dp_du[face], self.shading_normals(face, bary))
         world = ts[:, :1] * s + ts[:, 1:2] * t + ts[:, 2:3] * n
         world /= np.linalg.norm(world, axis=1, keepdims=True)
-        # seen from behind: the mirror image through the shading plane, turned to face the viewer
-        mirrored = world - 2.0 * (world * n).sum(1, keepdims=True) * n
-        out["normal"] = np.where(back[:, None], -mirrored, world)
+        out["normal"] = seen_normal(world, n, back)
         return out
+
+
+def seen_normal(world: np.ndarray, n: np.ndarray, back: np.ndarray) -> np.ndarray:
+    """The normal a viewer sees of ``twosided(normalmap(...))`` -> ``(N, 3)``: the perturbed
+    ``world (N, 3)`` normal where ``back (N,)`` is false, and seen from behind the shading normal
+    ``n (N, 3)`` its mirror image through the shading plane, ``world - 2 (world . n) n`` (``twosided``
+    flips the directions' component along ``n`` before the normal map perturbs the frame), which
+    faces the viewer. Until 2026-11-25 the negated mirror image was used, which faces away: every
+    back-seen hit of an open mesh got a normal 175 degrees off in the metrics and the ceilings
+    (tested against Mitsuba in tests/reference/test_mitsuba_targets.py)."""
+    mirrored = world - 2.0 * (world * n).sum(1, keepdims=True) * n
+    return np.where(back[:, None], mirrored, world)
 
 
 def ground_truth(mesh: TriMesh, kind: str, settings: TargetSettings) -> GroundTruth:
@@ -370,25 +379,31 @@ class TargetRenderer:
         )
 
     def truth_at_hits(self, cache: RayCache) -> tuple[dict, np.ndarray]:
-        """The TANGO-equivalent material and world shading normal where each hit's ray meets the
-        rendered mesh (which may be finer than the cache's: the full-resolution mesh of a
-        decimated one), and ``(N,) bool``: whether it meets it at all (the truth of a miss is
-        zero)."""
-        tracer = EmbreeTracer(self.mesh)
-        face, bary, direction = [], [], []
-        for i in range(len(cache)):
-            h = cache.view(i)
-            origins = np.broadcast_to(h.c2w[:3, 3], h.direction.shape).astype(np.float64)
-            hits = tracer.trace(origins, h.direction.astype(np.float64))
-            face.append(hits.face)
-            bary.append(hits.bary)
-            direction.append(h.direction.astype(np.float64))
-        face, bary, direction = np.concatenate(face), np.concatenate(bary).astype(np.float64), np.concatenate(direction)
-        met = face >= 0
-        f = np.where(met, face, 0)
-        back = (self.truth.shading_normals(f, bary) * direction).sum(1) > 0
-        truth = self.truth.at_hits(f, bary, back)
-        return {k: np.where(met[:, None], v, 0.0) for k, v in truth.items()}, met
+        """:func:`truth_at_cache` of this scene's mesh and material."""
+        return truth_at_cache(self.truth, self.mesh, cache)
+
+
+def truth_at_cache(truth: GroundTruth, mesh: TriMesh, cache: RayCache) -> tuple[dict, np.ndarray]:
+    """The TANGO-equivalent material and world shading normal (:meth:`GroundTruth.at_hits`, the
+    normal the viewer sees: :func:`seen_normal` where the hit is seen from behind) where each of
+    ``cache``'s rays meets ``mesh`` (which may be finer than the cache's: the full-resolution mesh
+    of a decimated one), and ``(N,) bool``: whether it meets it at all (the truth of a miss is
+    zero)."""
+    tracer = EmbreeTracer(mesh)
+    face, bary, direction = [], [], []
+    for i in range(len(cache)):
+        h = cache.view(i)
+        origins = np.broadcast_to(h.c2w[:3, 3], h.direction.shape).astype(np.float64)
+        hits = tracer.trace(origins, h.direction.astype(np.float64))
+        face.append(hits.face)
+        bary.append(hits.bary)
+        direction.append(h.direction.astype(np.float64))
+    face, bary, direction = np.concatenate(face), np.concatenate(bary).astype(np.float64), np.concatenate(direction)
+    met = face >= 0
+    f = np.where(met, face, 0)
+    back = (truth.shading_normals(f, bary) * direction).sum(1) > 0
+    values = truth.at_hits(f, bary, back)
+    return {k: np.where(met[:, None], v, 0.0) for k, v in values.items()}, met
 
 
 #: a pixel counts as an object pixel of the figures when Mitsuba's alpha says it is fully covered

@@ -101,27 +101,28 @@ def test_radiant_energy_is_the_sphere_integral():
     assert abs(sun - expected) / expected < 0.03
 
 
-def _quad(mi, uv, normal_ts, light_dir):
+def _quad(mi, uv, normal_ts, light_dir, behind=False):
     """A unit quad in the xy plane (normal +z) with a constant tangent-space normal map, diffuse
-    white, under a directional light of irradiance pi: its radiance is max(n' . l, 0)."""
+    white, under a directional light of irradiance pi: its radiance is max(n' . l, 0). ``behind``:
+    wrapped in ``twosided`` as the targets' material is, and seen from -z."""
     v = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], np.float64)
     mesh = TriMesh(v, np.array([[0, 1, 2], [0, 2, 3]]))
     face_uv = uv[mesh.faces]
     tex = np.ones((4, 4, 3), np.float32) * (0.5 * np.asarray(normal_ts) + 0.5)
-    bsdf = mi.load_dict(
-        {
-            "type": "normalmap",
-            "normalmap": {"type": "bitmap", "bitmap": mi.Bitmap(tex), "raw": True, "filter_type": "nearest"},
-            "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [1.0, 1.0, 1.0]}},
-        }
-    )
+    material = {
+        "type": "normalmap",
+        "normalmap": {"type": "bitmap", "bitmap": mi.Bitmap(tex), "raw": True, "filter_type": "nearest"},
+        "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [1.0, 1.0, 1.0]}},
+    }
+    bsdf = mi.load_dict({"type": "twosided", "material": material} if behind else material)
+    c2w = np.array([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 5.0], [0, 0, 0, 1]], np.float64)
+    if behind:  # at z = -5 looking along +z (x mirrored to keep the frame right-handed)
+        c2w = np.array([[-1, 0, 0, 0], [0, 1, 0, 0], [0, 0, -1, -5.0], [0, 0, 0, 1]], np.float64)
     scene = mi.load_dict(
         {
             "type": "scene",
             "integrator": {"type": "direct"},
-            "sensor": mref.sensor(
-                np.array([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 5.0], [0, 0, 0, 1]]), 10.0, 8, 4, centred=False, mi=mi
-            ),
+            "sensor": mref.sensor(c2w, 10.0, 8, 4, centred=False, mi=mi),
             "quad": tref._mesh(mi, mesh, face_uv, bsdf),
             "sun": {
                 "type": "directional",
@@ -160,6 +161,28 @@ def test_normal_map_frame_is_mitsubas(mi, mirrored):
     t_hand = dp_dv - (dp_dv @ n) * n - (dp_dv @ s) * s
     t_hand /= np.linalg.norm(t_hand)
     assert np.allclose(t_hand, t) != mirrored
+
+
+def test_the_normal_seen_from_behind_is_mitsubas(mi):
+    """An open surface seen from behind (the targets' twosided normal-mapped material, a quad
+    viewed from -z under lights from -z): Mitsuba's diffuse radiance is max(n' . l, 0) for the
+    normal tref.seen_normal gives for a back-seen hit, which faces the viewer; the negated one
+    (what the truth used until 2026-11-25, 175 degrees off on the back of every open mesh) fails."""
+    uv = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], np.float64)
+    target = np.array([0.45, -0.3, 0.0])
+    target[2] = math.sqrt(1 - target[0] ** 2 - target[1] ** 2)
+    v = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], np.float64)
+    mesh = TriMesh(v, np.array([[0, 1, 2], [0, 2, 3]]))
+    s, t, n = (f[0] for f in tref.mitsuba_frames(tref.uv_dp_du(mesh, uv[mesh.faces]), mesh.face_normals))
+    local = np.array([target @ s, target @ t, target @ n])
+    seen = tref.seen_normal(target[None], n[None], np.array([True]))[0]
+    assert seen @ np.array([0.0, 0.0, -1.0]) > 0  # towards the viewer at -z
+    lights = [np.array([0.6, 0.0, -0.8]), np.array([-0.6, 0.0, -0.8]), np.array([0.0, 0.6, -0.8]), np.array([0.0, -0.6, -0.8])]
+    got = np.array([_quad(mi, uv, local, light, behind=True)[0] for light in lights])
+    want = np.array([max(seen @ light, 0.0) for light in lights])
+    assert np.abs(got - want).max() < 0.01, (got, want)
+    wrong = np.array([max(-seen @ light, 0.0) for light in lights])
+    assert np.abs(got - wrong).max() > 0.3
 
 
 def _sphere_cache(tmp_path, width=64):
