@@ -66,7 +66,9 @@ def run(
         # fidelity: baked asset vs neural field from the evaluation views
         with timer("fidelity"), heartbeat(job, "rendering the baked asset for the fidelity check"):
             evalc = RayCache(eval_path)
-            store = ViewStore(evalc, torch.device(device), field.normals)
+            store = ViewStore(
+                evalc, torch.device(device), field.normals, shadows=False
+            )  # the textures' fidelity: both unshadowed
             tex = decode_textures(res.textures)
             light = field.light()
             baked = render_baked_views(evalc, res.atlas.uv, tex, res.frames, light, device, field.specular_lobe, field.brdf)

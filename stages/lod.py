@@ -142,7 +142,7 @@ def run(
     # the reference: the trained field on the traced mesh from the evaluation cameras
     with timer("reference"):
         evalc = RayCache(eval_path)
-        store = ViewStore(evalc, torch.device(device), field.normals)
+        store = ViewStore(evalc, torch.device(device), field.normals, shadows=False)  # the textures' fidelity: both unshadowed
         reference = [(evalc.view(i).pixel, linear_to_srgb(rgb)) for i, rgb in enumerate(radiance_at_hits(field, store))]
         front = evalc.front_view()
         cameras = evalc.view_set()

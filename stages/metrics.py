@@ -68,7 +68,7 @@ def run(
             field_path, "was trained on Mitsuba targets but no --targets file was given", "Pass the target stage's metrics.npz."
         )
     targets = TargetSet(targets_path, cache) if mitsuba else None
-    store = ViewStore(cache, dev, field.normals, targets)
+    store = ViewStore(cache, dev, field.normals, targets, shadows=field.shadows)
     with timer("render"):
         imgs = render_views(field, store, settings.background)
     out_dir = Path(out_dir)

@@ -120,6 +120,8 @@ def run(
                 "clip_tower": opt.objective.clip_tower,
                 "network_precision": opt.network_precision,
                 "shading_path": opt.shading_path,
+                # what the shading cast: shadows from the cache's visibility, or none (and why)
+                "shadows": shadow_record(opt.field.shadows, opt.views.cache.visibility_directions),
                 ORIGIN_KEY: opt.objective.origin,
                 "resumed_from_iteration": resumed_from,
                 "seconds_per_iteration": loop_s / iters_here,
@@ -138,7 +140,7 @@ def run(
 
 def _write_outputs(opt: Optimizer, eval_path: Path, out_dir: Path, settings: OptimizeSettings, prompt: str) -> dict:
     field_ = opt.field.eval()
-    evalc = ViewStore(RayCache(eval_path), opt.device, opt.field.normals)
+    evalc = ViewStore(RayCache(eval_path), opt.device, opt.field.normals, shadows=opt.field.shadows)
     renders = {k: [] for k in RENDER_KINDS}
     targets = []
     sims = []
@@ -195,6 +197,15 @@ def _write_outputs(opt: Optimizer, eval_path: Path, out_dir: Path, settings: Opt
     title = f"{prompt} ({opt.objective.weights_id})"
     plot_loss(out_dir / "loss.png", opt.history, title)
     return result
+
+
+def shadow_record(cast: bool, directions: int) -> dict:
+    """Whether the field cast shadows (``optimize.shadows`` and a cache with visibility) and why."""
+    if not directions:
+        return {"cast": False, "why": "the ray cache holds no visibility (raycache.visibility)"}
+    if not cast:
+        return {"cast": False, "why": "optimize.shadows: false", "directions": directions}
+    return {"cast": True, "why": f"visibility of {directions} directions per hit", "directions": directions}
 
 
 def main(argv: list[str] | None = None) -> int:

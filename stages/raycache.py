@@ -14,12 +14,22 @@ import logging
 import math
 from pathlib import Path
 
+import numpy as np
+
 from .config.sections import RaycacheSettings
 from .core.cli import stage_main
 from .core.errors import StageInputError
 from .core.provenance import Timer, metadata, write_json_atomic
 from .geometry.meshio import load_ply
-from .geometry.raycache import BYTES_PER_HIT, evaluation_views, metric_views, save_cache, trace_views, training_views
+from .geometry.raycache import (
+    BYTES_PER_HIT,
+    evaluation_views,
+    metric_views,
+    save_cache,
+    trace_cache_visibility,
+    trace_views,
+    training_views,
+)
 from .geometry.tracing import EmbreeTracer, make_tracer
 from .geometry.visibility import measure_self_occlusion
 
@@ -87,6 +97,15 @@ def run(
         occlusion["median"],
         occlusion["p95"],
     )
+    decision = visibility_decision(settings, occlusion)
+    if decision["on"]:
+        embree = tracer if settings.backend == "embree" else EmbreeTracer(mesh)
+        with timer("visibility"):
+            for name, arrays in results.items():
+                arrays["visibility"] = trace_cache_visibility(arrays, embree, settings.visibility_directions)
+                arrays["visibility_directions"] = np.int64(settings.visibility_directions)
+                summary[name]["visibility_bytes"] = int(arrays["visibility"].nbytes)
+    log.info("%s: visibility %s (%s)", in_mesh, "traced" if decision["on"] else "not traced", decision["why"])
     with timer("write"):
         save_cache(out_train, results["train"])
         save_cache(out_eval, results["eval"])
@@ -118,10 +137,28 @@ def run(
                 "bytes_per_hit": BYTES_PER_HIT,
                 "anchor": anchor_record(settings),
                 "self_occlusion": occlusion,
+                "visibility": decision,
             },
         ),
     )
     return summary
+
+
+def visibility_decision(settings: RaycacheSettings, occlusion: dict) -> dict:
+    """Whether the caches carry visibility (``raycache.visibility``; ``auto``: from the mesh's
+    measured median self-occlusion), and why, as recorded in the metadata."""
+    if settings.visibility != "auto":
+        return {
+            "on": settings.visibility == "on",
+            "why": f"visibility: {settings.visibility}",
+            "directions": settings.visibility_directions,
+        }
+    on = occlusion["median"] >= settings.visibility_auto_median
+    why = (
+        f"visibility: auto, median self-occlusion {occlusion['median']:.3f} "
+        f"{'>=' if on else '<'} visibility_auto_median {settings.visibility_auto_median}"
+    )
+    return {"on": on, "why": why, "directions": settings.visibility_directions}
 
 
 def anchor_record(settings: RaycacheSettings) -> dict:

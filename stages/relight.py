@@ -49,7 +49,7 @@ def render_edit(field, view, width: int, out: int, light, edit: MaterialEdit | N
     by ``edit`` -> ``(3, out, out)`` sRGB."""
 
     def colors(v, sel):
-        return linear_to_srgb(field(v.points[sel], v.normals[sel], v.view[sel], light, edit).shading.rgb)
+        return linear_to_srgb(v.shade(field, sel, light, edit).shading.rgb)
 
     return render_cached_view(view, width, out, colors)
 
@@ -80,7 +80,7 @@ def run(
     dev = torch.device(device)
     light = type(light)(light.axis.to(dev), light.sharpness.to(dev), light.amplitude.to(dev))
     field, _ = load_field(field_path, dev)
-    store = ViewStore(RayCache(eval_path), dev, field.normals)
+    store = ViewStore(RayCache(eval_path), dev, field.normals, shadows=field.shadows)
     out_dir = Path(out_dir)
     with staged_outputs(out_dir) as staging:
         with timer("render"):
@@ -102,7 +102,7 @@ def run(
         if graded:
             with timer("ground_truth"):
                 cache = RayCache(metrics_cache)
-                metric = ViewStore(cache, dev, field.normals)
+                metric = ViewStore(cache, dev, field.normals, shadows=field.shadows)
                 relit, truth = load_relit(truth_path, cache), TargetSet(targets_path, cache)
                 ground_truth = grade_relighting(field, metric, relit, truth, settings.lobes, settings.fit_iterations)
             for g in ground_truth:

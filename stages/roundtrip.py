@@ -61,12 +61,12 @@ class Lobes:
 
 def field_renders(field, cache: RayCache, views: list[int], device: str) -> list[Lobes]:
     """Our render of the trained field at every hit of the given views."""
-    store = ViewStore(cache, torch.device(device), field.normals)
+    store = ViewStore(cache, torch.device(device), field.normals, shadows=field.shadows)
     out = []
     for i in views:
         v = store[i]
         with torch.no_grad():
-            sh = field(v.points, v.normals, v.view).shading
+            sh = v.shade(field).shading
         out.append(Lobes(sh.diffuse.cpu().numpy().astype(np.float64), sh.specular.cpu().numpy().astype(np.float64)))
     return out
 

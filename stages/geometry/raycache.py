@@ -18,6 +18,9 @@ array                     dtype        meaning
 ``fov_deg, width``        scalars      full field of view (degrees), image width = height
 ``vertices, faces``       f4, i4       the traced mesh, so points are ``bary`` on ``faces``
 ``face_normals (F, 3)``   float32      flat face normals (right-hand rule, not flipped)
+``visibility (N, D/8)``   uint8        optional (``raycache.visibility``): per hit, the
+                                       visibility bits of ``visibility_directions`` directions
+                                       (:mod:`stages.geometry.visibility`), for shadows
 ========================  ===========  ========================================================
 
 Per hit that is 12 bytes (4 + 4 + 2 * 2); the hit point (to 1/65535 of a triangle edge, far
@@ -49,6 +52,7 @@ from .cameras import (
 from .meshio import TriMesh
 from .normals import NormalSpec, interpolate_normals
 from .tracing import EmbreeTracer
+from .visibility import fibonacci_directions, surface_offset, trace_visibility, viewer_side_normals
 
 #: bytes stored per hit: pixel index (uint32), face id (int32), barycentrics (2 x uint16)
 BYTES_PER_HIT = 4 + 4 + 2 * 2
@@ -235,6 +239,18 @@ class RayCache:
             shading = interpolate_normals(self.corner_normals(normals), face, uv, flat).astype(np.float32)
         return ViewHits(pixel, face, point.astype(np.float32), shading, direction, a["c2w"][i], self.width, flat)
 
+    @property
+    def visibility_directions(self) -> int:
+        """How many directions each hit's visibility holds (0: the cache has no visibility)."""
+        return int(self.arrays["visibility_directions"]) if "visibility" in self.arrays else 0
+
+    def visibility(self, i: int) -> np.ndarray | None:
+        """View ``i``'s visibility bits ``(N, D / 8) uint8`` in its hits' order, or None."""
+        if "visibility" not in self.arrays:
+            return None
+        lo, hi = self.arrays["offsets"][i], self.arrays["offsets"][i + 1]
+        return self.arrays["visibility"][lo:hi]
+
     def mask(self, i: int) -> np.ndarray:
         """``(W, W) bool`` coverage of view ``i``."""
         m = np.zeros(self.width * self.width, bool)
@@ -265,3 +281,18 @@ def save_cache(path: Path, arrays: dict[str, np.ndarray]) -> None:
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as fh:
             np.savez(fh, **arrays)
+
+
+def trace_cache_visibility(arrays: dict[str, np.ndarray], tracer, directions: int) -> np.ndarray:
+    """The visibility bits (:func:`~stages.geometry.visibility.trace_visibility`) of ``directions``
+    directions at every hit of a cache (``arrays`` as :func:`trace_views` returns them), each hit's
+    normal the flat face normal turned to the side its ray came from -> ``(N, directions / 8)
+    uint8``, in the cache's hit order (stored as the cache's ``visibility`` array)."""
+    cache = RayCache("<memory>", arrays)
+    dirs = fibonacci_directions(directions)
+    offset = surface_offset(arrays["vertices"])
+    parts = []
+    for i in range(len(cache)):
+        h = cache.view(i)
+        parts.append(trace_visibility(tracer, h.point, viewer_side_normals(h.face_normal, h.direction), dirs, offset))
+    return np.concatenate(parts) if parts else np.zeros((0, directions // 8), np.uint8)

@@ -34,7 +34,7 @@ def _field_radiance(field, store: ViewStore, light: SGLight) -> torch.Tensor:
     parts = []
     for i in range(len(store)):
         v = store[i]
-        parts.append(field(v.points, v.normals, v.view, light).shading.rgb)
+        parts.append(v.shade(field, light=light).shading.rgb)
     return torch.cat(parts)
 
 

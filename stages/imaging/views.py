@@ -8,9 +8,13 @@ import numpy as np
 import torch
 
 from ..config.layout import RENDER_KINDS
+from ..geometry.meshio import TriMesh
 from ..geometry.normals import NormalSpec
 from ..geometry.raycache import RayCache
-from ..model.field import StyleField
+from ..geometry.tracing import EmbreeTracer
+from ..geometry.visibility import viewer_side_normals
+from ..model.field import FieldOutput, StyleField
+from ..model.shadows import ShadowCache
 from ..render.color import linear_to_srgb
 from ..render.shading import face_viewer
 from .images import compose, gather_points, global_spec, index_map, render_cached_view
@@ -31,6 +35,19 @@ class CachedView:
     #: image targets at the hits (linear radiance ``(N, 3)``, coverage ``(N,)``), when given
     target: torch.Tensor | None = None
     coverage: torch.Tensor | None = None
+    #: the hits' shadows (each light lobe's visible share), when the field casts them and the
+    #: cache holds their visibility
+    shadows: ShadowCache | None = None
+
+    def shade(self, field: StyleField, sel: torch.Tensor | None = None, light=None, edit=None) -> FieldOutput:
+        """The field's forward pass at the hits ``sel`` (all when None), with this view's shadows."""
+        if sel is None:
+            pts, nrm, view = self.points, self.normals, self.view
+        else:
+            pts, nrm, view = self.points[sel], self.normals[sel], self.view[sel]
+        shadows = self.shadows
+        visibility = None if shadows is None else (lambda lt: shadows.shares(lt, sel))
+        return field(pts, nrm, view, light, edit, visibility=visibility)
 
 
 class ViewStore:
@@ -44,11 +61,17 @@ class ViewStore:
     leans past the face) is bent just into view (:func:`~stages.render.shading.face_viewer`),
     as renderers with shading normals do."""
 
-    def __init__(self, cache: RayCache, device, normals: NormalSpec, targets: TargetSet | None = None) -> None:
+    def __init__(
+        self, cache: RayCache, device, normals: NormalSpec, targets: TargetSet | None = None, shadows: bool = False
+    ) -> None:
+        """``shadows``: attach each view's :class:`~stages.model.shadows.ShadowCache` when the cache
+        holds visibility (for a field that casts shadows: :attr:`StyleField.shadows`)."""
         self.cache = cache
         self.device = device
         self.normals = normals
         self.targets = targets
+        self.shadows = shadows and cache.visibility_directions > 0
+        self._tracer = None
         self._views: dict[int, CachedView] = {}
 
     def __len__(self) -> int:
@@ -82,8 +105,18 @@ class ViewStore:
                 idx >= 0,
                 target,
                 coverage,
+                self._shadows(i, h) if self.shadows else None,
             )
         return self._views[i]
+
+    def _shadows(self, i: int, h) -> ShadowCache:
+        a = self.cache.arrays
+        mesh = TriMesh(a["vertices"].astype(np.float64), a["faces"].astype(np.int64))
+        if self._tracer is None:
+            self._tracer = EmbreeTracer(mesh)
+        oriented = viewer_side_normals(h.face_normal, h.direction)
+        directions = self.cache.visibility_directions
+        return ShadowCache(mesh, h.point, oriented, self._tracer, directions, bits=self.cache.visibility(i))
 
 
 @torch.no_grad()
@@ -97,7 +130,7 @@ def render_view(field: StyleField, v: CachedView, width: int, out_width: int, ch
     for lo in range(0, len(sel), chunk):
         idx = sel[lo : lo + chunk]
         pts, nrm, view = v.points[idx], v.normals[idx], v.view[idx]
-        o = field(pts, nrm, view)
+        o = v.shade(field, idx)
         outs["rgb"].append(linear_to_srgb(o.shading.rgb))
         outs["diffuse"].append(linear_to_srgb(o.shading.diffuse))
         outs["specular"].append(linear_to_srgb(o.shading.specular))
@@ -116,7 +149,7 @@ def render_views(field, store, background: str) -> torch.Tensor:
     """Every view of ``store`` rendered through the field at the cache's resolution: ``(V, 3, S, S)`` sRGB in [0, 1]."""
 
     def colors(v, sel):
-        return linear_to_srgb(field(v.points[sel], v.normals[sel], v.view[sel]).shading.rgb)
+        return linear_to_srgb(v.shade(field, sel).shading.rgb)
 
     bg = 1.0 if background == "white" else 0.0
     return torch.stack([render_cached_view(store[i], store.width, store.width, colors, bg) for i in range(len(store))])
@@ -126,4 +159,4 @@ def render_views(field, store, background: str) -> torch.Tensor:
 def radiance_at_hits(field, store: ViewStore) -> list[torch.Tensor]:
     """The field's linear radiance at every hit of every view of ``store``: per view ``(N, 3)``, in
     the ray cache's hit order (the reference that baked renders are compared with)."""
-    return [field(store[i].points, store[i].normals, store[i].view).shading.rgb for i in range(len(store))]
+    return [store[i].shade(field).shading.rgb for i in range(len(store))]

@@ -17,7 +17,13 @@ from .field import StyleField
 FIELD_FORMAT = 2
 #: settings a ``field.pt`` written before they existed was trained with (their defaults changed
 #: when they came: it must be rebuilt as it was trained, not with today's defaults)
-SETTINGS_BEFORE_THEY_EXISTED = {"specular_lobe": "isotropic", "shading_normals": "flat", "light_init": "broad", "brdf": "tango"}
+SETTINGS_BEFORE_THEY_EXISTED = {
+    "specular_lobe": "isotropic",
+    "shading_normals": "flat",
+    "light_init": "broad",
+    "brdf": "tango",
+    "shadows": False,
+}
 #: format 1's light: sharpness ``0.01 + softplus(sharpness_raw)``, amplitude ``softplus(amplitude_raw)``
 _FORMAT1_MIN_SHARPNESS = 0.01
 

@@ -6,6 +6,7 @@ hits to shaded colour that training, evaluation, relighting (a light override), 
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -116,6 +117,8 @@ class StyleField(nn.Module):
         self.symmetry = s.symmetry
         self.specular_lobe = s.specular_lobe
         self.brdf = s.brdf
+        #: whether the field casts shadows where a ray cache holds visibility (every ViewStore of it)
+        self.shadows = s.shadows
         #: the shading normals the field is trained and rendered with (every ViewStore and the bake use them)
         self.normals = NormalSpec(s.shading_normals, s.crease_angle_deg, s.normal_weighting)
         #: the networks' matrix products under bfloat16 autocast (:meth:`use_bf16`; off: float32)
@@ -188,18 +191,29 @@ class StyleField(nn.Module):
         view: Tensor,
         light: SGLight | None = None,
         edit: MaterialEdit | None = None,
+        visibility: Callable[[SGLight], Tensor] | None = None,
     ) -> FieldOutput:
         """Shade hit ``points (N, 3)`` with flat ``normals (N, 3)`` seen along ``view (N, 3)``
         (unit, surface -> eye) under the learned light, or under ``light`` (relighting), with the
-        material optionally edited (``edit``)."""
+        material optionally edited (``edit``); ``visibility``: each lobe's visible share ``(N, K)``
+        of a light (shadows; :meth:`~stages.imaging.views.CachedView.shade` passes its view's)."""
         material, normal = self.surface(points, normals, view)
         if edit is not None:
             material = edit.apply(material, self.svbrdf.min_roughness)
-        return FieldOutput(self.shade(material, normal, view, light), material, normal)
+        return FieldOutput(self.shade(material, normal, view, light, visibility), material, normal)
 
-    def shade(self, material: Material, normal: Tensor, view: Tensor, light: SGLight | None = None) -> Shading:
+    def shade(
+        self,
+        material: Material,
+        normal: Tensor,
+        view: Tensor,
+        light: SGLight | None = None,
+        visibility: Callable[[SGLight], Tensor] | None = None,
+    ) -> Shading:
         """The renderer's half of the forward pass: ``material`` and unit shading ``normal`` (from
-        :meth:`surface`) seen along ``view``, under the learned light or ``light``."""
+        :meth:`surface`) seen along ``view``, under the learned light or ``light``, shadowed by
+        ``visibility(light)`` when given."""
         light = light if light is not None else self.light()
+        shares = visibility(light) if visibility is not None else None
         fn = self.compiled_shade if self.compiled_shade is not None and self.training else shade_material
-        return fn(normal, view, material, light, self.specular_lobe)
+        return fn(normal, view, material, light, self.specular_lobe, shares)

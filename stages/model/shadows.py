@@ -52,7 +52,8 @@ class _TracedLobe:
 class ShadowCache:
     """Visibility of ``directions`` directions from ``points (N, 3)`` with ``normals (N, 3)``
     (unit, oriented to the side each point is seen from) on ``mesh``, traced once at
-    construction; :meth:`shares` gives each lobe's visible share. ``samples`` shadow rays per point
+    construction, or ``bits`` already traced (a ray cache's ``visibility``, of ``directions``
+    directions); :meth:`shares` gives each lobe's visible share. ``samples`` shadow rays per point
     for a sharp lobe, drawn with ``seed``."""
 
     def __init__(
@@ -65,6 +66,7 @@ class ShadowCache:
         samples: int = 64,
         seed: int = 0,
         tolerance: float = 0.25,
+        bits: np.ndarray | None = None,
     ) -> None:
         t0 = time.perf_counter()
         self.points = np.asarray(points, np.float64)
@@ -72,7 +74,11 @@ class ShadowCache:
         self.tracer = tracer
         self.offset = surface_offset(mesh.vertices)
         self.directions = fibonacci_directions(directions)
-        self.bits = trace_visibility(tracer, self.points, self.normals, self.directions, self.offset)
+        if bits is None:
+            bits = trace_visibility(tracer, self.points, self.normals, self.directions, self.offset)
+        elif bits.shape != (len(self.points), (directions + 7) // 8):
+            raise ValueError(f"visibility bits of shape {bits.shape} for {len(self.points)} points and {directions} directions")
+        self.bits = bits
         self.samples, self.seed, self.tolerance = samples, seed, tolerance
         self.resolvable = resolvable_sharpness(directions)
         self._lobes: dict[int, _TracedLobe] = {}

@@ -50,7 +50,7 @@ class Optimizer:
         #: what the networks' products ran in during training, for the metadata
         self.network_precision = self.field.use_bf16(settings.bf16_networks, self.device)
         self.shading_path = self.field.use_compiled_shading(settings.compile_shading)
-        self.views = ViewStore(train, self.device, self.field.normals, targets)
+        self.views = ViewStore(train, self.device, self.field.normals, targets, shadows=self.field.shadows)
         self.prompt = prompt
         self.opt = torch.optim.AdamW(self.param_groups(), lr=settings.lr, weight_decay=settings.weight_decay)
         self.sched = torch.optim.lr_scheduler.MultiStepLR(self.opt, milestones=list(settings.milestones), gamma=settings.gamma)
@@ -154,9 +154,8 @@ class Optimizer:
             globals_, crops, globals_t, crops_t = [], [], [], []
             npts = 0
             for v, sel, specs, lookups, bgs in batches:
-                pts, nrm, view = v.points[sel], v.normals[sel], v.view[sel]
                 npts += len(sel)
-                color = linear_to_srgb(self.field(pts, nrm, view).shading.rgb)
+                color = linear_to_srgb(v.shade(self.field, sel).shading.rgb)
                 imgs = [compose(color, lk, sp, bg) for lk, sp, bg in zip(lookups, specs, bgs, strict=True)]
                 globals_.append(imgs[0])
                 crops.extend(imgs[1:])

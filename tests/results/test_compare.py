@@ -35,6 +35,7 @@ BASE = {
     "optimize.light_init": "tango",
     "optimize.light_lr": 0.02,
     "optimize.brdf": "gltf",
+    "optimize.shadows": True,
     "bake.texture_size": 512,
 }
 #: what switches a component of TANGO off, written out here (not read from the code under test)
@@ -48,6 +49,7 @@ OFF = {
     "light_init": "broad",
     "light_lr": None,
     "brdf": "tango",
+    "shadows": False,
 }
 
 
@@ -80,7 +82,7 @@ def test_each_switch_off_is_an_ablation(switch):
     assert is_ablation(differing_keys(BASE, s), s)
     # the same key changed to something other than "off" is a sweep, not an ablation
     other = {"specular": True, "normal_network": True, "crops": 2, "light_rgb": True, "light_init": "spread"}
-    other = {**other, "light_lr": 0.01, "brdf": "gltf"}.get(switch, "fourier")
+    other = {**other, "light_lr": 0.01, "brdf": "gltf", "shadows": True}.get(switch, "fourier")
     if other != BASE[f"optimize.{switch}"]:
         s2 = with_(**{switch: other})
         assert not is_ablation(differing_keys(BASE, s2), s2)
