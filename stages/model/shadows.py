@@ -93,11 +93,12 @@ class ShadowCache:
 
     def quadrature(self, light: SGLight, index: Tensor | None = None) -> Tensor:
         """Each lobe's share by quadrature alone at the points ``index`` (all when None) -> ``(n, K)``."""
-        bits = self._bits if index is None else self._bits[index]
-        normal = self._normals if index is None else self._normals[index]
-        dirs = self._dirs.to(light.axis.dtype)
-        visible = unpack_bits(bits, len(self.directions), light.axis.dtype)
-        return lobe_visibility(normal.to(light.axis.dtype), visible, dirs, light.axis, light.sharpness)
+        dev, dtype = light.axis.device, light.axis.dtype
+        idx = None if index is None else index.cpu()  # the stored bits stay on the CPU
+        bits = (self._bits if idx is None else self._bits[idx]).to(dev)
+        normal = (self._normals if idx is None else self._normals[idx]).to(dev, dtype)
+        visible = unpack_bits(bits, len(self.directions), dtype)
+        return lobe_visibility(normal, visible, self._dirs.to(dev, dtype), light.axis, light.sharpness)
 
     def traced(self, light: SGLight, index: Tensor | None = None) -> Tensor:
         """Each lobe's share from shadow rays drawn from it -> ``(n, K)`` (no gradient): ones for the
