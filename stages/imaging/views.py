@@ -116,7 +116,8 @@ class ViewStore:
             self._tracer = EmbreeTracer(mesh)
         oriented = viewer_side_normals(h.face_normal, h.direction)
         directions = self.cache.visibility_directions
-        return ShadowCache(mesh, h.point, oriented, self._tracer, directions, bits=self.cache.visibility(i))
+        # the quadrature for every lobe (samples 0): see ShadowCache
+        return ShadowCache(mesh, h.point, oriented, self._tracer, directions, samples=0, bits=self.cache.visibility(i))
 
 
 @torch.no_grad()

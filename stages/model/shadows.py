@@ -54,7 +54,9 @@ class ShadowCache:
     (unit, oriented to the side each point is seen from) on ``mesh``, traced once at
     construction, or ``bits`` already traced (a ray cache's ``visibility``, of ``directions``
     directions); :meth:`shares` gives each lobe's visible share. ``samples`` shadow rays per point
-    for a sharp lobe, drawn with ``seed``."""
+    for a sharp lobe, drawn with ``seed``; 0: the quadrature for every lobe (a sharp lobe then sees
+    the stored directions nearest its axis: the training's path, where lobes move at every step and
+    would be traced again at every step)."""
 
     def __init__(
         self,
@@ -125,7 +127,7 @@ class ShadowCache:
         """Each lobe's visible share at the points ``index`` (all when None) -> ``(n, K)`` in [0, 1]:
         the quadrature for the lobes it resolves, shadow rays for sharper ones, blended between."""
         quad = self.quadrature(light, index)
-        if not bool((light.sharpness > self.resolvable).any()):
+        if self.samples == 0 or not bool((light.sharpness > self.resolvable).any()):
             return quad
         return blend_traced(quad, self.traced(light, index), light.sharpness, self.resolvable)
 

@@ -86,3 +86,14 @@ def test_sharp_lobes_are_traced_once_and_again_only_when_moved():
     shadows.shares(moved, torch.tensor([0, 1]))
     assert lobe.traces == 5
     assert shadows.blocked_share().shape == (13,) and shadows.seconds > 0
+
+
+def test_without_samples_every_lobe_takes_the_quadrature():
+    """samples=0 (the training's path): a sun sees the nearest stored directions, so the ball's
+    shadow is still cast, at the directions' resolution, and nothing is traced."""
+    mesh, points, normals = _scene()
+    shadows = ShadowCache(mesh, points, normals, EmbreeTracer(mesh), directions=1024, samples=0)
+    up = shadows.shares(_light([[0.0, 0.0, 1.0]], [1e4]))[:, 0].numpy()
+    x = points[:, 0]
+    assert (up[x < 0.8] < 0.05).all() and (up[x > 1.3] > 0.95).all(), up
+    assert not shadows._lobes
