@@ -437,7 +437,7 @@ class _TruthField(torch.nn.Module):
         self.truth, self.baked, self.at, self.gain = truth, baked, 0, gain
         self.specular_lobe = "fitted"
 
-    def forward(self, points, normals, view, light):
+    def forward(self, points, normals, view, light=None, edit=None, visibility=None):
         from types import SimpleNamespace
 
         from stages.render.shading import face_viewer, shade
