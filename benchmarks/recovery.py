@@ -22,6 +22,13 @@ the environment's, and the optimisation's wall time.
     python benchmarks/recovery.py --meshes builtin --presets balanced --set light_prune_after=200  # light "auto"
     python benchmarks/recovery.py --meshes builtin --material metal \
         --variant "before:light_init=broad,light_lr=null" --variant after: --variant "gltf:brdf=gltf"
+    python benchmarks/recovery.py --meshes builtin --presets fast --visibility on \
+        --variant "off:shadows=false" --variant on:        # shadows off and on, on the same cache
+
+``--visibility`` is the cache's ``raycache.visibility`` (``off`` by default): with ``on`` the cache
+carries the visibility bits and a variant ``shadows=false`` fits the same cache without shadows,
+so off and on differ only in the shading; ``auto``'s outcome for any threshold follows from the
+``self_occlusion`` column.
 
 With ``--decimate N`` (or ``budget``: the face budget of the cache, as the decimate stage's
 ``mode: budget`` computes it, ``budget:P`` with ``P`` pixels per face; a comma-separated list
@@ -51,6 +58,7 @@ sys.path[:0] = [str(REPO), str(REPO / "tests"), str(REPO / "tests" / "training")
 
 COLUMNS = (
     "mesh",
+    "self_occlusion",
     "variant",
     "decimate",
     "faces",
@@ -69,6 +77,7 @@ COLUMNS = (
     "normal_angle_deg_mean",
     "light_energy_ratio",
     "light_lobes",
+    "shadows",
     "optimize_s",
 )
 
@@ -111,11 +120,14 @@ def mesh_sources(spec: str) -> list[tuple[str, str]]:
     return out
 
 
-def prepare(work: Path, source: str, material: str, decimate: int | str | None = None, resolution: int = 96) -> tuple[int, int]:
+def prepare(
+    work: Path, source: str, material: str, decimate: int | str | None = None, resolution: int = 96, visibility: str = "off"
+) -> tuple[int, int, float]:
     """Normalise ``source`` (and decimate it to ``decimate`` faces, or with ``"budget"`` to the
     face budget of the recovery cache, the decimate stage's ``mode: budget``), build the recovery
     cache on the mesh to fit and render the Mitsuba targets of the full-resolution mesh into
-    ``work``; returns the fitted and the full-resolution face counts."""
+    ``work`` (the cache with ``raycache.visibility`` = ``visibility``); returns the fitted and the
+    full-resolution face counts and the fitted mesh's median self-occlusion."""
     from test_optimize import MITSUBA_TARGET, RECOVERY_CACHE
 
     from stages import target as target_stage
@@ -129,7 +141,7 @@ def prepare(work: Path, source: str, material: str, decimate: int | str | None =
     save_ply(work / "full.ply", full)
     mesh = full
     sizes = {k: resolution for k in ("resolution", "eval_resolution", "metrics_resolution")}
-    cache = dataclasses.replace(RECOVERY_CACHE, **sizes)
+    cache = dataclasses.replace(RECOVERY_CACHE, **sizes, visibility=visibility)
     if isinstance(decimate, str) and decimate.startswith("budget"):  # "budget" or "budget:<pixels per face>"
         per_face = float(decimate.split(":", 1)[1]) if ":" in decimate else 1.0
         decimate = mesh_face_budget(full, cache, per_face).faces
@@ -138,7 +150,8 @@ def prepare(work: Path, source: str, material: str, decimate: int | str | None =
     save_ply(work / "mesh.ply", mesh)
     raycache_run(work / "mesh.ply", work / "train.npz", work / "eval.npz", work / "rc.json", cache, work / "metrics.npz")
     target_stage.run(work / "train.npz", work / "metrics.npz", material, work / "target", MITSUBA_TARGET, work / "full.ply")
-    return len(mesh.faces), len(full.faces)
+    occlusion = json.loads((work / "rc.json").read_text())["self_occlusion"]["median"]
+    return len(mesh.faces), len(full.faces), occlusion
 
 
 def fit(
@@ -200,6 +213,7 @@ def fit(
         "normal_angle_deg_mean": round(mat["normal_angle_deg_mean"], 1),
         "light_energy_ratio": "/".join(f"{x:.2f}" for x in mat["light_energy_ratio"]),
         "light_lobes": meta["light_lobes"],
+        "shadows": meta["shadows"]["cast"],
         "optimize_s": round(seconds, 1),
     }
 
@@ -228,6 +242,7 @@ def main() -> None:
         "cache, P pixels per face, default 1); full-resolution targets",
     )
     parser.add_argument("--resolution", type=int, default=96, help="pixels of the cached views and of the fitted images")
+    parser.add_argument("--visibility", default="off", help="the cache's raycache.visibility (off, auto, on)")
     parser.add_argument("--material", default="wood", help="the procedural target material (wood, metal, chrome, plaster)")
     parser.add_argument("--out", type=Path, default=REPO / "results" / "benchmarks" / "recovery.csv")
     args = parser.parse_args()
@@ -245,7 +260,7 @@ def main() -> None:
             with tempfile.TemporaryDirectory() as d:
                 work = Path(d)
                 t0 = time.perf_counter()
-                faces, full_faces = prepare(work, source, args.material, decimate, args.resolution)
+                faces, full_faces, occlusion = prepare(work, source, args.material, decimate, args.resolution, args.visibility)
                 took = time.perf_counter() - t0
                 print(f"{name}: {faces} faces fitted ({full_faces} rendered), cache and targets in {took:.0f} s", flush=True)
                 lobes, normals_list = args.specular_lobe.split(","), args.shading_normals.split(",")
@@ -262,6 +277,7 @@ def main() -> None:
                 for preset, lobe, normals, precision, (variant, extra) in combos:
                     row = {
                         "mesh": name,
+                        "self_occlusion": round(occlusion, 3),
                         "decimate": level,
                         "faces": faces,
                         "full_faces": full_faces,
@@ -274,7 +290,7 @@ def main() -> None:
                         f"SSIM {row['ssim']:.3f}  (noise {row['target_noise_psnr_db']} dB)  "
                         f"albedo {row['albedo_rmse']:.3f} ({row['albedo_rmse_scaled']})  roughness {row['roughness_mae']:.3f}  "
                         f"normal {row['normal_angle_deg_mean']} deg  light {row['light_energy_ratio']} "
-                        f"({row['light_lobes']} lobes)  {row['optimize_s']:.0f} s",
+                        f"({row['light_lobes']} lobes)  shadows {row['shadows']}  {row['optimize_s']:.0f} s",
                         flush=True,
                     )
         # the table so far, rewritten whole after each mesh (temp file + rename)

@@ -47,6 +47,8 @@ def main() -> None:
     parser.add_argument("--lobes", type=int, nargs="*", default=[32])
     parser.add_argument("--brdf", default="tango,gltf", help="the model's BRDFs, comma-separated (tango, gltf)")
     parser.add_argument("--visibility", default="off", help="our renderer's shadows, comma-separated (off, on)")
+    parser.add_argument("--directions", type=int, default=1024, help="stored visibility directions (shadows cast)")
+    parser.add_argument("--shadow-samples", type=int, default=64, help="shadow rays per lobe too sharp for the directions")
     args = parser.parse_args()
     shadowed = [v == "on" for v in args.visibility.split(",") if v]
     brdfs = [b for b in args.brdf.split(",") if b]
@@ -63,7 +65,16 @@ def main() -> None:
             cache = RayCache(Path(d) / "m.npz")
             renderer = TargetRenderer(mesh, material, TargetSettings(texture_size=1024))
             for brdf, vis in ((b, v) for b in brdfs for v in shadowed):
-                r = measure_limits(renderer, cache, args.spp, tuple(args.lobes), brdf=brdf, visibility=vis)
+                r = measure_limits(
+                    renderer,
+                    cache,
+                    args.spp,
+                    tuple(args.lobes),
+                    brdf=brdf,
+                    visibility=vis,
+                    directions=args.directions,
+                    shadow_samples=args.shadow_samples,
+                )
                 name = f"{Path(source).stem if '/' in source else source[8:]} ({len(mesh.faces)} faces), {material}, {brdf} BRDF"
                 name += ", shadows cast" if vis else ""
                 parts = []
@@ -82,7 +93,8 @@ def main() -> None:
                     so = r["self_occlusion"]
                     parts.append(
                         f"self-occlusion mean {so['mean']:.3f}, median {so['median']:.3f}, p95 {so['p95']:.3f}; "
-                        f"visibility traced in {r['visibility']['seconds']:.1f} s"
+                        f"visibility ({args.directions} directions, {args.shadow_samples} rays per sharp lobe) "
+                        f"traced in {r['visibility']['seconds']:.1f} s"
                     )
                 print(
                     f"{name}: noise {r['noise_mse']:.1e}, interreflection {r['interreflection_mse']:.2e}, "

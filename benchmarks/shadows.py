@@ -2,11 +2,11 @@
 with shadows against without, measured side by side on the same cache (issue 32's aim: at most
 15% more per step at the paper's counts).
 
-Per mesh: normalise, the raycache stage with ``visibility: on`` (``--directions``), then the
-optimize stage twice on that cache, ``shadows: false`` and ``shadows: true``, alternating
-``--repeats`` times, with the tiny test CLIP (the step's guidance cost is CLIP's, the same in both:
-see ``benchmarks/optimize.py`` for the real tower) and the preset's settings; printed: the
-visibility's seconds and bytes per hit, each run's seconds per iteration, and the ratio.
+Per mesh: normalise, the raycache stage with ``visibility: on`` (``--directions``), then the real
+training step (``Optimizer.step``) at the paper's counts (one view, a 224-pixel global image and
+four local crops, CLIP ViT-B/32 with random weights, networks of width 256, 32 light lobes; or a
+preset's) with ``shadows: false`` and ``shadows: true`` on that cache, alternating ``--repeats``
+times; printed: the visibility's seconds and bytes per hit, seconds per step of each, and the ratio.
 
     python benchmarks/shadows.py                                  # the knot, the paper's counts
     python benchmarks/shadows.py --meshes knot,vase --preset fast --directions 256,512
@@ -26,10 +26,26 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 
+def step_seconds(train: Path, settings: dict, shadows: bool, steps: int) -> float:
+    """Mean seconds of the real step (``benchmarks/optimize.py``'s timing, CLIP ViT-B/32 with
+    random weights at 224 pixels) with ``optimize.shadows`` = ``shadows``."""
+    import importlib.util
+
+    from stages.config.sections import OptimizeSettings
+
+    spec = importlib.util.spec_from_file_location("bench_optimize", REPO / "benchmarks" / "optimize.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    s = OptimizeSettings(**{**settings, "shadows": shadows})
+    opt = bench.make_optimizer(s, train, bench.vit_b32_random(bf16=s.bf16, tower=s.clip_tower))
+    assert (opt.views[0].shadows is not None) == shadows
+    return bench.step_time(opt, steps)[0]
+
+
 def main() -> None:
-    from stages import optimize, raycache
+    from stages import raycache
     from stages.config.presets import PRESETS
-    from stages.config.sections import NormalizeSettings, OptimizeSettings, RaycacheSettings
+    from stages.config.sections import NormalizeSettings, RaycacheSettings
     from stages.geometry.meshio import save_ply
     from stages.geometry.normalization import normalize_mesh
 
@@ -37,13 +53,16 @@ def main() -> None:
     parser.add_argument("--meshes", default="knot", help="built-in meshes or paths, comma-separated")
     parser.add_argument("--preset", default="paper", help="paper (the schema's defaults) or a preset's name")
     parser.add_argument("--directions", default="512", help="visibility directions, comma-separated")
-    parser.add_argument("--views", type=int, default=16, help="training views in the cache")
+    parser.add_argument("--views", type=int, default=8, help="training views in the cache")
     parser.add_argument("--resolution", type=int, default=512, help="the cache's pixels (TANGO: 512)")
-    parser.add_argument("--iterations", type=int, default=12)
+    parser.add_argument("--steps", type=int, default=6, help="timed steps per run (after a warm-up)")
     parser.add_argument("--repeats", type=int, default=2)
     args = parser.parse_args()
-    preset = {} if args.preset == "paper" else dict(PRESETS[args.preset])
-    base = {**preset, "iterations": args.iterations, "clip_tiny_test": True, "image_size": 64, "checkpoint_every": 10**6}
+    import torch
+
+    torch.set_num_threads(2)
+    settings = {} if args.preset == "paper" else dict(PRESETS[args.preset])
+    settings = {"crops": 4, "width": 256, "light_lobes": 32, **settings} if args.preset == "paper" else settings
     for name in args.meshes.split(","):
         source = f"builtin:{name}" if "/" not in name and "." not in name else name
         with tempfile.TemporaryDirectory() as tmp:
@@ -65,16 +84,13 @@ def main() -> None:
                     flush=True,
                 )
                 seconds = {False: [], True: []}
-                for r in range(args.repeats):
+                for _ in range(args.repeats):
                     for shadows in (False, True):
-                        s = OptimizeSettings(**{**base, "shadows": shadows})
-                        out = d / f"opt-{directions}-{shadows}-{r}"
-                        optimize.run(d / "train.npz", d / "eval.npz", f"a {name} made of wood", out, s, "cpu")
-                        seconds[shadows].append(json.loads((out / "meta.json").read_text())["seconds_per_iteration"])
+                        seconds[shadows].append(step_seconds(d / "train.npz", settings, shadows, args.steps))
                 off, on = statistics.median(seconds[False]), statistics.median(seconds[True])
+                runs = f"{[round(x, 3) for x in seconds[False]]} / {[round(x, 3) for x in seconds[True]]}"
                 print(
-                    f"  {args.preset}: {off:.3f} s per iteration without shadows, {on:.3f} s with "
-                    f"(x{on / off:.2f}; runs {seconds[False]} / {seconds[True]})",
+                    f"  {args.preset}: {off:.3f} s per step without shadows, {on:.3f} s with (x{on / off:.2f}; runs {runs})",
                     flush=True,
                 )
 

@@ -1,9 +1,12 @@
 """bake: unwrap the mesh with xatlas and bake the trained field into PBR textures.
 
 The field is evaluated at every covered texel centre (base colour, roughness, specular colour and
-the predicted normal in tangent space), the learned SG light is written as an equirectangular image
-(``light.exr`` and ``light.hdr``), and the baked asset is rendered back from the evaluation views
-and compared with the field's own renders (PSNR over object pixels). Conventions (texel centres,
+the predicted normal in tangent space), the ambient occlusion is written into the
+metallic-roughness texture's red channel where the field was trained with shadows
+(``bake.occlusion``; :func:`~stages.assets.baking.occlusion_decision`), the learned SG light is
+written as an equirectangular image (``light.exr`` and ``light.hdr``), and the baked asset is
+rendered back from the evaluation views and compared with the field's own renders (PSNR over object
+pixels). Conventions (texel centres,
 ``st``, the tangent frame) are in :mod:`stages.assets.baking`.
 """
 
@@ -15,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .assets.baking import bake_field, decode_textures, render_baked_views
+from .assets.baking import bake_field, decode_textures, occlusion_decision, occlusion_samples, render_baked_views
 from .config.sections import BakeSettings
 from .core.cli import stage_main
 from .core.errors import StageInputError
@@ -50,9 +53,13 @@ def run(
     with timer("load"):
         mesh = load_ply(mesh_path)
         field, opt_settings = load_field(field_path, device)
+        evalc = RayCache(eval_path)
     job = job_label("bake", out_dir)
+    occlusion = occlusion_decision(settings.occlusion, field, evalc)
+    with timer("occlusion"), heartbeat(job, "tracing the ambient occlusion"):
+        ao = occlusion_samples(mesh, occlusion, settings)
     with timer("bake"), heartbeat(job, f"unwrapping and baking {len(mesh.faces)} faces"):
-        res = bake_field(mesh, field, settings, device)
+        res = bake_field(mesh, field, settings, device, ao)
     out_dir = Path(out_dir)
     with staged_outputs(out_dir) as staging:
         with timer("write"):
@@ -65,7 +72,6 @@ def run(
                     np.savez(fh, uv=res.atlas.uv.astype(np.float32), **res.frames.arrays())
         # fidelity: baked asset vs neural field from the evaluation views
         with timer("fidelity"), heartbeat(job, "rendering the baked asset for the fidelity check"):
-            evalc = RayCache(eval_path)
             store = ViewStore(
                 evalc, torch.device(device), field.normals, shadows=False
             )  # the textures' fidelity: both unshadowed
@@ -90,6 +96,8 @@ def run(
             "faces": len(mesh.faces),
             # the BRDF the textures hold (optimize.brdf): the exporters map them accordingly
             "brdf": field.brdf,
+            # the ambient occlusion map in metallic_roughness.png's red channel (bake.occlusion)
+            "occlusion": {**occlusion, **(ao.summary() if ao is not None else {})},
             "bake_psnr_db": bake_psnr,
             "bake_psnr_pixels": "object pixels of the evaluation views, sRGB, baked textures vs neural field",
         }

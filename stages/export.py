@@ -60,8 +60,12 @@ def run(
                     shutil.copyfile(bake_dir / fname, tmp)
             with atomic_path(staging / "preview.png") as tmp:
                 shutil.copyfile(preview, tmp)
-        brdf = json.loads((bake_dir / "meta.json").read_text()).get("stats", {}).get("brdf", "tango")
-        checked = write_model_files(staging, geom, settings.meters_per_unit, settings.usdz_root, name, origin, timer, brdf)
+        bake_stats = json.loads((bake_dir / "meta.json").read_text()).get("stats", {})
+        brdf = bake_stats.get("brdf", "tango")
+        occlusion = bool(bake_stats.get("occlusion", {}).get("baked", False))
+        checked = write_model_files(
+            staging, geom, settings.meters_per_unit, settings.usdz_root, name, origin, timer, brdf, occlusion
+        )
         usd, gltf = checked["usd"], checked["gltf"]
         with Image.open(staging / TEXTURE_FILES["basecolor"]) as img:
             texture_size = int(img.size[0])
@@ -72,6 +76,7 @@ def run(
             "file_bytes": {f: (staging / f).stat().st_size for f in ("model.glb", "model.usdz", "model.usda")},
             "texture_size": texture_size,
             "brdf": brdf,
+            "occlusion": occlusion,
             "usd_validation": usd,
             "usd_validators": usd[0]["validators"],
             "usd_validation_errors": sum(r["errors"] for r in usd),

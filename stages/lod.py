@@ -28,7 +28,7 @@ import numpy as np
 import torch
 from PIL import Image
 
-from .assets.baking import bake_level, decode_textures, render_baked_views
+from .assets.baking import bake_level, decode_textures, occlusion_samples, render_baked_views
 from .assets.formats import (
     Level,
     check_reports,
@@ -138,6 +138,11 @@ def run(
     tf_export = tf if export_settings.units == "original" else None
     light = field.light()
     lobe = field.specular_lobe
+    # the levels' occlusion maps: where the bake wrote one, from the same samples of the fine surface
+    occlusion = bake_meta["stats"].get("occlusion", {"baked": False})
+    with timer("occlusion"):
+        ao = occlusion_samples(mesh, occlusion, bake_settings)
+    baked_ao = ao is not None
 
     # the reference: the trained field on the traced mesh from the evaluation cameras
     with timer("reference"):
@@ -191,7 +196,7 @@ def run(
             search = settings.cage * hausdorff + 1e-6
             size = settings.level_texture_size(full_size, fraction)
             with t_dec("bake"):
-                res = bake_level(mesh, low, field, size, bake_settings, search, device)
+                res = bake_level(mesh, low, field, size, bake_settings, search, device, ao)
             with t_dec("write"):
                 for key, rel in TEXTURE_FILES.items():
                     save_png(staging / tag / rel, res.textures[key])
@@ -208,7 +213,7 @@ def run(
                     with open(tmp, "wb") as fh:
                         np.savez(fh, uv=res.texels.atlas.uv.astype(np.float32), **res.frames.arrays())
                 mpu, root = export_settings.meters_per_unit, export_settings.usdz_root
-                checked = write_model_files(staging / tag, geom, mpu, root, name, origin, brdf=field.brdf)
+                checked = write_model_files(staging / tag, geom, mpu, root, name, origin, brdf=field.brdf, occlusion=baked_ao)
             with t_dec("grade"):
                 fidelity, image = grade(low, res.texels.atlas.uv, res.textures, res.frames)
                 images.append(image)
@@ -267,7 +272,9 @@ def run(
             switch = {"tango_stylize_lod": {"levels": [r["level"] for r in rows], "msft_screencoverage": coverage}}
             with atomic_path(staging / "model_lods.usda") as tmp:
                 tmp.unlink()
-                write_usd(tmp, levels, export_settings.meters_per_unit, "light.exr", origin, switch, brdf=field.brdf)
+                write_usd(
+                    tmp, levels, export_settings.meters_per_unit, "light.exr", origin, switch, brdf=field.brdf, occlusion=baked_ao
+                )
             files = [f"{lv.textures}/{key}.png" for lv in levels for key in TEXTURE_FILES] + ["light.exr"]
             package_usdz(staging / "model_lods.usda", staging / "model_lods.usdz", files, export_settings.usdz_root)
             write_glb(
@@ -280,6 +287,7 @@ def run(
                 lods=[(lv.geom, staging / lv.textures) for lv in levels[1:]],
                 screen_coverage=coverage,
                 brdf=field.brdf,
+                occlusion=baked_ao,
             )
         with timer("validate"):
             checked = {rel: validate_usd(staging / rel) for rel in ("model_lods.usda", "model_lods.usdz")}

@@ -146,17 +146,17 @@ def run(
 
 def visibility_decision(settings: RaycacheSettings, occlusion: dict) -> dict:
     """Whether the caches carry visibility (``raycache.visibility``; ``auto``: from the mesh's
-    measured median self-occlusion), and why, as recorded in the metadata."""
+    measured self-occlusion at its 95th percentile), and why, as recorded in the metadata."""
     if settings.visibility != "auto":
         return {
             "on": settings.visibility == "on",
             "why": f"visibility: {settings.visibility}",
             "directions": settings.visibility_directions,
         }
-    on = occlusion["median"] >= settings.visibility_auto_median
+    on = occlusion["p95"] >= settings.visibility_auto_p95
     why = (
-        f"visibility: auto, median self-occlusion {occlusion['median']:.3f} "
-        f"{'>=' if on else '<'} visibility_auto_median {settings.visibility_auto_median}"
+        f"visibility: auto, self-occlusion p95 {occlusion['p95']:.3f} "
+        f"{'>=' if on else '<'} visibility_auto_p95 {settings.visibility_auto_p95}"
     )
     return {"on": on, "why": why, "directions": settings.visibility_directions}
 

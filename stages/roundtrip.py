@@ -151,7 +151,9 @@ def run(
                 if name != "full":
                     lobes[name] = res.renders
                     continue
-                checks = check_import(res, geom, mpu, export_meta.get("stats", {}).get("brdf", "tango"))
+                exported = export_meta.get("stats", {})
+                occlusion = bool(exported.get("occlusion", False)) and fmt == "glb"  # Blender's USD importer drops it
+                checks = check_import(res, geom, mpu, exported.get("brdf", "tango"), occlusion)
                 world = [n["node"] for n in res.report.get("world", {}).get("nodes", [])]
                 if "TEX_ENVIRONMENT" not in world:
                     checks["problems"].append("the world has no environment texture (the learned light did not arrive)")

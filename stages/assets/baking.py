@@ -30,13 +30,14 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from ..config.sections import BakeSettings
+from ..config.sections import BakeSettings, RaycacheSettings
 from ..geometry.atlas import Atlas, dilate, rasterize_atlas, sample_bilinear, unwrap
 from ..geometry.meshio import TriMesh
 from ..geometry.normals import NormalSpec, interpolate_normals
 from ..geometry.raycache import dequantize_bary
 from ..geometry.tangents import CornerFrames, from_tangent_space, to_tangent_space
 from ..geometry.tracing import EmbreeTracer
+from ..geometry.visibility import OcclusionSamples, fibonacci_directions
 from ..model.field import shade_material
 from ..model.networks import Material
 from ..render.color import srgb_decode, srgb_encode, to_u8
@@ -100,12 +101,19 @@ def evaluate_surface(field, points: np.ndarray, normals: np.ndarray, device="cpu
     return {k: torch.cat(v).cpu().double().numpy() for k, v in out.items() if v}
 
 
-def texture_images(texels: AtlasTexels, surface: dict[str, np.ndarray], tangent_normal: np.ndarray, dilation: int) -> dict:
+def texture_images(
+    texels: AtlasTexels,
+    surface: dict[str, np.ndarray],
+    tangent_normal: np.ndarray,
+    dilation: int,
+    occlusion: np.ndarray | None = None,
+) -> dict:
     """The four 8-bit texture images (see the module docstring) from the per-texel ``surface``
     (:func:`evaluate_surface`) and the normal in tangent space, with empty texels dilated. Base
     colour: TANGO's diffuse albedo, or glTF's base colour; the metallic-roughness texture's blue
-    channel: 0, or glTF's metallic; ``specular``: the F0 either way (for glTF's BRDF a preview of
-    ``lerp(0.04, base, metallic)``; its assets do not read it)."""
+    channel: 0, or glTF's metallic; its red channel: the per-texel ambient ``occlusion (M,)``
+    (glTF's occlusion-roughness-metallic packing), or 1 without one; ``specular``: the F0 either
+    way (for glTF's BRDF a preview of ``lerp(0.04, base, metallic)``; its assets do not read it)."""
     s = texels.atlas.size
     filled = texels.filled
     base = np.zeros((s, s, 3))
@@ -113,6 +121,9 @@ def texture_images(texels: AtlasTexels, surface: dict[str, np.ndarray], tangent_
     spc = np.zeros((s, s, 3))
     rgh = np.ones((s, s, 1))
     metal = np.zeros((s, s, 1))
+    occl = np.ones((s, s, 1))
+    if occlusion is not None:
+        occl[filled, 0] = occlusion
     if "specular" in surface:
         spc[filled] = surface["specular"]
         rgh[filled] = surface["roughness"]
@@ -121,8 +132,8 @@ def texture_images(texels: AtlasTexels, surface: dict[str, np.ndarray], tangent_
     nrm = np.zeros((s, s, 3))
     nrm[..., 2] = 1.0
     nrm[filled] = tangent_normal
-    base, spc, rgh, metal, nrm = (dilate(x, filled, dilation) for x in (base, spc, rgh, metal, nrm))
-    mr = np.concatenate([np.ones((s, s, 1)), rgh, metal], axis=-1)  # R unused, G rough, B metal
+    base, spc, rgh, metal, nrm, occl = (dilate(x, filled, dilation) for x in (base, spc, rgh, metal, nrm, occl))
+    mr = np.concatenate([occl, rgh, metal], axis=-1)  # R occlusion (or 1), G rough, B metal
     return {
         "basecolor": to_u8(srgb_encode(base)),
         "metallic_roughness": to_u8(mr),
@@ -141,14 +152,47 @@ def light_image(field, width: int, device="cpu") -> np.ndarray:
     return env.reshape(h, width, 3).cpu().numpy().astype(np.float32)
 
 
-def bake_field(mesh: TriMesh, field, settings: BakeSettings, device="cpu") -> BakeResult:
-    """Unwrap ``mesh``, rasterise the atlas and evaluate ``field`` at every covered texel."""
+def occlusion_decision(setting: str, field, cache) -> dict:
+    """Whether the bake writes an ambient occlusion map (``bake.occlusion``) for ``field`` trained
+    on a ray ``cache``: ``{"baked", "why", "directions"}``. ``auto``: where the field cast shadows
+    (``optimize.shadows`` and a cache with visibility), so that its albedo holds none and a
+    viewer's own ambient light needs the occlusion; a field trained without shadows painted them
+    into its albedo, and an occlusion map would darken them twice. The directions are the cache's
+    (``raycache.visibility_directions``), or that setting's default without visibility."""
+    traced = int(cache.visibility_directions)
+    directions = traced or RaycacheSettings().visibility_directions
+    if setting != "auto":
+        baked, why = setting == "on", f"bake.occlusion: {setting}"
+    elif not field.shadows:
+        baked, why = False, "auto: the field was trained without shadows (optimize.shadows: false)"
+    elif not traced:
+        baked, why = False, "auto: the ray cache holds no visibility (raycache.visibility)"
+    else:
+        baked, why = True, "auto: the field was trained with shadows"
+    return {"baked": baked, "why": why, "directions": directions}
+
+
+def occlusion_samples(mesh: TriMesh, decision: dict, settings: BakeSettings, seed: int = 0) -> OcclusionSamples | None:
+    """The mesh's :class:`~stages.geometry.visibility.OcclusionSamples` when ``decision`` (from
+    :func:`occlusion_decision`) bakes one, else None."""
+    if not decision["baked"]:
+        return None
+    directions = fibonacci_directions(decision["directions"])
+    return OcclusionSamples(mesh, EmbreeTracer(mesh), directions, settings.occlusion_samples, seed)
+
+
+def bake_field(
+    mesh: TriMesh, field, settings: BakeSettings, device="cpu", occlusion: OcclusionSamples | None = None
+) -> BakeResult:
+    """Unwrap ``mesh``, rasterise the atlas and evaluate ``field`` at every covered texel (and the
+    ambient ``occlusion`` there, when given)."""
     texels = atlas_texels(mesh, settings.size_for(len(mesh.faces)), settings.padding, settings.max_chart_share)
     frames = CornerFrames.build(mesh.vertices, mesh.faces, texels.atlas.uv, field.normals)
     t, b, n = frames.at(texels.face, texels.bary)
     normals = n / np.linalg.norm(n, axis=1, keepdims=True)
     surface = evaluate_surface(field, texels.points, normals, device)
-    textures = texture_images(texels, surface, to_tangent_space(surface["normal"], t, b, n), settings.dilation)
+    ao = None if occlusion is None else occlusion.at(texels.points, mesh.face_normals[texels.face])
+    textures = texture_images(texels, surface, to_tangent_space(surface["normal"], t, b, n), settings.dilation, ao)
     env = light_image(field, settings.light_width, device)
     return BakeResult(texels.atlas, textures, frames, float(texels.filled.mean()), env)
 
@@ -222,20 +266,29 @@ class LevelBake:
 
 
 def bake_level(
-    fine: TriMesh, coarse: TriMesh, field, size: int, settings: BakeSettings, search: float, device="cpu"
+    fine: TriMesh,
+    coarse: TriMesh,
+    field,
+    size: int,
+    settings: BakeSettings,
+    search: float,
+    device="cpu",
+    occlusion: OcclusionSamples | None = None,
 ) -> LevelBake:
     """Bake ``field`` (trained on ``fine``) onto ``coarse``, a decimated version of it, in a
     ``size``-texel atlas: each texel's point on ``coarse`` is carried to ``fine`` along the coarse
     shading normal (:func:`project_to_surface`), the field is evaluated there with the fine
     surface's shading normal, and the predicted normal is written in the coarse level's own frame,
-    so its normal map carries the detail the coarse geometry lost."""
+    so its normal map carries the detail the coarse geometry lost; the fine surface's ambient
+    ``occlusion`` (when given) is read at the same points."""
     texels = atlas_texels(coarse, size, settings.padding, settings.max_chart_share)
     frames = CornerFrames.build(coarse.vertices, coarse.faces, texels.atlas.uv, field.normals)
     t, b, n = frames.at(texels.face, texels.bary)
     unit = n / np.linalg.norm(n, axis=1, keepdims=True)
     proj = project_to_surface(fine, texels.points, unit, search, field.normals)
     surface = evaluate_surface(field, proj.points, proj.normals, device)
-    textures = texture_images(texels, surface, to_tangent_space(surface["normal"], t, b, n), settings.dilation)
+    ao = None if occlusion is None else occlusion.at(proj.points, proj.normals)
+    textures = texture_images(texels, surface, to_tangent_space(surface["normal"], t, b, n), settings.dilation, ao)
     return LevelBake(texels, frames, textures, proj)
 
 
@@ -248,6 +301,7 @@ def decode_textures(textures: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         "specular": srgb_decode(textures["specular"] / 255.0),
         "roughness": textures["metallic_roughness"][..., 1:2] / 255.0,
         "metallic": textures["metallic_roughness"][..., 2:3] / 255.0,
+        "occlusion": textures["metallic_roughness"][..., 0:1] / 255.0,
         "normal": textures["normal"] / 255.0 * 2.0 - 1.0,
     }
 

@@ -18,8 +18,10 @@ Material mapping:
   (both use ``alpha = roughness^2``), ``normal`` = the tangent-space normal map (scale 2, bias -1).
   A ``DomeLight`` carries the learned SG light as an equirectangular EXR (latlong).
 * **glTF** metallic-roughness with ``metallic = 0``: ``baseColor`` = albedo, roughness in the green
-  channel of ``metallicRoughnessTexture``, ``normalTexture`` with explicit ``TANGENT`` vectors (the
-  bake's frame), and ``KHR_materials_specular`` for the coloured F0: glTF's dielectric F0 is
+  channel of ``metallicRoughnessTexture`` (and, where the bake wrote one, the ambient occlusion in
+  its red channel as the ``occlusionTexture``; USD's ``occlusion`` reads the same channel),
+  ``normalTexture`` with explicit ``TANGENT`` vectors (the bake's frame), and
+  ``KHR_materials_specular`` for the coloured F0: glTF's dielectric F0 is
   ``0.04 * specularColorFactor * specularColorTexture`` (IOR 1.5), so the factor is 25 and the
   texture holds TANGO's F0 (clamped to 1 by glTF). What is lost: glTF makes the diffuse lobe
   give way to the specular one (energy conservation, ``(1 - F)`` weighting) where TANGO simply adds
@@ -147,6 +149,7 @@ def write_usd(
     origin: dict,
     extra_data: dict | None = None,
     brdf: str = "tango",
+    occlusion: bool = False,
 ) -> None:
     """Write ``model.usda``: a Mesh with ``st`` and normals, a UsdPreviewSurface bound to it, and
     a DomeLight with the learned light. Texture paths are relative to the file. ``origin`` (the
@@ -169,14 +172,14 @@ def write_usd(
     stage.SetDefaultPrim(root.GetPrim())
     Usd.ModelAPI(root.GetPrim()).SetKind("component")
     if isinstance(geom, ExportMesh):
-        _usd_model(stage, geom, "textures", brdf)
+        _usd_model(stage, geom, "textures", brdf, occlusion)
     else:
         variants = root.GetPrim().GetVariantSets().AddVariantSet("LOD")
         for level in geom:
             variants.AddVariant(level.name)
             variants.SetVariantSelection(level.name)
             with variants.GetVariantEditContext():
-                _usd_model(stage, level.geom, level.textures, brdf)
+                _usd_model(stage, level.geom, level.textures, brdf, occlusion)
         variants.SetVariantSelection(geom[0].name)
     if light_file:
         _usd_dome_light(stage, light_file)
@@ -197,10 +200,11 @@ def _usd_dictionary(d: dict) -> dict:
     return {k: value(v) for k, v in d.items()}
 
 
-def _usd_model(stage, geom: ExportMesh, textures: str, brdf: str = "tango") -> None:
+def _usd_model(stage, geom: ExportMesh, textures: str, brdf: str = "tango", occlusion: bool = False) -> None:
     """``/Asset/Geometry/Mesh`` and its material ``/Asset/Looks/TangoMaterial`` reading the
     textures from the folder ``textures`` (relative to the layer): TANGO's specular workflow, or
-    for glTF's BRDF the metallic workflow (base colour, metallic, roughness)."""
+    for glTF's BRDF the metallic workflow (base colour, metallic, roughness); with ``occlusion``
+    the preview surface's ``occlusion`` reads the metallic-roughness texture's red channel."""
     from pxr import Gf, Sdf, UsdGeom, UsdShade, Vt
 
     # typed parents: importers (Blender's among them) drop an untyped prim from the transform
@@ -251,6 +255,9 @@ def _usd_model(stage, geom: ExportMesh, textures: str, brdf: str = "tango") -> N
     rough = texture("RoughnessTexture", "metallic_roughness", "raw")
     rough.CreateOutput("g", Sdf.ValueTypeNames.Float)
     surf.CreateInput("roughness", Sdf.ValueTypeNames.Float).ConnectToSource(rough.ConnectableAPI(), "g")
+    if occlusion:
+        rough.CreateOutput("r", Sdf.ValueTypeNames.Float)
+        surf.CreateInput("occlusion", Sdf.ValueTypeNames.Float).ConnectToSource(rough.ConnectableAPI(), "r")
     if brdf == "gltf":
         rough.CreateOutput("b", Sdf.ValueTypeNames.Float)
         surf.CreateInput("metallic", Sdf.ValueTypeNames.Float).ConnectToSource(rough.ConnectableAPI(), "b")
@@ -340,6 +347,7 @@ def write_model_files(
     origin: dict,
     timer=None,
     brdf: str = "tango",
+    occlusion: bool = False,
 ) -> dict:
     """Write one asset's ``model.usda``, ``model.usdz`` and ``model.glb`` into ``folder`` (which
     already holds ``textures/*.png`` and ``light.exr``), each atomically, and validate all three:
@@ -356,10 +364,10 @@ def write_model_files(
     with part("usd"):
         with atomic_path(folder / "model.usda") as tmp:
             tmp.unlink()
-            write_usd(tmp, geom, meters_per_unit, "light.exr", origin, brdf=brdf)
+            write_usd(tmp, geom, meters_per_unit, "light.exr", origin, brdf=brdf, occlusion=occlusion)
         package_usdz(folder / "model.usda", folder / "model.usdz", [*TEXTURE_FILES.values(), "light.exr"], usdz_root)
     with part("gltf"):
-        write_glb(folder / "model.glb", geom, folder / "textures", meters_per_unit, name, origin, brdf=brdf)
+        write_glb(folder / "model.glb", geom, folder / "textures", meters_per_unit, name, origin, brdf=brdf, occlusion=occlusion)
     with part("validate"):
         usd = [validate_usd(folder / "model.usda"), validate_usd(folder / "model.usdz")]
         gltf = validate_glb(folder / "model.glb")
@@ -430,9 +438,11 @@ def write_glb(
     lods: list[tuple[ExportMesh, Path]] = (),
     screen_coverage: list[float] | None = None,
     brdf: str = "tango",
+    occlusion: bool = False,
 ) -> None:
     """Write a self-contained binary glTF 2.0 file (see the module docstring for the mapping);
-    ``origin`` goes into ``asset.extras.tango_stylize``.
+    ``origin`` goes into ``asset.extras.tango_stylize``. With ``occlusion`` the material's
+    ``occlusionTexture`` is the metallic-roughness texture (its red channel, glTF's packing).
 
     ``lods`` (coarser levels, each geometry with its textures' folder) makes the file an
     ``MSFT_lod`` asset: the scene's node holds the finest level and lists one node per coarser
@@ -492,6 +502,7 @@ def write_glb(
                     roughnessFactor=1.0,
                 ),
                 normalTexture=g.NormalMaterialTexture(index=first + 2),
+                occlusionTexture=g.OcclusionTextureInfo(index=first + 1) if occlusion else None,
                 doubleSided=True,
                 extensions={}
                 if brdf == "gltf"

@@ -189,14 +189,15 @@ class RaycacheSettings(Settings):
     backend: str = "embree"
     #: shadows (VISIBILITIES; docs/method/shadows.md): "on" traces, for every cached hit, the
     #: visibility of visibility_directions directions (bits) that the field's shading casts shadows
-    #: from; "auto" does so when the mesh's measured self-occlusion (the median blocked share of
-    #: the hemisphere over its surface) is at least visibility_auto_median; "off" (TANGO) none.
-    #: "off" until the recovery with shadows is measured
-    visibility: str = "off"
+    #: from; "auto" does so when the mesh's measured self-occlusion (the blocked share of the
+    #: hemisphere over its surface) reaches visibility_auto_p95 at its 95th percentile, so a convex
+    #: mesh (0 everywhere) pays nothing; "off" (TANGO) none.
+    visibility: str = "auto"
     visibility_directions: int = 512
-    #: auto's threshold, between the meshes whose ceilings shadows barely touch (built-in vase
-    #: 0.000, candle 0.008; shadows 1-22% of their error) and the knot (0.186; shadows over 100%)
-    visibility_auto_median: float = 0.05
+    #: auto's threshold on the 95th percentile of the self-occlusion: shadows raised the recovery
+    #: of every built-in mesh (vase, p95 0.99, +7.3 dB; knot 0.45, +0.5 dB; candle 0.26, +0.3 dB;
+    #: docs/method/shadows.md), and a convex mesh has 0
+    visibility_auto_p95: float = 0.05
 
     def __post_init__(self) -> None:
         problems = []
@@ -219,8 +220,8 @@ class RaycacheSettings(Settings):
             problems.append(f"visibility must be one of {', '.join(VISIBILITIES)}, got {self.visibility!r}")
         if not (8 <= self.visibility_directions <= 4096 and self.visibility_directions % 8 == 0):
             problems.append(f"visibility_directions must be a multiple of 8 in [8, 4096], got {self.visibility_directions}")
-        if not 0.0 <= self.visibility_auto_median <= 1.0:
-            problems.append(f"visibility_auto_median must be in [0, 1], got {self.visibility_auto_median}")
+        if not 0.0 <= self.visibility_auto_p95 <= 1.0:
+            problems.append(f"visibility_auto_p95 must be in [0, 1], got {self.visibility_auto_p95}")
         if self.anchor_deg is not None and (len(self.anchor_deg) != 2 or not -90.0 < self.anchor_deg[1] < 90.0):
             problems.append(f"anchor_deg must be [azimuth, elevation] with elevation in (-90, 90), got {list(self.anchor_deg)}")
         if problems:
@@ -516,8 +517,22 @@ class BakeSettings(Settings):
     light_width: int = 512
     #: resolution of the fidelity renders (evaluation views)
     eval_width: int = 256
+    #: the ambient occlusion map (the red channel of metallic_roughness.png, glTF's
+    #: occlusionTexture, UsdPreviewSurface's occlusion): "auto" where the field was trained with
+    #: shadows (optimize.shadows and a ray cache with visibility), whose albedo then holds no
+    #: shadows; "on" always; "off" never (the channel stays 1 and no material reads it)
+    occlusion: str = "auto"
+    #: surface points the occlusion is traced at (both sides, the ray cache's visibility
+    #: directions) and interpolated between for every texel
+    occlusion_samples: int = 32768
 
     def __post_init__(self) -> None:
+        if isinstance(self.occlusion, bool):  # YAML 1.1 reads a bare on/off as a boolean
+            object.__setattr__(self, "occlusion", "on" if self.occlusion else "off")
+        if self.occlusion not in VISIBILITIES:
+            raise ConfigError(f"bake.occlusion must be one of {', '.join(VISIBILITIES)}, got {self.occlusion!r}")
+        if not 256 <= self.occlusion_samples <= 1 << 22:
+            raise ConfigError(f"bake.occlusion_samples must be in [256, 4194304], got {self.occlusion_samples}")
         if self.texture_size is not None and not 16 <= self.texture_size <= 16384:
             raise ConfigError(f"bake.texture_size must be in [16, 16384], got {self.texture_size}")
         if not 16 <= self.min_size <= self.max_size:

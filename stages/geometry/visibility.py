@@ -139,6 +139,82 @@ def trace_lobe_visibility(tracer, points: np.ndarray, normals: np.ndarray, direc
     return np.where(whole > 0, (cos * visible).sum(1) / np.maximum(whole, 1e-300), 1.0).astype(np.float32)
 
 
+def sample_surface(mesh, count: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """``count`` points drawn uniformly by area over ``mesh`` (seeded): ``points (count, 3) float64``
+    and the ``face (count,) int64`` each lies on. The mesh must have a positive area."""
+    rng = np.random.default_rng(seed)
+    areas = mesh.face_areas
+    face = rng.choice(len(areas), size=count, p=areas / areas.sum())
+    u, v = rng.random((2, count))
+    flip = u + v > 1.0
+    u, v = np.where(flip, 1.0 - u, u), np.where(flip, 1.0 - v, v)
+    tri = mesh.vertices[mesh.faces[face]]
+    return tri[:, 0] + u[:, None] * (tri[:, 1] - tri[:, 0]) + v[:, None] * (tri[:, 2] - tri[:, 0]), face.astype(np.int64)
+
+
+def ambient_occlusion(bits: np.ndarray, normals: np.ndarray, directions: np.ndarray) -> np.ndarray:
+    """Ambient occlusion as glTF's ``occlusionTexture`` and UsdPreviewSurface's ``occlusion`` mean
+    it, per point: the cosine-weighted visible share of the hemisphere about ``normals (N, 3)``,
+    ``(1/pi) int V(w) max(n . w, 0) dw``, by quadrature over the stored ``directions (D, 3)`` (each
+    the same solid angle): ``sum_d v_d max(n . d, 0) / sum_d max(n . d, 0)`` -> ``(N,) float64`` in
+    [0, 1]. Exactly 1 where nothing blocks; 0 where everything does. The quadrature's error is that
+    of the direction set (about ``direction_spacing`` on a shadow edge's share)."""
+    visible = unpack_visibility(bits, len(directions))
+    cos = np.clip(np.asarray(normals, np.float64) @ np.asarray(directions, np.float64).T, 0.0, None)
+    whole = cos.sum(1)
+    return np.where(whole > 0, (cos * visible).sum(1) / np.maximum(whole, 1e-300), 1.0)
+
+
+class OcclusionSamples:
+    """Ambient occlusion (:func:`ambient_occlusion`) of a whole mesh, traced at ``count`` points
+    drawn by area (:func:`sample_surface`) and read anywhere on the surface by interpolation: the
+    bake's occlusion map (issue 32).
+
+    A face has one texel for both its sides, so each sample keeps its more open side's occlusion
+    (the outside of a closed mesh, whose inside sees nothing; the outer side of an open sheet).
+    :meth:`at` blends the ``neighbours`` nearest samples with Gaussian weights of width the
+    samples' spacing ``sqrt(area / count)``, only those on faces within 60 degrees of the query's
+    face normal (so neither the far wall of a thin part nor the other face of a sharp crease
+    bleeds in); where none is, the nearest sample."""
+
+    def __init__(self, mesh, tracer, directions: np.ndarray, count: int, seed: int = 0, neighbours: int = 8) -> None:
+        from scipy.spatial import cKDTree
+
+        points, face = sample_surface(mesh, count, seed)
+        normals = mesh.face_normals[face]
+        offset = surface_offset(mesh.vertices)
+        sides = [trace_visibility(tracer, points, n, directions, offset) for n in (normals, -normals)]
+        self.values = np.maximum(*(ambient_occlusion(b, n, directions) for b, n in zip(sides, (normals, -normals), strict=True)))
+        self.normals = normals
+        self.spacing = float(np.sqrt(mesh.face_areas.sum() / count))
+        self.neighbours = min(int(neighbours), count)
+        self.tree = cKDTree(points)
+        self.directions = len(directions)
+
+    def summary(self) -> dict:
+        """What was traced and what it found: ``samples``, ``directions``, ``spacing`` and the
+        samples' occlusion ``mean``, ``median`` and ``p05`` (its 5th percentile: the dark corners)."""
+        v = self.values
+        return {
+            "samples": int(len(v)),
+            "directions": self.directions,
+            "spacing": self.spacing,
+            "mean": float(v.mean()),
+            "median": float(np.median(v)),
+            "p05": float(np.percentile(v, 5)),
+        }
+
+    def at(self, points: np.ndarray, face_normals: np.ndarray) -> np.ndarray:
+        """The occlusion at ``points (M, 3)`` on faces with unit ``face_normals (M, 3)`` -> ``(M,)``."""
+        dist, idx = self.tree.query(np.asarray(points, np.float64), k=self.neighbours)
+        dist, idx = dist.reshape(len(points), -1), idx.reshape(len(points), -1)
+        agree = np.einsum("mkj,mj->mk", self.normals[idx], np.asarray(face_normals, np.float64)) > 0.5
+        w = np.exp(-((dist / self.spacing) ** 2)) * agree
+        whole = w.sum(1)
+        blended = (w * self.values[idx]).sum(1) / np.maximum(whole, 1e-300)
+        return np.where(whole > 1e-12, blended, self.values[idx[:, 0]])
+
+
 #: surface samples and directions of :func:`measure_self_occlusion`: 20,000 points put the median's
 #: and the 95th percentile's sampling error near 0.005, and 256 directions (128 above a point)
 #: resolve a blocked share to 1/128; about 5 M rays, a second or two with Embree
@@ -152,16 +228,9 @@ def measure_self_occlusion(mesh, tracer, seed: int = 0) -> dict:
     which no direction escapes left out (the inside of a closed mesh, which no viewer sees); per
     side the share of its hemisphere blocked (:func:`blocked_share`). Returns the mean, median and
     95th percentile, and the share of sides seen (1 for an open sheet, 0.5 for a closed mesh)."""
-    rng = np.random.default_rng(seed)
-    areas = mesh.face_areas
-    if not areas.sum() > 0:
+    if not mesh.face_areas.sum() > 0:
         return {"mean": 0.0, "median": 0.0, "p95": 0.0, "sides_seen": 0.0, "points": 0}
-    face = rng.choice(len(areas), size=SELF_OCCLUSION_POINTS, p=areas / areas.sum())
-    u, v = rng.random((2, SELF_OCCLUSION_POINTS))
-    flip = u + v > 1.0
-    u, v = np.where(flip, 1.0 - u, u), np.where(flip, 1.0 - v, v)
-    tri = mesh.vertices[mesh.faces[face]]
-    points = tri[:, 0] + u[:, None] * (tri[:, 1] - tri[:, 0]) + v[:, None] * (tri[:, 2] - tri[:, 0])
+    points, face = sample_surface(mesh, SELF_OCCLUSION_POINTS, seed)
     normals = mesh.face_normals[face]
     points, normals = np.concatenate([points, points]), np.concatenate([normals, -normals])
     directions = fibonacci_directions(SELF_OCCLUSION_DIRECTIONS)

@@ -72,15 +72,20 @@ class Objective:
             if v.target is None:
                 raise ConfigError("this view has no Mitsuba targets attached (target_renderer: mitsuba)")
             return v.target[sel]
-        return self.procedural_colors(v.points[sel], v.normals[sel], v.view[sel])
+        # the view's shadows, as the field casts them: the target stays representable
+        visibility = None if v.shadows is None else v.shadows.shares(self.target_light, sel)
+        return self.procedural_colors(v.points[sel], v.normals[sel], v.view[sel], visibility)
 
-    def procedural_colors(self, points, normals, view) -> torch.Tensor:
+    def procedural_colors(self, points, normals, view, visibility: torch.Tensor | None = None) -> torch.Tensor:
         """Linear radiance ``(N, 3)`` of the procedural target under the SG light at cached hits,
-        shaded with the specular model the field uses (``optimize.specular_lobe``)."""
+        shaded with the specular model the field uses (``optimize.specular_lobe``), each light
+        lobe scaled by its visible share ``visibility (N, K)`` when given (the field's shadows)."""
         flip = (normals * view).sum(-1, keepdim=True) < 0
         n = face_viewer(torch.where(flip, -normals, normals), view)
         m = procedural_material(self.s.target_material, points)
-        return shade(n, view, m.albedo, self.target_light, m.specular, m.roughness, self.s.specular_lobe).rgb
+        return shade(
+            n, view, m.albedo, self.target_light, m.specular, m.roughness, self.s.specular_lobe, visibility=visibility
+        ).rgb
 
     def loss(self, globals_, crops, globals_t=None, crops_t=None) -> tuple[torch.Tensor, dict]:
         if self.guide is not None:

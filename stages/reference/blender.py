@@ -174,7 +174,11 @@ def material_wiring(report: dict) -> dict:
     if not mats:
         return {}
     wiring = {}
-    for name, inp in mats[0]["principled"].items():
+    linked = {name: inp for name, inp in mats[0]["principled"].items()}
+    # the glTF importer's "glTF Material Output" group holds the occlusion (Blender shades without it)
+    for group in mats[0].get("groups", {}).values():
+        linked.update({f"group:{name}": {"linked": True, "from": chain} for name, chain in group.items()})
+    for name, inp in linked.items():
         if not inp["linked"]:
             wiring[name] = {"value": inp["value"]}
             continue
@@ -208,7 +212,7 @@ def _angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.degrees(np.arccos(np.clip((a * b).sum(-1), -1.0, 1.0)))
 
 
-def check_import(result: JobResult, geom, meters_per_unit: float, brdf: str = "tango") -> dict:
+def check_import(result: JobResult, geom, meters_per_unit: float, brdf: str = "tango", occlusion: bool = False) -> dict:
     """Compare what Blender imported with what we exported (``geom``: the
     :class:`~stages.assets.formats.ExportMesh` in export space, compared per face corner). Returns the measured
     figures and ``problems`` (empty when the asset arrived intact): one mesh with every face and
@@ -216,7 +220,9 @@ def check_import(result: JobResult, geom, meters_per_unit: float, brdf: str = "t
     ``v`` is ``1 - v`` of glTF), the shading normals, Blender's own MikkTSpace tangents and bitangents
     against the frame the normal map was baked in (handedness), and the Principled BSDF's wiring
     (TANGO's BRDF: the specular texture as the specular tint; glTF's: metallic from the blue
-    channel of the metallic-roughness texture)."""
+    channel of the metallic-roughness texture; with ``occlusion``, the occlusion from its red
+    channel, which Blender's glTF importer keeps in its "glTF Material Output" group: pass it for
+    a glTF asset only, as Blender's USD importer does not read UsdPreviewSurface's ``occlusion``)."""
     report, c = result.report, result.corners
     geom = geom.corners()
     meshes = [o for o in report.get("objects", []) if o["type"] == "MESH"]
@@ -271,6 +277,7 @@ def check_import(result: JobResult, geom, meters_per_unit: float, brdf: str = "t
             if brdf == "gltf"
             else {"Specular Tint": ("specular", "sRGB", None)}
         ),
+        **({"group:Occlusion": ("metallic_roughness", "Non-Color", "Red")} if occlusion else {}),
     }
     if not wiring:
         problems.append("no Principled BSDF arrived")

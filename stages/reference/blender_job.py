@@ -94,6 +94,13 @@ def describe_material(mat) -> dict:
     output = next((n for n in nodes if n.type == "OUTPUT_MATERIAL" and n.is_active_output), None)
     surface = upstream(output.inputs["Surface"]) if output else []
     out["surface"] = [s["node"] for s in surface]
+    # node groups' linked inputs by the group's name: glTF's importer keeps what Blender's shading
+    # has no socket for (the occlusion texture) in a "glTF Material Output" group
+    out["groups"] = {
+        n.node_tree.name: {i.name: upstream(i) for i in n.inputs if i.is_linked}
+        for n in nodes
+        if n.type == "GROUP" and n.node_tree is not None
+    }
     principled = next((n for n in nodes if n.type == "BSDF_PRINCIPLED"), None)
     if principled is None:
         return out

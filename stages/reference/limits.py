@@ -155,6 +155,7 @@ def measure_limits(
     brdf: str = "tango",
     visibility: bool = False,
     directions: int = 1024,
+    shadow_samples: int = 64,
 ) -> dict:
     """The error budget of the best our model can do on ``cache``'s views (see the module
     docstring), in mean squared sRGB error over fully covered object pixels, each Mitsuba
@@ -171,10 +172,11 @@ def measure_limits(
     and metallic).
 
     ``visibility``: our renderer casts shadows (:class:`~stages.model.shadows.ShadowCache` of the
-    hits, ``directions`` stored directions) when fitted to the target and to the direct image;
-    the unshadowed image is still fitted without. The shadows' share is then what our shadows
-    leave of them, and ``agreement_db`` holds the two comparisons of like with like: ours
-    shadowed against Mitsuba's direct light, ours unshadowed against its unshadowed light. Also
+    hits: ``directions`` stored directions, ``shadow_samples`` rays per lobe too sharp for them)
+    when fitted to the target and to the direct image; the unshadowed image is still fitted
+    without. The shadows' share is then what our shadows leave of them, and ``agreement_db`` holds
+    the two comparisons of like with like: ours shadowed against Mitsuba's direct light, ours
+    unshadowed against its unshadowed light. Also
     ``self_occlusion`` (the blocked share of the hits' hemispheres: mean, median, 95th percentile)."""
     mi = renderer.mi
     unshadowed = unshadowed_integrator(mi)
@@ -223,7 +225,7 @@ def measure_limits(
         albedo, metallic = (torch.from_numpy(truth[k][full]).float() for k in ("base", "metallic"))
     v32, n32 = view.float(), normal.float()
     rough = rough.clamp(0.01, 1.0)
-    shadows = _hit_shadows(cache, full, directions, seed) if visibility else None
+    shadows = _hit_shadows(cache, full, directions, shadow_samples, seed) if visibility else None
     if shadows is not None:
         out["visibility"] = {"directions": directions, "samples": shadows.samples, "seconds": shadows.seconds}
         out["self_occlusion"] = self_occlusion(shadows.blocked_share())
@@ -258,11 +260,11 @@ def measure_limits(
     return out
 
 
-def _hit_shadows(cache: RayCache, full: np.ndarray, directions: int, seed: int) -> ShadowCache:
+def _hit_shadows(cache: RayCache, full: np.ndarray, directions: int, samples: int, seed: int) -> ShadowCache:
     """A shadow cache of the cache's hits where ``full``, each oriented to its viewer's side."""
     views = [cache.view(i) for i in range(len(cache))]
     points = np.concatenate([h.point for h in views])[full]
     faces = np.concatenate([h.face_normal for h in views])[full]
     rays = np.concatenate([h.direction for h in views])[full]
     mesh = TriMesh(cache.arrays["vertices"].astype(np.float64), cache.arrays["faces"].astype(np.int64))
-    return ShadowCache(mesh, points, viewer_side_normals(faces, rays), EmbreeTracer(mesh), directions, seed=seed)
+    return ShadowCache(mesh, points, viewer_side_normals(faces, rays), EmbreeTracer(mesh), directions, samples, seed=seed)

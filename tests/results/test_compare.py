@@ -107,7 +107,7 @@ def test_the_ablation_config_variants_are_ablations_of_full():
     from stages.config.sections import OptimizeSettings
 
     variants = yaml.safe_load((Path(__file__).parents[2] / "config" / "ablations.yaml").read_text())["variants"]
-    assert set(variants) > {"full", "no_spec_rough", "no_sharp_light", "tango_brdf"}
+    assert set(variants) > {"full", "no_spec_rough", "no_sharp_light", "tango_brdf", "no_shadows"}
     for name, v in variants.items():
         changes = v.get("optimize", {})
         OptimizeSettings(**changes)  # valid on the defaults

@@ -40,15 +40,34 @@ def test_the_raycache_traces_visibility_when_asked_or_when_the_mesh_needs_it(kno
     assert cache.visibility_directions == 64 and cache.arrays["visibility"].shape == (len(cache.arrays["face"]), 8)
     assert meta["visibility"]["on"] and meta["stats"]["train"]["visibility_bytes"] == 8 * len(cache.arrays["face"])
     assert cache.visibility(1).shape == (cache.arrays["offsets"][2] - cache.arrays["offsets"][1], 8)
-    off, meta = _run(knot, "off")
+    off, meta = _run(knot, "off", visibility="off")
     assert RayCache(off / "train.npz").visibility_directions == 0 and not meta["visibility"]["on"]
-    # auto: the knot's median self-occlusion (about 0.19) against the threshold
-    median = meta["self_occlusion"]["median"]
-    assert 0.1 < median < 0.3
-    _, meta = _run(knot, "auto-on", visibility="auto", visibility_directions=64, visibility_auto_median=median - 0.05)
+    # auto: the 95th percentile of the knot's self-occlusion (about 0.45) against the threshold
+    p95 = meta["self_occlusion"]["p95"]
+    assert 0.3 < p95 < 0.6
+    _, meta = _run(knot, "auto-on", visibility="auto", visibility_directions=64, visibility_auto_p95=p95 - 0.05)
     assert meta["visibility"]["on"] and "auto" in meta["visibility"]["why"]
-    _, meta = _run(knot, "auto-off", visibility="auto", visibility_directions=64, visibility_auto_median=median + 0.05)
+    _, meta = _run(knot, "auto-off", visibility="auto", visibility_directions=64, visibility_auto_p95=p95 + 0.05)
     assert not meta["visibility"]["on"]
+
+
+def test_by_default_a_convex_mesh_pays_nothing_and_the_knot_casts_shadows(knot, tmp_path):
+    """The default ``auto``: a sphere (self-occlusion 0 everywhere) gets no visibility, the knot
+    (95th percentile about 0.45) gets it."""
+    import trimesh
+
+    assert RaycacheSettings().visibility == "auto"
+    ball = trimesh.creation.icosphere(subdivisions=3)
+    ball.export(tmp_path / "ball.obj")
+    save_ply(tmp_path / "ball.ply", normalize_mesh(str(tmp_path / "ball.obj"), NormalizeSettings()).mesh)
+    rc = RaycacheSettings(**SMALL)
+    raycache.run(tmp_path / "ball.ply", tmp_path / "train.npz", tmp_path / "eval.npz", tmp_path / "meta.json", rc)
+    meta = json.loads((tmp_path / "meta.json").read_text())
+    assert meta["self_occlusion"]["p95"] == 0.0 and not meta["visibility"]["on"]
+    assert RayCache(tmp_path / "train.npz").visibility_directions == 0
+    assert "visibility" not in meta["timings_s"] or meta["timings_s"]["visibility"] < 0.01
+    _, meta = _run(knot, "default")
+    assert meta["visibility"]["on"] and "p95" in meta["visibility"]["why"]
 
 
 def test_a_field_casts_shadows_where_the_cache_holds_visibility(knot):
