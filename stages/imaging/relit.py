@@ -7,9 +7,10 @@ another light they show. For each environment of the relit ground truth
 relight stage brings any map (an SG fit, :func:`~stages.model.lightfit.fit_sg_light`), the field's
 forward pass shades every hit of the metric views under it, and the PSNR is taken over the fully
 covered object pixels in sRGB, as the metrics stage grades the training light. Beside it, the
-*ceiling*: our renderer given the true material and normals under the same fitted light, the best
-the model could reach there (the SG fit of the map, the closed-form BRDF and the missing shadows
-and interreflection are what separates it from Mitsuba).
+*ceiling*: our renderer given the true material and normals under the same fitted light, with the
+shadows the field's views cast (where they do), the best the model could reach there (the SG fit
+of the map, the closed-form BRDF, interreflection and, without visibility, the missing shadows are
+what separates it from Mitsuba).
 """
 
 from __future__ import annotations
@@ -41,7 +42,7 @@ def _field_radiance(field, store: ViewStore, light: SGLight) -> torch.Tensor:
 @torch.no_grad()
 def _truth_radiance(truth: TargetSet, store: ViewStore, light: SGLight, lobe: str, brdf: str = "tango") -> torch.Tensor:
     """Linear radiance ``(N, 3)`` of our renderer (the BRDF ``brdf``) given the true material and
-    shading normals."""
+    shading normals, with the shadows of ``store``'s views when they carry them (as the field's)."""
     dev = light.axis.device
     view = torch.cat([store[i].view for i in range(len(store))])
     keys = ("albedo", "specular", "roughness", "normal", *(GLTF_TRUTH_KEYS if brdf == "gltf" else ()))
@@ -49,7 +50,9 @@ def _truth_radiance(truth: TargetSet, store: ViewStore, light: SGLight, lobe: st
     n = face_viewer(torch.nn.functional.normalize(a["normal"], dim=-1), view)
     rough = a["roughness"].clamp(0.01, 1.0)
     material = Material.gltf(a["base"], a["metallic"], rough) if brdf == "gltf" else Material(a["albedo"], a["specular"], rough)
-    return shade_material(n, view, material, light, lobe).rgb
+    shadows = [store[i].shadows for i in range(len(store))]
+    visibility = None if any(s is None for s in shadows) else torch.cat([s.shares(light) for s in shadows])
+    return shade_material(n, view, material, light, lobe, visibility).rgb
 
 
 def channel_scale(pred: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:

@@ -327,10 +327,13 @@ def test_target_stage_writes_targets_truth_and_measured_noise(mi, tmp_path, vari
     v, f = builtin_mesh("vase")
     mesh = TriMesh(normalization_transform(v).forward(v), f)
     s = RaycacheSettings(views=3, resolution=48, metrics_azimuths=2, metrics_elevations_deg=(0.0,), metrics_resolution=48)
-    from stages.geometry.raycache import training_views
+    from stages.geometry.raycache import trace_cache_visibility, training_views
 
     for name, views in (("train", training_views(s)), ("metrics", metric_views(s))):
         arrays, _ = trace_views(mesh, views, EmbreeTracer(mesh))
+        if name == "metrics":  # the visibility the raycache stage traces (raycache.visibility)
+            arrays["visibility"] = trace_cache_visibility(arrays, EmbreeTracer(mesh), 256)
+            arrays["visibility_directions"] = np.int64(256)
         np.savez(tmp_path / f"{name}.npz", **arrays)
     out = tmp_path / "target"
     write_hdr(tmp_path / "user.hdr", procedural_envmap("overcast", 64))  # a user's HDR file
@@ -448,7 +451,9 @@ class _TruthField(torch.nn.Module):
         t = self.truth
         nrm = face_viewer(torch.nn.functional.normalize(t["normal"][sl], dim=-1), view)
         lit = self.baked if self.baked is not None else light
-        rgb = shade(nrm, view, t["albedo"][sl], lit, t["specular"][sl], t["roughness"][sl].clamp(0.01, 1.0), "fitted").rgb
+        vis = None if visibility is None else visibility(lit)
+        rough = t["roughness"][sl].clamp(0.01, 1.0)
+        rgb = shade(nrm, view, t["albedo"][sl], lit, t["specular"][sl], rough, "fitted", visibility=vis).rgb
         return SimpleNamespace(shading=SimpleNamespace(rgb=rgb * self.gain))
 
 
@@ -480,3 +485,15 @@ def _grading_tells_a_disentangled_field_from_a_baked_one(metrics_cache, target_d
         assert d["psnr_db"] < g["psnr_db"] - 2.0
         assert d["psnr_scaled_db"] == pytest.approx(g["psnr_scaled_db"], abs=1e-3)
         assert d["scale"] == pytest.approx([1 / 0.6 * s for s in g["scale"]], rel=1e-4)
+    # with the cache's shadows the ceiling casts them as the field does: the true material still
+    # scores exactly the ceiling, which the shadows move
+    shadowed = ViewStore(cache, "cpu", NormalSpec("smooth", 60.0), shadows=True)
+    assert shadowed[0].shadows is not None
+    for sh in grade_relighting(_TruthField(truth), shadowed, relit, targets, 16, 100):
+        assert sh["psnr_db"] == pytest.approx(sh["ceiling_psnr_db"], abs=1e-6)
+    from stages.imaging.relit import _truth_radiance
+
+    lit = _truth_radiance(targets, store, training, "fitted")
+    dimmed = _truth_radiance(targets, shadowed, training, "fitted")
+    # the vase from its side (elevation 0) sees few shadowed hits: its lip shades a few of its neck
+    assert (dimmed <= lit + 2e-4).all() and ((lit - dimmed).amax(1) > 1e-3).sum() >= 3
