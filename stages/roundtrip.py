@@ -59,9 +59,11 @@ class Lobes:
         return self.diffuse + self.specular
 
 
-def field_renders(field, cache: RayCache, views: list[int], device: str) -> list[Lobes]:
-    """Our render of the trained field at every hit of the given views."""
-    store = ViewStore(cache, torch.device(device), field.normals, shadows=field.shadows)
+def field_renders(field, cache: RayCache, views: list[int], device: str, shadows: bool = False) -> list[Lobes]:
+    """Our render of the trained field at every hit of the given views, with the field's shadows
+    when ``shadows`` (for Cycles' ``full`` transport; its ``direct_unshadowed`` casts none, so the
+    comparison of like with like is unshadowed)."""
+    store = ViewStore(cache, torch.device(device), field.normals, shadows=shadows and field.shadows)
     out = []
     for i in views:
         v = store[i]
@@ -117,7 +119,7 @@ def run(
     views = pick_views(len(cache), settings.views)
     hits = [cache.view(i) for i in views]
     with timer("ours"):
-        reference = field_renders(field, cache, views, device)
+        reference = field_renders(field, cache, views, device, shadows=settings.transport == "full")
     cams = blender_cameras(np.stack([h.c2w for h in hits]), tf if units == "original" else None, mpu)
     results, images, lobes = {}, {}, {}
     with tempfile.TemporaryDirectory(prefix="roundtrip-") as work:

@@ -256,3 +256,19 @@ def test_missing_blender_says_what_to_install(monkeypatch, tmp_path):
 def test_picked_views_spread_evenly():
     assert blender.pick_views(24, 8) == [0, 3, 6, 9, 12, 15, 18, 21]
     assert blender.pick_views(5, 0) == [0, 1, 2, 3, 4] and blender.pick_views(3, 8) == [0, 1, 2]
+
+
+def test_roundtrip_reference_casts_shadows_only_for_full_transport(trained_cell):
+    """Cycles' ``direct_unshadowed`` casts no shadows, so our reference render is unshadowed too
+    (like with like); for ``full`` it casts the field's shadows, never brighter, dimmer somewhere."""
+    from stages.model.checkpoint import load_field
+
+    field, _ = load_field(trained_cell / "opt" / "field.pt", "cpu")
+    cache = RayCache(trained_cell / "eval.npz")
+    assert field.shadows and cache.visibility_directions > 0  # the candle: auto traced it
+    views = list(range(len(cache)))
+    plain = roundtrip.field_renders(field, cache, views, "cpu")
+    shadowed = roundtrip.field_renders(field, cache, views, "cpu", shadows=True)
+    a = np.concatenate([p.diffuse + p.specular for p in plain])
+    b = np.concatenate([s.diffuse + s.specular for s in shadowed])
+    assert (b <= a + 1e-4).all() and (a - b).max() > 1e-3
