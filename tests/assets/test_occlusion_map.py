@@ -157,16 +157,19 @@ def _bake_and_export(cell, out, occlusion: str) -> tuple[dict, dict]:
 
 @pytest.mark.slow
 def test_bake_writes_occlusion_and_the_assets_read_it(trained_cell, tmp_path):
-    """``auto`` on a cache without visibility writes none (red channel 1, no material reads it);
-    ``on`` writes it into the red channel, the GLB's occlusionTexture and the USD's occlusion read
-    that channel, and both pass their validators (the export raises on any error)."""
-    baked, exported = _bake_and_export(trained_cell, tmp_path / "auto", "auto")
-    assert baked["occlusion"]["baked"] is False and "no visibility" in baked["occlusion"]["why"]
+    """``off`` writes none (red channel 1, no material reads it); ``auto`` wrote it for the trained
+    cell (the candle's cache holds visibility, its field cast shadows); ``on`` writes it into the
+    red channel, the GLB's occlusionTexture and the USD's occlusion read that channel, and both
+    pass their validators (the export raises on any error)."""
+    own = json.loads((trained_cell / "bake" / "meta.json").read_text())["stats"]["occlusion"]
+    assert own["baked"] is True and own["why"] == "auto: the field was trained with shadows"
+    baked, exported = _bake_and_export(trained_cell, tmp_path / "off", "off")
+    assert baked["occlusion"]["baked"] is False and baked["occlusion"]["why"] == "bake.occlusion: off"
     assert exported["occlusion"] is False
-    mr = np.asarray(Image.open(tmp_path / "auto" / "bake" / "textures" / "metallic_roughness.png"))
+    mr = np.asarray(Image.open(tmp_path / "off" / "bake" / "textures" / "metallic_roughness.png"))
     assert (mr[..., 0] == 255).all()
-    assert b"occlusionTexture" not in (tmp_path / "auto" / "export" / "model.glb").read_bytes()
-    assert "inputs:occlusion" not in (tmp_path / "auto" / "export" / "model.usda").read_text()
+    assert b"occlusionTexture" not in (tmp_path / "off" / "export" / "model.glb").read_bytes()
+    assert "inputs:occlusion" not in (tmp_path / "off" / "export" / "model.usda").read_text()
 
     baked, exported = _bake_and_export(trained_cell, tmp_path / "on", "on")
     assert baked["occlusion"]["baked"] is True and baked["occlusion"]["samples"] == 4096
@@ -185,8 +188,8 @@ def test_bake_writes_occlusion_and_the_assets_read_it(trained_cell, tmp_path):
 @pytest.mark.slow
 def test_blender_reads_the_glb_occlusion(trained_cell, tmp_path):
     """Blender's glTF importer wires the occlusion (its red channel) into its "glTF Material
-    Output" group, and the import check finds it there; without an occlusion map the same check
-    reports it missing. The USDZ imports intact (Blender's USD importer does not read it)."""
+    Output" group, and the import check finds it there; on an export without one (``off``) the
+    same check reports it missing. The USDZ imports intact (Blender's USD importer does not read it)."""
     from conftest import require_tool
 
     from stages.assets.formats import export_mesh, read_atlas
@@ -210,7 +213,8 @@ def test_blender_reads_the_glb_occlusion(trained_cell, tmp_path):
     assert checks["wiring"]["group:Occlusion"]["output"] == "Red"
     usdz = blender.run_job({"asset": str(tmp_path / "on" / "export" / "model.usdz")}, tmp_path / "usdz")
     assert blender.check_import(usdz, geom, 1.0)["problems"] == []
-    # the trained cell's own export has no occlusion map: the check says so
-    plain = blender.run_job({"asset": str(cell / "export" / "model.glb")}, tmp_path / "plain")
-    plain_geom = export_mesh(load_ply(cell / "mesh.ply"), read_atlas(cell / "bake" / "atlas.npz"), tf)
+    # an export without an occlusion map: the check says so
+    _bake_and_export(cell, tmp_path / "off", "off")
+    plain = blender.run_job({"asset": str(tmp_path / "off" / "export" / "model.glb")}, tmp_path / "plain")
+    plain_geom = export_mesh(load_ply(cell / "mesh.ply"), read_atlas(tmp_path / "off" / "bake" / "atlas.npz"), tf)
     assert any("group:Occlusion" in p for p in blender.check_import(plain, plain_geom, 1.0, occlusion=True)["problems"])
