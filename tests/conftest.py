@@ -67,6 +67,40 @@ def require_tool(available: bool, reason: str) -> None:
     pytest.skip(reason)
 
 
+def require_blender() -> None:
+    """:func:`require_tool` for Blender (bpy, the ``blender`` extra)."""
+    from stages.reference import blender
+
+    try:
+        blender.find_blender()
+        found = True
+    except blender.BlenderUnavailable:
+        found = False
+    require_tool(found, "Blender (bpy) is not installed: bash scripts/setup.sh test,reference,blender")
+
+
+def trimesh_parts(*parts):
+    """trimesh meshes concatenated into one TriMesh."""
+    import numpy as np
+    import trimesh
+
+    from stages.geometry.meshio import TriMesh
+
+    m = trimesh.util.concatenate(parts)
+    return TriMesh(np.asarray(m.vertices, np.float64), np.asarray(m.faces, np.int64))
+
+
+def floor_and_ball(height: float, radius: float):
+    """A 40 x 40 floor (top at z = 0) under a ball of ``radius`` centred at ``height``."""
+    import trimesh
+
+    floor = trimesh.creation.box(extents=(40.0, 40.0, 0.1))
+    floor.apply_translation((0.0, 0.0, -0.05))
+    ball = trimesh.creation.icosphere(subdivisions=5, radius=radius)
+    ball.apply_translation((0.0, 0.0, height))
+    return trimesh_parts(floor, ball)
+
+
 def icosphere(subdivisions: int):
     """Unit icosphere (all vertices on the unit sphere) as a TriMesh."""
     import trimesh

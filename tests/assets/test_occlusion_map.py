@@ -10,7 +10,7 @@ from types import SimpleNamespace
 import numpy as np
 import pygltflib
 import pytest
-import trimesh
+from conftest import floor_and_ball, require_blender
 from PIL import Image
 
 from stages import bake, export
@@ -28,19 +28,6 @@ from stages.geometry.visibility import (
     surface_offset,
     trace_visibility,
 )
-
-
-def _mesh(*parts) -> TriMesh:
-    m = trimesh.util.concatenate(parts)
-    return TriMesh(np.asarray(m.vertices, np.float64), np.asarray(m.faces, np.int64))
-
-
-def _floor_and_ball(height: float, radius: float) -> TriMesh:
-    floor = trimesh.creation.box(extents=(40.0, 40.0, 0.1))
-    floor.apply_translation((0.0, 0.0, -0.05))
-    ball = trimesh.creation.icosphere(subdivisions=5, radius=radius)
-    ball.apply_translation((0.0, 0.0, height))
-    return _mesh(floor, ball)
 
 
 def _well(radius: float, depth: float) -> TriMesh:
@@ -72,7 +59,7 @@ def test_occlusion_under_a_ball_is_the_cosine_weighted_share(height, radius):
     """Under a ball of radius r at height H the blocked cone has half-angle b = asin(r / H); its
     cosine-weighted share of the hemisphere is (1/pi) int_0^b cos t sin t dt 2 pi = sin^2 b, so the
     occlusion is 1 - (r / H)^2. The uniform share (1 - cos b blocked) is not it."""
-    mesh = _floor_and_ball(height, radius)
+    mesh = floor_and_ball(height, radius)
     dirs = fibonacci_directions(4096)
     pts = np.array([[0.0, 0.0, 0.0], [15.0, 15.0, 0.0]])
     nrm = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])
@@ -103,7 +90,7 @@ def test_interpolated_occlusion_against_tracing_at_the_points():
     """The samples' interpolation, read at fresh points, against the occlusion traced at those
     points (more open side): close on average and at the dark contact; the far wall of a thin
     part does not bleed in (a floor's underside stays open under the ball's dark contact)."""
-    mesh = _floor_and_ball(1.02, 1.0)  # the ball nearly touches the floor: a dark contact ring
+    mesh = floor_and_ball(1.02, 1.0)  # the ball nearly touches the floor: a dark contact ring
     dirs = fibonacci_directions(512)
     samples = OcclusionSamples(mesh, EmbreeTracer(mesh), dirs, 65536, seed=1)
     assert samples.summary()["samples"] == 65536 and samples.summary()["p05"] < samples.summary()["median"]
@@ -190,19 +177,12 @@ def test_blender_reads_the_glb_occlusion(trained_cell, tmp_path):
     """Blender's glTF importer wires the occlusion (its red channel) into its "glTF Material
     Output" group, and the import check finds it there; on an export without one (``off``) the
     same check reports it missing. The USDZ imports intact (Blender's USD importer does not read it)."""
-    from conftest import require_tool
-
     from stages.assets.formats import export_mesh, read_atlas
     from stages.geometry.meshio import load_ply
     from stages.geometry.normalization import Similarity
     from stages.reference import blender
 
-    try:
-        blender.find_blender()
-        found = True
-    except blender.BlenderUnavailable:
-        found = False
-    require_tool(found, "Blender (bpy) is not installed: bash scripts/setup.sh test,reference,blender")
+    require_blender()
     _bake_and_export(trained_cell, tmp_path / "on", "on")
     cell = trained_cell
     tf = Similarity.from_json(json.loads((cell / "transform.json").read_text()))

@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 import trimesh
+from conftest import floor_and_ball, trimesh_parts
 
 from stages.geometry.meshio import TriMesh
 from stages.geometry.tracing import EmbreeTracer
@@ -25,19 +26,6 @@ from stages.geometry.visibility import (
 )
 
 
-def _mesh(*parts) -> TriMesh:
-    m = trimesh.util.concatenate(parts)
-    return TriMesh(np.asarray(m.vertices, np.float64), np.asarray(m.faces, np.int64))
-
-
-def _floor_and_ball(height: float, radius: float) -> TriMesh:
-    floor = trimesh.creation.box(extents=(40.0, 40.0, 0.1))
-    floor.apply_translation((0.0, 0.0, -0.05))
-    ball = trimesh.creation.icosphere(subdivisions=5, radius=radius)
-    ball.apply_translation((0.0, 0.0, height))
-    return _mesh(floor, ball)
-
-
 def test_directions_cover_the_sphere_evenly():
     d = fibonacci_directions(1024)
     np.testing.assert_allclose(np.linalg.norm(d, axis=1), 1.0, atol=1e-12)
@@ -53,7 +41,7 @@ def test_directions_cover_the_sphere_evenly():
 def test_a_ball_over_a_floor_blocks_its_cone(height, radius):
     """A point on a floor under a ball of radius r at height H: the blocked directions are the
     cone of half-angle asin(r / H), 1 - cos of it the share of the hemisphere (uniform measure)."""
-    mesh = _floor_and_ball(height, radius)
+    mesh = floor_and_ball(height, radius)
     dirs = fibonacci_directions(4096)
     pts = np.array([[0.0, 0.0, 0.0], [15.0, 15.0, 0.0]])
     nrm = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])
@@ -74,7 +62,7 @@ def test_a_ball_over_a_floor_blocks_its_cone(height, radius):
 
 def test_inside_a_closed_box_everything_is_blocked_and_outside_a_convex_mesh_nothing():
     box = trimesh.creation.box(extents=(1.0, 1.0, 1.0))
-    mesh = _mesh(box)
+    mesh = trimesh_parts(box)
     dirs = fibonacci_directions(512)
     tracer = EmbreeTracer(mesh)
     offset = surface_offset(mesh.vertices)
@@ -121,7 +109,7 @@ def test_traced_lobe_visibility_against_the_cone():
     """A broad-enough lobe pointing at the ball: the share of its cosine-weighted mass outside the
     ball's cone, by rays drawn from the lobe, against the same integral by quadrature in the test."""
     height, radius, lam = 2.0, 1.0, 8.0
-    mesh = _floor_and_ball(height, radius)
+    mesh = floor_and_ball(height, radius)
     axis = np.array([0.0, 0.0, 1.0])
     dirs = sample_lobe_directions(axis, lam, 4096, seed=3)
     pts, nrm = np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0]])
@@ -142,7 +130,7 @@ def test_self_occlusion_of_a_sheet_a_cup_and_a_ball():
     square = TriMesh(np.array([[0.0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]]), np.array([[0, 1, 2], [0, 2, 3]]))
     occ = measure_self_occlusion(square, EmbreeTracer(square))
     assert occ["sides_seen"] == 1.0 and occ["p95"] == 0.0
-    ball = _mesh(trimesh.creation.icosphere(subdivisions=3))
+    ball = trimesh_parts(trimesh.creation.icosphere(subdivisions=3))
     occ = measure_self_occlusion(ball, EmbreeTracer(ball))
     assert occ["sides_seen"] == pytest.approx(0.5, abs=0.01) and occ["p95"] == 0.0
     box = trimesh.creation.box(extents=(1.0, 1.0, 1.0))

@@ -11,7 +11,7 @@ import shutil
 import numpy as np
 import pytest
 import torch
-from conftest import require_tool
+from conftest import require_blender
 from PIL import Image
 
 from stages import roundtrip
@@ -32,12 +32,7 @@ from stages.results import summary
 
 @pytest.fixture(scope="module")
 def ready():
-    try:
-        blender.find_blender()
-        ok = True
-    except blender.BlenderUnavailable:
-        ok = False
-    require_tool(ok, "Blender (bpy) is not installed: bash scripts/setup.sh test,reference,blender")
+    require_blender()
 
 
 def lookup(env: np.ndarray, d: np.ndarray) -> np.ndarray:
