@@ -361,8 +361,9 @@ def _fitted_part(
     cos_ml = cos_t * cos_nl - sin_t * cos_tl  # mu = cos(theta) n - sin(theta) t: the lobe's mean direction
     lam_p, log_amp = _product_terms(kappa, sharpness, cos_ml)
     lam_p = torch.clamp(lam_p, min=1e-12)
-    # the normalised vMF's inner product with the light lobe, exp(lam_p - kappa - nu) written stably
-    inner = kappa * torch.expm1(-2.0 * lam_p) / (lam_p * torch.expm1(-2.0 * kappa)) * torch.exp(log_amp)
+    # the normalised vMF's inner product with the light lobe, exp(lam_p - kappa - nu) written stably;
+    # its exponential is taken below, together with the correction's, in one exp
+    inner = kappa * torch.expm1(-2.0 * lam_p) / (lam_p * torch.expm1(-2.0 * kappa))
     # the product lobe's axis xi' = (kappa mu + nu xi) / lam_p: its cosines with n and v
     nl = (kappa * cos_t + sharpness * cos_nl) / lam_p
     vl = ((kappa * (cos_t * cos_nv - sin_t * sin_nv)) + sharpness * cos_vl) / lam_p
@@ -386,7 +387,10 @@ def _fitted_part(
     ratio = torch.clamp(log_true - log_fit, min=_LOG_RATIO_FLOOR, max=-_LOG_RATIO_FLOOR)
     ratio = torch.where(nl > 0.0, ratio, torch.full_like(ratio, _LOG_RATIO_FLOOR))
     weight = sharpness / (sharpness + kappa)  # 0: the light is broad against the lobe; 1: sharp
-    return inner * torch.exp(weight * ratio)
+    # one exponential: exp(log_amp) * exp(weight * ratio) as two factors underflows to 0 in the
+    # first (log_amp < -104 in float32, a sharp lobe far off the product's axis) while the second
+    # reaches e^80, and the backward then multiplies 0 by an overflowed gradient: NaN
+    return inner * torch.exp(log_amp + weight * ratio)
 
 
 def specular_radiance_fitted(

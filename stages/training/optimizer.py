@@ -138,6 +138,21 @@ class Optimizer:
         )
         return specs
 
+    def check_finite(self, loss: torch.Tensor) -> None:
+        """Stop before a non-finite loss or gradient reaches the parameters: one NaN would spread to
+        every later step and checkpoint. The last checkpoint holds the state before this step."""
+        grads = [p.grad for p in self.field.parameters() if p.grad is not None]
+        sums = torch.stack([loss.detach().float().reshape(())] + [g.float().abs().amax() for g in grads])
+        if bool(torch.isfinite(sums).all()):
+            return
+        bad = [name for name, p in self.field.named_parameters() if p.grad is not None and not torch.isfinite(p.grad).all()]
+        what = "the loss" if not torch.isfinite(loss.detach()).all() else "the gradient of " + ", ".join(bad)
+        raise FloatingPointError(
+            f"step {self.iteration + 1}: {what} is not finite; the parameters were left as they were after step "
+            f"{self.iteration}. This is a numerical bug: please report it with the settings and the checkpoint; "
+            "a resumed run repeats the step"
+        )
+
     def step(self, timer: Timer) -> dict:
         s = self.s
         with timer("gather"):
@@ -170,6 +185,7 @@ class Optimizer:
         with timer("backward"):
             self.opt.zero_grad(set_to_none=True)
             loss.backward()
+            self.check_finite(loss)
         with timer("optimizer"):
             lr = self.sched.get_last_lr()[0]
             self.opt.step()

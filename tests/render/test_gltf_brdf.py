@@ -196,6 +196,31 @@ def test_mutations_fail_the_monte_carlo_check(monkeypatch, mutation):
     assert max(errors.values()) > 1.0, errors
 
 
+@pytest.mark.parametrize("brdf", ["gltf", "tango"])
+def test_finite_gradients_under_a_training_sized_upstream_gradient(brdf):
+    """Sharp lobes (1e2..1e4) at 20,000 front-facing points of roughness 0.05-0.55, in float32, with
+    the image loss's gradient scaled to 1e5 (a step through CLIP reaches 4e4 per shaded value):
+    finite gradients. A lobe far off its product's axis has an amplitude below float32's range
+    (``exp(-127)``) while the fit's correction reaches ``e^80``: written as two factors, the backward
+    multiplied the 0 by an overflowed gradient and a CI training run turned NaN at step 2,341."""
+    g = torch.Generator().manual_seed(5)
+    n_pts = 20_000
+    n = unit(torch.randn(n_pts, 3, generator=g))
+    v = unit(n + 1.2 * unit(torch.randn(n_pts, 3, generator=g)))
+    cos = (n * v).sum(-1, keepdim=True)
+    v = torch.where(cos < 0, v - 2.0 * cos * n, v)  # mirrored into the front hemisphere
+    rough = (0.05 + 0.5 * torch.rand(n_pts, 1, generator=g)).requires_grad_()
+    f0 = torch.full((n_pts, 3), 0.04)
+    axes = unit(torch.randn(8, 3, generator=g)).requires_grad_()
+    lam = torch.tensor([1e2, 1e3, 3e3, 1e4] * 2)[:, None].requires_grad_()
+    light = SGLight(axes / torch.linalg.vector_norm(axes, dim=-1, keepdim=True), lam, torch.ones(8, 3))
+    out = shading_module.specular_radiance_fitted(n, v, f0, rough, light, brdf)
+    assert torch.isfinite(out).all()
+    (out.sum() * 1e5).backward()
+    for x in (rough, axes, lam):
+        assert torch.isfinite(x.grad).all()
+
+
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_finite_values_and_gradients_at_the_extremes(dtype):
     """glTF's shading at grazing views (n.v down to 1e-3), both poles, roughness 0.01 and 1,

@@ -51,6 +51,23 @@ def test_one_clip_step_changes_parameters(cache):
     assert 0 < row["points"] <= 3 * 64 * 64
 
 
+def test_a_non_finite_gradient_stops_the_step_before_it_reaches_the_parameters(cache, monkeypatch):
+    """A NaN in one lobe's gradient (from a hook on the light's sharpness) raises a clear error naming
+    the step and the parameter, and the parameters and the optimiser's state stay as they were: a NaN
+    that reached them would spread to every later step and checkpoint."""
+    opt = Optimizer(OptimizeSettings(iterations=3, **TINY), RayCache(cache / "train.npz"), "a vase", "cpu")
+    opt.step(Timer())
+    before, state = params(opt.field), json.dumps(str(opt.opt.state_dict()["state"]))
+    hook = opt.field.light.log_sharpness.register_hook(lambda g: g.index_fill(0, torch.tensor([0]), float("nan")))
+    with pytest.raises(FloatingPointError, match=r"step 2: the gradient of light\.log_sharpness is not finite"):
+        opt.step(Timer())
+    hook.remove()
+    after = params(opt.field)
+    assert all(torch.equal(before[k], after[k]) for k in before)
+    assert json.dumps(str(opt.opt.state_dict()["state"])) == state and opt.iteration == 1
+    assert math.isfinite(opt.step(Timer())["loss"])  # the next step, with a finite gradient, runs
+
+
 def test_kill_and_resume_matches_uninterrupted_run(cache, tmp_path):
     s = OptimizeSettings(iterations=8, checkpoint_every=3, background="noise", **TINY)
     ref = optimize.run(cache / "train.npz", cache / "eval.npz", "a vase", tmp_path / "ref", s, "cpu")
