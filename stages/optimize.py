@@ -32,7 +32,7 @@ from .imaging.quality import psnr
 from .imaging.sheets import contact_sheet, save_png
 from .imaging.targets import TargetSet
 from .imaging.views import ViewStore, render_view
-from .model.checkpoint import save_field
+from .model.checkpoint import read_torch_file, save_field
 from .render.color import linear_to_srgb
 from .render.envmap import equirect_directions
 from .training.optimizer import Optimizer, plot_loss, save_checkpoint, write_loss_csv
@@ -74,7 +74,7 @@ def run(
         opt = Optimizer(settings, train, prompt, dev, targets=targets)
     resumed_from = None
     if ckpt.is_file():
-        state = torch.load(ckpt, map_location=dev, weights_only=False)
+        state = read_torch_file(ckpt, dev, remedy="Delete it to start this optimisation afresh.")
         if state.get("digest") == settings.digest():
             opt.load(state)
             resumed_from = opt.iteration

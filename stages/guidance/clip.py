@@ -213,7 +213,26 @@ class ClipGuide:
         self.tower = tower
         self.tower_changes = use_fast_tower(self.model.visual, self.bf16) if tower == "batched" else 0
 
+    def text_tokens(self, text: str) -> tuple[int, int]:
+        """``(tokens the text makes with its start and end markers, tokens CLIP reads)``."""
+        limit = int(getattr(self.tokenizer, "context_length", None) or 77)
+        encode = getattr(self.tokenizer, "encode", None)
+        if encode is None:  # a tokenizer without BPE access: count what it kept (at most the limit)
+            return int((self.tokenizer([text]) != 0).sum()), limit
+        return len(encode(text)) + 2, limit
+
     def embed_text(self, text: str) -> Tensor:
+        """The unit text embedding; a text longer than CLIP's context is cut by the tokenizer, and
+        that is logged as a warning naming the prompt (CLIP never sees the rest)."""
+        used, limit = self.text_tokens(text)
+        if used > limit:
+            shown = text if len(text) <= 80 else text[:79] + "…"
+            log.warning(
+                "prompt %r makes %d tokens; CLIP reads the first %d, so the rest of it has no effect: shorten it",
+                shown,
+                used,
+                limit,
+            )
         with torch.no_grad():
             tokens = self.tokenizer([text]).to(self.device)
             emb = self.model.encode_text(tokens).float()

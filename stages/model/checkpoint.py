@@ -3,12 +3,15 @@ the prompt and the origin record (which guidance and weights trained it)."""
 
 from __future__ import annotations
 
+import pickle
+import zipfile
 from pathlib import Path
 from typing import Any
 
 import torch
 
 from ..config.sections import OptimizeSettings
+from ..core.errors import StageInputError
 from ..core.provenance import ORIGIN_KEY, atomic_path, checked_origin
 from ..render.sg import sg_integral
 from .field import StyleField
@@ -54,11 +57,40 @@ def save_field(path: str | Path, field: StyleField, settings: OptimizeSettings, 
         )
 
 
+def read_torch_file(path: str | Path, device="cpu", *, remedy: str) -> dict:
+    """A ``.pt`` file this tool wrote (``field.pt``, ``checkpoint.pt``): a dict of tensors and plain
+    containers, read by torch's restricted unpickler (``weights_only=True``), so that a file from
+    someone else's results folder can never run code when it is read. Anything else (a pickle
+    that names a class or a function, a truncated or foreign file) is a
+    :class:`~stages.core.errors.StageInputError` naming the file, what is wrong and ``remedy``."""
+    try:
+        data = torch.load(path, map_location=device, weights_only=True)
+    except pickle.UnpicklingError as err:
+        lines = str(err).splitlines()
+        detail = next((line.strip().rstrip(".") for line in lines if "unsupported global" in line.lower()), "")
+        raise StageInputError(
+            path,
+            "refused: it holds objects other than tensors and plain containers, which are never unpickled "
+            f"(it was not written by this tool){f' ({detail})' if detail else ''}",
+            remedy,
+        ) from None
+    except (RuntimeError, EOFError, zipfile.BadZipFile, OSError) as err:
+        first = (str(err).splitlines() or [""])[0] or type(err).__name__
+        raise StageInputError(path, f"not a readable torch file ({first})", remedy) from None
+    if not isinstance(data, dict):
+        raise StageInputError(path, f"holds a {type(data).__name__}, not the dict this tool writes", remedy)
+    return data
+
+
 def load_field(path: str | Path, device="cpu") -> tuple[StyleField, OptimizeSettings]:
     """Rebuild a trained :class:`StyleField` from ``field.pt``; ``field.origin`` is the record of
     the guidance and weights that trained it (:func:`~stages.core.provenance.origin_record`), which
     every stage that uses the field copies into its own outputs."""
-    data = torch.load(path, map_location=device, weights_only=False)
+    remedy = "Run this cell's optimize stage again to rebuild it."
+    data = read_torch_file(path, device, remedy=remedy)
+    missing = [key for key in ("settings", "state_dict") if key not in data]
+    if missing:
+        raise StageInputError(path, f"has no {' or '.join(missing)}: not a field this tool wrote", remedy)
     origin = checked_origin(data.get(ORIGIN_KEY), path, "the optimize stage")
     settings = OptimizeSettings.from_dict({**SETTINGS_BEFORE_THEY_EXISTED, **data["settings"]})
     f = StyleField(settings.field_settings()).to(device)

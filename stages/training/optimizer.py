@@ -210,6 +210,10 @@ def write_loss_csv(path: Path, history: list[dict]) -> None:
             w.writerows(history)
 
 
+#: the most characters of the prompt the loss plot shows as its title
+TITLE_CHARS = 100
+
+
 def plot_loss(path: Path, history: list[dict], title: str) -> None:
     import matplotlib
 
@@ -222,7 +226,9 @@ def plot_loss(path: Path, history: list[dict], title: str) -> None:
     if history and "similarity_global" in history[0]:
         ax.plot(it, [-r["similarity_global"] for r in history], lw=0.8, label="-similarity (global)")
     ax.set_xlabel("iteration")
-    ax.set_title(title, fontsize=9)
+    # the prompt is data: never parsed as mathtext ("a $\\wood$ vase" would raise at savefig, after
+    # the whole run), and cut to one line of the figure
+    ax.set_title(title if len(title) <= TITLE_CHARS else title[: TITLE_CHARS - 1] + "…", fontsize=9, parse_math=False)
     ax.legend(fontsize=8)
     fig.tight_layout()
     buf = io.BytesIO()

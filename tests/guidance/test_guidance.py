@@ -30,6 +30,28 @@ def test_tiny_clip_is_marked_and_differentiable():
     assert not any(p.requires_grad for p in g.model.parameters())
 
 
+def test_a_prompt_past_clips_context_is_cut_with_a_warning_naming_it(caplog):
+    """CLIP reads 77 tokens (its start and end markers included): a longer prompt is cut by the
+    tokenizer, so its embedding equals that of its first 75 words, and a warning names the prompt
+    and both counts; a prompt that fits gives none."""
+    g = load_clip(ClipSpec(tiny_test=True))
+    limit = g.tokenizer.context_length
+    words = [f"w{i % 10}" for i in range(200)]  # "w0".."w9": two BPE tokens each
+    per_word = len(g.tokenizer.encode("w1"))
+    fits = " ".join(words[: (limit - 2) // per_word])
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="stages.guidance.clip"):
+        g.embed_text(fits)
+    assert not caplog.records
+    long = " ".join(words)
+    with caplog.at_level("WARNING", logger="stages.guidance.clip"):
+        cut = g.embed_text(long)
+    (record,) = caplog.records
+    assert f"makes {200 * per_word + 2} tokens; CLIP reads the first {limit}" in record.getMessage()
+    assert "'w0 w1 w2" in record.getMessage() and "shorten it" in record.getMessage()
+    torch.testing.assert_close(cut, g.embed_text(" ".join(words[: (limit - 2) // per_word + 1])))
+
+
 def test_local_checkpoint_loads_through_open_clip(tmp_path):
     g = load_clip(ClipSpec(tiny_test=True))
     path = tmp_path / "tiny.bin"

@@ -98,8 +98,8 @@ def test_kill_and_resume_across_the_pruning(cache, tmp_path, killed_at):
     resumed = optimize.run(*args, out, s, "cpu")
     assert resumed["resumed_from_iteration"] == 3 * (killed_at // 3)
     assert resumed["light_pruned"] == ref["light_pruned"]
-    a = torch.load(tmp_path / "ref" / "field.pt", weights_only=False)["state_dict"]
-    b = torch.load(out / "field.pt", weights_only=False)["state_dict"]
+    a = torch.load(tmp_path / "ref" / "field.pt", weights_only=True)["state_dict"]
+    b = torch.load(out / "field.pt", weights_only=True)["state_dict"]
     for k in a:
         torch.testing.assert_close(a[k], b[k], rtol=0, atol=0, msg=k)
     field, _ = load_field(out / "field.pt")  # what bake, relight, metrics and lod do

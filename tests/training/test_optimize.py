@@ -77,8 +77,8 @@ def test_kill_and_resume_matches_uninterrupted_run(cache, tmp_path):
     assert (out / "checkpoint.pt").is_file() and not (out / "meta.json").exists()
     resumed = optimize.run(cache / "train.npz", cache / "eval.npz", "a vase", out, s, "cpu")
     assert resumed["resumed_from_iteration"] == 3  # the last checkpoint before the kill
-    a = torch.load(tmp_path / "ref" / "field.pt", weights_only=False)["state_dict"]
-    b = torch.load(out / "field.pt", weights_only=False)["state_dict"]
+    a = torch.load(tmp_path / "ref" / "field.pt", weights_only=True)["state_dict"]
+    b = torch.load(out / "field.pt", weights_only=True)["state_dict"]
     for k in a:
         torch.testing.assert_close(a[k], b[k], rtol=0, atol=0, msg=k)
     assert not (out / "checkpoint.pt").exists()
@@ -103,8 +103,8 @@ def test_hash_grid_run_trains_its_tables_and_resumes_bit_identical(cache, tmp_pa
     assert optimize.run(cache / "train.npz", cache / "eval.npz", "a vase", out, s, "cpu", stop_after=3) == {"stopped_at": 3}
     resumed = optimize.run(cache / "train.npz", cache / "eval.npz", "a vase", out, s, "cpu")
     assert resumed["resumed_from_iteration"] == 2 and ref["settings"]["material_encoding"] == "hashgrid"
-    a = torch.load(tmp_path / "ref" / "field.pt", weights_only=False)["state_dict"]
-    b = torch.load(out / "field.pt", weights_only=False)["state_dict"]
+    a = torch.load(tmp_path / "ref" / "field.pt", weights_only=True)["state_dict"]
+    b = torch.load(out / "field.pt", weights_only=True)["state_dict"]
     for k in a:
         torch.testing.assert_close(a[k], b[k], rtol=0, atol=0, msg=k)
 
@@ -137,7 +137,7 @@ def test_outputs_and_metadata(cache, tmp_path):
     # trained (TANGO's isotropic lobe, flat normals, TANGO's BRDF), not with today's defaults
     s_tango = OptimizeSettings(iterations=3, brdf="tango", **TINY)
     optimize.run(cache / "train.npz", cache / "eval.npz", "a vase made of wood", tmp_path / "tango", s_tango, "cpu")
-    data = torch.load(tmp_path / "tango" / "field.pt", weights_only=False)
+    data = torch.load(tmp_path / "tango" / "field.pt", weights_only=True)
     for key in ("specular_lobe", "shading_normals", "brdf"):
         del data["settings"][key]
     torch.save(data, tmp_path / "old.pt")

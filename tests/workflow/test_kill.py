@@ -118,8 +118,8 @@ def test_sigkill_during_optimize_resumes_bit_identical(uninterrupted, tmp_path):
     assert meta["resumed_from_iteration"] is not None and 10 <= meta["resumed_from_iteration"] < 80
     assert "resumed from" in (tmp_path / CELL / "logs" / "optimize.log").read_text()
     assert not ckpt.exists()
-    a = torch.load(uninterrupted / CELL / "optimize" / "field.pt", weights_only=False)["state_dict"]
-    b = torch.load(tmp_path / CELL / "optimize" / "field.pt", weights_only=False)["state_dict"]
+    a = torch.load(uninterrupted / CELL / "optimize" / "field.pt", weights_only=True)["state_dict"]
+    b = torch.load(tmp_path / CELL / "optimize" / "field.pt", weights_only=True)["state_dict"]
     assert a.keys() == b.keys()
     for key in a:
         assert torch.equal(a[key], b[key]), f"{key} differs after the resumed run"

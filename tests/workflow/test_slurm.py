@@ -129,7 +129,7 @@ def same_content(a: Path, b: Path) -> bool:
         x, y = np.load(a), np.load(b)
         return sorted(x.files) == sorted(y.files) and all(np.array_equal(x[k], y[k]) for k in x.files)
     if a.suffix == ".pt":
-        x, y = torch.load(a, weights_only=False), torch.load(b, weights_only=False)
+        x, y = torch.load(a, weights_only=True), torch.load(b, weights_only=True)
         return x["state_dict"].keys() == y["state_dict"].keys() and all(
             torch.equal(x["state_dict"][k], y["state_dict"][k]) for k in x["state_dict"]
         )
@@ -206,7 +206,7 @@ def test_job_killed_at_its_time_limit_resumes_from_its_checkpoint(cluster, tmp_p
     states = sacct_states(ids)
     assert list(states.values()) == ["TIMEOUT"], states  # the mesh-level work came from the calibration
     assert (cell / "checkpoint.pt").is_file() and not (cell / "meta.json").exists()
-    saved = torch.load(cell / "checkpoint.pt", weights_only=False)["iteration"]
+    saved = torch.load(cell / "checkpoint.pt", weights_only=True)["iteration"]
     assert 20 <= saved < steps
     again = slurm_run(tmp_path, config, target, "--set-resources", "optimize:runtime=30", timeout=1800)
     assert again.returncode == 0, (again.stdout + again.stderr)[-3000:]

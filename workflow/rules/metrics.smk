@@ -26,5 +26,5 @@ rule metrics:
         targets=targets_option,
     shell:
         "python -m stages.metrics --field {input.field:q} --metrics-cache {input.cache:q} "
-        "--prompt {params.prompt:q} --candidates {params.candidates:q} --out-dir {params.out_dir:q} "
+        "--prompt={params.prompt:q} --candidates={params.candidates:q} --out-dir {params.out_dir:q} "
         "--settings {params.settings:q} {params.targets} --threads {threads} --device {params.device} 2> {log:q}"

@@ -23,5 +23,5 @@ rule optimize:
         targets=targets_option,
     shell:
         "python -m stages.optimize --train {input.train:q} --eval {input.eval:q} "
-        "--prompt {params.prompt:q} --out-dir {params.out_dir:q} --settings {params.settings:q} "
+        "--prompt={params.prompt:q} --out-dir {params.out_dir:q} --settings {params.settings:q} "
         "{params.targets} --threads {threads} --device {params.device} 2> {log:q}"
