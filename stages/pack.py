@@ -14,13 +14,15 @@ import csv
 import io
 import json
 import logging
+import os
 import zipfile
 from pathlib import Path
 
 from .core.cli import stage_main
 from .core.errors import StageInputError
-from .core.provenance import ORIGIN_KEY, atomic_path, read_origin
+from .core.provenance import ORIGIN_KEY, atomic_path, read_origin, shareable_meta
 from .results.cells import parse_cells
+from .results.spreadsheet import spreadsheet_rows
 
 log = logging.getLogger(__name__)
 
@@ -56,6 +58,25 @@ def pack_readme(rows: list[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def regular_files(folder: Path) -> list[Path]:
+    """The files under ``folder`` a pack may hold: regular files, not hidden, reached without
+    following a symbolic link (a link in a results folder could point anywhere on the machine;
+    each one skipped is logged)."""
+    found = []
+    for root, dirs, names in os.walk(folder, followlinks=False):
+        base = Path(root)
+        for name in [d for d in dirs if (base / d).is_symlink()]:
+            log.warning("not packing %s: a symbolic link", base / name)
+            dirs.remove(name)
+        for name in names:
+            path = base / name
+            if path.is_symlink():
+                log.warning("not packing %s: a symbolic link", path)
+            elif not name.startswith(".") and path.is_file():
+                found.append(path)
+    return sorted(found)
+
+
 def run(
     results: Path, cells: list[tuple[str, str, str]], out_zip: Path, out_index: Path, lod_cells: list[tuple[str, str, str]] = ()
 ) -> list[dict]:
@@ -69,7 +90,7 @@ def run(
             raise StageInputError(meta_path, "file not found", "Run the export stage first.")
         meta = json.loads(meta_path.read_text())
         origin = read_origin(meta_path)
-        files = sorted(p for p in asset.rglob("*") if p.is_file() and not p.name.startswith("."))
+        files = regular_files(asset)
         rel = [str(p.relative_to(asset)) for p in files]
         entries += [(p, f"{mesh}/{prompt}/{variant}/{r}") for p, r in zip(files, rel, strict=True)]
         levels = ""
@@ -81,11 +102,7 @@ def run(
             rows_lod = json.loads(lod_meta.read_text())["stats"]["levels"]
             # the stage's own files and the folders of the levels it lists (nothing left by older runs)
             folders = {r["level"] for r in rows_lod}
-            lod_files = sorted(
-                p
-                for p in lod.rglob("*")
-                if p.is_file() and not p.name.startswith(".") and (p.parent == lod or p.relative_to(lod).parts[0] in folders)
-            )
+            lod_files = [p for p in regular_files(lod) if p.parent == lod or p.relative_to(lod).parts[0] in folders]
             lod_rel = [f"lod/{p.relative_to(lod)}" for p in lod_files]
             entries += [(p, f"{mesh}/{prompt}/{variant}/{r}") for p, r in zip(lod_files, lod_rel, strict=True)]
             rel += lod_rel
@@ -114,13 +131,16 @@ def run(
     buf = io.StringIO()
     writer = csv.DictWriter(buf, fieldnames=list(rows[0]) if rows else ["mesh"])
     writer.writeheader()
-    writer.writerows(rows)
+    writer.writerows(spreadsheet_rows(rows))  # prompt text a spreadsheet would evaluate is quoted
     with atomic_path(out_zip) as tmp:
         with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_STORED) as z:
             z.writestr("README.txt", pack_readme(rows))
             z.writestr("index.csv", buf.getvalue())
             for path, arc in entries:
-                z.write(path, arc)
+                if path.name == "meta.json":  # provenance without the host and the command line
+                    z.writestr(arc, json.dumps(shareable_meta(json.loads(path.read_text())), indent=2))
+                else:
+                    z.write(path, arc)
     with atomic_path(out_index) as tmp:
         tmp.write_text(buf.getvalue())
     log.info("packed %d cells (%d files) into %s", len(rows), len(entries), out_zip)

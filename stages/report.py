@@ -26,6 +26,7 @@ from .core.provenance import atomic_path, write_json_atomic
 from .results.cells import parse_cells
 from .results.compare import cell_settings, comparison_groups, trade_off
 from .results.figures import ablation_figures, loss_figures, robustness_figure, speed_accuracy_figures, variant_grids
+from .results.spreadsheet import spreadsheet_rows
 from .results.summary import front_tile, overview_image, quality_text, speed_accuracy, summary_rows
 
 log = logging.getLogger(__name__)
@@ -50,10 +51,9 @@ def run(
     settings = settings or ReportSettings()
     results = Path(results)
     rows = summary_rows(results, cells, lod_cells, mesh_dirs)
-    frame = pd.DataFrame(rows)
     out_dir = Path(out_dir)
-    with atomic_path(out_dir / "summary.csv") as tmp:
-        frame.to_csv(tmp, index=False)
+    with atomic_path(out_dir / "summary.csv") as tmp:  # text a spreadsheet would evaluate is quoted
+        pd.DataFrame(spreadsheet_rows(rows)).to_csv(tmp, index=False)
     with atomic_path(out_dir / "overview.png") as tmp:
         Image.fromarray(overview_image(results, cells)).save(tmp, format="PNG")
     write_json_atomic(out_dir / "summary.json", rows)
@@ -64,7 +64,7 @@ def run(
     groups = comparison_groups(timed, per_cell, variants, settings.reference, settings.ablations)
     trade = [t for g in groups for t in trade_off(g)]
     with atomic_path(out_dir / "speed_accuracy.csv") as tmp:
-        pd.DataFrame(trade).to_csv(tmp, index=False)
+        pd.DataFrame(spreadsheet_rows(trade)).to_csv(tmp, index=False)
 
     figures_dir = out_dir / "figures"
     figures_dir.mkdir(parents=True, exist_ok=True)

@@ -41,7 +41,11 @@ CELL_STAGES = ("bake", "export", "relight", "metrics", "roundtrip", "lod")
 #: target), shared by every experiment; so no experiment may be called this
 MESH_WORK = "meshes"
 #: an experiment's name: a folder under ``results/``
-EXPERIMENT_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.+-]*")
+EXPERIMENT_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.+-]{0,127}")
+#: a mesh, prompt or variant id: a folder name (the schema's ``$defs/id``, which a test holds equal)
+ID_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")
+#: mesh ids taken by the experiment's own folders (``results/<experiment>/<id>/``), and why
+RESERVED_MESH_IDS = {"report": "results/<experiment>/report/ holds the experiment's report, its tables and its pack"}
 
 
 def settings_digest(obj: Any) -> str:
@@ -126,6 +130,12 @@ class WorkflowConfig:
 
     def __init__(self, config: dict, source: str = "config") -> None:
         validate(config, source)
+        for mesh_id in config["meshes"]:
+            if mesh_id in RESERVED_MESH_IDS:
+                raise ConfigError(
+                    f"{source}: meshes -> {mesh_id}: the mesh id {mesh_id!r} is reserved "
+                    f"({RESERVED_MESH_IDS[mesh_id]}): rename the mesh (its `object` noun can stay {mesh_id!r})"
+                )
         self.raw = copy.deepcopy(config)
         self.source = source
         self.meshes: dict[str, dict] = self.raw["meshes"]

@@ -148,6 +148,35 @@ def metadata(
     }
 
 
+#: what a record shared outside this machine leaves out: who ran it where, and how
+PRIVATE_KEYS = ("host", "argv")
+
+
+def shareable_meta(meta: Any) -> Any:
+    """``meta`` as it may leave the machine (the asset pack): without the host name and platform
+    and the command line (:data:`PRIVATE_KEYS`, at any depth), and with the paths of its
+    ``inputs`` and ``outputs`` cut to file names (they name the user's folders); settings,
+    versions, timings, digests and the origin stay."""
+    if isinstance(meta, list):
+        return [shareable_meta(v) for v in meta]
+    if not isinstance(meta, dict):
+        return meta
+    out = {}
+    for key, value in meta.items():
+        if key in PRIVATE_KEYS:
+            continue
+        if key in ("inputs", "outputs") and isinstance(value, dict):
+            value = {k: _file_name(v) for k, v in value.items()}
+        out[key] = shareable_meta(value)
+    return out
+
+
+def _file_name(value: Any) -> Any:
+    if isinstance(value, dict) and isinstance(value.get("path"), str):
+        return {**value, "path": Path(value["path"]).name}
+    return Path(value).name if isinstance(value, str) and value else value
+
+
 # ---- origin: which guidance and weights made a result, carried by every downstream output ----
 #: the key under which every stage's ``meta.json`` (and the field file) records the origin
 ORIGIN_KEY = "origin"

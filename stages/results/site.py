@@ -29,6 +29,7 @@ import html
 import json
 import logging
 import os
+import re
 import shutil
 from collections.abc import Callable
 from pathlib import Path
@@ -37,6 +38,7 @@ import pandas as pd
 
 from ..config.layout import RENDER_KINDS
 from ..core.provenance import atomic_path
+from .spreadsheet import read_spreadsheet_csv
 from .summary import quality_of
 
 log = logging.getLogger(__name__)
@@ -68,6 +70,8 @@ CELL_FILES = (
 )
 #: the pages' style sheet and scripts (read when a report is written)
 WEB = Path(__file__).resolve().parent / "web"
+#: a texture map's name as the export writes it (``textures/<name>.png``); other files found there are not shown
+TEXTURE_NAME = re.compile(r"[A-Za-z0-9_-]{1,64}")
 MIME = {".png": "image/png", ".glb": "model/gltf-binary", ".hdr": "image/vnd.radiance"}
 
 
@@ -197,7 +201,8 @@ def cell_files(results: Path, cell: tuple[str, str, str]) -> dict[str, Path]:
     cdir = Path(results).joinpath(*cell)
     found = {name: cdir / folder / f for folder, f, name in CELL_FILES if (cdir / folder / f).is_file()}
     for tex in sorted((cdir / "export" / "textures").glob("*.png")):
-        found[f"texture_{tex.stem}.png"] = tex
+        if TEXTURE_NAME.fullmatch(tex.stem) and not tex.is_symlink():  # names the export writes; nothing else on disk
+            found[f"texture_{tex.stem}.png"] = tex
     return found
 
 
@@ -230,9 +235,9 @@ def index_table(frame: pd.DataFrame, link: Callable[[tuple], str], thumb: Callab
                 f"data-text='{esc(text)}'>"
             )
             src = thumb(cell)
-            img = f"<img loading='lazy' alt='' src='{src}'>" if src else ""
-            out.append(f"<td data-v=''><a href='{link(cell)}'>{img}</a></td>")
-            out.append(f"<td class='text'><a href='{link(cell)}'>{esc(cell_key(cell))}</a></td>")
+            img = f"<img loading='lazy' alt='' src='{esc(src)}'>" if src else ""
+            out.append(f"<td data-v=''><a href='{esc(link(cell))}'>{img}</a></td>")
+            out.append(f"<td class='text'><a href='{esc(link(cell))}'>{esc(cell_key(cell))}</a></td>")
             for column, _ in INDEX_COLUMNS:
                 shown, value = _cell_value(r, column)
                 out.append(
@@ -265,13 +270,13 @@ def figures_section(report_dir: Path, url: Callable[[Path], str]) -> str:
         out.append(f"<div class='figure'><h3>{esc(e['title'])}</h3>")
         if "file" in e and (Path(report_dir) / e["file"]).is_file():
             src = url(Path(report_dir) / e["file"])
-            out.append(f"<a href='{src}'><img loading='lazy' alt='{esc(e['title'])}' src='{src}'></a>")
+            out.append(f"<a href='{esc(src)}'><img loading='lazy' alt='{esc(e['title'])}' src='{esc(src)}'></a>")
             out.append(f"<p><small>{esc(e.get('caption', ''))}</small></p>")
         else:
             out.append(f"<p class='skipped'>Not drawn: {esc(e.get('skipped', 'the figure file is missing'))}.</p>")
         out.append("</div>")
     if overview.is_file():
-        out.append(f"<div class='figure'><h3>Overview</h3><a href='{url(overview)}'>overview.png</a>: one row per cell")
+        out.append(f"<div class='figure'><h3>Overview</h3><a href='{esc(url(overview))}'>overview.png</a>: one row per cell")
         out.append(" (RGB, diffuse, roughness, specular, normals of the front view).</div>")
     return "".join(out)
 
@@ -279,7 +284,7 @@ def figures_section(report_dir: Path, url: Callable[[Path], str]) -> str:
 def speed_accuracy_section(report_dir: Path) -> str:
     sa = Path(report_dir) / "speed_accuracy.csv"
     try:
-        frame = pd.read_csv(sa) if sa.is_file() else pd.DataFrame()
+        frame = read_spreadsheet_csv(sa) if sa.is_file() else pd.DataFrame()
     except pd.errors.EmptyDataError:
         frame = pd.DataFrame()
     if not len(frame):
@@ -360,7 +365,7 @@ def cell_body(
             + gallery([(n, n.removeprefix("render_").removesuffix(".png")) for n in renders], url)
         )
     if "loss.png" in files:
-        out.append(f"<h3>Loss</h3><img loading='lazy' alt='loss curve' src='{url('loss.png')}'>")
+        out.append(f"<h3>Loss</h3><img loading='lazy' alt='loss curve' src='{esc(url('loss.png'))}'>")
     if len(row):
         r = row.iloc[0]
         kv = "".join(
@@ -381,20 +386,20 @@ def cell_body(
         ("roundtrip_compare.png", "Blender round trip, front view: ours | Cycles per format | 4 x |difference|"),
     ):
         if name in files:
-            out.append(f"<h3>{esc(title)}</h3><img loading='lazy' alt='{esc(title)}' src='{url(name)}'>")
+            out.append(f"<h3>{esc(title)}</h3><img loading='lazy' alt='{esc(title)}' src='{esc(url(name))}'>")
     return "".join(out)
 
 
 def gallery(items: list[tuple[str, str]], url: Callable[[str], str]) -> str:
     """Clickable thumbnails over one large image (the first item shown)."""
     picks = "".join(
-        f"<img loading='lazy' class='{'on' if i == 0 else ''}' alt='{esc(label)}' title='{esc(label)}' src='{url(name)}'>"
+        f"<img loading='lazy' class='{'on' if i == 0 else ''}' alt='{esc(label)}' title='{esc(label)}' src='{esc(url(name))}'>"
         for i, (name, label) in enumerate(items)
     )
     first, label = items[0]
     return (
         f"<div class='gallery'><div class='picks'>{picks}</div><div class='caption'>{esc(label)}</div>"
-        f"<img class='main' loading='lazy' alt='{esc(label)}' src='{url(first)}'></div>"
+        f"<img class='main' loading='lazy' alt='{esc(label)}' src='{esc(url(first))}'></div>"
     )
 
 
@@ -403,18 +408,18 @@ def viewer_html(files: dict[str, Path], url: Callable[[str], str], have_viewer: 
     toggle; without model-viewer or a model, the static preview and why."""
     if not have_viewer or "model.glb" not in files:
         if "preview.png" in files:
-            return f"<img class='preview viewer-img' alt='{esc(label)}' src='{url('preview.png')}'>"
+            return f"<img class='preview viewer-img' alt='{esc(label)}' src='{esc(url('preview.png'))}'>"
         return "<p class='skipped'>No exported model for this cell.</p>"
     hdr = url("light.hdr") if "light.hdr" in files else ""
-    poster = f" poster='{url('preview.png')}'" if "preview.png" in files else ""
-    packed_attr = f" data-packed='{packed}'" if packed else ""
+    poster = f" poster='{esc(url('preview.png'))}'" if "preview.png" in files else ""
+    packed_attr = f" data-packed='{esc(packed)}'" if packed else ""
     buttons = (
         "<p><button data-light='learned'>learned light (light.hdr)</button> <button data-light='studio'>studio light</button></p>"
         if hdr
         else "<p><small>no learned light exported: a neutral studio light</small></p>"
     )
     return (
-        f"<div class='viewer'><model-viewer data-glb='{url('model.glb')}' data-hdr='{hdr}'{packed_attr}{poster} "
+        f"<div class='viewer'><model-viewer data-glb='{esc(url('model.glb'))}' data-hdr='{esc(hdr)}'{packed_attr}{poster} "
         f"alt='{esc(label)}' camera-controls loading='lazy' reveal='auto' shadow-intensity='0.5' exposure='1' "
         f"interaction-prompt='none'></model-viewer>{buttons}</div>"
     )
@@ -447,7 +452,7 @@ def _place(src: Path, dst: Path) -> None:
 def read_summary(report_dir: Path) -> pd.DataFrame:
     """summary.csv with its id columns as text (an id like ``01`` or ``NA`` stays what it is)."""
     path = Path(report_dir) / "summary.csv"
-    frame = pd.read_csv(path)
+    frame = read_spreadsheet_csv(path)
     ids = ["mesh", "prompt", "variant"]
     frame[ids] = pd.read_csv(path, usecols=ids, dtype=str, keep_default_na=False)[ids]
     return frame

@@ -440,6 +440,39 @@ def test_summary_and_pack(trained, tmp_path):
     assert "WARNING: TEST ONLY. 1 of 1 assets" in readme and "candle/wax/base: TEST ONLY" in readme
 
 
+def test_pack_skips_links_and_ships_provenance_without_host_or_command(trained, tmp_path, caplog):
+    """A results folder may hold symbolic links (to a private key, to a whole home folder): the
+    pack ships none of them. Its meta.json keep settings, versions and origin, and leave out
+    the host name, the platform, the command line and the user's folders."""
+    results, cell = results_with_cell(trained, tmp_path)
+    secret = tmp_path / "secret.txt"
+    secret.write_text("PRIVATE KEY")
+    (tmp_path / "home").mkdir()
+    (tmp_path / "home" / "notes.txt").write_text("private notes")
+    (cell / "export" / "textures" / "leak.png").symlink_to(secret)
+    (cell / "export" / "home").symlink_to(tmp_path / "home", target_is_directory=True)
+    pack.run(results, [("candle", "wax", "base")], results / "pack.zip", results / "index.csv")
+    with zipfile.ZipFile(results / "pack.zip") as z:
+        names = z.namelist()
+        blob = b"".join(z.read(n) for n in names)
+        metas = b"".join(z.read(n) for n in names if n.endswith((".json", ".csv", ".txt")))
+        shipped = json.loads(z.read("candle/wax/base/meta.json"))
+    assert not any("leak" in n or "home/" in n for n in names), names
+    assert b"PRIVATE KEY" not in blob and b"private notes" not in blob
+    assert sum("a symbolic link" in r.getMessage() for r in caplog.records) == 2
+    original = json.loads((cell / "export" / "meta.json").read_text())
+    assert original["host"]["hostname"] and original["argv"]  # recorded on this machine...
+    assert "host" not in shipped and "argv" not in shipped  # ...and not shipped
+    assert original["host"]["hostname"].encode() not in metas and b"argv" not in metas
+    assert shipped["settings"] == original["settings"] and shipped["origin"] == original["origin"]
+    assert shipped["versions"] == original["versions"]
+    for key in ("inputs", "outputs"):
+        for value in shipped[key].values():
+            path = value["path"] if isinstance(value, dict) else value
+            assert "/" not in path, (key, path)
+    assert str(tmp_path).encode() not in metas
+
+
 @pytest.mark.parametrize("single_file", [False, True])
 def test_html_report_without_model_viewer_shows_previews(trained, tmp_path, caplog, single_file):
     """Without Node.js's packages the report is still written, as a folder or as one file:

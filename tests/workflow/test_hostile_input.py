@@ -3,11 +3,19 @@ line (leading dashes, quotes, shell syntax, mathtext), and the loss plot draws a
 
 from __future__ import annotations
 
+import html
+import json
+import re
 import shlex
+import shutil
+import subprocess
+import sys
 
 import pytest
 import yaml
-from conftest import run_snakemake
+from conftest import REPO, run_snakemake
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 #: prompts that broke (or would break) a command line, a shell or a plot title
 HOSTILE_PROMPTS = {
@@ -65,3 +73,109 @@ def test_the_loss_plot_draws_any_prompt_as_its_title(tmp_path, kind):
         plot_loss(tmp_path / "loss.png", history, title)
         assert (tmp_path / "loss.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert TITLE_CHARS <= 120
+
+
+# ---- ids -------------------------------------------------------------------------------------
+@given(st.text(alphabet=st.sampled_from("ab0_.-/\n '\"<>\u05e2Z"), max_size=70))
+@settings(max_examples=300, deadline=None)
+def test_the_schemas_id_pattern_is_the_codes(text):
+    """One rule for ids in the config's schema and in the code (cells handed to the report and
+    pack): a folder name, at most 64 characters, no trailing newline (Python's ``$`` allowed one)."""
+    from stages.config.workflow import ID_RE, load_schema
+
+    node = load_schema()["$defs"]["id"]
+    by_schema = re.search(node["pattern"], text) is not None and len(text) <= node["maxLength"]
+    assert by_schema == (ID_RE.fullmatch(text) is not None)
+
+
+@pytest.mark.parametrize("bad", ["vase\n", "../vase", ".vase", "vase/x", "a" * 65, "va se", "vase'"])
+def test_a_bad_id_is_one_line_naming_it(bad):
+    from stages.config.workflow import ConfigError, WorkflowConfig
+
+    with pytest.raises(ConfigError) as err:
+        WorkflowConfig({"meshes": {bad: {"builtin": "vase"}}, "prompts": {"p": "a vase"}})
+    assert "\n" not in str(err.value).replace(repr(bad), "") and repr(bad) in str(err.value)
+
+
+def test_the_mesh_id_report_is_reserved():
+    """results/<experiment>/report/ is the report's folder: a mesh called so would share it (and a
+    single-file report removes its cells/ folder)."""
+    from stages.config.workflow import ConfigError, WorkflowConfig
+
+    with pytest.raises(ConfigError, match=r"meshes -> report: the mesh id 'report' is reserved .* rename the mesh"):
+        WorkflowConfig({"meshes": {"report": {"builtin": "vase"}}, "prompts": {"p": "a vase"}})
+
+
+@pytest.mark.parametrize("item", ["a/../b", "a/b/c\n", "a/b/c'><script>", "/etc/passwd/x", "a/b/.."])
+def test_cells_handed_to_the_report_are_ids(item):
+    from stages.core.errors import StageInputError
+    from stages.results.cells import parse_cells
+
+    with pytest.raises(StageInputError, match="is not"):
+        parse_cells([item])
+
+
+# ---- spreadsheets ------------------------------------------------------------------------------
+@given(st.text(max_size=40))
+def test_spreadsheet_cells_never_start_a_formula_and_read_back_exactly(text):
+    from stages.results.spreadsheet import FORMULA_START, from_spreadsheet, to_spreadsheet
+
+    cell = to_spreadsheet(text)
+    assert from_spreadsheet(cell) == text
+    assert not cell.startswith(tuple(c for c in FORMULA_START if c != "'"))
+    assert to_spreadsheet(-0.5) == -0.5
+
+
+FORMULA = '=HYPERLINK("http://example.com/x","open")'
+MARKUP = "<script>alert(1)</script> a 'vase' & \"jar\""
+
+
+@pytest.fixture(scope="module")
+def hostile_report(tmp_path_factory):
+    """A two-cell synthetic results tree whose prompts are a spreadsheet formula and markup, with
+    a texture file whose name would break out of an HTML attribute, through report and html_report."""
+    from stages import html_report, report
+
+    results = tmp_path_factory.mktemp("hostile") / "results"
+    proc = subprocess.run(
+        [sys.executable, str(REPO / "scripts" / "synthetic_results.py"), str(results), "--meshes", "2", "--prompts", "1"]
+        + ["--decimated", "0"],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    cells = [tuple(line.split("/")) for line in proc.stdout.split()][:2]
+    for cell, prompt in zip(cells, (FORMULA, MARKUP), strict=True):
+        meta_path = results.joinpath(*cell, "optimize", "meta.json")
+        meta = json.loads(meta_path.read_text())
+        meta_path.write_text(json.dumps({**meta, "prompt": prompt}))
+    textures = results.joinpath(*cells[1], "export", "textures")
+    shutil.copyfile(next(textures.glob("*.png")), textures / "x' onerror='alert(1).png")
+    report.run(results, cells, results / "report")
+    html_report.run(results, results / "report", cells)
+    return results, cells
+
+
+def test_summary_csv_quotes_a_formula_and_the_report_reads_it_back(hostile_report):
+    import csv
+
+    from stages.results.site import read_summary
+
+    results, cells = hostile_report
+    with open(results / "report" / "summary.csv", newline="") as fh:
+        texts = [row["prompt_text"] for row in csv.DictReader(fh)]
+    assert texts == ["'" + FORMULA, MARKUP]  # a spreadsheet shows the first as text
+    assert list(read_summary(results / "report")["prompt_text"]) == [FORMULA, MARKUP]
+    summary = json.loads((results / "report" / "summary.json").read_text())
+    assert [r["prompt_text"] for r in summary] == [FORMULA, MARKUP]
+
+
+def test_the_report_pages_show_hostile_text_as_text(hostile_report):
+    results, cells = hostile_report
+    pages = [results / "report" / "index.html", *(results / "report" / "cells").rglob("index.html")]
+    for page in pages:
+        text = page.read_text()
+        assert "<script>alert(1)" not in text and "onerror=" not in text, page
+    index = (results / "report" / "index.html").read_text()
+    assert html.escape(MARKUP, quote=True) in index and html.escape(FORMULA, quote=True) in index
+    assert not list((results / "report" / "cells").rglob("*onerror*"))
