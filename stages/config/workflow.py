@@ -13,6 +13,7 @@ import dataclasses
 import hashlib
 import json
 import logging
+import math
 import re
 import sys
 from dataclasses import dataclass
@@ -104,7 +105,42 @@ def _describe(error) -> str:
             f"invalid id {error.instance!r} at {where}: ids name result folders, so use letters, "
             "digits, '_', '-' and '.' only (starting with a letter or digit)"
         )
-    return f"invalid value at {where}: {error.message}"
+    if v == "oneOf" and len(error.absolute_path) == 2 and error.absolute_path[0] == "prompts":
+        text = error.instance if isinstance(error.instance, str) else (error.instance or {}).get("text")
+        if isinstance(text, str) and len(text) > PROMPT_CHARS:
+            return (
+                f"prompt {error.absolute_path[1]!r}: {len(text)} characters, at most {PROMPT_CHARS} (CLIP reads 77 tokens, about "
+                "300 characters): shorten it"
+            )
+        return f"prompt {error.absolute_path[1]!r} must be a text or {{text: ..., preset/optimize/bake/relight/lod: ...}}"
+    if v in ("maximum", "exclusiveMaximum", "maxItems"):
+        found = f"{len(error.instance)} items" if v == "maxItems" else _short(error.instance)
+        most = f"fewer than {error.validator_value}" if v == "exclusiveMaximum" else f"at most {error.validator_value}"
+        return (
+            f"invalid value at {where}: {found}, past this tool's limit (a job past it cannot fit a workstation; "
+            f"the configuration reference lists every limit): choose {most}"
+        )
+    if v in ("minimum", "exclusiveMinimum", "minItems"):
+        found = f"{len(error.instance)} items" if v == "minItems" else _short(error.instance)
+        least = f"more than {error.validator_value}" if v == "exclusiveMinimum" else f"at least {error.validator_value}"
+        return f"invalid value at {where}: {found} is too small: choose {least}"
+    if v == "maxLength" and "propertyNames" in error.schema_path:
+        count = len(error.instance)
+        return f"invalid id {_short(error.instance)} at {where}: {count} characters, at most {error.validator_value}: shorten it"
+    if v == "maxLength":
+        return f"invalid value at {where}: {len(error.instance)} characters, at most {error.validator_value}: shorten it"
+    if v == "type":
+        return f"invalid value at {where}: {_short(error.instance)} is not of type {error.validator_value}"
+    return f"invalid value at {where}: {_short(error.message, 300)}"
+
+
+#: the longest prompt text a config may give (the schema's maxLength)
+PROMPT_CHARS = 1000
+
+
+def _short(value: Any, chars: int = 80) -> str:
+    text = value if isinstance(value, str) and chars == 300 else repr(value)
+    return text if len(text) <= chars else text[: chars - 1] + "…"
 
 
 def validate(config: dict, source: str = "config") -> None:
@@ -113,9 +149,29 @@ def validate(config: dict, source: str = "config") -> None:
 
     validator = jsonschema.Draft202012Validator(load_schema())
     errors = sorted(validator.iter_errors(config), key=lambda e: (list(e.absolute_path), e.validator))
-    if errors:
-        lines = [_describe(e) for e in errors]
+    # NaN passes every minimum and maximum (each comparison is false): refused here, as is infinity
+    bad = _non_finite(config)
+    lines = [f"invalid value at {_where(path)}: {value} is not a finite number" for path, value in bad]
+    # one line per key: its type error first (a string is not also "above the maximum")
+    first: dict[tuple, Any] = {tuple(path): None for path, _ in bad}
+    for e in sorted(errors, key=lambda e: e.validator != "type"):
+        first.setdefault(tuple(e.absolute_path), e)
+    lines += [
+        _describe(e) for e in errors if e.validator in ("required", "additionalProperties") or first[tuple(e.absolute_path)] is e
+    ]
+    if lines:
         raise ConfigError(f"{source}: " + "; ".join(dict.fromkeys(lines)))
+
+
+def _non_finite(node: Any, path: tuple = ()) -> list[tuple[tuple, float]]:
+    """``(path, value)`` of every NaN or infinite number in a parsed config."""
+    if isinstance(node, float) and not math.isfinite(node):
+        return [(path, node)]
+    if isinstance(node, dict):
+        return [hit for key, value in node.items() for hit in _non_finite(value, (*path, key))]
+    if isinstance(node, list):
+        return [hit for i, value in enumerate(node) for hit in _non_finite(value, (*path, i))]
+    return []
 
 
 @dataclass(frozen=True)

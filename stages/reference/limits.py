@@ -52,8 +52,10 @@ def unshadowed_integrator(mi):
             super().__init__(props if props is not None else mi.Properties())
 
         def sample(self, scene, sampler, ray, medium=None, active=True):
-            si = scene.ray_intersect(ray, active)
+            si = scene.ray_intersect(ray, active=active)
             valid = si.is_valid() & active
+            if isinstance(valid, bool) and not valid:  # scalar variants: a miss has no BSDF (si.bsdf() would crash)
+                return mi.Spectrum(0.0), False, []
             bsdf = si.bsdf(ray)
             ctx = mi.BSDFContext()
             result = mi.Spectrum(0.0)

@@ -37,6 +37,24 @@ def save_checkpoint(path: Path, **state) -> None:
         torch.save(state, tmp)
 
 
+#: the most loss-history rows kept (in memory, in every checkpoint, in loss.csv): a longer run keeps
+#: every other row and records at twice the stride, so a run of any length stores at most this many
+HISTORY_ROWS = 4096
+
+
+def keep_history(history: list[dict], stride: int, row: dict, limit: int = HISTORY_ROWS) -> int:
+    """Record iteration ``row["iteration"]`` (counted from 1) in ``history`` (in place) and return
+    the stride: the row is kept when its iteration is 1 plus a multiple of ``stride``; past
+    ``limit`` rows every other row is dropped and the stride doubles (the rows kept are exactly
+    those at the new stride, so a resumed run records what an uninterrupted one does)."""
+    if (int(row["iteration"]) - 1) % stride == 0:
+        history.append(row)
+    if len(history) > limit:
+        history[:] = history[::2]
+        stride *= 2
+    return stride
+
+
 class Optimizer:
     """One optimisation run: state, step function, checkpointing."""
 
@@ -58,6 +76,7 @@ class Optimizer:
         self.tgen = torch.Generator().manual_seed(settings.seed)
         self.iteration = 0
         self.history: list[dict] = []
+        self.history_stride = 1
         self.objective = Objective(settings, prompt, self.device, guide, targets.description if targets else None)
         self.points_last = 0
         #: when the light was pruned (``light_prune_after``): iteration, lobes kept and dropped
@@ -83,6 +102,7 @@ class Optimizer:
             "scheduler": self.sched.state_dict(),
             "rng": _rng_state(self.np_rng, self.tgen),
             "history": self.history,
+            "history_stride": self.history_stride,
             "light_pruned": self.light_pruned,
         }
 
@@ -98,6 +118,7 @@ class Optimizer:
         self.tgen.set_state(state["rng"]["torch"])
         self.iteration = int(state["iteration"])
         self.history = list(state["history"])
+        self.history_stride = int(state.get("history_stride", 1))
 
     # -- the scene's needs
     def prune_light(self) -> int:
@@ -196,7 +217,7 @@ class Optimizer:
         row["light_lobes"] = self.field.light.lobes
         if self.iteration == s.light_prune_after:
             self.prune_light()
-        self.history.append(row)
+        self.history_stride = keep_history(self.history, self.history_stride, row)
         return row
 
 

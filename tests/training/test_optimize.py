@@ -383,3 +383,28 @@ def test_metal_recovers_its_highlight_on_mitsuba_ground_truth(tmp_path):
     h = r["metrics"]["highlights"]
     assert h["target"] > 0.95
     assert h["recovered_at_target"] >= 0.8, h
+
+
+@pytest.mark.parametrize("limit", [4, 7, 64])
+def test_the_loss_history_stays_bounded_and_evenly_spaced(limit):
+    """A run of any length keeps at most ``limit`` history rows (each checkpoint stores them all):
+    the rows kept are those at iterations 1 + k * stride, stride the smallest power of two that
+    fits, and recording in two halves (a resumed run) keeps the same rows."""
+    from stages.training.optimizer import keep_history
+
+    for iterations in (1, limit, limit + 1, 5 * limit + 3, 1000):
+        history, stride = [], 1
+        for it in range(1, iterations + 1):
+            stride = keep_history(history, stride, {"iteration": it}, limit)
+            assert len(history) <= limit
+        expected_stride = 1
+        while len(range(1, iterations + 1, expected_stride)) > limit:
+            expected_stride *= 2
+        assert stride == expected_stride
+        assert [r["iteration"] for r in history] == list(range(1, iterations + 1, expected_stride))
+        halves, s2 = [], 1
+        for it in range(1, iterations + 1):
+            s2 = keep_history(halves, s2, {"iteration": it}, limit)
+            if it == iterations // 2:
+                halves, s2 = [dict(r) for r in halves], int(s2)  # a checkpoint's copy, resumed
+        assert halves == history and s2 == stride
