@@ -13,6 +13,7 @@ import hashlib
 import json
 import math
 from dataclasses import dataclass, fields
+from typing import ClassVar
 
 from ..core.errors import ConfigError
 from ..core.settings import Settings
@@ -101,6 +102,15 @@ class NormalizeSettings(Settings):
     #: format's convention where it has one, else a guess recorded with its evidence in the
     #: metadata (stages/geometry/normalization.py)
     up_axis: str = "+y"
+    #: the most faces a mesh may have: past it the stage refuses it, naming decimation as the remedy
+    #: (the unwrap, the bake and the assets grow with the faces; the training does not)
+    max_faces: int = 2_000_000
+    #: settings that accept or refuse a mesh without changing what is written: left out of the
+    #: mesh-level work's key (a raised limit does not recompute meshes already normalised)
+    UNKEYED: ClassVar[tuple[str, ...]] = ("max_faces",)
+
+    def keyed(self) -> dict:
+        return {k: v for k, v in self.to_dict().items() if k not in self.UNKEYED}
 
     def __post_init__(self) -> None:
         if self.up_axis not in (*UP_AXES, "auto"):

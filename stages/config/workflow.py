@@ -433,7 +433,7 @@ class WorkflowConfig:
         if mesh_id not in self._keys:
             keys = {
                 "normalize": settings_digest(
-                    {"source": self.mesh_source(mesh_id), "normalize": self.stage_settings(mesh_id, "normalize").to_dict()}
+                    {"source": self.mesh_source(mesh_id), "normalize": self.stage_settings(mesh_id, "normalize").keyed()}
                 )
             }
             traced = keys["normalize"]

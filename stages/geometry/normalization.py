@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from ..config.sections import NormalizeSettings
+from ..core.errors import StageInputError
 from .meshio import TriMesh, load_mesh
 
 log = logging.getLogger(__name__)
@@ -206,6 +207,14 @@ class NormalizeResult:
 def normalize_mesh(source: str | Path, settings: NormalizeSettings) -> NormalizeResult:
     """Load ``source`` (a path or ``builtin:<name>``) and normalise it into the unit sphere."""
     mesh = load_mesh(source)
+    if len(mesh.faces) > settings.max_faces:
+        raise StageInputError(
+            source,
+            f"has {len(mesh.faces):,} faces, more than normalize.max_faces ({settings.max_faces:,})",
+            "Decimate it first (MeshLab, Blender), or, on a machine with the memory, raise normalize.max_faces "
+            "for this mesh and turn on decimate: {enabled: true, mode: budget}, which brings it to the face "
+            "budget of its ray cache.",
+        )
     up = resolve_up_axis(settings.up_axis, source, mesh)
     if up.method == "guess":
         log.info("%s: up axis %s (%s; margin %s)", source, up.axis, up.reason, up.evidence["margin"])

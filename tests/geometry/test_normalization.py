@@ -70,7 +70,7 @@ def test_transform_json_round_trip(tmp_path):
     np.testing.assert_allclose(fwd @ inv, np.eye(4), atol=1e-14)
     meta = json.loads((out / "meta.json").read_text())
     assert meta["stage"] == "normalize"
-    assert meta["settings"] == {"up_axis": "+y"}
+    assert meta["settings"] == {"up_axis": "+y", "max_faces": 2_000_000}
     assert meta["versions"]["numpy"] == np.__version__
     assert meta["timings_s"]["total"] > 0
     assert meta["stats"]["radius_after"] == pytest.approx(1.0)

@@ -76,6 +76,26 @@ def test_bad_mesh_fails_cleanly(tmp_path, capsys, case):
     assert not out.exists() or not any(out.iterdir())
 
 
+def test_a_mesh_past_the_face_limit_is_refused_naming_decimation(tmp_path, capsys):
+    """normalize.max_faces: a mesh with more faces fails at once, one line with its count, the
+    limit and decimation as the remedy; the limit is not part of the mesh-level work's key."""
+    from stages.config.workflow import WorkflowConfig
+
+    out = tmp_path / "o"
+    argv = ["--input", "builtin:candle", "--mesh", str(out / "m.ply"), "--transform", str(out / "t"), "--meta", str(out / "j")]
+    assert normalize.main([*argv, "--settings", '{"max_faces": 1000}']) == 2
+    errors = [ln for ln in capsys.readouterr().err.splitlines() if " ERROR " in ln]
+    assert len(errors) == 1 and "builtin:candle: has 13,440 faces, more than normalize.max_faces (1,000)" in errors[0]
+    assert "decimate: {enabled: true, mode: budget}" in errors[0]
+    assert not out.exists() or not any(out.iterdir())
+    assert normalize.main([*argv, "--settings", '{"max_faces": 13440}']) == 0
+    keys = [
+        WorkflowConfig({"meshes": {"c": {"builtin": "candle", "normalize": n}}, "prompts": {"p": "a"}}).mesh_work_keys("c")
+        for n in ({}, {"max_faces": 5_000_000})
+    ]
+    assert keys[0] == keys[1]
+
+
 def test_unknown_builtin(tmp_path, capsys):
     out = tmp_path / "o"
     code = normalize.main(
