@@ -121,10 +121,12 @@ def weights_help(
     return "\n".join(lines)
 
 
-def resolve_weights(spec: ClipSpec) -> tuple[str, str, bool]:
+def resolve_weights(spec: ClipSpec, *, download: bool = True) -> tuple[str, str, bool]:
     """Return ``(path, weights_id, quick_gelu)`` for ``spec``, downloading only when the hub
     answers. Raises :class:`ClipWeightsUnavailable` (fast) when the weights cannot be had, with
-    :func:`weights_help`'s message."""
+    :func:`weights_help`'s message. ``download=False`` (the doctor: a check, not a fetch of
+    hundreds of megabytes): weights that are not cached but that the hub would give come back
+    with the path ``""``."""
     open_clip = import_open_clip()
     cfg = open_clip.get_pretrained_cfg(spec.model, spec.pretrained) if spec.pretrained else {}
     quick_gelu = bool(cfg.get("quick_gelu", False))
@@ -150,6 +152,8 @@ def resolve_weights(spec: ClipSpec) -> tuple[str, str, bool]:
         looked.append(f"the model hub {HUB_HOST[0]} ({'HF_HUB_OFFLINE is set' if offline else 'unreachable from here'})")
         problem = "they are not cached on this machine and cannot be downloaded (offline)"
         raise ClipWeightsUnavailable(weights_help(spec, problem, looked, quick_gelu, repo))
+    if not download:
+        return "", weights_id, quick_gelu
     from open_clip.pretrained import download_pretrained
 
     path = download_pretrained(cfg)

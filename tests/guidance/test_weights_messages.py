@@ -76,3 +76,27 @@ def test_one_message_per_missing_model(offline, guidance_kind, eval_kind):
             assert "open_clip.create_model('ViT-B-" in m and "/snapshots/<hash>/" in m
         else:
             assert "nope.bin set as " in m and "does not exist" in m and f"Looked for it in: {offline / 'nope.bin'}." in m
+
+
+def test_the_doctor_checks_weights_the_hub_would_give_without_downloading_them(monkeypatch, tmp_path):
+    """With the hub reachable and nothing cached, the doctor says the workflow will download the
+    weights; it never fetches hundreds of megabytes itself."""
+    import sys
+
+    from stages import doctor
+
+    guidance.import_open_clip()  # (as the stages import it)
+    pretrained = sys.modules["open_clip.pretrained"]
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("the doctor downloaded CLIP weights")
+
+    monkeypatch.setattr(guidance, "_cached_hub_file", lambda hub: None)
+    monkeypatch.setattr(guidance, "_hub_reachable", lambda: True)
+    monkeypatch.setattr(pretrained, "download_pretrained", refuse)
+    checks = doctor.check_clip(config("missing", "missing", tmp_path))
+    assert [c.ok for c in checks] == [True, True]
+    for check in checks:
+        assert "not cached here; the model hub answers, so the workflow downloads them when it starts" in check.detail
+    with pytest.raises(AssertionError, match="downloaded"):  # the workflow's own start does fetch them
+        missing_weights(config("missing", "off", tmp_path).clip_specs())
