@@ -12,8 +12,12 @@
 # for job states; job ids and states can then be checked with `sacct`. The node offers this
 # machine's CPUs and 90% of its memory in one partition, `main`, and no GPUs.
 #
-# It writes /etc/slurm/slurm.conf and /etc/slurm/slurmdbd.conf only when they are absent or were
-# written by this script (a marker line), so it never touches a real cluster's configuration.
+# It refuses to touch a machine that has any Slurm of its own: SLURM_CONF set to a file it did not
+# write, a configless node's cached configuration, a Slurm configuration it did not write (in
+# /etc/slurm or /etc/slurm-llnl), or a Slurm daemon running that it did not start. It writes
+# /etc/slurm/slurm.conf and /etc/slurm/slurmdbd.conf only when they are absent or its own (a marker
+# line). A MariaDB or munged already running (for example started by their Debian packages) is
+# used as it is and left running. `purge` deletes only a state folder this script made (a marker file).
 # Environment: TANGO_SLURM_STATE (default /var/lib/tango-slurm): databases, spool, logs, pid files;
 # TANGO_SLURM_INSTALL=0 to fail instead of installing missing packages with apt-get.
 set -euo pipefail
@@ -60,6 +64,37 @@ install_missing() {
     trap - EXIT
 }
 
+state_marker="$state/.made-by-tango-slurm-cluster"
+
+ours_running() { # name: a live process of that name whose pid this script recorded when it started it
+    local list="$state/run/launched" name pidfile pid
+    [ -s "$list" ] || return 1
+    while read -r name pidfile; do
+        [ "$name" = "$1" ] || continue
+        pid=$(cat "$pidfile" 2>/dev/null || true)
+        [ -n "$pid" ] && [ "$(cat "/proc/$pid/comm" 2>/dev/null)" = "$1" ] && return 0
+    done < "$list"
+    return 1
+}
+
+refuse_foreign_slurm() { # stop before anything is installed, written or started
+    local f d name
+    if [ -n "${SLURM_CONF:-}" ] && ! grep -qsF "$marker" "$SLURM_CONF"; then
+        die "SLURM_CONF is set ($SLURM_CONF) and names a configuration this script did not write: this machine has a Slurm of its own (stop here)"
+    fi
+    for d in /run/slurm/conf /var/spool/slurmd/conf-cache; do
+        [ ! -e "$d" ] || die "$d exists: this is a configless Slurm node of a real cluster (stop here)"
+    done
+    for f in /etc/slurm/slurm.conf /etc/slurm/slurmdbd.conf /etc/slurm-llnl/slurm.conf /etc/slurm-llnl/slurmdbd.conf; do
+        [ ! -e "$f" ] || grep -qF "$marker" "$f" || die "$f exists and was not written by this script: is this machine part of a real cluster? (stop here)"
+    done
+    for name in slurmctld slurmd slurmdbd slurmrestd slurmstepd; do
+        if pgrep -x "$name" >/dev/null 2>&1 && ! ours_running "$name"; then
+            die "$name is running and was not started by this script: this machine has a Slurm of its own (stop here)"
+        fi
+    done
+}
+
 ours_or_absent() {
     [ ! -e "$1" ] || grep -qF "$marker" "$1" || die "$1 exists and was not written by this script: is this machine part of a real cluster? (stop here)"
 }
@@ -67,7 +102,10 @@ ours_or_absent() {
 write_configs() {
     ours_or_absent "$conf_dir/slurm.conf"
     ours_or_absent "$conf_dir/slurmdbd.conf"
+    [ ! -e "$state" ] || [ -e "$state_marker" ] || [ -z "$(ls -A "$state")" ] \
+        || die "$state holds files this script did not make: set TANGO_SLURM_STATE to a new folder"
     mkdir -p "$conf_dir" "$state"/{spool/ctld,spool/d,log,run,mysql}
+    touch "$state_marker"
     local host cpus mem
     host=$(hostname -s)
     cpus=$(nproc)
@@ -138,6 +176,7 @@ launched() { # name, pid file: a daemon this script started (stop stops only the
 start() {
     need_root
     local t0=$SECONDS
+    refuse_foreign_slurm
     install_missing
     write_configs
     # munge: one key for the one node
@@ -162,7 +201,7 @@ start() {
         launched mariadbd /run/mysqld/mariadb.pid
     fi
     wait_for 30 MariaDB mariadb-admin ping
-    if ! pgrep -x slurmdbd >/dev/null; then
+    if ! ours_running slurmdbd; then
         /usr/sbin/slurmdbd
         launched slurmdbd "$state/run/slurmdbd.pid"
     fi
@@ -171,12 +210,12 @@ start() {
     sacctmgr -i -Q add cluster "$cluster" >/dev/null 2>&1 || true
     sacctmgr -i -Q add account tango Cluster="$cluster" Description=tango Organization=tango >/dev/null 2>&1 || true
     sacctmgr -i -Q add user root Account=tango Cluster="$cluster" >/dev/null 2>&1 || true
-    if ! pgrep -x slurmctld >/dev/null; then
+    if ! ours_running slurmctld; then
         /usr/sbin/slurmctld
         launched slurmctld "$state/run/slurmctld.pid"
     fi
     wait_for 30 slurmctld scontrol ping
-    if ! pgrep -x slurmd >/dev/null; then
+    if ! ours_running slurmd; then
         /usr/sbin/slurmd
         launched slurmd "$state/run/slurmd.pid"
     fi
@@ -214,6 +253,9 @@ case "${1:-}" in
         sacctmgr -n show cluster format=cluster,controlhost
         ;;
     purge)
+        need_root
+        [ ! -e "$state" ] || [ -e "$state_marker" ] \
+            || die "$state was not made by this script (no $state_marker): not deleting it, nor anything else"
         stop
         for f in "$conf_dir/slurm.conf" "$conf_dir/slurmdbd.conf"; do
             [ -e "$f" ] && grep -qF "$marker" "$f" && rm -f "$f"

@@ -1,0 +1,58 @@
+"""scripts/slurm-cluster.sh refuses a machine that has a Slurm of its own, before it installs,
+writes or starts anything, and `purge` deletes only a state folder it made. Every case here stops
+at the refusal, so nothing on the machine changes (the script needs root: CI runs as root)."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import time
+from pathlib import Path
+
+import pytest
+from conftest import REPO
+
+SCRIPT = REPO / "scripts" / "slurm-cluster.sh"
+
+pytestmark = pytest.mark.skipif(os.geteuid() != 0 and not os.environ.get("CI"), reason="the script runs as root")
+
+
+def script(tmp_path: Path, command: str, **env: str) -> subprocess.CompletedProcess:
+    environ = {k: v for k, v in os.environ.items() if k != "SLURM_CONF"}
+    environ.update(TANGO_SLURM_STATE=str(tmp_path / "state"), TANGO_SLURM_INSTALL="0", **env)
+    return subprocess.run(["bash", str(SCRIPT), command], capture_output=True, text=True, timeout=60, env=environ)
+
+
+def test_slurm_conf_of_another_slurm_is_refused(tmp_path):
+    conf = tmp_path / "slurm.conf"
+    conf.write_text("ClusterName=real\n")
+    proc = script(tmp_path, "start", SLURM_CONF=str(conf))
+    assert proc.returncode == 1
+    assert f"SLURM_CONF is set ({conf}) and names a configuration this script did not write" in proc.stderr
+    assert not (tmp_path / "state").exists() and conf.read_text() == "ClusterName=real\n"
+
+
+def test_a_slurm_daemon_it_did_not_start_is_refused(tmp_path):
+    """A process called slurmd (here a copy of sleep) that the script did not start: refused."""
+    fake = tmp_path / "slurmd"
+    shutil.copy(shutil.which("sleep"), fake)
+    daemon = subprocess.Popen([str(fake), "60"])
+    try:
+        time.sleep(0.2)
+        proc = script(tmp_path, "start")
+    finally:
+        daemon.kill()
+        daemon.wait()
+    assert proc.returncode == 1
+    assert "slurmd is running and was not started by this script" in proc.stderr or "exists" in proc.stderr
+    assert not (tmp_path / "state").exists()
+
+
+def test_purge_deletes_no_folder_it_did_not_make(tmp_path):
+    state = tmp_path / "state"
+    (state / "data").mkdir(parents=True)
+    (state / "data" / "precious.db").write_text("a real cluster's accounting")
+    proc = script(tmp_path, "purge")
+    assert proc.returncode == 1 and "was not made by this script" in proc.stderr
+    assert (state / "data" / "precious.db").read_text() == "a real cluster's accounting"
