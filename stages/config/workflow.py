@@ -112,6 +112,8 @@ def _describe(error) -> str:
                 f"prompt {error.absolute_path[1]!r}: {len(text)} characters, at most {PROMPT_CHARS} (CLIP reads 77 tokens, about "
                 "300 characters): shorten it"
             )
+        if isinstance(text, str) and re.search(r"[\x00-\x1f\x7f]", text):
+            return f"prompt {error.absolute_path[1]!r} holds a control character (a newline or a tab): write it on one line"
         return f"prompt {error.absolute_path[1]!r} must be a text or {{text: ..., preset/optimize/bake/relight/lod: ...}}"
     if v in ("maximum", "exclusiveMaximum", "maxItems"):
         found = f"{len(error.instance)} items" if v == "maxItems" else _short(error.instance)

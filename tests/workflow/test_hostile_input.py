@@ -75,6 +75,24 @@ def test_the_loss_plot_draws_any_prompt_as_its_title(tmp_path, kind):
     assert TITLE_CHARS <= 120
 
 
+@pytest.mark.parametrize(
+    ("prompt", "needle"),
+    [
+        ("a" * 1_000_000, "prompt 'p': 1000000 characters, at most 1000"),
+        ("a vase\nrm -rf ~", "prompt 'p' holds a control character"),
+        ("a vase\n", "prompt 'p' holds a control character"),
+        ({"text": "tab\there"}, "prompt 'p' holds a control character"),
+    ],
+)
+def test_a_prompt_too_long_or_on_several_lines_is_one_line_naming_it(prompt, needle):
+    from stages.config.workflow import ConfigError, WorkflowConfig
+
+    with pytest.raises(ConfigError) as err:
+        WorkflowConfig({"meshes": {"vase": {"builtin": "vase"}}, "prompts": {"p": prompt}})
+    text = str(err.value)
+    assert needle in text and "\n" not in text and len(text) < 300, text[:500]
+
+
 # ---- ids -------------------------------------------------------------------------------------
 @given(st.text(alphabet=st.sampled_from("ab0_.-/\n '\"<>\u05e2Z"), max_size=70))
 @settings(max_examples=300, deadline=None)
