@@ -88,7 +88,7 @@ refuse_foreign_slurm() { # stop before anything is installed, written or started
     for f in /etc/slurm/slurm.conf /etc/slurm/slurmdbd.conf /etc/slurm-llnl/slurm.conf /etc/slurm-llnl/slurmdbd.conf; do
         [ ! -e "$f" ] || grep -qF "$marker" "$f" || die "$f exists and was not written by this script: is this machine part of a real cluster? (stop here)"
     done
-    for name in slurmctld slurmd slurmdbd slurmrestd slurmstepd; do
+    for name in slurmctld slurmd slurmdbd slurmrestd slurmstepd sackd; do
         if pgrep -x "$name" >/dev/null 2>&1 && ! ours_running "$name"; then
             die "$name is running and was not started by this script: this machine has a Slurm of its own (stop here)"
         fi
@@ -102,7 +102,8 @@ ours_or_absent() {
 write_configs() {
     ours_or_absent "$conf_dir/slurm.conf"
     ours_or_absent "$conf_dir/slurmdbd.conf"
-    [ ! -e "$state" ] || [ -e "$state_marker" ] || [ -z "$(ls -A "$state")" ] \
+    # (a folder with this script's layout but no marker: made by its earlier version, before markers)
+    [ ! -e "$state" ] || [ -e "$state_marker" ] || [ -z "$(ls -A "$state")" ] || [ -d "$state/spool/ctld" ] \
         || die "$state holds files this script did not make: set TANGO_SLURM_STATE to a new folder"
     mkdir -p "$conf_dir" "$state"/{spool/ctld,spool/d,log,run,mysql}
     touch "$state_marker"
@@ -254,7 +255,7 @@ case "${1:-}" in
         ;;
     purge)
         need_root
-        [ ! -e "$state" ] || [ -e "$state_marker" ] \
+        [ ! -e "$state" ] || [ -e "$state_marker" ] || [ -d "$state/spool/ctld" ] \
             || die "$state was not made by this script (no $state_marker): not deleting it, nor anything else"
         stop
         for f in "$conf_dir/slurm.conf" "$conf_dir/slurmdbd.conf"; do

@@ -58,6 +58,17 @@ def pack_readme(rows: list[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def linked_folder(folder: Path, results: Path) -> None:
+    """Refuse a cell folder reached through a symbolic link: the pack copies only what lies in
+    the results folder itself."""
+    if folder.exists() and folder.resolve() != results.resolve() / folder.relative_to(results):
+        raise StageInputError(
+            folder,
+            f"is reached through a symbolic link (to {folder.resolve()})",
+            "The pack copies only files inside the results folder: copy the cell's files there.",
+        )
+
+
 def regular_files(folder: Path) -> list[Path]:
     """The files under ``folder`` a pack may hold: regular files, not hidden, reached without
     following a symbolic link (a link in a results folder could point anywhere on the machine;
@@ -85,6 +96,7 @@ def run(
     entries = []
     for mesh, prompt, variant in cells:
         asset = Path(results) / mesh / prompt / variant / "export"
+        linked_folder(asset, Path(results))
         meta_path = asset / "meta.json"
         if not meta_path.is_file():
             raise StageInputError(meta_path, "file not found", "Run the export stage first.")
@@ -96,6 +108,7 @@ def run(
         levels = ""
         if (mesh, prompt, variant) in set(lod_cells):
             lod = asset.parent / "lod"
+            linked_folder(lod, Path(results))
             lod_meta = lod / "meta.json"
             if not lod_meta.is_file():
                 raise StageInputError(lod_meta, "file not found", "Run the lod stage first.")

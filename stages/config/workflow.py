@@ -82,6 +82,8 @@ def _where(path) -> str:
 
 def _describe(error) -> str:
     """One readable line for a jsonschema error."""
+    from jsonschema.exceptions import best_match
+
     where = _where(error.absolute_path)
     v = error.validator
     if v == "additionalProperties":
@@ -100,19 +102,27 @@ def _describe(error) -> str:
         return f"mesh {where} needs exactly one of 'path' or 'builtin'"
     if v == "oneOf" and list(error.absolute_path) == ["grid"]:
         return "grid must be 'all' or a list of {mesh: <id>, prompt: <id>} entries"
+    if v == "pattern" and isinstance(error.instance, str) and CONTROL.search(error.instance):
+        shown = _short(error.instance)
+        return f"invalid value at {where}: {shown} holds a control character (a newline or a tab): write it on one line"
     if v == "pattern" and v in error.schema:
         return (
             f"invalid id {error.instance!r} at {where}: ids name result folders, so use letters, "
             "digits, '_', '-' and '.' only (starting with a letter or digit)"
         )
     if v == "oneOf" and len(error.absolute_path) == 2 and error.absolute_path[0] == "prompts":
-        text = error.instance if isinstance(error.instance, str) else (error.instance or {}).get("text")
+        text = error.instance if isinstance(error.instance, str) else None
+        if isinstance(error.instance, dict):
+            text = error.instance.get("text")
+            inner = [e for e in error.context or [] if e.relative_path or e.validator in ("additionalProperties", "required")]
+            if inner and not (isinstance(text, str) and (len(text) > PROMPT_CHARS or CONTROL.search(text))):
+                return _describe(best_match(inner))  # a bad key or value inside the prompt's own overrides
         if isinstance(text, str) and len(text) > PROMPT_CHARS:
             return (
                 f"prompt {error.absolute_path[1]!r}: {len(text)} characters, at most {PROMPT_CHARS} (CLIP reads 77 tokens, about "
                 "300 characters): shorten it"
             )
-        if isinstance(text, str) and re.search(r"[\x00-\x1f\x7f]", text):
+        if isinstance(text, str) and CONTROL.search(text):
             return f"prompt {error.absolute_path[1]!r} holds a control character (a newline or a tab): write it on one line"
         return f"prompt {error.absolute_path[1]!r} must be a text or {{text: ..., preset/optimize/bake/relight/lod: ...}}"
     if v in ("maximum", "exclusiveMaximum", "maxItems"):
@@ -136,8 +146,10 @@ def _describe(error) -> str:
     return f"invalid value at {where}: {_short(error.message, 300)}"
 
 
-#: the longest prompt text a config may give (the schema's maxLength)
+#: the longest prompt text a config may give (the schema's maxLength), {object} replaced
 PROMPT_CHARS = 1000
+#: what a one-line text (a prompt, an object noun) may not hold: control characters, line separators
+CONTROL = re.compile(r"[\x00-\x1f\x7f-\x9f\u2028\u2029]")
 
 
 def _short(value: Any, chars: int = 80) -> str:
@@ -154,12 +166,18 @@ def validate(config: dict, source: str = "config") -> None:
     # NaN passes every minimum and maximum (each comparison is false): refused here, as is infinity
     bad = _non_finite(config)
     lines = [f"invalid value at {_where(path)}: {value} is not a finite number" for path, value in bad]
+
     # one line per key: its type error first (a string is not also "above the maximum")
-    first: dict[tuple, Any] = {tuple(path): None for path, _ in bad}
+    def key(path, instance) -> tuple:  # a key and its value (ids share their mapping's path)
+        return (tuple(path), repr(instance)[:200])
+
+    first: dict[tuple, Any] = {key(path, value): None for path, value in bad}
     for e in sorted(errors, key=lambda e: e.validator != "type"):
-        first.setdefault(tuple(e.absolute_path), e)
+        first.setdefault(key(e.absolute_path, e.instance), e)
     lines += [
-        _describe(e) for e in errors if e.validator in ("required", "additionalProperties") or first[tuple(e.absolute_path)] is e
+        _describe(e)
+        for e in errors
+        if e.validator in ("required", "additionalProperties") or first[key(e.absolute_path, e.instance)] is e
     ]
     if lines:
         raise ConfigError(f"{source}: " + "; ".join(dict.fromkeys(lines)))
@@ -189,10 +207,10 @@ class WorkflowConfig:
     def __init__(self, config: dict, source: str = "config") -> None:
         validate(config, source)
         for mesh_id in config["meshes"]:
-            if mesh_id in RESERVED_MESH_IDS:
+            if mesh_id.lower() in RESERVED_MESH_IDS:  # (a file system may ignore case)
                 raise ConfigError(
                     f"{source}: meshes -> {mesh_id}: the mesh id {mesh_id!r} is reserved "
-                    f"({RESERVED_MESH_IDS[mesh_id]}): rename the mesh (its `object` noun can stay {mesh_id!r})"
+                    f"({RESERVED_MESH_IDS[mesh_id.lower()]}): rename the mesh (its `object` noun can stay {mesh_id!r})"
                 )
         self.raw = copy.deepcopy(config)
         self.source = source
@@ -216,6 +234,12 @@ class WorkflowConfig:
             if problems:
                 raise ConfigError(f"{source}: " + "; ".join(problems))
         self.pairs = list(dict.fromkeys(pairs))
+        for m, p in self.pairs:
+            if len(self.prompt_text(m, p)) > PROMPT_CHARS:
+                raise ConfigError(
+                    f"{source}: prompt {p!r} for mesh {m!r}: {len(self.prompt_text(m, p))} characters with "
+                    f"{{object}} replaced, at most {PROMPT_CHARS}: shorten the prompt or the mesh's `object` noun"
+                )
         self._keys: dict[str, dict[str, str]] = {}
         # Build every mesh's stage settings now so bad values fail when the DAG is built.
         for mesh_id in self.meshes:

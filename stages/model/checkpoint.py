@@ -63,6 +63,8 @@ def read_torch_file(path: str | Path, device="cpu", *, remedy: str) -> dict:
     someone else's results folder can never run code when it is read. Anything else (a pickle
     that names a class or a function, a truncated or foreign file) is a
     :class:`~stages.core.errors.StageInputError` naming the file, what is wrong and ``remedy``."""
+    if Path(path).is_file() and not zipfile.is_zipfile(path):  # torch writes zip archives; older pickles are refused too
+        raise StageInputError(path, "not a readable torch file (not the zip archive torch writes)", remedy)
     try:
         data = torch.load(path, map_location=device, weights_only=True)
     except pickle.UnpicklingError as err:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 from ..config.workflow import ID_RE
 from ..core.errors import StageInputError
 
@@ -24,3 +26,15 @@ def parse_cells(items: list[str]) -> list[tuple[str, str, str]]:
             )
         cells.append(tuple(parts))
     return cells
+
+
+def plain_file(path: Path, root: Path) -> bool:
+    """``path`` is a regular file reached from ``root`` without a symbolic link on the way (the
+    file itself, a folder between, or a cell folder): what the report and the pack may copy out of
+    a results folder that came from someone else (a link there could point anywhere)."""
+    path, root = Path(path), Path(root)
+    try:
+        rel = path.relative_to(root)
+    except ValueError:
+        return False
+    return path.is_file() and path.resolve() == root.resolve() / rel

@@ -38,6 +38,7 @@ import pandas as pd
 
 from ..config.layout import RENDER_KINDS
 from ..core.provenance import atomic_path
+from .cells import plain_file
 from .spreadsheet import read_spreadsheet_csv
 from .summary import quality_of
 
@@ -198,10 +199,12 @@ def cell_key(cell: tuple[str, str, str]) -> str:
 def cell_files(results: Path, cell: tuple[str, str, str]) -> dict[str, Path]:
     """The cell's files that exist, by their name in the cell's page folder (see CELL_FILES),
     plus its texture maps (``texture_<map>.png``) from the export."""
-    cdir = Path(results).joinpath(*cell)
-    found = {name: cdir / folder / f for folder, f, name in CELL_FILES if (cdir / folder / f).is_file()}
+    results = Path(results)
+    cdir = results.joinpath(*cell)
+    # only plain files, reached without a symbolic link, and only texture names the export writes
+    found = {name: cdir / folder / f for folder, f, name in CELL_FILES if plain_file(cdir / folder / f, results)}
     for tex in sorted((cdir / "export" / "textures").glob("*.png")):
-        if TEXTURE_NAME.fullmatch(tex.stem) and not tex.is_symlink():  # names the export writes; nothing else on disk
+        if TEXTURE_NAME.fullmatch(tex.stem) and plain_file(tex, results):
             found[f"texture_{tex.stem}.png"] = tex
     return found
 
@@ -585,7 +588,7 @@ def write_single_file(results: Path, report_dir: Path, cells: list[tuple[str, st
         frame,
         report_dir,
         len(cells),
-        lambda c: "#" + esc(cell_anchor(c)),
+        lambda c: "#" + cell_anchor(c),
         lambda c: None,
         lambda p: data_uri(p),
         have_viewer,

@@ -222,7 +222,8 @@ class Optimizer:
 
 
 def write_loss_csv(path: Path, history: list[dict]) -> None:
-    """The loss history, one row per iteration, atomically."""
+    """The loss history (every iteration up to :data:`HISTORY_ROWS` of them, then evenly thinned:
+    :func:`keep_history`), atomically."""
     keys = sorted({k for row in history for k in row}, key=lambda k: (k != "iteration", k))
     with atomic_path(path) as tmp:
         with open(tmp, "w", newline="") as fh:

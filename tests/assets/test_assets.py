@@ -471,6 +471,14 @@ def test_pack_skips_links_and_ships_provenance_without_host_or_command(trained, 
             path = value["path"] if isinstance(value, dict) else value
             assert "/" not in path, (key, path)
     assert str(tmp_path).encode() not in metas
+    # an export folder that is itself a link is refused, naming it
+    from stages.core.errors import StageInputError
+
+    shutil.move(cell / "export", tmp_path / "elsewhere")
+    (cell / "export").symlink_to(tmp_path / "elsewhere", target_is_directory=True)
+    with pytest.raises(StageInputError, match="is reached through a symbolic link"):
+        pack.run(results, [("candle", "wax", "base")], results / "pack2.zip", results / "index2.csv")
+    assert not (results / "pack2.zip").exists()
 
 
 @pytest.mark.parametrize("single_file", [False, True])

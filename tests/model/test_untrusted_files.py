@@ -77,6 +77,7 @@ def test_a_checkpoint_that_would_run_code_stops_the_resume_and_nothing_runs(cach
     [
         (b"", "not a readable torch file"),
         (b"PK\x03\x04 cut short", "not a readable torch file"),
+        (b"\x80\x02garbage, not a pickle of anything" * 8, r"not a readable torch file \(not the zip archive"),
         (None, "holds a list, not the dict"),
     ],
 )

@@ -93,6 +93,48 @@ def test_a_prompt_too_long_or_on_several_lines_is_one_line_naming_it(prompt, nee
     assert needle in text and "\n" not in text and len(text) < 300, text[:500]
 
 
+BAD_CONFIGS = {
+    "prompt_not_text": ({"prompts": {"p": 5}}, "prompt 'p' must be a text or"),
+    "override_past_limit": (
+        {"prompts": {"p": {"text": "a", "optimize": {"iterations": 10**9}}}},
+        "prompts -> p -> optimize -> iterations: 1000000000",
+    ),
+    "override_of_wrong_type": (
+        {"prompts": {"p": {"text": "a", "optimize": {"iterations": "x"}}}},
+        "iterations: 'x' is not of type integer",
+    ),
+    "long_after_object": (
+        {"meshes": {"v": {"builtin": "vase", "object": "x" * 200}}, "prompts": {"p": "{object} " * 6}},
+        "1206 characters with {object}",
+    ),
+    "object_on_two_lines": (
+        {"meshes": {"v": {"builtin": "vase", "object": "jar\n=1+1"}}},
+        "meshes -> v -> object: 'jar\\n=1+1' holds a control",
+    ),
+    "line_separator": ({"prompts": {"p": "a vase\u2028=1+1"}}, "prompt 'p' holds a control character"),
+    "reserved_any_case": ({"meshes": {"Report": {"builtin": "vase"}}}, "the mesh id 'Report' is reserved"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_CONFIGS))
+def test_bad_config_values_are_one_line_naming_the_key(case):
+    from stages.config.workflow import ConfigError, WorkflowConfig
+
+    config, needle = BAD_CONFIGS[case]
+    full = {"meshes": {"v": {"builtin": "vase"}}, "prompts": {"p": "a {object}"}, **config}
+    with pytest.raises(ConfigError) as err:
+        WorkflowConfig(full)
+    assert needle in str(err.value) and "\n" not in str(err.value), str(err.value)
+
+
+def test_every_bad_id_is_named_not_only_the_first():
+    from stages.config.workflow import ConfigError, WorkflowConfig
+
+    with pytest.raises(ConfigError) as err:
+        WorkflowConfig({"meshes": {"a b": {"builtin": "vase"}, "c d": {"builtin": "vase"}}, "prompts": {"p": "a"}})
+    assert "'a b'" in str(err.value) and "'c d'" in str(err.value)
+
+
 # ---- ids -------------------------------------------------------------------------------------
 @given(st.text(alphabet=st.sampled_from("ab0_.-/\n '\"<>\u05e2Z"), max_size=70))
 @settings(max_examples=300, deadline=None)
@@ -169,6 +211,18 @@ def hostile_report(tmp_path_factory):
         meta_path.write_text(json.dumps({**meta, "prompt": prompt}))
     textures = results.joinpath(*cells[1], "export", "textures")
     shutil.copyfile(next(textures.glob("*.png")), textures / "x' onerror='alert(1).png")
+    # links that point out of the results folder: a file, and a whole textures folder
+    secret = results.parent / "private"
+    secret.mkdir()
+    (secret / "key.png").write_bytes(b"PRIVATE KEY")
+    preview = results.joinpath(*cells[0], "export", "preview.png")
+    preview.unlink()
+    preview.symlink_to(secret / "key.png")
+    linked = results.joinpath(*cells[0], "export", "textures")
+    for tex in linked.glob("*.png"):
+        shutil.move(tex, secret / tex.name)
+    linked.rmdir()
+    linked.symlink_to(secret, target_is_directory=True)
     report.run(results, cells, results / "report")
     html_report.run(results, results / "report", cells)
     return results, cells
@@ -197,3 +251,12 @@ def test_the_report_pages_show_hostile_text_as_text(hostile_report):
     index = (results / "report" / "index.html").read_text()
     assert html.escape(MARKUP, quote=True) in index and html.escape(FORMULA, quote=True) in index
     assert not list((results / "report" / "cells").rglob("*onerror*"))
+
+
+def test_the_report_copies_nothing_reached_through_a_link(hostile_report):
+    results, cells = hostile_report
+    folder = results / "report" / "cells" / "/".join(cells[0])
+    assert not (folder / "preview.png").exists() and not list(folder.glob("texture_*"))
+    assert list((results / "report" / "cells" / "/".join(cells[1])).glob("texture_*"))  # plain ones are
+    for path in (results / "report").rglob("*"):
+        assert not path.is_file() or b"PRIVATE KEY" not in path.read_bytes(), path

@@ -16,6 +16,6 @@ rule normalize:
         source=mesh_source,
         settings=stage_settings_json("normalize"),
     shell:
-        "python -m stages.normalize --input {params.source:q} --mesh {output.mesh:q} "
+        "python -m stages.normalize --input={params.source:q} --mesh {output.mesh:q} "
         "--transform {output.transform:q} --meta {output.meta:q} --settings {params.settings:q} "
         "2> {log:q}"
