@@ -183,6 +183,21 @@ def validate(config: dict, source: str = "config") -> None:
         raise ConfigError(f"{source}: " + "; ".join(dict.fromkeys(lines)))
 
 
+def validate_section(section: str, data: dict, source: str) -> None:
+    """Raise :class:`ConfigError` unless ``data`` is a valid ``section`` of the config (its schema
+    ``$defs/<section>``, limits included): settings read back from a file (a trained field's), which
+    may come from someone else, are held to the same bounds as a config's."""
+    import jsonschema
+
+    schema = load_schema()
+    sub = {"$schema": schema["$schema"], "$defs": schema["$defs"], "$ref": f"#/$defs/{section}"}
+    errors = sorted(jsonschema.Draft202012Validator(sub).iter_errors(data), key=lambda e: list(e.absolute_path))
+    lines = [f"invalid value at {_where(path)}: {value} is not a finite number" for path, value in _non_finite(data)]
+    lines += [_describe(e) for e in errors]
+    if lines:
+        raise ConfigError(f"{source}: {section} settings: " + "; ".join(dict.fromkeys(lines)))
+
+
 def _non_finite(node: Any, path: tuple = ()) -> list[tuple[tuple, float]]:
     """``(path, value)`` of every NaN or infinite number in a parsed config."""
     if isinstance(node, float) and not math.isfinite(node):

@@ -3,6 +3,7 @@ the prompt and the origin record (which guidance and weights trained it)."""
 
 from __future__ import annotations
 
+import json
 import pickle
 import zipfile
 from pathlib import Path
@@ -11,7 +12,8 @@ from typing import Any
 import torch
 
 from ..config.sections import OptimizeSettings
-from ..core.errors import StageInputError
+from ..config.workflow import validate_section
+from ..core.errors import ConfigError, StageInputError
 from ..core.provenance import ORIGIN_KEY, atomic_path, checked_origin
 from ..render.sg import sg_integral
 from .field import StyleField
@@ -94,7 +96,12 @@ def load_field(path: str | Path, device="cpu") -> tuple[StyleField, OptimizeSett
     if missing:
         raise StageInputError(path, f"has no {' or '.join(missing)}: not a field this tool wrote", remedy)
     origin = checked_origin(data.get(ORIGIN_KEY), path, "the optimize stage")
-    settings = OptimizeSettings.from_dict({**SETTINGS_BEFORE_THEY_EXISTED, **data["settings"]})
+    stored = {**SETTINGS_BEFORE_THEY_EXISTED, **data["settings"]}
+    try:  # held to the config's limits: a foreign file may ask for networks no machine can hold
+        validate_section("optimize", json.loads(json.dumps(stored)), str(path))  # (tuples as lists)
+        settings = OptimizeSettings.from_dict(stored)
+    except ConfigError as err:
+        raise StageInputError(path, f"its stored settings are not valid ({err})", remedy) from None
     f = StyleField(settings.field_settings()).to(device)
     state = data["state_dict"]
     if int(data.get("format", 1)) < 2 and "light.sharpness_raw" in state:

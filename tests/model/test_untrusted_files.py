@@ -102,3 +102,12 @@ def test_a_field_the_tool_wrote_loads_through_the_restricted_reader(tmp_path):
     written_field(tmp_path / "field.pt")
     field, settings = load_field(tmp_path / "field.pt")
     assert settings.width == 16 and field.origin["guidance"] == "image"
+
+
+def test_a_field_asking_for_networks_past_the_limits_is_refused_before_they_are_built(tmp_path):
+    """The stored settings are held to the config's limits: a foreign field.pt asking for a
+    width of a billion is one clear error, not an out-of-memory kill."""
+    origin = origin_record(guidance="image", weights="image targets: a test", test_only=False, prompt="p")
+    torch.save({"settings": {"width": 10**9}, "state_dict": {}, "origin": origin}, tmp_path / "field.pt")
+    with pytest.raises(StageInputError, match=r"its stored settings are not valid .*width: 1000000000, past this tool's limit"):
+        load_field(tmp_path / "field.pt")
