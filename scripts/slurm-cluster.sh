@@ -88,7 +88,7 @@ refuse_foreign_slurm() { # stop before anything is installed, written or started
     for f in /etc/slurm/slurm.conf /etc/slurm/slurmdbd.conf /etc/slurm-llnl/slurm.conf /etc/slurm-llnl/slurmdbd.conf; do
         [ ! -e "$f" ] || grep -qF "$marker" "$f" || die "$f exists and was not written by this script: is this machine part of a real cluster? (stop here)"
     done
-    for name in slurmctld slurmd slurmdbd slurmrestd slurmstepd sackd; do
+    for name in slurmctld slurmd slurmdbd slurmrestd sackd; do  # (not slurmstepd: a job step of ours outlives slurmd)
         if pgrep -x "$name" >/dev/null 2>&1 && ! ours_running "$name"; then
             die "$name is running and was not started by this script: this machine has a Slurm of its own (stop here)"
         fi
