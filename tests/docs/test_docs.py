@@ -71,7 +71,7 @@ def test_reference_lists_every_top_level_key_section_and_field():
 
 def test_reference_shows_the_dataclass_defaults_and_the_schema_ranges():
     rows = {row[0]: row for row in reference.section_rows("decimate")}
-    assert rows["`target_faces`"][2] == "`5000`" and rows["`target_faces`"][3] == "&gt;= 4"
+    assert rows["`target_faces`"][2] == "`5000`" and rows["`target_faces`"][3] == "[4, 10000000]"
     assert rows["`weld_tolerance`"][3] == "[0, 0.01)"
     assert rows["`mode`"][3] == "`faces`, `budget`"
     rows = {row[0]: row for row in reference.section_rows("raycache")}
