@@ -21,7 +21,7 @@ from pathlib import Path
 from .core.cli import stage_main
 from .core.errors import StageInputError
 from .core.provenance import ORIGIN_KEY, atomic_path, read_origin, shareable_meta
-from .results.cells import parse_cells
+from .results.cells import parse_cells, reached_without_link
 from .results.spreadsheet import spreadsheet_rows
 
 log = logging.getLogger(__name__)
@@ -61,7 +61,7 @@ def pack_readme(rows: list[dict]) -> str:
 def linked_folder(folder: Path, results: Path) -> None:
     """Refuse a cell folder reached through a symbolic link: the pack copies only what lies in
     the results folder itself."""
-    if folder.exists() and folder.resolve() != results.resolve() / folder.relative_to(results):
+    if folder.exists() and not reached_without_link(folder, results):
         raise StageInputError(
             folder,
             f"is reached through a symbolic link (to {folder.resolve()})",

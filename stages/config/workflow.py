@@ -143,7 +143,8 @@ def _describe(error) -> str:
         return f"invalid value at {where}: {len(error.instance)} characters, at most {error.validator_value}: shorten it"
     if v == "type":
         return f"invalid value at {where}: {_short(error.instance)} is not of type {error.validator_value}"
-    return f"invalid value at {where}: {_short(error.message, 300)}"
+    message = error.message if len(error.message) <= 300 else error.message[:299] + "…"
+    return f"invalid value at {where}: {message}"
 
 
 #: the longest prompt text a config may give (the schema's maxLength), {object} replaced
@@ -153,21 +154,39 @@ CONTROL = re.compile(r"[\x00-\x1f\x7f-\x9f\u2028\u2029]")
 
 
 def _short(value: Any, chars: int = 80) -> str:
-    text = value if isinstance(value, str) and chars == 300 else repr(value)
+    """``repr(value)``, cut to ``chars`` characters."""
+    text = repr(value)
     return text if len(text) <= chars else text[: chars - 1] + "…"
 
 
 def validate(config: dict, source: str = "config") -> None:
     """Raise :class:`ConfigError` listing every schema violation of ``config``."""
+    lines = _problems(load_schema(), config)
+    if lines:
+        raise ConfigError(f"{source}: " + "; ".join(lines))
+
+
+def validate_section(section: str, data: dict, source: str) -> None:
+    """Raise :class:`ConfigError` unless ``data`` is a valid ``section`` of the config (its schema
+    ``$defs/<section>``, limits included): settings read back from a file (a trained field's), which
+    may come from someone else, are held to the same bounds as a config's."""
+    schema = load_schema()
+    lines = _problems({"$schema": schema["$schema"], "$defs": schema["$defs"], "$ref": f"#/$defs/{section}"}, data)
+    if lines:
+        raise ConfigError(f"{source}: {section} settings: " + "; ".join(lines))
+
+
+def _problems(schema: dict, data: Any) -> list[str]:
+    """One line per problem of ``data`` under ``schema``: each NaN or infinite number (NaN passes
+    every minimum and maximum, each comparison being false), then one line per key and value, its
+    type error first (a string is not also "above the maximum")."""
     import jsonschema
 
-    validator = jsonschema.Draft202012Validator(load_schema())
-    errors = sorted(validator.iter_errors(config), key=lambda e: (list(e.absolute_path), e.validator))
-    # NaN passes every minimum and maximum (each comparison is false): refused here, as is infinity
-    bad = _non_finite(config)
+    validator = jsonschema.Draft202012Validator(schema)
+    errors = sorted(validator.iter_errors(data), key=lambda e: (list(e.absolute_path), e.validator))
+    bad = _non_finite(data)
     lines = [f"invalid value at {_where(path)}: {value} is not a finite number" for path, value in bad]
 
-    # one line per key: its type error first (a string is not also "above the maximum")
     def key(path, instance) -> tuple:  # a key and its value (ids share their mapping's path)
         return (tuple(path), repr(instance)[:200])
 
@@ -179,23 +198,7 @@ def validate(config: dict, source: str = "config") -> None:
         for e in errors
         if e.validator in ("required", "additionalProperties") or first[key(e.absolute_path, e.instance)] is e
     ]
-    if lines:
-        raise ConfigError(f"{source}: " + "; ".join(dict.fromkeys(lines)))
-
-
-def validate_section(section: str, data: dict, source: str) -> None:
-    """Raise :class:`ConfigError` unless ``data`` is a valid ``section`` of the config (its schema
-    ``$defs/<section>``, limits included): settings read back from a file (a trained field's), which
-    may come from someone else, are held to the same bounds as a config's."""
-    import jsonschema
-
-    schema = load_schema()
-    sub = {"$schema": schema["$schema"], "$defs": schema["$defs"], "$ref": f"#/$defs/{section}"}
-    errors = sorted(jsonschema.Draft202012Validator(sub).iter_errors(data), key=lambda e: list(e.absolute_path))
-    lines = [f"invalid value at {_where(path)}: {value} is not a finite number" for path, value in _non_finite(data)]
-    lines += [_describe(e) for e in errors]
-    if lines:
-        raise ConfigError(f"{source}: {section} settings: " + "; ".join(dict.fromkeys(lines)))
+    return list(dict.fromkeys(lines))
 
 
 def _non_finite(node: Any, path: tuple = ()) -> list[tuple[tuple, float]]:
