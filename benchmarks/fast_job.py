@@ -1,17 +1,18 @@
 """The ``fast`` preset's whole optimize job on a built-in mesh, under CLIP ViT-B-32 at 224, per
 CPU lever, side by side: the job's wall time as a user sees it (``python -m stages.optimize`` in
 a fresh process: start-up, CLIP loading, 300 iterations, the evaluation renders and the outputs)
-against the target of 2 minutes.
+against the target of 90 seconds. ``defaults`` is what a user gets (the bfloat16 levers on
+``auto``: bfloat16 where the CPU has it natively); ``float32`` turns both off.
 
-``bf16+compiled`` runs first with inductor's cache as it finds it (cold on a fresh machine) and
-again as ``bf16+compiled (warm)``, when the compiled code is cached on disk. The ray cache is the
+``defaults+compiled`` runs first with inductor's cache as it finds it (cold on a fresh machine) and
+again as ``defaults+compiled (warm)``, when the compiled code is cached on disk. The ray cache is the
 default one (64 views at 512x512) of ``--mesh`` (built-in vase). No CLIP
 weights reach our machines, so ViT-B-32 runs with random weights saved once as a local
 checkpoint (``optimize.clip_checkpoint``): timing does not depend on the weights. Quality under
 bfloat16 is measured where it can be, on image targets (``benchmarks/recovery.py --precision``)
 and as the cosines of CLIP's outputs (``benchmarks/optimize.py --clip-only``).
 
-    python benchmarks/fast_job.py [--mesh vase] [--levers float32,bf16] [--threads 2]
+    python benchmarks/fast_job.py [--mesh vase] [--levers float32,defaults] [--threads 2]
 """
 
 from __future__ import annotations
@@ -27,15 +28,17 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-TARGET_S = 120.0
+#: issue 34's target for the fast job (the whole job, as a user sees it)
+TARGET_S = 90.0
 #: lever name -> optimize settings on top of the fast preset
 #: (names without commas: ``--levers`` is a comma-separated list of them)
 LEVERS = {
-    "float32": {},
-    "bf16": {"bf16": True, "bf16_networks": True},
-    "bf16+compiled": {"bf16": True, "bf16_networks": True, "compile_shading": True},
-    "bf16+compiled (warm)": {"bf16": True, "bf16_networks": True, "compile_shading": True},
-    "float32 open_clip tower": {"clip_tower": "open_clip"},
+    "float32": {"bf16": "off", "bf16_networks": "off"},
+    "defaults": {},
+    "bf16 CLIP only": {"bf16": "on", "bf16_networks": "off"},
+    "defaults+compiled": {"compile_shading": True},
+    "defaults+compiled (warm)": {"compile_shading": True},
+    "float32 open_clip tower": {"clip_tower": "open_clip", "bf16": "off", "bf16_networks": "off"},
 }
 
 
@@ -104,8 +107,9 @@ def main() -> None:
                 flush=True,
             )
     best = min(rows, key=lambda k: rows[k]["wall_s"])
+    shown = "defaults" if "defaults" in rows else best
     print(
-        f"fast_job_s={rows[best]['wall_s']:.1f} target_s={TARGET_S:.0f} lever={best.replace(' ', '_')} "
+        f"fast_job_s={rows[shown]['wall_s']:.1f} target_s={TARGET_S:.0f} of={shown} best={best.replace(' ', '_')} "
         + " ".join(f"{k.replace(' ', '_')}_s={v['wall_s']:.1f}" for k, v in rows.items())
     )
 

@@ -15,7 +15,8 @@ CLIP ViT-B-32 at 224x224, networks of width 256, 32 light lobes) it measures:
   pointwise FLOPs, one per output element of every op tagged pointwise: shading, activations,
   the optimizer) divided by the machine's peak matrix-multiply rate measured in float32 and in
   bfloat16 (``floor_fp32_s``, ``floor_bf16_s``), and ``ratio_to_floor = s_per_iter`` over the
-  best of them. The last line prints these with the precision that ran.
+  floor of what the machine runs (``floor_s``, ``floor_of``: bfloat16 only where it is native).
+  The last line prints these with the precision that ran and the target (``target_s``).
 
 First, CLIP alone along its paths (open_clip's modules or the batched tower, float32 or
 bfloat16 autocast): seconds and the cosines of embeddings and image gradients against open_clip
@@ -23,11 +24,15 @@ in float32. It then shows the trade between MLP width and step time, the cost of
 cost and benefit of supersampling (error of 1 and 2 samples per pixel against 4, same field), and
 the CPU levers (``LEVERS``: CLIP's tower, bfloat16 for CLIP and for the networks, the compiled
 renderer, hash-grid encodings with width-64 networks) on the real step, side by side (``--lever``
-picks some by name; the reference always runs). ``--bf16`` measures the main step with both bfloat16 levers on.
+picks some by name; the reference always runs). ``--precision float32`` measures the main step with
+both bfloat16 levers off (the defaults: ``auto``, bfloat16 where the CPU has it natively). The
+floor printed last is of what this machine can run: the bfloat16 floor only where bfloat16 is
+native (an emulated rate would make a floor slower than the float32 one); ``floor_of`` says which.
 CLIP has random weights here (timing does not depend on them). The mesh is
 ``../shared/meshes/person.obj`` when present, else the built-in vase.
 
-    python benchmarks/optimize.py [--steps 8] [--threads 2] [--bf16] [--clip-only] [--no-levers] [--lever hash ...]
+    python benchmarks/optimize.py [--steps 8] [--threads 2] [--precision defaults|float32] [--clip-only]
+        [--no-levers] [--lever hash ...]
 """
 
 from __future__ import annotations
@@ -44,6 +49,7 @@ from torch.utils._python_dispatch import TorchDispatchMode
 from torch.utils.flop_counter import FlopCounterMode
 
 from stages.config.sections import NormalizeSettings, OptimizeSettings, RaycacheSettings
+from stages.core.cli import bf16_support
 from stages.core.provenance import Timer
 from stages.geometry.meshio import save_ply
 from stages.geometry.normalization import normalize_mesh
@@ -57,6 +63,8 @@ from stages.training.optimizer import Optimizer
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "meshes"
 PARTS = ("gather", "mlp", "shading", "clip", "optimizer")
+#: issue 34's target for the paper's step (width 256, 1 global image and 4 crops) on the development machine
+TARGET_S = 0.8
 
 
 def build_cache(tmp: Path) -> tuple[Path, str]:
@@ -159,7 +167,8 @@ def step_flops(opt: Optimizer, guide: ClipGuide, steps: int) -> dict[str, float]
 
 
 def timed_split(opt: Optimizer, steps: int) -> dict[str, float]:
-    """Time the parts of a step with the graph cut between them (same functions as the loop)."""
+    """Time the parts of a step with the graph cut between them (same functions as the loop); the
+    shading includes the shadows' visible shares where the view has them."""
     s = opt.s
     parts = {k: [] for k in ("gather", "mlp", "shading", "clip", "optimizer")}
     for _ in range(steps):
@@ -176,7 +185,9 @@ def timed_split(opt: Optimizer, steps: int) -> dict[str, float]:
         mlp_out = [normal, mat.albedo, mat.specular, mat.roughness]
         leaves = [x.detach().requires_grad_() for x in mlp_out]
         t2 = time.perf_counter()
-        color = linear_to_srgb(opt.field.shade(Material(*leaves[1:]), leaves[0], view).rgb)
+        shadows = v.shadows  # the shading's shadows, as the real step casts them (None: none)
+        visibility = None if shadows is None else (lambda lt, sh=shadows, sel=sel: sh.shares(lt, sel))
+        color = linear_to_srgb(opt.field.shade(Material(*leaves[1:]), leaves[0], view, visibility=visibility).rgb)
         c_leaf = color.detach().requires_grad_()
         t3 = time.perf_counter()
         imgs = [compose(c_leaf, lk, sp, bg) for lk, sp in zip(lookups, specs, strict=True)]
@@ -254,29 +265,32 @@ def clip_paths(steps: int) -> list[dict]:
     return rows
 
 
+#: both bfloat16 levers off (the defaults are auto: bfloat16 where the machine has it natively)
+FP32 = {"bf16": "off", "bf16_networks": "off"}
 #: the CPU levers measured on the real step at the paper's counts: name -> settings overrides
 LEVERS = {
-    "reference (open_clip tower, float32)": {"clip_tower": "open_clip"},
-    "batched CLIP tower (default)": {},
-    "+ bf16 CLIP": {"bf16": True},
-    "+ bf16 networks": {"bf16_networks": True},
-    "+ bf16 CLIP and networks": {"bf16": True, "bf16_networks": True},
-    "+ bf16 and compiled shading": {"bf16": True, "bf16_networks": True, "compile_shading": True},
-    "NeRF encodings, width 64": {"width": 64},
-    "hash grids, width 64": {"material_encoding": "hashgrid", "normal_encoding": "hashgrid", "width": 64},
+    "reference (open_clip tower, float32)": {"clip_tower": "open_clip", **FP32},
+    "batched CLIP tower, float32": FP32,
+    "+ bf16 CLIP": {"bf16": "on", "bf16_networks": "off"},
+    "+ bf16 networks": {"bf16": "off", "bf16_networks": "on"},
+    "+ bf16 CLIP and networks": {"bf16": "on", "bf16_networks": "on"},
+    "defaults (bf16 auto)": {},
+    "+ bf16 and compiled shading": {"bf16": "on", "bf16_networks": "on", "compile_shading": True},
+    "NeRF encodings, width 64": {"width": 64, **FP32},
+    "hash grids, width 64": {"material_encoding": "hashgrid", "normal_encoding": "hashgrid", "width": 64, **FP32},
     "hash grids, width 64, + bf16 CLIP and networks": {
         "material_encoding": "hashgrid",
         "normal_encoding": "hashgrid",
         "width": 64,
-        "bf16": True,
-        "bf16_networks": True,
+        "bf16": "on",
+        "bf16_networks": "on",
     },
     "hash grids, width 64, + bf16 and compiled shading": {
         "material_encoding": "hashgrid",
         "normal_encoding": "hashgrid",
         "width": 64,
-        "bf16": True,
-        "bf16_networks": True,
+        "bf16": "on",
+        "bf16_networks": "on",
         "compile_shading": True,
     },
 }
@@ -327,7 +341,12 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=8)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--clip-only", action="store_true", help="only CLIP's towers and precisions")
-    parser.add_argument("--bf16", action="store_true", help="the measured step (last line) with bf16 CLIP and networks")
+    parser.add_argument(
+        "--precision",
+        choices=("defaults", "float32"),
+        default="defaults",
+        help="the measured step (last line): the defaults (bf16 auto: bfloat16 where native) or float32",
+    )
     parser.add_argument("--no-levers", action="store_true", help="skip the table of CPU levers")
     parser.add_argument("--lever", action="append", help="only the levers whose name contains this (repeatable)")
     args = parser.parse_args()
@@ -345,7 +364,7 @@ def main() -> None:
         return
     with tempfile.TemporaryDirectory() as d:
         train, mesh_name = build_cache(Path(d))
-        paper = OptimizeSettings(crops=4, width=256, light_lobes=32, bf16=args.bf16, bf16_networks=args.bf16)
+        paper = OptimizeSettings(crops=4, width=256, light_lobes=32, **(FP32 if args.precision == "float32" else {}))
         guide = vit_b32_random(bf16=paper.bf16, tower=paper.clip_tower)
         opt = make_optimizer(paper, train, guide)
         precision = f"clip:{'bf16' if guide.bf16 else 'fp32'},networks:{'bf16' if opt.field.bf16 else 'fp32'}"
@@ -374,7 +393,11 @@ def main() -> None:
         counts = step_flops(opt, guide, max(2, args.steps // 2))
         peak = {"fp32": peak_matmul_rate(torch.float32), "bf16": peak_matmul_rate(torch.bfloat16)}
         floors = {k: counts["total"] / r for k, r in peak.items()}
-        best = min(floors.values())
+        # the floor of what this machine can run: bfloat16 only where it is native (emulated
+        # bfloat16 is slower than float32, and its "floor" would mean nothing)
+        native, why = bf16_support(torch.device("cpu"))
+        floor_of = "bf16" if native and floors["bf16"] < floors["fp32"] else "fp32"
+        best = floors[floor_of]
         print(
             f"# counted per step: CLIP {counts['clip'] / 1e9:.2f} GFLOP (fwd+bwd to the images), MLPs "
             f"{counts['mlp'] / 1e9:.2f} GFLOP (fwd+bwd), pointwise {counts['pointwise'] / 1e9:.3f} GFLOP; "
@@ -382,8 +405,9 @@ def main() -> None:
         )
         print(
             f"# peak matmul (2048^2, {args.threads} threads): fp32 {peak['fp32'] / 1e9:.0f} GFLOP/s, "
-            f"bf16 {peak['bf16'] / 1e9:.0f} GFLOP/s; floor fp32 {floors['fp32']:.3f} s, bf16 {floors['bf16']:.3f} s; "
-            f"ratio to the best {s_per_iter / best:.1f}"
+            f"bf16 {peak['bf16'] / 1e9:.0f} GFLOP/s ({'native' if native else 'emulated: not a floor'}); "
+            f"floor fp32 {floors['fp32']:.3f} s, bf16 {floors['bf16']:.3f} s; the floor here: {floor_of} ({why}); "
+            f"ratio to it {s_per_iter / best:.1f}"
         )
         # trades: width, crops, supersampling
         print(f"{'width':>6}{'crops':>6}{'spp':>5}{'points':>9}{'s/iter':>9}{'MFLOP/pt':>10}")
@@ -437,11 +461,14 @@ def main() -> None:
     # the last line: the figures the speed issue asks for, and the precision that ran
     last = {
         "s_per_iter": s_per_iter,
-        "floor_fp32_s": floors["fp32"],
-        "floor_bf16_s": floors["bf16"],
+        "target_s": TARGET_S,
+        "floor_s": best,
         "ratio_to_floor": s_per_iter / best,
+        "floor_fp32_s": floors["fp32"],
     }
-    print(" ".join(f"{k}={v:.4g}" for k, v in last.items()) + f" precision={precision}")
+    if native:
+        last["floor_bf16_s"] = floors["bf16"]
+    print(" ".join(f"{k}={v:.4g}" for k, v in last.items()) + f" floor_of={floor_of} precision={precision}")
 
 
 if __name__ == "__main__":

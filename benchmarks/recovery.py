@@ -183,7 +183,7 @@ def fit(
             "checkpoint_every": 100_000,
             "specular_lobe": lobe,
             "shading_normals": normals,
-            "bf16_networks": precision == "bf16",
+            "bf16_networks": "on" if precision == "bf16" else "off",
             **(overrides or {}),
         }
     )

@@ -31,7 +31,7 @@ from pathlib import Path
 from .config.presets import PRESETS
 from .config.sections import OptimizeSettings
 from .config.workflow import WorkflowConfig, experiment_name, load_config_files
-from .core.cli import resolve_device, stage_main
+from .core.cli import precision_summary, resolve_device, stage_main
 from .training.calibrate import seconds_per_step
 
 log = logging.getLogger(__name__)
@@ -198,6 +198,7 @@ def make_plan(
             "source": source,
             "paper": is_paper(s),
             "clip_model": guidance_label(s),
+            "precision": precision_summary(s.bf16, s.bf16_networks, resolve_device(device)),
         }
         if sec is not None:
             row["seconds"] = sec * s.iterations * entry["cells"]
@@ -284,6 +285,7 @@ def plan_text(plan: dict) -> str:
             f"  {e['cells']} optimisation(s) of {e['iterations']} steps ({e['clip_model']}): {per} from {e['source']} "
             f"-> {duration(e.get('seconds'))}"
         )
+        lines.append(f"    precision: {e['precision']}")
     if not plan["optimisation"]:
         lines.append("No optimisation to run.")
         return "\n".join(lines) + "\n"

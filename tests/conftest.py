@@ -17,6 +17,14 @@ REPO = Path(__file__).resolve().parents[1]
 SHARED_MESHES = REPO.parent / "shared" / "meshes"
 
 
+def pytest_xdist_auto_num_workers(config) -> int:
+    """``-n auto`` (pyproject's addopts): one test worker per CPU this process may use, at most 4.
+    Many tests wait rather than compute (Snakemake's and the stages' process start-ups, the Slurm
+    polls, the browser, Blender and Node subprocesses), so two workers on two cores finish sooner
+    than one; beyond four, every worker's torch, CLIP and Snakemake runs cost memory for little."""
+    return max(1, min(4, len(os.sched_getaffinity(0))))
+
+
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(12345)

@@ -19,6 +19,13 @@ from .errors import stage_errors
 if TYPE_CHECKING:
     import torch
 
+log = logging.getLogger(__name__)
+
+#: the bfloat16 levers' settings (``optimize.bf16``, ``optimize.bf16_networks``): ``auto`` turns
+#: the lever on where the device has native bfloat16 (:func:`bf16_support`), ``on`` asks for it
+#: everywhere (float32 with a warning where it is not native), ``off`` keeps float32
+BF16_CHOICES = ("auto", "on", "off")
+
 
 def setup_logging(verbose: bool = False) -> None:
     """Log to stderr (rules redirect it to their ``log:`` file)."""
@@ -60,6 +67,35 @@ def bf16_support(device: torch.device) -> tuple[bool, str]:
             return True, "CPU with native bfloat16 (oneDNN: AVX-512 BF16 / AMX)"
         return False, "this CPU has no native bfloat16 (no AVX-512 BF16 or AMX for oneDNN)"
     return False, f"no bfloat16 autocast on {device.type}"
+
+
+def bf16_choice(setting: str | bool, device: torch.device, what: str) -> tuple[bool, str]:
+    """Whether a bfloat16 lever (``setting``: one of :data:`BF16_CHOICES`; YAML booleans mean on
+    and off) runs on ``device``, and what runs, for the metadata, the plan and the doctor:
+    ``"bfloat16 autocast (<why>)"``, ``"float32"`` (off), ``"float32 (<why not>)"``; under auto
+    the reason starts ``auto:``. ``on`` where bfloat16 is not native logs a warning naming
+    ``what`` (the lever) and runs float32; ``auto`` there is float32 by design, without one."""
+    choice = ("on" if setting else "off") if isinstance(setting, bool) else setting
+    if choice not in BF16_CHOICES:
+        raise ValueError(f"{what} must be one of {', '.join(BF16_CHOICES)}, got {setting!r}")
+    if choice == "off":
+        return False, "float32"
+    supported, why = bf16_support(device)
+    why = f"auto: {why}" if choice == "auto" else why
+    if choice == "on" and not supported:
+        log.warning("%s asked for, but %s: float32 runs instead", what, why)
+    return supported, f"bfloat16 autocast ({why})" if supported else f"float32 ({why})"
+
+
+def precision_summary(bf16: str | bool, bf16_networks: str | bool, device: torch.device, reason: bool = True) -> str:
+    """One line for the plan and the doctor: what the two bfloat16 levers resolve to on
+    ``device`` (:func:`bf16_choice`), e.g. ``CLIP bfloat16 (bf16: auto), networks bfloat16
+    (bf16_networks: auto): CPU with native bfloat16 (...)``; ``reason``: with the part after the colon."""
+    parts = []
+    for what, name, setting in (("CLIP", "bf16", bf16), ("networks", "bf16_networks", bf16_networks)):
+        on = bf16_choice(setting, device, name)[0]
+        parts.append(f"{what} {'bfloat16' if on else 'float32'} ({name}: {setting})")
+    return ", ".join(parts) + (f": {bf16_support(device)[1]}" if reason else "")
 
 
 def stage_main(

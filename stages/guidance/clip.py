@@ -18,7 +18,7 @@ from torch import Tensor
 from torch.nn import functional as F
 
 from ..config.sections import CLIP_ROLES, ClipSpec
-from ..core.cli import bf16_support
+from ..core.cli import bf16_choice
 from ..core.errors import StageInputError
 from .compat import import_open_clip
 from .vit import CLIP_TOWERS, use_fast_tower
@@ -178,9 +178,9 @@ def missing_weights(specs) -> list[str]:
 class ClipGuide:
     """A frozen CLIP that embeds prompts and images (images in [0, 1], ``(B, 3, S, S)``).
 
-    With ``bf16`` the image tower runs under bfloat16 autocast where the device supports it
-    natively (:func:`bf16_support`); elsewhere it runs in float32 and says so (a warning and
-    :attr:`precision`, which the optimisation's metadata records).
+    ``bf16`` (``auto``, ``on``, ``off``; booleans mean on and off): the image tower under bfloat16
+    autocast where the device supports it natively (:func:`bf16_choice`); elsewhere float32, and
+    :attr:`precision`, which the optimisation's metadata records, says why (``on`` also warns).
 
     ``tower`` (:data:`~stages.config.sections.CLIP_TOWERS`): ``"batched"`` runs the image tower's
     attention and patch embedding as contiguous matrix products, with the frozen weights cast to
@@ -196,7 +196,7 @@ class ClipGuide:
         weights_id: str,
         test_only: bool,
         device,
-        bf16: bool,
+        bf16: str | bool,
         tower: str = "batched",
     ):
         if tower not in CLIP_TOWERS:
@@ -207,12 +207,9 @@ class ClipGuide:
         self.weights_id = weights_id
         self.test_only = test_only
         self.device = torch.device(device)
-        supported, why = bf16_support(self.device)
-        self.bf16 = bf16 and supported
-        if bf16 and not supported:
-            log.warning("bf16 asked for, but %s: CLIP runs in float32", why)
-        #: what ran, for the metadata: "bfloat16 autocast (<why>)" or "float32" (and why, when bf16 was asked for)
-        self.precision = f"bfloat16 autocast ({why})" if self.bf16 else ("float32" if not bf16 else f"float32 ({why})")
+        #: whether the tower runs under bfloat16 autocast, and what ran, for the metadata
+        #: (:func:`bf16_choice`: "bfloat16 autocast (<why>)", "float32" or "float32 (<why not>)")
+        self.bf16, self.precision = bf16_choice(bf16, self.device, "bf16 (CLIP's image tower)")
         #: the image tower's path, and how many of its modules the fast path changed
         self.tower = tower
         self.tower_changes = use_fast_tower(self.model.visual, self.bf16) if tower == "batched" else 0
@@ -282,7 +279,7 @@ def _image_size(model) -> int:
     return int(size[0] if isinstance(size, tuple | list) else size)
 
 
-def load_clip(spec: ClipSpec, device="cpu", bf16: bool = False, tower: str = "batched") -> ClipGuide:
+def load_clip(spec: ClipSpec, device="cpu", bf16: str | bool = "off", tower: str = "batched") -> ClipGuide:
     """Load the CLIP of ``spec`` on ``device``; fails fast when weights are unavailable.
     ``bf16`` and ``tower``: see :class:`ClipGuide`."""
     if spec.tiny_test:

@@ -13,7 +13,7 @@ import torch
 from torch import Tensor, nn
 
 from ..config.sections import FieldSettings
-from ..core.cli import bf16_support
+from ..core.cli import bf16_choice
 from ..geometry.normals import NormalSpec
 from ..render.shading import SGLight, Shading, face_viewer, shade, shade_gltf
 from .networks import Material, NormalNet, SGLightModule, SVBRDFNet, make_encoding, symmetric
@@ -137,17 +137,15 @@ class StyleField(nn.Module):
         self.compiled_shade = torch.compile(shade_material, dynamic=True)
         return "torch.compile (inductor)"
 
-    def use_bf16(self, enabled: bool, device: torch.device) -> str:
+    def use_bf16(self, setting: str | bool, device: torch.device) -> str:
         """Run the networks' matrix products under bfloat16 autocast in training mode (the
-        optimisation's option ``bf16_networks``; evaluation, baking and relighting run float32)
-        where ``device`` runs bfloat16 natively; the encodings, the heads' outputs
+        optimisation's option ``bf16_networks``: ``auto``, ``on``, ``off``; booleans mean on and
+        off; evaluation, baking and relighting run float32) where ``device`` runs bfloat16
+        natively (:func:`~stages.core.cli.bf16_choice`); the encodings, the heads' outputs
         (sigmoid, tanh), the normals and the renderer stay float32. Returns what runs, for the
         metadata: ``"bfloat16 autocast (<why>)"``, ``"float32"`` or ``"float32 (<why not>)"``."""
-        supported, why = bf16_support(torch.device(device))
-        self.bf16 = enabled and supported
-        if enabled and not supported:
-            log.warning("bf16_networks asked for, but %s: the networks run in float32", why)
-        return f"bfloat16 autocast ({why})" if self.bf16 else ("float32" if not enabled else f"float32 ({why})")
+        self.bf16, precision = bf16_choice(setting, torch.device(device), "bf16_networks")
+        return precision
 
     def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
         """As ``nn.Module``'s, and a light whose lobes were pruned (``light_prune_after``) is

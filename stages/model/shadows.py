@@ -2,7 +2,7 @@
 and each light lobe's visible share at any subset of them (issue 32).
 
 Broad lobes take the quadrature of the stored directions
-(:func:`~stages.render.visibility.lobe_visibility`: differentiable in the lobe's axis and
+(:func:`~stages.render.visibility.lobe_visibility_bits`: differentiable in the lobe's axis and
 sharpness); lobes too sharp for the set (a sun) take shadow rays drawn from the lobe with fixed
 seeds (:func:`~stages.geometry.visibility.trace_lobe_visibility`), traced lazily for the points
 asked for and traced again once the lobe's axis has moved by more than ``tolerance`` of its width
@@ -28,7 +28,7 @@ from ..geometry.visibility import (
     trace_visibility,
 )
 from ..render.shading import SGLight
-from ..render.visibility import blend_traced, lobe_visibility, resolvable_sharpness, unpack_bits
+from ..render.visibility import blend_traced, lobe_visibility_bits, resolvable_sharpness
 
 
 class _TracedLobe:
@@ -99,8 +99,7 @@ class ShadowCache:
         idx = None if index is None else index.cpu()  # the stored bits stay on the CPU
         bits = (self._bits if idx is None else self._bits[idx]).to(dev)
         normal = (self._normals if idx is None else self._normals[idx]).to(dev, dtype)
-        visible = unpack_bits(bits, len(self.directions), dtype)
-        return lobe_visibility(normal, visible, self._dirs.to(dev, dtype), light.axis, light.sharpness)
+        return lobe_visibility_bits(normal, bits, self._dirs.to(dev, dtype), light.axis, light.sharpness)
 
     def traced(self, light: SGLight, index: Tensor | None = None) -> Tensor:
         """Each lobe's share from shadow rays drawn from it -> ``(n, K)`` (no gradient): ones for the

@@ -63,6 +63,64 @@ def lobe_visibility(normal: Tensor, visible: Tensor, directions: Tensor, axis: T
     return (lit + _EMPTY) / (whole + _EMPTY)
 
 
+#: points per block of the fused quadrature: a block's (points, directions) matrices (2 MB at
+#: 1,024 directions in float32) stay in a core's cache between the operations that use them
+VISIBILITY_BLOCK = 512
+
+
+class _VisibleSums(torch.autograd.Function):
+    """``lit = (c * v) @ w.T`` and ``whole = c @ w.T`` with ``c = max(normal @ directions.T, 0)``
+    and ``v`` the unpacked bits, block by block of :data:`VISIBILITY_BLOCK` points, without
+    keeping the ``(N, D)`` matrices: the backward (to ``w`` alone: the normals and the bits are
+    data) rebuilds each block's and adds ``g_lit.T @ (c * v) + g_whole.T @ c``."""
+
+    @staticmethod
+    def _blocks(normal: Tensor, bits: Tensor, directions: Tensor):
+        shifts = torch.arange(7, -1, -1, device=bits.device, dtype=torch.uint8)
+        count = directions.shape[0]
+        for start in range(0, normal.shape[0], VISIBILITY_BLOCK):
+            stop = min(start + VISIBILITY_BLOCK, normal.shape[0])
+            cos = torch.mm(normal[start:stop], directions.T).clamp_(min=0.0)
+            seen = ((bits[start:stop].unsqueeze(-1) >> shifts) & 1).reshape(stop - start, -1)[:, :count]
+            yield start, stop, cos, cos * seen
+
+    @staticmethod
+    def forward(ctx, normal: Tensor, bits: Tensor, directions: Tensor, w: Tensor) -> tuple[Tensor, Tensor]:
+        wt = w.T.contiguous()
+        lit, whole = [], []
+        for _, _, cos, seen in _VisibleSums._blocks(normal, bits, directions):
+            lit.append(seen @ wt)
+            whole.append(cos @ wt)
+        ctx.save_for_backward(normal, bits, directions)
+        return torch.cat(lit), torch.cat(whole)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, g_lit: Tensor, g_whole: Tensor):
+        normal, bits, directions = ctx.saved_tensors
+        g_w = torch.zeros(g_lit.shape[1], directions.shape[0], dtype=g_lit.dtype, device=g_lit.device)
+        for start, stop, cos, seen in _VisibleSums._blocks(normal, bits, directions):
+            g_w.addmm_(g_lit[start:stop].T, seen).addmm_(g_whole[start:stop].T, cos)
+        return None, None, None, g_w
+
+
+def lobe_visibility_bits(normal: Tensor, bits: Tensor, directions: Tensor, axis: Tensor, sharpness: Tensor) -> Tensor:
+    """:func:`lobe_visibility` from the packed bits ``(N, ceil(D / 8)) uint8`` (as stored,
+    :func:`unpack_bits`'s order), fused: the two sums block by block of points with a hand-written
+    backward (:class:`_VisibleSums`), so that the ``(N, D)`` matrices of cosines and visibility
+    (70 MB each at 17,000 points and 1,024 directions) are never held, nor read back from memory.
+    The same value and gradient to the lobes' axes and sharpnesses (tested against
+    :func:`lobe_visibility` in float64); no gradient to the normals (fixed data)."""
+    work = torch.promote_types(normal.dtype, torch.float32)
+    normal, directions = normal.to(work).detach().contiguous(), directions.to(work).detach()
+    w = _weights(directions, axis.to(work), sharpness.to(work))  # (K, D)
+    # weights below the smallest normal float are 0 to the sums' precision, and as subnormal
+    # operands they made the products several times slower (measured: 67 ms against 28 ms)
+    w = torch.where(w >= torch.finfo(work).tiny, w, torch.zeros_like(w))
+    lit, whole = _VisibleSums.apply(normal, bits, directions, w)
+    return (lit + _EMPTY) / (whole + _EMPTY)
+
+
 def lobe_visibility_reference(normal: Tensor, visible: Tensor, directions: Tensor, axis: Tensor, sharpness: Tensor) -> Tensor:
     """:func:`lobe_visibility` written as its definition, one lobe at a time (the plain reference
     the matrix form is tested against)."""

@@ -21,7 +21,8 @@ import yaml
 from conftest import REPO, mesh_work_dir, require_tool, run_snakemake
 from PIL import Image
 
-pytestmark = [pytest.mark.slurm, pytest.mark.slow]
+# xdist_group: with parallel test workers (pytest -n), every test of the one local cluster runs on one worker
+pytestmark = [pytest.mark.slurm, pytest.mark.slow, pytest.mark.xdist_group("slurm")]
 
 SCRIPT = REPO / "scripts" / "slurm-cluster.sh"
 PROFILE = REPO / "profiles" / "slurm"

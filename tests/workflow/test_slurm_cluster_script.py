@@ -15,7 +15,11 @@ from conftest import REPO
 
 SCRIPT = REPO / "scripts" / "slurm-cluster.sh"
 
-pytestmark = pytest.mark.skipif(os.geteuid() != 0 and not os.environ.get("CI"), reason="the script runs as root")
+# xdist_group: beside the Slurm tests (one worker), never while their cluster runs on another
+pytestmark = [
+    pytest.mark.skipif(os.geteuid() != 0 and not os.environ.get("CI"), reason="the script runs as root"),
+    pytest.mark.xdist_group("slurm"),
+]
 
 
 def script(tmp_path: Path, command: str, **env: str) -> subprocess.CompletedProcess:
