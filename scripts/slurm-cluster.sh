@@ -109,7 +109,8 @@ write_configs() {
     touch "$state_marker"
     local host cpus mem
     host=$(hostname -s)
-    cpus=$(nproc)
+    # the machine's CPUs, not a caller's OMP_NUM_THREADS (which nproc honours: a test worker sets it)
+    cpus=$(env -u OMP_NUM_THREADS -u OMP_THREAD_LIMIT nproc)
     mem=$(awk '/MemTotal/ {printf "%d", $2 / 1024 * 0.9}' /proc/meminfo)
     cat > "$conf_dir/slurm.conf" <<EOF
 $marker

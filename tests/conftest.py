@@ -3,6 +3,8 @@ and a helper that runs Snakemake in a temporary working directory."""
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import json
 import os
 import shutil
@@ -16,6 +18,16 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 SHARED_MESHES = REPO.parent / "shared" / "meshes"
 
+#: test workers running side by side (pytest -n; 1 without xdist) and the CPU threads each may use
+WORKERS = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+THREADS = max(1, len(os.sched_getaffinity(0)) // WORKERS)
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    # a worker's share of the cores, for torch here and in every process it starts (torch reads
+    # these when it loads, after this file); idle OpenMP threads sleep instead of spinning: two
+    # workers' spinning threads on two cores made a 1-minute fit take over 20 minutes
+    os.environ["OMP_NUM_THREADS"] = str(THREADS)
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
 
 def pytest_xdist_auto_num_workers(config) -> int:
     """``-n auto`` (pyproject's addopts): one test worker per CPU this process may use, at most 4.
@@ -23,6 +35,20 @@ def pytest_xdist_auto_num_workers(config) -> int:
     polls, the browser, Blender and Node subprocesses), so two workers on two cores finish sooner
     than one; beyond four, every worker's torch, CLIP and Snakemake runs cost memory for little."""
     return max(1, min(4, len(os.sched_getaffinity(0))))
+
+
+def pytest_collection_modifyitems(config, items) -> None:
+    """The longest tests first: the Slurm cluster's (one worker runs them in turn, mostly waiting
+    on the cluster), then the other slow ones, then the rest, each group in its own order. With
+    parallel workers the long ones then overlap the many short ones instead of ending the run
+    alone."""
+
+    def rank(item) -> int:
+        if item.get_closest_marker("slurm") is not None:
+            return 0
+        return 1 if item.get_closest_marker("slow") is not None else 2
+
+    items.sort(key=rank)
 
 
 @pytest.fixture
@@ -63,6 +89,23 @@ TINY = {
 }
 #: the optimisation's tiny settings, at the prompt's level (above the prompt's preset)
 TINY_OPTIMIZE = {"iterations": 3, "milestones": [2], "image_size": 64, "width": 16, "light_lobes": 4, "eval_width": 32}
+
+
+#: held by every test that starts this machine's local Slurm cluster or checks what the cluster
+#: script refuses (it refuses while the cluster runs): such tests never overlap, on whichever
+#: test worker they run
+SLURM_LOCK = Path(os.environ.get("TMPDIR", "/tmp")) / "tango-stylize-slurm-tests.lock"
+
+
+@contextlib.contextmanager
+def slurm_lock():
+    """Exclusive use of the machine's Slurm for the tests (:data:`SLURM_LOCK`; waits its turn)."""
+    with open(SLURM_LOCK, "w") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
 
 
 def require_tool(available: bool, reason: str) -> None:

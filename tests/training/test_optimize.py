@@ -9,6 +9,7 @@ import math
 import numpy as np
 import pytest
 import torch
+from conftest import THREADS
 
 from stages import optimize
 from stages.config.layout import OPTIMIZE_FILES
@@ -303,7 +304,7 @@ def fit_mitsuba(scene: dict, name: str = "out", **overrides) -> dict:
 
     d, tdir = scene["dir"], scene["dir"] / "target"
     settings = OptimizeSettings(**{**RECOVERY, "target_material": scene["material"], "target_renderer": "mitsuba", **overrides})
-    torch.set_num_threads(2)
+    torch.set_num_threads(THREADS)  # this test worker's share of the cores
     meta = optimize.run(d / "train.npz", d / "eval.npz", "", d / name, settings, "cpu", targets_path=tdir / "train.npz")
     m = metrics.run(
         d / name / "field.pt",
@@ -335,7 +336,7 @@ def _recover(tmp_path, **overrides) -> dict:
         "target_renderer": "sg",
         **overrides,
     }
-    torch.set_num_threads(2)
+    torch.set_num_threads(THREADS)  # this test worker's share of the cores
     return optimize.run(tmp_path / "train.npz", tmp_path / "eval.npz", "", tmp_path / "out", OptimizeSettings(**settings), "cpu")
 
 

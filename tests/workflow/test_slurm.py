@@ -18,11 +18,10 @@ import numpy as np
 import pytest
 import torch
 import yaml
-from conftest import REPO, mesh_work_dir, require_tool, run_snakemake
+from conftest import REPO, mesh_work_dir, require_tool, run_snakemake, slurm_lock
 from PIL import Image
 
-# xdist_group: with parallel test workers (pytest -n), every test of the one local cluster runs on one worker
-pytestmark = [pytest.mark.slurm, pytest.mark.slow, pytest.mark.xdist_group("slurm")]
+pytestmark = [pytest.mark.slurm, pytest.mark.slow]
 
 SCRIPT = REPO / "scripts" / "slurm-cluster.sh"
 PROFILE = REPO / "profiles" / "slurm"
@@ -67,7 +66,14 @@ def slurm_up() -> bool:
 
 @pytest.fixture(scope="module")
 def cluster():
-    """A running one-node cluster: started by the script (and stopped after) unless one was up."""
+    """A running one-node cluster: started by the script (and stopped after) unless one was up;
+    this module holds the machine's Slurm meanwhile (:func:`conftest.slurm_lock`: parallel test
+    workers)."""
+    with slurm_lock():
+        yield from _cluster()
+
+
+def _cluster():
     was_up = slurm_up()
     if not was_up:
         require_tool(os.geteuid() == 0, "the local Slurm cluster needs root (scripts/slurm-cluster.sh)")

@@ -11,15 +11,18 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import REPO
+from conftest import REPO, slurm_lock
 
 SCRIPT = REPO / "scripts" / "slurm-cluster.sh"
 
-# xdist_group: beside the Slurm tests (one worker), never while their cluster runs on another
-pytestmark = [
-    pytest.mark.skipif(os.geteuid() != 0 and not os.environ.get("CI"), reason="the script runs as root"),
-    pytest.mark.xdist_group("slurm"),
-]
+pytestmark = pytest.mark.skipif(os.geteuid() != 0 and not os.environ.get("CI"), reason="the script runs as root")
+
+
+@pytest.fixture(autouse=True)
+def _no_cluster_meanwhile():
+    """The script refuses while a cluster runs: never beside the Slurm tests' (parallel workers)."""
+    with slurm_lock():
+        yield
 
 
 def script(tmp_path: Path, command: str, **env: str) -> subprocess.CompletedProcess:

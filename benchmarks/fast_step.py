@@ -1,0 +1,120 @@
+"""The ``fast`` preset's step with shadows, split, and the shadows' visible shares both ways.
+
+On the built-in vase (a ray cache of ``--views`` views at 512 pixels with the default visibility:
+1,024 directions per hit), CLIP ViT-B-32 at 224 with random weights, the ``fast`` preset under the
+defaults (``bf16: auto``) and in float32:
+
+* ``step_s``: the real training step (``Optimizer.step``), mean of ``--steps`` after a warm-up;
+* its split (``benchmarks/optimize.py``'s ``timed_split``: gather, networks, shading with the
+  shadows' shares, CLIP, optimiser) with the graph cut between the parts;
+* the shadows' shares at the step's points, forward and forward+backward, by the fused blocks
+  (``lobe_visibility_bits``, the training's path) and by the matrix form (``lobe_visibility``, the
+  plain reference), side by side.
+
+    python benchmarks/fast_step.py [--views 8] [--steps 6] [--threads 2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path[:0] = [str(REPO), str(REPO / "benchmarks")]
+
+
+def timed(fn, repeats: int = 5) -> float:
+    fn()
+    out = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        out.append(time.perf_counter() - t0)
+    return min(out)
+
+
+def shares_side_by_side(opt) -> dict[str, float]:
+    """Seconds of the shadows' shares at view 0's first 17,000 hits (about a fast step's points)."""
+    import torch
+
+    from stages.render.visibility import lobe_visibility, lobe_visibility_bits, unpack_bits
+
+    shadows = opt.views[0].shadows
+    idx = torch.arange(min(17_000, len(shadows)))
+    bits, normal = shadows._bits[idx], shadows._normals[idx]
+    dirs = shadows._dirs
+    out = {"points": float(len(idx))}
+    for name, fn in (
+        ("fused", lambda a, s: lobe_visibility_bits(normal, bits, dirs, a, s)),
+        ("matrix", lambda a, s: lobe_visibility(normal, unpack_bits(bits, len(dirs)), dirs, a, s)),
+    ):
+
+        def forward(fn=fn):
+            with torch.no_grad():
+                light = opt.field.light()
+                fn(light.axis, light.sharpness)
+
+        def both(fn=fn):
+            light = opt.field.light()
+            fn(light.axis, light.sharpness).sum().backward()
+
+        out[f"{name}_fwd_s"], out[f"{name}_fwd_bwd_s"] = timed(forward), timed(both)
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--views", type=int, default=8)
+    parser.add_argument("--steps", type=int, default=6)
+    parser.add_argument("--threads", type=int, default=2)
+    args = parser.parse_args()
+    import optimize as bench
+    import torch
+
+    from stages.config.presets import PRESETS
+    from stages.config.sections import NormalizeSettings, OptimizeSettings, RaycacheSettings
+    from stages.geometry.meshio import save_ply
+    from stages.geometry.normalization import normalize_mesh
+    from stages.raycache import run as raycache_run
+
+    torch.set_num_threads(args.threads)
+    with tempfile.TemporaryDirectory() as d:
+        work = Path(d)
+        t0 = time.perf_counter()
+        save_ply(work / "mesh.ply", normalize_mesh("builtin:vase", NormalizeSettings()).mesh)
+        cache = RaycacheSettings(views=args.views)
+        raycache_run(work / "mesh.ply", work / "train.npz", work / "eval.npz", work / "rc.json", cache)
+        print(f"# built-in vase, {args.views} views at 512 with visibility: {time.perf_counter() - t0:.0f} s", flush=True)
+        rows = {}
+        for label, over in (("defaults", {}), ("float32", {"bf16": "off", "bf16_networks": "off"})):
+            s = OptimizeSettings(**{**PRESETS["fast"], **over})
+            guide = bench.vit_b32_random(bf16=s.bf16, tower=s.clip_tower)
+            opt = bench.make_optimizer(s, work / "train.npz", guide)
+            step, points = bench.step_time(opt, args.steps)
+            split = bench.timed_split(opt, args.steps)
+            rows[label] = {"step_s": step, "points": points, **{k: split[k] for k in bench.PARTS}}
+            print(
+                f"{label:<9} step {step:.3f} s at {points:.0f} points; "
+                + ", ".join(f"{k} {split[k]:.3f}" for k in bench.PARTS)
+                + f"  (clip {guide.precision.split(' (')[0]}, networks {opt.network_precision.split(' (')[0]})",
+                flush=True,
+            )
+        sh = shares_side_by_side(opt)
+        print(
+            f"# shadows' shares at {sh['points']:.0f} points, 16 lobes, 1,024 directions: fused blocks "
+            f"{sh['fused_fwd_s']:.3f} s forward, {sh['fused_fwd_bwd_s']:.3f} s with the backward; matrix form "
+            f"{sh['matrix_fwd_s']:.3f} s, {sh['matrix_fwd_bwd_s']:.3f} s"
+        )
+    d_, f_ = rows["defaults"], rows["float32"]
+    print(
+        f"step_s={d_['step_s']:.4g} step_float32_s={f_['step_s']:.4g} shading_s={d_['shading']:.4g} "
+        f"clip_s={d_['clip']:.4g} shares_fused_s={sh['fused_fwd_bwd_s']:.4g} shares_matrix_s={sh['matrix_fwd_bwd_s']:.4g} "
+        f"shares_speedup={sh['matrix_fwd_bwd_s'] / sh['fused_fwd_bwd_s']:.3g}"
+    )
+
+
+if __name__ == "__main__":
+    main()
