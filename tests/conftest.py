@@ -38,15 +38,18 @@ def pytest_xdist_auto_num_workers(config) -> int:
 
 
 def pytest_collection_modifyitems(config, items) -> None:
-    """The longest tests first: the Slurm cluster's (one worker runs them in turn, mostly waiting
-    on the cluster), then the other slow ones, then the rest, each group in its own order. With
-    parallel workers the long ones then overlap the many short ones instead of ending the run
-    alone."""
+    """The longest tests first, each group in its own order: those that take the machine's Slurm
+    (:func:`slurm_lock`: the cluster script's refusals, then the cluster's tests, so that the
+    first worker's share holds them all in a row and no other worker waits for the lock), then the
+    other slow ones, then the rest. With parallel workers the long ones then overlap the many short
+    ones instead of ending the run alone."""
 
     def rank(item) -> int:
-        if item.get_closest_marker("slurm") is not None:
+        if "_no_cluster_meanwhile" in item.fixturenames:
             return 0
-        return 1 if item.get_closest_marker("slow") is not None else 2
+        if "cluster" in item.fixturenames:
+            return 1
+        return 2 if item.get_closest_marker("slow") is not None else 3
 
     items.sort(key=rank)
 
