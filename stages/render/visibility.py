@@ -76,13 +76,10 @@ class _VisibleSums(torch.autograd.Function):
 
     @staticmethod
     def _blocks(normal: Tensor, bits: Tensor, directions: Tensor):
-        shifts = torch.arange(7, -1, -1, device=bits.device, dtype=torch.uint8)
-        count = directions.shape[0]
         for start in range(0, normal.shape[0], VISIBILITY_BLOCK):
             stop = min(start + VISIBILITY_BLOCK, normal.shape[0])
             cos = torch.mm(normal[start:stop], directions.T).clamp_(min=0.0)
-            seen = ((bits[start:stop].unsqueeze(-1) >> shifts) & 1).reshape(stop - start, -1)[:, :count]
-            yield start, stop, cos, cos * seen
+            yield start, stop, cos, cos * unpack_bits(bits[start:stop], directions.shape[0], cos.dtype)
 
     @staticmethod
     def forward(ctx, normal: Tensor, bits: Tensor, directions: Tensor, w: Tensor) -> tuple[Tensor, Tensor]:

@@ -10,6 +10,7 @@ import logging
 
 import pytest
 import torch
+from conftest import TINY_OPTIMIZE
 
 from stages import optimize
 from stages.config.sections import OptimizeSettings
@@ -62,17 +63,8 @@ def test_the_real_answer_on_this_machine_matches_onednn():
     assert runs == native and label.startswith("bfloat16 autocast (auto:" if native else "float32 (auto:")
 
 
-TINY = dict(
-    iterations=2,
-    clip_tiny_test=True,
-    image_size=64,
-    width=16,
-    crops=0,
-    light_lobes=4,
-    eval_width=24,
-    material_frequencies=2,
-    normal_network=False,
-)
+#: the conftest's tiny optimisation under the test CLIP, without crops or normal network
+TINY = {**TINY_OPTIMIZE, "clip_tiny_test": True, "crops": 0, "normal_network": False}
 
 
 @pytest.mark.parametrize("support", [NATIVE, EMULATED], ids=["native", "no-native-bf16"])
