@@ -85,7 +85,7 @@ def run(
             front = evalc.front_view()
             spec = global_spec(store.width, settings.eval_width)
             needed, (lookup,) = gather_points([spec], store[front].index)
-            bg = torch.ones(3, settings.eval_width, settings.eval_width)
+            bg = torch.ones(3, settings.eval_width, settings.eval_width, device=preds[front].device)
             img = compose(preds[front][torch.from_numpy(needed)], lookup, spec, bg)
             save_png(staging / "preview.png", to_u8(img.permute(1, 2, 0).cpu().numpy()))
         stats = {

@@ -409,8 +409,9 @@ class OptimizeSettings(ClipChoice, Settings):
     #: metadata network_precision
     bf16_networks: str = "auto"
     #: the renderer through torch.compile while training (inductor; on a CPU it needs a C++
-    #: compiler): fused pointwise loops, compiled once per process (metadata shading_path)
-    compile_shading: bool = False
+    #: compiler): fused pointwise loops, compiled once per process; auto: on a CPU with a compiler
+    #: for runs long enough to repay it (stages.core.cli.compile_choice; metadata shading_path)
+    compile_shading: str = "auto"
     target_material: str = "wood"
     #: who renders the image targets: "mitsuba" (path-traced ground truth, the target stage) or
     #: "sg" (our own SG renderer under target_light: fast, but the renderer grades itself)
@@ -424,7 +425,7 @@ class OptimizeSettings(ClipChoice, Settings):
         p = []
         if self.iterations < 1:
             p.append(f"iterations must be >= 1, got {self.iterations}")
-        for name in ("bf16", "bf16_networks"):
+        for name in ("bf16", "bf16_networks", "compile_shading"):
             if isinstance(getattr(self, name), bool):  # YAML 1.1 reads a bare on/off as a boolean
                 object.__setattr__(self, name, "on" if getattr(self, name) else "off")
             if getattr(self, name) not in BF16_CHOICES:

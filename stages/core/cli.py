@@ -87,6 +87,64 @@ def bf16_choice(setting: str | bool, device: torch.device, what: str) -> tuple[b
     return supported, f"bfloat16 autocast ({why})" if supported else f"float32 ({why})"
 
 
+#: ``compile_shading: auto`` compiles the renderer for runs of at least this many iterations: on
+#: this project's CPU the compilation cost 66-79 s from an empty inductor cache and 13-16 s from a
+#: warm one, and saved 0.075-0.08 s per step at the ``fast`` preset's 17,000 points and 16 lobes
+#: (0.31 s at the paper's 25,000 points and 32 lobes), so from about 1,000 steps it pays even on a
+#: machine's first run (docs/measurements/speed.md, ``benchmarks/fast_step.py``)
+COMPILE_MIN_ITERATIONS = 1000
+
+
+def cpp_compiler() -> str | None:
+    """The C++ compiler torch.compile's CPU backend would call (``$CXX``, else ``c++``, ``g++``
+    or ``clang++`` on the PATH), or None."""
+    import os
+    import shutil
+
+    names = [os.environ["CXX"]] if os.environ.get("CXX") else ["c++", "g++", "clang++"]
+    return next((path for path in map(shutil.which, names) if path), None)
+
+
+def compile_support(device: torch.device) -> tuple[bool, str]:
+    """Whether torch.compile can build the renderer for ``device``, and why: on a CPU it needs a
+    C++ compiler (:func:`cpp_compiler`); on a GPU, Triton."""
+    if device.type == "cpu":
+        cxx = cpp_compiler()
+        return (True, f"C++ compiler {cxx}") if cxx else (False, "no C++ compiler (c++, g++, clang++ or $CXX) for inductor")
+    if device.type == "cuda":
+        from torch.utils._triton import has_triton
+
+        return (True, "Triton for CUDA") if has_triton() else (False, "no Triton for inductor on CUDA")
+    return False, f"no inductor backend for {device.type}"
+
+
+def compile_choice(setting: str | bool, device: torch.device, iterations: int) -> tuple[bool, str]:
+    """Whether the renderer is compiled for a run of ``iterations`` steps on ``device``
+    (``optimize.compile_shading``: one of :data:`BF16_CHOICES`; booleans mean on and off), and what
+    runs, for the metadata and the plan: ``"torch.compile (<why>)"``, ``"eager"`` (off) or
+    ``"eager (<why not>)"``. ``auto`` compiles on a CPU with a C++ compiler for runs of at least
+    :data:`COMPILE_MIN_ITERATIONS` steps, where the compilation has been measured to pay; on a GPU
+    it stays eager (not measured there); ``on`` compiles wherever a backend is found and otherwise
+    warns and runs eager."""
+    choice = ("on" if setting else "off") if isinstance(setting, bool) else setting
+    if choice not in BF16_CHOICES:
+        raise ValueError(f"compile_shading must be one of {', '.join(BF16_CHOICES)}, got {setting!r}")
+    if choice == "off":
+        return False, "eager"
+    supported, why = compile_support(device)
+    if choice == "on":
+        if not supported:
+            log.warning("compile_shading asked for, but %s: the renderer runs eager", why)
+        return supported, f"torch.compile ({why})" if supported else f"eager ({why})"
+    if device.type != "cpu":
+        return False, f"eager (auto: compiling the renderer on {device.type} has not been measured to pay)"
+    if iterations < COMPILE_MIN_ITERATIONS:
+        return False, f"eager (auto: {iterations} iterations, fewer than the {COMPILE_MIN_ITERATIONS} that repay a compilation)"
+    if not supported:
+        return False, f"eager (auto: {why})"
+    return True, f"torch.compile (auto: {iterations} iterations; {why})"
+
+
 def precision_summary(bf16: str | bool, bf16_networks: str | bool, device: torch.device, reason: bool = True) -> str:
     """One line for the plan and the doctor: what the two bfloat16 levers resolve to on
     ``device`` (:func:`bf16_choice`), e.g. ``CLIP bfloat16 (bf16: auto), networks bfloat16

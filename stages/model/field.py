@@ -6,6 +6,7 @@ hits to shaded colour that training, evaluation, relighting (a light override), 
 from __future__ import annotations
 
 import logging
+import os
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -13,7 +14,7 @@ import torch
 from torch import Tensor, nn
 
 from ..config.sections import FieldSettings
-from ..core.cli import bf16_choice
+from ..core.cli import bf16_choice, compile_choice
 from ..geometry.normals import NormalSpec
 from ..render.shading import SGLight, Shading, face_viewer, shade, shade_gltf
 from .networks import Material, NormalNet, SGLightModule, SVBRDFNet, make_encoding, symmetric
@@ -126,16 +127,23 @@ class StyleField(nn.Module):
         #: the renderer compiled by torch.compile for training (:meth:`use_compiled_shading`)
         self.compiled_shade = None
 
-    def use_compiled_shading(self, enabled: bool) -> str:
-        """Shade through ``torch.compile(shade, dynamic=True)`` in training mode (the optimisation's
-        option ``compile_shading``): inductor fuses the renderer's many small pointwise operations
-        into a few loops. The same function (``tests/model/test_precision.py`` compares them);
-        compiling costs time once per process (measured in docs/measurements/speed.md). Returns what runs."""
+    def use_compiled_shading(self, setting: str | bool, device: torch.device, iterations: int) -> str:
+        """Shade through ``torch.compile(shade, dynamic=True)`` in training mode where the
+        optimisation's option ``compile_shading`` (``auto``, ``on``, ``off``) resolves to on for a
+        run of ``iterations`` steps on ``device`` (:func:`~stages.core.cli.compile_choice`):
+        inductor fuses the renderer's many small pointwise operations into a few loops. The same
+        function (``tests/model/test_precision.py`` compares them); compiling costs time once per
+        process, less from inductor's disk cache, kept under ``$XDG_CACHE_HOME/torchinductor``
+        (the project's ``.cache/`` once the environment is activated) unless
+        ``TORCHINDUCTOR_CACHE_DIR`` says otherwise. Returns what runs, for the metadata."""
+        enabled, path = compile_choice(setting, torch.device(device), iterations)
         if not enabled:
             self.compiled_shade = None
-            return "eager"
+            return path
+        if os.environ.get("XDG_CACHE_HOME") and not os.environ.get("TORCHINDUCTOR_CACHE_DIR"):
+            os.environ["TORCHINDUCTOR_CACHE_DIR"] = os.path.join(os.environ["XDG_CACHE_HOME"], "torchinductor")
         self.compiled_shade = torch.compile(shade_material, dynamic=True)
-        return "torch.compile (inductor)"
+        return path
 
     def use_bf16(self, setting: str | bool, device: torch.device) -> str:
         """Run the networks' matrix products under bfloat16 autocast in training mode (the

@@ -25,7 +25,6 @@ References:
 from __future__ import annotations
 
 import argparse
-import functools
 import logging
 import math
 from pathlib import Path
@@ -184,8 +183,22 @@ def build_table(brdf: str = "tango") -> dict[str, np.ndarray]:
 TABLE_COLUMNS = ("a", "b", "theta_a", "kappa_a", "theta_b", "kappa_b")
 
 
-@functools.cache
+#: the tables read so far, by (device, dtype, BRDF); a plain dict, not ``functools.cache``:
+#: torch.compile traces a cached function's body (and breaks its graph at the file read), while a
+#: lookup in a dict that already holds the table is a constant to it
+_TABLES: dict[tuple[str, torch.dtype, str], dict[str, Tensor]] = {}
+
+
 def _table(device: str, dtype: torch.dtype, brdf: str = "tango") -> dict[str, Tensor]:
+    """The table of ``brdf`` as tensors on ``device`` in ``dtype`` (read once per process)."""
+    key = (device, dtype, brdf)
+    table = _TABLES.get(key)
+    if table is None:
+        table = _TABLES[key] = _read_table(device, dtype, brdf)
+    return table
+
+
+def _read_table(device: str, dtype: torch.dtype, brdf: str) -> dict[str, Tensor]:
     if brdf not in TABLE_PATHS:
         raise ValueError(f"unknown BRDF {brdf!r}; choose one of {', '.join(BRDFS)}")
     path = TABLE_PATHS[brdf]
@@ -204,8 +217,10 @@ def _bilinear(grid: Tensor, x: Tensor, y: Tensor) -> Tensor:
     """Bilinear lookup of ``grid (H, W)`` at continuous indices ``x`` (rows) and ``y`` (columns)
     clamped to the grid; differentiable in ``x`` and ``y``."""
     h, w = grid.shape
-    x = x.clamp(0.0, h - 1.0)
-    y = y.clamp(0.0, w - 1.0)
+    # integer bounds: under torch.compile(dynamic=True) the grid's sizes are symbolic, and a
+    # float made of them (h - 1.0) restarts the compilation once per process
+    x = x.clamp(0, h - 1)
+    y = y.clamp(0, w - 1)
     x0 = x.detach().floor().clamp(max=h - 2).long()
     y0 = y.detach().floor().clamp(max=w - 2).long()
     fx, fy = x - x0, y - y0

@@ -98,3 +98,22 @@ def test_srgb_has_finite_gradient_at_zero_and_clip_normalisation():
     assert y[0] == 0 and y[3].item() == pytest.approx(1.0)
     imgs = torch.full((2, 3, 4, 4), 0.48145466)
     assert clip_normalize(imgs)[:, 0].abs().max() < 1e-6
+
+
+def test_compose_gathers_like_advanced_indexing_in_value_and_gradient():
+    """compose's ``index_select`` gather (whose backward is an ``index_add``) against the plain
+    ``colors[idx]`` it replaced: the same image, the same gradient to every point's colour (points
+    seen by several pixels accumulate), float64."""
+    gen = torch.Generator().manual_seed(0)
+    lookup = torch.randint(-1, 5, (6, 6), generator=gen).numpy()  # 5 points, many pixels each; -1: background
+    spec = region_spec(0, 0, 6, 6)
+    colors = torch.rand(5, 3, generator=gen, dtype=torch.float64, requires_grad=True)
+    bg = torch.rand(3, 6, 6, generator=gen, dtype=torch.float64)
+    weights = torch.rand(3, 6, 6, generator=gen, dtype=torch.float64)
+    img = compose(colors, lookup, spec, bg)
+    (grad,) = torch.autograd.grad((img * weights).sum(), colors)
+    idx = torch.as_tensor(lookup)
+    plain = torch.where((idx >= 0)[None], colors[idx.clamp(min=0)].permute(2, 0, 1), bg)
+    (plain_grad,) = torch.autograd.grad((plain * weights).sum(), colors)
+    torch.testing.assert_close(img, plain, rtol=0, atol=0)
+    torch.testing.assert_close(grad, plain_grad, rtol=1e-15, atol=1e-15)

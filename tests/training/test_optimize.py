@@ -340,7 +340,7 @@ def _recover(tmp_path, **overrides) -> dict:
     return optimize.run(tmp_path / "train.npz", tmp_path / "eval.npz", "", tmp_path / "out", OptimizeSettings(**settings), "cpu")
 
 
-@pytest.mark.slow
+@pytest.mark.slow(minutes=1.5)
 def test_image_target_recovery_representable_target(tmp_path):
     """The easy case, kept as a regression check of the optimisation: the target's light (4 SG
     lobes) and flat normals are exactly representable by the model (16 lobes, no normal network),
@@ -353,7 +353,7 @@ def test_image_target_recovery_representable_target(tmp_path):
     assert (tmp_path / "out" / "renders" / "target.png").is_file()
 
 
-@pytest.mark.slow
+@pytest.mark.slow(minutes=2)
 def test_image_target_recovery_unrepresentable_light(tmp_path):
     """A target the model cannot represent exactly: the `sky` light (a 1.5-degree sun, a graded
     sky and a ground: 97 lobes) against a model of 16 lobes, with the normal network on (free to
@@ -364,7 +364,7 @@ def test_image_target_recovery_unrepresentable_light(tmp_path):
     assert "under the sky SG light" in meta["origin"]["weights"]
 
 
-@pytest.mark.slow
+@pytest.mark.slow(minutes=2.5)
 def test_image_target_recovery_on_mitsuba_ground_truth(tmp_path):
     """The judge nobody here wrote: Mitsuba path-traces the vase in a principled wood with a
     normal map under a sun and sky (shadows, interreflection, a disc no SG sum represents). The
@@ -397,7 +397,7 @@ def test_image_target_recovery_on_mitsuba_ground_truth(tmp_path):
     assert max(psnr.values()) - min(psnr.values()) <= 0.3, psnr
 
 
-@pytest.mark.slow
+@pytest.mark.slow(minutes=1)
 def test_metal_recovers_its_highlight_on_mitsuba_ground_truth(tmp_path):
     """The brushed-metal candle under Mitsuba's sun and sky: the sun's highlight is in every
     target view, and the recovered views show it. Over the brightest 1% of the target's object

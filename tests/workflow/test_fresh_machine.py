@@ -138,6 +138,7 @@ def test_offline_demo_stops_at_once_naming_what_to_install(machine):
     assert "tools this run needs are missing" not in proc.stderr and "To run now: 3 jobs (normalize 3)" in proc.stderr
 
 
+@pytest.mark.slow(minutes=1)
 def test_own_mesh_image_guided_runs_end_to_end_on_a_bare_machine(machine, tmp_path):
     """``python -m stages.quick`` on a shared mesh with image guidance, sized down by an overlay:
     it writes an ordinary experiment config, and the run goes through on the fallbacks."""

@@ -102,7 +102,7 @@ def uninterrupted(tmp_path_factory):
     return work
 
 
-@pytest.mark.slow
+@pytest.mark.slow(minutes=2.5)  # with the uninterrupted run it compares against
 def test_sigkill_during_optimize_resumes_bit_identical(uninterrupted, tmp_path):
     config = tmp_path / "config.yaml"
     config.write_text(yaml.safe_dump(CONFIG))
@@ -126,7 +126,7 @@ def test_sigkill_during_optimize_resumes_bit_identical(uninterrupted, tmp_path):
     assert not list((tmp_path / "results").rglob(".staging-*"))
 
 
-@pytest.mark.slow
+@pytest.mark.slow(minutes=2)
 def test_sigkill_during_bake_write_leaves_nothing_finished(uninterrupted, tmp_path):
     config = tmp_path / "config.yaml"
     config.write_text(yaml.safe_dump(CONFIG))

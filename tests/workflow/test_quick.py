@@ -10,6 +10,7 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
 import yaml
 from conftest import REPO, TINY, TINY_OPTIMIZE, shared_mesh, snakemake_env
 
@@ -22,6 +23,7 @@ def quick(cwd: Path, *args: str, env: dict | None = None) -> subprocess.Complete
     )
 
 
+@pytest.mark.slow(minutes=1)
 def test_test_clip_run_on_an_open_shared_mesh(tmp_path):
     """spot (open seams, a missing .mtl) with the tiny test CLIP: every output says TEST ONLY, and
     the experiment's report lists the cell like any other."""

@@ -21,7 +21,7 @@ import yaml
 from conftest import REPO, mesh_work_dir, require_tool, run_snakemake, slurm_lock
 from PIL import Image
 
-pytestmark = [pytest.mark.slurm, pytest.mark.slow]
+pytestmark = [pytest.mark.slurm, pytest.mark.slow(minutes=5)]
 
 SCRIPT = REPO / "scripts" / "slurm-cluster.sh"
 PROFILE = REPO / "profiles" / "slurm"

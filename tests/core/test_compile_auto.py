@@ -1,0 +1,86 @@
+"""The compiled renderer decided at run time (``optimize.compile_shading``: auto, on, off): auto
+compiles on a CPU with a C++ compiler for runs long enough to repay the compilation and stays
+eager elsewhere; on without a compiler warns and runs eager; what ran reaches the metadata. The
+machine without a C++ compiler is taken for real (an empty PATH), not only simulated."""
+
+from __future__ import annotations
+
+import json
+import logging
+
+import pytest
+import torch
+from conftest import TINY_OPTIMIZE
+
+from stages import optimize
+from stages.config.sections import OptimizeSettings
+from stages.core import cli
+from stages.core.errors import ConfigError
+
+CPU, CUDA = torch.device("cpu"), torch.device("cuda")
+GXX = (True, "C++ compiler /usr/bin/g++ (simulated)")
+NONE = (False, "no C++ compiler (simulated)")
+LONG, SHORT = cli.COMPILE_MIN_ITERATIONS, cli.COMPILE_MIN_ITERATIONS - 1
+
+
+@pytest.mark.parametrize(
+    ("setting", "device", "iterations", "support", "runs", "label"),
+    [
+        ("auto", CPU, LONG, GXX, True, f"torch.compile (auto: {LONG} iterations; C++ compiler /usr/bin/g++ (simulated))"),
+        ("auto", CPU, SHORT, GXX, False, f"eager (auto: {SHORT} iterations, fewer than the {LONG} that repay a compilation)"),
+        ("auto", CPU, LONG, NONE, False, "eager (auto: no C++ compiler (simulated))"),
+        ("auto", CUDA, LONG, GXX, False, "eager (auto: compiling the renderer on cuda has not been measured to pay)"),
+        ("on", CPU, 1, GXX, True, "torch.compile (C++ compiler /usr/bin/g++ (simulated))"),
+        ("on", CPU, 1, NONE, False, "eager (no C++ compiler (simulated))"),
+        ("off", CPU, LONG, GXX, False, "eager"),
+        (True, CPU, 1, GXX, True, "torch.compile (C++ compiler /usr/bin/g++ (simulated))"),
+        (False, CPU, LONG, GXX, False, "eager"),
+    ],
+)
+def test_each_setting_on_each_kind_of_machine(monkeypatch, caplog, setting, device, iterations, support, runs, label):
+    monkeypatch.setattr(cli, "compile_support", lambda d: support)
+    with caplog.at_level(logging.WARNING, logger="stages.core.cli"):
+        assert cli.compile_choice(setting, device, iterations) == (runs, label)
+    warned = [r.getMessage() for r in caplog.records]
+    # only an explicit "on" that cannot be honoured warns: auto's eager renderer is a decision
+    assert bool(warned) == (setting in ("on", True) and not support[0]), warned
+    if warned:
+        assert warned[0] == "compile_shading asked for, but no C++ compiler (simulated): the renderer runs eager"
+
+
+def test_a_bad_setting_is_refused_by_name():
+    with pytest.raises(ValueError, match=r"compile_shading must be one of auto, on, off, got 'yes'"):
+        cli.compile_choice("yes", CPU, 10)
+    with pytest.raises(ConfigError, match=r"compile_shading must be one of auto, on, off, got 'fast'"):
+        OptimizeSettings(compile_shading="fast")
+    assert (OptimizeSettings(compile_shading=True).compile_shading, OptimizeSettings().compile_shading) == ("on", "auto")
+
+
+def test_the_compiler_is_found_on_the_path_or_through_cxx(monkeypatch, tmp_path):
+    fake = tmp_path / "my-c++"
+    fake.write_text("#!/bin/sh\n")
+    fake.chmod(0o755)
+    monkeypatch.setenv("PATH", str(tmp_path))
+    monkeypatch.delenv("CXX", raising=False)
+    assert cli.cpp_compiler() is None
+    assert cli.compile_support(CPU) == (False, "no C++ compiler (c++, g++, clang++ or $CXX) for inductor")
+    monkeypatch.setenv("CXX", "my-c++")
+    assert cli.cpp_compiler() == str(fake)
+    assert cli.compile_support(CPU) == (True, f"C++ compiler {fake}")
+
+
+@pytest.mark.parametrize("setting", ["on", "auto"])
+def test_a_real_run_without_a_compiler_runs_eager_and_says_why(monkeypatch, cache, tmp_path, setting):
+    """No C++ compiler on the PATH (the fallback a user without one takes): the run finishes with
+    the eager renderer, and meta.json says which and why. Under auto, a run too short to repay a
+    compilation stays eager whatever the machine has."""
+    monkeypatch.setenv("PATH", str(tmp_path / "nothing-here"))
+    monkeypatch.delenv("CXX", raising=False)
+    s = OptimizeSettings(**TINY_OPTIMIZE, clip_tiny_test=True, crops=0, normal_network=False, compile_shading=setting)
+    optimize.run(cache / "train.npz", cache / "eval.npz", "a vase made of wood", tmp_path, s, "cpu")
+    meta = json.loads((tmp_path / "meta.json").read_text())
+    expect = {
+        "on": "eager (no C++ compiler (c++, g++, clang++ or $CXX) for inductor)",
+        "auto": f"eager (auto: 3 iterations, fewer than the {LONG} that repay a compilation)",
+    }[setting]
+    assert meta["shading_path"] == expect and meta["settings"]["compile_shading"] == setting
