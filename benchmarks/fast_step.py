@@ -7,11 +7,13 @@ defaults (``bf16: auto``) and in float32:
 * ``step_s``: the real training step (``Optimizer.step``), mean of ``--steps`` after a warm-up;
 * its split (``benchmarks/optimize.py``'s ``timed_split``: gather, networks, shading with the
   shadows' shares, CLIP, optimiser) with the graph cut between the parts;
+* the renderer alone at 17,000 points and 16 lobes, eager and compiled (``compile_shading``),
+  with the compilation's seconds and the steps that repay it (``--shading-only``: this alone);
 * the shadows' shares at the step's points, forward and forward+backward, by the fused blocks
   (``lobe_visibility_bits``, the training's path) and by the matrix form (``lobe_visibility``, the
   plain reference), side by side.
 
-    python benchmarks/fast_step.py [--views 8] [--steps 6] [--threads 2]
+    python benchmarks/fast_step.py [--views 8] [--steps 6] [--threads 2] [--shading-only]
 """
 
 from __future__ import annotations
@@ -65,11 +67,42 @@ def shares_side_by_side(opt) -> dict[str, float]:
     return out
 
 
+def shading_side_by_side(points: int, lobes: int) -> dict[str, float]:
+    """The renderer the training runs (glTF's BRDF, the fitted lobe, each lobe's visible share),
+    forward and backward at ``points`` random points and ``lobes`` lobes: eager, and compiled
+    (``compile_shading``: the first call's seconds are the compilation, from inductor's disk cache
+    when it is warm), side by side in this process."""
+    import torch
+
+    from stages.model.field import shade_material
+    from stages.model.networks import Material, SGLightModule
+
+    gen = torch.Generator().manual_seed(0)
+    normal = torch.nn.functional.normalize(torch.randn(points, 3, generator=gen), dim=-1)
+    view = torch.nn.functional.normalize(normal + torch.randn(points, 3, generator=gen), dim=-1)
+    view = torch.where((view * normal).sum(-1, keepdim=True) < 0, -view, view)
+    inputs = [normal, view, torch.rand(points, 3, generator=gen), torch.rand(points, 1, generator=gen)]
+    inputs += [torch.rand(points, 1, generator=gen) * 0.9 + 0.1, torch.rand(points, lobes, generator=gen)]
+    light = SGLightModule(lobes)
+
+    def once(fn) -> None:
+        n, v, base, metallic, rough, shares = (t.detach().requires_grad_() for t in inputs)
+        out = fn(n, v, Material.gltf(base, metallic, rough), light(), "fitted", shares)
+        (out.diffuse.sum() + out.specular.sum()).backward()
+
+    compiled = torch.compile(shade_material, dynamic=True)
+    t0 = time.perf_counter()
+    once(compiled)
+    first = time.perf_counter() - t0
+    return {"eager_s": timed(lambda: once(shade_material)), "compiled_s": timed(lambda: once(compiled)), "compile_s": first}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--views", type=int, default=8)
     parser.add_argument("--steps", type=int, default=6)
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--shading-only", action="store_true", help="only the renderer, eager against compiled")
     args = parser.parse_args()
     import optimize as bench
     import torch
@@ -81,6 +114,20 @@ def main() -> None:
     from stages.raycache import run as raycache_run
 
     torch.set_num_threads(args.threads)
+    rd = shading_side_by_side(17_000, 16)
+    renderer = (
+        f"shading_eager_s={rd['eager_s']:.4g} shading_compiled_s={rd['compiled_s']:.4g} compile_s={rd['compile_s']:.3g} "
+        f"repaid_after_steps={rd['compile_s'] / max(rd['eager_s'] - rd['compiled_s'], 1e-9):.0f}"
+    )
+    print(
+        f"# the renderer at 17,000 points and 16 lobes (glTF, fitted lobe, shadows' shares), forward and backward: "
+        f"eager {rd['eager_s']:.3f} s, compiled {rd['compiled_s']:.3f} s ({rd['eager_s'] / rd['compiled_s']:.2f}x) "
+        f"after a compilation of {rd['compile_s']:.1f} s",
+        flush=True,
+    )
+    if args.shading_only:
+        print(renderer)
+        return
     with tempfile.TemporaryDirectory() as d:
         work = Path(d)
         t0 = time.perf_counter()
@@ -112,7 +159,7 @@ def main() -> None:
     print(
         f"step_s={d_['step_s']:.4g} step_float32_s={f_['step_s']:.4g} shading_s={d_['shading']:.4g} "
         f"clip_s={d_['clip']:.4g} shares_fused_s={sh['fused_fwd_bwd_s']:.4g} shares_matrix_s={sh['matrix_fwd_bwd_s']:.4g} "
-        f"shares_speedup={sh['matrix_fwd_bwd_s'] / sh['fused_fwd_bwd_s']:.3g}"
+        f"shares_speedup={sh['matrix_fwd_bwd_s'] / sh['fused_fwd_bwd_s']:.3g} {renderer}"
     )
 
 
