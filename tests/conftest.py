@@ -30,11 +30,13 @@ if os.environ.get("PYTEST_XDIST_WORKER"):
 
 
 def pytest_xdist_auto_num_workers(config) -> int:
-    """``-n auto`` (pyproject's addopts): one test worker per CPU this process may use, at most 4.
-    Many tests wait rather than compute (Snakemake's and the stages' process start-ups, the Slurm
-    polls, the browser, Blender and Node subprocesses), so two workers on two cores finish sooner
-    than one; beyond four, every worker's torch, CLIP and Snakemake runs cost memory for little."""
-    return max(1, min(4, len(os.sched_getaffinity(0))))
+    """``-n auto`` (pyproject's addopts): one test worker more than the CPUs this process may use,
+    at most 4. Many tests wait rather than compute (Snakemake's and the stages' process start-ups,
+    the Slurm polls, the browser, Blender and Node subprocesses): with one worker per CPU the two
+    CPUs of a CI run were busy 67% of its 22 minutes (user and system time 32 of 44 CPU-minutes,
+    2026-11-25), so a third worker fills the waits; beyond four, every worker's torch, CLIP and
+    Snakemake runs cost memory for little."""
+    return max(1, min(4, len(os.sched_getaffinity(0)) + 1))
 
 
 def _rank(item) -> int:
@@ -54,6 +56,19 @@ def _minutes(item) -> float:
     return float(mark.kwargs.get("minutes", 0.5)) if mark is not None else 0.0
 
 
+def _by_shared_fixture(items) -> list[list]:
+    """The slow tests in units: those of one module that use the same module- or session-scoped
+    fixture together (on two workers, each would build it: the killed-job tests' uninterrupted run
+    was made twice), every other test alone."""
+    units: dict[object, list] = {}
+    for item in items:
+        defs = getattr(getattr(item, "_fixtureinfo", None), "name2fixturedefs", {})
+        shared = sorted(name for name, d in defs.items() if d and d[-1].scope in ("module", "session") and name != "cache")
+        key = (item.module.__name__, tuple(shared)) if shared else item.nodeid
+        units.setdefault(key, []).append(item)
+    return list(units.values())
+
+
 def _spread(items: list, workers: int) -> list:
     """The tests laid out for ``workers`` parallel workers under ``--dist worksteal``, which first
     hands worker ``i`` a contiguous chunk of ``len(left) // (workers - i)`` tests: each chunk starts
@@ -62,7 +77,7 @@ def _spread(items: list, workers: int) -> list:
     worker then steals from the tail of a busy one's queue. Without this every slow test sat in
     the first chunk and one worker ran them all, one after the other (25 of the run's 25 minutes)."""
     cluster = [i for i in items if _rank(i) <= 1]
-    units = ([cluster] if cluster else []) + [[i] for i in items if _rank(i) == 2]
+    units = ([cluster] if cluster else []) + list(_by_shared_fixture(i for i in items if _rank(i) == 2))
     units.sort(key=lambda unit: sum(map(_minutes, unit)), reverse=True)
     chunks: list[list] = [[] for _ in range(workers)]
     loads = [0.0] * workers
