@@ -38,7 +38,7 @@ from pathlib import Path
 from .assets.formats import GLTF_VALIDATOR, MODEL_VIEWER
 from .assets.probes import probe_gltf, probe_node_validator, probe_usd
 from .config.workflow import load_config_files
-from .core.cli import bf16_support, precision_summary, resolve_device, stage_main
+from .core.cli import bf16_support, compile_choice, precision_summary, resolve_device, stage_main
 from .core.progress import duration
 from .geometry.probes import PROBE_GLB_FACES, PROBE_TIMEOUT_S, probe_embree, probe_pymeshlab, probe_xatlas, write_probe_glb
 from .guidance.clip import ClipWeightsUnavailable, resolve_weights
@@ -118,11 +118,14 @@ def check_torch(cfg) -> Check:
     build = f"CUDA {torch.version.cuda} build" if torch.version.cuda else "CPU build"
     gpu = f"{torch.cuda.device_count()} GPU(s): {torch.cuda.get_device_name(0)}" if torch.cuda.is_available() else "no GPU"
     bf16, why = bf16_support(device)
-    levers = sorted({(s.bf16, s.bf16_networks) for s in (cfg.optimize_settings(c.prompt, c.variant) for c in cfg.cells)})
+    settings = [cfg.optimize_settings(c.prompt, c.variant) for c in cfg.cells]
+    levers = sorted({(s.bf16, s.bf16_networks) for s in settings})
+    renderers = sorted({compile_choice(s.compile_shading, device, s.iterations)[1] for s in settings})
     detail = (
         f"torch {torch.__version__} ({build}, {gpu}); this config's torch stages run on {device.type} "
         f"(device: {cfg.device}); {torch.get_num_threads()} CPU threads; bfloat16: {why}; training runs "
         + ("; ".join(precision_summary(a, b, device, reason=False) for a, b in levers) or "none in this config")
+        + (f"; renderer: {'; '.join(renderers)}" if renderers else "")
     )
     if cfg.device == "cuda" and not torch.cuda.is_available():
         return Check(

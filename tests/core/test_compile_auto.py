@@ -84,3 +84,24 @@ def test_a_real_run_without_a_compiler_runs_eager_and_says_why(monkeypatch, cach
         "auto": f"eager (auto: 3 iterations, fewer than the {LONG} that repay a compilation)",
     }[setting]
     assert meta["shading_path"] == expect and meta["settings"]["compile_shading"] == setting
+
+
+def test_the_doctor_says_which_renderer_each_run_gets(monkeypatch):
+    """The doctor's torch line names the renderer this config's trainings get: a paper-length
+    variant compiled, the 3-iteration ones eager, each with its reason."""
+    from stages import doctor
+    from stages.config.workflow import WorkflowConfig
+
+    monkeypatch.setattr(cli, "compile_support", lambda d: GXX)
+    cfg = WorkflowConfig(
+        {
+            "device": "cpu",
+            "meshes": {"vase": {"builtin": "vase"}},
+            "prompts": {"wood": {"text": "a {object} made of wood"}},
+            "variants": {"short": {"optimize": {"iterations": 3}}, "paper": {}},
+            "optimize": {"clip_tiny_test": True},
+        }
+    )
+    detail = doctor.check_torch(cfg).detail
+    assert "renderer: eager (auto: 3 iterations, fewer than the 1000" in detail
+    assert "torch.compile (auto: 1500 iterations; C++ compiler /usr/bin/g++ (simulated))" in detail
