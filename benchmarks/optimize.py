@@ -367,7 +367,10 @@ def main() -> None:
         paper = OptimizeSettings(crops=4, width=256, light_lobes=32, **(FP32 if args.precision == "float32" else {}))
         guide = vit_b32_random(bf16=paper.bf16, tower=paper.clip_tower)
         opt = make_optimizer(paper, train, guide)
-        precision = f"clip:{'bf16' if guide.bf16 else 'fp32'},networks:{'bf16' if opt.field.bf16 else 'fp32'}"
+        precision = (
+            f"clip:{'bf16' if guide.bf16 else 'fp32'},networks:{'bf16' if opt.field.bf16 else 'fp32'},"
+            f"renderer:{'compiled' if opt.field.compiled_shade is not None else 'eager'}"
+        )
         s_per_iter, points = step_time(opt, args.steps)
         split = timed_split(opt, args.steps)
         clip_s = clip_time(guide, 5, args.steps)
@@ -376,7 +379,10 @@ def main() -> None:
         mlp_floor = flops * points / rate
         floor_s = clip_s + mlp_floor
         print(f"# mesh {mesh_name}, ray cache 512x512, torch threads {args.threads}, CLIP ViT-B-32 (random weights)")
-        print(f"# the measured step: CLIP {guide.precision}, {guide.tower} tower; networks {opt.network_precision}")
+        print(
+            f"# the measured step: CLIP {guide.precision}, {guide.tower} tower; networks {opt.network_precision}; "
+            f"renderer {opt.shading_path}"
+        )
         print("# paper counts: 1 view, 1 global + 4 crops at 224, width 256, 32 lobes")
         print(f"{'part':<22}{'s/iter':>10}")
         for k in ("gather", "mlp", "shading", "clip", "optimizer"):
