@@ -63,7 +63,10 @@ def _by_shared_fixture(items) -> list[list]:
     units: dict[object, list] = {}
     for item in items:
         defs = getattr(getattr(item, "_fixtureinfo", None), "name2fixturedefs", {})
-        shared = sorted(name for name, d in defs.items() if d and d[-1].scope in ("module", "session") and name != "cache")
+        # the project's own (pytest's, such as tmp_path_factory, have no baseid), but the cheap cache
+        shared = sorted(
+            name for name, d in defs.items() if d and d[-1].baseid and d[-1].scope in ("module", "session") and name != "cache"
+        )
         key = (item.module.__name__, tuple(shared)) if shared else item.nodeid
         units.setdefault(key, []).append(item)
     return list(units.values())

@@ -199,7 +199,7 @@ def check_test_only_marks(res) -> None:
         assert "TEST ONLY: 1 of 1 cells" in cell_page and "<p class='banner note'>TEST ONLY: made with random" in cell_page
 
 
-@pytest.mark.slow(minutes=4)
+@pytest.mark.slow(minutes=6)
 def test_smoke_run(tmp_path):
     proc = run_snakemake(tmp_path, "--cores", "2", "--configfile", str(SMOKE), timeout=1500)
     assert proc.returncode == 0, proc.stderr[-3000:]
