@@ -168,10 +168,12 @@ def step_flops(opt: Optimizer, guide: ClipGuide, steps: int) -> dict[str, float]
 
 def timed_split(opt: Optimizer, steps: int) -> dict[str, float]:
     """Time the parts of a step with the graph cut between them (same functions as the loop); the
-    shading includes the shadows' visible shares where the view has them."""
+    shading includes the shadows' visible shares where the view has them and runs the field's
+    BRDF (glTF's from its base colour and metallic, or TANGO's sum), compiled where the step's is;
+    a first, untimed pass compiles it."""
     s = opt.s
     parts = {k: [] for k in ("gather", "mlp", "shading", "clip", "optimizer")}
-    for _ in range(steps):
+    for i in range(steps + 1):
         t0 = time.perf_counter()
         v = opt.views[int(opt.np_rng.integers(len(opt.views)))]
         specs = opt.image_specs(v)
@@ -183,6 +185,8 @@ def timed_split(opt: Optimizer, steps: int) -> dict[str, float]:
         # the field's own forward pass, cut between its networks and its renderer
         mat, normal = opt.field.surface(pts, nrm, view)
         mlp_out = [normal, mat.albedo, mat.specular, mat.roughness]
+        if mat.metallic is not None:  # glTF's BRDF shades from these
+            mlp_out += [mat.base, mat.metallic]
         leaves = [x.detach().requires_grad_() for x in mlp_out]
         t2 = time.perf_counter()
         shadows = v.shadows  # the shading's shadows, as the real step casts them (None: none)
@@ -197,11 +201,14 @@ def timed_split(opt: Optimizer, steps: int) -> dict[str, float]:
         t4 = time.perf_counter()
         color.backward(c_leaf.grad)
         t5 = time.perf_counter()
-        pairs = [(o, x.grad) for o, x in zip(mlp_out, leaves, strict=True) if o.requires_grad]  # no normal network: no grad
+        # no normal network: no grad; glTF's BRDF shades from base and metallic, not albedo and specular
+        pairs = [(o, x.grad) for o, x in zip(mlp_out, leaves, strict=True) if o.requires_grad and x.grad is not None]
         torch.autograd.backward([o for o, _ in pairs], [g for _, g in pairs])
         t6 = time.perf_counter()
         opt.opt.step()
         t7 = time.perf_counter()
+        if i == 0:
+            continue
         parts["gather"].append(t1 - t0)
         parts["mlp"].append((t2 - t1) + (t6 - t5))
         parts["shading"].append((t3 - t2) + (t5 - t4))
