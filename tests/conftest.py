@@ -99,6 +99,7 @@ def _spread(items: list, workers: int) -> list:
     return out
 
 
+@pytest.hookimpl(trylast=True)  # after -m, -k and --deselect have removed what does not run
 def pytest_collection_modifyitems(config, items) -> None:
     """The longest tests first, each group in its own order: those that take the machine's Slurm
     (:func:`slurm_lock`: the cluster script's refusals, then the cluster's tests, so that they run

@@ -506,7 +506,8 @@ class OptimizeSettings(ClipChoice, Settings):
 
     def digest(self) -> str:
         """Hash of the settings that shape training (a checkpoint resumes only under the same)."""
-        d = {k: v for k, v in self.to_dict().items() if k not in ("checkpoint_every", "eval_width")}
+        # compile_shading: the same renderer compiled or not (a resumed run may take the other)
+        d = {k: v for k, v in self.to_dict().items() if k not in ("checkpoint_every", "eval_width", "compile_shading")}
         return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
 
     def field_settings(self) -> FieldSettings:

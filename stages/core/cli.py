@@ -88,29 +88,60 @@ def bf16_choice(setting: str | bool, device: torch.device, what: str) -> tuple[b
 
 
 #: ``compile_shading: auto`` compiles the renderer for runs of at least this many iterations: on
-#: this project's CPU the compilation cost 66-79 s from an empty inductor cache and 13-16 s from a
-#: warm one, and saved 0.075-0.08 s per step at the ``fast`` preset's 17,000 points and 16 lobes
-#: (0.31 s at the paper's 25,000 points and 32 lobes), so from about 1,000 steps it pays even on a
-#: machine's first run (docs/measurements/speed.md, ``benchmarks/fast_step.py``)
+#: this project's CPU the compilation cost 66-94 s from an empty inductor cache and 13-20 s from a
+#: warm one, and saved 0.07-0.09 s per step at the ``fast`` preset's 17,000 points and 16 lobes
+#: (repaid after 1,046 steps from an empty cache, 278 from a warm one) and 0.31 s at the paper's
+#: 25,000 points and 32 lobes (repaid after about 300 even from an empty cache), so from about 1,000
+#: steps it pays on a machine's first run (docs/measurements/speed.md, ``benchmarks/fast_step.py``)
 COMPILE_MIN_ITERATIONS = 1000
 
 
 def cpp_compiler() -> str | None:
-    """The C++ compiler torch.compile's CPU backend would call (``$CXX``, else ``c++``, ``g++``
-    or ``clang++`` on the PATH), or None."""
+    """The C++ compiler torch.compile's CPU backend (inductor) would call, as it searches: ``$CXX``,
+    else ``g++`` (``clang++`` on macOS) on the PATH; or None."""
     import os
     import shutil
+    import sys
 
-    names = [os.environ["CXX"]] if os.environ.get("CXX") else ["c++", "g++", "clang++"]
-    return next((path for path in map(shutil.which, names) if path), None)
+    name = os.environ.get("CXX") or ("clang++" if sys.platform == "darwin" else "g++")
+    return shutil.which(name)
+
+
+def python_headers() -> str | None:
+    """``Python.h`` of this interpreter, which inductor's CPU kernels include; or None (Debian:
+    the python3-dev package)."""
+    import sysconfig
+    from pathlib import Path
+
+    header = Path(sysconfig.get_paths()["include"]) / "Python.h"
+    return str(header) if header.is_file() else None
+
+
+def use_inductor_cache() -> str:
+    """Point inductor's disk cache at ``$XDG_CACHE_HOME/torchinductor`` (the project's ``.cache/``
+    once ``.venv/bin/activate`` is sourced) unless ``TORCHINDUCTOR_CACHE_DIR`` is set; returns the
+    folder (inductor's own default, under the temporary folder, when neither is set)."""
+    import os
+    import tempfile
+
+    if os.environ.get("XDG_CACHE_HOME") and not os.environ.get("TORCHINDUCTOR_CACHE_DIR"):
+        os.environ["TORCHINDUCTOR_CACHE_DIR"] = os.path.join(os.environ["XDG_CACHE_HOME"], "torchinductor")
+    default = os.path.join(tempfile.gettempdir(), f"torchinductor_{os.environ.get('USER', 'user')}")
+    return os.environ.get("TORCHINDUCTOR_CACHE_DIR", default)
 
 
 def compile_support(device: torch.device) -> tuple[bool, str]:
     """Whether torch.compile can build the renderer for ``device``, and why: on a CPU it needs a
-    C++ compiler (:func:`cpp_compiler`); on a GPU, Triton."""
+    C++ compiler (:func:`cpp_compiler`) and the Python headers (:func:`python_headers`); on a GPU,
+    Triton. (What can still fail, :meth:`~stages.model.field.StyleField.use_compiled_shading`
+    finds by compiling once, and then runs eager.)"""
     if device.type == "cpu":
         cxx = cpp_compiler()
-        return (True, f"C++ compiler {cxx}") if cxx else (False, "no C++ compiler (c++, g++, clang++ or $CXX) for inductor")
+        if not cxx:
+            return False, "no C++ compiler ($CXX, else g++) for inductor"
+        if not python_headers():
+            return False, "no Python headers (Python.h; Debian: python3-dev) for inductor"
+        return True, f"C++ compiler {cxx}"
     if device.type == "cuda":
         from torch.utils._triton import has_triton
 

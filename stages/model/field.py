@@ -6,7 +6,6 @@ hits to shaded colour that training, evaluation, relighting (a light override), 
 from __future__ import annotations
 
 import logging
-import os
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -14,7 +13,7 @@ import torch
 from torch import Tensor, nn
 
 from ..config.sections import FieldSettings
-from ..core.cli import bf16_choice, compile_choice
+from ..core.cli import bf16_choice, compile_choice, use_inductor_cache
 from ..geometry.normals import NormalSpec
 from ..render.shading import SGLight, Shading, face_viewer, shade, shade_gltf
 from .networks import Material, NormalNet, SGLightModule, SVBRDFNet, make_encoding, symmetric
@@ -126,24 +125,62 @@ class StyleField(nn.Module):
         self.bf16 = False
         #: the renderer compiled by torch.compile for training (:meth:`use_compiled_shading`)
         self.compiled_shade = None
+        #: what shades while training, and why (:meth:`use_compiled_shading`), for the metadata
+        self.shading_path = "eager"
 
     def use_compiled_shading(self, setting: str | bool, device: torch.device, iterations: int) -> str:
         """Shade through ``torch.compile(shade, dynamic=True)`` in training mode where the
         optimisation's option ``compile_shading`` (``auto``, ``on``, ``off``) resolves to on for a
         run of ``iterations`` steps on ``device`` (:func:`~stages.core.cli.compile_choice`):
         inductor fuses the renderer's many small pointwise operations into a few loops. The same
-        function (``tests/model/test_precision.py`` compares them); compiling costs time once per
-        process, less from inductor's disk cache, kept under ``$XDG_CACHE_HOME/torchinductor``
-        (the project's ``.cache/`` once the environment is activated) unless
-        ``TORCHINDUCTOR_CACHE_DIR`` says otherwise. Returns what runs, for the metadata."""
+        function (``tests/model/test_precision.py`` compares them). It is compiled here, forward
+        and backward, on a few points of this field's kind (BRDF, lobe model, lobes, shadows), so
+        that a compilation that fails (a compiler that cannot build, missing headers) costs a
+        warning and the eager renderer, not the run; inductor's disk cache is
+        :func:`~stages.core.cli.use_inductor_cache`'s. Returns what runs, for the metadata
+        (:attr:`shading_path`)."""
         enabled, path = compile_choice(setting, torch.device(device), iterations)
-        if not enabled:
-            self.compiled_shade = None
-            return path
-        if os.environ.get("XDG_CACHE_HOME") and not os.environ.get("TORCHINDUCTOR_CACHE_DIR"):
-            os.environ["TORCHINDUCTOR_CACHE_DIR"] = os.path.join(os.environ["XDG_CACHE_HOME"], "torchinductor")
-        self.compiled_shade = torch.compile(shade_material, dynamic=True)
+        self.compiled_shade = None
+        if enabled:
+            use_inductor_cache()
+            compiled = torch.compile(shade_material, dynamic=True)
+            try:
+                self._first_compiled_pass(compiled, torch.device(device))
+            except Exception as exc:  # noqa: BLE001 - any failure to build means: run eager
+                why = f"{type(exc).__name__}: {str(exc).strip().splitlines()[0][:200] if str(exc).strip() else ''}"
+                log.warning("compile_shading: the renderer's compilation failed (%s); it runs eager", why)
+                path = f"eager (the compilation failed: {why})"
+            else:
+                self.compiled_shade = compiled
+        self.shading_path = path
         return path
+
+    def _first_compiled_pass(self, compiled: Callable, device: torch.device) -> None:
+        """``compiled`` forward and backward on 16 random points shaped as this field shades in
+        training (the same BRDF, lobe model, lobes and shadows; every input but the view needing
+        gradients, as the networks' outputs and the light do), so the step reuses what it built."""
+        gen = torch.Generator().manual_seed(0)
+        n = 16
+
+        def leaf(*shape: int) -> Tensor:
+            return torch.rand(*shape, generator=gen).to(device).requires_grad_()
+
+        normal = torch.nn.functional.normalize(torch.randn(n, 3, generator=gen), dim=-1)
+        view = torch.nn.functional.normalize(normal + 0.5 * torch.randn(n, 3, generator=gen), dim=-1)
+        view = torch.where((view * normal).sum(-1, keepdim=True) < 0, -view, view).to(device)
+        normal = normal.to(device)
+        rough = leaf(n, 1) * 0.9 + 0.1
+        if self.brdf == "gltf":
+            material = Material.gltf(leaf(n, 3), leaf(n, 1), rough)
+        else:
+            material = Material(leaf(n, 3), leaf(n, 3), rough)
+        with torch.no_grad():
+            light = self.light()
+        k = light.axis.shape[0]
+        light = SGLight(torch.nn.functional.normalize(leaf(k, 3), dim=-1), leaf(k, 1) + 1.0, leaf(k, light.amplitude.shape[1]))
+        shares = leaf(n, k) if self.shadows else None
+        out = compiled(normal.requires_grad_(), view, material, light, self.specular_lobe, shares)
+        out.rgb.sum().backward()
 
     def use_bf16(self, setting: str | bool, device: torch.device) -> str:
         """Run the networks' matrix products under bfloat16 autocast in training mode (the

@@ -67,7 +67,7 @@ class Optimizer:
         self.field = StyleField(settings.field_settings()).to(self.device)
         #: what the networks' products ran in during training, for the metadata
         self.network_precision = self.field.use_bf16(settings.bf16_networks, self.device)
-        self.shading_path = self.field.use_compiled_shading(settings.compile_shading, self.device, settings.iterations)
+        self.field.use_compiled_shading(settings.compile_shading, self.device, settings.iterations)
         self.views = ViewStore(train, self.device, self.field.normals, targets, shadows=self.field.shadows)
         self.prompt = prompt
         self.opt = torch.optim.AdamW(self.param_groups(), lr=settings.lr, weight_decay=settings.weight_decay)
@@ -81,6 +81,11 @@ class Optimizer:
         self.points_last = 0
         #: when the light was pruned (``light_prune_after``): iteration, lobes kept and dropped
         self.light_pruned: dict | None = None
+
+    @property
+    def shading_path(self) -> str:
+        """What shades while training, and why (the field's decision), for the metadata."""
+        return self.field.shading_path
 
     def param_groups(self) -> list[dict]:
         """The optimiser's two groups: the networks at ``lr`` (with ``weight_decay``), then the

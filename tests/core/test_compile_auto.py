@@ -63,7 +63,7 @@ def test_the_compiler_is_found_on_the_path_or_through_cxx(monkeypatch, tmp_path)
     monkeypatch.setenv("PATH", str(tmp_path))
     monkeypatch.delenv("CXX", raising=False)
     assert cli.cpp_compiler() is None
-    assert cli.compile_support(CPU) == (False, "no C++ compiler (c++, g++, clang++ or $CXX) for inductor")
+    assert cli.compile_support(CPU) == (False, "no C++ compiler ($CXX, else g++) for inductor")
     monkeypatch.setenv("CXX", "my-c++")
     assert cli.cpp_compiler() == str(fake)
     assert cli.compile_support(CPU) == (True, f"C++ compiler {fake}")
@@ -80,7 +80,7 @@ def test_a_real_run_without_a_compiler_runs_eager_and_says_why(monkeypatch, cach
     optimize.run(cache / "train.npz", cache / "eval.npz", "a vase made of wood", tmp_path, s, "cpu")
     meta = json.loads((tmp_path / "meta.json").read_text())
     expect = {
-        "on": "eager (no C++ compiler (c++, g++, clang++ or $CXX) for inductor)",
+        "on": "eager (no C++ compiler ($CXX, else g++) for inductor)",
         "auto": f"eager (auto: 3 iterations, fewer than the {LONG} that repay a compilation)",
     }[setting]
     assert meta["shading_path"] == expect and meta["settings"]["compile_shading"] == setting
@@ -105,3 +105,37 @@ def test_the_doctor_says_which_renderer_each_run_gets(monkeypatch):
     detail = doctor.check_torch(cfg).detail
     assert "renderer: eager (auto: 3 iterations, fewer than the 1000" in detail
     assert "torch.compile (auto: 1500 iterations; C++ compiler /usr/bin/g++ (simulated))" in detail
+
+
+def test_missing_python_headers_are_named(monkeypatch):
+    monkeypatch.setattr(cli, "cpp_compiler", lambda: "/usr/bin/g++")
+    monkeypatch.setattr(cli, "python_headers", lambda: None)
+    assert cli.compile_support(CPU) == (False, "no Python headers (Python.h; Debian: python3-dev) for inductor")
+
+
+@pytest.mark.slow(minutes=0.5)
+def test_a_compiler_that_cannot_build_costs_a_warning_not_the_run(tmp_path):
+    """A compiler that is there but cannot build (``CXX=false``: it exits 1), with an empty
+    inductor cache so that inductor must call it: the field compiles its renderer once when asked,
+    the failure is logged, and it shades eager and says why; taken for real, in a process of its
+    own (the failed compilation must not touch this one's torch.compile state)."""
+    import os
+    import subprocess
+    import sys
+
+    from conftest import REPO
+
+    script = (
+        "import torch\n"
+        "from stages.config.sections import OptimizeSettings\n"
+        "from stages.model.field import StyleField\n"
+        "f = StyleField(OptimizeSettings(width=16, light_lobes=4).field_settings())\n"
+        "print(f.use_compiled_shading('on', torch.device('cpu'), 1))\n"
+        "print(f.compiled_shade is None)\n"
+    )
+    env = dict(os.environ, CXX="false", TORCHINDUCTOR_CACHE_DIR=str(tmp_path / "inductor"))
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=REPO, env=env, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    path, eager = proc.stdout.strip().splitlines()[-2:]
+    assert path.startswith("eager (the compilation failed: ") and eager == "True", proc.stdout
+    assert "compile_shading: the renderer's compilation failed" in proc.stderr
