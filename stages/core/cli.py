@@ -69,15 +69,22 @@ def bf16_support(device: torch.device) -> tuple[bool, str]:
     return False, f"no bfloat16 autocast on {device.type}"
 
 
+def lever_choice(setting: str | bool, what: str) -> str:
+    """A lever's setting as one of :data:`BF16_CHOICES` (YAML booleans mean on and off); a bad
+    value is refused naming the lever ``what``."""
+    choice = ("on" if setting else "off") if isinstance(setting, bool) else setting
+    if choice not in BF16_CHOICES:
+        raise ValueError(f"{what} must be one of {', '.join(BF16_CHOICES)}, got {setting!r}")
+    return choice
+
+
 def bf16_choice(setting: str | bool, device: torch.device, what: str) -> tuple[bool, str]:
     """Whether a bfloat16 lever (``setting``: one of :data:`BF16_CHOICES`; YAML booleans mean on
     and off) runs on ``device``, and what runs, for the metadata, the plan and the doctor:
     ``"bfloat16 autocast (<why>)"``, ``"float32"`` (off), ``"float32 (<why not>)"``; under auto
     the reason starts ``auto:``. ``on`` where bfloat16 is not native logs a warning naming
     ``what`` (the lever) and runs float32; ``auto`` there is float32 by design, without one."""
-    choice = ("on" if setting else "off") if isinstance(setting, bool) else setting
-    if choice not in BF16_CHOICES:
-        raise ValueError(f"{what} must be one of {', '.join(BF16_CHOICES)}, got {setting!r}")
+    choice = lever_choice(setting, what)
     if choice == "off":
         return False, "float32"
     supported, why = bf16_support(device)
@@ -117,17 +124,14 @@ def python_headers() -> str | None:
     return str(header) if header.is_file() else None
 
 
-def use_inductor_cache() -> str:
+def use_inductor_cache() -> None:
     """Point inductor's disk cache at ``$XDG_CACHE_HOME/torchinductor`` (the project's ``.cache/``
-    once ``.venv/bin/activate`` is sourced) unless ``TORCHINDUCTOR_CACHE_DIR`` is set; returns the
-    folder (inductor's own default, under the temporary folder, when neither is set)."""
+    once ``.venv/bin/activate`` is sourced) unless ``TORCHINDUCTOR_CACHE_DIR`` is set (neither:
+    inductor's own default, under the temporary folder)."""
     import os
-    import tempfile
 
     if os.environ.get("XDG_CACHE_HOME") and not os.environ.get("TORCHINDUCTOR_CACHE_DIR"):
         os.environ["TORCHINDUCTOR_CACHE_DIR"] = os.path.join(os.environ["XDG_CACHE_HOME"], "torchinductor")
-    default = os.path.join(tempfile.gettempdir(), f"torchinductor_{os.environ.get('USER', 'user')}")
-    return os.environ.get("TORCHINDUCTOR_CACHE_DIR", default)
 
 
 def compile_support(device: torch.device) -> tuple[bool, str]:
@@ -157,9 +161,7 @@ def compile_choice(setting: str | bool, device: torch.device, iterations: int) -
     :data:`COMPILE_MIN_ITERATIONS` steps, where the compilation has been measured to pay; on a GPU
     it stays eager (not measured there); ``on`` compiles wherever a backend is found and otherwise
     warns and runs eager."""
-    choice = ("on" if setting else "off") if isinstance(setting, bool) else setting
-    if choice not in BF16_CHOICES:
-        raise ValueError(f"compile_shading must be one of {', '.join(BF16_CHOICES)}, got {setting!r}")
+    choice = lever_choice(setting, "compile_shading")
     if choice == "off":
         return False, "eager"
     supported, why = compile_support(device)
