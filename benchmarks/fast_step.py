@@ -9,9 +9,12 @@ defaults (``bf16: auto``) and in float32:
   shadows' shares, CLIP, optimiser) with the graph cut between the parts;
 * the renderer alone at 17,000 points and 16 lobes, eager and compiled (``compile_shading``),
   with the compilation's seconds and the steps that repay it (``--shading-only``: this alone);
+* the shadows' shares at the paper's step size (24,500 points, 32 lobes), float32 products against
+  bfloat16 products (the training's under ``bf16_networks``): seconds and agreement (also with
+  ``--shading-only``);
 * the shadows' shares at the step's points, forward and forward+backward, by the fused blocks
-  (``lobe_visibility_bits``, the training's path) and by the matrix form (``lobe_visibility``, the
-  plain reference), side by side.
+  (``lobe_visibility_bits``, the training's path; float32 and bfloat16 products) and by the matrix
+  form (``lobe_visibility``, the plain reference), side by side.
 
     python benchmarks/fast_step.py [--views 8] [--steps 6] [--threads 2] [--shading-only]
 """
@@ -49,22 +52,62 @@ def shares_side_by_side(opt) -> dict[str, float]:
     bits, normal = shadows._bits[idx], shadows._normals[idx]
     dirs = shadows._dirs
     out = {"points": float(len(idx))}
-    for name, fn in (
-        ("fused", lambda a, s: lobe_visibility_bits(normal, bits, dirs, a, s)),
-        ("matrix", lambda a, s: lobe_visibility(normal, unpack_bits(bits, len(dirs)), dirs, a, s)),
+    for name, fn, bf16 in (
+        ("fused", lambda a, s: lobe_visibility_bits(normal, bits, dirs, a, s), False),
+        ("fused_bf16", lambda a, s: lobe_visibility_bits(normal, bits, dirs, a, s), True),
+        ("matrix", lambda a, s: lobe_visibility(normal, unpack_bits(bits, len(dirs)), dirs, a, s), False),
     ):
 
-        def forward(fn=fn):
-            with torch.no_grad():
+        def forward(fn=fn, bf16=bf16):
+            with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
                 light = opt.field.light()
                 fn(light.axis, light.sharpness)
 
-        def both(fn=fn):
+        def both(fn=fn, bf16=bf16):
             light = opt.field.light()
-            fn(light.axis, light.sharpness).sum().backward()
+            with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+                share = fn(light.axis, light.sharpness)
+            share.sum().backward()
 
         out[f"{name}_fwd_s"], out[f"{name}_fwd_bwd_s"] = timed(forward), timed(both)
     return out
+
+
+def shares_precision_side_by_side(points: int, lobes: int) -> dict[str, float]:
+    """The shadows' shares (``lobe_visibility_bits``, 1,024 directions) at ``points`` random points,
+    each beside a random wall (a half-space of directions blocked), and ``lobes`` lobes of
+    sharpness 1 to 1,000, forward and backward: float32 products against bfloat16 products (the
+    training's under ``bf16_networks``), seconds and agreement (largest share difference, cosine
+    of the gradients to the lobes' axes and sharpnesses), side by side."""
+    import math
+
+    import numpy as np
+    import torch
+
+    from stages.geometry.visibility import fibonacci_directions
+    from stages.render.visibility import lobe_visibility_bits
+
+    gen = torch.Generator().manual_seed(0)
+    dirs = torch.from_numpy(fibonacci_directions(1024)).float()
+    normal = torch.nn.functional.normalize(torch.randn(points, 3, generator=gen), dim=-1)
+    wall = torch.nn.functional.normalize(torch.randn(points, 3, generator=gen), dim=-1)
+    bits = torch.from_numpy(np.packbits(((wall @ dirs.T) > 0.2).numpy(), axis=1))
+    axis = torch.nn.functional.normalize(torch.randn(lobes, 3, generator=gen), dim=-1)
+    lam = torch.exp(torch.rand(lobes, 1, generator=gen) * math.log(1e3))
+    weight = torch.rand(points, lobes, generator=gen)
+    results = {}
+
+    def once(bf16: bool):
+        a, s_ = axis.clone().requires_grad_(), lam.clone().requires_grad_()
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+            share = lobe_visibility_bits(normal, bits, dirs, a, s_)
+        (share * weight).sum().backward()
+        results[bf16] = (share.detach(), a.grad.flatten(), s_.grad.flatten())
+
+    out = {"fp32_s": timed(lambda: once(False)), "bf16_s": timed(lambda: once(True))}
+    (v32, *g32), (v16, *g16) = results[False], results[True]
+    cosines = [float(torch.nn.functional.cosine_similarity(a, b, dim=0)) for a, b in zip(g32, g16, strict=True)]
+    return out | {"max_diff": float((v32 - v16).abs().max()), "grad_cos": min(cosines)}
 
 
 def shading_side_by_side(points: int, lobes: int) -> dict[str, float]:
@@ -128,8 +171,20 @@ def main() -> None:
         f"after a compilation of {rd['compile_s']:.1f} s",
         flush=True,
     )
+    sp = shares_precision_side_by_side(24_500, 32)
+    shares = (
+        f"shares_fp32_s={sp['fp32_s']:.4g} shares_bf16_s={sp['bf16_s']:.4g} shares_bf16_max_diff={sp['max_diff']:.3g} "
+        f"shares_bf16_grad_cos={sp['grad_cos']:.6f}"
+    )
+    print(
+        f"# the shadows' shares at the paper's step size (24,500 points, 32 lobes, 1,024 directions), forward and "
+        f"backward: float32 products {sp['fp32_s']:.3f} s, bfloat16 products {sp['bf16_s']:.3f} s "
+        f"({sp['fp32_s'] / sp['bf16_s']:.2f}x); largest share difference {sp['max_diff']:.4f}, gradients' cosine "
+        f"{sp['grad_cos']:.6f}",
+        flush=True,
+    )
     if args.shading_only:
-        print(renderer)
+        print(renderer, shares)
         return
     with tempfile.TemporaryDirectory() as d:
         work = Path(d)
@@ -155,14 +210,15 @@ def main() -> None:
         sh = shares_side_by_side(opt)
         print(
             f"# shadows' shares at {sh['points']:.0f} points, 16 lobes, 1,024 directions: fused blocks "
-            f"{sh['fused_fwd_s']:.3f} s forward, {sh['fused_fwd_bwd_s']:.3f} s with the backward; matrix form "
+            f"{sh['fused_fwd_s']:.3f} s forward, {sh['fused_fwd_bwd_s']:.3f} s with the backward (bfloat16 products "
+            f"{sh['fused_bf16_fwd_s']:.3f} s, {sh['fused_bf16_fwd_bwd_s']:.3f} s); matrix form "
             f"{sh['matrix_fwd_s']:.3f} s, {sh['matrix_fwd_bwd_s']:.3f} s"
         )
     d_, f_ = rows["defaults"], rows["float32"]
     print(
         f"step_s={d_['step_s']:.4g} step_float32_s={f_['step_s']:.4g} shading_s={d_['shading']:.4g} "
         f"clip_s={d_['clip']:.4g} shares_fused_s={sh['fused_fwd_bwd_s']:.4g} shares_matrix_s={sh['matrix_fwd_bwd_s']:.4g} "
-        f"shares_speedup={sh['matrix_fwd_bwd_s'] / sh['fused_fwd_bwd_s']:.3g} {renderer}"
+        f"shares_speedup={sh['matrix_fwd_bwd_s'] / sh['fused_fwd_bwd_s']:.3g} {renderer} {shares}"
     )
 
 

@@ -257,6 +257,10 @@ class StyleField(nn.Module):
         :meth:`surface`) seen along ``view``, under the learned light or ``light``, shadowed by
         ``visibility(light)`` when given."""
         light = light if light is not None else self.light()
-        shares = visibility(light) if visibility is not None else None
+        shares = None
+        if visibility is not None:
+            # the shares' quadrature products in bfloat16 with the networks' (lobe_visibility_bits)
+            with torch.autocast(normal.device.type, dtype=torch.bfloat16, enabled=self.bf16 and self.training):
+                shares = visibility(light)
         fn = self.compiled_shade if self.compiled_shade is not None and self.training else shade_material
         return fn(normal, view, material, light, self.specular_lobe, shares)

@@ -91,6 +91,35 @@ def test_bf16_networks_not_silently_ignored(monkeypatch):
     assert f.use_bf16(True, CPU) == "float32 (no native bfloat16 in this test)" and not f.bf16
 
 
+def test_shadow_shares_follow_the_networks_lever_in_training_only(monkeypatch):
+    """The shading opens the networks' bfloat16 autocast around the shadows' shares, so their
+    quadrature's products (``lobe_visibility_bits``) run in bfloat16 in training with
+    ``bf16_networks`` on, and in float32 with it off and outside training (evaluation, baking)."""
+    from stages.render import visibility
+
+    seen = []
+    monkeypatch.setattr(
+        visibility,
+        "products_dtype",
+        lambda device, work, real=visibility.products_dtype: seen.append(real(device, work)) or seen[-1],
+    )
+    monkeypatch.setattr(cli, "bf16_support", lambda device: (True, "bfloat16 in this test"))
+    f = StyleField(OptimizeSettings(width=16, light_lobes=4).field_settings())
+    pts, nrm = _extreme_inputs()
+    mat, n = f.surface(pts, nrm)
+    dirs = torch.nn.functional.normalize(torch.randn(64, 3, generator=torch.Generator().manual_seed(2)), dim=-1)
+    bits = torch.full((len(pts), 8), 0b10110011, dtype=torch.uint8)
+
+    def shares(light):
+        return visibility.lobe_visibility_bits(n.detach(), bits, dirs, light.axis, light.sharpness)
+
+    for setting, training, want in ((True, True, torch.bfloat16), (False, True, torch.float32), (True, False, torch.float32)):
+        f.use_bf16(setting, CPU)
+        f.train(training)
+        out = f.shade(mat, n, nrm, visibility=shares)
+        assert seen[-1] == want and torch.isfinite(out.rgb).all()
+
+
 @pytest.mark.slow(minutes=1)
 @pytest.mark.parametrize(("init", "tolerance"), [("broad", 3e-4), ("tango", 3e-3)])
 def test_compiled_shading_equals_eager_in_training_only(init, tolerance):

@@ -3,6 +3,7 @@ its definition, against the continuous integral (a cap of blocked directions, in
 test over a fine polar grid), finite values and gradients at the extremes, and the shading's
 every term scaled by it."""
 
+import contextlib
 import math
 
 import numpy as np
@@ -180,11 +181,11 @@ def test_a_wrong_block_in_the_backward_is_caught(monkeypatch):
     the comparison above must fail."""
     real = visibility_module._VisibleSums._blocks
 
-    def short(normal, bits, directions):
-        for start, stop, cos, seen in real(normal, bits, directions):
-            cos, seen = cos.clone(), seen.clone()
-            cos[-1], seen[-1] = 0.0, 0.0
-            yield start, stop, cos, seen
+    def short(normal, bits, directions, products):
+        for start, stop, both in real(normal, bits, directions, products):
+            both, n = both.clone(), stop - start
+            both[n - 1], both[-1] = 0.0, 0.0  # the last point's lit and whole rows
+            yield start, stop, both
 
     monkeypatch.setattr(visibility_module._VisibleSums, "_blocks", staticmethod(short))
     with pytest.raises(AssertionError):
@@ -267,3 +268,93 @@ def test_shade_passes_the_shares_to_both_terms(seed):
     assert (s.diffuse < u.diffuse - 1e-6).any() and (s.specular < u.specular - 1e-6).any()
     blocked = shade_gltf(normal, view, colour, metallic, rough, light, "fitted", visibility=torch.zeros_like(share))
     assert float(blocked.rgb.abs().max()) == 0.0
+
+
+def _bf16_case(n_pts: int = 3000, count: int = 1024, lobes: int = 16, seed: int = 5):
+    """Points with the visibility of a tilted plane through them (a half-space blocked, as beside
+    a wall), lobes of sharpness 1 to 1,000 (the training's quadrature takes every lobe, sharp ones
+    included) pointing anywhere."""
+    g = torch.Generator().manual_seed(seed)
+    dirs = torch.tensor(fibonacci_directions(count), dtype=torch.float32)
+    normal = _unit(torch.randn(n_pts, 3, generator=g))
+    wall = _unit(torch.randn(n_pts, 3, generator=g))
+    seen = (wall @ dirs.T) > 0.2
+    bits = torch.from_numpy(np.packbits(seen.numpy(), axis=1))
+    axis = _unit(torch.randn(lobes, 3, generator=g))
+    lam = torch.exp(torch.rand(lobes, 1, generator=g) * math.log(1e3))
+    weight = torch.rand(n_pts, lobes, generator=g)
+    return normal, bits, dirs, axis, lam, weight
+
+
+def _share_and_grads(normal, bits, dirs, axis, lam, weight, bf16: bool):
+    a, s_ = axis.clone().requires_grad_(), lam.clone().requires_grad_()
+    with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+        out = lobe_visibility_bits(normal, bits, dirs, _unit(a), s_)
+    assert out.dtype == torch.float32
+    (out * weight).sum().backward()
+    return out.detach(), a.grad, s_.grad
+
+
+def test_bfloat16_products_agree_with_float32():
+    """Under a bfloat16 autocast (the networks' lever in training) the quadrature's products run in
+    bfloat16: each share within 0.01 of float32's (each sum rounded to 8 bits of mantissa: at most
+    2^-8 of it, so the ratio within about 2^-7), and the gradients to the axes and sharpnesses at a
+    cosine above 0.999 to float32's (the backward's two sums, of opposite sign, meet inside one
+    product, from the gradient split in two bfloat16 parts)."""
+    case = _bf16_case()
+    ref = _share_and_grads(*case, bf16=False)
+    got = _share_and_grads(*case, bf16=True)
+    assert float((got[0] - ref[0]).abs().max()) < 0.01
+    assert float((got[0] - ref[0]).abs().mean()) < 1e-3
+    for g, r in zip(got[1:], ref[1:], strict=True):
+        assert float(torch.nn.functional.cosine_similarity(g.flatten(), r.flatten(), dim=0)) > 0.999
+
+
+def test_bfloat16_products_are_taken_and_the_weights_kept_in_float32(monkeypatch):
+    """The products really run in bfloat16 under the autocast (their dtype observed), and the
+    lobes' weights do not: weights from bfloat16 cosines (the autocast applied to them) err by
+    lam / 256 in the exponent (the shares by 0.7 at sharpness 1,000: the mutation below)."""
+    seen = []
+    real = visibility_module._VisibleSums._blocks
+
+    def spy(normal, bits, directions, products):
+        seen.append((products, directions.dtype))
+        yield from real(normal, bits, directions, products)
+
+    monkeypatch.setattr(visibility_module._VisibleSums, "_blocks", staticmethod(spy))
+    case = _bf16_case(n_pts=600)
+    _share_and_grads(*case, bf16=True)
+    assert seen and all(p == torch.bfloat16 and d == torch.float32 for p, d in seen)
+    seen.clear()
+    _share_and_grads(*case, bf16=False)
+    assert seen and all(p == torch.float32 for p, _ in seen)
+    # float64 work is never rounded
+    normal, bits, dirs, axis, lam, _ = case
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        lobe_visibility_bits(normal.double(), bits, dirs.double(), axis.double(), lam.double())
+    assert seen[-1][0] == torch.float64
+
+
+def test_the_autocast_left_on_around_the_weights_is_caught(monkeypatch):
+    """Mutation: without the float32 region around the weights the agreement test fails."""
+    monkeypatch.setattr(visibility_module, "_full_precision", lambda device: contextlib.nullcontext())
+    with pytest.raises(AssertionError):
+        test_bfloat16_products_agree_with_float32()
+
+
+def test_bfloat16_products_finite_at_the_extremes():
+    """Fully open and fully blocked points, lobes below the horizon, sharpness 1e-4 to 1e5 through
+    the bfloat16 products: shares in [0, 1] (to bfloat16's rounding), finite gradients."""
+    dirs = torch.tensor(fibonacci_directions(512))
+    normal = torch.tensor([[0.0, 0.0, 1.0]] * 3)
+    visible = torch.stack([torch.ones(512), torch.zeros(512), (torch.arange(512) % 2).float()]) > 0
+    bits = torch.from_numpy(np.packbits(visible.numpy(), axis=1))
+    sharp = torch.tensor([[1e-4], [1e-2], [1.0], [1e2], [1e4], [1e5], [1e5]], requires_grad=True)
+    raw = torch.tensor([[0, 0, 1], [1, 0, 0], [0.3, 0.2, -0.9], [0, 0.1, 1], [0.2, 0, 1], [0, 0, -1], [0.01, 0, 1.0]])
+    raw.requires_grad_(True)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        v = lobe_visibility_bits(normal, bits, dirs, _unit(raw), sharp)
+    assert torch.isfinite(v).all() and (v >= 0).all() and (v <= 1 + 2**-7).all()
+    v.sum().backward()
+    assert torch.isfinite(sharp.grad).all() and torch.isfinite(raw.grad).all()
+    assert float((v[0] - 1).abs().max()) <= 2**-7  # fully open
