@@ -10,6 +10,7 @@ import os
 import shutil
 import subprocess
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -249,6 +250,46 @@ def run_snakemake(workdir: Path, *args: str, timeout: int = 600) -> subprocess.C
     return subprocess.run(
         snakemake_command(workdir, *args), cwd=REPO, env=snakemake_env(workdir), capture_output=True, text=True, timeout=timeout
     )
+
+
+SMOKE = REPO / "tests" / "smoke" / "config.yaml"
+
+
+@dataclass(frozen=True)
+class SmokeRun:
+    """The smoke grid's run (tests/smoke/config.yaml) in ``workdir``: Snakemake's exit status and
+    output."""
+
+    workdir: Path
+    returncode: int
+    stdout: str
+    stderr: str
+
+
+def smoke_run(tmp_path_factory) -> SmokeRun:
+    """The smoke grid run once per test session and shared by every test worker: the first test
+    that asks runs it under an exclusive lock in the session's common temporary folder; any other
+    (in its own worker, meanwhile or later) waits for the lock and reads the same run. The smoke
+    test checks it; the Slurm grid test compares its Slurm run's files with it instead of running
+    the same cells again. Its files must be read, not changed."""
+    root = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        root = root.parent  # the workers' folders are popen-gw<N> inside the session's
+    work, done = root / "smoke-run", root / "smoke-run.json"
+    with open(root / "smoke-run.lock", "w") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            if not done.is_file():
+                shutil.rmtree(work, ignore_errors=True)  # a run that did not finish (killed, timed out)
+                work.mkdir()
+                proc = run_snakemake(work, "--cores", "2", "--configfile", str(SMOKE), timeout=1500)
+                run = {"returncode": proc.returncode, "stdout": proc.stdout, "stderr": proc.stderr}
+                tmp = done.with_suffix(".tmp")
+                tmp.write_text(json.dumps(run))
+                tmp.replace(done)
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
+    return SmokeRun(work, **json.loads(done.read_text()))
 
 
 @pytest.fixture(scope="session")

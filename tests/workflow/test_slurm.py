@@ -18,50 +18,29 @@ import numpy as np
 import pytest
 import torch
 import yaml
-from conftest import REPO, mesh_work_dir, require_tool, run_snakemake, slurm_lock
+from conftest import REPO, SMOKE, mesh_work_dir, require_tool, run_snakemake, slurm_lock, smoke_run
 from PIL import Image
 
 pytestmark = [pytest.mark.slurm, pytest.mark.slow(minutes=5)]
 
 SCRIPT = REPO / "scripts" / "slurm-cluster.sh"
 PROFILE = REPO / "profiles" / "slurm"
-CACHE = {
-    "views": 4,
-    "resolution": 48,
-    "eval_azimuths": 4,
-    "eval_elevations_deg": [0.0, 30.0],
-    "eval_resolution": 32,
-    "metrics_azimuths": 4,
-    "metrics_elevations_deg": [0.0],
-    "metrics_resolution": 64,
-}
-#: one mesh, one prompt, two variants: every per-mesh and per-cell rule, and the report
-GRID = {
-    "experiment": "grid",
-    "device": "cpu",  # the same work on every host (a lent GPU machine would take CUDA for `auto`)
-    "meshes": {"vase": {"builtin": "vase"}},
-    "prompts": {"wood": "a {object} made of wood"},
-    "variants": {"full": {}, "second": {"optimize": {"normal_network": False}}},
-    "raycache": CACHE,
-    "optimize": {
-        "iterations": 3,
-        "milestones": [2],
-        "clip_tiny_test": True,
-        "image_size": 64,
-        "width": 16,
-        "crops": 1,
-        "light_lobes": 4,
-        "checkpoint_every": 2,
-        "eval_width": 32,
-        # the killed-job test's run is thousands of iterations long, which compile_shading: auto
-        # would compile (a minute on an empty cache): Slurm's one-minute limit killed it before its
-        # first checkpoint; the calibration's 300 iterations run eager, and so must the run
-        "compile_shading": "off",
-    },
-    "bake": {"texture_size": 64, "eval_width": 32, "light_width": 64},
-    "relight": {"lobes": 4, "fit_iterations": 20, "width": 32},
-    "metrics": {"clip_tiny_test": True},
-}
+#: the smoke grid's (tests/smoke/config.yaml) vase x wood cells, both variants (the normal network
+#: on and off): every per-mesh and per-cell rule, and the report; the same settings as the smoke
+#: run's, whose files the Slurm run's are compared with (:func:`conftest.smoke_run`)
+GRID = yaml.safe_load(SMOKE.read_text())
+GRID.update(
+    experiment="grid",
+    device="cpu",  # the same work on every host (a lent GPU machine would take CUDA for `auto`)
+    meshes={"vase": GRID["meshes"]["vase"]},
+    prompts={"wood": GRID["prompts"]["wood"]["text"]},  # without the smoke's levels of detail
+)
+
+
+#: the killed-job test's run is thousands of iterations long, which ``compile_shading: auto`` would
+#: compile (a minute on an empty cache): Slurm's one-minute limit killed it before its first
+#: checkpoint; its calibration runs eager too, so that it measures the same step
+EAGER = {"compile_shading": "off"}
 
 
 def slurm_up() -> bool:
@@ -90,14 +69,17 @@ def _cluster():
 
 
 def slurm_run(workdir: Path, config: Path, *args: str, timeout: int = 1200) -> subprocess.CompletedProcess:
-    """The workflow through the Slurm profile, polling job states every few seconds (the plugin
-    waits 40 s by default before the first check) and keeping every job's Slurm log."""
+    """The workflow through the Slurm profile, polling job states every two seconds (the plugin
+    waits 40 s by default before the first check and 10 s between checks: a chain of a dozen
+    short jobs waited minutes for them) and keeping every job's Slurm log."""
     return run_snakemake(
         workdir,
         *args,
         "--workflow-profile",
         str(PROFILE),
         "--slurm-init-seconds-before-status-checks",
+        "2",
+        "--seconds-between-status-checks",
         "2",
         "--slurm-keep-successful-logs",
         "--slurm-logdir",
@@ -149,46 +131,12 @@ def same_content(a: Path, b: Path) -> bool:
     return a.read_bytes() == b.read_bytes()
 
 
-def test_grid_through_slurm_equals_a_local_run(cluster, tmp_path):
-    config = tmp_path / "grid.yaml"
-    config.write_text(yaml.safe_dump(GRID))
-    slurm_dir, local_dir = tmp_path / "slurm", tmp_path / "local"
-    slurm_dir.mkdir()
-    local_dir.mkdir()
-    proc = slurm_run(slurm_dir, config)
-    assert proc.returncode == 0, (proc.stdout + proc.stderr)[-5000:]
-    log = proc.stdout + proc.stderr
-    # every job of the DAG but the target rule `all` went through Slurm and completed there
-    stats = dict(re.findall(r"^(\w+)\s+(\d+)$", log[log.index("Job stats:") :], re.M))
-    expected = int(stats["total"]) - int(stats.get("all", 0))
-    ids = slurm_job_ids(proc)
-    assert len(ids) == len(set(ids)) == expected, (ids, stats)
-    states = sacct_states(ids)
-    assert set(states) == set(ids) and set(states.values()) == {"COMPLETED"}, states
-    # each job's own Slurm log, named by its job id, shows the stage ran inside it
-    for job_id in ids:
-        logs = list((slurm_dir / "slurm_logs").rglob(f"{job_id}.log"))
-        assert len(logs) == 1, job_id
-    # the same grid run locally gives the same files
-    local = run_snakemake(local_dir, "--cores", "2", "--configfile", str(config))
-    assert local.returncode == 0, local.stderr[-3000:]
-    a, b = data_files(slurm_dir / "results"), data_files(local_dir / "results")
-    assert a.keys() == b.keys() and len(a) > 40, sorted(set(a) ^ set(b))
-    differ = [rel for rel in a if not same_content(a[rel], b[rel])]
-    assert not differ, differ
-    summary_a = json.loads((slurm_dir / "results" / "grid" / "report" / "summary.json").read_text())
-    summary_b = json.loads((local_dir / "results" / "grid" / "report" / "summary.json").read_text())
-    for ra, rb in zip(summary_a, summary_b, strict=True):
-        for key in ("final_similarity", "eval_psnr_db", "bake_psnr_db", "clip_score", "faces_after"):
-            assert ra[key] == rb[key], key
-
-
 def steps_for(seconds: float, workdir: Path) -> int:
     """How many optimisation steps of the test's settings take about ``seconds`` on this machine,
     measured by a short local run (its own experiment; the mesh-level work it makes is shared)."""
     cfg = json.loads(json.dumps(GRID))
     cfg.update(experiment="calibrate", variants={"full": {}})
-    cfg["optimize"].update(iterations=300, milestones=[250], checkpoint_every=20)
+    cfg["optimize"].update(iterations=300, milestones=[250], checkpoint_every=20, **EAGER)
     config = workdir / "calibrate.yaml"
     config.write_text(yaml.safe_dump(cfg))
     meta = workdir / "results" / "calibrate" / "vase" / "wood" / "full" / "optimize" / "meta.json"
@@ -206,7 +154,7 @@ def test_job_killed_at_its_time_limit_resumes_from_its_checkpoint(cluster, tmp_p
     steps = steps_for(150.0, tmp_path)
     cfg = json.loads(json.dumps(GRID))
     cfg["variants"] = {"full": {}}
-    cfg["optimize"].update(iterations=steps, milestones=[steps - 200], checkpoint_every=20)
+    cfg["optimize"].update(iterations=steps, milestones=[steps - 200], checkpoint_every=20, **EAGER)
     config = tmp_path / "long.yaml"
     config.write_text(yaml.safe_dump(cfg))
     cell = tmp_path / "results" / "grid" / "vase" / "wood" / "full" / "optimize"
@@ -228,3 +176,64 @@ def test_job_killed_at_its_time_limit_resumes_from_its_checkpoint(cluster, tmp_p
     # the mesh-level work was not redone
     assert "rule raycache" not in again.stdout + again.stderr and "rule normalize" not in again.stdout + again.stderr
     assert (mesh_work_dir(tmp_path, "vase", "raycache") / "meta.json").is_file()
+
+
+@pytest.mark.slow(minutes=3)
+def test_grid_through_slurm_equals_a_local_run(cluster, tmp_path_factory, tmp_path):
+    """The grid through Slurm: every job of the DAG ran as a Slurm job and completed there, each
+    with its own log, and its files equal a local run's: the smoke run's cells of the same
+    settings (made once per session, :func:`conftest.smoke_run`), or a local run of the grid where
+    the smoke run took another device than the CPU. It runs after the killed-job test (the file's
+    order), so that the smoke run, in another test worker meanwhile, is usually done when its
+    Slurm run is."""
+    config = tmp_path / "grid.yaml"
+    config.write_text(yaml.safe_dump(GRID))
+    slurm_dir = tmp_path / "slurm"
+    slurm_dir.mkdir()
+    proc = slurm_run(slurm_dir, config)
+    assert proc.returncode == 0, (proc.stdout + proc.stderr)[-5000:]
+    log = proc.stdout + proc.stderr
+    # every job of the DAG but the target rule `all` went through Slurm and completed there
+    stats = dict(re.findall(r"^(\w+)\s+(\d+)$", log[log.index("Job stats:") :], re.M))
+    expected = int(stats["total"]) - int(stats.get("all", 0))
+    ids = slurm_job_ids(proc)
+    assert len(ids) == len(set(ids)) == expected, (ids, stats)
+    states = sacct_states(ids)
+    assert set(states) == set(ids) and set(states.values()) == {"COMPLETED"}, states
+    # each job's own Slurm log, named by its job id, shows the stage ran inside it
+    for job_id in ids:
+        logs = list((slurm_dir / "slurm_logs").rglob(f"{job_id}.log"))
+        assert len(logs) == 1, job_id
+    # the same cells run locally give the same files
+    local, experiment = local_reference(tmp_path_factory, tmp_path, config)
+    a = data_files(slurm_dir / "results")
+    b = {rel.replace(f"{experiment}/", "grid/", 1): path for rel, path in data_files(local / "results").items()}
+    assert len(a) > 40 and not set(a) - set(b), sorted(set(a) - set(b))
+    # and the reference's files of the same mesh and cells are all in the Slurm run's (the smoke
+    # run's other meshes, prompts and levels of detail aside)
+    same_cells = [rel for rel in b if rel.startswith(("grid/vase/wood/", "meshes/vase/")) and "/lod/" not in rel]
+    assert not set(same_cells) - set(a), sorted(set(same_cells) - set(a))
+    differ = [rel for rel in a if not same_content(a[rel], b[rel])]
+    assert not differ, differ
+    summary_a = json.loads((slurm_dir / "results" / "grid" / "report" / "summary.json").read_text())
+    summary_b = json.loads((local / "results" / experiment / "report" / "summary.json").read_text())
+    rows_b = {(r["mesh"], r["prompt"], r["variant"]): r for r in summary_b}
+    for ra in summary_a:
+        rb = rows_b[(ra["mesh"], ra["prompt"], ra["variant"])]
+        for key in ("final_similarity", "eval_psnr_db", "bake_psnr_db", "clip_score", "faces_after"):
+            assert ra[key] == rb[key], key
+
+
+def local_reference(tmp_path_factory, tmp_path: Path, config: Path) -> tuple[Path, str]:
+    """A local run holding the grid's cells, and its experiment: the smoke run, where it ran on
+    the CPU as the grid does; else (a GPU host) the grid run here."""
+    smoke = smoke_run(tmp_path_factory)
+    assert smoke.returncode == 0, f"the smoke run failed (test_workflow.py::test_smoke_run): {smoke.stderr[-3000:]}"
+    cell = smoke.workdir / "results" / "smoke" / "vase" / "wood" / "full" / "optimize" / "meta.json"
+    if json.loads(cell.read_text())["device"] == "cpu":
+        return smoke.workdir, "smoke"
+    local = tmp_path / "local"
+    local.mkdir()
+    proc = run_snakemake(local, "--cores", "2", "--configfile", str(config))
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return local, "grid"

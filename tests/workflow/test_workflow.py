@@ -9,13 +9,12 @@ import numpy as np
 import pytest
 import torch
 import yaml
-from conftest import REPO, assert_not_blank, browser_check, job_counts, mesh_work_dir, run_snakemake
+from conftest import REPO, SMOKE, assert_not_blank, browser_check, job_counts, mesh_work_dir, run_snakemake, smoke_run
 
 from stages.config.workflow import WorkflowConfig, load_config_file
 from stages.core.cli import bf16_choice
 from stages.geometry.raycache import RayCache
 
-SMOKE = REPO / "tests" / "smoke" / "config.yaml"
 #: the smoke grid's meshes (the knot decimated), prompts (wood with levels of detail) and variants
 MESHES, PROMPTS, VARIANTS = ("vase", "knot"), ("wood", "gold"), ("full", "second")
 CELLS = [(m, p, v) for m in MESHES for p in PROMPTS for v in VARIANTS]
@@ -200,12 +199,15 @@ def check_test_only_marks(res) -> None:
 
 
 @pytest.mark.slow(minutes=6)
-def test_smoke_run(tmp_path):
-    proc = run_snakemake(tmp_path, "--cores", "2", "--configfile", str(SMOKE), timeout=1500)
+def test_smoke_run(tmp_path_factory, tmp_path):
+    """The smoke grid's run (:func:`conftest.smoke_run`, shared with the Slurm grid test), its
+    outputs, the report in a browser, and a second run with nothing to do."""
+    proc = smoke_run(tmp_path_factory)
     assert proc.returncode == 0, proc.stderr[-3000:]
+    work = proc.workdir  # the run's folder (shared: read it only); screenshots go to tmp_path
     # the experiment's cells and report in results/smoke (the config's `experiment`), mesh-level
     # work in results/meshes/<mesh>/<key>/<stage>
-    res = tmp_path / "results" / "smoke"
+    res = work / "results" / "smoke"
     # the plan, printed before the first job: the cells, the jobs to run, the device, an estimate
     plan = proc.stderr[proc.stderr.index("Plan of experiment smoke") :]
     assert "2 meshes x 2 prompts x 2 variants = 8 cells" in plan and "(device: auto)" in plan
@@ -216,7 +218,7 @@ def test_smoke_run(tmp_path):
     assert "optimize vase/wood/full: 3/3 it (100%)" in (res / "vase/wood/full/logs/optimize.log").read_text()
     assert "bake vase/wood/full: unwrapping and baking" in (res / "vase/wood/full/logs/bake.log").read_text()
     for mesh in MESHES:
-        raycache = mesh_work_dir(tmp_path, mesh, "raycache")
+        raycache = mesh_work_dir(work, mesh, "raycache")
         meta = json.loads((raycache / "meta.json").read_text())
         assert meta["stats"]["train"]["views"] == 4 and meta["stats"]["eval"]["views"] == 8
         assert meta["stats"]["train"]["width"] == 48
@@ -224,20 +226,20 @@ def test_smoke_run(tmp_path):
         assert len(cache) == 4 and cache.arrays["offsets"][-1] > 0
         assert np.abs(np.linalg.norm(cache.view(0).point, axis=1)).max() <= 1.0 + 1e-3
         for stage in ("normalize", "raycache"):
-            work = mesh_work_dir(tmp_path, mesh, stage).parent
-            assert " INFO " in (work / "logs" / f"{stage}.log").read_text()
-            assert (work / "benchmarks" / f"{stage}.tsv").is_file()
-        tf = json.loads((mesh_work_dir(tmp_path, mesh, "normalize") / "transform.json").read_text())
+            mesh_dir = mesh_work_dir(work, mesh, stage).parent
+            assert " INFO " in (mesh_dir / "logs" / f"{stage}.log").read_text()
+            assert (mesh_dir / "benchmarks" / f"{stage}.tsv").is_file()
+        tf = json.loads((mesh_work_dir(work, mesh, "normalize") / "transform.json").read_text())
         assert len(tf["inverse_matrix"]) == 4
     # the knot is decimated and traced at the decimated level; the vase is not decimated
-    decimate = mesh_work_dir(tmp_path, "knot", "decimate")
+    decimate = mesh_work_dir(work, "knot", "decimate")
     dec = json.loads((decimate / "meta.json").read_text())
     assert abs(dec["stats"]["faces_after"] - 3000) <= 30
-    knot_cache = mesh_work_dir(tmp_path, "knot", "raycache")
+    knot_cache = mesh_work_dir(work, "knot", "raycache")
     traced = json.loads((knot_cache / "meta.json").read_text())
-    assert traced["inputs"]["mesh"]["path"].endswith(str(decimate.relative_to(tmp_path) / "mesh.ply"))
+    assert traced["inputs"]["mesh"]["path"].endswith(str(decimate.relative_to(work) / "mesh.ply"))
     assert len(RayCache(knot_cache / "train.npz").arrays["faces"]) == dec["stats"]["faces_after"]
-    assert not list((tmp_path / "results" / "meshes" / "vase").glob("*/decimate"))
+    assert not list((work / "results" / "meshes" / "vase").glob("*/decimate"))
     # every grid cell optimised, with outputs marked as made by the test-only CLIP
     for mesh, prompt, variant in CELLS:
         cell = res / mesh / prompt / variant / "optimize"
@@ -306,7 +308,7 @@ def test_smoke_run(tmp_path):
     # nothing half-written anywhere
     assert not list(res.parent.rglob(".*.tmp-*")) and not list(res.parent.rglob(".staging-*"))
     # a second run has nothing to do
-    again = run_snakemake(tmp_path, "--cores", "2", "--configfile", str(SMOKE))
+    again = run_snakemake(work, "--cores", "2", "--configfile", str(SMOKE))
     assert again.returncode == 0 and "Nothing to be done" in again.stdout + again.stderr
 
 
