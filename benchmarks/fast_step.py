@@ -1,7 +1,7 @@
 """The ``fast`` preset's step with shadows, split, and the shadows' visible shares both ways.
 
 On the built-in vase (a ray cache of ``--views`` views at 512 pixels with the default visibility:
-1,024 directions per hit), CLIP ViT-B-32 at 224 with random weights, the ``fast`` preset under the
+512 directions per hit), CLIP ViT-B-32 at 224 with random weights, the ``fast`` preset under the
 defaults (``bf16: auto``) and in float32:
 
 * ``step_s``: the real training step (``Optimizer.step``), mean of ``--steps`` after a warm-up;
@@ -9,7 +9,8 @@ defaults (``bf16: auto``) and in float32:
   shadows' shares, CLIP, optimiser) with the graph cut between the parts;
 * the renderer alone at 17,000 points and 16 lobes, eager and compiled (``compile_shading``),
   with the compilation's seconds and the steps that repay it (``--shading-only``: this alone);
-* the shadows' shares at the paper's step size (24,500 points, 32 lobes), float32 products against
+* the shadows' shares at the paper's step size (24,500 points, 32 lobes, the default 512 stored
+  directions), float32 products against
   bfloat16 products (the training's under ``bf16_networks``): seconds and agreement (also with
   ``--shading-only``);
 * the shadows' shares at the step's points, forward and forward+backward, by the fused blocks
@@ -51,7 +52,7 @@ def shares_side_by_side(opt) -> dict[str, float]:
     idx = torch.arange(min(17_000, len(shadows)))
     bits, normal = shadows._bits[idx], shadows._normals[idx]
     dirs = shadows._dirs
-    out = {"points": float(len(idx))}
+    out = {"points": float(len(idx)), "directions": float(len(dirs))}
     for name, fn, bf16 in (
         ("fused", lambda a, s: lobe_visibility_bits(normal, bits, dirs, a, s), False),
         ("fused_bf16", lambda a, s: lobe_visibility_bits(normal, bits, dirs, a, s), True),
@@ -74,7 +75,8 @@ def shares_side_by_side(opt) -> dict[str, float]:
 
 
 def shares_precision_side_by_side(points: int, lobes: int) -> dict[str, float]:
-    """The shadows' shares (``lobe_visibility_bits``, 1,024 directions) at ``points`` random points,
+    """The shadows' shares (``lobe_visibility_bits``, the ray cache's default number of stored
+    directions, ``raycache.visibility_directions``) at ``points`` random points,
     each beside a random wall (a half-space of directions blocked), and ``lobes`` lobes of
     sharpness 1 to 1,000, forward and backward: float32 products against bfloat16 products (the
     training's under ``bf16_networks``), seconds and agreement (largest share difference, cosine
@@ -84,11 +86,12 @@ def shares_precision_side_by_side(points: int, lobes: int) -> dict[str, float]:
     import numpy as np
     import torch
 
+    from stages.config.sections import RaycacheSettings
     from stages.geometry.visibility import fibonacci_directions
     from stages.render.visibility import lobe_visibility_bits
 
     gen = torch.Generator().manual_seed(0)
-    dirs = torch.from_numpy(fibonacci_directions(1024)).float()
+    dirs = torch.from_numpy(fibonacci_directions(RaycacheSettings().visibility_directions)).float()
     normal = torch.nn.functional.normalize(torch.randn(points, 3, generator=gen), dim=-1)
     wall = torch.nn.functional.normalize(torch.randn(points, 3, generator=gen), dim=-1)
     bits = torch.from_numpy(np.packbits(((wall @ dirs.T) > 0.2).numpy(), axis=1))
@@ -107,7 +110,7 @@ def shares_precision_side_by_side(points: int, lobes: int) -> dict[str, float]:
     out = {"fp32_s": timed(lambda: once(False)), "bf16_s": timed(lambda: once(True))}
     (v32, *g32), (v16, *g16) = results[False], results[True]
     cosines = [float(torch.nn.functional.cosine_similarity(a, b, dim=0)) for a, b in zip(g32, g16, strict=True)]
-    return out | {"max_diff": float((v32 - v16).abs().max()), "grad_cos": min(cosines)}
+    return out | {"max_diff": float((v32 - v16).abs().max()), "grad_cos": min(cosines), "directions": len(dirs)}
 
 
 def shading_side_by_side(points: int, lobes: int) -> dict[str, float]:
@@ -177,7 +180,7 @@ def main() -> None:
         f"shares_bf16_grad_cos={sp['grad_cos']:.6f}"
     )
     print(
-        f"# the shadows' shares at the paper's step size (24,500 points, 32 lobes, 1,024 directions), forward and "
+        f"# the shadows' shares at the paper's step size (24,500 points, 32 lobes, {sp['directions']} directions), forward and "
         f"backward: float32 products {sp['fp32_s']:.3f} s, bfloat16 products {sp['bf16_s']:.3f} s "
         f"({sp['fp32_s'] / sp['bf16_s']:.2f}x); largest share difference {sp['max_diff']:.4f}, gradients' cosine "
         f"{sp['grad_cos']:.6f}",
@@ -209,7 +212,7 @@ def main() -> None:
             )
         sh = shares_side_by_side(opt)
         print(
-            f"# shadows' shares at {sh['points']:.0f} points, 16 lobes, 1,024 directions: fused blocks "
+            f"# shadows' shares at {sh['points']:.0f} points, 16 lobes, {sh['directions']:.0f} directions: fused blocks "
             f"{sh['fused_fwd_s']:.3f} s forward, {sh['fused_fwd_bwd_s']:.3f} s with the backward (bfloat16 products "
             f"{sh['fused_bf16_fwd_s']:.3f} s, {sh['fused_bf16_fwd_bwd_s']:.3f} s); matrix form "
             f"{sh['matrix_fwd_s']:.3f} s, {sh['matrix_fwd_bwd_s']:.3f} s"
