@@ -159,14 +159,19 @@ SLURM_LOCK = Path(os.environ.get("TMPDIR", "/tmp")) / "tango-stylize-slurm-tests
 
 
 @contextlib.contextmanager
-def slurm_lock():
-    """Exclusive use of the machine's Slurm for the tests (:data:`SLURM_LOCK`; waits its turn)."""
-    with open(SLURM_LOCK, "w") as handle:
+def exclusive(path: Path):
+    """Hold the lock file ``path`` (waiting for any other process, test workers included)."""
+    with open(path, "w") as handle:
         fcntl.flock(handle, fcntl.LOCK_EX)
         try:
             yield
         finally:
             fcntl.flock(handle, fcntl.LOCK_UN)
+
+
+def slurm_lock():
+    """Exclusive use of the machine's Slurm for the tests (:data:`SLURM_LOCK`; waits its turn)."""
+    return exclusive(SLURM_LOCK)
 
 
 def require_tool(available: bool, reason: str) -> None:
@@ -276,19 +281,18 @@ def smoke_run(tmp_path_factory) -> SmokeRun:
     if os.environ.get("PYTEST_XDIST_WORKER"):
         root = root.parent  # the workers' folders are popen-gw<N> inside the session's
     work, done = root / "smoke-run", root / "smoke-run.json"
-    with open(root / "smoke-run.lock", "w") as handle:
-        fcntl.flock(handle, fcntl.LOCK_EX)
-        try:
-            if not done.is_file():
-                shutil.rmtree(work, ignore_errors=True)  # a run that did not finish (killed, timed out)
-                work.mkdir()
+    with exclusive(root / "smoke-run.lock"):
+        if not done.is_file():
+            shutil.rmtree(work, ignore_errors=True)  # a run that did not finish (its worker killed)
+            work.mkdir()
+            try:
                 proc = run_snakemake(work, "--cores", "2", "--configfile", str(SMOKE), timeout=1500)
                 run = {"returncode": proc.returncode, "stdout": proc.stdout, "stderr": proc.stderr}
-                tmp = done.with_suffix(".tmp")
-                tmp.write_text(json.dumps(run))
-                tmp.replace(done)
-        finally:
-            fcntl.flock(handle, fcntl.LOCK_UN)
+            except subprocess.TimeoutExpired as err:  # recorded: the next test fails at once, not after 25 minutes
+                run = {"returncode": -1, "stdout": "", "stderr": f"the smoke run did not finish in {err.timeout} s"}
+            tmp = done.with_suffix(".tmp")
+            tmp.write_text(json.dumps(run))
+            tmp.replace(done)
     return SmokeRun(work, **json.loads(done.read_text()))
 
 
