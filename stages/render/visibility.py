@@ -130,7 +130,8 @@ def lobe_visibility_bits(normal: Tensor, bits: Tensor, directions: Tensor, axis:
     """:func:`lobe_visibility` from the packed bits ``(N, ceil(D / 8)) uint8`` (as stored,
     :func:`unpack_bits`'s order), fused: the two sums block by block of points with a hand-written
     backward (:class:`_VisibleSums`), so that the ``(N, D)`` matrices of cosines and visibility
-    (70 MB each at 17,000 points and 1,024 directions) are never held, nor read back from memory.
+    (35 MB each at 17,000 points and the default 512 directions) are never held, nor read back
+    from memory.
     The same value and gradient to the lobes' axes and sharpnesses (tested against
     :func:`lobe_visibility` in float64); no gradient to the normals (fixed data).
 
