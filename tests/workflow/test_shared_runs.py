@@ -55,3 +55,24 @@ def test_a_run_whose_worker_died_is_made_again(monkeypatch, tmp_path):
     monkeypatch.setattr(conftest, "run_snakemake", lambda work, *a, **k: subprocess.CompletedProcess(a, 0, "", ""))
     run = conftest.smoke_run(_worker(monkeypatch, tmp_path, "gw2"))
     assert run.returncode == 0 and not (run.workdir / "half").exists()
+
+
+def test_the_slurm_grid_compares_with_the_smoke_run_only_where_it_ran_on_the_cpu(monkeypatch, tmp_path):
+    """The Slurm grid runs on the CPU: where the smoke run took a GPU (``device: auto`` on a GPU
+    host) its files are no reference, and the Slurm test makes its own local run of the grid."""
+    import test_slurm
+
+    smoke = tmp_path / "smoke-run"
+    meta = smoke / "results" / "smoke" / "vase" / "wood" / "full" / "optimize" / "meta.json"
+    meta.parent.mkdir(parents=True)
+    monkeypatch.setattr(test_slurm, "smoke_run", lambda factory: conftest.SmokeRun(smoke, 0, "", ""))
+    runs = []
+    monkeypatch.setattr(
+        test_slurm, "run_snakemake", lambda work, *a, **k: runs.append(work) or subprocess.CompletedProcess(a, 0, "", "")
+    )
+    config = tmp_path / "grid.yaml"
+    meta.write_text('{"device": "cpu"}')
+    assert test_slurm.local_reference(None, tmp_path, config) == (smoke, "smoke") and runs == []
+    meta.write_text('{"device": "cuda"}')
+    assert test_slurm.local_reference(None, tmp_path, config) == (tmp_path / "local", "grid")
+    assert runs == [tmp_path / "local"]
