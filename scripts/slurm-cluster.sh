@@ -5,7 +5,8 @@
 #   bash scripts/slurm-cluster.sh start     # install what is missing, start munge, MariaDB, slurmdbd,
 #                                           # slurmctld and slurmd; prints how long it took
 #   bash scripts/slurm-cluster.sh status    # sinfo and the accounting's cluster list
-#   bash scripts/slurm-cluster.sh stop      # stop the daemons it started (state is kept)
+#   bash scripts/slurm-cluster.sh stop      # stop the daemons it started and remove the configuration
+#                                           # it wrote (state is kept; start writes it again)
 #   bash scripts/slurm-cluster.sh purge     # stop, then delete its state, logs and configuration
 #
 # Accounting is real (slurmdbd on a local MariaDB), because the Snakemake Slurm executor asks `sacct`
@@ -16,7 +17,10 @@
 # write, a configless node's cached configuration, a Slurm configuration it did not write (in
 # /etc/slurm or /etc/slurm-llnl), or a Slurm daemon running that it did not start. It writes
 # /etc/slurm/slurm.conf and /etc/slurm/slurmdbd.conf only when they are absent or its own (a marker
-# line). A MariaDB or munged already running (for example started by their Debian packages) is
+# line); `stop` removes them again (only when they carry the marker): while a configuration names a
+# controller that is not running, every Slurm command waits about 9 s for it, and Snakemake's Slurm
+# executor plugin runs one (`scontrol show config`) each time Snakemake starts, on any workflow run;
+# without a configuration Slurm's tools fail at once. A MariaDB or munged already running (for example started by their Debian packages) is
 # used as it is and left running. `purge` deletes only a state folder this script made (a marker file).
 # Environment: TANGO_SLURM_STATE (default /var/lib/tango-slurm): databases, spool, logs, pid files;
 # TANGO_SLURM_INSTALL=0 to fail instead of installing missing packages with apt-get.
@@ -25,7 +29,7 @@ set -euo pipefail
 export PATH="/usr/sbin:/sbin:$PATH"
 
 state=${TANGO_SLURM_STATE:-/var/lib/tango-slurm}
-conf_dir=/etc/slurm
+conf_dir=${TANGO_SLURM_CONF_DIR:-/etc/slurm} # (another folder: the script's own tests)
 marker="# written by tango-stylize scripts/slurm-cluster.sh"
 cluster=tango
 packages=(slurm-wlm slurmdbd munge mariadb-server)
@@ -234,16 +238,25 @@ stop_one() { # name, pid file: only a live process of that name
     kill -9 "$pid" 2>/dev/null || true
 }
 
+remove_own_configs() { # only files that carry the marker: a configuration of another Slurm stays
+    local f
+    for f in "$conf_dir/slurm.conf" "$conf_dir/slurmdbd.conf"; do
+        if [ -e "$f" ] && grep -qF "$marker" "$f"; then rm -f "$f"; fi
+    done
+}
+
 stop() {
     need_root
     local list="$state/run/launched"
     if [ ! -s "$list" ]; then
+        remove_own_configs
         echo "slurm-cluster: nothing to stop (no daemon started by this script is recorded in $list)"
         return 0
     fi
     # the reverse of the start order: slurmd, slurmctld, slurmdbd, MariaDB, munged
     tac "$list" | while read -r name pidfile; do stop_one "$name" "$pidfile"; done
     rm -f "$list"
+    remove_own_configs
     echo "slurm-cluster: stopped"
 }
 
@@ -259,9 +272,6 @@ case "${1:-}" in
         [ ! -e "$state" ] || [ -e "$state_marker" ] || [ -d "$state/spool/ctld" ] \
             || die "$state was not made by this script (no $state_marker): not deleting it, nor anything else"
         stop
-        for f in "$conf_dir/slurm.conf" "$conf_dir/slurmdbd.conf"; do
-            [ -e "$f" ] && grep -qF "$marker" "$f" && rm -f "$f"
-        done
         rm -rf "$state"
         echo "slurm-cluster: state removed"
         ;;

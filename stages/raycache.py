@@ -186,7 +186,7 @@ def main(argv: list[str] | None = None) -> int:
         settings = RaycacheSettings.from_json(args.settings)
         run(args.input, args.train, args.eval, args.meta, settings, args.metrics)
 
-    return stage_main("raycache", __doc__, arguments, body, argv)
+    return stage_main("raycache", __doc__, arguments, body, argv, threads=True)
 
 
 if __name__ == "__main__":

@@ -15,6 +15,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 from .errors import stage_errors
+from .threads import set_cpu_threads
 
 if TYPE_CHECKING:
     import torch
@@ -197,23 +198,28 @@ def stage_main(
     argv: list[str] | None = None,
     *,
     device: str | None = None,
+    threads: bool = False,
 ) -> int:
     """Parse ``argv`` for ``python -m stages.<stage>`` and run ``body(args)``; return the exit status.
 
     ``arguments(parser)`` adds the stage's own options. ``device`` (the default device) marks a
     torch stage: it gets ``--device`` (resolved by :func:`resolve_device` into ``args.device``) and
-    ``--threads``. Bad input and bad settings exit with status 2 after one log line; anything else
+    ``--threads`` (torch's and the ray tracer's threads); ``threads`` gives a stage without torch
+    ``--threads`` for the ray tracer alone. Bad input and bad settings exit with status 2 after one log line; anything else
     propagates with its traceback (a bug, not bad input).
     """
     parser = argparse.ArgumentParser(prog=f"python -m stages.{stage}", description=doc.strip().split("\n")[0])
     arguments(parser)
     if device is not None:
         parser.add_argument("--device", default=device, help="cpu, cuda, cuda:1, ... ('auto': CUDA when available)")
-        parser.add_argument("--threads", type=int, default=None, help="CPU threads for torch")
+    if device is not None or threads:
+        parser.add_argument("--threads", type=int, default=None, help="CPU threads (torch and the ray tracer)")
     parser.add_argument("-v", "--verbose", action="store_true")
     args = parser.parse_args(argv)
     setup_logging(args.verbose)
     with stage_errors(stage) as status:
+        if getattr(args, "threads", None):
+            set_cpu_threads(args.threads)
         if device is not None:
             import torch
 

@@ -1,13 +1,30 @@
-"""First-hit ray queries against a triangle mesh: Embree (embreex) and trimesh's pure-Python
-tracer (a reference for tests on tiny inputs)."""
+"""First-hit and any-hit ray queries against a triangle mesh: Embree (embreex) and trimesh's
+pure-Python tracer (a reference for tests on tiny inputs).
+
+Embree's calls release the GIL, so :class:`EmbreeTracer` splits a large batch over
+:func:`~stages.core.threads.cpu_threads` threads (each ray is traced on its own: the results do
+not depend on the split); the stages set the count from their ``--threads``."""
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
 
+from ..core.threads import cpu_threads
 from .meshio import TriMesh
+
+#: the fewest rays a thread is given: below it a batch is traced in the calling thread
+RAYS_PER_THREAD = 1 << 15
+
+
+def _split(count: int) -> list[slice]:
+    """``count`` rays in at most :func:`~stages.core.threads.cpu_threads` contiguous slices of at
+    least :data:`RAYS_PER_THREAD` rays (one slice for a small batch)."""
+    parts = max(1, min(cpu_threads(), count // RAYS_PER_THREAD))
+    bounds = np.linspace(0, count, parts + 1).astype(np.int64)
+    return [slice(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
 
 
 @dataclass(frozen=True)
@@ -21,7 +38,7 @@ class Hits:
 
 
 class EmbreeTracer:
-    """First-hit queries against a triangle mesh through embreex (Embree 4)."""
+    """First-hit and any-hit queries against a triangle mesh through embreex (Embree 4)."""
 
     def __init__(self, mesh: TriMesh) -> None:
         try:
@@ -33,17 +50,32 @@ class EmbreeTracer:
         triangles = np.ascontiguousarray(mesh.vertices[mesh.faces], dtype=np.float32)
         self._geometry = TriangleMesh(self._scene, triangles)  # keep a reference alive
 
+    def _run(self, origins: np.ndarray, directions: np.ndarray, **query) -> list:
+        """embreex's ``run`` over the batch's slices (:func:`_split`), in threads when more than one."""
+        o = np.ascontiguousarray(origins, dtype=np.float32)
+        d = np.ascontiguousarray(directions, dtype=np.float32)
+        parts = _split(len(o))
+        if len(parts) == 1:
+            return [self._scene.run(o, d, **query)]
+        with ThreadPoolExecutor(len(parts)) as pool:
+            return list(pool.map(lambda s: self._scene.run(o[s], d[s], **query), parts))
+
     def trace(self, origins: np.ndarray, directions: np.ndarray) -> Hits:
-        """``origins, directions (N, 3)``; directions need not be unit (depth is then ``t``)."""
-        out = self._scene.run(
-            np.ascontiguousarray(origins, dtype=np.float32),
-            np.ascontiguousarray(directions, dtype=np.float32),
-            output=1,
-        )
-        face = out["primID"].astype(np.int32, copy=False)
-        bary = np.stack([out["u"], out["v"]], axis=1)
-        depth = np.where(face >= 0, out["tfar"], np.inf).astype(np.float32)
+        """The first hits of rays ``origins, directions (N, 3)``; directions need not be unit
+        (depth is then ``t``)."""
+        parts = self._run(origins, directions, output=1)
+        face = np.concatenate([p["primID"] for p in parts]).astype(np.int32, copy=False)
+        bary = np.concatenate([np.stack([p["u"], p["v"]], axis=1) for p in parts]).reshape(-1, 2)
+        tfar = np.concatenate([p["tfar"] for p in parts])
+        depth = np.where(face >= 0, tfar, np.inf).astype(np.float32)
         return Hits(face, bary, depth)
+
+    def occluded(self, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
+        """Whether each ray ``origins, directions (N, 3)`` meets the mesh at all -> ``(N,) bool``:
+        Embree's any-hit query (it stops at the first triangle found, not the nearest), the same
+        answer as ``trace(...).face >= 0``."""
+        parts = self._run(origins, directions, query="OCCLUDED")
+        return np.concatenate([np.asarray(p) for p in parts]) != -1
 
 
 class TrimeshTracer:
@@ -81,6 +113,10 @@ class TrimeshTracer:
             bary[r, 0] = (d22 * p1 - d12 * p2) / den
             bary[r, 1] = (d11 * p2 - d12 * p1) / den
         return Hits(face, bary, depth)
+
+    def occluded(self, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
+        """Whether each ray meets the mesh -> ``(N,) bool`` (from :meth:`trace`)."""
+        return self.trace(origins, directions).face >= 0
 
 
 def make_tracer(mesh: TriMesh, backend: str = "embree"):

@@ -61,7 +61,8 @@ def trace_visibility(tracer, points: np.ndarray, normals: np.ndarray, directions
     """Visibility bits ``(N, ceil(D / 8)) uint8`` (the module's layout) of ``directions (D, 3)`` from
     ``points (N, 3)`` with oriented unit ``normals (N, 3)``, through ``tracer`` (an
     :class:`~stages.geometry.tracing.EmbreeTracer` of the mesh). Only the directions above each
-    point's surface are traced, in batches of :data:`RAYS_PER_BATCH`."""
+    point's surface are traced (any-hit queries: :meth:`~stages.geometry.tracing.EmbreeTracer.occluded`),
+    in batches of :data:`RAYS_PER_BATCH`."""
     points = np.asarray(points, np.float64)
     normals = np.asarray(normals, np.float64)
     directions = np.asarray(directions, np.float64)
@@ -73,9 +74,8 @@ def trace_visibility(tracer, points: np.ndarray, normals: np.ndarray, directions
         above = normals[lo:hi] @ directions.T > 0.0  # (B, D)
         rows, cols = np.nonzero(above)
         origins = points[lo:hi][rows] + offset * normals[lo:hi][rows]
-        hits = tracer.trace(origins, directions[cols])
         visible = np.zeros((hi - lo, d), bool)
-        visible[rows, cols] = hits.face < 0
+        visible[rows, cols] = ~tracer.occluded(origins, directions[cols])
         out[lo:hi] = np.packbits(visible, axis=1)
     return out
 

@@ -63,3 +63,23 @@ def test_purge_deletes_no_folder_it_did_not_make(tmp_path):
     proc = script(tmp_path, "purge")
     assert proc.returncode == 1 and "was not made by this script" in proc.stderr
     assert (state / "data" / "precious.db").read_text() == "a real cluster's accounting"
+
+
+def test_stop_removes_the_configuration_it_wrote_and_no_other(tmp_path):
+    """While a configuration names a controller that is not running, every Slurm command waits
+    about 9 s for it (and Snakemake's Slurm plugin runs one each time Snakemake starts): `stop`
+    removes the files it wrote (its marker line), which `start` writes again, and keeps any other."""
+    marker = next(line for line in SCRIPT.read_text().splitlines() if line.startswith("marker=")).split('"')[1]
+    ours, theirs = tmp_path / "ours", tmp_path / "theirs"
+    ours.mkdir(), theirs.mkdir()
+    for name in ("slurm.conf", "slurmdbd.conf"):
+        (ours / name).write_text(f"{marker}\nClusterName=tango\n")
+        (theirs / name).write_text("ClusterName=real\n")
+    (tmp_path / "state" / "run").mkdir(parents=True)
+    (tmp_path / "state" / "run" / "launched").write_text("slurmd /nonexistent/slurmd.pid\n")  # nothing alive
+    for conf_dir in (ours, theirs):
+        proc = script(tmp_path, "stop", TANGO_SLURM_CONF_DIR=str(conf_dir))
+        assert proc.returncode == 0, proc.stderr
+    assert not list(ours.iterdir())
+    assert sorted(p.name for p in theirs.iterdir()) == ["slurm.conf", "slurmdbd.conf"]
+    assert (theirs / "slurm.conf").read_text() == "ClusterName=real\n"

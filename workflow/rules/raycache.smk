@@ -12,9 +12,11 @@ rule raycache:
         f"{MESH_WORK_DIR}/benchmarks/raycache.tsv"
     conda:
         CONDA_ENV
+    threads: 2
     params:
         code=code_digest("stages.raycache"),
         settings=stage_settings_json("raycache"),
     shell:
         "python -m stages.raycache --input {input.mesh:q} --train {output.train:q} "
-        "--eval {output.eval:q} --metrics {output.metrics:q} --meta {output.meta:q} --settings {params.settings:q} 2> {log:q}"
+        "--eval {output.eval:q} --metrics {output.metrics:q} --meta {output.meta:q} --settings {params.settings:q} "
+        "--threads {threads} 2> {log:q}"

@@ -1,0 +1,22 @@
+"""How many CPU threads this process's own parallel work may use (the ray tracer's batches: torch
+has its own setting). The stages set it from their ``--threads`` (:func:`~stages.core.cli.stage_main`),
+which Snakemake fills from each rule's ``threads:``; unset, every CPU this process may run on."""
+
+from __future__ import annotations
+
+import os
+
+_count: int | None = None
+
+
+def set_cpu_threads(count: int | None) -> None:
+    """Use ``count`` threads from now on (None: :func:`cpu_threads`' default)."""
+    if count is not None and count < 1:
+        raise ValueError(f"the thread count must be at least 1, got {count}")
+    global _count
+    _count = count
+
+
+def cpu_threads() -> int:
+    """:func:`set_cpu_threads`' count, else the number of CPUs this process may run on."""
+    return _count or len(os.sched_getaffinity(0))
