@@ -11,7 +11,13 @@ the first pass warms up, the second is timed. Two rates are printed:
 The last line is ``key=value`` pairs; ``rays_per_s_224`` and ``rays_per_s_512`` are the *total*
 rates, the slower of the two meshes; ``bytes_per_view`` is at 512 on the generated mesh.
 
-    python benchmarks/raycache.py [--views 24]
+Then the shadow rays, side by side on each mesh: the bake's ambient occlusion samples (32,768
+points, both sides, the default 512 directions: about 17 M rays) traced as the visibility bits are,
+with Embree's first-hit query in one thread (how they were traced before 2026-11-25), its any-hit
+query in one thread, and the any-hit query over every CPU (the default); the bits must be equal.
+``vis_speedup`` is the first against the last.
+
+    python benchmarks/raycache.py [--views 24] [--visibility-only]
 """
 
 from __future__ import annotations
@@ -23,11 +29,13 @@ from pathlib import Path
 import numpy as np
 
 from stages.config.sections import NormalizeSettings, RaycacheSettings
+from stages.core.threads import cpu_threads, set_cpu_threads
 from stages.geometry.meshio import TriMesh
 from stages.geometry.normalization import normalize_mesh
 from stages.geometry.raycache import trace_views, training_views
 from stages.geometry.shapes import knot
 from stages.geometry.tracing import EmbreeTracer
+from stages.geometry.visibility import OcclusionSamples, fibonacci_directions
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "meshes"
 
@@ -62,16 +70,63 @@ def measure(mesh: TriMesh, width: int, views: int) -> dict:
     }
 
 
+class FirstHit:
+    """A tracer whose any-hit answer comes from the first-hit query (the earlier way)."""
+
+    def __init__(self, tracer: EmbreeTracer) -> None:
+        self.tracer = tracer
+
+    def occluded(self, origins, directions):
+        return self.tracer.trace(origins, directions).face >= 0
+
+
+def visibility_side_by_side(meshes: dict[str, TriMesh], samples: int = 32768, directions: int = 512) -> dict:
+    """The occlusion samples of each mesh traced three ways (see the module docstring)."""
+    dirs = fibonacci_directions(directions)
+    cpus = cpu_threads()
+    out = {}
+    print(f"shadow rays: {samples} points x 2 sides x {directions} directions (those above each side)")
+    for name, mesh in meshes.items():
+        tracer = EmbreeTracer(mesh)
+        ways = (
+            ("first-hit, 1 thread", FirstHit(tracer), 1),
+            ("any-hit, 1 thread", tracer, 1),
+            (f"any-hit, {cpus} threads", tracer, cpus),
+        )
+        times, values = [], []
+        for label, t, count in ways:
+            set_cpu_threads(count)
+            t0 = time.perf_counter()
+            occ = OcclusionSamples(mesh, t, dirs, samples)
+            times.append(time.perf_counter() - t0)
+            values.append(occ.values)
+            print(f"  {name:<10}{label:<24}{times[-1]:>8.2f} s")
+        set_cpu_threads(None)
+        assert all(np.array_equal(values[0], v) for v in values[1:]), "the three ways disagree"
+        out[f"vis_s_first_hit_{name}"] = times[0]
+        out[f"vis_s_any_hit_{name}"] = times[1]
+        out[f"vis_s_threads_{name}"] = times[2]
+        out[f"vis_speedup_{name}"] = times[0] / times[2]
+    out["vis_threads"] = cpus
+    return out
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--views", type=int, default=24)
+    parser.add_argument("--visibility-only", action="store_true", help="only the shadow rays, side by side")
     args = parser.parse_args()
-    meshes = {"knot80k": generated_80k()}
+    meshes = {"knot80k": generated_80k(), "vase": normalize_mesh("builtin:vase", NormalizeSettings()).mesh}
     person = SHARED / "person.obj"
     if person.is_file():
         meshes["person"] = normalize_mesh(person, NormalizeSettings()).mesh
     else:
-        print(f"# {person} absent: measuring the generated mesh only")
+        print(f"# {person} absent: measuring the generated meshes only")
+    vis = visibility_side_by_side(meshes)
+    if args.visibility_only:
+        print(" ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in vis.items()))
+        return
+    meshes.pop("vase")  # the primary rays' table keeps its two meshes
     rows = {}
     header = ("mesh", "faces", "width", "coverage", "trace Mray/s", "total Mray/s", "bytes/view")
     print(f"{header[0]:<10}" + "".join(f"{h:>{w}}" for h, w in zip(header[1:], (8, 7, 10, 14, 14, 12), strict=True)))
@@ -95,6 +150,7 @@ def main() -> None:
         kv[f"rays_per_s_{width}_{name}"] = r["total_rate"]
     if ("person", 512) in rows:
         kv["bytes_per_view_person"] = rows[("person", 512)]["bytes_per_view"]
+    kv.update(vis)
     print(" ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in kv.items()))
 
 

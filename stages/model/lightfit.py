@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import math
 
 import numpy as np
@@ -11,10 +12,32 @@ from ..render.envmap import equirect_directions
 from ..render.shading import SGLight
 from .networks import SGLightModule
 
+#: fits already made in this process: (the map's digest, shape, lobes, iterations, seed) -> the
+#: light's parameters and the fit's error (a few hundred numbers each; the oldest dropped first)
+_FITS: dict[tuple, tuple[tuple[torch.Tensor, ...], float]] = {}
+_FITS_KEPT = 16
+
 
 def fit_sg_light(env: np.ndarray, lobes: int = 64, iterations: int = 400, seed: int = 0) -> tuple[SGLight, float]:
     """Fit ``lobes`` RGB SG lobes to an equirectangular ``env (H, W, 3)`` by least squares
-    weighted by solid angle (Adam). Returns the light and the relative RMS error of the fit."""
+    weighted by solid angle (Adam). Returns the light and the relative RMS error of the fit.
+
+    The fit is a function of its arguments alone (seeded), so one process fits a map once: a
+    second call with the same map (by content), lobes, iterations and seed returns a copy of the
+    first result (the relight stage fits its map for the figures and again to grade it)."""
+    arr = np.ascontiguousarray(env, dtype=np.float32)
+    key = (hashlib.sha256(arr.tobytes()).hexdigest(), arr.shape, int(lobes), int(iterations), int(seed))
+    if key not in _FITS:
+        light, rel = _fit(arr, lobes, iterations, seed)
+        while len(_FITS) >= _FITS_KEPT:
+            _FITS.pop(next(iter(_FITS)))
+        _FITS[key] = ((light.axis, light.sharpness, light.amplitude), rel)
+    params, rel = _FITS[key]
+    return SGLight(*(t.clone() for t in params)), rel
+
+
+def _fit(env: np.ndarray, lobes: int, iterations: int, seed: int) -> tuple[SGLight, float]:
+    """:func:`fit_sg_light`'s work, uncached."""
     h, w, _ = env.shape
     dirs = equirect_directions(h, w).reshape(-1, 3)
     el = math.pi / 2 - math.pi * (torch.arange(h) + 0.5) / h

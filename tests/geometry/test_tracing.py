@@ -85,4 +85,12 @@ def test_a_stages_threads_option_reaches_the_tracer(few_rays_per_thread):
     assert seen["threads"] == 3
     core_threads.set_cpu_threads(None)
     assert stage_main("probe", "a probe", lambda p: None, body, [], threads=True) == 0
-    assert seen["threads"] == len(os.sched_getaffinity(0))
+    cpus = len(os.sched_getaffinity(0))
+    assert seen["threads"] == min(cpus, int(os.environ.get("OMP_NUM_THREADS") or cpus))
+
+
+@pytest.mark.parametrize("omp,expected", [("1", 1), ("64", None), ("", None), ("x", None), ("0", None)])
+def test_unset_the_count_follows_the_cpus_and_omp_num_threads(monkeypatch, omp, expected):
+    monkeypatch.setenv("OMP_NUM_THREADS", omp)
+    core_threads.set_cpu_threads(None)
+    assert core_threads.cpu_threads() == (expected or len(os.sched_getaffinity(0)))

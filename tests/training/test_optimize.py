@@ -265,6 +265,11 @@ RECOVERY = {
     "eval_width": 96,
     "checkpoint_every": 1000,
 }
+#: the tests' shorter schedule of the same fit (150 iterations; the benchmark keeps 300): measured
+#: 2026-11-25 on the development machine: the representable SG case 34.27 dB (36.70 at 300), the
+#: unrepresentable light 30.32 dB (33.12 at 200), Mitsuba's vase 27.36 dB in float32 and 27.37 dB
+#: in bfloat16 networks, each fit 30-34 s instead of 60-70 s
+SHORT = {"iterations": 150, "milestones": (90, 128)}
 RECOVERY_CACHE = RaycacheSettings(
     views=32,
     resolution=96,
@@ -340,31 +345,32 @@ def _recover(tmp_path, **overrides) -> dict:
     return optimize.run(tmp_path / "train.npz", tmp_path / "eval.npz", "", tmp_path / "out", OptimizeSettings(**settings), "cpu")
 
 
-@pytest.mark.slow(minutes=1.5)
+@pytest.mark.slow(minutes=1)
 def test_image_target_recovery_representable_target(tmp_path):
     """The easy case, kept as a regression check of the optimisation: the target's light (4 SG
     lobes) and flat normals are exactly representable by the model (16 lobes, no normal network),
     and the target is rendered by our own renderer. PSNR over object pixels of the held-out
-    evaluation views only (measured 2026-11-22: 30.4 dB, 72 s on 2 CPU cores shared with other work)."""
-    meta = _recover(tmp_path)
-    assert meta["eval_psnr_db"] >= 29.0
+    evaluation views only, after the tests' 150 iterations (:data:`SHORT`; measured 2026-11-25:
+    34.27 dB, 45 s on an idle 2-core machine)."""
+    meta = _recover(tmp_path, **SHORT)
+    assert meta["eval_psnr_db"] >= 32.0
     assert meta["eval_psnr_pixels"].startswith("object pixels")
     assert meta["weights"].startswith("image targets") and meta["origin"]["image_guided"]
     assert (tmp_path / "out" / "renders" / "target.png").is_file()
 
 
-@pytest.mark.slow(minutes=2)
+@pytest.mark.slow(minutes=1)
 def test_image_target_recovery_unrepresentable_light(tmp_path):
     """A target the model cannot represent exactly: the `sky` light (a 1.5-degree sun, a graded
     sky and a ground: 97 lobes) against a model of 16 lobes, with the normal network on (free to
-    tilt the normals away from the target's flat ones). Object pixels only (measured 2026-11-22:
-    27.4 dB, 3 dB below the representable case, 132 s)."""
-    meta = _recover(tmp_path, target_light="sky", normal_network=True)
-    assert meta["eval_psnr_db"] >= 26.0
+    tilt the normals away from the target's flat ones). Object pixels only, after the tests' 150
+    iterations (measured 2026-11-25: 30.32 dB, 4 dB below the representable case, 52 s)."""
+    meta = _recover(tmp_path, target_light="sky", normal_network=True, **SHORT)
+    assert meta["eval_psnr_db"] >= 28.0
     assert "under the sky SG light" in meta["origin"]["weights"]
 
 
-@pytest.mark.slow(minutes=2.5)
+@pytest.mark.slow(minutes=1.5)
 def test_image_target_recovery_on_mitsuba_ground_truth(tmp_path):
     """The judge nobody here wrote: Mitsuba path-traces the vase in a principled wood with a
     normal map under a sun and sky (shadows, interreflection, a disc no SG sum represents). The
@@ -374,13 +380,15 @@ def test_image_target_recovery_on_mitsuba_ground_truth(tmp_path):
 
     Fitted twice on the same targets, with the networks in float32 and in bfloat16 (the default
     where the CPU has it natively, ``bf16_networks: auto``): both meet every threshold and their
-    held-out PSNRs differ by at most 0.3 dB (measured 2026-11-25 on this scene: 29.03 dB float32,
-    28.99 dB bfloat16; docs/measurements/speed.md). Without native bfloat16 the second fit is the float32 one again
-    and only the first is checked (auto runs float32 there)."""
+    held-out PSNRs differ by at most 0.3 dB (measured 2026-11-25 on this scene at 300 iterations:
+    29.03 dB float32, 28.99 dB bfloat16, docs/measurements/speed.md; at the tests' 150, :data:`SHORT`:
+    27.36 and 27.37 dB, SSIM 0.83, albedo RMSE 0.136 after its scale, roughness MAE 0.284). Without
+    native bfloat16 the second fit is the float32 one again and only the first is checked (auto runs
+    float32 there)."""
     scene = mitsuba_scene(tmp_path, target=MITSUBA_TARGET)
-    runs = {"float32": fit_mitsuba(scene, "fp32", normal_network=True, bf16_networks="off")}
+    runs = {"float32": fit_mitsuba(scene, "fp32", normal_network=True, bf16_networks="off", **SHORT)}
     if bf16_support(torch.device("cpu"))[0]:
-        runs["bfloat16"] = fit_mitsuba(scene, "bf16", normal_network=True, bf16_networks="on")
+        runs["bfloat16"] = fit_mitsuba(scene, "bf16", normal_network=True, bf16_networks="on", **SHORT)
         assert runs["bfloat16"]["optimize"]["network_precision"].startswith("bfloat16 autocast")
     for r in runs.values():
         it = r["metrics"]

@@ -1,0 +1,46 @@
+"""Fitting SG lobes to an environment map: one process fits a map once (the relight stage fits
+its map for the figures and again to grade it), and the copy it hands back is the caller's."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from stages.model import lightfit
+from stages.render.envmap import load_env
+
+
+def test_a_map_is_fitted_once_per_process_and_each_caller_gets_its_own_copy(monkeypatch):
+    env = load_env("builtin:sunset", 32)
+    calls = []
+    real = lightfit._fit
+
+    def counted(*args):
+        calls.append(args[1:])
+        return real(*args)
+
+    monkeypatch.setattr(lightfit, "_fit", counted)
+    monkeypatch.setattr(lightfit, "_FITS", {})
+    first, rel = lightfit.fit_sg_light(env, 8, 30)
+    again, rel_again = lightfit.fit_sg_light(env.copy(), 8, 30)  # the same content, another array
+    assert calls == [(8, 30, 0)] and rel == rel_again
+    for a, b in ((first.axis, again.axis), (first.sharpness, again.sharpness), (first.amplitude, again.amplitude)):
+        assert torch.equal(a, b) and a.data_ptr() != b.data_ptr()
+    first.amplitude.mul_(0.0)  # a caller's change reaches no later caller
+    assert torch.equal(lightfit.fit_sg_light(env, 8, 30)[0].amplitude, again.amplitude)
+    # another map, other lobes, iterations or seed: fitted anew; uncached, the same numbers
+    lightfit.fit_sg_light(env * np.float32(2.0), 8, 30)
+    lightfit.fit_sg_light(env, 4, 30)
+    lightfit.fit_sg_light(env, 8, 20)
+    lightfit.fit_sg_light(env, 8, 30, seed=1)
+    assert calls[1:] == [(8, 30, 0), (4, 30, 0), (8, 20, 0), (8, 30, 1)]
+    fresh, fresh_rel = real(np.ascontiguousarray(env, np.float32), 8, 30, 0)
+    assert torch.equal(fresh.axis, again.axis) and fresh_rel == rel
+
+
+def test_the_cache_keeps_a_bounded_number_of_fits(monkeypatch):
+    monkeypatch.setattr(lightfit, "_FITS", {})
+    env = load_env("builtin:sunset", 16)
+    for k in range(lightfit._FITS_KEPT + 3):
+        lightfit.fit_sg_light(env * np.float32(1 + k), 2, 2)
+    assert len(lightfit._FITS) == lightfit._FITS_KEPT
