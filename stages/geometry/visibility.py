@@ -69,13 +69,16 @@ def trace_visibility(tracer, points: np.ndarray, normals: np.ndarray, directions
     n, d = len(points), len(directions)
     out = np.zeros((n, (d + 7) // 8), np.uint8)
     per_batch = max(1, RAYS_PER_BATCH // d)
+    # the rays' origins and directions as the tracer takes them (float32), made once per point and
+    # direction rather than once per ray
+    starts = (points + offset * normals).astype(np.float32)
+    dirs32 = directions.astype(np.float32)
     for lo in range(0, n, per_batch):
         hi = min(n, lo + per_batch)
         above = normals[lo:hi] @ directions.T > 0.0  # (B, D)
         rows, cols = np.nonzero(above)
-        origins = points[lo:hi][rows] + offset * normals[lo:hi][rows]
         visible = np.zeros((hi - lo, d), bool)
-        visible[rows, cols] = ~tracer.occluded(origins, directions[cols])
+        visible[rows, cols] = ~tracer.occluded(starts[lo:hi][rows], dirs32[cols])
         out[lo:hi] = np.packbits(visible, axis=1)
     return out
 
