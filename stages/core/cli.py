@@ -190,6 +190,17 @@ def precision_summary(bf16: str | bool, bf16_networks: str | bool, device: torch
     return ", ".join(parts) + (f": {bf16_support(device)[1]}" if reason else "")
 
 
+def _positive(text: str) -> int:
+    """``--threads``' value: a whole number of at least 1 (argparse reports anything else)."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be a whole number of at least 1, got {text!r}")
+    return value
+
+
 def stage_main(
     stage: str,
     doc: str,
@@ -213,7 +224,7 @@ def stage_main(
     if device is not None:
         parser.add_argument("--device", default=device, help="cpu, cuda, cuda:1, ... ('auto': CUDA when available)")
     if device is not None or threads:
-        parser.add_argument("--threads", type=int, default=None, help="CPU threads (torch and the ray tracer)")
+        parser.add_argument("--threads", type=_positive, default=None, help="CPU threads (torch and the ray tracer)")
     parser.add_argument("-v", "--verbose", action="store_true")
     args = parser.parse_args(argv)
     setup_logging(args.verbose)

@@ -89,8 +89,17 @@ def test_a_stages_threads_option_reaches_the_tracer(few_rays_per_thread):
     assert seen["threads"] == min(cpus, int(os.environ.get("OMP_NUM_THREADS") or cpus))
 
 
-@pytest.mark.parametrize("omp,expected", [("1", 1), ("64", None), ("", None), ("x", None), ("0", None)])
+@pytest.mark.parametrize("omp,expected", [("1", 1), ("more", None), ("", None), ("x", None), ("0", None)])
 def test_unset_the_count_follows_the_cpus_and_omp_num_threads(monkeypatch, omp, expected):
-    monkeypatch.setenv("OMP_NUM_THREADS", omp)
+    cpus = len(os.sched_getaffinity(0))
+    monkeypatch.setenv("OMP_NUM_THREADS", str(cpus + 5) if omp == "more" else omp)
     core_threads.set_cpu_threads(None)
-    assert core_threads.cpu_threads() == (expected or len(os.sched_getaffinity(0)))
+    assert core_threads.cpu_threads() == (expected or cpus)
+
+
+@pytest.mark.parametrize("value", ["0", "-1", "two"])
+def test_a_threads_option_below_one_is_refused_in_one_line(capsys, value):
+    with pytest.raises(SystemExit) as stop:
+        stage_main("probe", "a probe", lambda p: None, lambda a: None, ["--threads", value], threads=True)
+    assert stop.value.code == 2
+    assert "--threads: must be a whole number of at least 1" in capsys.readouterr().err
