@@ -15,6 +15,9 @@ what separates it from Mitsuba).
 
 from __future__ import annotations
 
+import math
+from dataclasses import dataclass
+
 import numpy as np
 import torch
 
@@ -39,27 +42,114 @@ def _field_radiance(field, store: ViewStore, light: SGLight) -> torch.Tensor:
     return torch.cat(parts)
 
 
+#: the parts of a surface a relighting budget swaps for their truth, in its cumulative order, per
+#: BRDF (:func:`relight_budget`; under the training light the learned light comes first)
+BUDGET_COMPONENTS = {"gltf": ("base", "metallic", "roughness", "normal"), "tango": ("albedo", "specular", "roughness", "normal")}
+
+
+def true_surface(truth: TargetSet, store: ViewStore, brdf: str = "tango") -> dict[str, torch.Tensor]:
+    """The true surface at every hit of ``store``'s views (cache order) in the terms of ``brdf``
+    (:data:`BUDGET_COMPONENTS`): the material's parts, roughness clamped to ``[0.01, 1]`` as the
+    field's, and the unit shading normal turned to the viewer."""
+    dev = store.device
+    view = torch.cat([store[i].view for i in range(len(store))])
+    names = BUDGET_COMPONENTS[brdf]
+    a = {k: torch.from_numpy(truth.arrays[k].astype(np.float32)).to(dev) for k in names}
+    a["normal"] = face_viewer(torch.nn.functional.normalize(a["normal"], dim=-1), view)
+    a["roughness"] = a["roughness"].clamp(0.01, 1.0)
+    return a
+
+
+@torch.no_grad()
+def recovered_surface(field, store: ViewStore) -> dict[str, torch.Tensor]:
+    """The field's surface at every hit of ``store``'s views (cache order), as its forward pass
+    makes it (:meth:`~stages.model.field.StyleField.surface`), in :data:`BUDGET_COMPONENTS` terms."""
+    parts: dict[str, list] = {}
+    for i in range(len(store)):
+        v = store[i]
+        material, normal = field.surface(v.points, v.normals, v.view)
+        got = {"normal": normal, "roughness": material.roughness}
+        if material.metallic is not None:
+            got.update(base=material.base, metallic=material.metallic)
+        else:
+            got.update(albedo=material.albedo, specular=material.specular)
+        for k, x in got.items():
+            if x is None:
+                raise ValueError("a relighting budget needs a field with specular heads (optimize.specular: true)")
+            parts.setdefault(k, []).append(x)
+    return {k: torch.cat(x) for k, x in parts.items()}
+
+
+def shade_surface(surface: dict[str, torch.Tensor], view: torch.Tensor, light: SGLight, lobe: str, visibility=None):
+    """Linear radiance ``(N, 3)`` of ``surface`` (:func:`true_surface`'s terms) seen along ``view``
+    under ``light`` with each lobe's visible share ``visibility (N, K)`` (or none)."""
+    if "base" in surface:
+        material = Material.gltf(surface["base"], surface["metallic"], surface["roughness"])
+    else:
+        material = Material(surface["albedo"], surface["specular"], surface["roughness"])
+    return shade_material(surface["normal"], view, material, light, lobe, visibility).rgb
+
+
+def _shares(store: ViewStore, light: SGLight) -> torch.Tensor | None:
+    """Each lobe's visible share at every hit of ``store``'s views, or None without shadows."""
+    shadows = [store[i].shadows for i in range(len(store))]
+    return None if any(s is None for s in shadows) else torch.cat([s.shares(light) for s in shadows])
+
+
 @torch.no_grad()
 def _truth_radiance(truth: TargetSet, store: ViewStore, light: SGLight, lobe: str, brdf: str = "tango") -> torch.Tensor:
     """Linear radiance ``(N, 3)`` of our renderer (the BRDF ``brdf``) given the true material and
     shading normals, with the shadows of ``store``'s views when they carry them (as the field's)."""
-    dev = light.axis.device
     view = torch.cat([store[i].view for i in range(len(store))])
-    keys = ("albedo", "specular", "roughness", "normal", *(GLTF_TRUTH_KEYS if brdf == "gltf" else ()))
-    a = {k: torch.from_numpy(truth.arrays[k].astype(np.float32)).to(dev) for k in keys}
-    n = face_viewer(torch.nn.functional.normalize(a["normal"], dim=-1), view)
-    rough = a["roughness"].clamp(0.01, 1.0)
-    material = Material.gltf(a["base"], a["metallic"], rough) if brdf == "gltf" else Material(a["albedo"], a["specular"], rough)
-    shadows = [store[i].shadows for i in range(len(store))]
-    visibility = None if any(s is None for s in shadows) else torch.cat([s.shares(light) for s in shadows])
-    return shade_material(n, view, material, light, lobe, visibility).rgb
+    return shade_surface(true_surface(truth, store, brdf), view, light, lobe, _shares(store, light))
+
+
+#: the search of :func:`channel_scale`: a factor this many times either side of its first guess,
+#: narrowed by golden sections this many times (the bracket shrinks 0.618 per step: 1e-8 of it left)
+SCALE_RANGE, SCALE_STEPS = 64.0, 40
 
 
 def channel_scale(pred: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:
-    """The per-channel factor ``(3,)`` that best maps linear ``pred (N, 3)`` onto ``truth`` in
-    least squares, ``sum(p t) / sum(p p)`` (1 where ``pred`` is all zero)."""
-    num, den = (pred * truth).sum(0), (pred * pred).sum(0)
-    return torch.where(den > 0, num / den.clamp(min=torch.finfo(den.dtype).tiny), torch.ones_like(den))
+    """The per-channel factor ``(3,)`` that best maps linear ``pred (N, 3)`` onto ``truth`` as the
+    figures compare them: the factor ``s`` that minimises the squared error of the sRGB encodings
+    (clipped to [0, 1]) of ``s pred`` and ``truth``, so the scaled PSNR is never below the raw one.
+
+    A least-squares factor in linear radiance would be ruled by the brightest hits: a metal's
+    mirrored sun, hundreds of times the rest and clipped in the figure, pulled it to 4x on a
+    candle whose render it then made worse. The search starts from the linear least-squares factor
+    over the hits that neither clips (all hits if none), ``sum(p t) / sum(p p)``, and narrows a
+    bracket of :data:`SCALE_RANGE` either side of it in ``log s`` by golden sections; the best of
+    the search, that first guess and 1 is returned (1 where ``pred`` is all zero)."""
+    p, t = pred.double(), truth.double()
+    goal = linear_to_srgb(t)
+    plain = (p < 1) & (t < 1)
+    use = torch.where(plain.any(0, keepdim=True), plain, torch.ones_like(plain))
+    num, den = (p * t * use).sum(0), (p * p * use).sum(0)
+    guess = torch.where(den > 0, num / den.clamp(min=1e-300), torch.ones_like(den)).clamp(min=1e-12)
+
+    def error(scale: torch.Tensor) -> torch.Tensor:
+        return ((linear_to_srgb(p * scale) - goal) ** 2).mean(0)
+
+    lo, hi = torch.log(guess) - math.log(SCALE_RANGE), torch.log(guess) + math.log(SCALE_RANGE)
+    ratio = (math.sqrt(5.0) - 1.0) / 2.0
+    x1, x2 = hi - ratio * (hi - lo), lo + ratio * (hi - lo)
+    f1, f2 = error(torch.exp(x1)), error(torch.exp(x2))
+    for _ in range(SCALE_STEPS):
+        left = f1 < f2  # the minimum lies in [lo, x2]: keep x1 as the new x2
+        lo, hi = torch.where(left, lo, x1), torch.where(left, x2, hi)
+        x1, x2, f1, f2 = (
+            torch.where(left, hi - ratio * (hi - lo), x2),
+            torch.where(left, x1, lo + ratio * (hi - lo)),
+            torch.where(left, torch.zeros_like(f1), f2),
+            torch.where(left, f1, torch.zeros_like(f2)),
+        )
+        f1 = torch.where(left, error(torch.exp(x1)), f1)
+        f2 = torch.where(left, f2, error(torch.exp(x2)))
+    candidates = torch.stack([torch.exp((lo + hi) / 2), guess, torch.ones_like(guess)])
+    errors = torch.stack([error(c) for c in candidates])
+    best = candidates.gather(0, errors.argmin(0, keepdim=True))[0]
+    best = torch.where((p > 0).any(0), best, torch.ones_like(best))
+    return best.to(pred.dtype)
 
 
 def grade_relighting(
@@ -97,4 +187,93 @@ def grade_relighting(
             row["ceiling_psnr_db"] = psnr(linear_to_srgb(ceiling), goal)
             row["ceiling_psnr_scaled_db"] = psnr(linear_to_srgb(ceiling * channel_scale(ceiling, truth_linear)), goal)
         out.append(row)
+    return out
+
+
+@dataclass(frozen=True)
+class BudgetCase:
+    """A light a relighting budget grades under: the environment's name (``builtin:<name>`` or a
+    path), ``role`` ``"training"`` (the light the field was fitted under: its learned light is one
+    of the swapped components) or ``"relit"`` (any other: the relit render already takes the
+    environment's SG fit), and Mitsuba's truth at every hit of the store's views, ``radiance
+    (N, 3)`` linear and ``coverage (N,)``, with its own noise."""
+
+    environment: str
+    role: str
+    radiance: np.ndarray
+    coverage: np.ndarray
+    noise_psnr_db: float | None = None
+
+
+def _figures(pred: torch.Tensor, goal: torch.Tensor) -> dict:
+    """PSNR of linear ``pred (N, 3)`` against linear ``goal`` in sRGB, raw and after one scale per
+    channel (:func:`channel_scale`), and the scale."""
+    scale = channel_scale(pred, goal)
+    srgb = linear_to_srgb(goal)
+    return {
+        "psnr_db": psnr(linear_to_srgb(pred), srgb),
+        "psnr_scaled_db": psnr(linear_to_srgb(pred * scale), srgb),
+        "scale": scale.tolist(),
+    }
+
+
+@torch.no_grad()
+def relight_budget(field, store: ViewStore, truth: TargetSet, cases: list[BudgetCase], lobes: int, iterations: int) -> list[dict]:
+    """The relighting error budget of ``field`` on ``store``'s views (the held-out metric views of
+    ``truth``, which carries the true material): per case (:class:`BudgetCase`), the field's render
+    against Mitsuba's truth over the fully covered hits, then with recovered components replaced by
+    their truth, each alone (``alone``) and cumulatively in the order of :data:`BUDGET_COMPONENTS`
+    (``cumulative``; under the training light the learned light, replaced by the environment's SG
+    fit, comes first). With every component replaced the render is the ceiling, our renderer given
+    the true material (:func:`grade_relighting`'s ``ceiling_psnr_db``). Each figure
+    (:func:`_figures`): ``psnr_db``, ``psnr_scaled_db``, ``scale``; each swap also carries its
+    gain in dB over the recovered render (``alone``) and over the previous step (``cumulative``),
+    raw and scaled, so the cumulative gains add up to the gap between the recovered render and the
+    ceiling. The SG fits are :func:`~stages.model.lightfit.fit_sg_light`'s (``lobes``,
+    ``iterations``), as the relight stage's."""
+    brdf = getattr(field, "brdf", "tango")
+    names = BUDGET_COMPONENTS[brdf]
+    recovered = recovered_surface(field, store)
+    true = true_surface(truth, store, brdf)
+    view = torch.cat([store[i].view for i in range(len(store))])
+    dev = view.device
+    learned = field.light()
+    out = []
+    for case in cases:
+        fitted, rel = fit_sg_light(load_env(case.environment), lobes, iterations)
+        fitted = SGLight(fitted.axis.to(dev), fitted.sharpness.to(dev), fitted.amplitude.to(dev))
+        full = torch.from_numpy(case.coverage >= FULL_COVERAGE).to(dev)
+        goal = torch.from_numpy(np.asarray(case.radiance, np.float32)).to(dev)[full]
+        shares = {"learned": _shares(store, learned) if case.role == "training" else None, "fitted": _shares(store, fitted)}
+        components = (("light",) if case.role == "training" else ()) + names
+
+        def render(swapped: tuple[str, ...], full=full, goal=goal, fitted=fitted, shares=shares, role=case.role) -> dict:
+            surface = {k: (true[k] if k in swapped else recovered[k]) for k in names}
+            which = "fitted" if role == "relit" or "light" in swapped else "learned"
+            light = fitted if which == "fitted" else learned
+            visibility = None if shares[which] is None else shares[which][full]
+            sel = {k: x[full] for k, x in surface.items()}
+            return _figures(shade_surface(sel, view[full], light, field.specular_lobe, visibility), goal)
+
+        base = render(())
+        swaps, previous = [], base
+        for j, c in enumerate(components):
+            alone, cumulative = render((c,)), render(components[: j + 1])
+            for fig, ref in ((alone, base), (cumulative, previous)):
+                fig["gain_db"] = fig["psnr_db"] - ref["psnr_db"]
+                fig["gain_scaled_db"] = fig["psnr_scaled_db"] - ref["psnr_scaled_db"]
+            swaps.append({"component": c, "alone": alone, "cumulative": cumulative})
+            previous = cumulative
+        out.append(
+            {
+                "environment": case.environment,
+                "role": case.role,
+                "pixels": int(full.sum()),
+                "noise_psnr_db": case.noise_psnr_db,
+                "sg_fit_relative_rms": rel,
+                "recovered": base,
+                "swaps": swaps,
+                "ceiling": previous,
+            }
+        )
     return out

@@ -22,13 +22,23 @@ def fit_sg_light(env: np.ndarray, lobes: int = 64, iterations: int = 400, seed: 
     """Fit ``lobes`` RGB SG lobes to an equirectangular ``env (H, W, 3)`` by least squares
     weighted by solid angle (Adam). Returns the light and the relative RMS error of the fit.
 
-    The fit is a function of its arguments alone (seeded), so one process fits a map once: a
-    second call with the same map (by content), lobes, iterations and seed returns a copy of the
-    first result (the relight stage fits its map for the figures and again to grade it)."""
+    The fit is a function of its arguments alone: seeded, with a stable order of the brightest
+    directions, on one thread (a sum split over threads rounds differently, and 400 Adam steps
+    carry the difference into the lobes) and its error summed in float64, so every job and process
+    on a machine gets the same bits for the same map; gradients are on whatever the caller's mode
+    (a caller under ``torch.no_grad`` still fits). One process fits a map once: a second call with
+    the same map (by content), lobes, iterations and seed returns a copy of the first result (the
+    relight stage fits its map for the figures and again to grade it)."""
     arr = np.ascontiguousarray(env, dtype=np.float32)
     key = (hashlib.sha256(arr.tobytes()).hexdigest(), arr.shape, int(lobes), int(iterations), int(seed))
     if key not in _FITS:
-        light, rel = _fit(arr, lobes, iterations, seed)
+        threads = torch.get_num_threads()
+        torch.set_num_threads(1)
+        try:
+            with torch.enable_grad():
+                light, rel = _fit(arr, lobes, iterations, seed)
+        finally:
+            torch.set_num_threads(threads)
         while len(_FITS) >= _FITS_KEPT:
             _FITS.pop(next(iter(_FITS)))
         _FITS[key] = ((light.axis, light.sharpness, light.amplitude), rel)
@@ -48,7 +58,7 @@ def _fit(env: np.ndarray, lobes: int, iterations: int, seed: int) -> tuple[SGLig
         energy = float((target * weight).sum(0).mean() * (2 * math.pi / w) * (math.pi / h))
         module = SGLightModule(lobes, rgb=True, total_energy=max(energy, 1e-6))
         # start a quarter of the lobes, sharper, on the brightest directions (suns, windows)
-        order = torch.argsort((target * weight).sum(-1), descending=True)
+        order = torch.argsort((target * weight).sum(-1), descending=True, stable=True)
         k = max(lobes // 4, 1)
         picks, taken = [], []
         for idx in order.tolist():
@@ -70,6 +80,6 @@ def _fit(env: np.ndarray, lobes: int, iterations: int, seed: int) -> tuple[SGLig
         opt.step()
     with torch.no_grad():
         light = module()
-        diff = (light.radiance(dirs) - target) ** 2 * weight
-        rel = math.sqrt(float(diff.sum() / ((target**2) * weight).sum().clamp(min=1e-30)))
+        fit, goal, w = (x.double().numpy() for x in (light.radiance(dirs), target, weight))
+        rel = math.sqrt(float(((fit - goal) ** 2 * w).sum()) / max(float((goal**2 * w).sum()), 1e-30))
     return SGLight(light.axis.detach(), light.sharpness.detach(), light.amplitude.detach()), rel

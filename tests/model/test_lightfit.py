@@ -44,3 +44,34 @@ def test_the_cache_keeps_a_bounded_number_of_fits(monkeypatch):
     for k in range(lightfit._FITS_KEPT + 3):
         lightfit.fit_sg_light(env * np.float32(1 + k), 2, 2)
     assert len(lightfit._FITS) == lightfit._FITS_KEPT
+
+
+_FIT_SCRIPT = """
+import hashlib, sys, torch
+torch.set_num_threads(int(sys.argv[1]))
+from stages.model.lightfit import fit_sg_light
+from stages.render.envmap import load_env
+with torch.no_grad():  # a caller under no_grad (the relighting budget) still fits
+    light, rel = fit_sg_light(load_env(sys.argv[2]), 16, 60)
+digest = hashlib.sha256(b"".join(t.numpy().tobytes() for t in (light.axis, light.sharpness, light.amplitude)))
+print(digest.hexdigest(), repr(rel))
+"""
+
+
+def test_every_process_fits_a_map_to_the_same_bits_whatever_its_threads():
+    """The relight stage's grading fits each environment in its own job: the lobes and the fit's
+    error must be the same bits in a process of 1, 2 or 3 threads (a float32 sum split over
+    threads rounds differently: the error of the studio map's fit differed in its 8th digit)."""
+    import subprocess
+    import sys
+
+    from conftest import REPO
+
+    studio = str(REPO / "config" / "envmaps" / "studio.hdr")
+    outs = {
+        subprocess.run(
+            [sys.executable, "-c", _FIT_SCRIPT, str(threads), studio], capture_output=True, text=True, check=True, cwd=REPO
+        ).stdout
+        for threads in (1, 2, 3)
+    }
+    assert len(outs) == 1, outs
