@@ -72,7 +72,8 @@ def cell_budget(meta: dict, device: str) -> list[dict]:
             target_meta["views"]["metrics"]["noise_psnr_db"],
         )
     ]
-    cases += [BudgetCase(r.environment, "relit", r.radiance, r.coverage, r.noise_psnr_db) for r in load_relit(inputs["truth"], cache)]
+    relit = load_relit(inputs["truth"], cache)
+    cases += [BudgetCase(r.environment, "relit", r.radiance, r.coverage, r.noise_psnr_db) for r in relit]
     s = meta["settings"]
     return relight_budget(field, store, truth, cases, s["lobes"], s["fit_iterations"])
 
@@ -84,7 +85,8 @@ def _pair(fig: dict, key: str = "psnr") -> str:
 def print_budget(name: str, budget: list[dict]) -> None:
     for case in budget:
         scale = ", ".join(f"{x:.2f}" for x in case["recovered"]["scale"])
-        print(f"\n{name}: {case['role']} light {case['environment']} ({case['pixels']:,} pixels, truth's noise {case['noise_psnr_db']:.1f} dB)")
+        noise = f"truth's noise {case['noise_psnr_db']:.1f} dB"
+        print(f"\n{name}: {case['role']} light {case['environment']} ({case['pixels']:,} pixels, {noise})")
         print(f"  {'component':<10} {'alone':>17} {'gain':>17}   {'cumulative':>17} {'gain':>17}   scale (cumulative)")
         print(f"  {'recovered':<10} {_pair(case['recovered']):>17} {'':>17}   {'':>17} {'':>17}   {scale}")
         for sw in case["swaps"]:
@@ -103,7 +105,10 @@ def main() -> None:
     only = args.cells.split(",") if args.cells else None
     cells = graded_cells(args.results, only)
     if not cells:
-        raise SystemExit(f"{args.results}: no relight stage graded against Mitsuba's relit truth (image-guided cells with target.relight_environments)")
+        raise SystemExit(
+            f"{args.results}: no relight stage graded against Mitsuba's relit truth "
+            "(image-guided cells with target.relight_environments)"
+        )
     out = {}
     for name, meta in cells:
         t0 = time.perf_counter()

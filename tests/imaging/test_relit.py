@@ -137,12 +137,16 @@ def test_the_budget_puts_a_gap_on_the_component_that_causes_it(scene, wrong):
     true = true_surface(targets, store, "gltf")
     rng = np.random.default_rng(1)
     truth_rgb = {}
-    for name, light in (("builtin:sun_sky", train), ("builtin:sunset", fit_sg_light(load_env("builtin:sunset"), LOBES, ITERATIONS)[0])):
+    sunset, _ = fit_sg_light(load_env("builtin:sunset"), LOBES, ITERATIONS)
+    for name, light in (("builtin:sun_sky", train), ("builtin:sunset", sunset)):
         clean = shade_surface(true, view, light, "fitted").numpy()
         truth_rgb[name] = clean * (1 + 0.02 * rng.standard_normal(clean.shape)).astype(np.float32)
     coverage = np.ones(n, np.float32)
     coverage[::7] = 0.5  # partly covered hits never count
-    cases = [BudgetCase("builtin:sun_sky", "training", truth_rgb["builtin:sun_sky"], coverage), BudgetCase("builtin:sunset", "relit", truth_rgb["builtin:sunset"], coverage)]
+    cases = [
+        BudgetCase("builtin:sun_sky", "training", truth_rgb["builtin:sun_sky"], coverage),
+        BudgetCase("builtin:sunset", "relit", truth_rgb["builtin:sunset"], coverage),
+    ]
     held = _perturbed(true, wrong)
     learned = SGLight(train.axis, train.sharpness, train.amplitude * (torch.tensor([1.6, 1.0, 0.6]) if wrong == "light" else 1.0))
     budget = relight_budget(_StandIn(held, learned), store, targets, cases, LOBES, ITERATIONS)
