@@ -130,6 +130,7 @@ def run(
                 "light_energy": opt.field.light.energy().tolist(),
                 "light_lobes": opt.field.light.lobes,
                 "light_pruned": opt.light_pruned,
+                "light": opt.light_record,
                 **result,
             },
         )

@@ -27,6 +27,9 @@ LIGHTS = ("studio", "sky")
 #: how the learned light's lobes start (``optimize.light_init``, :func:`stages.model.networks.initial_sharpness`):
 #: all broad, TANGO's random draw, or sharpnesses spread log-uniformly from broad to sharp
 LIGHT_INITS = ("broad", "tango", "spread")
+#: the optimisation's light (``optimize.light``): learned with the material (TANGO), or the SG fit
+#: of a known environment (``optimize.light_map``), held fixed
+LIGHT_MODES = ("learn", "fixed")
 #: the BRDF models (``optimize.brdf``, :mod:`stages.render.shading`): TANGO's diffuse + specular sum,
 #: or glTF 2.0's metallic-roughness BRDF (GGX, separable Smith, dielectric/metal layering)
 BRDFS = ("tango", "gltf")
@@ -361,6 +364,16 @@ class OptimizeSettings(ClipChoice, Settings):
     #: channel are dropped for the rest of the run; null: every lobe is kept (TANGO)
     light_prune_after: int | None = None
     light_prune_share: float = 0.01
+    #: "learn" (TANGO: the light is learned with the material) or "fixed": the light is the SG fit
+    #: of light_map (light_lobes lobes) and never moves, so nothing can trade the base colour
+    #: against the light's brightness or colour (LIGHT_MODES; docs/method/lighting.md)
+    light: str = "learn"
+    #: the environment of light: fixed, builtin:<name> or an .hdr/.exr path (the light the asset
+    #: is to be lit by, or the one the images were lit by)
+    light_map: str | None = None
+    #: weight of the prior that keeps a learned light's colour neutral: each lobe's spread of log
+    #: energy over the channels, weighted by its share of the light's energy (0: off)
+    light_neutral: float = 0.0
     #: the specular model (SPECULAR_LOBES): "isotropic" (TANGO's closed form), "split_sum" (exact
     #: energy from the tabulated directional albedo, the isotropic lobe's shape) or "fitted" (exact
     #: energy, a lobe fitted to the BRDF's moments, corrected by the BRDF at each light lobe); see
@@ -495,6 +508,7 @@ class OptimizeSettings(ClipChoice, Settings):
             p.append(f"light_prune_after must be >= 1 or null, got {self.light_prune_after}")
         if not 0.0 < self.light_prune_share < 1.0:
             p.append(f"light_prune_share must be in (0, 1), got {self.light_prune_share}")
+        p += self._light_problems()
         if self.clip_tower not in CLIP_TOWERS:
             p.append(f"clip_tower must be one of {', '.join(CLIP_TOWERS)}, got {self.clip_tower!r}")
         if self.target_light not in LIGHTS:
@@ -503,6 +517,29 @@ class OptimizeSettings(ClipChoice, Settings):
             p.append("views_per_step, supersample and checkpoint_every must be >= 1 and crops >= 0")
         if p:
             raise ConfigError("optimize settings: " + "; ".join(p))
+
+    def _light_problems(self) -> list[str]:
+        """What is wrong with the light's mode, map and prior."""
+        p = []
+        if self.light not in LIGHT_MODES:
+            p.append(f"light must be one of {', '.join(LIGHT_MODES)}, got {self.light!r}")
+        elif self.light == "fixed" and not self.light_map:
+            p.append("light is fixed but no light_map names its environment (builtin:<name> or an .hdr/.exr file)")
+        if self.light_map is not None:
+            env = self.light_map
+            if env.startswith("builtin:") and env.split(":", 1)[1] not in PROCEDURAL_ENVMAPS:
+                p.append(f"light_map: no procedural environment {env!r}; use one of {PROCEDURAL_ENVMAPS}")
+            elif not env.startswith("builtin:") and not env.lower().endswith((".hdr", ".exr")):
+                p.append(f"light_map: {env!r} is neither builtin:<name> nor an .hdr/.exr file")
+        if not 0.0 <= self.light_neutral <= 1e6:
+            p.append(f"light_neutral must be in [0, 1e6], got {self.light_neutral}")
+        elif self.light == "fixed" and self.light_neutral > 0:
+            p.append("light_neutral is a prior on a learned light; a fixed light (light: fixed) does not move")
+        if self.light == "fixed" and self.light_prune_after is not None:
+            p.append("light_prune_after prunes a learned light; a fixed light (light: fixed) keeps its fitted lobes")
+        if self.light == "fixed" and not self.light_rgb:
+            p.append("light: fixed needs light_rgb: true (the map's colour is part of the light)")
+        return p
 
     def digest(self) -> str:
         """Hash of the settings that shape training (a checkpoint resumes only under the same)."""

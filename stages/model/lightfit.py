@@ -8,7 +8,8 @@ import math
 import numpy as np
 import torch
 
-from ..render.envmap import equirect_directions
+from ..render.envmap import equirect_directions, load_env
+from ..render.sg import sg_integral
 from ..render.shading import SGLight
 from .networks import SGLightModule
 
@@ -83,3 +84,19 @@ def _fit(env: np.ndarray, lobes: int, iterations: int, seed: int) -> tuple[SGLig
         fit, goal, w = (x.double().numpy() for x in (light.radiance(dirs), target, weight))
         rel = math.sqrt(float(((fit - goal) ** 2 * w).sum()) / max(float((goal**2 * w).sum()), 1e-30))
     return SGLight(light.axis.detach(), light.sharpness.detach(), light.amplitude.detach()), rel
+
+
+def hold_environment(module: SGLightModule, spec: str, iterations: int = 400) -> dict:
+    """The known-light mode (``optimize.light: fixed``): put ``module``'s lobes at the SG fit of the
+    environment ``spec`` (``builtin:<name>`` or an .hdr/.exr path; :func:`fit_sg_light` with the
+    module's number of lobes) and stop them learning (``requires_grad`` off). Returns what the
+    metadata records: the map, its lobes and the fit's relative RMS error."""
+    if module.log_energy.shape[1] != 3:
+        raise ValueError("a fixed light needs an RGB light (optimize.light_rgb: true)")
+    fitted, rel = fit_sg_light(load_env(spec), module.lobes, iterations)
+    energy = sg_integral(fitted.sharpness, fitted.amplitude)
+    index = torch.arange(module.lobes)
+    module.set_lobes(index, fitted.axis, fitted.sharpness, energy)
+    for p in module.parameters():
+        p.requires_grad_(False)
+    return {"map": spec, "lobes": module.lobes, "sg_fit_relative_rms": rel}

@@ -380,6 +380,21 @@ def initial_sharpness(lobes: int, init: str = "broad", sharpness: float | None =
 LIGHT_PARAMETERS = ("axis_raw", "log_sharpness", "log_energy")
 
 
+def colour_spread(log_energy: Tensor) -> Tensor:
+    """How far a light is from white: per lobe the variance over the channels of its log energy
+    ``log_energy (K, C)``, weighted by the lobe's share of the light's energy (the weights held
+    constant), -> ``()``. Zero for a light whose every lobe is grey whatever its brightness; 1/6 of
+    ``(ln r)^2`` for a light whose lobes are all ``(r, 1, 1/r)``-coloured. The prior of
+    ``optimize.light_neutral`` (nvdiffrec holds its light towards white per texel, in linear
+    radiance; in log energy a lobe's colour is held at any brightness). Finite for any energy the
+    parametrisation reaches (``log_energy`` is clamped there)."""
+    centred = log_energy - log_energy.mean(-1, keepdim=True)
+    with torch.no_grad():
+        e = torch.exp(log_energy - log_energy.max()).sum(-1)
+        w = e / e.sum().clamp(min=torch.finfo(e.dtype).tiny)
+    return (w * centred.pow(2).mean(-1)).sum()
+
+
 class SGLightModule(nn.Module):
     """``K`` learnable SG lobes on a Fibonacci sphere, with sharpnesses from :func:`initial_sharpness`
     and equal energies summing to ``total_energy`` (``E = sum_k int G_k``, the true SG integral;
@@ -435,6 +450,10 @@ class SGLightModule(nn.Module):
         self.log_sharpness[index] = torch.log(sharpness.to(self.log_sharpness).clamp(lo, hi))
         if energy is not None:
             self.log_energy[index] = torch.log(energy.to(self.log_energy).clamp(min=1e-30))
+
+    def colour_spread(self) -> Tensor:
+        """The light's departure from white (:func:`colour_spread`), differentiable in its energies."""
+        return colour_spread(self.log_energy.clamp(max=LOG_ENERGY_MAX))
 
     def energy(self) -> Tensor:
         """Total energy per channel ``(3,)``: the sum of the lobes' sphere integrals."""

@@ -25,6 +25,7 @@ from ..imaging.images import ImageSpec, background, compose, gather_points, glob
 from ..imaging.targets import TargetSet
 from ..imaging.views import CachedView, ViewStore
 from ..model.field import StyleField
+from ..model.lightfit import hold_environment
 from ..render.color import linear_to_srgb
 
 
@@ -65,6 +66,10 @@ class Optimizer:
         self.s = settings
         self.device = torch.device(device)
         self.field = StyleField(settings.field_settings()).to(self.device)
+        #: the light's mode for the metadata: learned, or the fixed fit of a known map (``light: fixed``)
+        self.light_record: dict = {"mode": settings.light}
+        if settings.light == "fixed":
+            self.light_record.update(hold_environment(self.field.light, settings.light_map))
         #: what the networks' products ran in during training, for the metadata
         self.network_precision = self.field.use_bf16(settings.bf16_networks, self.device)
         self.field.use_compiled_shading(settings.compile_shading, self.device, settings.iterations)
@@ -208,6 +213,10 @@ class Optimizer:
                     crops_t.extend(timgs[1:])
         with timer("guidance"):
             loss, stats = self.objective.loss(globals_, crops, globals_t, crops_t)
+            if s.light_neutral > 0:
+                spread = self.field.light.colour_spread()
+                loss = loss + s.light_neutral * spread
+                stats["light_colour_spread"] = float(spread.detach())
         with timer("backward"):
             self.opt.zero_grad(set_to_none=True)
             loss.backward()

@@ -194,6 +194,15 @@ def cell_targets(name):
     return targets
 
 
+def light_map_input(wildcards):
+    """Input function of optimize: the environment file of ``optimize.light: fixed`` (not
+    builtin:), so that editing it trains the cell again."""
+    s = CFG.optimize_settings(wildcards.prompt, wildcards.variant)
+    if s.light != "fixed" or s.light_map.startswith("builtin:"):
+        return {}
+    return {"light_map": s.light_map}
+
+
 def targets_option(wildcards, input):
     """Params function: ``--targets FILE`` when the job has Mitsuba targets, else nothing."""
     return f"--targets {input.targets}" if "targets" in input.keys() else ""

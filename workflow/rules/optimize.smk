@@ -1,6 +1,7 @@
 rule optimize:
     input:
         unpack(cell_targets("train")),
+        unpack(light_map_input),
         train=mesh_work_input("raycache", "train.npz"),
         eval=mesh_work_input("raycache", "eval.npz"),
     output:

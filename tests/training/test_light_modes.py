@@ -1,0 +1,99 @@
+"""The light's levers against baked-in lighting: the known-light mode (``optimize.light: fixed``,
+the SG fit of ``light_map`` held still through a run and into every later file) and the prior
+that keeps a learned light's colour neutral (``optimize.light_neutral``)."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+import torch
+from test_optimize import TINY
+
+from stages import optimize
+from stages.config.sections import OptimizeSettings
+from stages.core.errors import ConfigError
+from stages.core.provenance import Timer
+from stages.geometry.raycache import RayCache
+from stages.model.checkpoint import load_field
+from stages.model.lightfit import fit_sg_light
+from stages.model.networks import SGLightModule, colour_spread
+from stages.render.envmap import load_env
+from stages.training.optimizer import Optimizer
+
+
+def test_colour_spread_against_its_definition():
+    """Written out here: per lobe the population variance of ln(E) over the channels, weighted by
+    the lobe's share of the summed energy; zero for grey lobes of any brightness, (ln r)^2 * 2/3
+    for a lobe (r, 1, 1/r); the weights carry no gradient (mutation: a brighter lobe alone cannot
+    lower the prior by taking energy from a coloured one)."""
+    e = torch.tensor([[2.0, 2.0, 2.0], [3.0, 1.0, 1 / 3.0], [0.5, 0.1, 0.2]], dtype=torch.float64)
+    log_e = torch.log(e).requires_grad_()
+    got = colour_spread(log_e)
+    share = e.sum(1) / e.sum()
+    var = [float(torch.var(torch.log(row), unbiased=False)) for row in e]
+    assert float(got.detach()) == pytest.approx(sum(float(w) * v for w, v in zip(share, var, strict=True)), rel=1e-12)
+    assert var[0] == 0.0 and var[1] == pytest.approx(2 / 3 * math.log(3.0) ** 2, rel=1e-12)
+    got.backward()
+    assert log_e.grad[0].abs().max() == 0.0  # a grey lobe is not pushed at all, whatever the weights
+    assert float(colour_spread(torch.full((4, 3), -200.0))) == 0.0  # finite at the parametrisation's floor
+    assert torch.isfinite(colour_spread(torch.tensor([[30.0, -300.0, 0.0]])))
+
+
+def test_the_prior_pulls_a_coloured_light_towards_white(cache):
+    """With light_neutral the loss grows by the weight times the spread (recorded per step), and
+    the light ends greyer than the same run without it."""
+    ends = {}
+    for weight in (0.0, 1.0):
+        s = OptimizeSettings(iterations=6, light_neutral=weight, light_lr=0.1, **TINY)
+        opt = Optimizer(s, RayCache(cache / "train.npz"), "a vase made of wood", "cpu")
+        with torch.no_grad():
+            opt.field.light.log_energy[:, 0] += 1.0  # a red light to start from
+        for _ in range(6):
+            row = opt.step(Timer())
+        assert ("light_colour_spread" in row) == (weight > 0)
+        ends[weight] = float(opt.field.light.colour_spread().detach())
+    assert ends[1.0] < 0.8 * ends[0.0], ends
+
+
+def test_a_fixed_light_is_the_maps_fit_and_never_moves(cache, tmp_path):
+    """light: fixed puts the SG fit of the map in the light (the same lobes fit_sg_light gives for
+    the field's number of lobes), trains without moving it, records it in the metadata and hands it
+    to every later stage through field.pt; the networks still learn."""
+    s = OptimizeSettings(iterations=4, light="fixed", light_map="builtin:sunset", **TINY)
+    meta = optimize.run(cache / "train.npz", cache / "eval.npz", "a vase", tmp_path, s, "cpu")
+    assert meta["light"]["mode"] == "fixed" and meta["light"]["map"] == "builtin:sunset"
+    assert meta["light"]["lobes"] == TINY["light_lobes"] and 0 < meta["light"]["sg_fit_relative_rms"] < 1
+    field, _ = load_field(tmp_path / "field.pt")
+    fitted, _ = fit_sg_light(load_env("builtin:sunset"), TINY["light_lobes"], 400)
+    light = field.light()
+    torch.testing.assert_close(light.axis, fitted.axis, rtol=0, atol=1e-6)
+    torch.testing.assert_close(light.sharpness, fitted.sharpness, rtol=1e-5, atol=0)
+    torch.testing.assert_close(light.amplitude, fitted.amplitude, rtol=1e-4, atol=0)
+    learned = SGLightModule(TINY["light_lobes"], init="tango")
+    assert not torch.allclose(learned().amplitude, light.amplitude)
+    rows = (tmp_path / "loss.csv").read_text().splitlines()
+    assert len(rows) == 5
+    start = OptimizeSettings(iterations=1, **TINY)
+    first = Optimizer(start, RayCache(cache / "train.npz"), "a vase", "cpu").field.svbrdf.state_dict()
+    trained = field.svbrdf.state_dict()
+    assert any(not torch.equal(first[k], trained[k]) for k in first)
+    assert json.loads((tmp_path / "meta.json").read_text())["light"]["mode"] == "fixed"
+
+
+def test_light_settings_are_checked():
+    with pytest.raises(ConfigError, match="no light_map"):
+        OptimizeSettings(light="fixed")
+    with pytest.raises(ConfigError, match="light must be one of learn, fixed"):
+        OptimizeSettings(light="baked")
+    with pytest.raises(ConfigError, match="neither builtin"):
+        OptimizeSettings(light="fixed", light_map="sky.png")
+    with pytest.raises(ConfigError, match="no procedural environment"):
+        OptimizeSettings(light="fixed", light_map="builtin:moon")
+    with pytest.raises(ConfigError, match="does not move"):
+        OptimizeSettings(light="fixed", light_map="builtin:sunset", light_neutral=1.0)
+    with pytest.raises(ConfigError, match="light_rgb"):
+        OptimizeSettings(light="fixed", light_map="builtin:sunset", light_rgb=False)
+    with pytest.raises(ConfigError, match="light_neutral must be in"):
+        OptimizeSettings(light_neutral=-1.0)
