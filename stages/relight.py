@@ -6,7 +6,8 @@ sphere, :mod:`stages.model.lightfit`), so the field's own forward pass renders i
 override). Outputs: ``relit.png`` (the evaluation views under the new light), ``material_edit.png``
 (TANGO's material-editing figure: the front view, rows = roughness scales, columns = specular
 scales, under the new light), ``light_fit.png`` (the map and its SG fit) and ``meta.json`` (fit
-error, mean brightness of each image).
+error, mean brightness of each image); for a graded cell also ``ground_truth.png`` (per judge
+environment: the field relit, Mitsuba's truth and 4 x their difference on the metric views).
 
 For an image-guided cell with Mitsuba targets the relighting is also *graded*: the target stage
 rendered the true material on the held-out metric views under each of
@@ -30,7 +31,7 @@ from .core.errors import StageInputError
 from .core.provenance import ORIGIN_KEY, Timer, metadata, staged_outputs, write_json_atomic
 from .geometry.raycache import RayCache
 from .imaging.images import render_cached_view
-from .imaging.relit import grade_relighting
+from .imaging.relit import comparison_rows, grade_relighting
 from .imaging.sheets import contact_sheet, save_png
 from .imaging.targets import TargetSet, load_relit
 from .imaging.views import ViewStore
@@ -52,6 +53,19 @@ def render_edit(field, view, width: int, out: int, light, edit: MaterialEdit | N
         return linear_to_srgb(v.shade(field, sel, light, edit).shading.rgb)
 
     return render_cached_view(view, width, out, colors)
+
+
+#: the most metric views the comparison with the truth shows per row
+TRUTH_SHEET_VIEWS = 8
+
+
+def _truth_sheet(store: ViewStore, relit, renders: dict, width: int) -> np.ndarray:
+    """``ground_truth.png``: per environment three rows over the metric views of the front view's
+    elevation (at most :data:`TRUTH_SHEET_VIEWS`): the field relit, Mitsuba's truth, 4 x |difference|."""
+    elevation = store.cache.arrays["elevation"]
+    ring = np.flatnonzero(np.isclose(elevation, elevation[store.cache.front_view()]))[:TRUTH_SHEET_VIEWS].tolist()
+    images = [img for r in relit for img in comparison_rows(store, ring, renders[r.environment], r.radiance, width)]
+    return contact_sheet(images, len(ring))
 
 
 def run(
@@ -104,7 +118,9 @@ def run(
                 cache = RayCache(metrics_cache)
                 metric = ViewStore(cache, dev, field.normals, shadows=field.shadows)
                 relit, truth = load_relit(truth_path, cache), TargetSet(targets_path, cache)
-                ground_truth = grade_relighting(field, metric, relit, truth, settings.lobes, settings.fit_iterations)
+                renders: dict = {}
+                ground_truth = grade_relighting(field, metric, relit, truth, settings.lobes, settings.fit_iterations, renders)
+                save_png(staging / "ground_truth.png", _truth_sheet(metric, relit, renders, settings.width))
             for g in ground_truth:
                 log.info(
                     "relit under %s: %.2f dB against Mitsuba's truth (ceiling %.2f dB)",
@@ -120,6 +136,8 @@ def run(
             "mean_material_edit": [float(g.mean()) for g in grid],
             "front_view": front,
         }
+        if not graded:  # a comparison left by an earlier, graded run is not this run's
+            (out_dir / "ground_truth.png").unlink(missing_ok=True)
         write_json_atomic(
             staging / "meta.json",
             metadata(
@@ -130,7 +148,10 @@ def run(
                     "eval": eval_path,
                     **({"truth": truth_path, "targets": targets_path, "metrics_cache": metrics_cache} if graded else {}),
                 },
-                outputs={k: out_dir / f"{k}.png" for k in ("relit", "material_edit", "light_fit")},
+                outputs={
+                    k: out_dir / f"{k}.png"
+                    for k in ("relit", "material_edit", "light_fit", *(("ground_truth",) if graded else ()))
+                },
                 timings={**timer.seconds, "total": timer.total()},
                 extra={"stats": stats, ORIGIN_KEY: field.origin},
             ),

@@ -27,6 +27,7 @@ from ..model.networks import Material
 from ..render.color import linear_to_srgb
 from ..render.envmap import load_env
 from ..render.shading import SGLight, face_viewer
+from .images import render_cached_view
 from .quality import psnr
 from .targets import FULL_COVERAGE, GLTF_TRUTH_KEYS, RelitTruth, TargetSet
 from .views import ViewStore
@@ -153,7 +154,13 @@ def channel_scale(pred: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:
 
 
 def grade_relighting(
-    field, store: ViewStore, relit: list[RelitTruth], truth: TargetSet | None, lobes: int, iterations: int
+    field,
+    store: ViewStore,
+    relit: list[RelitTruth],
+    truth: TargetSet | None,
+    lobes: int,
+    iterations: int,
+    renders: dict | None = None,
 ) -> list[dict]:
     """Per environment of ``relit``: ``environment``, ``psnr_db`` (the field relit against Mitsuba's
     truth), ``psnr_scaled_db`` and ``scale`` (the same after one least-squares factor per channel,
@@ -161,7 +168,9 @@ def grade_relighting(
     factor, so the raw figure also counts that unrecoverable scale; inverse-rendering evaluations
     align it), ``ceiling_psnr_db`` and ``ceiling_psnr_scaled_db`` (the true material in our
     renderer, when ``truth`` carries it), ``pixels``, ``noise_psnr_db`` (the truth's own noise) and
-    ``sg_fit_relative_rms`` (the environment's SG fit)."""
+    ``sg_fit_relative_rms`` (the environment's SG fit). ``renders``: a dict that receives, per
+    environment, the field's linear radiance at every hit of the views (cache order), for figures
+    beside the truth (:func:`comparison_rows`)."""
     out = []
     dev = next(field.parameters()).device
     for r in relit:
@@ -170,7 +179,10 @@ def grade_relighting(
         full = torch.from_numpy(r.coverage >= FULL_COVERAGE).to(dev)
         truth_linear = torch.from_numpy(r.radiance).to(dev)[full]
         goal = linear_to_srgb(truth_linear)
-        ours_linear = _field_radiance(field, store, light)[full]
+        ours_all = _field_radiance(field, store, light)
+        if renders is not None:
+            renders[r.environment] = ours_all
+        ours_linear = ours_all[full]
         scale = channel_scale(ours_linear, truth_linear)
         row = {
             "environment": r.environment,
@@ -277,3 +289,19 @@ def relight_budget(field, store: ViewStore, truth: TargetSet, cases: list[Budget
             }
         )
     return out
+
+
+@torch.no_grad()
+def comparison_rows(store: ViewStore, views: list[int], ours: torch.Tensor, truth: np.ndarray, out: int) -> list[torch.Tensor]:
+    """Three rows of images ``(3, out, out)`` of the metric ``views`` (indices into ``store``):
+    ``ours (N, 3)`` and Mitsuba's ``truth (N, 3)`` (linear radiance at every hit, cache order) in
+    sRGB, then 4 x their absolute difference; the background black."""
+    offsets = store.cache.arrays["offsets"]
+    goal = torch.from_numpy(np.asarray(truth, np.float32)).to(ours.device)
+    rows: list[list[torch.Tensor]] = [[], [], []]
+    for i in views:
+        lo, hi = int(offsets[i]), int(offsets[i + 1])
+        a, b = linear_to_srgb(ours[lo:hi]), linear_to_srgb(goal[lo:hi])
+        for row, values in zip(rows, (a, b, (4.0 * (a - b).abs()).clamp(max=1.0)), strict=True):
+            row.append(render_cached_view(store[i], store.width, out, lambda v, sel, x=values: x[sel]))
+    return [img for row in rows for img in row]

@@ -65,6 +65,7 @@ CELL_FILES = (
     ("relight", "relit.png", "relit.png"),
     ("relight", "material_edit.png", "material_edit.png"),
     ("relight", "light_fit.png", "light_fit.png"),
+    ("relight", "ground_truth.png", "relit_truth.png"),
     ("metrics", "views.png", "metric_views.png"),
     ("metrics", "targets.png", "metric_targets.png"),
     ("roundtrip", "compare.png", "roundtrip_compare.png"),
@@ -163,11 +164,14 @@ def fidelity_lines(row) -> str:
         ceilings = str(ceiling).split("/") if isinstance(ceiling, str) else [None] * len(ours)
         scaled = row["relit_psnr_scaled_db"].iloc[0] if "relit_psnr_scaled_db" in row else None
         scaled = str(scaled).split("/") if isinstance(scaled, str) else [None] * len(ours)
+        factors = row["relit_scale"].iloc[0] if "relit_scale" in row else None
+        factors = str(factors).split("/") if isinstance(factors, str) else [None] * len(ours)
         parts = [
             f"{env}: {q} dB"
             + (f", {a} dB after a scale per channel" if a is not None else "")
+            + (f" (x {f.replace(',', ', ')})" if f is not None else "")
             + (f" (true material {c} dB)" if c is not None else "")
-            for env, q, a, c in zip(envs, ours, scaled, ceilings, strict=True)
+            for env, q, a, f, c in zip(envs, ours, scaled, factors, ceilings, strict=True)
         ]
         lines.append("relit, against Mitsuba's truth (held-out views, object pixels): " + "; ".join(parts))
     glb, usdz = _figure(row, "roundtrip_glb_psnr_db"), _figure(row, "roundtrip_usdz_psnr_db")
@@ -383,6 +387,11 @@ def cell_body(
     for name, title in (
         ("relit.png", "Relighting (evaluation views under a new environment)"),
         ("light_fit.png", "The new environment and its SG fit"),
+        (
+            "relit_truth.png",
+            "Relit against the truth (held-out views; per light: our relit render | Mitsuba's render of the true material"
+            " | 4 x |difference|)",
+        ),
         ("material_edit.png", "Material editing (rows: roughness x, columns: specular x)"),
         ("metric_views.png", "Metric views"),
         ("metric_targets.png", "Metric targets"),

@@ -153,6 +153,9 @@ def summary_rows(
                 "relit_psnr_db": "/".join(f"{g['psnr_db']:.2f}" for g in relit) or None,
                 "relit_psnr_scaled_db": "/".join(f"{g['psnr_scaled_db']:.2f}" for g in relit if "psnr_scaled_db" in g) or None,
                 "relit_ceiling_psnr_db": "/".join(f"{g['ceiling_psnr_db']:.2f}" for g in relit if "ceiling_psnr_db" in g) or None,
+                # the per-channel factors of the scaled figures, "r,g,b" per environment: unequal
+                # factors mean the light's colour went into the base colour
+                "relit_scale": "/".join(",".join(f"{x:.2f}" for x in g["scale"]) for g in relit if "scale" in g) or None,
             }
         )
         rt = _read(cdir / "roundtrip" / "meta.json") or {}

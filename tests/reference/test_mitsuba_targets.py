@@ -491,9 +491,33 @@ def _grading_tells_a_disentangled_field_from_a_baked_one(metrics_cache, target_d
     assert shadowed[0].shadows is not None
     for sh in grade_relighting(_TruthField(truth), shadowed, relit, targets, 16, 100):
         assert sh["psnr_db"] == pytest.approx(sh["ceiling_psnr_db"], abs=1e-6)
+    _budget_ends_at_the_grades_ceiling(cache, targets, relit)
     from stages.imaging.relit import _truth_radiance
 
     lit = _truth_radiance(targets, store, training, "fitted")
     dimmed = _truth_radiance(targets, shadowed, training, "fitted")
     # the vase from its side (elevation 0) sees few shadowed hits: its lip shades a few of its neck
     assert (dimmed <= lit + 2e-4).all() and ((lit - dimmed).amax(1) > 1e-3).sum() >= 3
+
+
+def _budget_ends_at_the_grades_ceiling(cache, targets, relit):
+    """The relighting budget of a real (untrained) glTF field against Mitsuba's relit truth starts
+    at the grade's figure for the field and, every component replaced, ends at the grade's ceiling
+    (the true material in our renderer), raw and scaled; the cumulative gains add up to the gap."""
+    from stages.config.sections import OptimizeSettings
+    from stages.imaging.relit import BudgetCase, grade_relighting, relight_budget
+    from stages.imaging.views import ViewStore
+    from stages.model.field import StyleField
+
+    field = StyleField(OptimizeSettings(width=16, light_lobes=8, material_frequencies=2, normal_frequencies=2).field_settings())
+    field.eval()
+    store = ViewStore(cache, "cpu", field.normals, shadows=True)
+    grades = grade_relighting(field, store, relit, targets, 16, 100)
+    cases = [BudgetCase(r.environment, "relit", r.radiance, r.coverage, r.noise_psnr_db) for r in relit]
+    for g, b in zip(grades, relight_budget(field, store, targets, cases, 16, 100), strict=True):
+        assert b["environment"] == g["environment"] and b["pixels"] == g["pixels"]
+        assert b["recovered"]["psnr_db"] == pytest.approx(g["psnr_db"], abs=1e-6)
+        assert b["ceiling"]["psnr_db"] == pytest.approx(g["ceiling_psnr_db"], abs=1e-6)
+        assert b["ceiling"]["psnr_scaled_db"] == pytest.approx(g["ceiling_psnr_scaled_db"], abs=1e-6)
+        gap = sum(sw["cumulative"]["gain_db"] for sw in b["swaps"])
+        assert gap == pytest.approx(g["ceiling_psnr_db"] - g["psnr_db"], abs=1e-6)

@@ -244,10 +244,17 @@ def test_relit_figures_on_the_cell_line():
                 "relit_psnr_db": "21.50/19.25",
                 "relit_psnr_scaled_db": "23.00/20.00",
                 "relit_ceiling_psnr_db": "27.00/25.10",
+                "relit_scale": "1.72,1.46,1.12/1.00,1.01,0.99",
             }
         ]
     )
     line = fidelity_lines(row)
-    assert "builtin:sunset: 21.50 dB, 23.00 dB after a scale per channel (true material 27.00 dB)" in line
-    assert "config/envmaps/studio.hdr: 19.25 dB, 20.00 dB after a scale per channel (true material 25.10 dB)" in line
+    expected = "builtin:sunset: 21.50 dB, 23.00 dB after a scale per channel (x 1.72, 1.46, 1.12) (true material 27.00 dB)"
+    assert expected in line
+    expected = (
+        "config/envmaps/studio.hdr: 19.25 dB, 20.00 dB after a scale per channel (x 1.00, 1.01, 0.99) (true material 25.10 dB)"
+    )
+    assert expected in line
+    old = row.drop(columns=["relit_scale"])  # a summary written before the factors were: the line without them
+    assert "builtin:sunset: 21.50 dB, 23.00 dB after a scale per channel (true material 27.00 dB)" in fidelity_lines(old)
     assert "relit" not in fidelity_lines(pd.DataFrame([{"relit_psnr_db": float("nan")}]))

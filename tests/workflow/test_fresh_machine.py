@@ -170,8 +170,14 @@ def test_own_mesh_image_guided_runs_end_to_end_on_a_bare_machine(machine, tmp_pa
     # the relighting was graded against Mitsuba's relit truth (target.relight_environments)
     relit = json.loads((cell / "relight" / "meta.json").read_text())["stats"]["ground_truth"]
     assert [g["environment"] for g in relit] == ["builtin:sunset"] and all(g["pixels"] > 0 for g in relit)
+    # shown beside the truth: one environment, three rows (ours, Mitsuba's, the difference) on the cell's page
+    from PIL import Image
+
+    tile = json.loads((cell / "relight" / "meta.json").read_text())["settings"]["width"]
+    width, height = Image.open(cell / "relight" / "ground_truth.png").size
+    assert height == 3 * tile and width % tile == 0 and 1 <= width // tile <= 8
     summary = (clone / "results" / name / "report" / "summary.csv").read_text()
-    assert "relit_psnr_db" in summary.splitlines()[0]
+    assert "relit_psnr_db" in summary.splitlines()[0] and "relit_scale" in summary.splitlines()[0]
     index = (clone / "results" / name / "report" / "index.html").read_text()
     assert "<model-viewer" not in index and "id='no-viewer'" in index and "image-guided" in index
     # the same command again: the same config, nothing to redo
