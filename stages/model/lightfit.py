@@ -8,7 +8,7 @@ import math
 import numpy as np
 import torch
 
-from ..render.envmap import equirect_directions, load_env
+from ..render.envmap import equirect_directions, load_env, radiant_energy
 from ..render.sg import sg_integral
 from ..render.shading import SGLight
 from .networks import SGLightModule
@@ -21,7 +21,8 @@ _FITS_KEPT = 16
 
 def fit_sg_light(env: np.ndarray, lobes: int = 64, iterations: int = 400, seed: int = 0) -> tuple[SGLight, float]:
     """Fit ``lobes`` RGB SG lobes to an equirectangular ``env (H, W, 3)`` by least squares
-    weighted by solid angle (Adam). Returns the light and the relative RMS error of the fit.
+    weighted by solid angle (Adam), the lobes carrying the map's radiant energy per channel
+    exactly. Returns the light and the relative RMS error of the fit.
 
     The fit is a function of its arguments alone: seeded, with a stable order of the brightest
     directions, on one thread (a sum split over threads rounds differently, and 400 Adam steps
@@ -47,8 +48,20 @@ def fit_sg_light(env: np.ndarray, lobes: int = 64, iterations: int = 400, seed: 
     return SGLight(*(t.clone() for t in params)), rel
 
 
+def with_energy(light: SGLight, energy: torch.Tensor) -> SGLight:
+    """``light`` with its amplitudes scaled per channel so that its radiant energy, the sum of its
+    lobes' sphere integrals, is ``energy (3,)`` (a channel without energy stays dark)."""
+    have = sg_integral(light.sharpness, light.amplitude).sum(0)
+    factor = torch.where(have > 0, energy / have.clamp(min=torch.finfo(have.dtype).tiny), torch.zeros_like(have))
+    return SGLight(light.axis, light.sharpness, light.amplitude * factor)
+
+
 def _fit(env: np.ndarray, lobes: int, iterations: int, seed: int) -> tuple[SGLight, float]:
-    """:func:`fit_sg_light`'s work, uncached."""
+    """:func:`fit_sg_light`'s work, uncached: least squares under the constraint that the lobes
+    carry the map's radiant energy per channel (:func:`with_energy`). Unconstrained, the fit of
+    ``builtin:sun_sky`` carried 19-43% too much energy, more in red than in blue (a sun sharper than
+    the map's pixels leaves a sharp lobe's energy free): a light too bright and too red in every
+    ceiling and in the known-light mode."""
     h, w, _ = env.shape
     dirs = equirect_directions(h, w).reshape(-1, 3)
     el = math.pi / 2 - math.pi * (torch.arange(h) + 0.5) / h
@@ -72,15 +85,16 @@ def _fit(env: np.ndarray, lobes: int, iterations: int, seed: int) -> tuple[SGLig
         module.set_lobes(torch.arange(len(picks)), dirs[picks], torch.full((len(picks), 1), 100.0))
     opt = torch.optim.Adam(module.parameters(), lr=0.03)
     scale = target.abs().max().clamp(min=1e-12)
+    goal_energy = torch.from_numpy(radiant_energy(env)).float()
     for _ in range(iterations):
-        light = module()
+        light = with_energy(module(), goal_energy)
         err = ((light.radiance(dirs) - target) / scale) ** 2 * weight
         loss = err.mean()
         opt.zero_grad()
         loss.backward()
         opt.step()
     with torch.no_grad():
-        light = module()
+        light = with_energy(module(), goal_energy)
         fit, goal, w = (x.double().numpy() for x in (light.radiance(dirs), target, weight))
         rel = math.sqrt(float(((fit - goal) ** 2 * w).sum()) / max(float((goal**2 * w).sum()), 1e-30))
     return SGLight(light.axis.detach(), light.sharpness.detach(), light.amplitude.detach()), rel
