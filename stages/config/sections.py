@@ -267,6 +267,7 @@ class FieldSettings:
     specular: bool
     init_specular: float | None
     init_roughness: float | None
+    init_metallic: float | None
     min_roughness: float
     normal_network: bool
     normal_encoding: str
@@ -328,6 +329,9 @@ class OptimizeSettings(ClipChoice, Settings):
     specular: bool = True
     init_specular: float | None = None
     init_roughness: float | None = None
+    #: glTF's metallic head starts near this value everywhere (null: the networks' random start,
+    #: about 0.5); a dielectric start is 0.02
+    init_metallic: float | None = None
     min_roughness: float = 0.01
     normal_network: bool = True
     normal_encoding: str = "nerf"
@@ -371,6 +375,10 @@ class OptimizeSettings(ClipChoice, Settings):
     #: the environment of light: fixed, builtin:<name> or an .hdr/.exr path (the light the asset
     #: is to be lit by, or the one the images were lit by)
     light_map: str | None = None
+    #: weight of the prior that takes glTF's metallic to 0 or 1 (a surface is a metal or a
+    #: dielectric; the glTF specification keeps values between for transitions): the mean of
+    #: m (1 - m) over each step's shaded points (0: off)
+    metallic_binary: float = 0.0
     #: weight of the prior that keeps a learned light's colour neutral: each lobe's spread of log
     #: energy over the channels, weighted by its share of the light's energy (0: off)
     light_neutral: float = 0.0
@@ -531,6 +539,14 @@ class OptimizeSettings(ClipChoice, Settings):
                 p.append(f"light_map: no procedural environment {env!r}; use one of {PROCEDURAL_ENVMAPS}")
             elif not env.startswith("builtin:") and not env.lower().endswith((".hdr", ".exr")):
                 p.append(f"light_map: {env!r} is neither builtin:<name> nor an .hdr/.exr file")
+        if not 0.0 <= self.metallic_binary <= 1e6:
+            p.append(f"metallic_binary must be in [0, 1e6], got {self.metallic_binary}")
+        elif self.metallic_binary > 0 and self.brdf != "gltf":
+            p.append("metallic_binary is a prior on glTF's metallic: set brdf: gltf, or metallic_binary: 0")
+        if self.init_metallic is not None and not 0.0 <= self.init_metallic <= 1.0:
+            p.append(f"init_metallic must be in [0, 1] or null, got {self.init_metallic}")
+        elif self.init_metallic is not None and self.brdf != "gltf":
+            p.append("init_metallic is glTF's metallic, which brdf tango does not have: remove it, or set brdf: gltf")
         if not 0.0 <= self.light_neutral <= 1e6:
             p.append(f"light_neutral must be in [0, 1e6], got {self.light_neutral}")
         elif self.light == "fixed" and self.light_neutral > 0:

@@ -92,6 +92,7 @@ class StyleField(nn.Module):
                 specular=s.specular,
                 init_specular=s.init_specular,
                 init_roughness=s.init_roughness,
+                init_metallic=s.init_metallic,
                 min_roughness=s.min_roughness,
                 brdf=s.brdf,
             )

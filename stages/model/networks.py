@@ -251,6 +251,7 @@ class SVBRDFNet(nn.Module):
         specular: bool = True,
         init_specular: float | None = None,
         init_roughness: float | None = None,
+        init_metallic: float | None = None,
         min_roughness: float = 0.01,
         brdf: str = "tango",
     ) -> None:
@@ -276,6 +277,8 @@ class SVBRDFNet(nn.Module):
         if specular and init_roughness is not None:
             u = (float(init_roughness) - min_roughness) / (1.0 - min_roughness)
             _init_constant(self.roughness, torch.tensor([u]))
+        if brdf == "gltf" and init_metallic is not None:  # (a sigmoid reaches 0 and 1 only in the limit)
+            _init_constant(self.specular, torch.tensor([float(init_metallic)]).clamp(1e-3, 1 - 1e-3))
 
     def forward(self, points: Tensor) -> Material:
         """``points (N, 3)`` (already symmetrised if the prior is on) -> :class:`Material`."""

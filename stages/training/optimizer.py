@@ -169,6 +169,24 @@ class Optimizer:
         )
         return specs
 
+    def priors(self, materials: list, stats: dict) -> torch.Tensor:
+        """The weighted priors of this step (each recorded in ``stats`` when on): the learned
+        light's colour spread (``light_neutral``, :meth:`~stages.model.networks.SGLightModule.colour_spread`)
+        and glTF's metallic away from 0 and 1 (``metallic_binary``: the mean of ``m (1 - m)`` over
+        the step's shaded points ``materials``)."""
+        s = self.s
+        total = torch.zeros((), device=self.device)
+        if s.light_neutral > 0:
+            spread = self.field.light.colour_spread()
+            total = total + s.light_neutral * spread
+            stats["light_colour_spread"] = float(spread.detach())
+        if s.metallic_binary > 0:
+            m = torch.cat([mat.metallic for mat in materials])
+            between = (m * (1.0 - m)).mean()
+            total = total + s.metallic_binary * between
+            stats["metallic_between"] = float(between.detach())
+        return total
+
     def check_finite(self, loss: torch.Tensor) -> None:
         """Stop before a non-finite loss or gradient reaches the parameters: one NaN would spread to
         every later step and checkpoint. The last checkpoint holds the state before this step."""
@@ -199,9 +217,12 @@ class Optimizer:
         with timer("networks+shading"):
             globals_, crops, globals_t, crops_t = [], [], [], []
             npts = 0
+            materials = []
             for v, sel, specs, lookups, bgs in batches:
                 npts += len(sel)
-                color = linear_to_srgb(v.shade(self.field, sel).shading.rgb)
+                out = v.shade(self.field, sel)
+                materials.append(out.material)
+                color = linear_to_srgb(out.shading.rgb)
                 imgs = [compose(color, lk, sp, bg) for lk, sp, bg in zip(lookups, specs, bgs, strict=True)]
                 globals_.append(imgs[0])
                 crops.extend(imgs[1:])
@@ -213,10 +234,7 @@ class Optimizer:
                     crops_t.extend(timgs[1:])
         with timer("guidance"):
             loss, stats = self.objective.loss(globals_, crops, globals_t, crops_t)
-            if s.light_neutral > 0:
-                spread = self.field.light.colour_spread()
-                loss = loss + s.light_neutral * spread
-                stats["light_colour_spread"] = float(spread.detach())
+            loss = loss + self.priors(materials, stats)
         with timer("backward"):
             self.opt.zero_grad(set_to_none=True)
             loss.backward()

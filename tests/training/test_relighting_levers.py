@@ -1,6 +1,7 @@
-"""The light's levers against baked-in lighting: the known-light mode (``optimize.light: fixed``,
-the SG fit of ``light_map`` held still through a run and into every later file) and the prior
-that keeps a learned light's colour neutral (``optimize.light_neutral``)."""
+"""The levers against baked-in lighting: the known-light mode (``optimize.light: fixed``, the SG
+fit of ``light_map`` held still through a run and into every later file), the prior that keeps a
+learned light's colour neutral (``optimize.light_neutral``), and glTF's metallic taken to 0 or 1
+(``optimize.metallic_binary``) or started at a dielectric's (``optimize.init_metallic``)."""
 
 from __future__ import annotations
 
@@ -97,3 +98,48 @@ def test_light_settings_are_checked():
         OptimizeSettings(light="fixed", light_map="builtin:sunset", light_rgb=False)
     with pytest.raises(ConfigError, match="light_neutral must be in"):
         OptimizeSettings(light_neutral=-1.0)
+
+
+def test_the_metallic_starts_where_asked(cache):
+    """init_metallic: the metallic head starts at that value everywhere (within 0.01: its last
+    weights are small, not zero); without it, near the sigmoid's middle."""
+    from stages.model.field import StyleField
+
+    pts = torch.rand(2000, 3, generator=torch.Generator().manual_seed(0)) * 2 - 1
+    for start in (0.02, 0.9):
+        field = StyleField(OptimizeSettings(init_metallic=start, **TINY).field_settings())
+        m = field.svbrdf(pts).metallic.detach()
+        assert float((m - start).abs().max()) < 0.01, (start, float(m.min()), float(m.max()))
+    m = StyleField(OptimizeSettings(**TINY).field_settings()).svbrdf(pts).metallic.detach()
+    assert 0.2 < float(m.mean()) < 0.8
+
+
+def test_the_binary_prior_is_the_mean_of_m_one_minus_m_and_pushes_to_the_nearer_end(cache):
+    """metallic_binary adds weight x mean(m (1 - m)) over the step's shaded points (recorded), and
+    its gradient takes each point's metallic towards the nearer of 0 and 1."""
+    from stages.model.networks import Material
+
+    s = OptimizeSettings(iterations=2, metallic_binary=2.0, **TINY)
+    opt = Optimizer(s, RayCache(cache / "train.npz"), "a vase", "cpu")
+    m = torch.tensor([[0.1], [0.4], [0.6], [0.95]], requires_grad=True)
+    mats = [
+        Material.gltf(torch.full((2, 3), 0.5), m[:2], torch.full((2, 1), 0.5)),
+        Material.gltf(torch.full((2, 3), 0.5), m[2:], torch.full((2, 1), 0.5)),
+    ]
+    stats: dict = {}
+    total = opt.priors(mats, stats)
+    expected = float((m * (1 - m)).mean())
+    assert stats == {"metallic_between": pytest.approx(expected)} and float(total) == pytest.approx(2.0 * expected)
+    total.backward()
+    assert (m.grad[:2] > 0).all() and (m.grad[2:] < 0).all()  # descent lowers 0.1, 0.4 and raises 0.6, 0.95
+    row = opt.step(Timer())
+    assert "metallic_between" in row and "light_colour_spread" not in row
+
+
+def test_metallic_settings_are_checked():
+    with pytest.raises(ConfigError, match="metallic_binary is a prior on glTF's metallic"):
+        OptimizeSettings(metallic_binary=0.1, brdf="tango")
+    with pytest.raises(ConfigError, match="init_metallic must be in"):
+        OptimizeSettings(init_metallic=1.5)
+    with pytest.raises(ConfigError, match="brdf tango does not have"):
+        OptimizeSettings(init_metallic=0.0, brdf="tango")
