@@ -75,12 +75,14 @@ def run(
     resumed_from = None
     if ckpt.is_file():
         state = read_torch_file(ckpt, dev, remedy="Delete it to start this optimisation afresh.")
-        if state.get("digest") == settings.digest():
+        if state.get("digest") != settings.digest():
+            log.warning("ignoring %s: written under other settings", ckpt)
+        elif state.get("light", opt.light_record) != opt.light_record:  # light: fixed, its map's file edited since
+            log.warning("ignoring %s: written under another light (%s)", ckpt, state.get("light"))
+        else:
             opt.load(state)
             resumed_from = opt.iteration
             log.info("resumed from %s at iteration %d", ckpt, opt.iteration)
-        else:
-            log.warning("ignoring %s: written under other settings", ckpt)
     progress = Progress(job_label("optimize", out_dir), settings.iterations, initial=opt.iteration)
     done_here = 0
     t_loop = time.perf_counter()
@@ -107,7 +109,12 @@ def run(
             stage="optimize",
             settings=settings.to_dict(),
             seed=settings.seed,
-            inputs={"train": train_path, "eval": eval_path, **({"targets": targets_path} if targets else {})},
+            inputs={
+                "train": train_path,
+                "eval": eval_path,
+                **({"targets": targets_path} if targets else {}),
+                **({"light_map": Path(settings.light_map)} if "sha256" in opt.light_record else {}),
+            },
             outputs={k: out_dir / v for k, v in OPTIMIZE_FILES.items()},
             timings=timings,
             extra={

@@ -136,8 +136,6 @@ def run(
             "mean_material_edit": [float(g.mean()) for g in grid],
             "front_view": front,
         }
-        if not graded:  # a comparison left by an earlier, graded run is not this run's
-            (out_dir / "ground_truth.png").unlink(missing_ok=True)
         write_json_atomic(
             staging / "meta.json",
             metadata(
@@ -156,6 +154,8 @@ def run(
                 extra={"stats": stats, ORIGIN_KEY: field.origin},
             ),
         )
+    if not graded:  # a comparison left by an earlier, graded run is not this run's (removed once this run's files are in)
+        (out_dir / "ground_truth.png").unlink(missing_ok=True)
     return stats
 
 

@@ -533,6 +533,8 @@ class OptimizeSettings(ClipChoice, Settings):
             p.append(f"light must be one of {', '.join(LIGHT_MODES)}, got {self.light!r}")
         elif self.light == "fixed" and not self.light_map:
             p.append("light is fixed but no light_map names its environment (builtin:<name> or an .hdr/.exr file)")
+        elif self.light == "learn" and self.light_map is not None:
+            p.append("light_map names the environment of light: fixed; with light: learn it would be ignored (remove it)")
         if self.light_map is not None:
             env = self.light_map
             if env.startswith("builtin:") and env.split(":", 1)[1] not in PROCEDURAL_ENVMAPS:

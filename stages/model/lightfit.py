@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import math
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -104,7 +105,7 @@ def hold_environment(module: SGLightModule, spec: str, iterations: int = 400) ->
     """The known-light mode (``optimize.light: fixed``): put ``module``'s lobes at the SG fit of the
     environment ``spec`` (``builtin:<name>`` or an .hdr/.exr path; :func:`fit_sg_light` with the
     module's number of lobes) and stop them learning (``requires_grad`` off). Returns what the
-    metadata records: the map, its lobes and the fit's relative RMS error."""
+    metadata records: the map, its lobes, the fit's relative RMS error and, for a file, its sha256."""
     if module.log_energy.shape[1] != 3:
         raise ValueError("a fixed light needs an RGB light (optimize.light_rgb: true)")
     fitted, rel = fit_sg_light(load_env(spec), module.lobes, iterations)
@@ -113,4 +114,7 @@ def hold_environment(module: SGLightModule, spec: str, iterations: int = 400) ->
     module.set_lobes(index, fitted.axis, fitted.sharpness, energy)
     for p in module.parameters():
         p.requires_grad_(False)
-    return {"map": spec, "lobes": module.lobes, "sg_fit_relative_rms": rel}
+    record = {"map": spec, "lobes": module.lobes, "sg_fit_relative_rms": rel}
+    if not spec.startswith("builtin:"):  # a file: what it held (a resumed run checks it is the same)
+        record["sha256"] = hashlib.sha256(Path(spec).read_bytes()).hexdigest()
+    return record

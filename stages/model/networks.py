@@ -386,7 +386,7 @@ LIGHT_PARAMETERS = ("axis_raw", "log_sharpness", "log_energy")
 def colour_spread(log_energy: Tensor) -> Tensor:
     """How far a light is from white: per lobe the variance over the channels of its log energy
     ``log_energy (K, C)``, weighted by the lobe's share of the light's energy (the weights held
-    constant), -> ``()``. Zero for a light whose every lobe is grey whatever its brightness; 1/6 of
+    constant), -> ``()``. Zero for a light whose every lobe is grey whatever its brightness; 2/3 of
     ``(ln r)^2`` for a light whose lobes are all ``(r, 1, 1/r)``-coloured. The prior of
     ``optimize.light_neutral`` (nvdiffrec holds its light towards white per texel, in linear
     radiance; in log energy a lobe's colour is held at any brightness). Finite for any energy the

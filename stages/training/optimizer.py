@@ -114,6 +114,7 @@ class Optimizer:
             "history": self.history,
             "history_stride": self.history_stride,
             "light_pruned": self.light_pruned,
+            "light": self.light_record,
         }
 
     def load(self, state: dict) -> None:

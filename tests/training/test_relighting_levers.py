@@ -143,3 +143,29 @@ def test_metallic_settings_are_checked():
         OptimizeSettings(init_metallic=1.5)
     with pytest.raises(ConfigError, match="brdf tango does not have"):
         OptimizeSettings(init_metallic=0.0, brdf="tango")
+
+
+def test_a_killed_run_resumes_only_under_the_same_light_file(cache, tmp_path):
+    """light: fixed with a file: the checkpoint records the file's sha256, a killed run resumes when
+    the file is unchanged, and starts afresh (its light the new file's fit) when it was edited; the
+    file is among the run's recorded inputs."""
+    from stages.render.envmap import procedural_envmap
+    from stages.render.hdrio import write_hdr
+
+    hdr = tmp_path / "light.hdr"
+    write_hdr(hdr, procedural_envmap("sunset", 32))
+    s = OptimizeSettings(iterations=4, checkpoint_every=2, light="fixed", light_map=str(hdr), **TINY)
+    args = (cache / "train.npz", cache / "eval.npz", "a vase")
+    out = tmp_path / "run"
+    optimize.run(*args, out, s, "cpu", stop_after=3)
+    same = optimize.run(*args, out, s, "cpu")
+    assert same["resumed_from_iteration"] == 2 and same["inputs"]["light_map"]["path"] == str(hdr)
+    assert same["light"]["sha256"] == same["inputs"]["light_map"]["sha256"]
+    optimize.run(*args, out, s, "cpu", stop_after=3)
+    write_hdr(hdr, procedural_envmap("overcast", 32))  # the user edits the map meanwhile
+    edited = optimize.run(*args, out, s, "cpu")
+    assert edited["resumed_from_iteration"] is None and edited["light"]["sha256"] != same["light"]["sha256"]
+    fitted, _ = fit_sg_light(load_env(str(hdr)), TINY["light_lobes"], 400)
+    torch.testing.assert_close(load_field(out / "field.pt")[0].light().amplitude, fitted.amplitude, rtol=1e-4, atol=0)
+    with pytest.raises(ConfigError, match="would be ignored"):
+        OptimizeSettings(light_map="builtin:sunset")
