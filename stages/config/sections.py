@@ -251,6 +251,16 @@ class RaycacheSettings(Settings):
         return self.anchor_azimuth, self.anchor_elevation, "raycache.anchor_azimuth/anchor_elevation (radians)"
 
 
+def environment_problems(key: str, env: str) -> list[str]:
+    """What is wrong with ``env`` as the environment map of setting ``key``: ``builtin:<name>`` of a
+    procedural map, or an .hdr/.exr path."""
+    if env.startswith("builtin:") and env.split(":", 1)[1] not in PROCEDURAL_ENVMAPS:
+        return [f"{key}: no procedural environment {env!r}; use one of {PROCEDURAL_ENVMAPS}"]
+    if not env.startswith("builtin:") and not env.lower().endswith((".hdr", ".exr")):
+        return [f"{key}: {env!r} is neither builtin:<name> nor an .hdr/.exr file"]
+    return []
+
+
 @dataclass(frozen=True, kw_only=True)
 class FieldSettings:
     """What the stylisation field (:class:`~stages.model.field.StyleField`) is built from: the
@@ -536,11 +546,7 @@ class OptimizeSettings(ClipChoice, Settings):
         elif self.light == "learn" and self.light_map is not None:
             p.append("light_map names the environment of light: fixed; with light: learn it would be ignored (remove it)")
         if self.light_map is not None:
-            env = self.light_map
-            if env.startswith("builtin:") and env.split(":", 1)[1] not in PROCEDURAL_ENVMAPS:
-                p.append(f"light_map: no procedural environment {env!r}; use one of {PROCEDURAL_ENVMAPS}")
-            elif not env.startswith("builtin:") and not env.lower().endswith((".hdr", ".exr")):
-                p.append(f"light_map: {env!r} is neither builtin:<name> nor an .hdr/.exr file")
+            p += environment_problems("light_map", self.light_map)
         if not 0.0 <= self.metallic_binary <= 1e6:
             p.append(f"metallic_binary must be in [0, 1e6], got {self.metallic_binary}")
         elif self.metallic_binary > 0 and self.brdf != "gltf":
@@ -716,10 +722,7 @@ class TargetSettings(Settings):
         if self.max_depth < 2 and self.max_depth != -1:
             problems.append(f"max_depth must be >= 2 (or -1: unlimited), got {self.max_depth}")
         for env in self.relight_environments:
-            if env.startswith("builtin:") and env.split(":", 1)[1] not in PROCEDURAL_ENVMAPS:
-                problems.append(f"relight_environments: no procedural environment {env!r}; use one of {PROCEDURAL_ENVMAPS}")
-            elif not env.startswith("builtin:") and not env.lower().endswith((".hdr", ".exr")):
-                problems.append(f"relight_environments: {env!r} is neither builtin:<name> nor an .hdr/.exr file")
+            problems += environment_problems("relight_environments", env)
         if len(set(self.relight_environments)) != len(self.relight_environments):
             problems.append(f"relight_environments lists an environment twice: {list(self.relight_environments)}")
         if not 16 <= self.texture_size <= 8192:

@@ -190,13 +190,9 @@ def grade_relighting(
         ours_all = _field_radiance(field, store, light)
         if renders is not None:
             renders[r.environment] = ours_all
-        ours_linear = ours_all[full]
-        scale = channel_scale(ours_linear, truth_linear)
         row = {
             "environment": r.environment,
-            "psnr_db": psnr(linear_to_srgb(ours_linear), goal),
-            "psnr_scaled_db": psnr(linear_to_srgb(ours_linear * scale), goal),
-            "scale": scale.tolist(),
+            **_figures(ours_all[full], truth_linear),
             "pixels": int(full.sum()),
             "noise_psnr_db": r.noise_psnr_db,
             "sg_fit_relative_rms": rel,
