@@ -220,8 +220,12 @@ def test_grid_through_slurm_equals_a_local_run(cluster, tmp_path_factory, tmp_pa
     rows_b = {(r["mesh"], r["prompt"], r["variant"]): r for r in summary_b}
     for ra in summary_a:
         rb = rows_b[(ra["mesh"], ra["prompt"], ra["variant"])]
+        # the same fields (compared bit for bit above) give the same figures; a figure that is a
+        # float32 reduction (the evaluation CLIP's mean cosine) may take another order of sums in a
+        # Slurm job of other CPUs than the local run's and land one float32 step away (seen: 8.9036875
+        # against 8.9036865, one unit in the last place), which is all the tolerance allows
         for key in ("final_similarity", "eval_psnr_db", "bake_psnr_db", "clip_score", "faces_after"):
-            assert ra[key] == rb[key], key
+            assert ra[key] == pytest.approx(rb[key], rel=2.5e-7, abs=0.0), key
 
 
 def local_reference(tmp_path_factory, tmp_path: Path, config: Path) -> tuple[Path, str]:
