@@ -392,6 +392,15 @@ class OptimizeSettings(ClipChoice, Settings):
     #: weight of the prior that keeps a learned light's colour neutral: each lobe's spread of log
     #: energy over the channels, weighted by its share of the light's energy (0: off)
     light_neutral: float = 0.0
+    #: weight of the prior that keeps the material smooth over the surface (nvdiffrec's): the mean
+    #: absolute change of the base colour, and of metallic and roughness, between each step's hit
+    #: points and the same points moved by a random offset of material_smooth_radius (0: off)
+    material_smooth: float = 0.0
+    #: the standard deviation of that offset per axis, in the unit sphere the mesh is scaled to
+    material_smooth_radius: float = 0.01
+    #: weight of the prior that keeps the predicted normals near the mesh's: the mean of 1 - cos of
+    #: their angle over each step's hits (0: off; needs normal_network)
+    normal_tilt: float = 0.0
     #: the specular model (SPECULAR_LOBES): "isotropic" (TANGO's closed form), "split_sum" (exact
     #: energy from the tabulated directional albedo, the isotropic lobe's shape) or "fitted" (exact
     #: energy, a lobe fitted to the BRDF's moments, corrected by the BRDF at each light lobe); see
@@ -559,6 +568,14 @@ class OptimizeSettings(ClipChoice, Settings):
             p.append(f"light_neutral must be in [0, 1e6], got {self.light_neutral}")
         elif self.light == "fixed" and self.light_neutral > 0:
             p.append("light_neutral is a prior on a learned light; a fixed light (light: fixed) does not move")
+        if not 0.0 <= self.material_smooth <= 1e6:
+            p.append(f"material_smooth must be in [0, 1e6], got {self.material_smooth}")
+        if not 0.0 < self.material_smooth_radius <= 1.0:
+            p.append(f"material_smooth_radius must be in (0, 1] (the unit sphere's radius), got {self.material_smooth_radius}")
+        if not 0.0 <= self.normal_tilt <= 1e6:
+            p.append(f"normal_tilt must be in [0, 1e6], got {self.normal_tilt}")
+        elif self.normal_tilt > 0 and not self.normal_network:
+            p.append("normal_tilt is a prior on the normal network's normals: set normal_network: true, or normal_tilt: 0")
         if self.light == "fixed" and self.light_prune_after is not None:
             p.append("light_prune_after prunes a learned light; a fixed light (light: fixed) keeps its fitted lobes")
         if self.light == "fixed" and not self.light_rgb:

@@ -228,6 +228,12 @@ class StyleField(nn.Module):
             normals = face_viewer(normals, view)
         return material, normals
 
+    def material(self, points: Tensor) -> Material:
+        """The material network alone at ``points (N, 3)``, as :meth:`surface` runs it (the symmetry
+        prior, training's bfloat16 autocast), for priors that compare it at nearby points."""
+        with torch.autocast(points.device.type, dtype=torch.bfloat16, enabled=self.bf16 and self.training):
+            return self.svbrdf(self.symmetric_points(points))
+
     def forward(
         self,
         points: Tensor,

@@ -236,6 +236,50 @@ class Material:
         return Material(base * (1.0 - metallic), gltf_f0(base, metallic), roughness, base, metallic)
 
 
+def cat_materials(materials: list[Material]) -> Material:
+    """The points of several :class:`Material` s of one BRDF as one, in order."""
+    first = materials[0]
+
+    def cat(name: str) -> Tensor | None:
+        return None if getattr(first, name) is None else torch.cat([getattr(m, name) for m in materials])
+
+    return Material(cat("albedo"), cat("specular"), cat("roughness"), cat("base"), cat("metallic"))
+
+
+def material_variation(a: Material, b: Material) -> Tensor:
+    """The mean absolute change of a material between two sets of points ``a``, ``b`` (the same
+    number ``N`` of points, pairwise): nvdiffrec's smoothness regulariser (Munkberg et al. 2022,
+    "Extracting Triangular 3D Models, Materials, and Lighting From Images", Sec. 4: the mean of
+    ``|k(x) - k(x + eps)|`` for a small random ``eps``, for the diffuse and the specular
+    parameters). Here: the mean over points and channels of the colour's change (glTF's base
+    colour, or TANGO's diffuse albedo) plus that of the other parameters (metallic and roughness,
+    or TANGO's specular colour and roughness; none for a diffuse-only material). Each term is in
+    [0, 1]; zero exactly where the material is the same at both; subgradient 0 at equality."""
+    colour = (a.base if a.base is not None else a.albedo, b.base if b.base is not None else b.albedo)
+    total = (colour[0] - colour[1]).abs().mean()
+    others = (
+        [(a.metallic, b.metallic), (a.roughness, b.roughness)]
+        if a.metallic is not None
+        else [
+            (a.specular, b.specular),
+            (a.roughness, b.roughness),
+        ]
+    )
+    rest = [(x - y).abs() for x, y in others if x is not None]
+    if rest:
+        total = total + torch.cat(rest, dim=-1).mean()
+    return total
+
+
+def normal_tilt(predicted: Tensor, geometric: Tensor) -> Tensor:
+    """The mean of ``1 - cos`` of the angle between unit ``predicted (N, 3)`` and unit
+    ``geometric (N, 3)`` normals (both on the viewer's side, as a view's hits hold them): 0 where
+    the normal network adds nothing, in [0, 2]; half the squared tilt in radians, to fourth order,
+    for small tilts; smooth everywhere. nvdiffrec regularises its normal map's perturbation
+    likewise (the perturbed normal's change over a jitter); here against the mesh's own normal."""
+    return (1.0 - (predicted * geometric).sum(-1)).mean()
+
+
 class SVBRDFNet(nn.Module):
     """TANGO's SVBRDF MLP: a shared trunk (two layers) and three heads of three layers each for
     diffuse albedo (3), specular colour (3) and roughness (1), all bounded by sigmoids.

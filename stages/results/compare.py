@@ -19,13 +19,13 @@ from __future__ import annotations
 import json
 import logging
 from collections.abc import Iterable
-from dataclasses import dataclass, field
+from dataclasses import MISSING, dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from ..config.sections import ABLATION_SWITCHES
+from ..config.sections import ABLATION_SWITCHES, BakeSettings, LodSettings, OptimizeSettings, RelightSettings
 
 log = logging.getLogger(__name__)
 
@@ -53,11 +53,36 @@ def _canonical(value: Any) -> str:
     return json.dumps(value, sort_keys=True)
 
 
+def setting_defaults() -> dict[str, Any]:
+    """Today's default of every per-cell setting, flattened to ``stage.key``: the value a cell
+    made before a setting existed ran under (a setting is added with the default that keeps what
+    ran before)."""
+    classes = {"optimize": OptimizeSettings, "bake": BakeSettings, "relight": RelightSettings, "lod": LodSettings}
+    assert set(classes) == set(SETTINGS_STAGES)
+    out = {}
+    for stage, cls in classes.items():
+        for f in fields(cls):
+            if f.default is not MISSING:
+                out[f"{stage}.{f.name}"] = f.default
+            elif f.default_factory is not MISSING:
+                out[f"{stage}.{f.name}"] = f.default_factory()
+    return out
+
+
 def differing_keys(a: dict[str, Any], b: dict[str, Any]) -> list[str]:
-    """Keys whose values differ between two flat settings dicts (a key missing on one side
-    differs), without the result-neutral ones, sorted."""
+    """Keys whose values differ between two flat settings dicts, without the result-neutral
+    ones, sorted. A key missing on one side (a cell made before the setting existed) stands for
+    the setting's default (:func:`setting_defaults`); a key no settings class knows differs when
+    missing on one side."""
     keys = (set(a) | set(b)) - set(NEUTRAL_KEYS)
-    return sorted(k for k in keys if _canonical(a.get(k)) != _canonical(b.get(k)))
+    defaults = setting_defaults()
+    absent = object()
+
+    def value(d: dict[str, Any], k: str) -> str:
+        v = d.get(k, defaults.get(k, absent))
+        return "<absent>" if v is absent else _canonical(v)
+
+    return sorted(k for k in keys if value(a, k) != value(b, k))
 
 
 def is_ablation(diff: list[str], settings: dict[str, Any]) -> bool:

@@ -26,6 +26,7 @@ from ..imaging.targets import TargetSet
 from ..imaging.views import CachedView, ViewStore
 from ..model.field import StyleField
 from ..model.lightfit import hold_environment
+from ..model.networks import cat_materials, material_variation, normal_tilt
 from ..render.color import linear_to_srgb
 
 
@@ -170,13 +171,26 @@ class Optimizer:
         )
         return specs
 
-    def priors(self, materials: list, stats: dict) -> torch.Tensor:
+    def priors(self, materials: list, stats: dict, points: list | None = None, normals: list | None = None) -> torch.Tensor:
         """The weighted priors of this step (each recorded in ``stats`` when on): the learned
-        light's colour spread (``light_neutral``, :meth:`~stages.model.networks.SGLightModule.colour_spread`)
-        and glTF's metallic away from 0 and 1 (``metallic_binary``: the mean of ``m (1 - m)`` over
-        the step's shaded points ``materials``)."""
+        light's colour spread (``light_neutral``, :meth:`~stages.model.networks.SGLightModule.colour_spread`),
+        glTF's metallic away from 0 and 1 (``metallic_binary``: the mean of ``m (1 - m)`` over
+        the step's shaded points ``materials``), the material's change over a small jitter of the
+        step's hit ``points`` (``material_smooth``, :func:`material_variation`) and the predicted
+        normals' tilt from the geometric ones (``normal_tilt``, :func:`normal_tilt`; ``normals``:
+        pairs of predicted and geometric normals)."""
         s = self.s
         total = torch.zeros((), device=self.device)
+        if s.material_smooth > 0:
+            x = torch.cat(points)
+            jitter = torch.randn(x.shape, generator=self.tgen).to(x.device) * s.material_smooth_radius
+            variation = material_variation(cat_materials(materials), self.field.material(x + jitter))
+            total = total + s.material_smooth * variation
+            stats["material_variation"] = float(variation.detach())
+        if s.normal_tilt > 0:
+            tilt = normal_tilt(torch.cat([p for p, _ in normals]), torch.cat([g for _, g in normals]))
+            total = total + s.normal_tilt * tilt
+            stats["normal_tilt"] = float(tilt.detach())
         if s.light_neutral > 0:
             spread = self.field.light.colour_spread()
             total = total + s.light_neutral * spread
@@ -218,11 +232,13 @@ class Optimizer:
         with timer("networks+shading"):
             globals_, crops, globals_t, crops_t = [], [], [], []
             npts = 0
-            materials = []
+            materials, points, normals = [], [], []
             for v, sel, specs, lookups, bgs in batches:
                 npts += len(sel)
                 out = v.shade(self.field, sel)
                 materials.append(out.material)
+                points.append(v.points[sel])
+                normals.append((out.normal, v.normals[sel]))
                 color = linear_to_srgb(out.shading.rgb)
                 imgs = [compose(color, lk, sp, bg) for lk, sp, bg in zip(lookups, specs, bgs, strict=True)]
                 globals_.append(imgs[0])
@@ -235,7 +251,7 @@ class Optimizer:
                     crops_t.extend(timgs[1:])
         with timer("guidance"):
             loss, stats = self.objective.loss(globals_, crops, globals_t, crops_t)
-            loss = loss + self.priors(materials, stats)
+            loss = loss + self.priors(materials, stats, points, normals)
         with timer("backward"):
             self.opt.zero_grad(set_to_none=True)
             loss.backward()

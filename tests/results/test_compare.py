@@ -76,6 +76,20 @@ def test_differing_keys_set_the_seed_aside():
     assert differing_keys(BASE, with_(**{"bake.texture_size": 256})) == ["bake.texture_size"]
 
 
+def test_a_setting_newer_than_a_cell_stands_for_its_default():
+    """A cell made before a setting existed has no such key in its meta: it ran as that setting's
+    default does, so it is the same configuration as a newer cell at the default (and a replicate
+    of it) and differs from one that sets it; a key no settings class knows differs when missing."""
+    older = {k: v for k, v in BASE.items() if k != "optimize.material_smooth"}
+    assert differing_keys(older, with_(material_smooth=0.0)) == []
+    assert differing_keys(with_(material_smooth=0.01), older) == ["optimize.material_smooth"]
+    assert differing_keys(BASE, with_(**{"optimize.not_a_setting": 0.0})) == ["optimize.not_a_setting"]
+    rows = [row("vase", "wood", "base", 29.0), row("vase", "wood", "base_seed1", 29.2)]
+    settings = {("vase", "wood", "base"): older, ("vase", "wood", "base_seed1"): with_(seed=1, material_smooth=0.0)}
+    (g,) = comparison_groups(rows, settings, ["base", "base_seed1"])
+    assert g.configurations() == {"base": ["base", "base_seed1"]}
+
+
 @pytest.mark.parametrize("switch", list(OFF))
 def test_each_switch_off_is_an_ablation(switch):
     s = with_(**{switch: OFF[switch]})

@@ -1,7 +1,9 @@
 """The levers against baked-in lighting: the known-light mode (``optimize.light: fixed``, the SG
 fit of ``light_map`` held still through a run and into every later file), the prior that keeps a
 learned light's colour neutral (``optimize.light_neutral``), and glTF's metallic taken to 0 or 1
-(``optimize.metallic_binary``) or started at a dielectric's (``optimize.init_metallic``)."""
+(``optimize.metallic_binary``) or started at a dielectric's (``optimize.init_metallic``), and the
+surface priors: the material smooth over the surface (``optimize.material_smooth``) and the
+predicted normals near the mesh's (``optimize.normal_tilt``)."""
 
 from __future__ import annotations
 
@@ -143,6 +145,86 @@ def test_metallic_settings_are_checked():
         OptimizeSettings(init_metallic=1.5)
     with pytest.raises(ConfigError, match="brdf tango does not have"):
         OptimizeSettings(init_metallic=0.0, brdf="tango")
+
+
+def test_material_variation_against_its_definition():
+    """Written out here from nvdiffrec's regulariser: the mean over points and channels of |change|
+    of the colour, plus the same over the other parameters (glTF: metallic and roughness; TANGO:
+    specular colour and roughness); zero for the same material; its gradient is the sign's."""
+    from stages.model.networks import Material, cat_materials, material_variation
+
+    g = torch.Generator().manual_seed(3)
+    base, met, rough = (torch.rand(5, c, generator=g, dtype=torch.float64) for c in (3, 1, 1))
+    base2, met2, rough2 = (torch.rand(5, c, generator=g, dtype=torch.float64) for c in (3, 1, 1))
+    base.requires_grad_()
+    a, b = Material.gltf(base, met, rough), Material.gltf(base2, met2, rough2)
+    colour = sum(abs(float(base[i, c] - base2[i, c])) for i in range(5) for c in range(3)) / 15
+    others = sum(abs(float(met[i, 0] - met2[i, 0])) + abs(float(rough[i, 0] - rough2[i, 0])) for i in range(5)) / 10
+    got = material_variation(a, b)
+    assert float(got) == pytest.approx(colour + others, rel=1e-12)
+    got.backward()
+    torch.testing.assert_close(base.grad, torch.sign(base - base2).detach() / 15)
+    assert float(material_variation(a, a)) == 0.0
+    spec, spec2 = torch.rand(5, 3, generator=g), torch.rand(5, 3, generator=g)
+    t1, t2 = Material(base2.float(), spec, rough.float()), Material(base2.float(), spec2, rough2.float())
+    expect = float((spec - spec2).abs().sum() + (rough - rough2).abs().sum().float()) / 20
+    assert float(material_variation(t1, t2)) == pytest.approx(expect, rel=1e-5)
+    halves = cat_materials([Material.gltf(base2[:2], met2[:2], rough2[:2]), Material.gltf(base2[2:], met2[2:], rough2[2:])])
+    assert torch.equal(halves.base, base2) and torch.equal(halves.metallic, met2) and torch.equal(halves.albedo, b.albedo)
+
+
+def test_normal_tilt_is_one_minus_the_cosine_of_the_angle():
+    """Against angles set by hand: tilts of 0, 30 and 90 degrees give the mean of 1 - cos; a tilt of
+    theta is about theta^2 / 2 when small; finite with a finite gradient at zero tilt."""
+    from stages.model.networks import normal_tilt
+
+    geo = torch.tensor([[0.0, 0.0, 1.0]] * 3, dtype=torch.float64)
+    angles = torch.tensor([0.0, math.pi / 6, math.pi / 2], dtype=torch.float64)
+    pred = torch.stack([torch.sin(angles), torch.zeros(3, dtype=torch.float64), torch.cos(angles)], dim=-1)
+    assert float(normal_tilt(pred, geo)) == pytest.approx((0 + (1 - math.sqrt(3) / 2) + 1) / 3, rel=1e-12)
+    small = torch.tensor([[math.sin(1e-3), 0.0, math.cos(1e-3)]], dtype=torch.float64)
+    assert float(normal_tilt(small, geo[:1])) == pytest.approx(0.5e-6, rel=1e-6)
+    flat = geo[:1].clone().requires_grad_()
+    normal_tilt(flat, geo[:1]).backward()
+    assert torch.isfinite(flat.grad).all()
+
+
+@pytest.mark.parametrize("prior, stat", [("material_smooth", "material_variation"), ("normal_tilt", "normal_tilt")])
+def test_the_surface_priors_lower_what_they_measure(cache, prior, stat):
+    """material_smooth and normal_tilt add weight x their measure to the loss, are recorded per step,
+    and a strong weight leaves less of it after the same steps than a run without (whose measure is
+    computed here from its field with the same functions)."""
+    from stages.model.networks import material_variation, normal_tilt
+
+    ends = {}
+    for weight in (0.0, 50.0):
+        s = OptimizeSettings(iterations=8, lr=0.02, **{prior: weight}, **TINY)
+        opt = Optimizer(s, RayCache(cache / "train.npz"), "a vase made of wood", "cpu")
+        for _ in range(8):
+            row = opt.step(Timer())
+        assert (stat in row) == (weight > 0)
+        v = opt.views[0]
+        sel = torch.arange(0, v.points.shape[0], 7)
+        with torch.no_grad():
+            out = v.shade(opt.field, sel)
+            x = v.points[sel]
+            if prior == "material_smooth":
+                jitter = torch.randn(x.shape, generator=torch.Generator().manual_seed(1)) * s.material_smooth_radius
+                ends[weight] = float(material_variation(out.material, opt.field.material(x + jitter)))
+            else:
+                ends[weight] = float(normal_tilt(out.normal, v.normals[sel]))
+    assert ends[50.0] < 0.7 * ends[0.0], ends
+
+
+def test_surface_prior_settings_are_checked():
+    with pytest.raises(ConfigError, match="normal_tilt is a prior on the normal network"):
+        OptimizeSettings(normal_tilt=0.1, normal_network=False)
+    with pytest.raises(ConfigError, match="material_smooth must be in"):
+        OptimizeSettings(material_smooth=-0.1)
+    with pytest.raises(ConfigError, match="material_smooth_radius must be in"):
+        OptimizeSettings(material_smooth_radius=0.0)
+    with pytest.raises(ConfigError, match="normal_tilt must be in"):
+        OptimizeSettings(normal_tilt=float("nan"))
 
 
 def test_a_killed_run_resumes_only_under_the_same_light_file(cache, tmp_path):
