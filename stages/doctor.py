@@ -44,7 +44,7 @@ from .geometry.probes import PROBE_GLB_FACES, PROBE_TIMEOUT_S, probe_embree, pro
 from .guidance.clip import ClipWeightsUnavailable, resolve_weights
 from .reference import blender as blender_ref
 from .reference.blender import INSTALL_HINT, BlenderUnavailable, find_blender
-from .reference.mitsuba import choose_variant, find_libllvm
+from .reference.mitsuba import LLVM_WHEEL, choose_variant, locate_libllvm
 from .reference.targets import probe as probe_targets
 
 log = logging.getLogger(__name__)
@@ -227,12 +227,16 @@ def check_mitsuba(cfg) -> Check:
         variants = {m: choose_variant(s.variant) for m, s in settings.items()}
     except ImportError as exc:
         return Check(
-            "Mitsuba 3", False, needed, f"mitsuba {version}: {exc}", "apt-get install libllvm19, or target.variant: auto"
+            "Mitsuba 3",
+            False,
+            needed,
+            f"mitsuba {version}: {exc}",
+            f"pip install {LLVM_WHEEL} (or apt-get install libllvm19), or target.variant: auto",
         )
-    lib = find_libllvm()
+    lib = locate_libllvm()
     names = ", ".join(sorted(set(variants.values())))
-    where = f"libLLVM: {lib}" if lib else "no libLLVM 16+ found"
-    check = Check("Mitsuba 3", True, needed, f"mitsuba {version}, variant {names} ({where}): {use}")
+    where = f"with {lib.describe()}" if lib else "(no libLLVM 16+ found)"
+    check = Check("Mitsuba 3", True, needed, f"mitsuba {version}, variant {names} {where}: {use}")
 
     def render() -> str:
         probes = {}
@@ -251,7 +255,10 @@ def check_mitsuba(cfg) -> Check:
                 f"{duration(seconds)} of rendering here"
             )
         if "scalar_rgb" in probes:
-            said += " in the slow scalar_rgb variant (Debian: apt-get install libllvm19 for the vectorised llvm_ad_rgb)"
+            said += (
+                f" in the slow scalar_rgb variant (pip install {LLVM_WHEEL}, or Debian: apt-get install libllvm19, "
+                "for the vectorised llvm_ad_rgb)"
+            )
         return said
 
     return tried(check, render, f"{fix}; Mitsuba's own error is above")

@@ -162,7 +162,12 @@ def run(
                         "cache_faces": len(train.arrays["faces"]),
                         "shading_normals": target_normals(settings).describe(),
                     },
-                    "renderer": {"name": "Mitsuba 3", "version": renderer.mi.__version__, "variant": renderer.variant},
+                    "renderer": {
+                        "name": "Mitsuba 3",
+                        "version": renderer.mi.__version__,
+                        "variant": renderer.variant,
+                        "libllvm": renderer.libllvm,
+                    },
                     "environment_energy": renderer.env_energy.tolist(),
                     "principled_specular": g.specular,
                     "views": summary,

@@ -47,7 +47,7 @@ from ..geometry.tracing import EmbreeTracer
 from ..model.procedural import procedural_material
 from ..render.color import srgb_encode
 from ..render.envmap import load_env, radiant_energy
-from .mitsuba import choose_variant, import_mitsuba, sensor
+from .mitsuba import choose_variant, import_mitsuba, locate_libllvm, sensor
 
 log = logging.getLogger(__name__)
 
@@ -332,6 +332,9 @@ class TargetRenderer:
         self.settings = settings
         self.variant = choose_variant(settings.variant)
         self.mi = import_mitsuba(self.variant)
+        lib = locate_libllvm() if self.variant.startswith("llvm") else None
+        #: the libLLVM an LLVM variant runs on (its description), None in scalar_rgb
+        self.libllvm = lib.describe() if lib is not None else None
         t0 = time.perf_counter()
         self.truth = truth if truth is not None else ground_truth(mesh, kind, settings)
         self.seconds_textures = time.perf_counter() - t0

@@ -1,15 +1,15 @@
 """A fresh machine, as a newcomer has it: a clone of the repository (no node_modules, no
 .venv-blender, no results) on a PATH without Node.js, npm, Chromium, Blender or Slurm, and no
-libLLVM 16+ for Mitsuba (``DRJIT_LIBLLVM_PATH`` names a file that does not exist, which is what
-:func:`stages.reference.mitsuba.find_libllvm` honours), offline. CI installs all of these, so
+system libLLVM 16+ for Mitsuba (``TANGO_LIBLLVM_DIRS`` empty: no system folder is searched, so the
+set-up's ``karellen-llvm-core`` wheel is what is left), offline. CI installs all of these, so
 without this test CI would never take the paths a newcomer takes.
 
-On such a machine the doctor tells the truth (Mitsuba works in ``scalar_rgb`` and it says how long
-this config's targets take there; Blender is missing and needed by the offline demo's round trip),
-the offline demo stops before any job with a message that names what to install, and one's own
-mesh runs end to end through ``python -m stages.quick`` with image guidance: targets in
-``scalar_rgb``, an export that records why the glTF validator did not run, a report of static
-previews."""
+On such a machine the doctor tells the truth (Mitsuba runs ``llvm_ad_rgb`` on the wheel's
+libLLVM; where no libLLVM loads at all, ``scalar_rgb``, and it says how long this config's targets
+take there; Blender is missing and needed by the offline demo's round trip), the offline demo stops
+before any job with a message that names what to install, and one's own mesh runs end to end
+through ``python -m stages.quick`` with image guidance: targets in ``llvm_ad_rgb`` on the wheel's
+libLLVM, an export that records why the glTF validator did not run, a report of static previews."""
 
 from __future__ import annotations
 
@@ -68,7 +68,7 @@ def machine(tmp_path_factory):
     env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "TANGO_BLENDER", "DRJIT_LIBLLVM_PATH")}
     env.update(
         PATH=bare_path(root / "bin"),
-        DRJIT_LIBLLVM_PATH=str(root / "no-libLLVM.so"),
+        TANGO_LIBLLVM_DIRS="",
         HF_HUB_OFFLINE="1",
         HF_HOME=str(root / "hf"),
         HF_HUB_CACHE=str(root / "hf" / "hub"),
@@ -94,11 +94,12 @@ def test_doctor_tells_the_truth_on_a_bare_machine(machine):
     assert proc.returncode == 1, proc.stderr[-2000:]
     mitsuba = checks["Mitsuba 3"]
     assert mitsuba["ok"] and mitsuba["needed"], mitsuba
-    assert "variant scalar_rgb (no libLLVM 16+ found)" in mitsuba["detail"]
+    # no system libLLVM: the set-up's wheel gives Mitsuba its vectorised variant
+    assert "variant llvm_ad_rgb with libLLVM 23" in mitsuba["detail"] and "from the karellen-llvm-core wheel" in mitsuba["detail"]
     # the real use: a render in the run's variant, and what this config's targets cost there
-    assert "rendered a 48 x 48 target probe at 32 spp in scalar_rgb" in mitsuba["tried"]
+    assert "rendered a 48 x 48 target probe at 32 spp in llvm_ad_rgb" in mitsuba["tried"]
     assert f"this config's targets ({len(jobs)} job(s), {samples / 1e6:.0f} M samples) take about" in mitsuba["tried"]
-    assert "slow scalar_rgb variant (Debian: apt-get install libllvm19" in mitsuba["tried"]
+    assert "scalar_rgb" not in mitsuba["tried"]
     blender = checks["Blender"]
     assert blender["status"] == "MISSING" and "Blender was not found" in blender["detail"]
     assert "bash scripts/setup.sh" in blender["fix"] and "roundtrip: {enabled: false}" in blender["fix"]
@@ -115,6 +116,22 @@ def test_doctor_tells_the_truth_on_a_bare_machine(machine):
     cmd = [sys.executable, "-m", "stages.doctor", "--configfile", "config/demo-offline.yaml", "config/overlays/no-blender.yaml"]
     proc = run(cmd, clone, env)
     assert proc.returncode == 0 and "Everything this config's run needs is here." in proc.stdout, proc.stdout[-2000:]
+
+
+def test_doctor_without_any_libllvm_says_scalar_and_what_it_costs(machine):
+    """Where no libLLVM loads (here: ``DRJIT_LIBLLVM_PATH``, which always wins, names no file),
+    Mitsuba falls back to ``scalar_rgb`` and the doctor says so, how long this config's targets take
+    in it, and what to install."""
+    clone, env = machine
+    demo = load_config_files([REPO / "config" / "demo-offline.yaml"])
+    samples = sum(target_samples(demo, mesh) for mesh, _ in demo.target_jobs())
+    env = {**env, "DRJIT_LIBLLVM_PATH": str(clone.parent / "no-libLLVM.so")}
+    proc = run([sys.executable, "-m", "stages.doctor", "--configfile", "config/demo-offline.yaml", "--json"], clone, env)
+    mitsuba = {c["name"]: c for c in json.loads(proc.stdout)}["Mitsuba 3"]
+    assert mitsuba["ok"] and "variant scalar_rgb (no libLLVM 16+ found)" in mitsuba["detail"], mitsuba
+    assert "rendered a 48 x 48 target probe at 32 spp in scalar_rgb" in mitsuba["tried"]
+    assert f"({len(demo.target_jobs())} job(s), {samples / 1e6:.0f} M samples) take about" in mitsuba["tried"]
+    assert "slow scalar_rgb variant (pip install karellen-llvm-core, or Debian: apt-get install libllvm19" in mitsuba["tried"]
 
 
 def test_offline_demo_stops_at_once_naming_what_to_install(machine):
@@ -158,9 +175,10 @@ def test_own_mesh_image_guided_runs_end_to_end_on_a_bare_machine(machine, tmp_pa
     assert f"mesh {mesh}: {len(loaded.vertices):,} vertices, {len(loaded.faces):,} faces" in proc.stdout
     assert f"Plan of experiment {name}" in proc.stderr
     cell = clone / "results" / name / "bunny" / "a-bunny-made-of-wood" / "base"
-    # the targets were path-traced in Mitsuba's scalar variant: the one a machine without libLLVM has
+    # the targets were path-traced in Mitsuba's vectorised variant on the set-up's libLLVM wheel
     (target_meta,) = (clone / "results" / "meshes" / "bunny").glob("*/target/wood/meta.json")
-    assert json.loads(target_meta.read_text())["renderer"]["variant"] == "scalar_rgb"
+    renderer = json.loads(target_meta.read_text())["renderer"]
+    assert renderer["variant"] == "llvm_ad_rgb" and "from the karellen-llvm-core wheel" in renderer["libllvm"], renderer
     optimize = json.loads((cell / "optimize" / "meta.json").read_text())
     assert optimize["settings"]["guidance"] == "image" and optimize["settings"]["iterations"] == 3
     export = json.loads((cell / "export" / "meta.json").read_text())
