@@ -127,7 +127,8 @@ def test_without_system_library_mitsuba_renders_llvm_on_the_wheel():
         "variant = m.choose_variant('auto')\n"
         "r = probe_targets(TargetSettings())\n"
         "maps = sorted({l.split()[-1] for l in open('/proc/self/maps') if 'libLLVM' in l})\n"
-        "print(json.dumps({'variant': variant, 'probe': r.variant, 'maps': maps, 'env': __import__('os').environ.get('DRJIT_LIBLLVM_PATH')}))\n"
+        "env = __import__('os').environ.get('DRJIT_LIBLLVM_PATH')\n"
+        "print(json.dumps({'variant': variant, 'probe': r.variant, 'maps': maps, 'env': env}))\n"
     )
     proc = python(code, clean_env(TANGO_LIBLLVM_DIRS=""))
     assert proc.returncode == 0, proc.stderr[-3000:]
