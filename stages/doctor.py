@@ -43,6 +43,7 @@ from .core.progress import duration
 from .geometry.probes import PROBE_GLB_FACES, PROBE_TIMEOUT_S, probe_embree, probe_pymeshlab, probe_xatlas, write_probe_glb
 from .guidance.clip import ClipWeightsUnavailable, resolve_weights
 from .reference import blender as blender_ref
+from .reference import targets as targets_ref
 from .reference.blender import INSTALL_HINT, BlenderUnavailable, find_blender
 from .reference.mitsuba import LLVM_WHEEL, choose_variant, locate_libllvm
 from .reference.targets import probe as probe_targets
@@ -202,12 +203,9 @@ def check_node(glb: Path) -> Check:
 
 
 def target_samples(cfg, mesh: str) -> int:
-    """The Mitsuba samples one target job of ``mesh`` path-traces: every training view at
-    ``target.spp`` and every metric view at ``target.metric_spp``, whole images (as
-    :meth:`stages.reference.targets.TargetRenderer.render_cache` renders them)."""
-    rc, t = cfg.stage_settings(mesh, "raycache"), cfg.stage_settings(mesh, "target")
-    metric_views = rc.metrics_azimuths * len(rc.metrics_elevations_deg)
-    return rc.views * rc.resolution**2 * t.spp + metric_views * rc.metrics_resolution**2 * t.metric_spp
+    """The Mitsuba samples one target job of ``mesh`` path-traces, the relit truths included
+    (:func:`stages.reference.targets.target_samples`)."""
+    return sum(targets_ref.target_samples(cfg.stage_settings(mesh, "raycache"), cfg.stage_settings(mesh, "target")).values())
 
 
 def check_mitsuba(cfg) -> Check:

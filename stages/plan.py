@@ -11,9 +11,12 @@ Printed by the workflow when it starts (``onstart``) and available alone. It say
   the seconds per step taken from an earlier run of the same settings on the same device when
   one is in ``results/`` (its ``seconds_per_iteration``), else measured by a short calibration
   (:mod:`stages.training.calibrate`: a few real steps of these settings; cached in
-  ``.cache/tango-plan/``; ``TANGO_PLAN_CALIBRATE=0`` skips it at the workflow's start), one
-  optimisation at a time; the other stages from the benchmark files of earlier runs when there
-  are any;
+  ``.cache/tango-plan/`` unless other processes used more than a quarter of the CPU meanwhile,
+  which the plan then says; ``TANGO_PLAN_CALIBRATE=0`` skips it at the workflow's start), one
+  optimisation at a time; Mitsuba's target jobs from the samples they render (training views,
+  metric views and the relit truths) at the rate of a probe render here; every other stage per
+  job from the benchmark files of earlier runs when there are any, else from the reference
+  table (``benchmarks/figures/stage_seconds.json``, with its conditions);
 - on a CPU with the paper's settings, that it is so, and the faster presets with their
   measured quality cost (``benchmarks/figures/preset_costs.json``) and their time here.
 """
@@ -24,8 +27,10 @@ import dataclasses
 import hashlib
 import json
 import logging
+import os
 import statistics
 import sys
+import time
 from pathlib import Path
 
 from .config.presets import PRESETS
@@ -47,6 +52,25 @@ COST_KEYS = ("iterations", "views_per_step", "crops", "width")
 CACHE = Path(".cache/tango-plan")
 #: the rules that run torch (their --device)
 TORCH_RULES = ("optimize", "bake", "relight", "metrics", "lod", "roundtrip")
+#: the rules besides optimize and target, timed per job from earlier runs' benchmark files (under
+#: results/: per cell, per mesh or per experiment), else from the reference table
+CELL_RULES = ("bake", "export", "relight", "metrics", "lod", "roundtrip")
+MESH_RULES = ("normalize", "decimate", "raycache")
+BENCHMARK_GLOBS = {
+    **{rule: f"*/*/*/*/benchmarks/{rule}.tsv" for rule in CELL_RULES},
+    **{rule: f"meshes/*/*/benchmarks/{rule}.tsv" for rule in MESH_RULES},
+    **{rule: f"*/report/benchmarks/{rule}.tsv" for rule in PER_EXPERIMENT},
+}
+#: seconds per job of each of those rules in a reference run, with its conditions
+#: (benchmarks/stage_seconds.py writes it from a results folder)
+STAGE_SECONDS = REPO / "benchmarks" / "figures" / "stage_seconds.json"
+#: a calibration during which other processes used more than this share of the CPU is said to be
+#: taken under load and not kept (``TANGO_PLAN_BUSY_SHARE`` overrides it; 1: never)
+BUSY_SHARE = 0.25
+
+
+def busy_share() -> float:
+    return float(os.environ.get("TANGO_PLAN_BUSY_SHARE", BUSY_SHARE))
 
 
 def job_counts(cfg: WorkflowConfig) -> dict[str, int]:
@@ -97,6 +121,60 @@ def _digest(settings: dict) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
+class LoadMeter:
+    """The share of the machine's CPU time that *other* processes used while the ``with`` block
+    ran (Linux: the busy time of ``/proc/stat`` minus this process's own CPU time, over the wall
+    time times the CPUs; None elsewhere): a calibration taken while another run used the cores
+    measures that run, not this machine."""
+
+    others_share: float | None = None
+
+    @staticmethod
+    def _busy() -> float | None:
+        try:
+            fields = [float(v) for v in Path("/proc/stat").read_text().splitlines()[0].split()[1:]]
+        except (OSError, ValueError, IndexError):
+            return None
+        idle = fields[3] + (fields[4] if len(fields) > 4 else 0.0)  # idle and iowait
+        return (sum(fields[:8]) - idle) / os.sysconf("SC_CLK_TCK")
+
+    @staticmethod
+    def _own() -> float:
+        t = os.times()
+        return t.user + t.system
+
+    def __enter__(self) -> LoadMeter:
+        self.t0, self.busy0, self.own0 = time.perf_counter(), self._busy(), self._own()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        busy = self._busy()
+        wall = time.perf_counter() - self.t0
+        if busy is None or self.busy0 is None or wall <= 0:
+            return
+        others = (busy - self.busy0) - (self._own() - self.own0)
+        self.others_share = min(1.0, max(0.0, others / (wall * (os.cpu_count() or 1))))
+
+    def note(self) -> str:
+        """How busy the machine was, for the source of a figure ("" when idle enough)."""
+        if self.others_share is None or self.others_share <= busy_share():
+            return ""
+        return f"; taken while other processes used {self.others_share:.0%} of the CPU, so not kept: the estimate may be high"
+
+
+def _cached_measure(cache: Path, key: str, name: str, measure, extra: dict) -> tuple[float, str]:
+    """``measure()`` under a :class:`LoadMeter`, kept in ``cache/key.json`` unless the machine was
+    busy; returns the figure and what to add to its source."""
+    with LoadMeter() as load:
+        value = measure()
+    if not load.note():
+        cache.mkdir(parents=True, exist_ok=True)
+        tmp = (cache / f"{key}.json").with_suffix(".tmp")
+        tmp.write_text(json.dumps({name: value, "others_share": load.others_share, **extra}))
+        tmp.replace(cache / f"{key}.json")
+    return value, load.note()
+
+
 def step_seconds(settings, raycache, device: str, results: Path, cache: Path, calibrate: bool) -> tuple[float | None, str]:
     """Seconds per optimisation step and where the figure comes from."""
     digest = _digest(settings.to_dict())
@@ -109,12 +187,34 @@ def step_seconds(settings, raycache, device: str, results: Path, cache: Path, ca
         return float(json.loads(cached.read_text())["seconds_per_step"]), "a calibration of these settings (cached)"
     if not calibrate:
         return None, "not calibrated (--no-calibrate)"
-    seconds = seconds_per_step(settings, raycache, device)
-    cache.mkdir(parents=True, exist_ok=True)
-    tmp = cached.with_suffix(".tmp")
-    tmp.write_text(json.dumps({"seconds_per_step": seconds, "settings": settings.to_dict(), "device": device}))
-    tmp.replace(cached)
-    return seconds, "a calibration of these settings (a few real steps)"
+    extra = {"settings": settings.to_dict(), "device": device}
+    seconds, note = _cached_measure(cache, key, "seconds_per_step", lambda: seconds_per_step(settings, raycache, device), extra)
+    return seconds, "a calibration of these settings (a few real steps" + note + ")"
+
+
+def mitsuba_rate(target, cache: Path, calibrate: bool) -> tuple[float | None, str]:
+    """Mitsuba's samples per second for target ``settings`` on this machine (the doctor's probe:
+    the target scene on a small sphere, :func:`stages.reference.targets.probe`), cached per
+    settings, variant and machine; and where the figure comes from."""
+    from .reference.mitsuba import choose_variant
+    from .reference.targets import probe
+
+    variant = choose_variant(target.variant)
+    key = hashlib.sha256(f"mitsuba|{_digest(target.to_dict())}|{variant}|{_machine()}".encode()).hexdigest()[:16]
+    cached = cache / f"{key}.json"
+    if key in _MEASURED:
+        return _MEASURED[key]
+    if cached.is_file():
+        return float(json.loads(cached.read_text())["samples_per_second"]), f"a probe render in {variant} (cached)"
+    if not calibrate:
+        return None, "not probed (--no-calibrate)"
+    rate, note = _cached_measure(cache, key, "samples_per_second", lambda: probe(target).samples_per_second, {"variant": variant})
+    _MEASURED[key] = rate, f"a probe render in {variant}" + note
+    return _MEASURED[key]
+
+
+#: this process's probe rates (one probe per settings, even when a busy machine kept none)
+_MEASURED: dict[str, tuple[float, str]] = {}
 
 
 def _machine() -> str:
@@ -126,13 +226,14 @@ def _machine() -> str:
     return f"{platform.processor() or platform.machine()}|{os.cpu_count()}|{torch.__version__}|{torch.get_num_threads()}"
 
 
-def other_stage_seconds(results: Path) -> dict[str, float]:
-    """Median wall seconds per job of the per-cell stages after optimize, from the benchmark
-    files of earlier runs under ``results`` (Snakemake's ``benchmark:``)."""
+def other_stage_seconds(results: Path) -> tuple[dict[str, float], str]:
+    """Seconds per job of each rule besides optimize and target: the median of earlier runs'
+    benchmark files under ``results`` (Snakemake's ``benchmark:``) where there are any, else the
+    reference table's (:data:`STAGE_SECONDS`); and where the figures come from."""
     out = {}
-    for rule in (*PER_CELL, "roundtrip", "lod"):
+    for rule, pattern in BENCHMARK_GLOBS.items():
         times = []
-        for tsv in Path(results).glob(f"*/*/*/*/benchmarks/{rule}.tsv"):
+        for tsv in Path(results).glob(pattern):
             lines = tsv.read_text().splitlines()
             if len(lines) >= 2:
                 try:
@@ -141,7 +242,12 @@ def other_stage_seconds(results: Path) -> dict[str, float]:
                     continue
         if times:
             out[rule] = statistics.median(times)
-    return out
+    if out:
+        return out, "medians of earlier runs' benchmark files"
+    if STAGE_SECONDS.is_file():
+        table = json.loads(STAGE_SECONDS.read_text())
+        return dict(table["seconds_per_job"]), f"the reference table ({table['conditions']})"
+    return {}, "no earlier runs"
 
 
 def guidance_label(settings) -> str:
@@ -204,8 +310,14 @@ def make_plan(
             row["seconds"] = sec * s.iterations * entry["cells"]
             total += row["seconds"]
         estimates.append(row)
-    others = other_stage_seconds(results)
-    other_total = sum(others.get(rule, 0.0) * len(todo) for rule in PER_CELL)
+    to_run = pending_jobs if pending_jobs is not None else remaining_jobs(cfg, todo)
+    targets = target_estimate(cfg, pending, todo, cache, calibrate)
+    others, others_source = other_stage_seconds(results)
+    other_rules = [r for r in to_run if r not in ("optimize", "target", "all")]
+    missing = [r for r in other_rules if r not in others]
+    other_total = sum(others[r] * to_run[r] for r in other_rules if r in others)
+    parts = [total if estimates else 0.0, targets["seconds"], other_total]
+    known = all(e["seconds_per_step"] is not None for e in estimates) and targets["seconds"] is not None and not missing
     plan = {
         "experiment": experiment,
         "source": cfg.source,
@@ -220,12 +332,62 @@ def make_plan(
         "device_setting": cfg.device,
         "optimisation": estimates,
         "optimisation_seconds": total if all(e["seconds_per_step"] is not None for e in estimates) else None,
+        "targets": targets,
         "other_stage_seconds": {r: others[r] for r in others},
-        "other_seconds": other_total if others else None,
+        "other_source": others_source,
+        "other_jobs": {r: to_run[r] for r in other_rules},
+        "other_seconds": other_total,
+        "other_missing": missing,
+        "total_seconds": sum(parts) if known else None,
     }
     if device == "cpu" and any(e["paper"] for e in estimates):
         plan["paper_on_cpu"] = faster_presets(groups, cfg, device, results, cache, calibrate)
     return plan
+
+
+def remaining_jobs(cfg: WorkflowConfig, todo: list) -> dict[str, int]:
+    """Without Snakemake's DAG: the jobs of the cells still to optimise (their meshes' work and
+    targets counted as not done; the per-experiment rules once when any cell is left)."""
+    if not todo:
+        return {}
+    meshes = {c.mesh for c in todo}
+    counts = {"normalize": len(meshes), "decimate": sum(cfg.decimated(m) for m in meshes), "raycache": len(meshes)}
+    counts["target"] = len({(c.mesh, m) for c in todo if (m := cfg.target_material(c.prompt, c.variant))})
+    counts["optimize"] = len(todo)
+    for rule in PER_CELL:
+        counts[rule] = len(todo)
+    for rule in ("roundtrip", "lod"):
+        counts[rule] = sum(cfg.cell_stage_settings(rule, c.prompt, c.variant).enabled for c in todo)
+    counts.update({rule: 1 for rule in PER_EXPERIMENT})
+    return {r: n for r, n in counts.items() if n}
+
+
+def target_estimate(cfg: WorkflowConfig, pending, todo: list, cache: Path, calibrate: bool) -> dict:
+    """The Mitsuba target jobs still to run: their samples (training views, metric views and the
+    relit truths: :func:`stages.reference.targets.target_samples`) and seconds at the rate a probe
+    render measures here (per target settings)."""
+    from .reference.targets import target_samples
+
+    if pending is not None:
+        jobs = sorted({(w.get("mesh"), w.get("material")) for rule, w in pending if rule == "target"})
+    else:
+        jobs = cfg.target_jobs({c.mesh for c in todo})
+    out = {"jobs": len(jobs), "samples": {"training": 0, "metric": 0, "relit": 0}, "seconds": 0.0 if not jobs else None}
+    if not jobs:
+        return out
+    seconds, sources = 0.0, set()
+    for mesh, _ in jobs:
+        target = cfg.stage_settings(mesh, "target")
+        samples = target_samples(cfg.stage_settings(mesh, "raycache"), target)
+        for kind, n in samples.items():
+            out["samples"][kind] += n
+        rate, source = mitsuba_rate(target, cache, calibrate)
+        sources.add(source)
+        seconds = None if rate is None or seconds is None else seconds + sum(samples.values()) / rate
+        if rate is not None:
+            out["samples_per_second"] = rate
+    out.update(seconds=seconds, source="; ".join(sorted(sources)))
+    return out
 
 
 def faster_presets(groups, cfg, device, results, cache, calibrate) -> list[dict]:
@@ -269,6 +431,29 @@ def duration(seconds: float | None) -> str:
     return f"{minutes // 60} h {minutes % 60:02d} min" if minutes >= 60 else f"{minutes} min"
 
 
+def estimate_text(plan: dict) -> str:
+    """The wall-time line of the plan: the total and its three parts, each with its source."""
+    t, opt = plan["targets"], plan["optimisation_seconds"]
+    total = plan["total_seconds"]
+    head = f"about {duration(total)} in all" if total is not None else "not estimated in all"
+    parts = [f"optimisation {duration(opt)} (one at a time)"]
+    if t["jobs"]:
+        samples = sum(t["samples"].values())
+        rate = t.get("samples_per_second")
+        at = f" at {rate / 1e6:.2f} M samples/s from {t['source']}" if rate else f" ({t['source']})"
+        parts.append(
+            f"Mitsuba's targets {duration(t['seconds'])} ({t['jobs']} job(s), {samples / 1e6:,.0f} M samples, "
+            f"{t['samples']['relit'] / 1e6:,.0f} M of them the relit truths{at})"
+        )
+    if plan["other_jobs"]:
+        jobs = sum(plan["other_jobs"].values())
+        said = f"the other stages {duration(plan['other_seconds'])} ({jobs} jobs, per job from {plan['other_source']})"
+        if plan["other_missing"]:
+            said += f"; not estimated: {', '.join(plan['other_missing'])}"
+        parts.append(said)
+    return f"Estimated wall time on this machine: {head}: {'; '.join(parts)}. An estimate, not a promise."
+
+
 def plan_text(plan: dict) -> str:
     jobs = plan["jobs"]
     lines = [
@@ -289,13 +474,7 @@ def plan_text(plan: dict) -> str:
     if not plan["optimisation"]:
         lines.append("No optimisation to run.")
         return "\n".join(lines) + "\n"
-    opt, other = plan["optimisation_seconds"], plan["other_seconds"]
-    est = f"Estimated wall time on this machine: {duration(opt)} of optimisation, one at a time"
-    if other is not None:
-        est += f", plus about {duration(other)} for the other per-cell stages (medians of earlier runs' benchmark files)"
-    else:
-        est += "; the other stages are not estimated (no earlier benchmark files in results/)"
-    lines.append(est + ". An estimate, not a promise.")
+    lines.append(estimate_text(plan))
     if plan.get("paper_on_cpu"):
         lines.append(
             f"{plan['paper_on_cpu'][0]['cells']} of these optimisations run the paper's settings (1,500 iterations, "

@@ -180,7 +180,7 @@ def run(
         raise ConfigError('the prompt is empty: say what the object should look like, e.g. "a vase made of wood"')
     if len(prompt) > 2000:
         raise ConfigError(f"the prompt is {len(prompt)} characters long; CLIP reads about 77 tokens: shorten it")
-    checked = load_mesh(mesh)  # raises StageInputError with what to do
+    checked = load_mesh(mesh, given_in=f"the command (relative paths start at {Path.cwd()})")  # raises with what to do
     name = name or slug(f"{mesh_entry(mesh)[0]}-{slug(prompt, 40)}", max_id())
     path = Path(config_dir) / f"{name}.yaml"
     check_name(name, path, force)

@@ -50,8 +50,9 @@ def _trimesh():
     return trimesh
 
 
-def load_mesh(source: str | Path) -> TriMesh:
+def load_mesh(source: str | Path, given_in: str = "the config") -> TriMesh:
     """Load ``source`` (a mesh file, or ``builtin:<name>``) as one triangle mesh, checked.
+    ``given_in``: where the user named it, for the errors' advice ("the config", "the command").
 
     Raises:
         StageInputError: missing or unreadable file, unsupported format, no faces (empty mesh or
@@ -72,9 +73,9 @@ def load_mesh(source: str | Path) -> TriMesh:
 
     path = Path(source)
     if not path.exists():
-        raise StageInputError(path, "file not found", "Check the mesh path in the config.")
+        raise StageInputError(path, "file not found", f"Check the mesh path in {given_in}.")
     if not path.is_file():
-        raise StageInputError(path, "is not a file", "Point the config at a mesh file.")
+        raise StageInputError(path, "is not a file", f"Point {given_in} at a mesh file.")
     suffix = path.suffix.lower()
     if suffix not in SUPPORTED_SUFFIXES:
         raise StageInputError(

@@ -425,14 +425,31 @@ class RenderProbe:
     spp: int
 
 
-def probe(settings: TargetSettings, width: int = 48, spp: int = 32) -> RenderProbe:
+def target_samples(raycache, target: TargetSettings) -> dict[str, int]:
+    """The Mitsuba samples one target job path-traces, by kind: ``training`` (every training view
+    at ``target.spp``), ``metric`` (every held-out metric view at ``target.metric_spp``) and
+    ``relit`` (the metric views again under each of ``target.relight_environments``, at
+    ``metric_spp``: the relit truths), whole images, as :meth:`TargetRenderer.render_cache` and the
+    target stage render them. ``raycache``: the mesh's :class:`~stages.config.sections.RaycacheSettings`."""
+    metric_views = raycache.metrics_azimuths * len(raycache.metrics_elevations_deg)
+    metric = metric_views * raycache.metrics_resolution**2 * target.metric_spp
+    return {
+        "training": raycache.views * raycache.resolution**2 * target.spp,
+        "metric": metric,
+        "relit": metric * len(target.relight_environments),
+    }
+
+
+def probe(settings: TargetSettings, width: int = 128, spp: int = 64) -> RenderProbe:
     """The smallest real use of the target renderer: the target stage's own scene (principled BSDF
     with textures and a normal map, the configured environment and transport) on the doctor's
     320-face probe sphere (:func:`stages.geometry.probes.probe_sphere`), rendered twice at
     ``width x width`` pixels and ``spp`` samples in the variant a run of ``settings`` uses
     (:func:`~stages.reference.mitsuba.choose_variant`). The sphere covers about 45% of the
     pixels, like an object in a target view, and the rate counts whole images, as the target
-    stage does. Raises what the renderer raises."""
+    stage does. The default size is large enough for the LLVM variant's rate to be its rate on
+    whole target views (at 48 pixels and 32 samples it measured 2.5x slower, its fixed costs
+    counted in). Raises what the renderer raises."""
     mesh = probe_sphere(2)
     small = TargetSettings(**{**settings.to_dict(), "texture_size": 64, "environment_height": 32})
     c2w = np.eye(4)

@@ -50,6 +50,8 @@ def test_without_weights_it_stops_at_once_with_one_message_per_model(tmp_path):
     t0 = time.perf_counter()
     proc = quick(tmp_path, str(REPO / "tests" / "data" / "absent.obj"), "a vase made of gold", env=env)
     assert proc.returncode == 2 and "file not found" in proc.stderr  # the mesh is checked first
+    # named on the command line, before there is any config: the advice says so
+    assert "Check the mesh path in the command" in proc.stderr and "in the config" not in proc.stderr
     mesh = tmp_path / "pot.obj"
     mesh.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 2 3\nf 1 2 4\nf 1 3 4\nf 2 3 4\n")
     proc = quick(tmp_path, str(mesh), "a pot made of gold", env=env)

@@ -1,0 +1,91 @@
+"""The plan's and the doctor's wall-time estimate counts every job a run makes: Mitsuba's targets
+by the samples they render (the training views, the metric views and the relit truths under every
+``target.relight_environments`` entry), the optimisations by calibrated steps, every other rule
+per job; and a calibration taken while other processes use the CPU says so and is not kept.
+
+(How close the estimate comes to a real run is measured, not asserted here: the suite's parallel
+workers share the CPU with any run a test would time; ``benchmarks/plan_accuracy.py``.)"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+
+import pytest
+from conftest import REPO
+
+from stages import plan as plan_mod
+from stages.config.sections import OptimizeSettings, RaycacheSettings
+from stages.config.workflow import load_config_files
+from stages.doctor import target_samples
+
+DEMO = REPO / "config" / "demo.yaml"
+THREE = REPO / "config" / "demo-offline.yaml"
+
+
+def test_target_samples_count_the_relit_truths():
+    """Written out from the config files' numbers: 32 training views of 128^2 pixels at 16 spp, and
+    8 x 3 metric views of 224^2 pixels (the metric views' default size) at metric_spp, rendered once
+    under the training light and once more per relight environment (two in the three-cell demo,
+    one in the first demo)."""
+    three = load_config_files([THREE])
+    assert target_samples(three, "vase") == 32 * 128**2 * 16 + 24 * 224**2 * 128 * (1 + 2)
+    demo = load_config_files([DEMO])
+    assert target_samples(demo, "candle") == 32 * 128**2 * 16 + 24 * 224**2 * 64 * (1 + 1)
+
+
+@pytest.mark.slow(minutes=0.5)
+def test_the_estimate_counts_every_rule_to_run(tmp_path):
+    """The first demo in an empty results folder: the targets' samples are the two target jobs',
+    every rule Snakemake would run besides optimize and target has a figure per job (the reference
+    table's, as no earlier run exists), and the total is the sum of the three parts."""
+    cfg = load_config_files([DEMO])
+    env_cache = tmp_path / "cache"
+    p = plan_mod.make_plan(cfg, "demo", tmp_path / "results", True, env_cache)
+    t = p["targets"]
+    assert t["jobs"] == 2 and t["samples"]["relit"] == 2 * 24 * 224**2 * 64
+    assert sum(t["samples"].values()) == sum(target_samples(cfg, m) for m, _ in cfg.target_jobs())
+    counts = plan_mod.job_counts(cfg)
+    assert p["other_jobs"] == {r: n for r, n in counts.items() if r not in ("optimize", "target")}
+    assert p["other_missing"] == [] and p["other_source"].startswith("the reference table (")
+    table = p["other_stage_seconds"]
+    others = sum(table[r] * n for r, n in p["other_jobs"].items())
+    assert p["other_seconds"] == pytest.approx(others)
+    assert p["total_seconds"] == pytest.approx(p["optimisation_seconds"] + t["seconds"] + others)
+    text = plan_mod.plan_text(p)
+    assert "of them the relit truths" in text and "Estimated wall time on this machine: about" in text
+
+
+@pytest.mark.slow(minutes=0.5)
+def test_a_calibration_under_load_is_said_and_not_kept(tmp_path, monkeypatch):
+    """Two processes spinning on the CPU while the plan calibrates a step: the figure's source says
+    what share of the CPU others used, and nothing is cached (the next plan measures again)."""
+    monkeypatch.delenv("TANGO_PLAN_BUSY_SHARE", raising=False)
+    spinners = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(2)]
+    try:
+        time.sleep(0.5)
+        settings = OptimizeSettings(
+            clip_tiny_test=True, image_size=64, width=16, crops=0, light_lobes=4, material_frequencies=2, eval_width=16
+        )
+        seconds, source = plan_mod.step_seconds(
+            settings, RaycacheSettings(views=4, resolution=32), "cpu", tmp_path / "results", tmp_path / "cache", True
+        )
+    finally:
+        for proc in spinners:
+            proc.kill()
+    assert seconds > 0
+    assert "taken while other processes used" in source and "so not kept" in source, source
+    assert not list((tmp_path / "cache").glob("*.json"))
+
+
+def test_the_load_meter_counts_other_processes():
+    """A child spinning for a second while this process waits is at least 0.3 CPUs of others' load
+    (Linux; other processes on the machine can only add to it)."""
+    with plan_mod.LoadMeter() as other:
+        child = subprocess.Popen([sys.executable, "-c", "import time; t=time.time()\nwhile time.time()-t<1.0: pass"])
+        child.wait()
+    if other.others_share is None:
+        pytest.skip("no /proc/stat here")
+    assert other.others_share * (os.cpu_count() or 1) > 0.3, other.others_share
