@@ -97,7 +97,7 @@ def test_doctor_tells_the_truth_on_a_bare_machine(machine):
     # no system libLLVM: the set-up's wheel gives Mitsuba its vectorised variant
     assert "variant llvm_ad_rgb with libLLVM 23" in mitsuba["detail"] and "from the karellen-llvm-core wheel" in mitsuba["detail"]
     # the real use: a render in the run's variant, and what this config's targets cost there
-    assert "rendered a 48 x 48 target probe at 32 spp in llvm_ad_rgb" in mitsuba["tried"]
+    assert "rendered a 128 x 128 target probe at 64 spp in llvm_ad_rgb" in mitsuba["tried"]
     assert f"this config's targets ({len(jobs)} job(s), {samples / 1e6:.0f} M samples) take about" in mitsuba["tried"]
     assert "scalar_rgb" not in mitsuba["tried"]
     blender = checks["Blender"]
@@ -129,7 +129,7 @@ def test_doctor_without_any_libllvm_says_scalar_and_what_it_costs(machine):
     proc = run([sys.executable, "-m", "stages.doctor", "--configfile", "config/demo-offline.yaml", "--json"], clone, env)
     mitsuba = {c["name"]: c for c in json.loads(proc.stdout)}["Mitsuba 3"]
     assert mitsuba["ok"] and "variant scalar_rgb (no libLLVM 16+ found)" in mitsuba["detail"], mitsuba
-    assert "rendered a 48 x 48 target probe at 32 spp in scalar_rgb" in mitsuba["tried"]
+    assert "rendered a 128 x 128 target probe at 64 spp in scalar_rgb" in mitsuba["tried"]
     assert f"({len(demo.target_jobs())} job(s), {samples / 1e6:.0f} M samples) take about" in mitsuba["tried"]
     assert "slow scalar_rgb variant (pip install karellen-llvm-core, or Debian: apt-get install libllvm19" in mitsuba["tried"]
 
