@@ -5,9 +5,12 @@ The built-in mesh is normalised, its metric views traced, and the target scene (
 with textures and a normal map, ``builtin:sun_sky``, path tracer) rendered through the same views
 in each variant, in one process; prints seconds, samples per second (whole images, as the target
 stage counts them), the ratio, and the doctor's probe rate for each variant (what its estimate
-uses). Needs libLLVM 16+ for the second variant (Debian: apt-get install libllvm19).
+uses). Needs libLLVM 16+ for the second variant: a system one (Debian: apt-get install
+libllvm19) or the ``karellen-llvm-core`` wheel the ``reference`` extra installs; it prints which.
+To measure the wheel's on a machine that also has a system one, hide the system folders:
 
     python benchmarks/mitsuba_variants.py [--mesh vase] [--views 4] [--resolution 128] [--spp 64]
+    TANGO_LIBLLVM_DIRS= python benchmarks/mitsuba_variants.py    # the wheel's libLLVM
 """
 
 from __future__ import annotations
@@ -31,7 +34,7 @@ def main() -> None:
     from stages.geometry.normalization import normalize_mesh
     from stages.geometry.raycache import RayCache, metric_views, trace_views
     from stages.geometry.tracing import EmbreeTracer
-    from stages.reference.mitsuba import find_libllvm
+    from stages.reference.mitsuba import locate_libllvm
     from stages.reference.targets import TargetRenderer, probe
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -40,14 +43,16 @@ def main() -> None:
     parser.add_argument("--resolution", type=int, default=128)
     parser.add_argument("--spp", type=int, default=64)
     args = parser.parse_args()
-    if find_libllvm() is None:
-        raise SystemExit("no libLLVM 16+ for llvm_ad_rgb (Debian: apt-get install libllvm19); nothing to compare")
+    lib = locate_libllvm()
+    if lib is None:
+        raise SystemExit("no libLLVM 16+ for llvm_ad_rgb (pip install karellen-llvm-core); nothing to compare")
     mesh = normalize_mesh(f"builtin:{args.mesh}", NormalizeSettings()).mesh
     rc = RaycacheSettings(metrics_azimuths=args.views, metrics_elevations_deg=(0.0,), metrics_resolution=args.resolution)
     arrays, _ = trace_views(mesh, metric_views(rc), EmbreeTracer(mesh))
     print(
         f"{datetime.now(UTC):%Y-%m-%d %H:%M} UTC, {platform.processor() or platform.machine()}, "
-        f"{args.mesh} ({len(mesh.faces)} faces): {args.views} views at {args.resolution} px, {args.spp} spp"
+        f"{args.mesh} ({len(mesh.faces)} faces): {args.views} views at {args.resolution} px, {args.spp} spp; "
+        f"llvm_ad_rgb with {lib.describe()}"
     )
     rates = {}
     with tempfile.TemporaryDirectory() as d:

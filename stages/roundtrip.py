@@ -127,7 +127,7 @@ def run(
             env = (export_dir / "light.hdr").resolve() if fmt == "glb" else None  # the USD carries its DomeLight
             asset = str((export_dir / f"model.{fmt}").resolve())
             # the GLB's lobes are also rendered alone, to split the gap between the BRDF models
-            passes = PASSES if fmt == "glb" else {"full": PASSES["full"]}
+            passes = PASSES if fmt == "glb" and settings.split_lobes else {"full": PASSES["full"]}
             for name, overrides in passes.items():
                 job = {
                     "asset": asset,

@@ -800,6 +800,9 @@ class RoundtripSettings(Settings):
     #: direct_unshadowed: light straight from the world, no self-shadowing (what our closed-form
     #: renderer models, so the figure measures the asset); full: path tracing (shadows, bounces)
     transport: str = "direct_unshadowed"
+    #: also render the GLB's diffuse and specular lobes alone (two more Blender processes, about
+    #: 7 s each on a 2-core CPU), which split the GLB's gap between the BRDF models
+    split_lobes: bool = True
     seed: int = 0
     #: longest a Blender job may run (seconds)
     timeout_s: float = 3600.0

@@ -216,6 +216,12 @@ def test_roundtrip_stage_records_fidelity(ready, trained_cell, tmp_path):
     row = summary.summary_rows(tmp_path / "results", [("candle", "wax", "base")])[0]
     assert row["roundtrip_glb_psnr_db"] == pytest.approx(stats["glb_psnr_db"])
     assert row["roundtrip_problems"] == 0
+    # without the lobes' split: two Blender processes fewer, the same full figure, no split figures
+    quick = roundtrip.run(*inputs, tmp_path / "quick", dataclasses.replace(settings, formats=("glb",), split_lobes=False))
+    timings = json.loads((tmp_path / "quick" / "meta.json").read_text())["timings_s"]
+    assert [k for k in timings if k.startswith("blender_")] == ["blender_glb_full"]
+    assert "glb_diffuse_psnr_db" not in quick["stats"] and "split" not in quick["formats"]["glb"]
+    assert quick["stats"]["glb_psnr_db"] == pytest.approx(stats["glb_psnr_db"], abs=0.05)  # the same seeded render
 
 
 @pytest.mark.slow
