@@ -228,8 +228,8 @@ def _machine() -> str:
 
 def other_stage_seconds(results: Path) -> tuple[dict[str, float], str]:
     """Seconds per job of each rule besides optimize and target: the median of earlier runs'
-    benchmark files under ``results`` (Snakemake's ``benchmark:``) where there are any, else the
-    reference table's (:data:`STAGE_SECONDS`); and where the figures come from."""
+    benchmark files under ``results`` (Snakemake's ``benchmark:``) for the rules that have any, the
+    reference table's (:data:`STAGE_SECONDS`) for the others; and where the figures come from."""
     out = {}
     for rule, pattern in BENCHMARK_GLOBS.items():
         times = []
@@ -242,12 +242,18 @@ def other_stage_seconds(results: Path) -> tuple[dict[str, float], str]:
                     continue
         if times:
             out[rule] = statistics.median(times)
-    if out:
-        return out, "medians of earlier runs' benchmark files"
+    sources = [f"medians of earlier runs' benchmark files ({', '.join(out)})"] if out else []
     if STAGE_SECONDS.is_file():
         table = json.loads(STAGE_SECONDS.read_text())
-        return dict(table["seconds_per_job"]), f"the reference table ({table['conditions']})"
-    return {}, "no earlier runs"
+        rest = {r: s for r, s in table["seconds_per_job"].items() if r not in out}
+        if rest:
+            out.update(rest)
+            sources.append(
+                f"the reference table for the rest ({table['conditions']})"
+                if sources
+                else f"the reference table ({table['conditions']})"
+            )
+    return out, "; ".join(sources) or "no earlier runs"
 
 
 def guidance_label(settings) -> str:

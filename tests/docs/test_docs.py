@@ -139,6 +139,23 @@ def test_relative_links_resolve(page):
     assert not broken, f"{page.relative_to(REPO)} links to files that do not exist: {broken}"
 
 
+@pytest.mark.parametrize(
+    "page",
+    [README, *sorted(DOCS.rglob("*.md")), REPO / "config" / "README.md", REPO / "CHANGELOG.md"],
+    ids=lambda p: str(p.relative_to(REPO)),
+)
+def test_pages_hold_no_control_characters(page):
+    """A formula written through a string that was not raw loses its backslashes to control
+    characters (``\\frac`` becomes a form feed and ``rac``), which the site shows as garbage."""
+    bad = [
+        # split at newlines only: str.splitlines() also splits at a form feed, hiding it
+        (n, repr(line))
+        for n, line in enumerate(page.read_text().split("\n"), 1)
+        if re.search(r"[\x00-\x08\x0b-\x1f\x7f]", line)
+    ]
+    assert not bad, f"{page.relative_to(REPO)}: control characters on lines {bad[:5]}"
+
+
 def test_readme_test_command_is_the_one_ci_runs():
     ci_commands = [line.strip() for line in CI_RUN.read_text().splitlines() if re.search(r"\bpytest\b", line)]
     ci_commands = [c for c in ci_commands if not c.startswith(("#", "echo"))]
