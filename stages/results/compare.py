@@ -53,10 +53,15 @@ def _canonical(value: Any) -> str:
     return json.dumps(value, sort_keys=True)
 
 
+#: settings whose default changed after they were added: what a cell made before the setting
+#: existed ran under (its value then), where today's default would say otherwise
+BEFORE_IT_EXISTED = {"optimize.normal_tilt": 0.0}
+
+
 def setting_defaults() -> dict[str, Any]:
-    """Today's default of every per-cell setting, flattened to ``stage.key``: the value a cell
-    made before a setting existed ran under (a setting is added with the default that keeps what
-    ran before)."""
+    """The value of every per-cell setting in a cell made before the setting existed, flattened to
+    ``stage.key``: its default (a setting is added with the default that keeps what ran before),
+    or, where that default changed later, the value it was added with (:data:`BEFORE_IT_EXISTED`)."""
     classes = {"optimize": OptimizeSettings, "bake": BakeSettings, "relight": RelightSettings, "lod": LodSettings}
     assert set(classes) == set(SETTINGS_STAGES)
     out = {}
@@ -66,7 +71,7 @@ def setting_defaults() -> dict[str, Any]:
                 out[f"{stage}.{f.name}"] = f.default
             elif f.default_factory is not MISSING:
                 out[f"{stage}.{f.name}"] = f.default_factory()
-    return out
+    return {**out, **BEFORE_IT_EXISTED}
 
 
 def differing_keys(a: dict[str, Any], b: dict[str, Any]) -> list[str]:

@@ -178,16 +178,17 @@ class Optimizer:
         the step's shaded points ``materials``), the material's change over a small jitter of the
         step's hit ``points`` (``material_smooth``, :func:`material_variation`) and the predicted
         normals' tilt from the geometric ones (``normal_tilt``, :func:`normal_tilt`; ``normals``:
-        pairs of predicted and geometric normals)."""
+        pairs of predicted and geometric normals). The surface priors need the step's ``points`` and
+        ``normals`` (:meth:`step` passes them); without them only the others are taken."""
         s = self.s
         total = torch.zeros((), device=self.device)
-        if s.material_smooth > 0:
+        if s.material_smooth > 0 and points:
             x = torch.cat(points)
             jitter = torch.randn(x.shape, generator=self.tgen).to(x.device) * s.material_smooth_radius
             variation = material_variation(cat_materials(materials), self.field.material(x + jitter))
             total = total + s.material_smooth * variation
             stats["material_variation"] = float(variation.detach())
-        if s.normal_tilt > 0:
+        if s.normal_tilt > 0 and self.field.normal_net is not None and normals:  # (no normal network: nothing to hold)
             tilt = normal_tilt(torch.cat([p for p, _ in normals]), torch.cat([g for _, g in normals]))
             total = total + s.normal_tilt * tilt
             stats["normal_tilt"] = float(tilt.detach())

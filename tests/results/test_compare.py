@@ -84,6 +84,10 @@ def test_a_setting_newer_than_a_cell_stands_for_its_default():
     assert differing_keys(older, with_(material_smooth=0.0)) == []
     assert differing_keys(with_(material_smooth=0.01), older) == ["optimize.material_smooth"]
     assert differing_keys(BASE, with_(**{"optimize.not_a_setting": 0.0})) == ["optimize.not_a_setting"]
+    # a setting whose default changed after it was added stands for the value it was added with
+    older_tilt = {k: v for k, v in BASE.items() if k != "optimize.normal_tilt"}
+    assert differing_keys(older_tilt, with_(normal_tilt=0.0)) == []
+    assert differing_keys(older_tilt, with_(normal_tilt=0.01)) == ["optimize.normal_tilt"]
     rows = [row("vase", "wood", "base", 29.0), row("vase", "wood", "base_seed1", 29.2)]
     settings = {("vase", "wood", "base"): older, ("vase", "wood", "base_seed1"): with_(seed=1, material_smooth=0.0)}
     (g,) = comparison_groups(rows, settings, ["base", "base_seed1"])

@@ -216,9 +216,13 @@ def test_the_surface_priors_lower_what_they_measure(cache, prior, stat):
     assert ends[50.0] < 0.7 * ends[0.0], ends
 
 
-def test_surface_prior_settings_are_checked():
-    with pytest.raises(ConfigError, match="normal_tilt is a prior on the normal network"):
-        OptimizeSettings(normal_tilt=0.1, normal_network=False)
+def test_surface_prior_settings_are_checked(cache):
+    # the default prior on the normals has nothing to act on without the normal network: no error,
+    # nothing recorded
+    s = OptimizeSettings(iterations=1, normal_network=False, **TINY)
+    assert s.normal_tilt > 0
+    row = Optimizer(s, RayCache(cache / "train.npz"), "a vase", "cpu").step(Timer())
+    assert "normal_tilt" not in row
     with pytest.raises(ConfigError, match="material_smooth must be in"):
         OptimizeSettings(material_smooth=-0.1)
     with pytest.raises(ConfigError, match="material_smooth_radius must be in"):
