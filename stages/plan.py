@@ -37,6 +37,8 @@ from .config.presets import PRESETS
 from .config.sections import OptimizeSettings
 from .config.workflow import WorkflowConfig, experiment_name, load_config_files
 from .core.cli import precision_summary, resolve_device, stage_main
+from .reference.mitsuba import choose_variant
+from .reference.targets import probe, target_samples
 from .training.calibrate import seconds_per_step
 
 log = logging.getLogger(__name__)
@@ -196,8 +198,6 @@ def mitsuba_rate(target, cache: Path, calibrate: bool) -> tuple[float | None, st
     """Mitsuba's samples per second for target ``settings`` on this machine (the doctor's probe:
     the target scene on a small sphere, :func:`stages.reference.targets.probe`), cached per
     settings, variant and machine; and where the figure comes from."""
-    from .reference.mitsuba import choose_variant
-    from .reference.targets import probe
 
     variant = choose_variant(target.variant)
     key = hashlib.sha256(f"mitsuba|{_digest(target.to_dict())}|{variant}|{_machine()}".encode()).hexdigest()[:16]
@@ -372,7 +372,6 @@ def target_estimate(cfg: WorkflowConfig, pending, todo: list, cache: Path, calib
     """The Mitsuba target jobs still to run: their samples (training views, metric views and the
     relit truths: :func:`stages.reference.targets.target_samples`) and seconds at the rate a probe
     render measures here (per target settings)."""
-    from .reference.targets import target_samples
 
     if pending is not None:
         jobs = sorted({(w.get("mesh"), w.get("material")) for rule, w in pending if rule == "target"})

@@ -123,6 +123,8 @@ def locate_libllvm() -> LibLLVM | None:
     else the ``karellen-llvm-core`` wheel's when it loads here (its C++ runtime loaded first:
     :func:`load_wheel_runtime`; one that does not load is logged and skipped), else None."""
     given = os.environ.get("DRJIT_LIBLLVM_PATH")
+    if given and given == _POINTED_AT.get("path"):
+        return _POINTED_AT["lib"]  # set by import_mitsuba from this search, not by the user
     if given:
         version = _llvm_version(Path(given).name)
         return LibLLVM(given, version[1] if version else "", "DRJIT_LIBLLVM_PATH") if Path(given).is_file() else None
@@ -138,6 +140,11 @@ def locate_libllvm() -> LibLLVM | None:
         log.warning("the %s wheel's libLLVM does not load on this machine (%s); Mitsuba runs scalar_rgb", LLVM_WHEEL, exc)
         return None
     return lib
+
+
+#: the library import_mitsuba pointed DRJIT_LIBLLVM_PATH at (``path``, ``lib``), so that a later
+#: search in this process still says where it came from
+_POINTED_AT: dict = {}
 
 
 def find_libllvm() -> str | None:
@@ -165,10 +172,12 @@ def import_mitsuba(variant: str = DEFAULT_VARIANT):
     """``import mitsuba`` with ``variant`` set, or an ImportError that says what to install. For
     an LLVM variant, ``DRJIT_LIBLLVM_PATH`` is pointed at :func:`find_libllvm`'s library first."""
     if variant.startswith("llvm"):
-        lib = find_libllvm()
+        lib = locate_libllvm()
         if lib is None:
             choose_variant(variant)  # raises with the remedy
-        os.environ.setdefault("DRJIT_LIBLLVM_PATH", lib)
+        if "DRJIT_LIBLLVM_PATH" not in os.environ:
+            os.environ["DRJIT_LIBLLVM_PATH"] = lib.path
+            _POINTED_AT.update(path=lib.path, lib=lib)
     try:
         import mitsuba as mi
     except ImportError as exc:
