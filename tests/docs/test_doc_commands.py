@@ -518,6 +518,8 @@ def named_paths(argv: tuple[str, ...]) -> list[str]:
         if not value or value.startswith(("-", "/")) or re.match(r"^[a-z_]+:", value) or " " in value:
             continue
         first = value.split("/")[0]
+        if first in ("results", ".snakemake", ".cache"):
+            continue  # made by runs (a fresh clone has none): e.g. --forcerun results/.../meta.json
         if first == "..":
             if value.startswith("../shared/meshes/") and not SHARED_MESHES.is_dir():
                 continue  # a developer checkout's meshes
