@@ -115,7 +115,7 @@ def weights_help(
         )
     else:
         lines.append(
-            "Or run without CLIP weights: --configfile config/demo-offline.yaml (image-guided), or add "
+            "Or run without CLIP weights: --configfile config/demo.yaml (image-guided), or add "
             "config/overlays/offline.yaml (the tiny random test CLIP; every result is marked TEST ONLY)."
         )
     return "\n".join(lines)

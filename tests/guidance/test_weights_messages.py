@@ -62,7 +62,7 @@ def test_one_message_per_missing_model(offline, guidance_kind, eval_kind):
         m = messages[0]
         assert m.startswith("The guidance CLIP (the model the optimisation follows), ViT-B-32")
         assert "  optimize:\n    clip_checkpoint: /path/to/open_clip_pytorch_model.bin\n    clip_model: ViT-B-32-quickgelu" in m
-        assert "metrics:" not in m and "config/demo-offline.yaml" in m and "config/overlays/offline.yaml" in m
+        assert "metrics:" not in m and "config/demo.yaml" in m and "config/overlays/offline.yaml" in m
     if want_eval:
         m = messages[-1]
         assert m.startswith("The evaluation CLIP (the metrics' CLIP score and R-precision), ViT-B-16")
