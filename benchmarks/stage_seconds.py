@@ -32,7 +32,7 @@ def rule_seconds(experiment: Path) -> dict[str, list[float]]:
     """rule -> the wall seconds of each of its jobs in ``experiment`` (a ``results/<name>`` folder):
     its cells', the report's, and those of the mesh work its cells used (the ray caches and
     targets their optimisations read; every normalisation and decimation of their meshes)."""
-    from stages.plan import BENCHMARK_GLOBS, MESH_RULES
+    from stages.plan import BENCHMARK_GLOBS, MESH_RULES, benchmark_seconds
 
     results = experiment.parent
     metas = [json.loads(p.read_text()) for p in experiment.glob("*/*/*/optimize/meta.json")]
@@ -47,9 +47,9 @@ def rule_seconds(experiment: Path) -> dict[str, list[float]]:
 
     def add(rule: str, files) -> None:
         for tsv in files:
-            lines = tsv.read_text().splitlines()
-            if len(lines) >= 2:
-                out.setdefault(rule, []).append(float(lines[1].split("\t")[0]))
+            seconds = benchmark_seconds(tsv)
+            if seconds is not None:
+                out.setdefault(rule, []).append(seconds)
 
     for rule, pattern in BENCHMARK_GLOBS.items():
         if rule == "raycache":

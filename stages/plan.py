@@ -226,20 +226,22 @@ def _machine() -> str:
     return f"{platform.processor() or platform.machine()}|{os.cpu_count()}|{torch.__version__}|{torch.get_num_threads()}"
 
 
+def benchmark_seconds(tsv: Path) -> float | None:
+    """The wall seconds a Snakemake ``benchmark:`` file records (its first column), or None."""
+    lines = Path(tsv).read_text().splitlines()
+    try:
+        return float(lines[1].split("\t")[0]) if len(lines) >= 2 else None
+    except ValueError:
+        return None
+
+
 def other_stage_seconds(results: Path) -> tuple[dict[str, float], str]:
     """Seconds per job of each rule besides optimize and target: the median of earlier runs'
     benchmark files under ``results`` (Snakemake's ``benchmark:``) for the rules that have any, the
     reference table's (:data:`STAGE_SECONDS`) for the others; and where the figures come from."""
     out = {}
     for rule, pattern in BENCHMARK_GLOBS.items():
-        times = []
-        for tsv in Path(results).glob(pattern):
-            lines = tsv.read_text().splitlines()
-            if len(lines) >= 2:
-                try:
-                    times.append(float(lines[1].split("\t")[0]))
-                except ValueError:
-                    continue
+        times = [t for tsv in Path(results).glob(pattern) if (t := benchmark_seconds(tsv)) is not None]
         if times:
             out[rule] = statistics.median(times)
     sources = [f"medians of earlier runs' benchmark files ({', '.join(out)})"] if out else []

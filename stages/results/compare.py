@@ -16,6 +16,7 @@ against the reference variant (``report.reference``, default the first variant):
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 from collections.abc import Iterable
@@ -58,6 +59,7 @@ def _canonical(value: Any) -> str:
 BEFORE_IT_EXISTED = {"optimize.normal_tilt": 0.0}
 
 
+@functools.cache
 def setting_defaults() -> dict[str, Any]:
     """The value of every per-cell setting in a cell made before the setting existed, flattened to
     ``stage.key``: its default (a setting is added with the default that keeps what ran before),

@@ -238,8 +238,10 @@ class Optimizer:
                 npts += len(sel)
                 out = v.shade(self.field, sel)
                 materials.append(out.material)
-                points.append(v.points[sel])
-                normals.append((out.normal, v.normals[sel]))
+                if s.material_smooth > 0:  # (the gathers only where a prior reads them)
+                    points.append(v.points[sel])
+                if s.normal_tilt > 0:
+                    normals.append((out.normal, v.normals[sel]))
                 color = linear_to_srgb(out.shading.rgb)
                 imgs = [compose(color, lk, sp, bg) for lk, sp, bg in zip(lookups, specs, bgs, strict=True)]
                 globals_.append(imgs[0])
