@@ -122,8 +122,9 @@ def main() -> None:
 
 
 def levers(train: Path, warmup: int) -> None:
-    """200 iterations under each lever, side by side; a lever whose run fails (TF32 products made
-    the loss non-finite within 50 steps on an H100, 2026-11-25) is reported as such."""
+    """200 iterations under each lever, side by side; a lever whose run fails (a non-finite loss,
+    as TF32 products gave on an H100 before the SG product's cosine was held in [-1, 1]) is
+    reported as such."""
     print(f"{'lever':<24}{'s/iter':>9}{'x fp32':>8}{'peak GiB':>10}", flush=True)
     base = None
     for bf16, tf32 in ((False, False), (False, True), (True, False)):

@@ -189,7 +189,11 @@ def specular_radiance_reference(
 def _product_terms(lam1: Tensor, lam2: Tensor, cos12: Tensor) -> tuple[Tensor, Tensor]:
     """Sharpness and log-amplitude factor of the product of two unit SGs from their sharpnesses
     and the cosine between their axes: ``lam = sqrt((l1 - l2)^2 + 2 l1 l2 (1 + c))`` and
-    ``lam - l1 - l2 = -2 l1 l2 (1 - c) / (lam + l1 + l2)`` (both free of cancellation)."""
+    ``lam - l1 - l2 = -2 l1 l2 (1 - c) / (lam + l1 + l2)`` (both free of cancellation). ``c`` is
+    a cosine between unit axes, held in [-1, 1]: a matrix product with reduced-precision inputs
+    (TF32, bfloat16) returns cosines just outside it, and ``1 + c < 0`` at opposite axes of equal
+    sharpness made the square root NaN (TF32 on an H100 at step 40 of a paper run)."""
+    cos12 = cos12.clamp(-1.0, 1.0)
     lam = torch.sqrt((lam1 - lam2) ** 2 + 2.0 * lam1 * lam2 * (1.0 + cos12))
     log_amp = -2.0 * lam1 * lam2 * (1.0 - cos12) / (lam + lam1 + lam2)
     return lam, log_amp

@@ -230,6 +230,21 @@ def test_product_of_opposite_equal_lobes_is_constant():
     torch.testing.assert_close(sg_integral(pl, pm), 4 * math.pi * pm)
 
 
+def test_fused_product_of_opposite_lobes_survives_cosines_past_minus_one():
+    """A matrix product with reduced-precision inputs (TF32, bfloat16) returns cosines between unit
+    axes just outside [-1, 1]; at opposite lobes of equal sharpness the product's sharpness
+    ``sqrt((l1 - l2)^2 + 2 l1 l2 (1 + c))`` then took the root of a negative number (NaN at step 40
+    of a TF32 run on an H100). A cosine past -1 is the cosine -1: sharpness 0, amplitude exp(-2 l)."""
+    lam = torch.tensor([5.0], dtype=torch.float32)
+    for c in (-1.0 - 1e-6, -1.0 - 1e-3, 1.0 + 1e-6):
+        cos = torch.tensor([c], dtype=torch.float32)
+        pl, log_amp = shading_module._product_terms(lam, lam, cos)
+        clamped = max(-1.0, min(1.0, c))
+        assert torch.isfinite(pl).all() and torch.isfinite(log_amp).all(), c
+        assert pl.item() == pytest.approx(math.sqrt(2 * 25.0 * (1.0 + clamped)), abs=1e-6)
+        assert log_amp.item() == pytest.approx(-2 * 25.0 * (1.0 - clamped) / (pl.item() + 10.0), rel=1e-6)
+
+
 # ------------------------------------------------------------------------------------ integral
 INTEGRAL_SHARPNESS = (1e-4, 1e-2, 0.3, 1.0, 3.0, 10.0, 30.0)
 
