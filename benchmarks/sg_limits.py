@@ -11,6 +11,7 @@ sRGB error over fully covered object pixels, Mitsuba's own noise taken out (see
     python benchmarks/sg_limits.py --shared bunny horse  # also meshes of ../shared/meshes
     python benchmarks/sg_limits.py --builtin candle:metal --brdf tango,gltf   # both BRDFs (default)
     python benchmarks/sg_limits.py --builtin knot:wood --visibility off,on    # our renderer's shadows
+    python benchmarks/sg_limits.py --builtin --shared horse --faces full,0.1,5000   # decimated levels
 
 With ``--visibility on`` our renderer casts shadows (1024 stored directions, shadow rays for
 lobes too sharp for them), and each line adds how closely like agrees with like: ours shadowed
@@ -49,6 +50,13 @@ def main() -> None:
     parser.add_argument("--visibility", default="off", help="our renderer's shadows, comma-separated (off, on)")
     parser.add_argument("--directions", type=int, default=1024, help="stored visibility directions (shadows cast)")
     parser.add_argument("--shadow-samples", type=int, default=64, help="shadow rays per lobe too sharp for the directions")
+    parser.add_argument(
+        "--faces",
+        default="full",
+        help="levels of each mesh, comma-separated: full, a fraction of its faces (0.1) or a face count (5000), "
+        "each decimated by the decimate stage's collapse from the normalised mesh",
+    )
+    parser.add_argument("--normals", default="smooth", help="the truth's and our shading normals: smooth or flat")
     args = parser.parse_args()
     shadowed = [v == "on" for v in args.visibility.split(",") if v]
     brdfs = [b for b in args.brdf.split(",") if b]
@@ -56,14 +64,15 @@ def main() -> None:
     cases += [(str(REPO.parent / "shared" / "meshes" / f"{n}.obj"), "wood") for n in args.shared]
     rc = RaycacheSettings(metrics_resolution=args.resolution)
     print(f"metric views: {len(metric_views(rc))} at {args.resolution} px; Mitsuba at {args.spp} spp per render")
-    for source, material in cases:
+    levels = [f for f in args.faces.split(",") if f]
+    for (source, material), level in ((c, f) for c in cases for f in levels):
         t0 = time.perf_counter()
-        mesh = normalize_mesh(source, NormalizeSettings()).mesh
+        mesh, quality = mesh_level(normalize_mesh(source, NormalizeSettings()).mesh, level)
         arrays, _ = trace_views(mesh, metric_views(rc), EmbreeTracer(mesh))
         with tempfile.TemporaryDirectory() as d:
             np.savez(Path(d) / "m.npz", **arrays)
             cache = RayCache(Path(d) / "m.npz")
-            renderer = TargetRenderer(mesh, material, TargetSettings(texture_size=1024))
+            renderer = TargetRenderer(mesh, material, TargetSettings(texture_size=1024, shading_normals=args.normals))
             for brdf, vis in ((b, v) for b in brdfs for v in shadowed):
                 r = measure_limits(
                     renderer,
@@ -75,7 +84,8 @@ def main() -> None:
                     directions=args.directions,
                     shadow_samples=args.shadow_samples,
                 )
-                name = f"{Path(source).stem if '/' in source else source[8:]} ({len(mesh.faces)} faces), {material}, {brdf} BRDF"
+                stem = Path(source).stem if "/" in source else source[8:]
+                name = f"{stem} ({len(mesh.faces)} faces{quality}), {material}, {brdf} BRDF"
                 name += ", shadows cast" if vis else ""
                 parts = []
                 for k in args.lobes:
@@ -101,6 +111,42 @@ def main() -> None:
                     f"shadows {r['shadows_mse']:.2e}; " + "; ".join(parts) + f"; {time.perf_counter() - t0:.0f} s",
                     flush=True,
                 )
+
+
+def mesh_level(mesh, level: str):
+    """``mesh`` at ``level`` (``full``, a fraction of its faces or a face count), and a text of the
+    decimation's quality: Hausdorff distance both ways (normalised frame), the share of sliver faces
+    (smallest angle under 10 degrees) and of folds (edges whose faces' normals differ by more than
+    120 degrees)."""
+    from stages.config.sections import DecimateSettings
+    from stages.geometry.decimation import decimate_mesh
+
+    if level == "full":
+        return mesh, f"; {_shape_quality(mesh)}"
+    target = round(float(level) * len(mesh.faces)) if float(level) < 1 else int(level)
+    result = decimate_mesh(mesh, DecimateSettings(target_faces=target))
+    h = result.stats["hausdorff_max"]
+    return result.mesh, f", Hausdorff {h:.4f}; {_shape_quality(result.mesh)}"
+
+
+def _shape_quality(mesh) -> str:
+    from stages.geometry.normals import unit_face_normals
+
+    tri = mesh.vertices[mesh.faces]
+    angles = []
+    for i in range(3):
+        a, b = tri[:, (i + 1) % 3] - tri[:, i], tri[:, (i + 2) % 3] - tri[:, i]
+        cos = (a * b).sum(1) / np.maximum(np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1), 1e-30)
+        angles.append(np.degrees(np.arccos(np.clip(cos, -1, 1))))
+    slivers = float((np.min(angles, axis=0) < 10.0).mean())
+    normals = unit_face_normals(mesh.vertices, mesh.faces)
+    edges = np.sort(mesh.faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    order = np.lexsort(edges.T[::-1])
+    e, f = edges[order], np.repeat(np.arange(len(mesh.faces)), 3)[order]
+    same = np.all(e[1:] == e[:-1], axis=1)
+    cos = (normals[f[1:][same]] * normals[f[:-1][same]]).sum(1)
+    folds = float((cos < -0.5).mean()) if len(cos) else 0.0
+    return f"slivers {100 * slivers:.1f}%, folds {100 * folds:.2f}%"
 
 
 if __name__ == "__main__":

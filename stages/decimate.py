@@ -27,14 +27,18 @@ log = logging.getLogger(__name__)
 def run(
     in_mesh: Path, out_mesh: Path, out_meta: Path, settings: DecimateSettings, raycache: RaycacheSettings | None = None
 ) -> dict:
-    """Decimate ``in_mesh`` to ``settings.target_faces``, or with ``mode: budget`` to the face
-    budget of the ray cache ``raycache`` (required then)."""
+    """Decimate ``in_mesh`` to ``settings.target_faces``, with ``mode: share`` to
+    ``settings.target_share`` of its faces, or with ``mode: budget`` to the face budget of the ray
+    cache ``raycache`` (required then)."""
     timer = Timer()
     with timer("load"):
         if not Path(in_mesh).is_file():
             raise StageInputError(in_mesh, "file not found", "Run the normalize stage first.")
         mesh = load_ply(in_mesh)
     budget = None
+    if settings.mode == "share":
+        settings = dataclasses.replace(settings, target_faces=max(4, round(settings.target_share * len(mesh.faces))))
+        log.info("%s: %d faces, target %.3g of them: %d", in_mesh, len(mesh.faces), settings.target_share, settings.target_faces)
     if settings.mode == "budget":
         if raycache is None:
             why = "decimate.mode is budget but no ray-cache settings were given"

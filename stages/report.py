@@ -25,7 +25,14 @@ from .core.cli import stage_main
 from .core.provenance import atomic_path, write_json_atomic
 from .results.cells import parse_cells
 from .results.compare import cell_settings, comparison_groups, trade_off
-from .results.figures import ablation_figures, loss_figures, robustness_figure, speed_accuracy_figures, variant_grids
+from .results.figures import (
+    ablation_figures,
+    loss_figures,
+    relit_text,
+    robustness_figure,
+    speed_accuracy_figures,
+    variant_grids,
+)
 from .results.spreadsheet import spreadsheet_rows
 from .results.summary import front_tile, overview_image, quality_text, speed_accuracy, summary_rows
 
@@ -72,6 +79,7 @@ def run(
         old.unlink()
     faces = {r["mesh"]: int(r["faces_after"]) for r in rows}
     quality = {(t["mesh"], t["prompt"], t["variant"]): quality_text(t["quality"], t["quality_name"]) for t in timed}
+    relit = {(r["mesh"], r["prompt"], r["variant"]): relit_text(r) for r in rows}
 
     kinds = {
         (r["mesh"], r["prompt"], r["variant"]): r["guidance"] + (", TEST ONLY" if r["test_only_weights"] else "") for r in rows
@@ -85,7 +93,7 @@ def run(
         speed_accuracy_figures(figures_dir, groups, panels)
         + ablation_figures(figures_dir, groups, panels)
         + loss_figures(figures_dir, results, cells, panels, kinds)
-        + robustness_figure(figures_dir, results, cells, decimated or {}, faces, quality, tile)
+        + robustness_figure(figures_dir, results, cells, decimated or {}, faces, quality, tile, relit)
         + variant_grids(figures_dir, cells, tile)
     )
     for e in entries:

@@ -53,7 +53,7 @@ CLIP_TOWERS = ("batched", "open_clip")
 PROCEDURAL_ENVMAPS = ("sunset", "overcast", "night", "sun_sky", "studio")
 ENCODINGS = ("nerf", "fourier", "hashgrid", "none")
 #: decimate.mode: to a face count, or to the ray cache's face budget
-DECIMATE_MODES = ("faces", "budget")
+DECIMATE_MODES = ("faces", "share", "budget")
 #: the ray-cache settings a face budget reads (stages.geometry.decimation.face_budget): only they
 #: go to the decimate job, so that other cache edits do not rerun it
 FACE_BUDGET_FIELDS = (
@@ -145,11 +145,13 @@ class DecimateSettings(Settings):
     #: if the collapse stops above the target with boundaries preserved, collapse again with
     #: boundary vertices free to slide along the boundary (topology kept); the reason is recorded
     relax_boundary: bool = True
-    #: DECIMATE_MODES: "faces" decimates to target_faces (the robustness study); "budget" to the
+    #: DECIMATE_MODES: "faces" decimates to target_faces (the robustness study); "share" to
+    #: target_share of the mesh's own faces (0.1: a tenth); "budget" to the
     #: face budget of the mesh's ray cache (stages.geometry.decimation.face_budget: the faces
     #: whose mean area covers pixels_per_face pixels at the cache's camera distance), and a mesh
     #: already within its budget passes unchanged ("model only what the scene requires")
     mode: str = "faces"
+    target_share: float = 0.1
     pixels_per_face: float = 1.0
 
     def __post_init__(self) -> None:
@@ -157,6 +159,8 @@ class DecimateSettings(Settings):
             raise ConfigError(f"decimate.target_faces must be >= 4, got {self.target_faces}")
         if self.mode not in DECIMATE_MODES:
             raise ConfigError(f"decimate.mode must be one of {', '.join(DECIMATE_MODES)}, got {self.mode!r}")
+        if not 0.0 < self.target_share < 1.0:
+            raise ConfigError(f"decimate.target_share must be in (0, 1) (of the mesh's faces), got {self.target_share}")
         if not 0.01 <= self.pixels_per_face <= 1e4:
             raise ConfigError(f"decimate.pixels_per_face must be in [0.01, 1e4], got {self.pixels_per_face}")
         if not 0 <= self.weld_tolerance < 0.01:

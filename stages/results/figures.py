@@ -255,50 +255,74 @@ def robustness_figure(
     faces: dict[str, int],
     quality: dict[tuple[str, str, str], str],
     tile,
+    relit: dict[tuple[str, str, str], str] | None = None,
 ) -> list[dict]:
-    """Each mesh beside its decimated version (face counts in the column heads), one row per
-    prompt x variant present for both, with the quality of each render under it (``quality``:
-    cell -> its figure as text)."""
+    """Each mesh beside its decimated versions, finest first (face counts in the column heads), one
+    row per prompt x variant run on the original and at least one decimated version, with the
+    quality of each render under it (``quality``: cell -> its figure as text) and, where the cell
+    was graded under another light, the relit figure beside its ceiling (``relit``: cell -> text,
+    :func:`relit_text`). A level that did not run a row's cell is left blank."""
     from PIL import Image, ImageDraw
 
-    title = "Robustness: each mesh beside its decimated version"
+    title = "Robustness: each mesh beside its decimated versions"
+    relit = relit or {}
     present = set(cells)
     meshes = list(dict.fromkeys(c[0] for c in cells))
-    pairs = [(orig, dec) for dec, orig in decimated.items() if orig in meshes and dec in meshes]
-    if not pairs:
+    levels: dict[str, list[str]] = {}
+    for dec, orig in decimated.items():
+        if orig in meshes and dec in meshes:
+            levels.setdefault(orig, []).append(dec)
+    if not levels:
         return [{"title": title, "skipped": "no mesh of this experiment has a decimated version in the grid"}]
     entries = []
-    size, head, label_w = 192, 40, 180
-    for orig, dec in pairs:
-        rows = [(p, v) for (m, p, v) in cells if m == orig and (dec, p, v) in present]
+    size, head, label_w, under = 192, 40, 180, 30
+    for orig, decs in levels.items():
+        columns = [orig] + sorted(decs, key=lambda m: (-faces.get(m, 0), m))
+        heads = " | ".join(f"{m} ({faces.get(m, 0):,} faces)" for m in columns)
+        rows = [(p, v) for (m, p, v) in cells if m == orig and any((d, p, v) in present for d in decs)]
         if not rows:
-            entries.append({"title": f"{title}: {orig} | {dec}", "skipped": "no prompt x variant was run on both"})
+            entries.append(
+                {"title": f"{title}: {heads}", "skipped": "no prompt x variant ran on the original and a decimated version"}
+            )
             continue
-        canvas = Image.new("RGB", (label_w + 2 * size, head + (size + 16) * len(rows)), "white")
+        canvas = Image.new("RGB", (label_w + len(columns) * size, head + (size + under) * len(rows)), "white")
         draw = ImageDraw.Draw(canvas)
-        for j, m in enumerate((orig, dec)):
+        for j, m in enumerate(columns):
             draw.text((label_w + j * size + 4, 4), f"{m}\n{faces.get(m, 0):,} faces", fill="black")
         for i, (p, v) in enumerate(rows):
-            y = head + i * (size + 16)
+            y = head + i * (size + under)
             draw.text((4, y + 6), f"{p} / {v}", fill="black")
-            for j, m in enumerate((orig, dec)):
+            for j, m in enumerate(columns):
+                if (m, p, v) not in present:
+                    continue
                 canvas.paste(tile((m, p, v), size), (label_w + j * size, y))
-                q = quality.get((m, p, v))
-                if q is not None:
-                    draw.text((label_w + j * size + 4, y + size + 2), q, fill="black")
+                text = "\n".join(t for t in (quality.get((m, p, v)), relit.get((m, p, v))) if t)
+                draw.text((label_w + j * size + 4, y + size + 1), text, fill="black")
         name = f"robustness_{orig}.png"
         path = out_dir / name
         path.parent.mkdir(parents=True, exist_ok=True)
         with atomic_path(path) as tmp:
             canvas.save(tmp, format="PNG")
-        entries.append(
-            {
-                "file": name,
-                "title": f"{title}: {orig} ({faces.get(orig, 0):,} faces) | {dec} ({faces.get(dec, 0):,} faces)",
-                "caption": "Front evaluation view of each cell; under each render its quality figure.",
-            }
-        )
+        caption = "Front evaluation view of each cell; under each render its quality figure"
+        if any(c in relit for c in present if c[0] in columns):
+            caption += (
+                ", and its figure under the first relighting environment beside that light's ceiling "
+                "(the true material in the renderer)"
+            )
+        entries.append({"file": name, "title": f"{title}: {heads}", "caption": caption + "."})
     return entries
+
+
+def relit_text(row: dict) -> str | None:
+    """The first relighting environment's scaled figure and ceiling of a summary row, as a short
+    label (``relit 24.37 | ceiling 25.26 dB``), or None where the cell was not relit."""
+    scaled, ceiling = row.get("relit_psnr_scaled_db"), row.get("relit_ceiling_psnr_db")
+    if not scaled or not isinstance(scaled, str):
+        return None
+    text = f"relit {scaled.split('/')[0]}"
+    if ceiling and isinstance(ceiling, str):
+        text += f" | ceiling {ceiling.split('/')[0]}"
+    return text + " dB"
 
 
 def variant_grids(out_dir: Path, cells: list[tuple[str, str, str]], tile) -> list[dict]:

@@ -319,3 +319,19 @@ def test_budget_mode_needs_the_cache_settings(tmp_path):
     assert not (tmp_path / "o.ply").exists()
     with pytest.raises(ConfigError, match="decimate.mode"):
         DecimateSettings(mode="auto")
+
+
+def test_share_mode_keeps_that_share_of_the_faces(tmp_path):
+    sphere = icosphere(4)  # 5,120 faces
+    src = tmp_path / "in.ply"
+    save_ply(src, sphere)
+    args = ["--input", str(src), "--mesh", str(tmp_path / "out.ply"), "--meta", str(tmp_path / "meta.json")]
+    assert (
+        decimate.main(args + ["--settings", json.dumps({"mode": "share", "target_share": 0.25, "hausdorff_samples": 5000})]) == 0
+    )
+    meta = json.loads((tmp_path / "meta.json").read_text())
+    assert meta["settings"]["target_faces"] == 1280 and meta["stats"]["target_reached"]
+    assert 1280 * 0.98 <= len(load_ply(tmp_path / "out.ply").faces) <= 1280
+    for bad in (0.0, 1.0, 1.5):
+        with pytest.raises(ConfigError, match="target_share must be in"):
+            DecimateSettings(mode="share", target_share=bad)

@@ -257,6 +257,42 @@ def test_figures_with_nothing_to_compare_say_why(tmp_path):
     assert not list(tmp_path.glob("*.png"))
 
 
+def test_robustness_figure_puts_every_level_beside_its_original(tmp_path):
+    """Three decimated levels of one mesh in one figure, finest first, each tile with its quality
+    and its relit figure beside the ceiling; a level without a row's cell stays blank, and a mesh
+    whose levels ran nothing its original ran is said so, not drawn."""
+    from PIL import Image
+
+    from stages.results.figures import relit_text
+
+    cells = [("lamp", p, "base") for p in ("wood", "brick")] + [("lamp_50", "wood", "base"), ("lamp_50", "brick", "base")]
+    cells += [("lamp_5k", "wood", "base"), ("lamp_2k", "wood", "base"), ("horse", "wood", "base"), ("horse_2k", "brick", "base")]
+    faces = {"lamp": 41160, "lamp_50": 20580, "lamp_5k": 5000, "lamp_2k": 2000, "horse": 43730, "horse_2k": 2000}
+    decimated = {"lamp_2k": "lamp", "lamp_50": "lamp", "lamp_5k": "lamp", "horse_2k": "horse"}
+    colours = {m: (40 * i, 200 - 30 * i, 90) for i, m in enumerate(faces)}
+
+    def tile(cell, size):
+        return Image.new("RGB", (size, size), colours[cell[0]])
+
+    rows = {c: {"relit_psnr_scaled_db": "24.37/22.10", "relit_ceiling_psnr_db": "25.26/23.00"} for c in cells}
+    rows[("lamp_2k", "wood", "base")] = {"relit_psnr_scaled_db": None}
+    relit = {c: relit_text(r) for c, r in rows.items()}
+    assert relit[("lamp", "wood", "base")] == "relit 24.37 | ceiling 25.26 dB" and relit[("lamp_2k", "wood", "base")] is None
+    quality = dict.fromkeys(cells, "27.01 dB")
+    lamp, horse = robustness_figure(tmp_path, tmp_path, cells, decimated, faces, quality, tile, relit)
+    assert lamp["title"].endswith("lamp (41,160 faces) | lamp_50 (20,580 faces) | lamp_5k (5,000 faces) | lamp_2k (2,000 faces)")
+    assert "ceiling" in lamp["caption"]
+    assert "file" not in horse and "no prompt x variant ran on the original and a decimated version" in horse["skipped"]
+    img = np.asarray(Image.open(tmp_path / lamp["file"]).convert("RGB"))
+    size, head, label_w, under = 192, 40, 180, 30
+    assert img.shape[:2] == (head + 2 * (size + under), label_w + 4 * size)
+    for j, m in enumerate(("lamp", "lamp_50", "lamp_5k", "lamp_2k")):  # the wood row: every level
+        assert tuple(img[head + size // 2, label_w + j * size + size // 2]) == colours[m]
+    brick = head + size + under + size // 2  # the brick row: only the original and 50%
+    assert tuple(img[brick, label_w + 2 * size + size // 2]) == (255, 255, 255)
+    assert tuple(img[brick, label_w + size + size // 2]) == colours["lamp_50"]
+
+
 def test_small_multiples_split_over_files(tmp_path):
     entries = speed_accuracy_figures(tmp_path, _groups(5, 3), panels=2)
     assert [e["file"] for e in entries] == ["speed_accuracy_1.png", "speed_accuracy_2.png", "speed_accuracy_3.png"]

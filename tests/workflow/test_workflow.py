@@ -274,7 +274,7 @@ def test_smoke_run(tmp_path_factory, tmp_path):
     assert {"figures/speed_accuracy.png", "figures/ablations.png", "figures/loss_curves.png", "figures/grid_vase.png"} <= drawn
     assert all((res / "report" / f).is_file() for f in drawn)
     skipped = {e["title"]: e["skipped"] for e in figures["figures"] if "skipped" in e}
-    skipped_robustness = skipped["Robustness: each mesh beside its decimated version"]
+    skipped_robustness = skipped["Robustness: each mesh beside its decimated versions"]
     assert "decimated version" in skipped_robustness
     assert len(figures["groups"]) == len(MESHES) * len(PROMPTS) and all(g["ablations"] == ["second"] for g in figures["groups"])
     # the real report's pages in a browser: the index and a cell page with its viewer
