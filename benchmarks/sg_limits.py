@@ -115,38 +115,19 @@ def main() -> None:
 
 def mesh_level(mesh, level: str):
     """``mesh`` at ``level`` (``full``, a fraction of its faces or a face count), and a text of the
-    decimation's quality: Hausdorff distance both ways (normalised frame), the share of sliver faces
-    (smallest angle under 10 degrees) and of folds (edges whose faces' normals differ by more than
-    120 degrees)."""
+    decimation's quality: Hausdorff distance both ways (normalised frame) and the shares of
+    slivers and folds (:func:`stages.geometry.decimation.shape_quality`)."""
     from stages.config.sections import DecimateSettings
-    from stages.geometry.decimation import decimate_mesh
+    from stages.geometry.decimation import decimate_mesh, shape_quality
+
+    def text(q: dict) -> str:
+        return f"slivers {100 * q['slivers']:.1f}%, folds {100 * q['folds']:.2f}%"
 
     if level == "full":
-        return mesh, f"; {_shape_quality(mesh)}"
+        return mesh, f"; {text(shape_quality(mesh))}"
     target = round(float(level) * len(mesh.faces)) if float(level) < 1 else int(level)
     result = decimate_mesh(mesh, DecimateSettings(target_faces=target))
-    h = result.stats["hausdorff_max"]
-    return result.mesh, f", Hausdorff {h:.4f}; {_shape_quality(result.mesh)}"
-
-
-def _shape_quality(mesh) -> str:
-    from stages.geometry.normals import unit_face_normals
-
-    tri = mesh.vertices[mesh.faces]
-    angles = []
-    for i in range(3):
-        a, b = tri[:, (i + 1) % 3] - tri[:, i], tri[:, (i + 2) % 3] - tri[:, i]
-        cos = (a * b).sum(1) / np.maximum(np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1), 1e-30)
-        angles.append(np.degrees(np.arccos(np.clip(cos, -1, 1))))
-    slivers = float((np.min(angles, axis=0) < 10.0).mean())
-    normals = unit_face_normals(mesh.vertices, mesh.faces)
-    edges = np.sort(mesh.faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
-    order = np.lexsort(edges.T[::-1])
-    e, f = edges[order], np.repeat(np.arange(len(mesh.faces)), 3)[order]
-    same = np.all(e[1:] == e[:-1], axis=1)
-    cos = (normals[f[1:][same]] * normals[f[:-1][same]]).sum(1)
-    folds = float((cos < -0.5).mean()) if len(cos) else 0.0
-    return f"slivers {100 * slivers:.1f}%, folds {100 * folds:.2f}%"
+    return result.mesh, f", Hausdorff {result.stats['hausdorff_max']:.4f}; {text(result.stats['shape_after'])}"
 
 
 if __name__ == "__main__":

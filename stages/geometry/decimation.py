@@ -63,7 +63,7 @@ import numpy as np
 
 from ..config.sections import DecimateSettings, RaycacheSettings
 from .meshio import TriMesh
-from .normals import weld_positions
+from .normals import unit_face_normals, weld_positions
 
 log = logging.getLogger(__name__)
 
@@ -201,6 +201,39 @@ def edge_counts(faces: np.ndarray) -> dict:
         "boundary_edges": int((counts == 1).sum()),
         "nonmanifold_edges": int((counts > 2).sum()),
         "components": len(np.unique(labels[np.unique(faces)])),
+    }
+
+
+#: a sliver: a face whose smallest angle is below this (degrees)
+SLIVER_DEG = 10.0
+#: a fold: an edge whose two faces' normals differ by more than this (degrees)
+FOLD_DEG = 120.0
+
+
+def shape_quality(mesh: TriMesh) -> dict:
+    """What a collapse can do to a mesh's faces, as shares: ``slivers`` (faces whose smallest
+    angle is below :data:`SLIVER_DEG`; degenerate faces count) and ``folds`` (manifold edges whose
+    two faces' unit normals differ by more than :data:`FOLD_DEG`: a crease folded back on itself,
+    or a flipped face), and ``min_angle_deg_p1`` (the 1st percentile of the faces' smallest
+    angles)."""
+    tri = np.asarray(mesh.vertices, np.float64)[mesh.faces]
+    smallest = np.full(len(tri), 180.0)
+    for i in range(3):
+        a, b = tri[:, (i + 1) % 3] - tri[:, i], tri[:, (i + 2) % 3] - tri[:, i]
+        norms = np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1)
+        cos = np.divide((a * b).sum(1), norms, out=np.ones(len(tri)), where=norms > 0)
+        smallest = np.minimum(smallest, np.where(norms > 0, np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))), 0.0))
+    normals = unit_face_normals(mesh.vertices, mesh.faces)
+    edges = np.sort(mesh.faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    order = np.lexsort(edges.T[::-1])
+    e, f = edges[order], np.repeat(np.arange(len(mesh.faces)), 3)[order]
+    pair = np.all(e[1:] == e[:-1], axis=1)
+    pair[1:] &= ~pair[:-1]  # an edge of three or more faces counts its first pair once
+    cos = (normals[f[1:][pair]] * normals[f[:-1][pair]]).sum(1)
+    return {
+        "slivers": float((smallest < SLIVER_DEG).mean()) if len(tri) else 0.0,
+        "folds": float((cos < np.cos(np.radians(FOLD_DEG))).mean()) if len(cos) else 0.0,
+        "min_angle_deg_p1": float(np.percentile(smallest, 1)) if len(tri) else 0.0,
     }
 
 
@@ -381,5 +414,7 @@ def decimate_mesh(mesh: TriMesh, settings: DecimateSettings, name: str = "mesh")
         "surface_centroid_shift": float(np.linalg.norm(surface_centroid(out) - surface_centroid(mesh))),
         "radius_after": float(radius.max()),
         "degenerate_faces_after": int((out.face_areas <= 1e-14).sum()),
+        "shape_before": shape_quality(mesh),
+        "shape_after": shape_quality(out),
     }
     return DecimateResult(out, stats)

@@ -335,3 +335,20 @@ def test_share_mode_keeps_that_share_of_the_faces(tmp_path):
     for bad in (0.0, 1.0, 1.5):
         with pytest.raises(ConfigError, match="target_share must be in"):
             DecimateSettings(mode="share", target_share=bad)
+
+
+def test_shape_quality_counts_slivers_and_folds():
+    from stages.geometry.decimation import shape_quality
+
+    q = shape_quality(icosphere(3))  # near-equilateral faces, every dihedral small
+    assert q == {"slivers": 0.0, "folds": 0.0, "min_angle_deg_p1": pytest.approx(q["min_angle_deg_p1"])}
+    assert 50.0 < q["min_angle_deg_p1"] <= 60.0
+    # a strip of two faces: one with a 5-degree corner; folded about the shared edge (0, 1) by 150
+    # degrees (a fold) or 60 (not)
+    for fold_deg, folds in ((150.0, 1.0), (60.0, 0.0)):
+        t = np.radians(fold_deg)
+        v = np.array([[0, 0, 0], [1, 0, 0], [0.5, 1, 0], [0.5, -np.cos(t), np.sin(t)]], float)
+        sliver = np.array([[0, 0, 0], [1, 0, 0], [0.5, np.tan(np.radians(5.0)) * 0.5, 0]], float)
+        mesh = TriMesh(np.vstack([v, sliver + 5.0]), np.array([[0, 1, 2], [1, 0, 3], [4, 5, 6]]))
+        q = shape_quality(mesh)
+        assert q["slivers"] == pytest.approx(1 / 3) and q["folds"] == folds, (fold_deg, q)
