@@ -104,8 +104,8 @@ def write_config(config: dict, path: Path, command: str, force: bool = False) ->
     ``force``."""
     if path.is_file():
         try:
-            old = yaml.safe_load(path.read_text())
-        except yaml.YAMLError:
+            old = read_yaml(path)
+        except ConfigError:
             old = None
         if old == config:
             return

@@ -27,6 +27,7 @@ from ..core.cli import stage_main
 from ..core.errors import ConfigError
 from .presets import PRESETS
 from .sections import FACE_BUDGET_FIELDS, SECTIONS, OptimizeSettings
+from .yamlio import read_yaml_file, refuse_templates
 
 log = logging.getLogger(__name__)
 
@@ -141,6 +142,8 @@ def _describe(error) -> str:
         return f"invalid id {_short(error.instance)} at {where}: {count} characters, at most {error.validator_value}: shorten it"
     if v == "maxLength":
         return f"invalid value at {where}: {len(error.instance)} characters, at most {error.validator_value}: shorten it"
+    if v == "type" and error.validator_value == "integer" and isinstance(error.instance, float) and error.instance.is_integer():
+        return f"invalid value at {where}: {_short(error.instance)} is not an integer: write {int(error.instance)}"
     if v == "type":
         return f"invalid value at {where}: {_short(error.instance)} is not of type {error.validator_value}"
     message = error.message if len(error.message) <= 300 else error.message[:299] + "…"
@@ -180,9 +183,7 @@ def _problems(schema: dict, data: Any) -> list[str]:
     """One line per problem of ``data`` under ``schema``: each NaN or infinite number (NaN passes
     every minimum and maximum, each comparison being false), then one line per key and value, its
     type error first (a string is not also "above the maximum")."""
-    import jsonschema
-
-    validator = jsonschema.Draft202012Validator(schema)
+    validator = _strict_validator()(schema)
     errors = sorted(validator.iter_errors(data), key=lambda e: (list(e.absolute_path), e.validator))
     bad = _non_finite(data)
     lines = [f"invalid value at {_where(path)}: {value} is not a finite number" for path, value in bad]
@@ -199,6 +200,17 @@ def _problems(schema: dict, data: Any) -> list[str]:
         if e.validator in ("required", "additionalProperties") or first[key(e.absolute_path, e.instance)] is e
     ]
     return list(dict.fromkeys(lines))
+
+
+@cache
+def _strict_validator():
+    """JSON Schema's 2020-12 validator with ``integer`` meaning an integer, not also a float with
+    no fraction (``8.0``: the schema's integers are counts and sizes, which a float breaks later)."""
+    import jsonschema
+
+    base = jsonschema.Draft202012Validator
+    checker = base.TYPE_CHECKER.redefine("integer", lambda _, x: isinstance(x, int) and not isinstance(x, bool))
+    return jsonschema.validators.extend(base, type_checker=checker)
 
 
 def _non_finite(node: Any, path: tuple = ()) -> list[tuple[tuple, float]]:
@@ -563,14 +575,10 @@ def load_config_file(path: str | Path) -> WorkflowConfig:
 
 
 def read_yaml(path: Path) -> dict:
-    """A config file's mapping, or a clear error naming the file."""
-    try:
-        with open(path) as fh:
-            data = yaml.safe_load(fh)
-    except FileNotFoundError as exc:
-        raise ConfigError(f"{path}: config file not found") from exc
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"{path}: not valid YAML ({exc})") from exc
+    """A config file's mapping, read as bounded data (:mod:`stages.config.yamlio`: size, depth,
+    aliases, duplicate keys, templates), or a one-line error naming the file."""
+    data = read_yaml_file(Path(path))
+    refuse_templates(data, str(path))
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: expected a mapping at the top level, got {type(data).__name__}")
     return data

@@ -9,7 +9,7 @@ from pathlib import Path
 from stages.config.code import code_digest
 from stages.config.layout import OPTIMIZE_FILES, TEXTURES
 from stages.config.sections import MATERIALS
-from stages.config.workflow import MESH_WORK, WorkflowConfig, experiment_name
+from stages.config.workflow import MESH_WORK, WorkflowConfig, experiment_name, read_yaml
 from stages.core.errors import ConfigError
 
 DEFAULT_CONFIGFILE = "config/config.yaml"
@@ -24,6 +24,11 @@ if not workflow.overwrite_configfiles:
 _configfiles = list(map(str, workflow.overwrite_configfiles)) or [DEFAULT_CONFIGFILE]
 _source = ", ".join(_configfiles)
 try:
+    # each file again through the project's bounded reader before anything walks the values
+    # Snakemake built: an alias bomb, a duplicate key, a YTE template (which Snakemake has already
+    # evaluated: refused unless TANGO_ALLOW_YTE=1) stop here with one line
+    for _path in _configfiles:
+        read_yaml(Path(_path))
     CFG = WorkflowConfig(config, _source)
     EXPERIMENT = experiment_name(config, _configfiles)
 except ConfigError as exc:
