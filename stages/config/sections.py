@@ -240,6 +240,12 @@ class RaycacheSettings(Settings):
             problems.append(f"visibility_directions must be a multiple of 8 in [8, 4096], got {self.visibility_directions}")
         if not 0.0 <= self.visibility_auto_p95 <= 1.0:
             problems.append(f"visibility_auto_p95 must be in [0, 1], got {self.visibility_auto_p95}")
+        if not -2 * math.pi - 1e-4 <= self.anchor_azimuth <= 2 * math.pi + 1e-4:
+            problems.append(f"anchor_azimuth must be in [-2 pi, 2 pi] radians, got {self.anchor_azimuth}")
+        if not -math.pi / 2 < self.anchor_elevation < math.pi / 2:
+            problems.append(f"anchor_elevation must be in (-pi/2, pi/2) radians, got {self.anchor_elevation}")
+        if self.anchor_deg is not None and len(self.anchor_deg) == 2 and not -360.0 <= self.anchor_deg[0] <= 360.0:
+            problems.append(f"anchor_deg's azimuth must be in [-360, 360] degrees, got {self.anchor_deg[0]}")
         if self.anchor_deg is not None and (len(self.anchor_deg) != 2 or not -90.0 < self.anchor_deg[1] < 90.0):
             problems.append(f"anchor_deg must be [azimuth, elevation] with elevation in (-90, 90), got {list(self.anchor_deg)}")
         if problems:

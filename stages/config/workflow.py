@@ -116,7 +116,7 @@ def _describe(error) -> str:
         if isinstance(error.instance, dict):
             text = error.instance.get("text")
             inner = [e for e in error.context or [] if e.relative_path or e.validator in ("additionalProperties", "required")]
-            if inner and not (isinstance(text, str) and (len(text) > PROMPT_CHARS or CONTROL.search(text))):
+            if inner and not (isinstance(text, str) and (len(text) > PROMPT_CHARS or CONTROL.search(text) or not text.strip())):
                 return _describe(best_match(inner))  # a bad key or value inside the prompt's own overrides
         if isinstance(text, str) and len(text) > PROMPT_CHARS:
             return (
@@ -125,7 +125,13 @@ def _describe(error) -> str:
             )
         if isinstance(text, str) and CONTROL.search(text):
             return f"prompt {error.absolute_path[1]!r} holds a control character (a newline or a tab): write it on one line"
+        if isinstance(text, str) and not text.strip():
+            return f"prompt {error.absolute_path[1]!r} is blank: write what the object should look like"
         return f"prompt {error.absolute_path[1]!r} must be a text or {{text: ..., preset/optimize/bake/relight/lod: ...}}"
+    bounds = {"maximum": "at most", "exclusiveMaximum": "below", "minimum": "at least", "exclusiveMinimum": "above"}
+    if v in bounds and any("anchor" in str(p) for p in error.absolute_path):
+        found, limit = _short(error.instance), f"{bounds[v]} {error.validator_value}"
+        return f"invalid value at {where}: {found} is not an angle of the anchor view: choose {limit}"
     if v in ("maximum", "exclusiveMaximum", "maxItems"):
         found = f"{len(error.instance)} items" if v == "maxItems" else _short(error.instance)
         most = f"fewer than {error.validator_value}" if v == "exclusiveMaximum" else f"at most {error.validator_value}"
@@ -187,6 +193,11 @@ def _problems(schema: dict, data: Any) -> list[str]:
     errors = sorted(validator.iter_errors(data), key=lambda e: (list(e.absolute_path), e.validator))
     bad = _non_finite(data)
     lines = [f"invalid value at {_where(path)}: {value} is not a finite number" for path, value in bad]
+    lines += [
+        f"invalid text at {_where(path)}: it holds a lone surrogate ({ascii(value)[1:-1][:60]}), half of a character that "
+        "is not text: remove it"
+        for path, value in _lone_surrogates(data)
+    ]
 
     def key(path, instance) -> tuple:  # a key and its value (ids share their mapping's path)
         return (tuple(path), repr(instance)[:200])
@@ -200,6 +211,22 @@ def _problems(schema: dict, data: Any) -> list[str]:
         if e.validator in ("required", "additionalProperties") or first[key(e.absolute_path, e.instance)] is e
     ]
     return list(dict.fromkeys(lines))
+
+
+#: UTF-16 surrogates: a YAML "\ud800" escape gives one alone, which no file name, log or UTF-8 text can hold
+SURROGATE = re.compile(r"[\ud800-\udfff]")
+
+
+def _lone_surrogates(node: Any, path: tuple = ()) -> list[tuple[tuple, str]]:
+    """``(path, text)`` of every key or string value of a parsed config that holds a surrogate."""
+    if isinstance(node, str):
+        return [(path, node)] if SURROGATE.search(node) else []
+    if isinstance(node, dict):
+        hits = [((*path, key), key) for key in node if isinstance(key, str) and SURROGATE.search(key)]
+        return hits + [hit for key, value in node.items() for hit in _lone_surrogates(value, (*path, key))]
+    if isinstance(node, list):
+        return [hit for i, value in enumerate(node) for hit in _lone_surrogates(value, (*path, i))]
+    return []
 
 
 @cache

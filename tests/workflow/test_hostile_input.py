@@ -113,6 +113,20 @@ BAD_CONFIGS = {
     ),
     "line_separator": ({"prompts": {"p": "a vase\u2028=1+1"}}, "prompt 'p' holds a control character"),
     "reserved_any_case": ({"meshes": {"Report": {"builtin": "vase"}}}, "the mesh id 'Report' is reserved"),
+    "blank_prompt": ({"prompts": {"p": "   "}}, "prompt 'p' is blank"),
+    "blank_prompt_text": ({"prompts": {"p": {"text": " \u3000 "}}}, "prompt 'p' is blank"),
+    "lone_surrogate_prompt": ({"prompts": {"p": "a \ud800 vase"}}, "prompts -> p: it holds a lone surrogate (a \\ud800 vase)"),
+    "lone_surrogate_object": (
+        {"meshes": {"v": {"builtin": "vase", "object": "jar\udc00"}}},
+        "meshes -> v -> object: it holds a lone surrogate",
+    ),
+    "anchor_azimuth_huge": ({"raycache": {"anchor_azimuth": 1e300}}, "anchor_azimuth: 1e+300 is not an angle of the anchor view"),
+    "anchor_elevation_past_pole": ({"raycache": {"anchor_elevation": 1.6}}, "anchor_elevation: 1.6 is not an angle"),
+    "anchor_deg_huge": ({"raycache": {"anchor_deg": [1e300, 10.0]}}, "anchor_deg -> 0: 1e+300 is not an angle"),
+    "views_as_float": ({"raycache": {"views": 8.0}}, "raycache -> views: 8.0 is not an integer: write 8"),
+    "iterations_as_float": ({"optimize": {"iterations": 100.0}}, "optimize -> iterations: 100.0 is not an integer: write 100"),
+    "image_size_as_float": ({"optimize": {"image_size": 224.0}}, "image_size: 224.0 is not an integer"),
+    "checkpoint_every_as_float": ({"optimize": {"checkpoint_every": 50.0}}, "checkpoint_every: 50.0 is not an integer"),
 }
 
 
