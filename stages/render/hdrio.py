@@ -32,43 +32,80 @@ def write_hdr(path: str | Path, rgb: np.ndarray) -> None:
         tmp.write_bytes(header + _to_rgbe(rgb).tobytes())
 
 
+#: the largest environment map read: 8192 rows of 16384 pixels (the target's environment_height limit)
+MAX_ENV_HEIGHT = 8192
+
+
+def _check_size(path: Path, h: int, w: int) -> None:
+    """Refuse, from the header alone, a map that is not 2:1 or is too large to hold."""
+    if h < 1 or w != 2 * h:
+        raise StageInputError(path, f"is {w}x{h}, not a 2:1 equirectangular map", "Give a map twice as wide as it is tall.")
+    if h > MAX_ENV_HEIGHT:
+        raise StageInputError(
+            path,
+            f"is {w}x{h}, more than {2 * MAX_ENV_HEIGHT}x{MAX_ENV_HEIGHT}",
+            "Downsample it (the renderer fits lobes to far fewer).",
+        )
+
+
 def read_hdr(path: str | Path) -> np.ndarray:
-    """Read a Radiance RGBE file (flat or new-style run-length encoded, ``-Y H +X W``)."""
+    """Read a Radiance RGBE file (flat or new-style run-length encoded, ``-Y H +X W``): every
+    malformed file (signature, header, size, truncated or corrupt pixel data) is one
+    :class:`StageInputError` naming it, and the size is checked before anything is allocated."""
     path = Path(path)
     data = path.read_bytes()
     if not data.startswith(b"#?"):
         raise StageInputError(path, "is not a Radiance HDR file (no #? signature)")
     end = data.find(b"\n\n")
-    m = re.match(rb"-Y (\d+) \+X (\d+)\n", data[end + 2 : end + 40])
+    m = re.match(rb"-Y (\d{1,9}) \+X (\d{1,9})\n", data[end + 2 : end + 40])
     if end < 0 or not m:
         raise StageInputError(path, "has an unsupported Radiance HDR header (need '-Y H +X W')")
     h, w = int(m.group(1)), int(m.group(2))
-    pos = end + 2 + m.end()
-    buf = np.frombuffer(data, np.uint8, offset=pos)
+    _check_size(path, h, w)
+    buf = np.frombuffer(data, np.uint8, offset=end + 2 + m.end())
     out = np.zeros((h, w, 4), np.uint8)
+    try:
+        _decode_rgbe(buf, out)
+    except (IndexError, ValueError) as exc:
+        raise StageInputError(path, f"is truncated or corrupt ({exc})", "Export the map again.") from None
+    e = out[..., 3].astype(np.int32)
+    scale = np.where(e > 0, np.ldexp(1.0, e - 136), 0.0).astype(np.float32)
+    return out[..., :3].astype(np.float32) * scale[..., None]
+
+
+def _decode_rgbe(buf: np.ndarray, out: np.ndarray) -> None:
+    """Radiance's scanlines from ``buf`` into ``out (H, W, 4) uint8``: flat RGBE quadruples, or per
+    channel runs (a count above 128: one value repeated count - 128 times; else count literal
+    values). Raises ValueError where the data ends early or a run overflows its scanline."""
+    h, w = out.shape[:2]
     i = 0
     for y in range(h):
-        if 8 <= w < 32768 and buf[i] == 2 and buf[i + 1] == 2 and (buf[i + 2] << 8 | buf[i + 3]) == w:
+        if 8 <= w < 32768 and i + 4 <= len(buf) and buf[i] == 2 and buf[i + 1] == 2 and (buf[i + 2] << 8 | buf[i + 3]) == w:
             i += 4
             for c in range(4):
                 x = 0
                 while x < w:
+                    if i >= len(buf):
+                        raise ValueError(f"the data ends in scanline {y + 1} of {h}")
                     n = int(buf[i])
                     i += 1
+                    run = n - 128 if n > 128 else n
+                    if run == 0 or x + run > w:
+                        raise ValueError(f"a run of {run} overflows scanline {y + 1} of {h} at pixel {x}")
+                    if i + (1 if n > 128 else n) > len(buf):
+                        raise ValueError(f"the data ends in scanline {y + 1} of {h}")
                     if n > 128:
-                        out[y, x : x + n - 128, c] = buf[i]
-                        x += n - 128
+                        out[y, x : x + run, c] = buf[i]
                         i += 1
                     else:
                         out[y, x : x + n, c] = buf[i : i + n]
-                        x += n
                         i += n
+                    x += run
         else:
+            if i + 4 * w > len(buf):
+                raise ValueError(f"the data ends in scanline {y + 1} of {h}")
             out[y] = buf[i : i + 4 * w].reshape(w, 4)
             i += 4 * w
-    e = out[..., 3].astype(np.int32)
-    scale = np.where(e > 0, np.ldexp(1.0, e - 136), 0.0).astype(np.float32)
-    return out[..., :3].astype(np.float32) * scale[..., None]
 
 
 def write_exr(path: str | Path, rgb: np.ndarray) -> None:
@@ -84,13 +121,27 @@ def write_exr(path: str | Path, rgb: np.ndarray) -> None:
 
 
 def read_exr(path: str | Path) -> np.ndarray:
+    """An OpenEXR file's RGB as ``(H, W, 3) float32``: its size checked from the header before the
+    pixels are read; a file OpenEXR cannot read, or without R, G and B, is one
+    :class:`StageInputError`."""
     import OpenEXR
 
-    with OpenEXR.File(str(path)) as f:
-        ch = f.channels()
-        if "RGB" in ch:
-            return np.asarray(ch["RGB"].pixels, np.float32)
-        return np.stack([np.asarray(ch[c].pixels, np.float32) for c in "RGB"], axis=-1)
+    path = Path(path)
+    try:
+        with OpenEXR.File(str(path), header_only=True) as f:
+            lo, hi = (np.asarray(v, np.int64) for v in f.header()["dataWindow"])
+        _check_size(path, int(hi[1] - lo[1] + 1), int(hi[0] - lo[0] + 1))
+        with OpenEXR.File(str(path)) as f:
+            ch = f.channels()
+            if "RGB" in ch:
+                return np.asarray(ch["RGB"].pixels, np.float32)
+            if not all(c in ch for c in "RGB"):
+                raise StageInputError(path, f"has no R, G and B channels (it has {', '.join(sorted(ch)) or 'none'})")
+            return np.stack([np.asarray(ch[c].pixels, np.float32) for c in "RGB"], axis=-1)
+    except (RuntimeError, KeyError, ValueError, TypeError) as exc:
+        raise StageInputError(
+            path, f"is not a readable OpenEXR image ({str(exc).splitlines()[0][:120]})", "Export it again."
+        ) from None
 
 
 def read_envmap(path: str | Path) -> np.ndarray:
