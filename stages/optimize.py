@@ -80,7 +80,13 @@ def run(
         elif state.get("light", opt.light_record) != opt.light_record:  # light: fixed, its map's file edited since
             log.warning("ignoring %s: written under another light (%s)", ckpt, state.get("light"))
         else:
-            opt.load(state)
+            try:
+                opt.load(state)
+            except (KeyError, TypeError, ValueError, RuntimeError, IndexError, AttributeError) as err:
+                why = " ".join(f"{type(err).__name__}: {err}".split())[:160]
+                raise StageInputError(
+                    ckpt, f"is not a checkpoint of this optimisation ({why})", "Delete it to start afresh."
+                ) from None
             resumed_from = opt.iteration
             log.info("resumed from %s at iteration %d", ckpt, opt.iteration)
     progress = Progress(job_label("optimize", out_dir), settings.iterations, initial=opt.iteration)

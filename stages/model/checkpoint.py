@@ -67,6 +67,8 @@ def read_torch_file(path: str | Path, device="cpu", *, remedy: str) -> dict:
     :class:`~stages.core.errors.StageInputError` naming the file, what is wrong and ``remedy``."""
     if Path(path).is_file() and not zipfile.is_zipfile(path):  # torch writes zip archives; older pickles are refused too
         raise StageInputError(path, "not a readable torch file (not the zip archive torch writes)", remedy)
+    if Path(path).is_file():
+        _check_archive(Path(path), remedy)
     try:
         data = torch.load(path, map_location=device, weights_only=True)
     except pickle.UnpicklingError as err:
@@ -86,26 +88,63 @@ def read_torch_file(path: str | Path, device="cpu", *, remedy: str) -> dict:
     return data
 
 
+#: the largest ``.pt`` file read, written or expanded: a field at the config's largest networks
+#: and its optimiser's moments stay far below it
+MAX_TORCH_BYTES = 4 * 2**30
+
+
+def _check_archive(path: Path, remedy: str) -> None:
+    """Refuse, from the zip directory alone, what torch never writes: compressed entries (a small
+    file that expands to gigabytes) and archives larger than :data:`MAX_TORCH_BYTES`."""
+    try:
+        with zipfile.ZipFile(path) as z:
+            entries = z.infolist()
+    except (zipfile.BadZipFile, OSError) as err:
+        raise StageInputError(path, f"not a readable torch file ({err})", remedy) from None
+    packed = [e.filename for e in entries if e.compress_type != zipfile.ZIP_STORED]
+    if packed:
+        raise StageInputError(path, f"refused: {len(packed)} compressed entries ({packed[0]}), which torch never writes", remedy)
+    size = sum(e.file_size for e in entries)
+    if size > MAX_TORCH_BYTES:
+        raise StageInputError(path, f"refused: it expands to {size:,} bytes, more than {MAX_TORCH_BYTES:,}", remedy)
+
+
+def _field_parts(data: dict, path: str | Path, remedy: str) -> tuple[dict, dict]:
+    """The stored settings and state dict of a ``field.pt``'s contents, checked for their types."""
+    missing = [key for key in ("settings", "state_dict") if key not in data]
+    if missing:
+        raise StageInputError(path, f"has no {' or '.join(missing)}: not a field this tool wrote", remedy)
+    settings, state = data["settings"], data["state_dict"]
+    if not isinstance(settings, dict) or not all(isinstance(k, str) for k in settings):
+        raise StageInputError(path, f"its settings are a {type(settings).__name__}, not a mapping of names", remedy)
+    if not isinstance(state, dict) or not all(isinstance(k, str) and torch.is_tensor(v) for k, v in state.items()):
+        raise StageInputError(path, f"its state_dict is a {type(state).__name__}, not a mapping of names to tensors", remedy)
+    if not isinstance(data.get("format", 1), int):
+        raise StageInputError(path, f"its format is {data.get('format')!r}, not a number", remedy)
+    return settings, state
+
+
 def load_field(path: str | Path, device="cpu") -> tuple[StyleField, OptimizeSettings]:
     """Rebuild a trained :class:`StyleField` from ``field.pt``; ``field.origin`` is the record of
     the guidance and weights that trained it (:func:`~stages.core.provenance.origin_record`), which
     every stage that uses the field copies into its own outputs."""
     remedy = "Run this cell's optimize stage again to rebuild it."
     data = read_torch_file(path, device, remedy=remedy)
-    missing = [key for key in ("settings", "state_dict") if key not in data]
-    if missing:
-        raise StageInputError(path, f"has no {' or '.join(missing)}: not a field this tool wrote", remedy)
+    stored_settings, state = _field_parts(data, path, remedy)
     origin = checked_origin(data.get(ORIGIN_KEY), path, "the optimize stage")
-    stored = {**SETTINGS_BEFORE_THEY_EXISTED, **data["settings"]}
+    stored = {**SETTINGS_BEFORE_THEY_EXISTED, **stored_settings}
     try:  # held to the config's limits: a foreign file may ask for networks no machine can hold
         validate_section("optimize", json.loads(json.dumps(stored)), str(path))  # (tuples as lists)
         settings = OptimizeSettings.from_dict(stored)
     except ConfigError as err:
         raise StageInputError(path, f"its stored settings are not valid ({err})", remedy) from None
     f = StyleField(settings.field_settings()).to(device)
-    state = data["state_dict"]
     if int(data.get("format", 1)) < 2 and "light.sharpness_raw" in state:
         state = _light_from_format1(state)
-    f.load_state_dict(state)
+    try:
+        f.load_state_dict(state)
+    except RuntimeError as err:  # missing, unexpected or misshapen weights
+        first = " ".join(str(err).split())[:200]
+        raise StageInputError(path, f"its weights do not fit the network its settings describe ({first})", remedy) from None
     f.origin = origin
     return f.eval(), settings

@@ -111,3 +111,82 @@ def test_a_field_asking_for_networks_past_the_limits_is_refused_before_they_are_
     torch.save({"settings": {"width": 10**9}, "state_dict": {}, "origin": origin}, tmp_path / "field.pt")
     with pytest.raises(StageInputError, match=r"its stored settings are not valid .*width: 1000000000, past this tool's limit"):
         load_field(tmp_path / "field.pt")
+
+
+def _crafted(path, **changes) -> None:
+    """``field.pt`` as the tool writes it, with ``changes`` to its top-level entries (None: removed)."""
+    written_field(path)
+    data = torch.load(path, weights_only=True)
+    for key, value in changes.items():
+        if value is None:
+            data.pop(key)
+        else:
+            data[key] = value
+    torch.save(data, path)
+
+
+@pytest.mark.parametrize(
+    "changes, problem",
+    [
+        ({"settings": "width=16"}, "its settings are a str, not a mapping of names"),
+        ({"settings": torch.zeros(3)}, "its settings are a Tensor, not a mapping of names"),
+        ({"state_dict": [torch.zeros(2)]}, "its state_dict is a list, not a mapping of names to tensors"),
+        ({"state_dict": {"material.net.0.weight": "x"}}, "its state_dict is a dict, not a mapping of names to tensors"),
+        ({"state_dict": {"material.net.0.weight": torch.zeros(3, 3)}}, "its weights do not fit the network its settings"),
+        ({"format": "2"}, "its format is '2', not a number"),
+    ],
+)
+def test_a_crafted_field_of_the_right_container_is_one_line(tmp_path, changes, problem):
+    path = tmp_path / "field.pt"
+    _crafted(path, **changes)
+    with pytest.raises(StageInputError, match=problem) as err:
+        load_field(path)
+    assert "\n" not in str(err.value) and str(err.value).startswith(str(path))
+
+
+def test_a_wrongly_shaped_weight_is_one_line(tmp_path):
+    path = tmp_path / "field.pt"
+    written_field(path)
+    data = torch.load(path, weights_only=True)
+    name = next(iter(data["state_dict"]))
+    data["state_dict"][name] = torch.zeros(7, 5)
+    torch.save(data, path)
+    with pytest.raises(StageInputError, match=f"its weights do not fit .*{name}") as err:
+        load_field(path)
+    assert "\n" not in str(err.value)
+
+
+def test_a_compressed_archive_is_refused_from_its_directory(tmp_path):
+    """torch writes stored (uncompressed) zip entries: a deflated entry, which lets a small file
+    expand to gigabytes, is refused before anything is read; so is an archive past the size limit."""
+    import zipfile
+
+    from stages.model import checkpoint
+
+    plain = tmp_path / "plain.pt"
+    torch.save({"format": 2, "state_dict": {"w": torch.zeros(1 << 20)}}, plain)  # 4 MiB of zeros
+    packed = tmp_path / "field.pt"
+    with zipfile.ZipFile(plain) as src, zipfile.ZipFile(packed, "w", zipfile.ZIP_DEFLATED) as dst:
+        for entry in src.infolist():
+            dst.writestr(entry.filename, src.read(entry.filename))
+    assert packed.stat().st_size < 100_000
+    with pytest.raises(StageInputError, match=r"refused: \d+ compressed entries .*which torch never writes"):
+        read_torch_file(packed, remedy="Do the thing.")
+    assert read_torch_file(plain, remedy="-")["format"] == 2
+    original = checkpoint.MAX_TORCH_BYTES
+    try:
+        checkpoint.MAX_TORCH_BYTES = 2**20
+        with pytest.raises(StageInputError, match="refused: it expands to 4,19[0-9],[0-9]+ bytes, more than 1,048,576"):
+            read_torch_file(plain, remedy="-")
+    finally:
+        checkpoint.MAX_TORCH_BYTES = original
+
+
+def test_a_checkpoint_without_its_parts_stops_the_resume_in_one_line(cache, tmp_path):
+    out = tmp_path / "cell"
+    out.mkdir()
+    s = OptimizeSettings(iterations=2, clip_tiny_test=True, image_size=64, eval_width=16, **SMALL)
+    torch.save({"digest": s.digest(), "optimizer": {}}, out / "checkpoint.pt")  # no field
+    with pytest.raises(StageInputError, match=r"checkpoint\.pt: is not a checkpoint of this optimisation \(KeyError") as err:
+        optimize.run(cache / "train.npz", cache / "eval.npz", "a vase", out, s, "cpu")
+    assert "\n" not in str(err.value) and not (out / "meta.json").exists()
