@@ -404,7 +404,9 @@ def validate_glb(path: Path) -> dict:
     """
     node = shutil.which("node")
     if node is None or not GLTF_VALIDATOR.is_dir():
-        missing = "Node.js (node) is not on PATH" if node is None else f"{GLTF_VALIDATOR} is missing (run npm ci)"
+        # the folder relative to the checkout: a record that travels in a pack names no local path
+        where = GLTF_VALIDATOR.relative_to(REPO_ROOT).as_posix()
+        missing = "Node.js (node) is not on PATH" if node is None else f"the validator ({where}) is missing: run npm ci"
         return {"ran": False, "reason": missing}
     proc = subprocess.run(
         [node, str(REPO_ROOT / "scripts" / "validate_gltf.mjs"), str(path)],
