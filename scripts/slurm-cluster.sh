@@ -81,16 +81,22 @@ ours_running() { # name: a live process of that name whose pid this script recor
     return 1
 }
 
+is_ours() { # a configuration this script wrote: the marker is its first line (a comment elsewhere does not count)
+    [ -f "$1" ] && [ "$(head -n 1 "$1" 2>/dev/null)" = "$marker" ]
+}
+
 refuse_foreign_slurm() { # stop before anything is installed, written or started
     local f d name
-    if [ -n "${SLURM_CONF:-}" ] && ! grep -qsF "$marker" "$SLURM_CONF"; then
+    if [ -n "${SLURM_CONF:-}" ] && ! is_ours "$SLURM_CONF"; then
         die "SLURM_CONF is set ($SLURM_CONF) and names a configuration this script did not write: this machine has a Slurm of its own (stop here)"
     fi
     for d in /run/slurm/conf /var/spool/slurmd/conf-cache; do
         [ ! -e "$d" ] || die "$d exists: this is a configless Slurm node of a real cluster (stop here)"
     done
-    for f in /etc/slurm/slurm.conf /etc/slurm/slurmdbd.conf /etc/slurm-llnl/slurm.conf /etc/slurm-llnl/slurmdbd.conf; do
-        [ ! -e "$f" ] || grep -qF "$marker" "$f" || die "$f exists and was not written by this script: is this machine part of a real cluster? (stop here)"
+    # Debian's, older Debian's and a source-built Slurm's default folders
+    for f in /etc/slurm/slurm.conf /etc/slurm/slurmdbd.conf /etc/slurm-llnl/slurm.conf /etc/slurm-llnl/slurmdbd.conf \
+        /usr/local/etc/slurm.conf /usr/local/etc/slurmdbd.conf; do
+        [ ! -e "$f" ] || is_ours "$f" || die "$f exists and was not written by this script: is this machine part of a real cluster? (stop here)"
     done
     for name in slurmctld slurmd slurmdbd slurmrestd sackd; do  # (not slurmstepd: a job step of ours outlives slurmd)
         if pgrep -x "$name" >/dev/null 2>&1 && ! ours_running "$name"; then
@@ -100,7 +106,7 @@ refuse_foreign_slurm() { # stop before anything is installed, written or started
 }
 
 ours_or_absent() {
-    [ ! -e "$1" ] || grep -qF "$marker" "$1" || die "$1 exists and was not written by this script: is this machine part of a real cluster? (stop here)"
+    [ ! -e "$1" ] || is_ours "$1" || die "$1 exists and was not written by this script: is this machine part of a real cluster? (stop here)"
 }
 
 write_configs() {
@@ -241,7 +247,7 @@ stop_one() { # name, pid file: only a live process of that name
 remove_own_configs() { # only files that carry the marker: a configuration of another Slurm stays
     local f
     for f in "$conf_dir/slurm.conf" "$conf_dir/slurmdbd.conf"; do
-        if [ -e "$f" ] && grep -qF "$marker" "$f"; then rm -f "$f"; fi
+        if is_ours "$f"; then rm -f "$f"; fi
     done
 }
 

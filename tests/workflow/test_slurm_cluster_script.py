@@ -40,6 +40,33 @@ def test_slurm_conf_of_another_slurm_is_refused(tmp_path):
     assert not (tmp_path / "state").exists() and conf.read_text() == "ClusterName=real\n"
 
 
+def test_a_foreign_slurm_conf_holding_the_marker_in_a_comment_is_refused(tmp_path):
+    """The marker counts only as the first line of a file the script wrote: a real cluster's
+    configuration that quotes it in a comment further down is still refused."""
+    marker = next(line for line in SCRIPT.read_text().splitlines() if line.startswith("marker=")).split('"')[1]
+    conf = tmp_path / "slurm.conf"
+    conf.write_text(f"ClusterName=real\n{marker}\n")
+    proc = script(tmp_path, "start", SLURM_CONF=str(conf))
+    assert proc.returncode == 1 and "names a configuration this script did not write" in proc.stderr
+    assert not (tmp_path / "state").exists()
+
+
+def test_a_source_built_slurms_configuration_is_refused(tmp_path):
+    """A Slurm built from source reads /usr/local/etc/slurm.conf by default: its presence stops the
+    script as /etc/slurm's does (the file is made for the test and removed after)."""
+    conf = Path("/usr/local/etc/slurm.conf")
+    if conf.exists():
+        pytest.skip(f"{conf} exists on this machine (the test would not remove it)")
+    conf.parent.mkdir(parents=True, exist_ok=True)
+    conf.write_text("ClusterName=real\n")
+    try:
+        proc = script(tmp_path, "start")
+    finally:
+        conf.unlink()
+    assert proc.returncode == 1 and f"{conf} exists and was not written by this script" in proc.stderr
+    assert not (tmp_path / "state").exists()
+
+
 def test_a_slurm_daemon_it_did_not_start_is_refused(tmp_path):
     """A process called slurmd (here a copy of sleep) that the script did not start: refused."""
     fake = tmp_path / "slurmd"
