@@ -106,6 +106,11 @@ def _describe(error) -> str:
     if v == "pattern" and isinstance(error.instance, str) and CONTROL.search(error.instance):
         shown = _short(error.instance)
         return f"invalid value at {where}: {shown} holds a control character (a newline or a tab): write it on one line"
+    if v == "pattern" and list(error.absolute_path)[-1:] == ["path"]:
+        return (
+            f"invalid mesh path at {where}: {_short(error.instance)} holds a brace or a control character; Snakemake "
+            "reads {...} in a file name as a wildcard: rename the file (or link it under a name without them)"
+        )
     if v == "pattern" and v in error.schema:
         return (
             f"invalid id {error.instance!r} at {where}: ids name result folders, so use letters, "

@@ -123,6 +123,11 @@ BAD_CONFIGS = {
     "anchor_azimuth_huge": ({"raycache": {"anchor_azimuth": 1e300}}, "anchor_azimuth: 1e+300 is not an angle of the anchor view"),
     "anchor_elevation_past_pole": ({"raycache": {"anchor_elevation": 1.6}}, "anchor_elevation: 1.6 is not an angle"),
     "anchor_deg_huge": ({"raycache": {"anchor_deg": [1e300, 10.0]}}, "anchor_deg -> 0: 1e+300 is not an angle"),
+    "mesh_path_with_braces": (
+        {"meshes": {"v": {"path": "chair {v2}.obj"}}},
+        "invalid mesh path at meshes -> v -> path: 'chair {v2}.obj'",
+    ),
+    "mesh_path_naming_a_wildcard": ({"meshes": {"v": {"path": "x{mesh}.obj"}}}, "reads {...} in a file name as a wildcard"),
     "views_as_float": ({"raycache": {"views": 8.0}}, "raycache -> views: 8.0 is not an integer: write 8"),
     "iterations_as_float": ({"optimize": {"iterations": 100.0}}, "optimize -> iterations: 100.0 is not an integer: write 100"),
     "image_size_as_float": ({"optimize": {"image_size": 224.0}}, "image_size: 224.0 is not an integer"),
