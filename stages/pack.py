@@ -21,7 +21,8 @@ from pathlib import Path
 from .core.cli import stage_main
 from .core.errors import StageInputError
 from .core.provenance import ORIGIN_KEY, atomic_path, read_origin, shareable_meta
-from .results.cells import parse_cells, reached_without_link
+from .core.safefiles import reached_without_link
+from .results.cells import parse_cells
 from .results.spreadsheet import spreadsheet_rows
 
 log = logging.getLogger(__name__)

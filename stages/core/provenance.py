@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from .errors import StageInputError
+from .safefiles import check_output_path
 
 log = logging.getLogger(__name__)
 
@@ -67,6 +68,7 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     never a file that looks finished. On error the temporary file is removed.
     """
     path = Path(path)
+    check_output_path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.tmp-", suffix=path.suffix, dir=path.parent)
     os.close(fd)
@@ -241,6 +243,7 @@ def staged_outputs(out_dir: str | Path, last: tuple[str, ...] = ("meta.json",)) 
     itself is a handful of renames on one file system (microseconds), not a copy.
     """
     out_dir = Path(out_dir)
+    check_output_path(out_dir / ".staging")
     out_dir.mkdir(parents=True, exist_ok=True)
     for stale in out_dir.glob(".staging-*"):
         log.info("removing %s left by a killed run", stale)

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 from ..config.workflow import ID_RE
 from ..core.errors import StageInputError
 
@@ -26,20 +24,3 @@ def parse_cells(items: list[str]) -> list[tuple[str, str, str]]:
             )
         cells.append(tuple(parts))
     return cells
-
-
-def reached_without_link(path: Path, root: Path) -> bool:
-    """``path`` lies under ``root`` with no symbolic link on the way (itself, a folder between)."""
-    path, root = Path(path), Path(root)
-    try:
-        rel = path.relative_to(root)
-    except ValueError:
-        return False
-    return path.resolve() == root.resolve() / rel
-
-
-def plain_file(path: Path, root: Path) -> bool:
-    """``path`` is a regular file reached from ``root`` without a symbolic link on the way (the
-    file itself, a folder between, or a cell folder): what the report and the pack may copy out of
-    a results folder that came from someone else (a link there could point anywhere)."""
-    return Path(path).is_file() and reached_without_link(path, root)

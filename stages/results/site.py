@@ -37,8 +37,9 @@ from pathlib import Path
 import pandas as pd
 
 from ..config.layout import RENDER_KINDS
+from ..core.errors import StageInputError
 from ..core.provenance import atomic_path
-from .cells import plain_file
+from ..core.safefiles import inside, plain_file
 from .spreadsheet import read_spreadsheet_csv
 from .summary import quality_of
 
@@ -275,17 +276,31 @@ def figures_section(report_dir: Path, url: Callable[[Path], str]) -> str:
     overview = Path(report_dir) / "overview.png"
     for e in entries:
         out.append(f"<div class='figure'><h3>{esc(e['title'])}</h3>")
-        if "file" in e and (Path(report_dir) / e["file"]).is_file():
-            src = url(Path(report_dir) / e["file"])
+        figure = _figure_file(report_dir, e)
+        if figure is not None:
+            src = url(figure)
             out.append(f"<a href='{esc(src)}'><img loading='lazy' alt='{esc(e['title'])}' src='{esc(src)}'></a>")
             out.append(f"<p><small>{esc(e.get('caption', ''))}</small></p>")
         else:
             out.append(f"<p class='skipped'>Not drawn: {esc(e.get('skipped', 'the figure file is missing'))}.</p>")
         out.append("</div>")
-    if overview.is_file():
+    if plain_file(overview, report_dir):
         out.append(f"<div class='figure'><h3>Overview</h3><a href='{esc(url(overview))}'>overview.png</a>: one row per cell")
         out.append(" (RGB, diffuse, roughness, specular, normals of the front view).</div>")
     return "".join(out)
+
+
+def _figure_file(report_dir: Path, entry: dict) -> Path | None:
+    """The figure a ``figures.json`` entry names: a plain file inside the report folder, reached
+    without a link; an entry naming anything else (an absolute path, ``..``, a link, a FIFO) is
+    logged and shown as not drawn (a received report folder is data)."""
+    if "file" not in entry:
+        return None
+    try:
+        return inside(report_dir, entry["file"])
+    except StageInputError as exc:
+        log.warning("figure not shown: %s", exc)
+        return None
 
 
 def speed_accuracy_section(report_dir: Path) -> str:

@@ -12,6 +12,7 @@ import numpy as np
 
 from ..core.errors import StageInputError
 from ..core.provenance import ORIGIN_KEY, read_origin
+from ..core.safefiles import require_plain_file
 
 log = logging.getLogger(__name__)
 
@@ -271,9 +272,17 @@ def front_tile(results: Path, cell: tuple[str, str, str], kind: str = "rgb", siz
     from PIL import Image
 
     mesh, prompt, variant = cell
-    opt = _need(results / mesh / prompt / variant / "optimize" / "meta.json")
-    sh = opt["sheet"]
-    r, c = divmod(sh["front_view"], sh["columns"])
-    t = sh["tile"]
-    img = Image.open(results / mesh / prompt / variant / "optimize" / "renders" / f"{kind}.png")
-    return img.crop((c * t, r * t, (c + 1) * t, (r + 1) * t)).resize((size, size))
+    meta = results / mesh / prompt / variant / "optimize" / "meta.json"
+    sh = _need(meta).get("sheet")
+    path = require_plain_file(results / mesh / prompt / variant / "optimize" / "renders" / f"{kind}.png", results)
+    with Image.open(path) as img:
+        sheet = sh if isinstance(sh, dict) else {}
+        columns, tile, front = sheet.get("columns"), sheet.get("tile"), sheet.get("front_view")
+        if not all(isinstance(x, int) and not isinstance(x, bool) for x in (columns, tile, front)) or min(columns, tile) < 1:
+            raise StageInputError(meta, f"its sheet ({sh!r:.120}) is not whole numbers of views and pixels", "Rerun the cell.")
+        r, c = divmod(front, columns)
+        if front < 0 or (c + 1) * tile > img.width or (r + 1) * tile > img.height:
+            raise StageInputError(
+                meta, f"its sheet (tile {tile}, view {front}) lies outside its {img.width}x{img.height} render", "Rerun the cell."
+            )
+        return img.crop((c * tile, r * tile, (c + 1) * tile, (r + 1) * tile)).resize((size, size))
