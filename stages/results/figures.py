@@ -121,7 +121,7 @@ def speed_accuracy_figures(out_dir: Path, groups: list[Group], panels: int) -> l
             ax.set_xscale("log")
             ax.xaxis.set_major_formatter(ScalarFormatter())
             ax.xaxis.set_minor_formatter(NullFormatter())
-            ax.set_title(g.label + (" (TEST-ONLY weights)" if g.test_only else ""), fontsize=8)
+            ax.set_title(panel_title(g.label + (" (TEST-ONLY weights)" if g.test_only else "")), fontsize=8)
             ax.set_xlabel("optimisation wall time (s, log)", fontsize=7)
             ax.set_ylabel(g.quality_name, fontsize=6)
             ax.tick_params(labelsize=6)
@@ -167,7 +167,7 @@ def ablation_figures(out_dir: Path, groups: list[Group], panels: int) -> list[di
             high = max(m + s for m, s in zip(means, stds, strict=True))
             pad = 0.1 * max(high - low, 1e-6)
             ax.set_ylim(low - pad, high + pad)
-            ax.set_title(g.label + (" (TEST-ONLY weights)" if g.test_only else ""), fontsize=8)
+            ax.set_title(panel_title(g.label + (" (TEST-ONLY weights)" if g.test_only else "")), fontsize=8)
             ax.set_ylabel(g.quality_name, fontsize=6)
             ax.tick_params(axis="y", labelsize=6)
         caption = (
@@ -233,7 +233,7 @@ def loss_figures(
         for ax, key in zip(axes, chunk, strict=True):
             for variant, d in curves[key]:
                 ax.plot(d["iteration"], d["loss"], lw=0.7, label=variant)
-            ax.set_title(f"{key[0]} / {key[1]}" + (f" ({key[2]})" if several else ""), fontsize=8)
+            ax.set_title(panel_title(f"{key[0]} / {key[1]}" + (f" ({key[2]})" if several else "")), fontsize=8)
             ax.tick_params(labelsize=6)
             if len(curves[key]) <= 8:
                 ax.legend(fontsize=5)
@@ -245,6 +245,18 @@ def loss_figures(
         )
         entries.append(_chunk_entry(fig, out_dir, "loss_curves", k, len(chunks), title, caption))
     return entries
+
+
+#: the longest line of a panel's title (characters at 8 points across a 3-inch panel)
+PANEL_TITLE_CHARS = 44
+
+
+def panel_title(text: str, width: int = PANEL_TITLE_CHARS) -> str:
+    """``text`` wrapped to lines of at most ``width`` characters (ids of 64 characters are split),
+    so that a panel's title stays over its panel."""
+    import textwrap
+
+    return "\n".join(textwrap.wrap(text, width, break_long_words=True, break_on_hyphens=False)) or text
 
 
 def robustness_figure(

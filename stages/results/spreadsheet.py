@@ -17,11 +17,16 @@ import pandas as pd
 
 #: what makes a spreadsheet cell a formula (and the apostrophe, escaped so the mapping reverses)
 FORMULA_START = ("=", "+", "-", "@", "\t", "\r", "'")
+#: the full-width forms some spreadsheets (East Asian locales) also read as a formula's start
+FULL_WIDTH_START = ("\uff1d", "\uff0b", "\uff0d", "\uff20")
 
 
 def to_spreadsheet(value: Any) -> Any:
-    """``value`` as a CSV cell: a text a spreadsheet would evaluate gets a leading apostrophe."""
-    if isinstance(value, str) and value.startswith(FORMULA_START):
+    """``value`` as a CSV cell: a text a spreadsheet would evaluate gets a leading apostrophe, also
+    where spaces (any Unicode space) come before the formula's sign or the sign is full-width."""
+    if isinstance(value, str) and (
+        value.startswith(FORMULA_START) or value.lstrip().startswith(FORMULA_START + FULL_WIDTH_START)
+    ):
         return "'" + value
     return value
 

@@ -316,3 +316,13 @@ def test_loss_curves_one_panel_per_mesh_and_prompt(tmp_path):
     entries = loss_figures(tmp_path / "out2", tmp_path, cells, panels=1)
     assert len(entries) == 2
     json.dumps(entries)  # figures.json material
+
+
+def test_long_ids_wrap_in_panel_titles(tmp_path):
+    from stages.results.figures import PANEL_TITLE_CHARS, panel_title
+
+    long = "m" * 64 + " / " + "p" * 64 + " (variant_with_a_long_name)"
+    lines = panel_title(long).split("\n")
+    assert len(lines) >= 4 and all(len(line) <= PANEL_TITLE_CHARS for line in lines)
+    assert "".join(lines).replace(" ", "") == long.replace(" ", "")
+    assert panel_title("vase / wood") == "vase / wood"

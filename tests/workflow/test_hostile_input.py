@@ -205,6 +205,14 @@ def test_spreadsheet_cells_never_start_a_formula_and_read_back_exactly(text):
     assert to_spreadsheet(-0.5) == -0.5
 
 
+@pytest.mark.parametrize("text", [" =1+1", "\u3000=cmd|' /C calc'!A0", "\uff1d1+1", "  \uff0bSUM(A1)", "\t =1", "\uff20x"])
+def test_a_formula_behind_spaces_or_in_full_width_gets_its_apostrophe(text):
+    from stages.results.spreadsheet import from_spreadsheet, to_spreadsheet
+
+    assert to_spreadsheet(text) == "'" + text and from_spreadsheet(to_spreadsheet(text)) == text
+    assert to_spreadsheet(" a vase ") == " a vase "
+
+
 FORMULA = '=HYPERLINK("http://example.com/x","open")'
 MARKUP = "<script>alert(1)</script> a 'vase' & \"jar\""
 
