@@ -41,6 +41,7 @@ from .core.cli import stage_main
 from .core.errors import ConfigError
 from .core.provenance import atomic_path
 from .geometry.meshio import load_mesh
+from .geometry.normalization import check_face_count
 
 log = logging.getLogger(__name__)
 
@@ -77,7 +78,7 @@ def mesh_entry(mesh: str) -> tuple[str, dict]:
         return name, {"builtin": name}
     path = Path(mesh)
     mesh_id = slug(path.stem, 32)
-    if mesh_id in RESERVED_MESH_IDS:
+    if mesh_id.lower() in RESERVED_MESH_IDS:  # the config refuses them in any case (Report, REPORT)
         mesh_id += "-mesh"
     return mesh_id, {"path": str(path.resolve()), "object": path.stem.replace("_", " ")}
 
@@ -112,9 +113,11 @@ def write_config(config: dict, path: Path, command: str, force: bool = False) ->
         if not force:
             raise ConfigError(
                 f"{path} exists with other settings (edited, or another mesh or prompt of the same name); "
-                f"run it as it is with snakemake --configfile {path}, pick another --name, or pass --force to replace it"
+                f"run it as it is with snakemake --configfile {shlex.quote(str(path))}, pick another --name, or pass --force "
+                "to replace it"
             )
-    header = f"# Written by: {command}\n# An ordinary experiment config: edit it, or run it with snakemake --configfile {path}\n"
+    run_it = f"snakemake --configfile {shlex.quote(str(path))}"
+    header = f"# Written by: {command}\n# An ordinary experiment config: edit it, or run it with {run_it}\n"
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(path) as tmp:
         tmp.write_text(header + yaml.safe_dump(config, sort_keys=False, allow_unicode=True))
@@ -190,10 +193,11 @@ def run(
     for overlay in overlays:
         merged = merge_config(merged, read_yaml(overlay))
     cfg = WorkflowConfig(merged, ", ".join(map(str, configfiles)))  # validated as the workflow will, before writing
+    check_face_count(mesh, checked, cfg.stage_settings(mesh_entry(mesh)[0], "normalize"))  # as the normalize stage will
     experiment = experiment_name(cfg.raw, configfiles)
     guidance = guidance_text(cfg, image_guided, test_clip)
     write_config(config, path, command, force)
-    files = " ".join(str(p) for p in configfiles)
+    files = " ".join(shlex.quote(str(p)) for p in configfiles)
     lines = [
         f"mesh {mesh}: {len(checked.vertices):,} vertices, {len(checked.faces):,} faces",
         f'prompt "{prompt}", preset {preset}, {guidance}',

@@ -204,9 +204,9 @@ class NormalizeResult:
     stats: dict
 
 
-def normalize_mesh(source: str | Path, settings: NormalizeSettings) -> NormalizeResult:
-    """Load ``source`` (a path or ``builtin:<name>``) and normalise it into the unit sphere."""
-    mesh = load_mesh(source)
+def check_face_count(source: str | Path, mesh: TriMesh, settings: NormalizeSettings) -> None:
+    """Refuse a mesh above ``normalize.max_faces`` (what the normalize stage and the quick command
+    both check), naming it and what to do."""
     if len(mesh.faces) > settings.max_faces:
         raise StageInputError(
             source,
@@ -215,6 +215,12 @@ def normalize_mesh(source: str | Path, settings: NormalizeSettings) -> Normalize
             "for this mesh and turn on decimate: {enabled: true, mode: budget}, which brings it to the face "
             "budget of its ray cache.",
         )
+
+
+def normalize_mesh(source: str | Path, settings: NormalizeSettings) -> NormalizeResult:
+    """Load ``source`` (a path or ``builtin:<name>``) and normalise it into the unit sphere."""
+    mesh = load_mesh(source)
+    check_face_count(source, mesh, settings)
     up = resolve_up_axis(settings.up_axis, source, mesh)
     if up.method == "guess":
         log.info("%s: up axis %s (%s; margin %s)", source, up.axis, up.reason, up.evidence["margin"])

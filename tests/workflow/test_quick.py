@@ -129,3 +129,29 @@ def test_ids_built_ins_overlays_and_a_second_run(tmp_path):
     assert proc.returncode == 0, proc.stderr[-2000:]
     config = yaml.safe_load((tmp_path / "config" / "quick" / "knot-a-knot-made-of-wood.yaml").read_text())
     assert config["meshes"] == {"knot": {"builtin": "knot"}}
+
+
+def test_a_mesh_past_the_face_limit_a_reserved_name_and_a_folder_with_spaces(tmp_path, monkeypatch, capsys):
+    """In process: the quick command refuses a mesh the normalize stage would refuse (its face
+    limit, here lowered by an overlay) before writing anything; ``Report.obj`` gets an id the
+    config accepts (ids are reserved in any case); the commands it prints quote a config folder
+    with spaces."""
+    from stages import quick as q
+
+    monkeypatch.chdir(tmp_path)
+    mesh = tmp_path / "pot.obj"  # an octahedron: 8 faces
+    corners = "v 1 0 0\nv -1 0 0\nv 0 1 0\nv 0 -1 0\nv 0 0 1\nv 0 0 -1\n"
+    faces = "f 1 3 5\nf 3 2 5\nf 2 4 5\nf 4 1 5\nf 3 1 6\nf 2 3 6\nf 4 2 6\nf 1 4 6\n"
+    mesh.write_text(corners + faces)
+    overlay = tmp_path / "small.yaml"
+    overlay.write_text("normalize: {max_faces: 4}\n")
+    configs = tmp_path / "my configs"
+    assert q.main([str(mesh), "a pot", "--overlay", str(overlay), "--config-dir", str(configs), "--dry-run"]) == 2
+    assert "has 8 faces, more than normalize.max_faces (4)" in capsys.readouterr().err and not configs.exists()
+    assert q.mesh_entry(str(tmp_path / "Report.obj"))[0] == "Report-mesh"
+    assert q.mesh_entry(str(tmp_path / "REPORT.obj"))[0] == "REPORT-mesh"
+    monkeypatch.setenv("TANGO_PLAN_CALIBRATE", "0")
+    assert q.main([str(mesh), "a pot", "--image-guided", "wood", "--config-dir", str(configs), "--dry-run"]) == 0
+    out = capsys.readouterr().out
+    assert f"--configfile '{configs}/pot-a-pot.yaml'" in out, out
+    assert f"snakemake --configfile '{configs}/pot-a-pot.yaml'" in (configs / "pot-a-pot.yaml").read_text()
