@@ -73,7 +73,7 @@ def test_reference_shows_the_dataclass_defaults_and_the_schema_ranges():
     rows = {row[0]: row for row in reference.section_rows("decimate")}
     assert rows["`target_faces`"][2] == "`5000`" and rows["`target_faces`"][3] == "[4, 10000000]"
     assert rows["`weld_tolerance`"][3] == "[0, 0.01)"
-    assert rows["`mode`"][3] == "`faces`, `budget`"
+    assert rows["`mode`"][3] == "`faces`, `share`, `budget`"
     rows = {row[0]: row for row in reference.section_rows("raycache")}
     assert rows["`anchor_deg`"][1] == "list of 2 numbers or null" and rows["`anchor_deg`"][2] == "`null`"
 
