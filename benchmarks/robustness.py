@@ -5,12 +5,14 @@ resolution and decimated) and prints, per mesh, level, prompt and variant:
 
 * the level: faces, the decimation's two-sided Hausdorff distance (normalised frame, radius 1) and
   its shape (shares of sliver faces and of folds, :func:`stages.geometry.decimation.shape_quality`);
-* ``geometry``: what the decimation alone does to the picture, the PSNR of the level's Mitsuba
-  truth (its held-out metric views) against the original's, over the pixels both cover fully;
+* ``unjudged``: the share of the original's object pixels (held-out metric views) that the level's
+  mesh no longer covers: the targets are always the full-resolution object's (the target stage
+  renders the normalised mesh for every level), so a cell is graded where its mesh meets the
+  object, and a silhouette that shrank leaves these pixels out of its figures;
 * ``train``: the recovery's held-out PSNR under the training light (the metrics stage);
 * ``relit``/``ceiling``: under the first relighting environment, the recovery's scaled PSNR and
-  the ceiling (the true material in our renderer under the same fitted light: what the renderer
-  can reach on that mesh; the relight stage);
+  the ceiling (the true material and normals of the object in our renderer, shadowed by the
+  level's own mesh, under the same fitted light; the relight stage);
 * the drop of each against the original, and the recovery's own gap (ceiling - relit).
 
 A level whose ceiling stays within 1 dB of the original's and whose recovery falls further has a
@@ -71,6 +73,13 @@ def truth_images(cache_npz: Path, target_npz: Path) -> tuple[list[np.ndarray], l
         images.append(img)
         masks.append(mask)
     return images, masks
+
+
+def unjudged_share(original: tuple, level: tuple) -> float:
+    """The share of the original's fully covered pixels that the level's hits do not cover."""
+    ours = sum(int(m.sum()) for m in original[1])
+    missed = sum(int((a & ~b).sum()) for a, b in zip(original[1], level[1], strict=True))
+    return missed / max(ours, 1)
 
 
 def geometry_psnr(original: tuple, level: tuple, noise_mse: float = 0.0) -> float:
@@ -196,11 +205,11 @@ def main() -> None:
     for dec, orig in cfg.decimation_pairs().items():
         levels.setdefault(orig, []).append(dec)
     cells = {(c.mesh, c.prompt, c.variant) for c in cfg.cells}
-    head = f"{'mesh':<12}{'variant':<12}{'faces':>7}{'Hausdorff':>10}{'slivers':>8}{'folds':>7}{'geometry':>9}"
+    head = f"{'mesh':<12}{'variant':<12}{'faces':>7}{'Hausdorff':>10}{'slivers':>8}{'folds':>7}{'unjudged':>9}"
     head += f"{'train':>8}{'drop':>6}{'relit':>8}{'drop':>6}{'ceiling':>8}{'drop':>6}{'gap':>6}"
-    print(f"{results}; dB, drops against the original; geometry: the level's truth against the original's")
+    print(f"{results}; dB, drops against the original; unjudged: the object's pixels the level's mesh misses")
     print(head)
-    worst, worst_ceiling = -math.inf, -math.inf
+    worst = {"train": -math.inf, "relit": -math.inf, "ceiling": -math.inf}
     for orig, decs in levels.items():
         for prompt, variant in sorted({(p, v) for m, p, v in cells if m == orig}):
             if not (results / orig / prompt / variant / "relight" / "meta.json").is_file():
@@ -212,17 +221,18 @@ def main() -> None:
                 if not math.isfinite(r["relit"]):
                     print(f"{r['mesh']:<12}{variant:<12}{r['faces']:>7}  (not run yet)")
                     continue
-                geo = math.inf if r is base else geometry_psnr(base_truth, truth_images(r["cache"], r["target"]))
-                drops = [base[k] - r[k] for k in ("train", "relit", "ceiling")]
+                unjudged = 0.0 if r is base else unjudged_share(base_truth, truth_images(r["cache"], r["target"]))
+                drops = {k: base[k] - r[k] for k in ("train", "relit", "ceiling")}
                 line = f"{r['mesh']:<12}{variant:<12}{r['faces']:>7}{r['hausdorff']:>10.4f}{100 * r['shape']['slivers']:>7.1f}%"
-                line += f"{100 * r['shape']['folds']:>6.2f}%{geo:>9.2f}{r['train']:>8.2f}{drops[0]:>6.2f}"
-                line += f"{r['relit']:>8.2f}{drops[1]:>6.2f}{r['ceiling']:>8.2f}{drops[2]:>6.2f}{r['ceiling'] - r['relit']:>6.2f}"
-                print(line, flush=True)
-                if r is not base and r["faces"] <= 5000 * 1.01:
-                    worst_ceiling = max(worst_ceiling, drops[2])
-                    if abs(drops[2]) <= 1.0:
-                        worst = max(worst, drops[1])
-    print(f"worst_drop_5k_db={worst:.2f} worst_ceiling_drop_db={worst_ceiling:.2f}")
+                line += f"{100 * r['shape']['folds']:>6.2f}%{100 * unjudged:>8.2f}%{r['train']:>8.2f}{drops['train']:>6.2f}"
+                line += f"{r['relit']:>8.2f}{drops['relit']:>6.2f}{r['ceiling']:>8.2f}{drops['ceiling']:>6.2f}"
+                print(line + f"{r['ceiling'] - r['relit']:>6.2f}", flush=True)
+                if r is not base and abs(r["faces"] - 5000) <= 50:  # the 5,000-face levels
+                    worst["ceiling"] = max(worst["ceiling"], drops["ceiling"])
+                    if abs(drops["ceiling"]) <= 1.0:
+                        worst["train"] = max(worst["train"], drops["train"])
+                        worst["relit"] = max(worst["relit"], drops["relit"])
+    print(" ".join(f"worst_{k}_drop_5k_db={v:.2f}" for k, v in worst.items()))
 
 
 if __name__ == "__main__":
