@@ -78,7 +78,12 @@ def load_schema() -> dict:
 
 
 def _where(path) -> str:
-    return " -> ".join(str(p) for p in path) if path else "the top level"
+    """A key path as the messages write it (``raycache -> views``); a key that is not a plain word
+    (a newline, a surrogate, a space in it) is written as its escaped repr, so the message stays one
+    printable line."""
+    if not path:
+        return "the top level"
+    return " -> ".join(str(p) if isinstance(p, int) or re.fullmatch(r"[A-Za-z0-9_.-]+", str(p)) else ascii(p) for p in path)
 
 
 def _describe(error) -> str:

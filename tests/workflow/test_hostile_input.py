@@ -196,6 +196,7 @@ def test_cells_handed_to_the_report_are_ids(item):
 
 # ---- spreadsheets ------------------------------------------------------------------------------
 @given(st.text(max_size=40))
+@settings(deadline=None)  # the first example imports pandas: 350 ms on a busy machine
 def test_spreadsheet_cells_never_start_a_formula_and_read_back_exactly(text):
     from stages.results.spreadsheet import FORMULA_START, from_spreadsheet, to_spreadsheet
 
@@ -287,3 +288,87 @@ def test_the_report_copies_nothing_reached_through_a_link(hostile_report):
     assert list((results / "report" / "cells" / "/".join(cells[1])).glob("texture_*"))  # plain ones are
     for path in (results / "report").rglob("*"):
         assert not path.is_file() or b"PRIVATE KEY" not in path.read_bytes(), path
+
+
+# ---- generated configs: accepted and usable, or one line naming the key -------------------------
+_IDS = st.one_of(
+    st.sampled_from(["vase", "p0", "a.b-c_1", "Z9"]),
+    st.text(alphabet=st.sampled_from("ab0_.-/\n '{}\u05e2Z\ud800"), min_size=0, max_size=12),
+)
+_TEXTS = st.one_of(
+    st.sampled_from(["a {object} made of wood", "=1+1 vase", "a 'vase' <b>", "ваза"]),
+    st.text(alphabet=st.sampled_from("a {object}=+-@\t\n\u3000\u2028'\"<>\ud800\uff1dZ"), max_size=30),
+)
+_NUMBERS = st.one_of(
+    st.sampled_from([8, 64, 100, 0.5, 0.3, 1]),  # within most keys' bounds
+    st.sampled_from([8, 64, 100, 0.5, 0.3, 1]),
+    st.integers(-(10**12), 10**12),
+    st.floats(allow_nan=True, allow_infinity=True),
+    st.booleans(),
+    st.sampled_from([0, 1, 8, 8.0, 64, 0.5, -1, "8", None, [], {}]),
+)
+_KEYS = {
+    "raycache": ["views", "resolution", "anchor_azimuth", "anchor_elevation", "std", "seed"],
+    "optimize": ["iterations", "lr", "width", "image_size", "checkpoint_every", "light_lobes"],
+    "decimate": ["target_faces", "target_share", "quality_threshold", "mode"],
+    "target": ["spp", "texture_size", "bump_slope"],
+}
+
+
+@st.composite
+def generated_configs(draw) -> dict:
+    mesh_id, prompt_id = draw(_IDS), draw(_IDS)
+    mesh = draw(st.one_of(st.just({"builtin": "vase"}), st.builds(lambda p: {"path": p}, _TEXTS)))
+    if draw(st.booleans()):
+        mesh["object"] = draw(_TEXTS)
+    prompt = draw(st.one_of(_TEXTS, st.builds(lambda t: {"text": t}, _TEXTS)))
+    config = {"meshes": {mesh_id: mesh}, "prompts": {prompt_id: prompt}}
+    for section, keys in _KEYS.items():
+        if draw(st.integers(0, 3)) == 0:
+            chosen = draw(st.lists(st.sampled_from(keys), min_size=1, max_size=3, unique=True))
+            config[section] = {k: draw(_NUMBERS) for k in chosen}
+    return config
+
+
+def _names(node, path=()) -> set[str]:
+    """Every key of a config as an error message may name it: its path (``a -> b -> c``, a key that
+    is not a plain word escaped) or, for an id, its repr (``prompt '0'``)."""
+    out = set()
+    if path:
+        out.add(" -> ".join(str(p) if re.fullmatch(r"[A-Za-z0-9_.-]+", str(p)) else ascii(p) for p in path))
+        out.add(repr(path[-1]))
+    if isinstance(node, dict):
+        for k, v in node.items():
+            out |= _names(v, (*path, k))
+    return out
+
+
+@given(generated_configs())
+@settings(max_examples=400, deadline=None)
+def test_a_generated_config_is_usable_or_refused_in_one_line_naming_the_key(config):
+    """Configs generated from ids, prompts, mesh paths and numbers of every kind (floats for
+    integers, NaN, booleans, strings, surrogates, braces, control characters, formula signs): each
+    is either accepted, and then every cell's settings of every stage resolve as the workflow
+    resolves them when it builds its jobs, or refused with one ConfigError line that names a key the
+    config holds (or the top level)."""
+    from stages.config.sections import SECTIONS
+    from stages.config.workflow import ConfigError, WorkflowConfig
+
+    try:
+        cfg = WorkflowConfig(config)
+    except ConfigError as err:
+        message = str(err)
+        assert "\n" not in message and len(message) < 2000, message[:300]
+        named = [p for p in _names(config) if p and p in message]
+        assert named or "top level" in message or "experiment name" in message, message[:300]
+        return
+    for mesh in cfg.grid_meshes:
+        cfg.mesh_work_keys(mesh)
+        for stage in ("normalize", "raycache", "target") + (("decimate",) if cfg.decimated(mesh) else ()):
+            cfg.stage_settings(mesh, stage)
+    for cell in cfg.cells:
+        cfg.optimize_settings(cell.prompt, cell.variant)
+        for stage in ("bake", "relight", "metrics", "export"):
+            assert stage in SECTIONS
+            cfg.cell_stage_settings(stage, cell.prompt, cell.variant)
+        assert "\n" not in cfg.prompt_text(cell.mesh, cell.prompt)
