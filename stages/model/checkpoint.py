@@ -15,6 +15,7 @@ from ..config.sections import OptimizeSettings
 from ..config.workflow import validate_section
 from ..core.errors import ConfigError, StageInputError
 from ..core.provenance import ORIGIN_KEY, atomic_path, checked_origin
+from ..core.safefiles import require_plain_file
 from ..render.sg import sg_integral
 from .field import StyleField
 
@@ -65,6 +66,8 @@ def read_torch_file(path: str | Path, device="cpu", *, remedy: str) -> dict:
     someone else's results folder can never run code when it is read. Anything else (a pickle
     that names a class or a function, a truncated or foreign file) is a
     :class:`~stages.core.errors.StageInputError` naming the file, what is wrong and ``remedy``."""
+    if Path(path).exists() or Path(path).is_symlink():  # a link, FIFO or device there: one line, not a hang
+        require_plain_file(path, remedy=remedy)
     if Path(path).is_file() and not zipfile.is_zipfile(path):  # torch writes zip archives; older pickles are refused too
         raise StageInputError(path, "not a readable torch file (not the zip archive torch writes)", remedy)
     if Path(path).is_file():

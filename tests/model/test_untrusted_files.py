@@ -190,3 +190,18 @@ def test_a_checkpoint_without_its_parts_stops_the_resume_in_one_line(cache, tmp_
     with pytest.raises(StageInputError, match=r"checkpoint\.pt: is not a checkpoint of this optimisation \(KeyError") as err:
         optimize.run(cache / "train.npz", cache / "eval.npz", "a vase", out, s, "cpu")
     assert "\n" not in str(err.value) and not (out / "meta.json").exists()
+
+
+def test_a_field_that_is_a_link_or_a_fifo_inside_a_results_folder_is_one_line(tmp_path):
+    import os
+
+    cell = tmp_path / "results" / "exp" / "vase" / "wood" / "base" / "optimize"
+    cell.mkdir(parents=True)
+    written_field(tmp_path / "elsewhere.pt")
+    (cell / "field.pt").symlink_to(tmp_path / "elsewhere.pt")
+    with pytest.raises(StageInputError, match="it is a symbolic link inside"):
+        load_field(cell / "field.pt")
+    (cell / "field.pt").unlink()
+    os.mkfifo(cell / "field.pt")
+    with pytest.raises(StageInputError, match="is a FIFO, not a plain file"):
+        load_field(cell / "field.pt")
