@@ -576,6 +576,9 @@ def parse_cell(text: str, cfg: WorkflowConfig) -> Cell:
 def main(argv: list[str] | None = None) -> int:
     """``python -m stages.config --configfile C --cell mesh/prompt/variant [--stage optimize]``:
     print how one cell's settings were resolved, key by key, with where each value came from.
+    ``--check``: read the config as the workflow will (the bounded reader, templates refused, every
+    key against the schema) without Snakemake, and say so in one line: how to look at a config
+    received from someone else before running it.
     ``--mesh-work``: print the folders of the mesh-level work the experiment uses, one per line
     (``results/meshes/<mesh>/<key>``; the folders of other keys serve other experiments or none)."""
 
@@ -585,15 +588,25 @@ def main(argv: list[str] | None = None) -> int:
         parser.add_argument("--stage", default="optimize", choices=("optimize", *CELL_STAGES, *MESH_STAGES))
         parser.add_argument("--json", action="store_true", help="print JSON instead of a table")
         parser.add_argument("--mesh-work", action="store_true", help="print the experiment's mesh-level work folders")
+        parser.add_argument(
+            "--check", action="store_true", help="check a config (a received one, say) as data, without Snakemake: one line"
+        )
 
     def body(args):
         cfg = load_config_file(args.configfile)
+        if args.check:  # read by the bounded reader, templates refused, every key checked: it got here
+            meshes, prompts = len(cfg.grid_meshes), len({c.prompt for c in cfg.cells})
+            sys.stdout.write(
+                f"{args.configfile}: a valid config of {len(cfg.cells)} cells ({meshes} meshes x {prompts} prompts x "
+                f"{len(cfg.variants)} variants); no template, every key within its bounds\n"
+            )
+            return
         if args.mesh_work:
             folders = {f"results/{MESH_WORK}/{m}/{key}" for m in cfg.grid_meshes for key in cfg.mesh_work_keys(m).values()}
             sys.stdout.write("".join(f"{f}\n" for f in sorted(folders)))
             return
         if args.cell is None:
-            raise ConfigError("give --cell mesh/prompt/variant (or --mesh-work)")
+            raise ConfigError("give --cell mesh/prompt/variant (or --mesh-work, or --check)")
         rows = cfg.explain(parse_cell(args.cell, cfg), args.stage)
         if args.json:
             sys.stdout.write(json.dumps([{"key": k, "value": v, "source": s} for k, v, s in rows], indent=1) + "\n")

@@ -138,7 +138,7 @@ def refuse_templates(data: Any, source: str, environ=os.environ) -> None:
     file loads), unless :data:`ALLOW_YTE_ENV` is set to 1 by whoever runs the workflow."""
     if isinstance(data, dict) and YTE_KEY in data and environ.get(ALLOW_YTE_ENV) != "1":
         raise ConfigError(
-            f"{source}: sets {YTE_KEY}, so Snakemake evaluates it as a YTE template, running the Python in it while "
-            f"loading it (before this check could stop it): read it as code; if you wrote it and mean it, set "
-            f"{ALLOW_YTE_ENV}=1"
+            f"{source}: sets {YTE_KEY}: Snakemake evaluates such a file as a YTE template, running the Python in it "
+            f"while it loads the file, before any check of this tool: read it as code; if you wrote it and mean it, "
+            f"set {ALLOW_YTE_ENV}=1"
         )

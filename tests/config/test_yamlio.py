@@ -82,9 +82,22 @@ def test_a_yte_template_is_refused_by_the_projects_loaders(tmp_path, monkeypatch
     path = tmp_path / "yte.yaml"
     path.write_text("__use_yte__: true\n" + BASE)
     monkeypatch.delenv("TANGO_ALLOW_YTE", raising=False)
-    with pytest.raises(ConfigError, match="evaluates it as a YTE template") as err:
+    with pytest.raises(ConfigError, match="evaluates such a file as a YTE template") as err:
         read_yaml(path)
     assert "TANGO_ALLOW_YTE=1" in str(err.value)
+
+
+def test_the_check_command_reads_a_received_config_as_data(tmp_path, capsys, monkeypatch):
+    from stages.config.workflow import main
+
+    monkeypatch.delenv("TANGO_ALLOW_YTE", raising=False)
+    good = tmp_path / "good.yaml"
+    good.write_text(BASE)
+    assert main(["--configfile", str(good), "--check"]) == 0
+    assert "a valid config of 1 cells (1 meshes x 1 prompts x 1 variants); no template" in capsys.readouterr().out
+    bad = tmp_path / "yte.yaml"
+    bad.write_text("__use_yte__: true\n" + BASE)
+    assert main(["--configfile", str(bad), "--check"]) == 2
 
 
 def test_integers_given_as_floats_are_refused_naming_the_key():
