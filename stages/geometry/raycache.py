@@ -41,6 +41,7 @@ import numpy as np
 from ..config.sections import RaycacheSettings
 from ..core.errors import StageInputError
 from ..core.provenance import atomic_path
+from ..core.safefiles import require_plain_file
 from .cameras import (
     camera_positions,
     camera_space_directions,
@@ -191,6 +192,8 @@ class RayCache:
         cache held in memory, ``path`` naming where it came from."""
         self.path = Path(path)
         if arrays is None:
+            if self.path.exists() or self.path.is_symlink():  # a link or a FIFO in a results folder: one line
+                require_plain_file(self.path, remedy="Run the raycache stage again.")
             with np.load(self.path) as z:
                 arrays = {k: z[k] for k in z.files}
         self.arrays = arrays

@@ -34,6 +34,7 @@ import numpy as np
 
 from ..core.errors import StageInputError
 from ..core.provenance import atomic_path
+from ..core.safefiles import require_plain_file
 from ..geometry.raycache import RayCache
 
 #: ground-truth arrays a target file may carry (metric views)
@@ -112,8 +113,9 @@ class TargetSet:
 
     def __init__(self, path: str | Path, cache: RayCache) -> None:
         self.path = Path(path)
-        if not self.path.is_file():
+        if not self.path.exists() and not self.path.is_symlink():
             raise StageInputError(self.path, "target file not found", "Run the target stage first (snakemake runs it).")
+        require_plain_file(self.path, remedy="Run the target stage again.")
         with np.load(self.path) as z:
             self.arrays = {k: z[k] for k in z.files}
         offsets = cache.arrays["offsets"]

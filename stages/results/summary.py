@@ -22,7 +22,11 @@ CELL_STAGES = ("optimize", "bake", "export", "relight", "metrics")
 
 
 def _read(path: Path) -> dict | None:
-    return json.loads(path.read_text()) if path.is_file() else None
+    """A stage's JSON record, or None where there is none; a link or a FIFO in its place is one
+    line (a received results folder is data)."""
+    if not path.exists() and not path.is_symlink():
+        return None
+    return json.loads(require_plain_file(path, remedy="Rerun the stage that writes it.").read_text())
 
 
 def _need(path: Path) -> dict:

@@ -113,3 +113,22 @@ def test_a_render_that_is_a_link_a_fifo_or_a_bad_sheet_is_one_line(tmp_path):
         with pytest.raises(StageInputError, match="its sheet") as err:
             front_tile(results, ("vase", "wood", "base"))
         assert "\n" not in str(err.value)
+
+
+def test_a_ray_cache_target_or_meta_that_is_a_link_or_a_fifo_is_one_line(tmp_path):
+    from stages.geometry.raycache import RayCache
+    from stages.results.summary import _read
+
+    work = tmp_path / "results" / "meshes" / "vase" / "k" / "raycache"
+    work.mkdir(parents=True)
+    np.savez(tmp_path / "elsewhere.npz", width=np.array(4))
+    (work / "train.npz").symlink_to(tmp_path / "elsewhere.npz")
+    with pytest.raises(StageInputError, match="it is a symbolic link inside"):
+        RayCache(work / "train.npz")
+    os.mkfifo(work / "eval.npz")
+    with pytest.raises(StageInputError, match="is a FIFO"):
+        RayCache(work / "eval.npz")
+    os.mkfifo(work / "meta.json")
+    with pytest.raises(StageInputError, match="is a FIFO"):
+        _read(work / "meta.json")
+    assert _read(work / "none.json") is None
