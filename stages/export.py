@@ -8,7 +8,6 @@ normalised, ``units: normalized``); the material mapping and what each format lo
 
 from __future__ import annotations
 
-import json
 import logging
 import shutil
 from pathlib import Path
@@ -21,6 +20,7 @@ from .config.sections import ExportSettings
 from .core.cli import stage_main
 from .core.errors import StageInputError
 from .core.provenance import ORIGIN_KEY, Timer, atomic_path, metadata, read_origin, staged_outputs, write_json_atomic
+from .core.safefiles import read_json_record
 from .geometry.meshio import load_ply
 from .geometry.normalization import Similarity
 
@@ -47,7 +47,7 @@ def run(
     origin = read_origin(bake_dir / "meta.json")
     mesh = load_ply(mesh_path)
     atlas = read_atlas(bake_dir / "atlas.npz")
-    tf = Similarity.from_json(json.loads(Path(transform_path).read_text()))
+    tf = Similarity.from_json(read_json_record(transform_path))
     geom = export_mesh(mesh, atlas, tf if settings.units == "original" else None, settings.weld)
     with staged_outputs(out_dir) as staging:
         with timer("copy"):
@@ -60,7 +60,7 @@ def run(
                     shutil.copyfile(bake_dir / fname, tmp)
             with atomic_path(staging / "preview.png") as tmp:
                 shutil.copyfile(preview, tmp)
-        bake_stats = json.loads((bake_dir / "meta.json").read_text()).get("stats", {})
+        bake_stats = read_json_record(bake_dir / "meta.json").get("stats", {})
         brdf = bake_stats.get("brdf", "tango")
         occlusion = bool(bake_stats.get("occlusion", {}).get("baked", False))
         checked = write_model_files(

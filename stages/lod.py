@@ -19,7 +19,6 @@ differs). ``levels.png`` shows the front evaluation view: the neural render, the
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 import shutil
 from pathlib import Path
@@ -46,6 +45,7 @@ from .config.sections import BakeSettings, DecimateSettings, ExportSettings, Lod
 from .core.cli import stage_main
 from .core.errors import StageInputError
 from .core.provenance import ORIGIN_KEY, Timer, atomic_path, metadata, read_origin, staged_outputs, write_json_atomic
+from .core.safefiles import read_json_record
 from .geometry.decimation import decimate_mesh
 from .geometry.meshio import load_ply, save_ply
 from .geometry.normalization import Similarity
@@ -121,9 +121,9 @@ def run(
         mesh = load_ply(mesh_path)
         field, _ = load_field(field_path, device)
         atlas0 = read_atlas(bake_dir / "atlas.npz")
-        tf = Similarity.from_json(json.loads(Path(transform_path).read_text()))
-        bake_meta = json.loads((bake_dir / "meta.json").read_text())
-        export_stats = json.loads(Path(export_meta).read_text())["stats"]
+        tf = Similarity.from_json(read_json_record(transform_path))
+        bake_meta = read_json_record(bake_dir / "meta.json")
+        export_stats = read_json_record(export_meta)["stats"]
     faces = len(mesh.faces)
     targets = [max(1, round(f * faces)) for f in settings.levels]
     too_few = [(f, t) for f, t in zip(settings.levels, targets, strict=True) if t < settings.min_faces]

@@ -12,7 +12,6 @@ the BRDF models; ``full`` path-traces shadows and bounces as an artist's render 
 
 from __future__ import annotations
 
-import json
 import logging
 import tempfile
 from dataclasses import dataclass
@@ -26,6 +25,7 @@ from .config.sections import RoundtripSettings
 from .core.cli import stage_main
 from .core.errors import StageInputError
 from .core.provenance import ORIGIN_KEY, Timer, metadata, read_origin, staged_outputs, write_json_atomic
+from .core.safefiles import read_json_record
 from .geometry.meshio import load_ply
 from .geometry.normalization import Similarity
 from .geometry.raycache import RayCache
@@ -106,13 +106,13 @@ def run(
         if not Path(p).is_file():
             raise StageInputError(p, "file not found", "Run the bake and export stages first.")
     origin = read_origin(export_dir / "meta.json")
-    export_meta = json.loads((export_dir / "meta.json").read_text())
+    export_meta = read_json_record(export_dir / "meta.json")
     units = export_meta["settings"]["units"]
     mpu = float(export_meta["settings"]["meters_per_unit"])
     with timer("load"):
         mesh = load_ply(mesh_path)
         atlas = read_atlas(bake_dir / "atlas.npz")
-        tf = Similarity.from_json(json.loads(Path(transform_path).read_text()))
+        tf = Similarity.from_json(read_json_record(transform_path))
         geom = export_mesh(mesh, atlas, tf if units == "original" else None, export_meta["settings"].get("weld", True))
         field, _ = load_field(field_path, device)
         cache = RayCache(eval_path)

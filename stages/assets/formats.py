@@ -51,6 +51,7 @@ import numpy as np
 from ..config.layout import TEXTURE_FILES
 from ..core.errors import StageInputError
 from ..core.provenance import ORIGIN_METADATA_KEY, atomic_path
+from ..core.safefiles import require_plain_file
 from ..geometry.meshio import TriMesh
 from ..geometry.normalization import Similarity
 
@@ -86,7 +87,7 @@ ATLAS_KEYS = ("uv", "normal", "tangent", "handedness", "face_normal")
 def read_atlas(path: Path) -> dict[str, np.ndarray]:
     """The bake's ``atlas.npz`` (:data:`ATLAS_KEYS`); an older bake's file (per-face tangents only)
     is refused with what to do."""
-    with np.load(path) as z:
+    with np.load(require_plain_file(path, remedy="Run the bake stage again.")) as z:
         atlas = {k: z[k] for k in z.files}
     missing = [k for k in ATLAS_KEYS if k not in atlas]
     if missing or atlas["tangent"].ndim != 3:

@@ -107,3 +107,15 @@ def check_output_path(path: str | Path) -> None:
             f"would be written through {link}, a symbolic link inside {root}: outputs go to plain folders only",
             "Remove the link (the run makes the folder itself).",
         )
+
+
+def read_json_record(path: str | Path, remedy: str = "Rerun the stage that writes it."):
+    """A stage's JSON record read as data: a plain file (:func:`require_plain_file`) holding valid
+    JSON, else one :class:`StageInputError` naming it."""
+    import json
+
+    path = require_plain_file(path, remedy=remedy)
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise StageInputError(path, f"is not valid JSON ({' '.join(str(exc).split())[:120]})", remedy) from None

@@ -87,9 +87,9 @@ class RelitTruth:
 def load_relit(path: str | Path, cache: RayCache) -> list[RelitTruth]:
     """The relit ground truth of ``cache``'s views (:func:`save_relit`), checked against the cache."""
     path = Path(path)
-    if not path.is_file():
+    if not path.exists() and not path.is_symlink():
         raise StageInputError(path, "relit ground truth not found", "Run the target stage first (snakemake runs it).")
-    with np.load(path) as z:
+    with np.load(require_plain_file(path, remedy="Run the target stage again.")) as z:
         arrays = {k: z[k] for k in z.files}
     if not np.array_equal(arrays.get("offsets"), cache.arrays["offsets"]):
         raise StageInputError(

@@ -39,7 +39,7 @@ import pandas as pd
 from ..config.layout import RENDER_KINDS
 from ..core.errors import StageInputError
 from ..core.provenance import atomic_path
-from ..core.safefiles import inside, plain_file
+from ..core.safefiles import inside, plain_file, read_json_record
 from .spreadsheet import read_spreadsheet_csv
 from .summary import quality_of
 
@@ -270,16 +270,15 @@ def filters(frame: pd.DataFrame) -> str:
 def figures_section(report_dir: Path, url: Callable[[Path], str]) -> str:
     """The figures listed in figures.json: each drawn one (lazy image, link to full size), or the
     reason it is not drawn."""
-    fj = Path(report_dir) / "figures.json"
-    entries = json.loads(fj.read_text()).get("figures", []) if fj.is_file() else []
+    entries = _figures_record(report_dir).get("figures", [])
     out = ["<h2>Figures</h2>"]
     overview = Path(report_dir) / "overview.png"
     for e in entries:
-        out.append(f"<div class='figure'><h3>{esc(e['title'])}</h3>")
+        out.append(f"<div class='figure'><h3>{esc(e.get('title', ''))}</h3>")
         figure = _figure_file(report_dir, e)
         if figure is not None:
             src = url(figure)
-            out.append(f"<a href='{esc(src)}'><img loading='lazy' alt='{esc(e['title'])}' src='{esc(src)}'></a>")
+            out.append(f"<a href='{esc(src)}'><img loading='lazy' alt='{esc(e.get('title', ''))}' src='{esc(src)}'></a>")
             out.append(f"<p><small>{esc(e.get('caption', ''))}</small></p>")
         else:
             out.append(f"<p class='skipped'>Not drawn: {esc(e.get('skipped', 'the figure file is missing'))}.</p>")
@@ -288,6 +287,19 @@ def figures_section(report_dir: Path, url: Callable[[Path], str]) -> str:
         out.append(f"<div class='figure'><h3>Overview</h3><a href='{esc(url(overview))}'>overview.png</a>: one row per cell")
         out.append(" (RGB, diffuse, roughness, specular, normals of the front view).</div>")
     return "".join(out)
+
+
+def _figures_record(report_dir: Path) -> dict:
+    """The report's ``figures.json`` (none: ``{}``), read as data; a record that is not the
+    mapping the report stage writes is shown as empty, with a warning."""
+    fj = Path(report_dir) / "figures.json"
+    if not fj.exists() and not fj.is_symlink():
+        return {}
+    data = read_json_record(fj, remedy="Rerun the report stage.")
+    if not isinstance(data, dict) or not all(isinstance(data.get(k, []), list) for k in ("figures", "groups")):
+        log.warning("%s: not the record the report stage writes; no figures shown", fj)
+        return {}
+    return {k: [e for e in data.get(k, []) if isinstance(e, dict)] for k in ("figures", "groups")}
 
 
 def _figure_file(report_dir: Path, entry: dict) -> Path | None:
@@ -318,8 +330,7 @@ def speed_accuracy_section(report_dir: Path) -> str:
 
 
 def _groups(report_dir: Path) -> list[dict]:
-    fj = Path(report_dir) / "figures.json"
-    return json.loads(fj.read_text()).get("groups", []) if fj.is_file() else []
+    return _figures_record(report_dir).get("groups", [])
 
 
 def comparison_text(cell: tuple[str, str, str], groups: list[dict]) -> str:
