@@ -45,7 +45,7 @@ from .config.sections import BakeSettings, DecimateSettings, ExportSettings, Lod
 from .core.cli import stage_main
 from .core.errors import StageInputError
 from .core.provenance import ORIGIN_KEY, Timer, atomic_path, metadata, read_origin, staged_outputs, write_json_atomic
-from .core.safefiles import read_json_record
+from .core.safefiles import read_json_record, require_plain_file
 from .geometry.decimation import decimate_mesh
 from .geometry.meshio import load_ply, save_ply
 from .geometry.normalization import Similarity
@@ -328,7 +328,7 @@ def run(
 
 
 def _png(path: Path):
-    with Image.open(path) as img:
+    with Image.open(require_plain_file(path, remedy="Run the bake stage again.")) as img:
         return np.asarray(img.convert("RGB"))
 
 

@@ -492,7 +492,7 @@ def write_glb(
         first = len(textures)
         keys = ("basecolor", "metallic_roughness", "normal") + (() if brdf == "gltf" else ("specular",))
         for key in keys:
-            view = add_view((Path(tex_dir) / f"{key}.png").read_bytes())
+            view = add_view(require_plain_file(Path(tex_dir) / f"{key}.png", remedy="Run the bake stage again.").read_bytes())
             images.append(g.Image(bufferView=view, mimeType="image/png", name=key if not lods else f"lod{k}_{key}"))
             textures.append(g.Texture(source=len(images) - 1, sampler=0))
         materials.append(
