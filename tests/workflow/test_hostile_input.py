@@ -10,11 +10,12 @@ import shlex
 import shutil
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 import yaml
 from conftest import REPO, run_snakemake
-from hypothesis import given, settings
+from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 #: prompts that broke (or would break) a command line, a shell or a plot title
@@ -372,3 +373,117 @@ def test_a_generated_config_is_usable_or_refused_in_one_line_naming_the_key(conf
             assert stage in SECTIONS
             cfg.cell_stage_settings(stage, cell.prompt, cell.variant)
         assert "\n" not in cfg.prompt_text(cell.mesh, cell.prompt)
+
+
+# ---- the corpus's index: every probe of the second hardening pass and the test that holds it ----
+#: each probe (what a hostile or careless user tried) -> the tests that hold it (module, function);
+#: the probes live beside the code they exercise, and this index keeps them one corpus
+PROBES = {
+    "a config that is a YTE template": [
+        ("config/test_yamlio.py", "test_a_yte_template_is_refused_by_the_projects_loaders"),
+        ("config/test_yamlio.py", "test_the_workflow_refuses_before_it_walks_the_values"),
+        ("config/test_yamlio.py", "test_the_check_command_reads_a_received_config_as_data"),
+    ],
+    "figures.json naming a file outside the report, a linked or FIFO figure": [
+        ("core/test_safefiles.py", "test_a_received_figures_json_cannot_inline_a_file_from_outside"),
+        ("core/test_safefiles.py", "test_a_received_record_that_is_not_json_or_not_the_reports_is_one_line_or_ignored"),
+    ],
+    "a YAML alias bomb, a 20,000-deep YAML, --overlay given a folder": [
+        ("config/test_yamlio.py", "test_an_alias_bomb_is_refused_at_once"),
+        ("config/test_yamlio.py", "test_deep_nesting_is_one_line"),
+        ("config/test_yamlio.py", "test_not_a_config_file_is_one_line"),
+    ],
+    "a stage folder that is a link": [
+        ("core/test_safefiles.py", "test_a_stage_folder_that_links_elsewhere_is_not_written_through")
+    ],
+    "a render, field, cache or record that is a link or a FIFO; a sheet outside its render": [
+        ("core/test_safefiles.py", "test_a_render_that_is_a_link_a_fifo_or_a_bad_sheet_is_one_line"),
+        ("core/test_safefiles.py", "test_a_ray_cache_target_or_meta_that_is_a_link_or_a_fifo_is_one_line"),
+        ("model/test_untrusted_files.py", "test_a_field_that_is_a_link_or_a_fifo_inside_a_results_folder_is_one_line"),
+    ],
+    "integers given as floats, duplicate keys": [
+        ("config/test_yamlio.py", "test_integers_given_as_floats_are_refused_naming_the_key"),
+        ("config/test_yamlio.py", "test_a_duplicate_key_names_both_lines"),
+        ("workflow/test_hostile_input.py", "test_bad_config_values_are_one_line_naming_the_key"),
+    ],
+    "malformed HDR and EXR maps": [
+        ("render/test_envmaps.py", "test_a_malformed_hdr_is_one_line"),
+        ("render/test_envmaps.py", "test_a_malformed_exr_is_one_line"),
+    ],
+    "crafted field.pt and checkpoint.pt": [
+        ("model/test_untrusted_files.py", "test_a_crafted_field_of_the_right_container_is_one_line"),
+        ("model/test_untrusted_files.py", "test_a_wrongly_shaped_weight_is_one_line"),
+        ("model/test_untrusted_files.py", "test_a_compressed_archive_is_refused_from_its_directory"),
+        ("model/test_untrusted_files.py", "test_a_checkpoint_without_its_parts_stops_the_resume_in_one_line"),
+    ],
+    "a local path in a pack's meta": [
+        ("assets/test_formats_validator.py", "test_a_missing_validator_is_named_without_a_local_path")
+    ],
+    "a foreign Slurm configuration": [
+        ("workflow/test_slurm_cluster_script.py", "test_a_foreign_slurm_conf_holding_the_marker_in_a_comment_is_refused"),
+        ("workflow/test_slurm_cluster_script.py", "test_a_source_built_slurms_configuration_is_refused"),
+    ],
+    "the quick command: a mesh past the face limit, Report.obj, a folder with spaces": [
+        ("workflow/test_quick.py", "test_a_mesh_past_the_face_limit_a_reserved_name_and_a_folder_with_spaces")
+    ],
+    "formulas behind spaces or in full width; long titles": [
+        ("workflow/test_hostile_input.py", "test_a_formula_behind_spaces_or_in_full_width_gets_its_apostrophe"),
+        ("results/test_compare.py", "test_long_ids_wrap_in_panel_titles"),
+    ],
+    "generated configs": [
+        ("workflow/test_hostile_input.py", "test_a_generated_config_is_usable_or_refused_in_one_line_naming_the_key")
+    ],
+}
+
+
+def test_every_probe_of_the_corpus_has_its_test():
+    """The index above names tests that exist (a renamed or removed probe fails here)."""
+    import ast
+
+    tests = Path(__file__).resolve().parents[1]
+    defined: dict[str, set[str]] = {}
+    for module in {m for held in PROBES.values() for m, _ in held}:
+        tree = ast.parse((tests / module).read_text())
+        defined[module] = {n.name for n in tree.body if isinstance(n, ast.FunctionDef) and n.name.startswith("test_")}
+    missing = [f"{m}::{f}" for held in PROBES.values() for m, f in held if f not in defined[m]]
+    assert not missing, missing
+
+
+_PLAIN_IDS = st.sampled_from(["vase", "p0", "a.b-c_1", "Z9"])
+_PLAIN_TEXTS = st.sampled_from(["a {object} made of wood", "=1+1 vase", "a 'vase' <b>", "ваза", "-x {object}"])
+
+
+@st.composite
+def accepted_configs(draw) -> dict:
+    """Generated configs of the kind that pass: ids, texts and numbers within bounds, from a
+    built-in mesh, with prompts a spreadsheet, a shell or HTML would misread."""
+    config = {
+        "meshes": {draw(_PLAIN_IDS): {"builtin": draw(st.sampled_from(["vase", "candle", "knot"]))}},
+        "prompts": {draw(_PLAIN_IDS): draw(st.one_of(_PLAIN_TEXTS, st.builds(lambda t: {"text": t}, _PLAIN_TEXTS)))},
+    }
+    if draw(st.booleans()):
+        config["raycache"] = {"views": draw(st.sampled_from([4, 8])), "anchor_azimuth": draw(st.floats(-6.0, 6.0))}
+    if draw(st.booleans()):
+        config["decimate"] = {"enabled": True, "mode": "share", "target_share": draw(st.floats(0.05, 0.95))}
+    return config
+
+
+@pytest.mark.slow(minutes=0.5)
+@given(accepted_configs())
+@settings(max_examples=6, deadline=None, suppress_health_check=list(HealthCheck))
+def test_a_generated_config_that_passes_the_checks_runs_its_dry_run(config):
+    """What the checks accept, Snakemake can plan: each generated config's dry run builds its jobs
+    (a real ``snakemake -n`` in a scratch folder, about two seconds each)."""
+    import tempfile
+
+    import yaml
+    from conftest import run_snakemake
+
+    from stages.config.workflow import WorkflowConfig
+
+    WorkflowConfig(config)  # accepted by the checks
+    with tempfile.TemporaryDirectory() as d:
+        path = Path(d) / "generated.yaml"
+        path.write_text(yaml.safe_dump(config, allow_unicode=True))
+        proc = run_snakemake(Path(d), "-n", "--configfile", str(path), timeout=120)
+    assert proc.returncode == 0, (proc.stdout + proc.stderr)[-2000:]
