@@ -63,13 +63,18 @@ def truth_images(cache_npz: Path, target_npz: Path) -> tuple[list[np.ndarray], l
 
     cache = RayCache(cache_npz)
     targets = TargetSet(target_npz, cache)
+    return _images(cache, targets.arrays["radiance"], targets.arrays["coverage"] >= ALPHA_FULL)
+
+
+def _images(cache, radiance: np.ndarray, full: np.ndarray) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Per view of ``cache``: per-hit ``radiance (N, 3)`` and ``full (N,)`` (covered fully) as a
+    ``(W*W, 3)`` image (NaN where no hit) and a ``(W*W,)`` mask."""
     images, masks = [], []
     for i in range(len(cache)):
-        h = cache.view(i)
+        h, lo, hi = cache.view(i), cache.arrays["offsets"][i], cache.arrays["offsets"][i + 1]
         img = np.full((cache.width * cache.width, 3), np.nan)
         mask = np.zeros(cache.width * cache.width, bool)
-        img[h.pixel] = targets.view(i)
-        mask[h.pixel] = targets.view(i, "coverage") >= ALPHA_FULL
+        img[h.pixel], mask[h.pixel] = radiance[lo:hi], full[lo:hi]
         images.append(img)
         masks.append(mask)
     return images, masks
@@ -149,17 +154,8 @@ def _views(mesh, spp: int, material: str, seed: int = 0):
         np.savez(Path(d) / "m.npz", **arrays)
         cache = RayCache(Path(d) / "m.npz")
         t = TargetRenderer(mesh, material, TargetSettings(texture_size=1024)).render_cache(cache, spp, seed)
-        images, masks, lo = [], [], 0
-        for i in range(len(cache)):
-            h = cache.view(i)
-            hi = lo + len(h.pixel)
-            img = np.full((cache.width * cache.width, 3), np.nan)
-            mask = np.zeros(cache.width * cache.width, bool)
-            img[h.pixel], mask[h.pixel] = t.radiance[lo:hi], t.coverage[lo:hi] >= ALPHA_FULL
-            images.append(img)
-            masks.append(mask)
-            lo = hi
-    return (images, masks), float((t.noise_mse * t.pixels).sum() / max(t.pixels.sum(), 1))
+        views = _images(cache, t.radiance, t.coverage >= ALPHA_FULL)
+    return views, float((t.noise_mse * t.pixels).sum() / max(t.pixels.sum(), 1))
 
 
 def decimation_study(meshes: list[str], faces: list[int], spp: int) -> None:

@@ -65,16 +65,21 @@ def file_kind(path: str | Path) -> str:
     return "socket" if stat.S_ISSOCK(mode) else "device"
 
 
+def _default_root(path: str | Path, root: str | Path | None) -> Path:
+    """``root`` when given, else ``path``'s results root, else its own folder."""
+    return Path(root) if root is not None else results_root(path) or Path(os.path.abspath(path)).parent
+
+
 def plain_file(path: str | Path, root: str | Path | None = None) -> bool:
     """``path`` is a regular file (not a link, FIFO or device) reached from ``root`` (default: its
     results root, else its own folder) without a symbolic link on the way."""
-    root = root if root is not None else results_root(path) or Path(os.path.abspath(path)).parent
+    root = _default_root(path, root)
     return file_kind(path) == "file" and reached_without_link(path, root)
 
 
 def require_plain_file(path: str | Path, root: str | Path | None = None, remedy: str = "") -> Path:
     """``path`` if :func:`plain_file`, else one :class:`StageInputError` saying what it is."""
-    root = root if root is not None else results_root(path) or Path(os.path.abspath(path)).parent
+    root = _default_root(path, root)
     kind = file_kind(path)
     link = link_on_the_way(path, root)
     if link is not None and kind != "missing":
