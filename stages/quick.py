@@ -35,8 +35,9 @@ from pathlib import Path
 import yaml
 
 from .config.presets import PRESETS
+from .config.schema import schema
 from .config.sections import MATERIALS
-from .config.workflow import EXPERIMENT_RE, WorkflowConfig, experiment_name, load_schema, merge_config, read_yaml
+from .config.workflow import EXPERIMENT_RE, WorkflowConfig, experiment_name, merge_config, read_yaml
 from .core.cli import stage_main
 from .core.errors import ConfigError
 from .core.provenance import atomic_path
@@ -67,7 +68,7 @@ def slug(text: str, limit: int) -> str:
 
 def max_id() -> int:
     """The longest id the config schema accepts."""
-    return int(load_schema()["$defs"]["id"]["maxLength"])
+    return int(schema()["$defs"]["id"]["maxLength"])
 
 
 def mesh_entry(mesh: str) -> tuple[str, dict]:

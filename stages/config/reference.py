@@ -1,16 +1,15 @@
-"""The configuration reference, generated from its one source: the schema and the settings classes.
+"""The configuration reference, generated from the settings classes (through the schema).
 
     python -m stages.config.reference           # print the page
     python -m stages.config.reference --write   # (re)write docs/reference/configuration.md
     python -m stages.config.reference --check   # exit status 1 when that file differs from the page
 
 Every config section that holds a stage's settings gets one table: each key of its settings class
-(:mod:`stages.config.sections`, in declaration order) with its type and default taken from the
-dataclass, the allowed values or range taken from the schema
-(``workflow/schemas/config.schema.yaml``), and the schema's description, or, where the schema has
-none, the ``#:`` comment above the field in the class. The top-level keys, the entries of
+(:mod:`stages.config.sections`, in declaration order) with its type, default, allowed values and
+description, all from the class (the allowed values in words of the generated schema,
+:mod:`stages.config.schema`). The top-level keys, the entries of
 ``meshes``, ``prompts`` and ``variants``, the presets (:mod:`stages.config.presets`) and the order
-in which values resolve come from the same two places. ``tests/docs/test_docs.py`` fails when the
+in which values resolve come from :mod:`stages.config.schema`. ``tests/docs/test_docs.py`` fails when the
 checked-in page and this function's output differ. No torch, no numpy: stdlib and the layer's own
 modules only.
 """
@@ -18,22 +17,17 @@ modules only.
 from __future__ import annotations
 
 import argparse
-import ast
 import dataclasses
-import inspect
 import json
 import re
 import sys
-import types
-import typing
-from functools import cache
 from pathlib import Path
 from typing import Any
 
-from . import sections
+from ..core.settings import kind_words
 from .presets import PRESETS
+from .schema import REPO_ROOT, SCHEMA_PATH, schema
 from .sections import SECTIONS
-from .workflow import REPO_ROOT, SCHEMA_PATH, load_schema
 
 #: the page this module writes, relative to the repository root
 PAGE = Path("docs") / "reference" / "configuration.md"
@@ -44,8 +38,6 @@ WRITE_COMMAND = "python -m stages.config.reference --write"
 SCHEMA_FILE = SCHEMA_PATH.relative_to(REPO_ROOT).as_posix()
 #: the top-level keys that are not a stage's settings, in the order the page lists them
 TOP_LEVEL = ("experiment", "meshes", "prompts", "grid", "variants", "device")
-
-_PY_TYPES = {"int": "integer", "float": "number", "bool": "boolean", "str": "string"}
 
 
 # ------------------------------------------------------------------------------------- text
@@ -84,47 +76,6 @@ def _json(value: Any) -> str:
 
 
 # ------------------------------------------------------------------------------ settings
-def _type_name(hint: Any) -> str:
-    """A settings field's type in the words of a YAML config: ``integer``, ``list of numbers``,
-    ``list of 2 numbers``, ``... or null``."""
-    if isinstance(hint, types.UnionType) or typing.get_origin(hint) is typing.Union:
-        args = typing.get_args(hint)
-        names = [_type_name(a) for a in args if a is not type(None)]
-        return " or ".join(names) + (" or null" if type(None) in args else "")
-    if typing.get_origin(hint) is tuple:
-        args = typing.get_args(hint)
-        if len(args) == 2 and args[1] is Ellipsis:
-            return f"list of {_type_name(args[0])}s"
-        if args and all(a == args[0] for a in args):
-            return f"list of {len(args)} {_type_name(args[0])}s"
-        return "list"
-    return _PY_TYPES.get(getattr(hint, "__name__", str(hint)), getattr(hint, "__name__", str(hint)))
-
-
-@cache
-def _field_comments() -> dict[tuple[str, str], str]:
-    """``(class name, field name) -> text`` of the ``#:`` comment lines right above each annotated
-    field of :mod:`stages.config.sections` (Sphinx's convention: a comment documents the next
-    attribute only)."""
-    source = inspect.getsource(sections)
-    lines = source.splitlines()
-    out: dict[tuple[str, str], str] = {}
-    for node in ast.parse(source).body:
-        if not isinstance(node, ast.ClassDef):
-            continue
-        for item in node.body:
-            if not (isinstance(item, ast.AnnAssign) and isinstance(item.target, ast.Name)):
-                continue
-            block = []
-            i = item.lineno - 2
-            while i >= 0 and lines[i].strip().startswith("#:"):
-                block.append(lines[i].strip()[2:].strip())
-                i -= 1
-            if block:
-                out[(node.name, item.target.id)] = " ".join(reversed(block))
-    return out
-
-
 def _default(field: dataclasses.Field) -> Any:
     if field.default is not dataclasses.MISSING:
         return field.default
@@ -214,37 +165,21 @@ def _table(header: tuple[str, ...], rows: list[tuple[str, ...]]) -> list[str]:
 
 def section_rows(name: str) -> list[tuple[str, str, str, str, str]]:
     """One row per key of the config section ``name``: key, type, default, allowed, description."""
-    schema = load_schema()
     cls = SECTIONS[name]
-    props = schema["$defs"][name].get("properties", {})
-    hints = typing.get_type_hints(cls)
-    comments = _field_comments()
+    props = schema()["$defs"][name]["properties"]
+    kinds = cls.kinds()
     rows = []
     for field in dataclasses.fields(cls):
-        node = props.get(field.name, {})
-        default = _default(field)
-        description = node.get("description") or comments.get((cls.__name__, field.name), "")
+        node = props[field.name]
         rows.append(
             (
                 _code(field.name),
-                _type_name(hints[field.name]),
-                "" if default is dataclasses.MISSING else _code(_json(default)),
+                kind_words(kinds[field.name]),
+                _code(_json(_default(field))),
                 _escape(_allowed(node)),
-                _escape(_one_line(description)),
+                _escape(_one_line(node["description"])),
             )
         )
-    for key in props:  # keys the schema has and the class lacks (a test forbids them; shown if any)
-        if key not in {f.name for f in dataclasses.fields(cls)}:
-            node = props[key]
-            rows.append(
-                (
-                    _code(key),
-                    _schema_type(node, schema),
-                    _code(_json(node["default"])) if "default" in node else "",
-                    _escape(_allowed(node)),
-                    _escape(_one_line(node.get("description", ""))),
-                )
-            )
     return rows
 
 
@@ -270,22 +205,22 @@ def _resolution(description: str) -> str:
 # ---------------------------------------------------------------------------------- page
 def markdown() -> str:
     """The configuration reference page (Markdown for MkDocs), from the schema and the classes."""
-    schema = load_schema()
-    props = schema["properties"]
+    full = schema()
+    props = full["properties"]
     out = [
-        "<!-- Generated by `python -m stages.config.reference --write` from "
-        f"{SCHEMA_FILE} and stages/config/sections.py: edit those, not this page. -->",
+        "<!-- Generated by `python -m stages.config.reference --write` from the settings classes "
+        "(stages/config/sections.py) and the config's structure (stages/config/schema.py): edit those, not this page. -->",
         "",
         "# Configuration reference",
         "",
-        "Every key a workflow config may hold. The types and defaults are the settings classes' "
-        "(`stages/config/sections.py`, the one home of defaults); the allowed values and the "
-        f"descriptions are the schema's (`{SCHEMA_FILE}`), against which every config is checked "
-        "when the DAG is built: an unknown key or a value out of range fails at once, naming the key "
-        "and where it is. An omitted key takes its default. This page is generated: "
-        f"`{WRITE_COMMAND}` rewrites it, and a test fails when it is out of date.",
+        "Every key a workflow config may hold, with its type, default, allowed values and meaning. "
+        "Each is written once, in the settings classes (`stages/config/sections.py`); this page and "
+        f"the JSON schema (`{SCHEMA_FILE}`) are generated from them, and every config is checked "
+        "against that schema when the DAG is built: an unknown key or a value out of range fails at "
+        "once, naming the key and where it is. An omitted key takes its default. "
+        f"`{WRITE_COMMAND}` rewrites this page, and a test fails when it is out of date.",
         "",
-        _escape(_one_line(schema.get("description", ""))),
+        _escape(_one_line(full.get("description", ""))),
         "",
         "## Top-level keys",
         "",
@@ -296,9 +231,9 @@ def markdown() -> str:
         rows.append(
             (
                 _code(key),
-                _schema_type(node, schema),
-                _code(_json(node["default"])) if "default" in node else ("required" if key in schema.get("required", []) else ""),
-                _escape(_allowed(_resolve(node, schema))),
+                _schema_type(node, full),
+                _code(_json(node["default"])) if "default" in node else ("required" if key in full.get("required", []) else ""),
+                _escape(_allowed(_resolve(node, full))),
                 _escape(_one_line(node.get("description", ""))),
             )
         )
@@ -308,7 +243,7 @@ def markdown() -> str:
             rows.append((_code(key), "mapping", " ", " ", f"{_escape(_one_line(doc))} [Keys](#{key})."))
     out += _table(("key", "type", "default", "allowed", "description"), rows)
 
-    mesh = schema["$defs"]["mesh"]
+    mesh = full["$defs"]["mesh"]
     out += [
         "",
         "## Entries of `meshes`",
@@ -316,7 +251,7 @@ def markdown() -> str:
         "A mesh entry names exactly one source, `path` or `builtin`, and may override the mesh-level stages for this mesh alone.",
         "",
     ]
-    out += _table(("key", "type", "allowed", "description"), _entry_rows(mesh["properties"], schema))
+    out += _table(("key", "type", "allowed", "description"), _entry_rows(mesh["properties"], full))
 
     prompt = next(alt for alt in props["prompts"]["additionalProperties"]["oneOf"] if alt.get("type") == "object")
     out += [
@@ -326,7 +261,7 @@ def markdown() -> str:
         "A prompt is its text, or a mapping with the text, a preset and overrides of the per-cell stages.",
         "",
     ]
-    out += _table(("key", "type", "allowed", "description"), _entry_rows(prompt["properties"], schema))
+    out += _table(("key", "type", "allowed", "description"), _entry_rows(prompt["properties"], full))
 
     variant = props["variants"]["additionalProperties"]
     out += [
@@ -336,7 +271,7 @@ def markdown() -> str:
         "A variant is a preset and overrides of the per-cell stages, applied to every mesh x prompt cell.",
         "",
     ]
-    out += _table(("key", "type", "allowed", "description"), _entry_rows(variant["properties"], schema))
+    out += _table(("key", "type", "allowed", "description"), _entry_rows(variant["properties"], full))
 
     out += [
         "",
@@ -346,7 +281,7 @@ def markdown() -> str:
         "",
         "## Presets",
         "",
-        _escape(_one_line(schema["$defs"]["preset"]["description"])),
+        _escape(_one_line(full["$defs"]["preset"]["description"])),
         "",
     ]
     preset_rows = [
@@ -354,11 +289,8 @@ def markdown() -> str:
     ]
     out += _table(("preset", "the `optimize` settings it sets"), preset_rows)
 
-    for name, cls in SECTIONS.items():
-        node = schema["$defs"][name]
-        doc = (cls.__doc__ or "").strip()
-        intro = node.get("description") or doc
-        out += ["", f"## {name}", "", _escape(_sentence(intro)), ""]
+    for name in SECTIONS:
+        out += ["", f"## {name}", "", _escape(_sentence(full["$defs"][name]["description"])), ""]
         out += _table(("key", "type", "default", "allowed", "description"), section_rows(name))
     return "\n".join(out) + "\n"
 

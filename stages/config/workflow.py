@@ -1,7 +1,7 @@
 """Loading and validating the workflow config, and resolving per-mesh and per-cell settings.
 
 Used by ``workflow/rules/common.smk`` when the DAG is built and by tests. Validation is against
-``workflow/schemas/config.schema.yaml``; every error names the offending key and where it sits
+the schema generated from the settings classes (:mod:`.schema`); every error names the offending key and where it sits
 (``meshes -> vase -> pth``), plus cross-reference checks the schema cannot express (grid ids that
 do not exist).
 """
@@ -21,18 +21,15 @@ from functools import cache
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from ..core.cli import stage_main
 from ..core.errors import ConfigError
 from .presets import PRESETS
+from .schema import PROMPT_CHARS, schema
 from .sections import FACE_BUDGET_FIELDS, SECTIONS, OptimizeSettings
 from .yamlio import read_yaml_file, refuse_templates
 
 log = logging.getLogger(__name__)
 
-REPO_ROOT = Path(__file__).resolve().parents[2]
-SCHEMA_PATH = REPO_ROOT / "workflow" / "schemas" / "config.schema.yaml"
 #: where the NVIDIA driver lists the GPUs it sees (one folder per GPU)
 NVIDIA_GPUS = Path("/proc/driver/nvidia/gpus")
 #: stages whose settings are per mesh (overridable in a mesh entry)
@@ -69,12 +66,6 @@ def experiment_name(config: dict, configfiles: list[str | Path]) -> str:
             "set `experiment: <name>` in the config"
         )
     return str(name)
-
-
-@cache
-def load_schema() -> dict:
-    with open(SCHEMA_PATH) as fh:
-        return yaml.safe_load(fh)
 
 
 def _where(path) -> str:
@@ -166,8 +157,6 @@ def _describe(error) -> str:
     return f"invalid value at {where}: {message}"
 
 
-#: the longest prompt text a config may give (the schema's maxLength), {object} replaced
-PROMPT_CHARS = 1000
 #: what a one-line text (a prompt, an object noun) may not hold: control characters, line separators
 CONTROL = re.compile(r"[\x00-\x1f\x7f-\x9f\u2028\u2029]")
 
@@ -180,19 +169,9 @@ def _short(value: Any, chars: int = 80) -> str:
 
 def validate(config: dict, source: str = "config") -> None:
     """Raise :class:`ConfigError` listing every schema violation of ``config``."""
-    lines = _problems(load_schema(), config)
+    lines = _problems(schema(), config)
     if lines:
         raise ConfigError(f"{source}: " + "; ".join(lines))
-
-
-def validate_section(section: str, data: dict, source: str) -> None:
-    """Raise :class:`ConfigError` unless ``data`` is a valid ``section`` of the config (its schema
-    ``$defs/<section>``, limits included): settings read back from a file (a trained field's), which
-    may come from someone else, are held to the same bounds as a config's."""
-    schema = load_schema()
-    lines = _problems({"$schema": schema["$schema"], "$defs": schema["$defs"], "$ref": f"#/$defs/{section}"}, data)
-    if lines:
-        raise ConfigError(f"{source}: {section} settings: " + "; ".join(lines))
 
 
 def _problems(schema: dict, data: Any) -> list[str]:

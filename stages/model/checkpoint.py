@@ -3,7 +3,6 @@ the prompt and the origin record (which guidance and weights trained it)."""
 
 from __future__ import annotations
 
-import json
 import pickle
 import zipfile
 from pathlib import Path
@@ -12,7 +11,6 @@ from typing import Any
 import torch
 
 from ..config.sections import OptimizeSettings
-from ..config.workflow import validate_section
 from ..core.errors import ConfigError, StageInputError
 from ..core.provenance import ORIGIN_KEY, atomic_path, checked_origin
 from ..core.safefiles import require_plain_file
@@ -137,7 +135,6 @@ def load_field(path: str | Path, device="cpu") -> tuple[StyleField, OptimizeSett
     origin = checked_origin(data.get(ORIGIN_KEY), path, "the optimize stage")
     stored = {**SETTINGS_BEFORE_THEY_EXISTED, **stored_settings}
     try:  # held to the config's limits: a foreign file may ask for networks no machine can hold
-        validate_section("optimize", json.loads(json.dumps(stored)), str(path))  # (tuples as lists)
         settings = OptimizeSettings.from_dict(stored)
     except ConfigError as err:
         raise StageInputError(path, f"its stored settings are not valid ({err})", remedy) from None

@@ -13,8 +13,8 @@ from conftest import icosphere, require_tool, run_lod
 
 from stages.assets import formats
 from stages.assets.baking import bake_level, decode_textures, project_to_surface
-from stages.config.sections import BakeSettings, ConfigError, LodSettings
-from stages.core.errors import StageInputError
+from stages.config.sections import BakeSettings, LodSettings
+from stages.core.errors import ConfigError, StageInputError
 from stages.geometry.atlas import rasterize_atlas
 from stages.geometry.meshio import TriMesh, load_ply
 from stages.geometry.normals import NormalSpec

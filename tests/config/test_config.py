@@ -9,11 +9,12 @@ import pytest
 import yaml
 from conftest import REPO
 
+from stages.config.schema import schema as load_schema
 from stages.config.sections import (
     SECTIONS,
     OptimizeSettings,
 )
-from stages.config.workflow import WorkflowConfig, load_config_file, load_schema
+from stages.config.workflow import WorkflowConfig, load_config_file
 from stages.core.errors import ConfigError
 
 

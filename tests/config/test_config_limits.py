@@ -8,7 +8,8 @@ import math
 
 import pytest
 
-from stages.config.workflow import ConfigError, WorkflowConfig, load_schema
+from stages.config.schema import schema as load_schema
+from stages.config.workflow import ConfigError, WorkflowConfig
 
 BASE = {"meshes": {"vase": {"builtin": "vase"}}, "prompts": {"wood": "a {object} made of wood"}}
 #: numbers that are not sizes, counts or resolutions (angles in radians): bounded by nothing a machine runs out of

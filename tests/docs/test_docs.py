@@ -15,8 +15,8 @@ import pytest
 from conftest import REPO, require_tool
 
 from stages.config import reference
+from stages.config.schema import schema as load_schema
 from stages.config.sections import SECTIONS
-from stages.config.workflow import load_schema
 
 README = REPO / "README.md"
 DOCS = REPO / "docs"

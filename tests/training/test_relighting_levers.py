@@ -227,7 +227,7 @@ def test_surface_prior_settings_are_checked(cache):
         OptimizeSettings(material_smooth=-0.1)
     with pytest.raises(ConfigError, match="material_smooth_radius must be in"):
         OptimizeSettings(material_smooth_radius=0.0)
-    with pytest.raises(ConfigError, match="normal_tilt must be in"):
+    with pytest.raises(ConfigError, match="normal_tilt must be a finite number"):
         OptimizeSettings(normal_tilt=float("nan"))
 
 

@@ -161,7 +161,8 @@ def test_every_bad_id_is_named_not_only_the_first():
 def test_the_schemas_id_pattern_is_the_codes(text):
     """One rule for ids in the config's schema and in the code (cells handed to the report and
     pack): a folder name, at most 64 characters, no trailing newline (Python's ``$`` allowed one)."""
-    from stages.config.workflow import ID_RE, load_schema
+    from stages.config.schema import schema as load_schema
+    from stages.config.workflow import ID_RE
 
     node = load_schema()["$defs"]["id"]
     by_schema = re.search(node["pattern"], text) is not None and len(text) <= node["maxLength"]
