@@ -100,9 +100,9 @@ def main() -> None:
             save_ply(d / "mesh.ply", mesh)
             cache = RaycacheSettings(views=2, resolution=32, eval_resolution=256, metrics_resolution=32)
             raycache_run(d / "mesh.ply", d / "train.npz", d / "eval.npz", d / "rc.json", cache, d / "metrics.npz")
-            evalc = RayCache(d / "eval.npz")
+            eval_cache = RayCache(d / "eval.npz")
             with torch.no_grad():
-                store = ViewStore(evalc, torch.device("cpu"), field.normals)
+                store = ViewStore(eval_cache, torch.device("cpu"), field.normals)
                 refs = torch.cat([linear_to_srgb(r) for r in radiance_at_hits(field, store)])
                 light = field.light()
                 for share, pad in ((s, p) for s in shares for p in paddings):
@@ -111,7 +111,9 @@ def main() -> None:
                     res = baking.bake_field(mesh, field, bake)
                     bake_s = time.perf_counter() - t0
                     tex = baking.decode_textures(res.textures)
-                    baked = baking.render_baked_views(evalc, res.atlas.uv, tex, res.frames, light, "cpu", field.specular_lobe)
+                    baked = baking.render_baked_views(
+                        eval_cache, res.atlas.uv, tex, res.frames, light, "cpu", field.specular_lobe
+                    )
                     fidelity = psnr(torch.cat([linear_to_srgb(b) for b in baked]), refs)
                     label = "none" if share is None else f"{share:g}"
                     print(

@@ -136,7 +136,7 @@ def shading_side_by_side(points: int, lobes: int) -> dict[str, float]:
         out = fn(n, v, Material.gltf(base, metallic, rough), light(), "fitted", shares)
         (out.diffuse.sum() + out.specular.sum()).backward()
 
-    from stages.core.cli import use_inductor_cache
+    from stages.core.device import use_inductor_cache
 
     use_inductor_cache()  # the training's own cache folder
     compiled = torch.compile(shade_material, dynamic=True)

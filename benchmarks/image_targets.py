@@ -1,8 +1,8 @@
 """Image-target recovery: held-out object-pixel PSNR/SSIM and the recovered material's error.
 
-Two kinds of targets, one fit (300 iterations, the sweep's base settings, shared with
-``tests/training/test_optimize.py`` so the README's table and the tests' floors come from one
-definition):
+Two kinds of targets, one fit (300 iterations, the sweep's base settings: the protocol of
+``benchmarks/protocols.py``, which ``tests/training/test_optimize.py`` also imports, so the
+README's table and the tests' floors come from one definition):
 
 * **Mitsuba ground truth** (the default ``target_renderer``): the target stage path-traces the
   mesh in a principled material with textures and a normal map under a sun and sky; graded on the
@@ -24,7 +24,7 @@ import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path[:0] = [str(REPO), str(REPO / "tests"), str(REPO / "tests" / "training")]
+sys.path[:0] = [str(REPO), str(REPO / "benchmarks")]
 
 #: (name, mesh, material, optimize overrides); the target settings are the test's
 MITSUBA_CASES = (
@@ -52,7 +52,7 @@ def main() -> None:
     parser.add_argument("--mitsuba", action="store_true", help="only the Mitsuba cases")
     parser.add_argument("--cases", default="", help="comma-separated indices of the Mitsuba cases to run")
     args = parser.parse_args()
-    from test_optimize import MITSUBA_TARGET, _recover, recover_mitsuba
+    from protocols import MITSUBA_TARGET, recover_mitsuba, recover_sg
 
     picks = [int(i) for i in args.cases.split(",") if i] or range(len(MITSUBA_CASES))
     for k in picks:
@@ -75,7 +75,7 @@ def main() -> None:
     for name, overrides in SG_CASES:
         with tempfile.TemporaryDirectory() as d:
             t0 = time.perf_counter()
-            meta = _recover(Path(d), **overrides)
+            meta = recover_sg(Path(d), **overrides)
             print(
                 f"SG self-check, {name}: {meta['eval_psnr_db']:.2f} dB object-pixel PSNR, {time.perf_counter() - t0:.0f} s",
                 flush=True,

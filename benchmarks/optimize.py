@@ -49,12 +49,13 @@ from torch.utils._python_dispatch import TorchDispatchMode
 from torch.utils.flop_counter import FlopCounterMode
 
 from stages.config.sections import NormalizeSettings, OptimizeSettings, RaycacheSettings
-from stages.core.cli import bf16_support
+from stages.core.device import bf16_support
 from stages.core.provenance import Timer
 from stages.geometry.meshio import save_ply
 from stages.geometry.normalization import normalize_mesh
 from stages.geometry.raycache import RayCache
 from stages.guidance.clip import ClipGuide
+from stages.guidance.objective import ImageBatch
 from stages.imaging.images import compose, gather_points, global_spec
 from stages.model.networks import Material
 from stages.raycache import run as raycache_run
@@ -171,7 +172,7 @@ def timed_split(opt: Optimizer, steps: int) -> dict[str, float]:
     shading includes the shadows' visible shares where the view has them and runs the field's
     BRDF (glTF's from its base colour and metallic, or TANGO's sum), compiled where the step's is;
     a first, untimed pass compiles it."""
-    s = opt.s
+    s = opt.settings
     parts = {k: [] for k in ("gather", "mlp", "shading", "clip", "optimizer")}
     for i in range(steps + 1):
         t0 = time.perf_counter()
@@ -195,8 +196,8 @@ def timed_split(opt: Optimizer, steps: int) -> dict[str, float]:
         c_leaf = color.detach().requires_grad_()
         t3 = time.perf_counter()
         imgs = [compose(c_leaf, lk, sp, bg) for lk, sp in zip(lookups, specs, strict=True)]
-        loss, _ = opt.objective.loss(imgs[:1], imgs[1:])
-        opt.opt.zero_grad(set_to_none=True)
+        loss, _ = opt.guidance.loss(ImageBatch(imgs[:1], imgs[1:]), None)
+        opt.adamw.zero_grad(set_to_none=True)
         loss.backward()
         t4 = time.perf_counter()
         color.backward(c_leaf.grad)
@@ -205,7 +206,7 @@ def timed_split(opt: Optimizer, steps: int) -> dict[str, float]:
         pairs = [(o, x.grad) for o, x in zip(mlp_out, leaves, strict=True) if o.requires_grad and x.grad is not None]
         torch.autograd.backward([o for o, _ in pairs], [g for _, g in pairs])
         t6 = time.perf_counter()
-        opt.opt.step()
+        opt.adamw.step()
         t7 = time.perf_counter()
         if i == 0:
             continue

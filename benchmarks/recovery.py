@@ -54,7 +54,7 @@ import yaml
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_MESHES = REPO.parent / "shared" / "meshes"
-sys.path[:0] = [str(REPO), str(REPO / "tests"), str(REPO / "tests" / "training")]
+sys.path[:0] = [str(REPO), str(REPO / "benchmarks")]
 
 COLUMNS = (
     "mesh",
@@ -128,7 +128,7 @@ def prepare(
     cache on the mesh to fit and render the Mitsuba targets of the full-resolution mesh into
     ``work`` (the cache with ``raycache.visibility`` = ``visibility``); returns the fitted and the
     full-resolution face counts and the fitted mesh's median self-occlusion."""
-    from test_optimize import MITSUBA_TARGET, RECOVERY_CACHE
+    from protocols import MITSUBA_TARGET, RECOVERY_CACHE
 
     from stages import target as target_stage
     from stages.config.sections import DecimateSettings, NormalizeSettings

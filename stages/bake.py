@@ -53,9 +53,9 @@ def run(
     with timer("load"):
         mesh = load_ply(mesh_path)
         field, opt_settings = load_field(field_path, device)
-        evalc = RayCache(eval_path)
+        eval_cache = RayCache(eval_path)
     job = job_label("bake", out_dir)
-    occlusion = occlusion_decision(settings.occlusion, field, evalc)
+    occlusion = occlusion_decision(settings.occlusion, field, eval_cache)
     with timer("occlusion"), heartbeat(job, "tracing the ambient occlusion"):
         ao = occlusion_samples(mesh, occlusion, settings)
     with timer("bake"), heartbeat(job, f"unwrapping and baking {len(mesh.faces)} faces"):
@@ -73,16 +73,16 @@ def run(
         # fidelity: baked asset vs neural field from the evaluation views
         with timer("fidelity"), heartbeat(job, "rendering the baked asset for the fidelity check"):
             store = ViewStore(
-                evalc, torch.device(device), field.normals, shadows=False
+                eval_cache, torch.device(device), field.normals, shadows=False
             )  # the textures' fidelity: both unshadowed
             tex = decode_textures(res.textures)
             light = field.light()
-            baked = render_baked_views(evalc, res.atlas.uv, tex, res.frames, light, device, field.specular_lobe, field.brdf)
+            baked = render_baked_views(eval_cache, res.atlas.uv, tex, res.frames, light, device, field.specular_lobe, field.brdf)
             preds = [linear_to_srgb(b) for b in baked]
             refs = [linear_to_srgb(r) for r in radiance_at_hits(field, store)]
             bake_psnr = psnr(torch.cat(preds), torch.cat(refs))
             # the preview: the baked asset from the evaluation view nearest the anchor (front) view
-            front = evalc.front_view()
+            front = eval_cache.front_view()
             spec = global_spec(store.width, settings.eval_width)
             needed, (lookup,) = gather_points([spec], store[front].index)
             bg = torch.ones(3, settings.eval_width, settings.eval_width, device=preds[front].device)

@@ -146,21 +146,25 @@ def run(
 
     # the reference: the trained field on the traced mesh from the evaluation cameras
     with timer("reference"):
-        evalc = RayCache(eval_path)
-        store = ViewStore(evalc, torch.device(device), field.normals, shadows=False)  # the textures' fidelity: both unshadowed
-        reference = [(evalc.view(i).pixel, linear_to_srgb(rgb)) for i, rgb in enumerate(radiance_at_hits(field, store))]
-        front = evalc.front_view()
-        cameras = evalc.view_set()
+        eval_cache = RayCache(eval_path)
+        store = ViewStore(
+            eval_cache, torch.device(device), field.normals, shadows=False
+        )  # the textures' fidelity: both unshadowed
+        reference = [(eval_cache.view(i).pixel, linear_to_srgb(rgb)) for i, rgb in enumerate(radiance_at_hits(field, store))]
+        front = eval_cache.front_view()
+        cameras = eval_cache.view_set()
 
     def grade(level_mesh, uv, textures: dict, frames: CornerFrames) -> tuple[dict, torch.Tensor]:
         arrays, _ = trace_views(level_mesh, cameras)
         cache = RayCache(f"<{len(level_mesh.faces)}-face level traced from {eval_path}>", arrays)
         rendered = render_baked_views(cache, uv, decode_textures(textures), frames, light, device, lobe, field.brdf)
         lo, hi = arrays["offsets"][front], arrays["offsets"][front + 1]
-        image = _front_image(arrays["pixel"][lo:hi].astype(np.int64), linear_to_srgb(rendered[front]).cpu().numpy(), evalc.width)
+        image = _front_image(
+            arrays["pixel"][lo:hi].astype(np.int64), linear_to_srgb(rendered[front]).cpu().numpy(), eval_cache.width
+        )
         return _level_fidelity(reference, cache, rendered), image
 
-    rows, levels, images = [], [], [_front_image(reference[front][0], reference[front][1].cpu().numpy(), evalc.width)]
+    rows, levels, images = [], [], [_front_image(reference[front][0], reference[front][1].cpu().numpy(), eval_cache.width)]
     with staged_outputs(out_dir) as staging:
         # lod0: the full bake, as the export stage shipped it
         with timer("lod0"):

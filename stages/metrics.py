@@ -33,7 +33,7 @@ from .core.provenance import ORIGIN_KEY, Timer, metadata, staged_outputs, write_
 from .core.safefiles import read_json_record
 from .geometry.raycache import RayCache
 from .guidance.clip import load_clip
-from .guidance.objective import Objective, render_target
+from .guidance.objective import choose_guidance, render_target
 from .guidance.scores import clip_metrics
 from .imaging.quality import highlights, material_errors, psnr, ssim
 from .imaging.sheets import contact_sheet, save_png
@@ -98,7 +98,7 @@ def run(
                 result["evaluation"] = clip_metrics(e, imgs, prompt, candidates)
         if opt_settings.guidance == "image":
             with timer("image_target"):
-                obj = Objective(opt_settings, prompt, dev, targets=targets.description if targets else None)
+                obj = choose_guidance(opt_settings, prompt, dev, targets=targets.description if targets else None)
                 bg = 1.0 if settings.background == "white" else 0.0
                 pairs = [render_target(obj, store[i], store.width, store.width, bg) for i in range(len(store))]
                 t = torch.stack([img for img, _ in pairs])

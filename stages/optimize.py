@@ -18,17 +18,15 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from torch.nn import functional as F
 
 from .config.layout import OPTIMIZE_FILES, RENDER_KINDS
 from .config.sections import OptimizeSettings
-from .core.cli import resolve_device, stage_main
+from .core.cli import stage_main
+from .core.device import resolve_device
 from .core.errors import StageInputError
 from .core.progress import Progress, job_label
 from .core.provenance import ORIGIN_KEY, Timer, atomic_path, metadata, staged_outputs, write_json_atomic
 from .geometry.raycache import RayCache
-from .guidance.objective import render_target
-from .imaging.quality import psnr
 from .imaging.sheets import contact_sheet, save_png
 from .imaging.targets import TargetSet
 from .imaging.views import ViewStore, render_view
@@ -71,44 +69,44 @@ def run(
     with timer("setup"):
         train = RayCache(train_path)
         targets = TargetSet(targets_path, train) if mitsuba_targets else None
-        opt = Optimizer(settings, train, prompt, dev, targets=targets)
+        run = Optimizer(settings, train, prompt, dev, targets=targets)
     resumed_from = None
     if ckpt.is_file():
         state = read_torch_file(ckpt, dev, remedy="Delete it to start this optimisation afresh.")
         if state.get("digest") != settings.digest():
             log.warning("ignoring %s: written under other settings", ckpt)
-        elif state.get("light", opt.light_record) != opt.light_record:  # light: fixed, its map's file edited since
+        elif state.get("light", run.light_record) != run.light_record:  # light: fixed, its map's file edited since
             log.warning("ignoring %s: written under another light (%s)", ckpt, state.get("light"))
         else:
             try:
-                opt.load(state)
+                run.load(state)
             except (KeyError, TypeError, ValueError, RuntimeError, IndexError, AttributeError) as err:
                 why = " ".join(f"{type(err).__name__}: {err}".split())[:160]
                 raise StageInputError(
                     ckpt, f"is not a checkpoint of this optimisation ({why})", "Delete it to start afresh."
                 ) from None
-            resumed_from = opt.iteration
-            log.info("resumed from %s at iteration %d", ckpt, opt.iteration)
-    progress = Progress(job_label("optimize", out_dir), settings.iterations, initial=opt.iteration)
+            resumed_from = run.iteration
+            log.info("resumed from %s at iteration %d", ckpt, run.iteration)
+    progress = Progress(job_label("optimize", out_dir), settings.iterations, initial=run.iteration)
     done_here = 0
     t_loop = time.perf_counter()
-    while opt.iteration < settings.iterations:
-        row = opt.step(timer)
+    while run.iteration < settings.iterations:
+        row = run.step(timer)
         done_here += 1
-        if opt.iteration % settings.checkpoint_every == 0 and opt.iteration < settings.iterations:
+        if run.iteration % settings.checkpoint_every == 0 and run.iteration < settings.iterations:
             with timer("checkpoint"):
-                save_checkpoint(ckpt, **opt.state())
+                save_checkpoint(ckpt, **run.state())
         progress.update(loss=f"{row['loss']:.4f}")
         if stop_after is not None and done_here >= stop_after:
             progress.close()
-            return {"stopped_at": opt.iteration}
+            return {"stopped_at": run.iteration}
     progress.close()
     loop_s = time.perf_counter() - t_loop
     # every output is staged and moved into place together, the metadata last; the checkpoint
     # goes only after that, so a kill at any point leaves either a resumable run or finished outputs
     with staged_outputs(out_dir) as staging:
         with timer("outputs"):
-            result = _write_outputs(opt, eval_path, staging, settings, prompt)
+            result = _write_outputs(run, eval_path, staging, settings, prompt)
         timings = {**timer.seconds, "loop": loop_s, "total": timer.total()}
         iters_here = max(done_here, 1)
         meta = metadata(
@@ -119,7 +117,7 @@ def run(
                 "train": train_path,
                 "eval": eval_path,
                 **({"targets": targets_path} if targets else {}),
-                **({"light_map": Path(settings.light_map)} if "sha256" in opt.light_record else {}),
+                **({"light_map": Path(settings.light_map)} if "sha256" in run.light_record else {}),
             },
             outputs={k: out_dir / v for k, v in OPTIMIZE_FILES.items()},
             timings=timings,
@@ -127,23 +125,23 @@ def run(
                 "prompt": prompt,
                 "device": str(dev),
                 "guidance": settings.guidance,
-                "weights": opt.objective.weights_id,
-                "test_only_weights": opt.objective.test_only,
-                "clip_precision": opt.objective.clip_precision,
-                "clip_tower": opt.objective.clip_tower,
-                "network_precision": opt.network_precision,
-                "shading_path": opt.shading_path,
+                "weights": run.guidance.weights_id,
+                "test_only_weights": run.guidance.test_only,
+                "clip_precision": run.guidance.clip_precision,
+                "clip_tower": run.guidance.clip_tower,
+                "network_precision": run.network_precision,
+                "shading_path": run.shading_path,
                 # what the shading cast: shadows from the cache's visibility, or none (and why)
-                "shadows": shadow_record(opt.field.shadows, opt.views.cache.visibility_directions),
-                ORIGIN_KEY: opt.objective.origin,
+                "shadows": shadow_record(run.field.shadows, run.views.cache.visibility_directions),
+                ORIGIN_KEY: run.guidance.origin,
                 "resumed_from_iteration": resumed_from,
                 "seconds_per_iteration": loop_s / iters_here,
-                "points_per_iteration": opt.points_last,
-                "parameters": sum(p.numel() for p in opt.field.parameters()),
-                "light_energy": opt.field.light.energy().tolist(),
-                "light_lobes": opt.field.light.lobes,
-                "light_pruned": opt.light_pruned,
-                "light": opt.light_record,
+                "points_per_iteration": run.points_last,
+                "parameters": sum(p.numel() for p in run.field.parameters()),
+                "light_energy": run.field.light.energy().tolist(),
+                "light_lobes": run.field.light.lobes,
+                "light_pruned": run.light_pruned,
+                "light": run.light_record,
                 **result,
             },
         )
@@ -152,47 +150,30 @@ def run(
     return meta
 
 
-def _write_outputs(opt: Optimizer, eval_path: Path, out_dir: Path, settings: OptimizeSettings, prompt: str) -> dict:
-    field_ = opt.field.eval()
-    evalc = ViewStore(RayCache(eval_path), opt.device, opt.field.normals, shadows=opt.field.shadows)
+def _write_outputs(run: Optimizer, eval_path: Path, out_dir: Path, settings: OptimizeSettings, prompt: str) -> dict:
+    trained = run.field.eval()
+    eval_views = ViewStore(RayCache(eval_path), run.device, run.field.normals, shadows=run.field.shadows)
     renders = {k: [] for k in RENDER_KINDS}
-    targets = []
-    sims = []
-    for i in range(len(evalc)):
-        v = evalc[i]
-        r = render_view(field_, v, evalc.width, settings.eval_width)
+    views = [eval_views[i] for i in range(len(eval_views))]
+    for v in views:
+        r = render_view(trained, v, eval_views.width, settings.eval_width)
         for k in RENDER_KINDS:
             renders[k].append(r[k])
-        if opt.objective.guide is not None:
-            size = opt.objective.guide.image_size
-            img = F.interpolate(r["rgb"][None], size=(size, size), mode="bilinear", align_corners=False)
-            with torch.no_grad():
-                sims.append(float(opt.objective.guide.similarity(img, opt.objective.text)))
-        elif settings.target_renderer == "sg":
-            # (Mitsuba targets exist for the training and metric views: the metrics stage grades those)
-            targets.append(render_target(opt.objective, v, evalc.width, settings.eval_width))
-    columns = len(evalc.azimuths())
+    score = run.guidance.eval_score(renders["rgb"], views, eval_views.width, settings.eval_width)
+    columns = len(eval_views.azimuths())
     for k, imgs in renders.items():
         save_png(out_dir / "renders" / f"{k}.png", contact_sheet(imgs, columns))
     result: dict = {
-        "eval_views": len(evalc),
-        "sheet": {"columns": int(columns), "tile": settings.eval_width, "front_view": evalc.cache.front_view()},
+        "eval_views": len(eval_views),
+        "sheet": {"columns": int(columns), "tile": settings.eval_width, "front_view": eval_views.cache.front_view()},
+        **score.figures,
     }
-    if sims:
-        result["final_similarity"] = float(np.mean(sims))
-        result["final_similarity_per_view"] = sims
-    if targets:
-        save_png(out_dir / "renders" / "target.png", contact_sheet([t for t, _ in targets], columns))
-        pred = torch.stack(renders["rgb"])
-        tgt = torch.stack([t for t, _ in targets])
-        masks = torch.stack([m for _, m in targets])
-        # object pixels only: the background is black in both and would inflate the figure
-        result["eval_psnr_db"] = psnr(pred[masks.expand_as(pred)], tgt[masks.expand_as(tgt)])
-        result["eval_psnr_pixels"] = "object pixels of the evaluation views, sRGB"
+    if score.targets:
+        save_png(out_dir / "renders" / "target.png", contact_sheet(score.targets, columns))
     # the light: equirectangular radiance (linear, float32) and a tone-mapped preview
     with torch.no_grad():
-        light = field_.light()
-        dirs = equirect_directions(128, 256).to(opt.device)
+        light = trained.light()
+        dirs = equirect_directions(128, 256).to(run.device)
         radiance = light.radiance(dirs.reshape(-1, 3)).reshape(128, 256, 3)
     with atomic_path(out_dir / "light.npz") as tmp:
         with open(tmp, "wb") as fh:
@@ -206,10 +187,10 @@ def _write_outputs(opt: Optimizer, eval_path: Path, out_dir: Path, settings: Opt
     preview = linear_to_srgb(radiance / radiance.max().clamp(min=1e-12))
     save_png(out_dir / "renders" / "light.png", (preview.cpu().numpy() * 255).round().astype(np.uint8))
     # the field and the loss curve
-    save_field(out_dir / "field.pt", field_, settings, prompt, opt.objective.origin)
-    write_loss_csv(out_dir / "loss.csv", opt.history)
-    title = f"{prompt} ({opt.objective.weights_id})"
-    plot_loss(out_dir / "loss.png", opt.history, title)
+    save_field(out_dir / "field.pt", trained, settings, prompt, run.guidance.origin)
+    write_loss_csv(out_dir / "loss.csv", run.history)
+    title = f"{prompt} ({run.guidance.weights_id})"
+    plot_loss(out_dir / "loss.png", run.history, title)
     return result
 
 

@@ -36,7 +36,8 @@ from pathlib import Path
 from .config.presets import PRESETS
 from .config.sections import OptimizeSettings
 from .config.workflow import WorkflowConfig, experiment_name, load_config_files
-from .core.cli import precision_summary, resolve_device, stage_main
+from .core.cli import stage_main
+from .core.device import precision_summary, resolve_device
 from .reference.mitsuba import choose_variant
 from .reference.targets import probe, target_samples
 from .training.calibrate import seconds_per_step

@@ -1,4 +1,5 @@
-"""The one command-line wrapper every stage's ``main`` uses, logging set-up and device choice.
+"""The one command-line wrapper every stage's ``main`` uses, and logging set-up (the device and
+precision policy is :mod:`stages.core.device`).
 
 A stage's ``main`` names its arguments and what to do with them; :func:`stage_main` adds the
 shared options (``-v``; for torch stages ``--device`` and ``--threads``), sets up logging to stderr
@@ -12,20 +13,13 @@ import argparse
 import logging
 import sys
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
+from .device import resolve_device, set_torch_threads
 from .errors import stage_errors
 from .threads import set_cpu_threads
 
-if TYPE_CHECKING:
-    import torch
-
 log = logging.getLogger(__name__)
-
-#: the bfloat16 levers' settings (``optimize.bf16``, ``optimize.bf16_networks``): ``auto`` turns
-#: the lever on where the device has native bfloat16 (:func:`bf16_support`), ``on`` asks for it
-#: everywhere (float32 with a warning where it is not native), ``off`` keeps float32
-BF16_CHOICES = ("auto", "on", "off")
 
 
 def setup_logging(verbose: bool = False) -> None:
@@ -36,158 +30,6 @@ def setup_logging(verbose: bool = False) -> None:
         stream=sys.stderr,
         force=True,
     )
-
-
-def resolve_device(name: str = "auto") -> torch.device:
-    """``torch.device`` of ``name``; ``"auto"`` is CUDA when available, else the CPU.
-
-    torch is imported here, when a torch stage asks, so that this module (and the workflow's
-    DAG, which imports the settings) stays free of it.
-    """
-    import torch
-
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(name)
-
-
-def bf16_support(device: torch.device) -> tuple[bool, str]:
-    """Whether bfloat16 autocast runs natively on ``device``, and why: on a GPU that has it (Ampere
-    and later; emulated bfloat16 on older GPUs is slower than float32); on a CPU when
-    oneDNN has bfloat16 kernels for it (AVX-512 BF16 or AMX, as on this project's machines), where
-    bfloat16 matrix products run several times faster than float32 ones (benchmarks/optimize.py);
-    elsewhere emulated bfloat16 would be slower than float32, so it is not used."""
-    import torch
-
-    if device.type == "cuda":
-        if torch.cuda.is_bf16_supported(including_emulation=False):
-            return True, "CUDA with native bfloat16"
-        return False, "this GPU has no native bfloat16 (before Ampere)"
-    if device.type == "cpu":
-        if torch.backends.mkldnn.is_available() and torch.ops.mkldnn._is_mkldnn_bf16_supported():
-            return True, "CPU with native bfloat16 (oneDNN: AVX-512 BF16 / AMX)"
-        return False, "this CPU has no native bfloat16 (no AVX-512 BF16 or AMX for oneDNN)"
-    return False, f"no bfloat16 autocast on {device.type}"
-
-
-def lever_choice(setting: str | bool, what: str) -> str:
-    """A lever's setting as one of :data:`BF16_CHOICES` (YAML booleans mean on and off); a bad
-    value is refused naming the lever ``what``."""
-    choice = ("on" if setting else "off") if isinstance(setting, bool) else setting
-    if choice not in BF16_CHOICES:
-        raise ValueError(f"{what} must be one of {', '.join(BF16_CHOICES)}, got {setting!r}")
-    return choice
-
-
-def bf16_choice(setting: str | bool, device: torch.device, what: str) -> tuple[bool, str]:
-    """Whether a bfloat16 lever (``setting``: one of :data:`BF16_CHOICES`; YAML booleans mean on
-    and off) runs on ``device``, and what runs, for the metadata, the plan and the doctor:
-    ``"bfloat16 autocast (<why>)"``, ``"float32"`` (off), ``"float32 (<why not>)"``; under auto
-    the reason starts ``auto:``. ``on`` where bfloat16 is not native logs a warning naming
-    ``what`` (the lever) and runs float32; ``auto`` there is float32 by design, without one."""
-    choice = lever_choice(setting, what)
-    if choice == "off":
-        return False, "float32"
-    supported, why = bf16_support(device)
-    why = f"auto: {why}" if choice == "auto" else why
-    if choice == "on" and not supported:
-        log.warning("%s asked for, but %s: float32 runs instead", what, why)
-    return supported, f"bfloat16 autocast ({why})" if supported else f"float32 ({why})"
-
-
-#: ``compile_shading: auto`` compiles the renderer for runs of at least this many iterations: on
-#: this project's CPU the compilation cost 66-94 s from an empty inductor cache and 13-20 s from a
-#: warm one, and saved 0.07-0.09 s per step at the ``fast`` preset's 17,000 points and 16 lobes
-#: (repaid after 1,046 steps from an empty cache, 278 from a warm one) and 0.31 s at the paper's
-#: 25,000 points and 32 lobes (repaid after about 300 even from an empty cache), so from about 1,000
-#: steps it pays on a machine's first run (docs/measurements/speed.md, ``benchmarks/fast_step.py``)
-COMPILE_MIN_ITERATIONS = 1000
-
-
-def cpp_compiler() -> str | None:
-    """The C++ compiler torch.compile's CPU backend (inductor) would call, as it searches: ``$CXX``,
-    else ``g++`` (``clang++`` on macOS) on the PATH; or None."""
-    import os
-    import shutil
-    import sys
-
-    name = os.environ.get("CXX") or ("clang++" if sys.platform == "darwin" else "g++")
-    return shutil.which(name)
-
-
-def python_headers() -> str | None:
-    """``Python.h`` of this interpreter, which inductor's CPU kernels include; or None (Debian:
-    the python3-dev package)."""
-    import sysconfig
-    from pathlib import Path
-
-    header = Path(sysconfig.get_paths()["include"]) / "Python.h"
-    return str(header) if header.is_file() else None
-
-
-def use_inductor_cache() -> None:
-    """Point inductor's disk cache at ``$XDG_CACHE_HOME/torchinductor`` (the project's ``.cache/``
-    once ``.venv/bin/activate`` is sourced) unless ``TORCHINDUCTOR_CACHE_DIR`` is set (neither:
-    inductor's own default, under the temporary folder)."""
-    import os
-
-    if os.environ.get("XDG_CACHE_HOME") and not os.environ.get("TORCHINDUCTOR_CACHE_DIR"):
-        os.environ["TORCHINDUCTOR_CACHE_DIR"] = os.path.join(os.environ["XDG_CACHE_HOME"], "torchinductor")
-
-
-def compile_support(device: torch.device) -> tuple[bool, str]:
-    """Whether torch.compile can build the renderer for ``device``, and why: on a CPU it needs a
-    C++ compiler (:func:`cpp_compiler`) and the Python headers (:func:`python_headers`); on a GPU,
-    Triton. (What can still fail, :meth:`~stages.model.field.StyleField.use_compiled_shading`
-    finds by compiling once, and then runs eager.)"""
-    if device.type == "cpu":
-        cxx = cpp_compiler()
-        if not cxx:
-            return False, "no C++ compiler ($CXX, else g++) for inductor"
-        if not python_headers():
-            return False, "no Python headers (Python.h; Debian: python3-dev) for inductor"
-        return True, f"C++ compiler {cxx}"
-    if device.type == "cuda":
-        from torch.utils._triton import has_triton
-
-        return (True, "Triton for CUDA") if has_triton() else (False, "no Triton for inductor on CUDA")
-    return False, f"no inductor backend for {device.type}"
-
-
-def compile_choice(setting: str | bool, device: torch.device, iterations: int) -> tuple[bool, str]:
-    """Whether the renderer is compiled for a run of ``iterations`` steps on ``device``
-    (``optimize.compile_shading``: one of :data:`BF16_CHOICES`; booleans mean on and off), and what
-    runs, for the metadata and the plan: ``"torch.compile (<why>)"``, ``"eager"`` (off) or
-    ``"eager (<why not>)"``. ``auto`` compiles on a CPU with a C++ compiler for runs of at least
-    :data:`COMPILE_MIN_ITERATIONS` steps, where the compilation has been measured to pay; on a GPU
-    it stays eager (not measured there); ``on`` compiles wherever a backend is found and otherwise
-    warns and runs eager."""
-    choice = lever_choice(setting, "compile_shading")
-    if choice == "off":
-        return False, "eager"
-    supported, why = compile_support(device)
-    if choice == "on":
-        if not supported:
-            log.warning("compile_shading asked for, but %s: the renderer runs eager", why)
-        return supported, f"torch.compile ({why})" if supported else f"eager ({why})"
-    if device.type != "cpu":
-        return False, f"eager (auto: compiling the renderer on {device.type} has not been measured to pay)"
-    if iterations < COMPILE_MIN_ITERATIONS:
-        return False, f"eager (auto: {iterations} iterations, fewer than the {COMPILE_MIN_ITERATIONS} that repay a compilation)"
-    if not supported:
-        return False, f"eager (auto: {why})"
-    return True, f"torch.compile (auto: {iterations} iterations; {why})"
-
-
-def precision_summary(bf16: str | bool, bf16_networks: str | bool, device: torch.device, reason: bool = True) -> str:
-    """One line for the plan and the doctor: what the two bfloat16 levers resolve to on
-    ``device`` (:func:`bf16_choice`), e.g. ``CLIP bfloat16 (bf16: auto), networks bfloat16
-    (bf16_networks: auto): CPU with native bfloat16 (...)``; ``reason``: with the part after the colon."""
-    parts = []
-    for what, name, setting in (("CLIP", "bf16", bf16), ("networks", "bf16_networks", bf16_networks)):
-        on = bf16_choice(setting, device, name)[0]
-        parts.append(f"{what} {'bfloat16' if on else 'float32'} ({name}: {setting})")
-    return ", ".join(parts) + (f": {bf16_support(device)[1]}" if reason else "")
 
 
 def _positive(text: str) -> int:
@@ -232,10 +74,8 @@ def stage_main(
         if getattr(args, "threads", None):
             set_cpu_threads(args.threads)
         if device is not None:
-            import torch
-
             if args.threads:
-                torch.set_num_threads(args.threads)
+                set_torch_threads(args.threads)
             args.device = resolve_device(args.device)
         body(args)
     return status.code

@@ -18,7 +18,7 @@ from torch import Tensor
 from torch.nn import functional as F
 
 from ..config.sections import CLIP_ROLES, ClipSpec
-from ..core.cli import bf16_choice
+from ..core.device import bf16_choice
 from ..core.errors import StageInputError
 from .compat import import_open_clip
 from .vit import CLIP_TOWERS, use_fast_tower

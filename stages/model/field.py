@@ -13,7 +13,7 @@ import torch
 from torch import Tensor, nn
 
 from ..config.sections import FieldSettings
-from ..core.cli import bf16_choice, compile_choice, use_inductor_cache
+from ..core.device import bf16_choice, compile_choice, use_inductor_cache
 from ..geometry.normals import NormalSpec
 from ..render.shading import SGLight, Shading, face_viewer, shade, shade_gltf
 from .networks import Material, NormalNet, SGLightModule, SVBRDFNet, make_encoding, symmetric
@@ -132,13 +132,13 @@ class StyleField(nn.Module):
     def use_compiled_shading(self, setting: str | bool, device: torch.device, iterations: int) -> str:
         """Shade through ``torch.compile(shade, dynamic=True)`` in training mode where the
         optimisation's option ``compile_shading`` (``auto``, ``on``, ``off``) resolves to on for a
-        run of ``iterations`` steps on ``device`` (:func:`~stages.core.cli.compile_choice`):
+        run of ``iterations`` steps on ``device`` (:func:`~stages.core.device.compile_choice`):
         inductor fuses the renderer's many small pointwise operations into a few loops. The same
         function (``tests/model/test_precision.py`` compares them). It is compiled here, forward
         and backward, on a few points of this field's kind (BRDF, lobe model, lobes, shadows), so
         that a compilation that fails (a compiler that cannot build, missing headers) costs a
         warning and the eager renderer, not the run; inductor's disk cache is
-        :func:`~stages.core.cli.use_inductor_cache`'s. Returns what runs, for the metadata
+        :func:`~stages.core.device.use_inductor_cache`'s. Returns what runs, for the metadata
         (:attr:`shading_path`)."""
         enabled, path = compile_choice(setting, torch.device(device), iterations)
         self.compiled_shade = None
@@ -187,7 +187,7 @@ class StyleField(nn.Module):
         """Run the networks' matrix products under bfloat16 autocast in training mode (the
         optimisation's option ``bf16_networks``: ``auto``, ``on``, ``off``; booleans mean on and
         off; evaluation, baking and relighting run float32) where ``device`` runs bfloat16
-        natively (:func:`~stages.core.cli.bf16_choice`); the encodings, the heads' outputs
+        natively (:func:`~stages.core.device.bf16_choice`); the encodings, the heads' outputs
         (sigmoid, tanh), the normals and the renderer stay float32. Returns what runs, for the
         metadata: ``"bfloat16 autocast (<why>)"``, ``"float32"`` or ``"float32 (<why not>)"``."""
         self.bf16, precision = bf16_choice(setting, torch.device(device), "bf16_networks")

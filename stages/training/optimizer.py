@@ -20,7 +20,7 @@ import torch
 from ..config.sections import OptimizeSettings
 from ..core.provenance import Timer, atomic_path
 from ..geometry.raycache import RayCache
-from ..guidance.objective import Objective
+from ..guidance.objective import ImageBatch, choose_guidance
 from ..imaging.images import ImageSpec, background, compose, gather_points, global_spec, sample_crops
 from ..imaging.targets import TargetSet
 from ..imaging.views import CachedView, ViewStore
@@ -64,7 +64,7 @@ class Optimizer:
         self, settings: OptimizeSettings, train: RayCache, prompt: str, device, guide=None, targets: TargetSet | None = None
     ) -> None:
         """``targets``: the Mitsuba image targets of ``train`` (``target_renderer: mitsuba``)."""
-        self.s = settings
+        self.settings = settings
         self.device = torch.device(device)
         self.field = StyleField(settings.field_settings()).to(self.device)
         #: the light's mode for the metadata: learned, or the fixed fit of a known map (``light: fixed``)
@@ -76,14 +76,16 @@ class Optimizer:
         self.field.use_compiled_shading(settings.compile_shading, self.device, settings.iterations)
         self.views = ViewStore(train, self.device, self.field.normals, targets, shadows=self.field.shadows)
         self.prompt = prompt
-        self.opt = torch.optim.AdamW(self.param_groups(), lr=settings.lr, weight_decay=settings.weight_decay)
-        self.sched = torch.optim.lr_scheduler.MultiStepLR(self.opt, milestones=list(settings.milestones), gamma=settings.gamma)
+        self.adamw = torch.optim.AdamW(self.param_groups(), lr=settings.lr, weight_decay=settings.weight_decay)
+        self.lr_schedule = torch.optim.lr_scheduler.MultiStepLR(
+            self.adamw, milestones=list(settings.milestones), gamma=settings.gamma
+        )
         self.np_rng = np.random.default_rng(settings.seed)
         self.tgen = torch.Generator().manual_seed(settings.seed)
         self.iteration = 0
         self.history: list[dict] = []
         self.history_stride = 1
-        self.objective = Objective(settings, prompt, self.device, guide, targets.description if targets else None)
+        self.guidance = choose_guidance(settings, prompt, self.device, guide, targets.description if targets else None)
         self.points_last = 0
         #: when the light was pruned (``light_prune_after``): iteration, lobes kept and dropped
         self.light_pruned: dict | None = None
@@ -100,17 +102,17 @@ class Optimizer:
         light = list(self.field.light.parameters())
         ids = {id(p) for p in light}
         rest = [p for p in self.field.parameters() if id(p) not in ids]
-        light_lr = self.s.light_lr if self.s.light_lr is not None else self.s.lr
+        light_lr = self.settings.light_lr if self.settings.light_lr is not None else self.settings.lr
         return [{"params": rest}, {"params": light, "lr": light_lr, "weight_decay": 0.0}]
 
     # -- checkpoints
     def state(self) -> dict:
         return {
-            "digest": self.s.digest(),
+            "digest": self.settings.digest(),
             "iteration": self.iteration,
             "field": self.field.state_dict(),
-            "optimizer": self.opt.state_dict(),
-            "scheduler": self.sched.state_dict(),
+            "optimizer": self.adamw.state_dict(),
+            "scheduler": self.lr_schedule.state_dict(),
             "rng": _rng_state(self.np_rng, self.tgen),
             "history": self.history,
             "history_stride": self.history_stride,
@@ -122,10 +124,10 @@ class Optimizer:
         lobes = self.field.light.lobes
         self.field.load_state_dict(state["field"])
         if self.field.light.lobes != lobes:  # pruned before the checkpoint: the light's parameters are new
-            self.opt.param_groups[1]["params"] = list(self.field.light.parameters())
-        self.opt.load_state_dict(state["optimizer"])
+            self.adamw.param_groups[1]["params"] = list(self.field.light.parameters())
+        self.adamw.load_state_dict(state["optimizer"])
         self.light_pruned = state.get("light_pruned")
-        self.sched.load_state_dict(state["scheduler"])
+        self.lr_schedule.load_state_dict(state["scheduler"])
         self.np_rng.bit_generator.state = state["rng"]["numpy"]
         self.tgen.set_state(state["rng"]["torch"])
         self.iteration = int(state["iteration"])
@@ -137,15 +139,15 @@ class Optimizer:
         """Drop the light's negligible lobes (:meth:`~stages.model.networks.SGLightModule.negligible`
         at ``light_prune_share``), carrying the optimiser's moments of the kept ones; returns how
         many were dropped."""
-        small = self.field.light.negligible(self.s.light_prune_share)
+        small = self.field.light.negligible(self.settings.light_prune_share)
         index = torch.nonzero(~small).flatten()
         dropped = int(small.sum())
         if dropped:
-            group = self.opt.param_groups[1]["params"]
+            group = self.adamw.param_groups[1]["params"]
             for old, new in self.field.light.keep(index):
-                moments = self.opt.state.pop(old, None)
+                moments = self.adamw.state.pop(old, None)
                 if moments is not None:
-                    self.opt.state[new] = {
+                    self.adamw.state[new] = {
                         k: v[index] if torch.is_tensor(v) and v.dim() > 0 and v.shape[0] == old.shape[0] else v
                         for k, v in moments.items()
                     }
@@ -157,17 +159,17 @@ class Optimizer:
     def image_specs(self, v: CachedView) -> list[ImageSpec]:
         """The images of one view in a step: the global image, then ``crops`` random crops with
         enough object coverage (drawn from the run's RNG)."""
-        s = self.s
-        specs = [global_spec(self.views.width, s.image_size, s.supersample)]
+        settings = self.settings
+        specs = [global_spec(self.views.width, settings.image_size, settings.supersample)]
         specs += sample_crops(
             v.mask,
-            s.crops,
-            scale=s.crop_scale,
-            min_coverage=s.crop_coverage,
-            max_tries=s.crop_max_tries,
-            out_size=s.image_size,
+            settings.crops,
+            scale=settings.crop_scale,
+            min_coverage=settings.crop_coverage,
+            max_tries=settings.crop_max_tries,
+            out_size=settings.image_size,
             rng=self.np_rng,
-            supersample=s.supersample,
+            supersample=settings.supersample,
         )
         return specs
 
@@ -180,26 +182,26 @@ class Optimizer:
         normals' tilt from the geometric ones (``normal_tilt``, :func:`normal_tilt`; ``normals``:
         pairs of predicted and geometric normals). The surface priors need the step's ``points`` and
         ``normals`` (:meth:`step` passes them); without them only the others are taken."""
-        s = self.s
+        settings = self.settings
         total = torch.zeros((), device=self.device)
-        if s.material_smooth > 0 and points:
+        if settings.material_smooth > 0 and points:
             x = torch.cat(points)
-            jitter = torch.randn(x.shape, generator=self.tgen).to(x.device) * s.material_smooth_radius
+            jitter = torch.randn(x.shape, generator=self.tgen).to(x.device) * settings.material_smooth_radius
             variation = material_variation(cat_materials(materials), self.field.material(x + jitter))
-            total = total + s.material_smooth * variation
+            total = total + settings.material_smooth * variation
             stats["material_variation"] = float(variation.detach())
-        if s.normal_tilt > 0 and self.field.normal_net is not None and normals:  # (no normal network: nothing to hold)
+        if settings.normal_tilt > 0 and self.field.normal_net is not None and normals:  # (no normal network: nothing to hold)
             tilt = normal_tilt(torch.cat([p for p, _ in normals]), torch.cat([g for _, g in normals]))
-            total = total + s.normal_tilt * tilt
+            total = total + settings.normal_tilt * tilt
             stats["normal_tilt"] = float(tilt.detach())
-        if s.light_neutral > 0:
+        if settings.light_neutral > 0:
             spread = self.field.light.colour_spread()
-            total = total + s.light_neutral * spread
+            total = total + settings.light_neutral * spread
             stats["light_colour_spread"] = float(spread.detach())
-        if s.metallic_binary > 0:
+        if settings.metallic_binary > 0:
             m = torch.cat([mat.metallic for mat in materials])
             between = (m * (1.0 - m)).mean()
-            total = total + s.metallic_binary * between
+            total = total + settings.metallic_binary * between
             stats["metallic_between"] = float(between.detach())
         return total
 
@@ -219,55 +221,54 @@ class Optimizer:
         )
 
     def step(self, timer: Timer) -> dict:
-        s = self.s
+        settings = self.settings
         with timer("gather"):
-            ids = self.np_rng.choice(len(self.views), size=s.views_per_step, replace=len(self.views) < s.views_per_step)
+            ids = self.np_rng.choice(
+                len(self.views), size=settings.views_per_step, replace=len(self.views) < settings.views_per_step
+            )
             batches = []
             for i in ids:
                 v = self.views[int(i)]
                 specs = self.image_specs(v)
                 needed, lookups = gather_points(specs, v.index)
                 sel = torch.from_numpy(needed).to(self.device)
-                bgs = [background(s.background, s.image_size, self.tgen, self.device) for _ in specs]
+                bgs = [background(settings.background, settings.image_size, self.tgen, self.device) for _ in specs]
                 batches.append((v, sel, specs, lookups, bgs))
         with timer("networks+shading"):
-            globals_, crops, globals_t, crops_t = [], [], [], []
+            rendered, target = ImageBatch(), ImageBatch()
             npts = 0
             materials, points, normals = [], [], []
             for v, sel, specs, lookups, bgs in batches:
                 npts += len(sel)
                 out = v.shade(self.field, sel)
                 materials.append(out.material)
-                if s.material_smooth > 0:  # (the gathers only where a prior reads them)
+                if settings.material_smooth > 0:  # (the gathers only where a prior reads them)
                     points.append(v.points[sel])
-                if s.normal_tilt > 0:
+                if settings.normal_tilt > 0:
                     normals.append((out.normal, v.normals[sel]))
                 color = linear_to_srgb(out.shading.rgb)
-                imgs = [compose(color, lk, sp, bg) for lk, sp, bg in zip(lookups, specs, bgs, strict=True)]
-                globals_.append(imgs[0])
-                crops.extend(imgs[1:])
-                if self.objective.guide is None:
-                    with torch.no_grad():
-                        tcol = linear_to_srgb(self.objective.target_colors(v, sel))
-                    timgs = [compose(tcol, lk, sp, bg) for lk, sp, bg in zip(lookups, specs, bgs, strict=True)]
-                    globals_t.append(timgs[0])
-                    crops_t.extend(timgs[1:])
+                rendered.add([compose(color, lk, sp, bg) for lk, sp, bg in zip(lookups, specs, bgs, strict=True)])
+                with torch.no_grad():
+                    tcol = self.guidance.target_colors(v, sel)
+                if tcol is not None:
+                    tcol = linear_to_srgb(tcol)
+                    target.add([compose(tcol, lk, sp, bg) for lk, sp, bg in zip(lookups, specs, bgs, strict=True)])
         with timer("guidance"):
-            loss, stats = self.objective.loss(globals_, crops, globals_t, crops_t)
+            loss, stats = self.guidance.loss(rendered, target if target.globals else None)
             loss = loss + self.priors(materials, stats, points, normals)
         with timer("backward"):
-            self.opt.zero_grad(set_to_none=True)
+            self.adamw.zero_grad(set_to_none=True)
             loss.backward()
             self.check_finite(loss)
         with timer("optimizer"):
-            lr = self.sched.get_last_lr()[0]
-            self.opt.step()
-            self.sched.step()
+            lr = self.lr_schedule.get_last_lr()[0]
+            self.adamw.step()
+            self.lr_schedule.step()
         self.iteration += 1
         self.points_last = npts
         row = {"iteration": self.iteration, "loss": float(loss.detach()), "lr": lr, "points": npts, **stats}
         row["light_lobes"] = self.field.light.lobes
-        if self.iteration == s.light_prune_after:
+        if self.iteration == settings.light_prune_after:
             self.prune_light()
         self.history_stride = keep_history(self.history, self.history_stride, row)
         return row

@@ -14,7 +14,7 @@ from conftest import TINY_OPTIMIZE
 
 from stages import optimize
 from stages.config.sections import OptimizeSettings
-from stages.core import cli
+from stages.core import device as policy
 from stages.core.errors import ConfigError
 
 CPU = torch.device("cpu")
@@ -36,9 +36,9 @@ EMULATED = (False, "this CPU has no native bfloat16 (simulated)")
     ],
 )
 def test_each_setting_on_each_kind_of_machine(monkeypatch, caplog, setting, support, runs, label):
-    monkeypatch.setattr(cli, "bf16_support", lambda device: support)
-    with caplog.at_level(logging.WARNING, logger="stages.core.cli"):
-        assert cli.bf16_choice(setting, CPU, "bf16") == (runs, label)
+    monkeypatch.setattr(policy, "bf16_support", lambda device: support)
+    with caplog.at_level(logging.WARNING, logger="stages.core.device"):
+        assert policy.bf16_choice(setting, CPU, "bf16") == (runs, label)
     # only an explicit "on" that cannot be honoured warns: auto's float32 is the decision, not a fallback
     warned = [r.getMessage() for r in caplog.records]
     assert bool(warned) == (setting in ("on", True) and not support[0]), warned
@@ -48,7 +48,7 @@ def test_each_setting_on_each_kind_of_machine(monkeypatch, caplog, setting, supp
 
 def test_a_bad_setting_is_refused_by_name():
     with pytest.raises(ValueError, match=r"bf16_networks must be one of auto, on, off, got 'yes'"):
-        cli.bf16_choice("yes", CPU, "bf16_networks")
+        policy.bf16_choice("yes", CPU, "bf16_networks")
     with pytest.raises(ConfigError, match=r"bf16 must be one of auto, on, off, got 'fast'"):
         OptimizeSettings(bf16="fast")
     # YAML 1.1's bare on/off arrive as booleans and mean on and off
@@ -59,7 +59,7 @@ def test_a_bad_setting_is_refused_by_name():
 def test_the_real_answer_on_this_machine_matches_onednn():
     """Not simulated: auto follows what oneDNN reports for this CPU (AVX-512 BF16 or AMX)."""
     native = torch.backends.mkldnn.is_available() and torch.ops.mkldnn._is_mkldnn_bf16_supported()
-    runs, label = cli.bf16_choice("auto", CPU, "bf16")
+    runs, label = policy.bf16_choice("auto", CPU, "bf16")
     assert runs == native and label.startswith("bfloat16 autocast (auto:" if native else "float32 (auto:")
 
 
@@ -71,7 +71,7 @@ TINY = {**TINY_OPTIMIZE, "clip_tiny_test": True, "crops": 0, "normal_network": F
 def test_auto_decides_a_real_run_and_its_metadata_says_so(monkeypatch, cache, tmp_path, support):
     """A real optimisation under the defaults on both kinds of machine: the networks and CLIP run
     what auto decided (the autocast actually taken), and meta.json records it."""
-    monkeypatch.setattr(cli, "bf16_support", lambda device: support)
+    monkeypatch.setattr(policy, "bf16_support", lambda device: support)
     seen = []
     real = torch.autocast
 
@@ -92,12 +92,12 @@ def test_auto_decides_a_real_run_and_its_metadata_says_so(monkeypatch, cache, tm
 def test_the_plan_and_the_doctor_show_what_will_run(monkeypatch):
     from stages.config.workflow import WorkflowConfig
 
-    monkeypatch.setattr(cli, "bf16_support", lambda device: EMULATED)
-    line = cli.precision_summary("auto", "on", CPU)
+    monkeypatch.setattr(policy, "bf16_support", lambda device: EMULATED)
+    line = policy.precision_summary("auto", "on", CPU)
     assert line == (
         "CLIP float32 (bf16: auto), networks float32 (bf16_networks: on): this CPU has no native bfloat16 (simulated)"
     )
-    monkeypatch.setattr(cli, "bf16_support", lambda device: NATIVE)
+    monkeypatch.setattr(policy, "bf16_support", lambda device: NATIVE)
     cfg = WorkflowConfig(
         {
             "meshes": {"vase": {"builtin": "vase"}},

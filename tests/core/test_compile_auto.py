@@ -14,13 +14,13 @@ from conftest import TINY_OPTIMIZE
 
 from stages import optimize
 from stages.config.sections import OptimizeSettings
-from stages.core import cli
+from stages.core import device as policy
 from stages.core.errors import ConfigError
 
 CPU, CUDA = torch.device("cpu"), torch.device("cuda")
 GXX = (True, "C++ compiler /usr/bin/g++ (simulated)")
 NONE = (False, "no C++ compiler (simulated)")
-LONG, SHORT = cli.COMPILE_MIN_ITERATIONS, cli.COMPILE_MIN_ITERATIONS - 1
+LONG, SHORT = policy.COMPILE_MIN_ITERATIONS, policy.COMPILE_MIN_ITERATIONS - 1
 
 
 @pytest.mark.parametrize(
@@ -38,9 +38,9 @@ LONG, SHORT = cli.COMPILE_MIN_ITERATIONS, cli.COMPILE_MIN_ITERATIONS - 1
     ],
 )
 def test_each_setting_on_each_kind_of_machine(monkeypatch, caplog, setting, device, iterations, support, runs, label):
-    monkeypatch.setattr(cli, "compile_support", lambda d: support)
-    with caplog.at_level(logging.WARNING, logger="stages.core.cli"):
-        assert cli.compile_choice(setting, device, iterations) == (runs, label)
+    monkeypatch.setattr(policy, "compile_support", lambda d: support)
+    with caplog.at_level(logging.WARNING, logger="stages.core.device"):
+        assert policy.compile_choice(setting, device, iterations) == (runs, label)
     warned = [r.getMessage() for r in caplog.records]
     # only an explicit "on" that cannot be honoured warns: auto's eager renderer is a decision
     assert bool(warned) == (setting in ("on", True) and not support[0]), warned
@@ -50,7 +50,7 @@ def test_each_setting_on_each_kind_of_machine(monkeypatch, caplog, setting, devi
 
 def test_a_bad_setting_is_refused_by_name():
     with pytest.raises(ValueError, match=r"compile_shading must be one of auto, on, off, got 'yes'"):
-        cli.compile_choice("yes", CPU, 10)
+        policy.compile_choice("yes", CPU, 10)
     with pytest.raises(ConfigError, match=r"compile_shading must be one of auto, on, off, got 'fast'"):
         OptimizeSettings(compile_shading="fast")
     assert (OptimizeSettings(compile_shading=True).compile_shading, OptimizeSettings().compile_shading) == ("on", "auto")
@@ -62,11 +62,11 @@ def test_the_compiler_is_found_on_the_path_or_through_cxx(monkeypatch, tmp_path)
     fake.chmod(0o755)
     monkeypatch.setenv("PATH", str(tmp_path))
     monkeypatch.delenv("CXX", raising=False)
-    assert cli.cpp_compiler() is None
-    assert cli.compile_support(CPU) == (False, "no C++ compiler ($CXX, else g++) for inductor")
+    assert policy.cpp_compiler() is None
+    assert policy.compile_support(CPU) == (False, "no C++ compiler ($CXX, else g++) for inductor")
     monkeypatch.setenv("CXX", "my-c++")
-    assert cli.cpp_compiler() == str(fake)
-    assert cli.compile_support(CPU) == (True, f"C++ compiler {fake}")
+    assert policy.cpp_compiler() == str(fake)
+    assert policy.compile_support(CPU) == (True, f"C++ compiler {fake}")
 
 
 @pytest.mark.parametrize("setting", ["on", "auto"])
@@ -92,7 +92,7 @@ def test_the_doctor_says_which_renderer_each_run_gets(monkeypatch):
     from stages import doctor
     from stages.config.workflow import WorkflowConfig
 
-    monkeypatch.setattr(cli, "compile_support", lambda d: GXX)
+    monkeypatch.setattr(policy, "compile_support", lambda d: GXX)
     cfg = WorkflowConfig(
         {
             "device": "cpu",
@@ -108,9 +108,9 @@ def test_the_doctor_says_which_renderer_each_run_gets(monkeypatch):
 
 
 def test_missing_python_headers_are_named(monkeypatch):
-    monkeypatch.setattr(cli, "cpp_compiler", lambda: "/usr/bin/g++")
-    monkeypatch.setattr(cli, "python_headers", lambda: None)
-    assert cli.compile_support(CPU) == (False, "no Python headers (Python.h; Debian: python3-dev) for inductor")
+    monkeypatch.setattr(policy, "cpp_compiler", lambda: "/usr/bin/g++")
+    monkeypatch.setattr(policy, "python_headers", lambda: None)
+    assert policy.compile_support(CPU) == (False, "no Python headers (Python.h; Debian: python3-dev) for inductor")
 
 
 @pytest.mark.slow(minutes=0.5)

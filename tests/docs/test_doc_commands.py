@@ -521,8 +521,8 @@ def named_paths(argv: tuple[str, ...]) -> list[str]:
         if first in ("results", ".snakemake", ".cache"):
             continue  # made by runs (a fresh clone has none): e.g. --forcerun results/.../meta.json
         if first == "..":
-            if value.startswith("../shared/meshes/") and not SHARED_MESHES.is_dir():
-                continue  # a developer checkout's meshes
+            if value.startswith("../shared/meshes/") and not SHARED_MESHES.is_dir() and not os.environ.get("CI"):
+                continue  # a developer checkout's meshes (CI runs beside ../shared: checked there)
             paths.append(value)
         elif first in REPO_ENTRIES or value.endswith(INPUT_SUFFIXES):
             paths.append(value)

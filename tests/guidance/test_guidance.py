@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from stages.config.sections import ClipSpec
-from stages.core import cli
+from stages.core import device as policy
 from stages.guidance import clip as guidance
 from stages.guidance.clip import TEST_ONLY_WEIGHTS, TINY_MODEL, ClipWeightsUnavailable, load_clip
 from stages.guidance.compat import import_open_clip
@@ -106,7 +106,7 @@ def test_bf16_autocast_on_cpu_agrees_with_float32():
     point the same way (cosines written out here), and stay finite for black, white and
     saturated noise images; the guide says which precision ran."""
     fp32, bf16 = _clip_pair()
-    supported, why = cli.bf16_support(torch.device("cpu"))
+    supported, why = policy.bf16_support(torch.device("cpu"))
     if not supported:
         assert bf16.precision.startswith("float32") and why in bf16.precision and not bf16.bf16
         pytest.skip(f"no native bfloat16 here: {why}")
@@ -129,6 +129,6 @@ def test_bf16_autocast_on_cpu_agrees_with_float32():
 
 def test_bf16_is_not_silently_ignored(monkeypatch):
     """Asked for where the device has no native bfloat16: float32 runs, and the precision says why."""
-    monkeypatch.setattr(cli, "bf16_support", lambda device: (False, "no native bfloat16 in this test"))
+    monkeypatch.setattr(policy, "bf16_support", lambda device: (False, "no native bfloat16 in this test"))
     _, bf16 = _clip_pair()
     assert not bf16.bf16 and bf16.precision == "float32 (no native bfloat16 in this test)"

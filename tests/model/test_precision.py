@@ -10,8 +10,8 @@ import pytest
 import torch
 
 from stages.config.sections import OptimizeSettings
-from stages.core import cli
-from stages.core.cli import bf16_support
+from stages.core import device as policy
+from stages.core.device import bf16_support
 from stages.model.field import StyleField
 from stages.model.networks import FourierFeatures
 
@@ -86,7 +86,7 @@ def test_fourier_phases_stay_float32_under_autocast():
 
 
 def test_bf16_networks_not_silently_ignored(monkeypatch):
-    monkeypatch.setattr(cli, "bf16_support", lambda device: (False, "no native bfloat16 in this test"))
+    monkeypatch.setattr(policy, "bf16_support", lambda device: (False, "no native bfloat16 in this test"))
     f = StyleField(OptimizeSettings(width=16).field_settings())
     assert f.use_bf16(True, CPU) == "float32 (no native bfloat16 in this test)" and not f.bf16
 
@@ -103,7 +103,7 @@ def test_shadow_shares_follow_the_networks_lever_in_training_only(monkeypatch):
         "products_dtype",
         lambda device, work, real=visibility.products_dtype: seen.append(real(device, work)) or seen[-1],
     )
-    monkeypatch.setattr(cli, "bf16_support", lambda device: (True, "bfloat16 in this test"))
+    monkeypatch.setattr(policy, "bf16_support", lambda device: (True, "bfloat16 in this test"))
     f = StyleField(OptimizeSettings(width=16, light_lobes=4).field_settings())
     pts, nrm = _extreme_inputs()
     mat, n = f.surface(pts, nrm)

@@ -66,20 +66,20 @@ def test_pruning_carries_the_optimiser_moments(cache):
     light = opt.field.light
     with torch.no_grad():
         light.log_energy[[1, 4, 6]] += math.log(1e-4)
-    before = {name: {k: v.clone() for k, v in opt.opt.state[getattr(light, name)].items()} for name in LIGHT_PARAMETERS}
+    before = {name: {k: v.clone() for k, v in opt.adamw.state[getattr(light, name)].items()} for name in LIGHT_PARAMETERS}
     assert opt.prune_light() == 3
     assert opt.light_pruned == {"iteration": 2, "kept": 5, "dropped": 3} and light.lobes == 5
     kept = torch.tensor([0, 2, 3, 5, 7])
     for name, moments in before.items():
-        new = opt.opt.state[getattr(light, name)]
+        new = opt.adamw.state[getattr(light, name)]
         for k in ("exp_avg", "exp_avg_sq"):
             torch.testing.assert_close(new[k], moments[k][kept], rtol=0, atol=0, msg=f"{name} {k}")
         torch.testing.assert_close(new["step"], moments["step"])
     params = list(opt.field.parameters())
-    grouped = opt.opt.param_groups[0]["params"] + opt.opt.param_groups[1]["params"]
+    grouped = opt.adamw.param_groups[0]["params"] + opt.adamw.param_groups[1]["params"]
     assert all(any(p is q for q in grouped) for p in params)
     assert len(grouped) == len(params)
-    assert all(any(p is q for q in opt.opt.param_groups[1]["params"]) for p in light.parameters())
+    assert all(any(p is q for q in opt.adamw.param_groups[1]["params"]) for p in light.parameters())
     row = opt.step(Timer())
     assert row["light_lobes"] == 5 and torch.isfinite(torch.tensor(row["loss"]))
 

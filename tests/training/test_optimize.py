@@ -5,24 +5,25 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 
 import numpy as np
 import pytest
 import torch
-from conftest import THREADS
+from conftest import REPO, THREADS
 
 from stages import optimize
 from stages.config.layout import OPTIMIZE_FILES
-from stages.config.sections import SPECULAR_LOBES, NormalizeSettings, OptimizeSettings, RaycacheSettings, TargetSettings
-from stages.core.cli import bf16_support
+from stages.config.sections import SPECULAR_LOBES, OptimizeSettings
+from stages.core.device import bf16_support
 from stages.core.provenance import Timer
-from stages.geometry.meshio import save_ply
-from stages.geometry.normalization import normalize_mesh
 from stages.geometry.raycache import RayCache
 from stages.model.checkpoint import load_field
 from stages.model.field import StyleField
-from stages.raycache import run as raycache_run
 from stages.training.optimizer import Optimizer
+
+sys.path.insert(0, str(REPO / "benchmarks"))
+from protocols import MITSUBA_TARGET, fit_mitsuba, mitsuba_scene, recover_mitsuba, recover_sg  # noqa: E402
 
 TINY = dict(
     clip_tiny_test=True,
@@ -59,14 +60,14 @@ def test_a_non_finite_gradient_stops_the_step_before_it_reaches_the_parameters(c
     that reached them would spread to every later step and checkpoint."""
     opt = Optimizer(OptimizeSettings(iterations=3, **TINY), RayCache(cache / "train.npz"), "a vase", "cpu")
     opt.step(Timer())
-    before, state = params(opt.field), json.dumps(str(opt.opt.state_dict()["state"]))
+    before, state = params(opt.field), json.dumps(str(opt.adamw.state_dict()["state"]))
     hook = opt.field.light.log_sharpness.register_hook(lambda g: g.index_fill(0, torch.tensor([0]), float("nan")))
     with pytest.raises(FloatingPointError, match=r"step 2: the gradient of light\.log_sharpness is not finite"):
         opt.step(Timer())
     hook.remove()
     after = params(opt.field)
     assert all(torch.equal(before[k], after[k]) for k in before)
-    assert json.dumps(str(opt.opt.state_dict()["state"])) == state and opt.iteration == 1
+    assert json.dumps(str(opt.adamw.state_dict()["state"])) == state and opt.iteration == 1
     assert math.isfinite(opt.step(Timer())["loss"])  # the next step, with a finite gradient, runs
 
 
@@ -244,105 +245,11 @@ RECOVERY_MITSUBA_ALBEDO_RMSE = 0.32
 #: its PSNR held (21.8 to 22.1 dB) and the metal's rose by 4.7 dB (docs/measurements/light-brdf.md)
 RECOVERY_MITSUBA_ROUGHNESS_MAE = 0.36
 
-#: the Mitsuba targets of the recovery test and benchmark (fewer samples than the stage's default;
-#: no relit ground truth: these fits are graded under the training light)
-MITSUBA_TARGET = TargetSettings(spp=16, metric_spp=128, texture_size=512, relight_environments=())
-
-#: the fit both recovery helpers share (300 iterations, the sweep's base settings)
-RECOVERY = {
-    "iterations": 300,
-    "guidance": "image",
-    "lr": 5e-3,
-    "milestones": (180, 255),
-    "gamma": 0.3,
-    "width": 64,
-    "image_size": 96,
-    "crops": 0,
-    "views_per_step": 2,
-    "normal_network": False,
-    "material_frequencies": 6,
-    "light_lobes": 16,
-    "eval_width": 96,
-    "checkpoint_every": 1000,
-}
 #: the tests' shorter schedule of the same fit (150 iterations; the benchmark keeps 300): measured
 #: 2026-11-25 on the development machine: the representable SG case 34.27 dB (36.70 at 300), the
 #: unrepresentable light 30.32 dB (33.12 at 200), Mitsuba's vase 27.36 dB in float32 and 27.37 dB
 #: in bfloat16 networks, each fit 30-34 s instead of 60-70 s
 SHORT = {"iterations": 150, "milestones": (90, 128)}
-RECOVERY_CACHE = RaycacheSettings(
-    views=32,
-    resolution=96,
-    std=3.0,
-    eval_azimuths=8,
-    eval_elevations_deg=(-20.0, 10.0, 35.0),
-    eval_resolution=96,
-    metrics_resolution=96,
-)
-
-
-def mitsuba_scene(tmp_path, mesh: str = "builtin:vase", material: str = "wood", target=None) -> dict:
-    """The mesh's ray caches and Mitsuba's path-traced targets of ``material`` (the target stage
-    with ``target`` settings) in ``tmp_path``: what :func:`fit_mitsuba` fits and grades."""
-    from stages import target as target_stage
-
-    save_ply(tmp_path / "mesh.ply", normalize_mesh(mesh, NormalizeSettings()).mesh)
-    raycache_run(
-        tmp_path / "mesh.ply",
-        tmp_path / "train.npz",
-        tmp_path / "eval.npz",
-        tmp_path / "rc.json",
-        RECOVERY_CACHE,
-        tmp_path / "metrics.npz",
-    )
-    tdir = tmp_path / "target"
-    summary = target_stage.run(tmp_path / "train.npz", tmp_path / "metrics.npz", material, tdir, target or TargetSettings())
-    return {"dir": tmp_path, "material": material, "target": summary}
-
-
-def fit_mitsuba(scene: dict, name: str = "out", **overrides) -> dict:
-    """Fit ``scene``'s targets (:func:`mitsuba_scene`), then grade the field with the metrics stage
-    on the held-out metric views. Returns ``{"optimize": meta, "metrics": image_target figures,
-    "target": summary}``."""
-    from stages import metrics
-    from stages.config.sections import MetricsSettings
-
-    d, tdir = scene["dir"], scene["dir"] / "target"
-    settings = OptimizeSettings(**{**RECOVERY, "target_material": scene["material"], "target_renderer": "mitsuba", **overrides})
-    torch.set_num_threads(THREADS)  # this test worker's share of the cores
-    meta = optimize.run(d / "train.npz", d / "eval.npz", "", d / name, settings, "cpu", targets_path=tdir / "train.npz")
-    m = metrics.run(
-        d / name / "field.pt",
-        d / "metrics.npz",
-        "",
-        [""],
-        d / f"{name}-metrics",
-        MetricsSettings(clip=False),
-        "cpu",
-        tdir / "metrics.npz",
-    )
-    return {"optimize": meta, "metrics": m["image_target"], "target": scene["target"]}
-
-
-def recover_mitsuba(tmp_path, mesh: str = "builtin:vase", material: str = "wood", target=None, **overrides) -> dict:
-    """:func:`mitsuba_scene` and one :func:`fit_mitsuba` of it."""
-    return fit_mitsuba(mitsuba_scene(tmp_path, mesh, material, target), **overrides)
-
-
-def _recover(tmp_path, **overrides) -> dict:
-    """Fit the image targets of a procedural material under an SG light, rendered by our own SG
-    renderer, on the built-in vase (300 iterations, the sweep's base settings) and return the
-    optimisation's metadata."""
-    save_ply(tmp_path / "vase.ply", normalize_mesh("builtin:vase", NormalizeSettings()).mesh)
-    raycache_run(tmp_path / "vase.ply", tmp_path / "train.npz", tmp_path / "eval.npz", tmp_path / "rc.json", RECOVERY_CACHE)
-    settings = {
-        **RECOVERY,
-        "target_material": "wood",
-        "target_renderer": "sg",
-        **overrides,
-    }
-    torch.set_num_threads(THREADS)  # this test worker's share of the cores
-    return optimize.run(tmp_path / "train.npz", tmp_path / "eval.npz", "", tmp_path / "out", OptimizeSettings(**settings), "cpu")
 
 
 @pytest.mark.slow(minutes=1)
@@ -352,7 +259,7 @@ def test_image_target_recovery_representable_target(tmp_path):
     and the target is rendered by our own renderer. PSNR over object pixels of the held-out
     evaluation views only, after the tests' 150 iterations (:data:`SHORT`; measured 2026-11-25:
     34.27 dB, 45 s on an idle 2-core machine)."""
-    meta = _recover(tmp_path, **SHORT)
+    meta = recover_sg(tmp_path, threads=THREADS, **SHORT)
     assert meta["eval_psnr_db"] >= 32.0
     assert meta["eval_psnr_pixels"].startswith("object pixels")
     assert meta["weights"].startswith("image targets") and meta["origin"]["image_guided"]
@@ -365,7 +272,7 @@ def test_image_target_recovery_unrepresentable_light(tmp_path):
     sky and a ground: 97 lobes) against a model of 16 lobes, with the normal network on (free to
     tilt the normals away from the target's flat ones). Object pixels only, after the tests' 150
     iterations (measured 2026-11-25: 30.32 dB, 4 dB below the representable case, 52 s)."""
-    meta = _recover(tmp_path, target_light="sky", normal_network=True, **SHORT)
+    meta = recover_sg(tmp_path, threads=THREADS, target_light="sky", normal_network=True, **SHORT)
     assert meta["eval_psnr_db"] >= 28.0
     assert "under the sky SG light" in meta["origin"]["weights"]
 
@@ -386,9 +293,9 @@ def test_image_target_recovery_on_mitsuba_ground_truth(tmp_path):
     native bfloat16 the second fit is the float32 one again and only the first is checked (auto runs
     float32 there)."""
     scene = mitsuba_scene(tmp_path, target=MITSUBA_TARGET)
-    runs = {"float32": fit_mitsuba(scene, "fp32", normal_network=True, bf16_networks="off", **SHORT)}
+    runs = {"float32": fit_mitsuba(scene, "fp32", threads=THREADS, normal_network=True, bf16_networks="off", **SHORT)}
     if bf16_support(torch.device("cpu"))[0]:
-        runs["bfloat16"] = fit_mitsuba(scene, "bf16", normal_network=True, bf16_networks="on", **SHORT)
+        runs["bfloat16"] = fit_mitsuba(scene, "bf16", threads=THREADS, normal_network=True, bf16_networks="on", **SHORT)
         assert runs["bfloat16"]["optimize"]["network_precision"].startswith("bfloat16 autocast")
     for r in runs.values():
         it = r["metrics"]
@@ -413,7 +320,9 @@ def test_metal_recovers_its_highlight_on_mitsuba_ground_truth(tmp_path):
     0.8 on average. Measured 2026-11-24 with these settings: 0.89 with the light's defaults
     (light_init tango, light_lr 0.02; 20.9 dB), 0.51 at the networks' rate from broad lobes (the
     light as it was: every lobe ended near sharpness 2; 16.1 dB)."""
-    r = recover_mitsuba(tmp_path, mesh="builtin:candle", material="metal", target=MITSUBA_TARGET, normal_network=True)
+    r = recover_mitsuba(
+        tmp_path, mesh="builtin:candle", material="metal", target=MITSUBA_TARGET, threads=THREADS, normal_network=True
+    )
     h = r["metrics"]["highlights"]
     assert h["target"] > 0.95
     assert h["recovered_at_target"] >= 0.8, h

@@ -12,7 +12,7 @@ import yaml
 from conftest import REPO, SMOKE, assert_not_blank, browser_check, job_counts, mesh_work_dir, run_snakemake, smoke_run
 
 from stages.config.workflow import WorkflowConfig, load_config_file
-from stages.core.cli import bf16_choice
+from stages.core.device import bf16_choice
 from stages.geometry.raycache import RayCache
 
 #: the smoke grid's meshes (the knot decimated), prompts (wood with levels of detail) and variants
