@@ -48,13 +48,11 @@ def levels_of(work: Path, name: str, args) -> list[dict]:
     export.run(work / "mesh.ply", work / "transform.json", work / "bake", preview, work / "export", ExportSettings())
     settings = LodSettings(enabled=True, texture_size=args.texture_size, **({"levels": args.levels} if args.levels else {}))
     t0 = time.perf_counter()
+    files = lod.CellFiles(
+        work / "mesh.ply", field, work / "eval.npz", work / "transform.json", work / "bake", work / "export" / "meta.json"
+    )
     stats = lod.run(
-        work / "mesh.ply",
-        field,
-        work / "eval.npz",
-        work / "transform.json",
-        work / "bake",
-        work / "export" / "meta.json",
+        files,
         work / "lod",
         settings,
         BakeSettings(),

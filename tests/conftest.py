@@ -373,12 +373,9 @@ def run_lod(cell: Path, out: Path, settings, bake=None):
 
     d = cell
     return lod.run(
-        d / "mesh.ply",
-        d / "opt" / "field.pt",
-        d / "eval.npz",
-        d / "transform.json",
-        d / "bake",
-        d / "export" / "meta.json",
+        lod.CellFiles(
+            d / "mesh.ply", d / "opt" / "field.pt", d / "eval.npz", d / "transform.json", d / "bake", d / "export" / "meta.json"
+        ),
         out,
         settings,
         bake or BakeSettings(texture_size=256, eval_width=48),

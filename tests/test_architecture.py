@@ -137,7 +137,6 @@ MAX_FUNCTION_LINES, MAX_PARAMETERS = 100, 10
 TOO_LONG_STILL = {
     "stages/assets/formats.py:write_glb",
     "stages/geometry/decimation.py:decimate_mesh",
-    "stages/lod.py:run",
     "stages/optimize.py:run",
     "stages/quick.py:run",
     "stages/raycache.py:run",
