@@ -14,6 +14,7 @@ front evaluation view: the neural render, then lod0, lod1, ...
 
 from __future__ import annotations
 
+import json
 import logging
 import shutil
 from dataclasses import dataclass
@@ -35,7 +36,7 @@ from .assets.levels import (
 from .config.layout import TEXTURE_FILES
 from .config.sections import BakeSettings, DecimateSettings, ExportSettings, LodSettings
 from .core.cli import stage_main
-from .core.errors import StageInputError
+from .core.errors import ConfigError, StageInputError
 from .core.provenance import ORIGIN_KEY, Timer, metadata, read_origin, staged_outputs, write_json_atomic
 from .core.safefiles import read_json_record
 from .geometry.meshio import load_ply
@@ -187,6 +188,19 @@ def _remove_old_levels(out_dir: Path, keep: set[str]) -> None:
             shutil.rmtree(old)
 
 
+#: the sections ``--settings`` holds, and their classes
+SETTINGS_SECTIONS = {"lod": LodSettings, "bake": BakeSettings, "export": ExportSettings, "decimate": DecimateSettings}
+
+
+def parse_settings(text: str) -> dict:
+    """``--settings``: one JSON object with the lod, bake, export and decimate settings (each
+    section optional: its defaults), as settings objects."""
+    data = json.loads(text or "{}")
+    if not isinstance(data, dict) or set(data) - set(SETTINGS_SECTIONS):
+        raise ConfigError(f"lod --settings must be a JSON object of the sections {', '.join(SETTINGS_SECTIONS)}")
+    return {name: cls.from_dict(data.get(name)) for name, cls in SETTINGS_SECTIONS.items()}
+
+
 def main(argv: list[str] | None = None) -> int:
     def arguments(parser):
         parser.add_argument("--mesh", required=True, type=Path, help="the traced mesh (.ply) the field was trained on")
@@ -197,22 +211,16 @@ def main(argv: list[str] | None = None) -> int:
         parser.add_argument("--export-meta", required=True, type=Path, help="the export stage's meta.json (lod0's files)")
         parser.add_argument("--out-dir", required=True, type=Path)
         parser.add_argument("--name", default="model")
-        parser.add_argument("--settings", default="{}", help="JSON of the lod settings")
-        parser.add_argument("--bake-settings", default="{}", help="JSON of the bake settings (padding, dilation)")
-        parser.add_argument("--export-settings", default="{}", help="JSON of the export settings (units, weld)")
-        parser.add_argument("--decimate-settings", default="{}", help="JSON of the mesh's decimate settings (welding, sampling)")
+        parser.add_argument(
+            "--settings",
+            default="{}",
+            help="JSON: {lod: ..., bake: ..., export: ..., decimate: ...} (the mesh's decimate settings)",
+        )
 
     def body(args):
-        run(
-            CellFiles(args.mesh, args.field, args.eval, args.transform, args.bake_dir, args.export_meta),
-            args.out_dir,
-            LodSettings.from_json(args.settings),
-            BakeSettings.from_json(args.bake_settings),
-            ExportSettings.from_json(args.export_settings),
-            args.name,
-            args.device,
-            DecimateSettings.from_json(args.decimate_settings),
-        )
+        s = parse_settings(args.settings)
+        files = CellFiles(args.mesh, args.field, args.eval, args.transform, args.bake_dir, args.export_meta)
+        run(files, args.out_dir, s["lod"], s["bake"], s["export"], args.name, args.device, s["decimate"])
 
     return stage_main("lod", __doc__, arguments, body, argv, device="cpu")
 

@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from PIL import Image
 
-from ..config.layout import TEXTURE_FILES
+from ..config.layout import LOD_FILES, TEXTURE_FILES
 from ..config.sections import BakeSettings, DecimateSettings, ExportSettings, LodSettings
 from ..core.provenance import ORIGIN_KEY, Timer, atomic_path, metadata, write_json_atomic
 from ..core.safefiles import require_plain_file
@@ -42,7 +42,7 @@ from .formats import Level, export_mesh, package_usdz, validate_glb, validate_us
 log = logging.getLogger(__name__)
 
 #: files of the combined asset, in the stage's folder
-COMBINED = ("model_lods.usda", "model_lods.usdz", "model_lods.glb")
+COMBINED = tuple(LOD_FILES[k] for k in ("usda", "usdz", "glb"))
 #: what the metadata keeps of each validator's report
 VALIDATION_KEYS = ("ran", "reason", "validators", "validator", "errors", "warnings", "infos", "messages")
 #: the files each decimated level's folder holds besides its textures

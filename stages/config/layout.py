@@ -18,3 +18,12 @@ OPTIMIZE_FILES = {
 #: the baked texture maps (``textures/<name>.png`` in the bake and export folders)
 TEXTURES = ("basecolor", "metallic_roughness", "specular", "normal")
 TEXTURE_FILES = {k: f"textures/{k}.png" for k in TEXTURES}
+
+#: the lod stage's outputs (the combined asset, the figure and the metadata), relative to its folder
+LOD_FILES = {
+    "usda": "model_lods.usda",
+    "usdz": "model_lods.usdz",
+    "glb": "model_lods.glb",
+    "figure": "levels.png",
+    "meta": "meta.json",
+}

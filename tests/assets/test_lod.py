@@ -259,3 +259,15 @@ def test_lod_stage_refuses_levels_below_min_faces(trained_cell, tmp_path):
     with pytest.raises(StageInputError, match="min_faces"):
         run_lod(trained_cell, tmp_path / "lod", LodSettings(levels=(0.5, 1e-4)), BakeSettings(texture_size=64))
     assert not (tmp_path / "lod" / "meta.json").exists()
+
+
+def test_the_stage_reads_its_four_sections_from_one_settings_json():
+    from stages.lod import parse_settings
+
+    s = parse_settings('{"lod": {"levels": [0.25]}, "decimate": {"weld": false}}')
+    assert s["lod"].levels == (0.25,) and s["decimate"].weld is False
+    assert s["bake"] == BakeSettings() and s["export"].units == "original"
+    with pytest.raises(ConfigError, match="sections lod, bake, export, decimate"):
+        parse_settings('{"lods": {}}')
+    with pytest.raises(ConfigError, match=r"lod\.levels"):
+        parse_settings('{"lod": {"levels": [1.5]}}')

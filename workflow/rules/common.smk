@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 
 from stages.config.code import code_digest
-from stages.config.layout import OPTIMIZE_FILES, TEXTURES
+from stages.config.layout import LOD_FILES, OPTIMIZE_FILES, TEXTURES
 from stages.config.sections import MATERIALS
 from stages.config.workflow import MESH_WORK, WorkflowConfig, experiment_name, read_yaml
 from stages.core.errors import ConfigError
@@ -409,6 +409,21 @@ def lod_inputs(wildcards):
         "atlas": f"{cell}/bake/atlas.npz",
         "export_meta": f"{cell}/export/meta.json",
     }
+
+
+def lod_outputs():
+    return {key: f"{CELL}/lod/{name}" for key, name in LOD_FILES.items()}
+
+
+def lod_settings_json(wildcards):
+    """Params function of lod: the settings it reads, one JSON object per section (the cell's
+    lod, bake and export settings, the mesh's decimate settings)."""
+    sections = {
+        stage: CFG.cell_stage_settings(stage, wildcards.prompt, wildcards.variant)
+        for stage in ("lod", "bake", "export")
+    }
+    sections["decimate"] = CFG.stage_settings(wildcards.mesh, "decimate")
+    return json.dumps({k: s.to_dict() for k, s in sections.items()}, sort_keys=True)
 
 
 def lod_metas():

@@ -2,11 +2,7 @@ rule lod:
     input:
         unpack(lod_inputs),
     output:
-        usda=f"{CELL}/lod/model_lods.usda",
-        usdz=f"{CELL}/lod/model_lods.usdz",
-        glb=f"{CELL}/lod/model_lods.glb",
-        figure=f"{CELL}/lod/levels.png",
-        meta=f"{CELL}/lod/meta.json",
+        **lod_outputs(),
     log:
         f"{CELL}/logs/lod.log",
     benchmark:
@@ -22,14 +18,9 @@ rule lod:
         bake_dir=cell_dir("bake"),
         out_dir=cell_dir("lod"),
         name=asset_name,
-        settings=cell_settings_json("lod"),
-        bake_settings=cell_settings_json("bake"),
-        export_settings=cell_settings_json("export"),
-        decimate_settings=stage_settings_json("decimate"),
+        settings=lod_settings_json,
     shell:
         "python -m stages.lod --mesh {input.mesh:q} --field {input.field:q} --eval {input.eval:q} "
         "--transform {input.transform:q} --bake-dir {params.bake_dir:q} --export-meta {input.export_meta:q} "
         "--out-dir {params.out_dir:q} --name {params.name:q} --settings {params.settings:q} "
-        "--bake-settings {params.bake_settings:q} --export-settings {params.export_settings:q} "
-        "--decimate-settings {params.decimate_settings:q} "
         "--threads {threads} --device {params.device} 2> {log:q}"
