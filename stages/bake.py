@@ -19,6 +19,7 @@ import numpy as np
 import torch
 
 from .assets.baking import bake_field, decode_textures, occlusion_decision, occlusion_samples, render_baked_views
+from .config.records import BakeRecord
 from .config.sections import BakeSettings
 from .core.cli import stage_main
 from .core.errors import StageInputError
@@ -89,7 +90,7 @@ def run(
             img = compose(preds[front][torch.from_numpy(needed)], lookup, spec, bg)
             save_png(staging / "preview.png", to_u8(img.permute(1, 2, 0).cpu().numpy()))
         stats = {
-            "texture_size": res.atlas.size,
+            **BakeRecord(texture_size=res.atlas.size, bake_psnr_db=bake_psnr).stats(),
             "charts": res.atlas.charts,
             "atlas_utilization": res.atlas.utilization,
             "texel_coverage": res.coverage,
@@ -98,7 +99,6 @@ def run(
             "brdf": field.brdf,
             # the ambient occlusion map in metallic_roughness.png's red channel (bake.occlusion)
             "occlusion": {**occlusion, **(ao.summary() if ao is not None else {})},
-            "bake_psnr_db": bake_psnr,
             "bake_psnr_pixels": "object pixels of the evaluation views, sRGB, baked textures vs neural field",
         }
         log.info(

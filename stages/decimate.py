@@ -14,6 +14,7 @@ import json
 import logging
 from pathlib import Path
 
+from .config.records import DecimateRecord
 from .config.sections import DecimateSettings, RaycacheSettings
 from .core.cli import stage_main
 from .core.errors import StageInputError
@@ -88,7 +89,15 @@ def run(
             outputs={"mesh": out_mesh},
             timings={**timer.seconds, "total": timer.total()},
             extra={
-                "stats": s,
+                "stats": {
+                    **s,
+                    **DecimateRecord(
+                        faces_after=s["faces_after"],
+                        target_faces=s.get("target_faces"),
+                        target_reached=s.get("target_reached"),
+                        target_shortfall_reason=s.get("target_shortfall_reason"),
+                    ).stats(),
+                },
                 "face_budget": budget.to_dict() if budget else None,
                 "frame": "same as the input (normalised mesh); reuse its transform",
             },

@@ -16,6 +16,7 @@ from PIL import Image
 
 from .assets.formats import export_mesh, read_atlas, write_model_files
 from .config.layout import TEXTURE_FILES
+from .config.records import ExportRecord
 from .config.sections import ExportSettings
 from .core.cli import stage_main
 from .core.errors import StageInputError
@@ -78,12 +79,14 @@ def run(
             "brdf": brdf,
             "occlusion": occlusion,
             "usd_validation": usd,
-            "usd_validators": usd[0]["validators"],
-            "usd_validation_errors": sum(r["errors"] for r in usd),
-            "usd_validation_warnings": sum(r["warnings"] for r in usd),
             "gltf_validation": gltf,
-            "gltf_validation_errors": gltf.get("errors"),
-            "gltf_validation_warnings": gltf.get("warnings"),
+            **ExportRecord(
+                usd_validators=usd[0]["validators"],
+                usd_validation_errors=sum(r["errors"] for r in usd),
+                usd_validation_warnings=sum(r["warnings"] for r in usd),
+                gltf_validation_errors=gltf.get("errors"),
+                gltf_validation_warnings=gltf.get("warnings"),
+            ).stats(),
             "bounds": [geom.positions.min(0).tolist(), geom.positions.max(0).tolist()],
         }
         write_json_atomic(

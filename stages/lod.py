@@ -34,6 +34,7 @@ from .assets.levels import (
     write_combined,
 )
 from .config.layout import TEXTURE_FILES
+from .config.records import LodRecord
 from .config.sections import BakeSettings, DecimateSettings, ExportSettings, LodSettings
 from .core.cli import stage_main
 from .core.errors import ConfigError, StageInputError
@@ -111,7 +112,7 @@ def _stats(records: list[LevelRecord], coverage: list[float], checked: dict, sta
     """The stage's statistics: one row per level, the combined files and every validator's report."""
     rows = [r.row() for r in records]
     return {
-        "levels": rows,
+        **LodRecord(levels=rows).stats(),
         "screen_coverage": coverage,
         "combined_file_bytes": {f: (staging / f).stat().st_size for f in COMBINED},
         "validation": {

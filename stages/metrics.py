@@ -26,6 +26,7 @@ from pathlib import Path
 
 import torch
 
+from .config.records import MetricsRecord
 from .config.sections import MetricsSettings
 from .core.cli import stage_main
 from .core.errors import StageInputError
@@ -120,7 +121,8 @@ def run(
                 else:
                     result["image_target"]["target_light"] = opt_settings.target_light
                 save_png(staging / "targets.png", contact_sheet(list(t), len(store.azimuths())))
-        write_json_atomic(staging / "metrics.json", result)
+        record = MetricsRecord(result.get("guidance"), result.get("evaluation"), result.get("image_target"))
+        write_json_atomic(staging / "metrics.json", {**result, **record.stats()})
         write_json_atomic(
             staging / "meta.json",
             metadata(

@@ -8,6 +8,7 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
+from .config.records import NormalizeRecord
 from .config.sections import NormalizeSettings
 from .core.cli import stage_main
 from .core.provenance import Timer, atomic_path, metadata, write_json_atomic
@@ -43,7 +44,7 @@ def run(source: str, out_mesh: Path, out_transform: Path, out_meta: Path, settin
             inputs=inputs,
             outputs={"mesh": out_mesh, "transform": out_transform},
             timings=timings,
-            extra={"stats": result.stats},
+            extra={"stats": {**result.stats, **NormalizeRecord(faces=result.stats["faces"]).stats()}},
         ),
     )
 

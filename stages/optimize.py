@@ -20,6 +20,7 @@ import numpy as np
 import torch
 
 from .config.layout import OPTIMIZE_FILES, RENDER_KINDS
+from .config.records import OptimizeRecord
 from .config.sections import OptimizeSettings
 from .core.cli import stage_main
 from .core.device import resolve_device
@@ -109,6 +110,15 @@ def run(
             result = _write_outputs(run, eval_path, staging, settings, prompt)
         timings = {**timer.seconds, "loop": loop_s, "total": timer.total()}
         iters_here = max(done_here, 1)
+        record = OptimizeRecord(
+            prompt=prompt,
+            guidance=settings.guidance,
+            weights=run.guidance.weights_id,
+            test_only_weights=run.guidance.test_only,
+            settings=settings.to_dict(),
+            final_similarity=result.get("final_similarity"),
+            eval_psnr_db=result.get("eval_psnr_db"),
+        )
         meta = metadata(
             stage="optimize",
             settings=settings.to_dict(),
@@ -122,11 +132,8 @@ def run(
             outputs={k: out_dir / v for k, v in OPTIMIZE_FILES.items()},
             timings=timings,
             extra={
-                "prompt": prompt,
+                **record.stats(),
                 "device": str(dev),
-                "guidance": settings.guidance,
-                "weights": run.guidance.weights_id,
-                "test_only_weights": run.guidance.test_only,
                 "clip_precision": run.guidance.clip_precision,
                 "clip_tower": run.guidance.clip_tower,
                 "network_precision": run.network_precision,

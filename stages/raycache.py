@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .config.records import RaycacheRecord
 from .config.sections import RaycacheSettings
 from .core.cli import stage_main
 from .core.errors import StageInputError
@@ -136,7 +137,7 @@ def run(
                 "stats": summary,
                 "bytes_per_hit": BYTES_PER_HIT,
                 "anchor": anchor_record(settings),
-                "self_occlusion": occlusion,
+                **RaycacheRecord(self_occlusion=occlusion).stats(),
                 "visibility": decision,
             },
         ),

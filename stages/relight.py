@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from .config.records import RelightRecord
 from .config.sections import RelightSettings
 from .core.cli import stage_main
 from .core.errors import StageInputError
@@ -129,7 +130,7 @@ def run(
                     g.get("ceiling_psnr_db", float("nan")),
                 )
         stats = {
-            "ground_truth": ground_truth,
+            **RelightRecord(ground_truth=ground_truth).stats(),
             "envmap": settings.envmap,
             "sg_fit_relative_rms": rel_err,
             "mean_relit": float(torch.stack(views).mean()),

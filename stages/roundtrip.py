@@ -21,6 +21,7 @@ import numpy as np
 import torch
 
 from .assets.formats import export_mesh, read_atlas
+from .config.records import RoundtripRecord
 from .config.sections import RoundtripSettings
 from .core.cli import stage_main
 from .core.errors import StageInputError
@@ -209,11 +210,17 @@ def run(
     stats = {
         "views": views,
         "width": cache.width,
-        "transport": settings.transport,
         "spp": settings.spp,
         **{f"{fmt}_psnr_db": r["psnr_db"] for fmt, r in results.items()},
         **{f"glb_{k}": v for k, v in split.items()},
-        "problems": sum(len(r["import"]["problems"]) for r in results.values()),
+        **RoundtripRecord(
+            problems=sum(len(r["import"]["problems"]) for r in results.values()),
+            transport=settings.transport,
+            glb_psnr_db=results["glb"]["psnr_db"] if "glb" in results else None,
+            usdz_psnr_db=results["usdz"]["psnr_db"] if "usdz" in results else None,
+            glb_diffuse_psnr_db=split.get("diffuse_psnr_db"),
+            glb_lobes_summed_psnr_db=split.get("lobes_summed_psnr_db"),
+        ).stats(),
         "pixels": "fully covered object pixels of the evaluation views, sRGB; Cycles render of the imported asset "
         "vs our render of the trained field",
     }

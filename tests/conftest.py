@@ -112,6 +112,18 @@ def pytest_collection_modifyitems(config, items) -> None:
         items[:] = _spread(items, WORKERS)
 
 
+@pytest.fixture(autouse=True)
+def _numpy_error_state_restored():
+    """A test that changes numpy's error state (``np.seterr``) must restore it: a changed state
+    leaks into every later test on the worker (an underflow that raises far from its cause)."""
+    before = np.geterr()
+    yield
+    after = np.geterr()
+    if after != before:
+        np.seterr(**before)
+        pytest.fail(f"this test left numpy's error state changed: {before} -> {after}")
+
+
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(12345)

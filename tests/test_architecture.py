@@ -143,7 +143,6 @@ TOO_LONG_STILL = {
     "stages/reference/limits.py:fit_light_to_image",
     "stages/reference/limits.py:measure_limits",
     "stages/render/shading.py:_fitted_part",
-    "stages/results/summary.py:summary_rows",
     "stages/roundtrip.py:run",
     "stages/target.py:run",
 }

@@ -25,7 +25,6 @@ test-only random CLIP or fitted to image targets, a banner at the top says so fi
 from __future__ import annotations
 
 import base64
-import html
 import json
 import logging
 import os
@@ -35,6 +34,8 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pandas as pd
+from jinja2 import Environment, FileSystemLoader, StrictUndefined
+from markupsafe import Markup
 
 from ..config.layout import RENDER_KINDS
 from ..core.errors import StageInputError
@@ -71,16 +72,21 @@ CELL_FILES = (
     ("metrics", "targets.png", "metric_targets.png"),
     ("roundtrip", "compare.png", "roundtrip_compare.png"),
 )
-#: the pages' style sheet and scripts (read when a report is written)
+#: the pages' style sheet, scripts and templates (read when a report is written)
 WEB = Path(__file__).resolve().parent / "web"
+TEMPLATES = WEB / "templates"
 #: a texture map's name as the export writes it (``textures/<name>.png``); other files found there are not shown
 TEXTURE_NAME = re.compile(r"[A-Za-z0-9_-]{1,64}")
 MIME = {".png": "image/png", ".glb": "model/gltf-binary", ".hdr": "image/vnd.radiance"}
 
 
 # ---- shared pieces ---------------------------------------------------------------------------
-def esc(x) -> str:
-    return html.escape(str(x), quote=True)
+def templates() -> Environment:
+    """The report's templates, with every value escaped unless Python marked it safe (:class:`Markup`:
+    only the style sheet, our scripts and pandas' escaped tables)."""
+    return Environment(
+        loader=FileSystemLoader(TEMPLATES), autoescape=True, undefined=StrictUndefined, keep_trailing_newline=False
+    )
 
 
 def data_uri(path: Path, mime: str | None = None) -> str:
@@ -88,8 +94,9 @@ def data_uri(path: Path, mime: str | None = None) -> str:
     return f"data:{mime};base64," + base64.b64encode(Path(path).read_bytes()).decode("ascii")
 
 
-def table(frame: pd.DataFrame) -> str:
-    return frame.to_html(index=False, float_format=lambda x: f"{x:.4g}", na_rep="", border=0, escape=True)
+def table(frame: pd.DataFrame) -> Markup:
+    """A data frame as an HTML table, its values escaped by pandas."""
+    return Markup(frame.to_html(index=False, float_format=lambda x: f"{x:.4g}", na_rep="", border=0, escape=True))
 
 
 def group_rows(frame: pd.DataFrame) -> list[tuple[str, pd.DataFrame]]:
@@ -110,7 +117,7 @@ def group_rows(frame: pd.DataFrame) -> list[tuple[str, pd.DataFrame]]:
     return [(t, f) for t, f in groups if len(f)]
 
 
-def origin_banner(frame: pd.DataFrame) -> str:
+def origin_banner(frame: pd.DataFrame) -> list[str]:
     """A page's first lines when any of its cells is not a real CLIP stylisation."""
     out = []
     n = len(frame)
@@ -118,23 +125,23 @@ def origin_banner(frame: pd.DataFrame) -> str:
     image = int((frame["image_guided"].astype(bool) & ~frame["test_only_weights"].astype(bool)).sum()) if n else 0
     if test:
         out.append(
-            f"<p class='banner note'>TEST ONLY: {test} of {n} cells were made with a tiny CLIP with random weights "
-            "(a test model). Their renders and assets are not real stylisations of their prompts.</p>"
+            f"TEST ONLY: {test} of {n} cells were made with a tiny CLIP with random weights "
+            "(a test model). Their renders and assets are not real stylisations of their prompts."
         )
     if image:
         out.append(
-            f"<p class='banner note'>IMAGE-GUIDED: {image} of {n} cells were fitted to renders of procedural target "
-            "materials (a verification run without CLIP), not stylised from their prompts.</p>"
+            f"IMAGE-GUIDED: {image} of {n} cells were fitted to renders of procedural target "
+            "materials (a verification run without CLIP), not stylised from their prompts."
         )
     if "decimation_target_reached" in frame:
         short = frame[frame["decimation_target_reached"].astype(str).str.lower() == "false"].drop_duplicates("mesh")
         for _, r in short.iterrows():
             out.append(
-                f"<p class='banner note'>DECIMATION SHORT OF TARGET: mesh {esc(r['mesh'])} has "
+                f"DECIMATION SHORT OF TARGET: mesh {r['mesh']} has "
                 f"{int(r['faces_after'])} faces for a target of {int(r['decimation_target'])}: "
-                f"{esc(r['decimation_shortfall'])}. Its robustness comparison is not at the intended level.</p>"
+                f"{r['decimation_shortfall']}. Its robustness comparison is not at the intended level."
             )
-    return "".join(out)
+    return out
 
 
 def _figure(row, column: str) -> float | None:
@@ -143,7 +150,7 @@ def _figure(row, column: str) -> float | None:
     return float(row[column].iloc[0])
 
 
-def fidelity_lines(row) -> str:
+def fidelity_lines(row) -> list[str]:
     """The cell's recovery (image targets, held-out views) and Blender round-trip figures."""
     lines = []
     psnr, ssim = _figure(row, "target_psnr_db"), _figure(row, "target_ssim")
@@ -194,7 +201,7 @@ def fidelity_lines(row) -> str:
         )
         parts = [f"lod{k} {int(f):,} faces, {int(b) / 1e6:.2f} MB GLB, {q} dB" for k, (f, b, q) in enumerate(levels)]
         lines.append("levels of detail (baked render vs the full neural render, object pixels): " + "; ".join(parts))
-    return "".join(f"<br><small class='fidelity'>{esc(t)}</small>" for t in lines)
+    return lines
 
 
 def cell_key(cell: tuple[str, str, str]) -> str:
@@ -214,79 +221,60 @@ def cell_files(results: Path, cell: tuple[str, str, str]) -> dict[str, Path]:
     return found
 
 
-def _cell_value(row: pd.Series, column: str) -> tuple[str, str]:
-    """(shown text, sort value) of one index cell."""
+def _cell_value(row: pd.Series, column: str) -> dict:
+    """One index cell: the text shown (and a ``small`` note after it), its sort value, and whether
+    it is text (left-aligned)."""
+    text = column in ("prompt_text", "weights")
     if column == "quality":
         q, name = quality_of(row)
-        return ("", "") if q is None else (f"{q:.4g} <small>{esc(name)}</small>", f"{q:.9g}")
+        return (
+            {"shown": "", "small": "", "sort": "", "text": text}
+            if q is None
+            else {"shown": f"{q:.4g}", "small": name, "sort": f"{q:.9g}", "text": text}
+        )
     value = row.get(column)
     if value is None or (isinstance(value, float) and value != value):
-        return "", ""
+        return {"shown": "", "small": "", "sort": "", "text": text}
     if isinstance(value, float):
-        return f"{value:.4g}", f"{value:.9g}"
-    return esc(value), esc(value)
+        return {"shown": f"{value:.4g}", "small": "", "sort": f"{value:.9g}", "text": text}
+    return {"shown": str(value), "small": "", "sort": str(value), "text": text}
 
 
-def index_table(frame: pd.DataFrame, link: Callable[[tuple], str], thumb: Callable[[tuple], str | None]) -> str:
+def index_tables(frame: pd.DataFrame, link: Callable[[tuple], str], thumb: Callable[[tuple], str | None]) -> list[dict]:
     """The filterable, sortable cell tables (one per origin kind: they never share a table)."""
-    out = []
+    tables = []
     for title, sub in group_rows(frame):
-        cls = " class='note'" if title.startswith("TEST ONLY") else ""
-        out.append(f"<h3{cls}>{esc(title)}</h3><table class='cells'><thead><tr><th>preview</th><th>cell</th>")
-        out.extend(f"<th>{esc(label)}</th>" for _, label in INDEX_COLUMNS)
-        out.append("</tr></thead><tbody>")
+        rows = []
         for _, r in sub.iterrows():
             cell = (str(r["mesh"]), str(r["prompt"]), str(r["variant"]))
             text = " ".join([*cell, str(r.get("prompt_text", "")), str(r.get("origin", ""))]).lower()
-            out.append(
-                f"<tr data-mesh='{esc(cell[0])}' data-prompt='{esc(cell[1])}' data-variant='{esc(cell[2])}' "
-                f"data-text='{esc(text)}'>"
+            values = [_cell_value(r, column) for column, _ in INDEX_COLUMNS]
+            rows.append(
+                {"cell": cell, "key": cell_key(cell), "text": text, "link": link(cell), "thumb": thumb(cell), "shown": values}
             )
-            src = thumb(cell)
-            img = f"<img loading='lazy' alt='' src='{esc(src)}'>" if src else ""
-            out.append(f"<td data-v=''><a href='{esc(link(cell))}'>{img}</a></td>")
-            out.append(f"<td class='text'><a href='{esc(link(cell))}'>{esc(cell_key(cell))}</a></td>")
-            for column, _ in INDEX_COLUMNS:
-                shown, value = _cell_value(r, column)
-                out.append(
-                    f"<td class='text' data-v='{value}'>{shown}</td>"
-                    if column in ("prompt_text", "weights")
-                    else f"<td data-v='{value}'>{shown}</td>"
-                )
-            out.append("</tr>")
-        out.append("</tbody></table>")
-    return "".join(out)
+        tables.append({"title": title, "note": title.startswith("TEST ONLY"), "rows": rows})
+    return tables
 
 
-def filters(frame: pd.DataFrame) -> str:
-    parts = ["<div class='filters'><label>filter <input id='filter' type='search' placeholder='words in any column'></label>"]
-    for key in ("mesh", "prompt", "variant"):
-        options = "".join(f"<option>{esc(v)}</option>" for v in dict.fromkeys(frame[key].astype(str)))
-        parts.append(f"<label>{key} <select data-key='{key}'><option value=''>all</option>{options}</select></label>")
-    parts.append(f"<span><b id='shown'>{len(frame)}</b> of {len(frame)} cells shown</span></div>")
-    return "".join(parts)
+def filter_options(frame: pd.DataFrame) -> list[tuple[str, list[str]]]:
+    """The index's filters: each id column's values, in the order they first appear."""
+    return [(key, list(dict.fromkeys(frame[key].astype(str)))) for key in ("mesh", "prompt", "variant")]
 
 
-def figures_section(report_dir: Path, url: Callable[[Path], str]) -> str:
-    """The figures listed in figures.json: each drawn one (lazy image, link to full size), or the
-    reason it is not drawn."""
-    entries = _figures_record(report_dir).get("figures", [])
-    out = ["<h2>Figures</h2>"]
-    overview = Path(report_dir) / "overview.png"
-    for e in entries:
-        out.append(f"<div class='figure'><h3>{esc(e.get('title', ''))}</h3>")
+def figure_entries(report_dir: Path, url: Callable[[Path], str]) -> list[dict]:
+    """The figures listed in figures.json: each drawn one's source, or the reason it is not drawn."""
+    entries = []
+    for e in _figures_record(report_dir).get("figures", []):
         figure = _figure_file(report_dir, e)
-        if figure is not None:
-            src = url(figure)
-            out.append(f"<a href='{esc(src)}'><img loading='lazy' alt='{esc(e.get('title', ''))}' src='{esc(src)}'></a>")
-            out.append(f"<p><small>{esc(e.get('caption', ''))}</small></p>")
-        else:
-            out.append(f"<p class='skipped'>Not drawn: {esc(e.get('skipped', 'the figure file is missing'))}.</p>")
-        out.append("</div>")
-    if plain_file(overview, report_dir):
-        out.append(f"<div class='figure'><h3>Overview</h3><a href='{esc(url(overview))}'>overview.png</a>: one row per cell")
-        out.append(" (RGB, diffuse, roughness, specular, normals of the front view).</div>")
-    return "".join(out)
+        entries.append(
+            {
+                "title": str(e.get("title", "")),
+                "src": None if figure is None else url(figure),
+                "caption": str(e.get("caption", "")),
+                "skipped": str(e.get("skipped", "the figure file is missing")),
+            }
+        )
+    return entries
 
 
 def _figures_record(report_dir: Path) -> dict:
@@ -315,18 +303,14 @@ def _figure_file(report_dir: Path, entry: dict) -> Path | None:
         return None
 
 
-def speed_accuracy_section(report_dir: Path) -> str:
+def speed_accuracy_table(report_dir: Path) -> dict | None:
+    """The speed/accuracy table (None where the report has none)."""
     sa = Path(report_dir) / "speed_accuracy.csv"
     try:
         frame = read_spreadsheet_csv(sa) if sa.is_file() else pd.DataFrame()
     except pd.errors.EmptyDataError:
         frame = pd.DataFrame()
-    if not len(frame):
-        return ""
-    return (
-        "<h2>Speed / accuracy</h2><details><summary>one row per configuration of each mesh x prompt "
-        f"({len(frame)} rows; seeds of one configuration averaged)</summary>{table(frame)}</details>"
-    )
+    return {"rows": len(frame), "table": table(frame)} if len(frame) else None
 
 
 def _groups(report_dir: Path) -> list[dict]:
@@ -365,117 +349,88 @@ def cell_anchor(cell: tuple[str, str, str]) -> str:
     return "cell-" + cell_key(cell)
 
 
-def cell_body(
+#: a cell's figures after its maps, renders and metrics: (file in the cell's folder, title)
+CELL_FIGURES = (
+    ("relit.png", "Relighting (evaluation views under a new environment)"),
+    ("light_fit.png", "The new environment and its SG fit"),
+    (
+        "relit_truth.png",
+        "Relit against the truth (held-out views; per light: our relit render | Mitsuba's render of the true material"
+        " | 4 x |difference|)",
+    ),
+    ("material_edit.png", "Material editing (rows: roughness x, columns: specular x)"),
+    ("metric_views.png", "Metric views"),
+    ("metric_targets.png", "Metric targets"),
+    ("roundtrip_compare.png", "Blender round trip, front view: ours | Cycles per format | 4 x |difference|"),
+)
+
+
+def cell_context(
     cell: tuple[str, str, str],
     row: pd.DataFrame,
     files: dict[str, Path],
     url: Callable[[str], str],
-    viewer: str,
+    viewer: dict,
     comparison: str,
-) -> str:
-    """A cell's content: heading, origin, what it is compared with (``comparison``), 3D viewer,
-    material maps, renders, loss curve, metrics, relighting and material editing. ``url(name)``
-    is how the page refers to the cell's file ``name``; ``viewer`` the viewer's HTML."""
-    out = [f"<h2 id='{esc(cell_anchor(cell))}'>{esc(cell_key(cell))}</h2>"]
-    if len(row):
-        r = row.iloc[0]
-        out.append(f"<p>{esc(r.get('prompt_text', ''))}</p>")
-        origin = str(r.get("origin", ""))
-        cls = " class='banner note'" if origin.startswith(("TEST ONLY", "IMAGE-GUIDED")) else ""
-        out.append(f"<p{cls}>{esc(origin)}</p>")
-    if comparison:
-        out.append(f"<p><small>{esc(comparison)}</small></p>")
-    out.append("<h3>3D viewer</h3>" + viewer)
-    if len(row):
-        out.append(fidelity_lines(row))
-    maps = [n for n in files if n.startswith("texture_")]
-    if maps:
-        out.append("<h3>Material maps</h3>" + gallery([(n, n.removeprefix("texture_").removesuffix(".png")) for n in maps], url))
-    renders = [n for n in files if n.startswith("render_")]
-    if renders:
-        out.append(
-            "<h3>Renders (evaluation views)</h3>"
-            + gallery([(n, n.removeprefix("render_").removesuffix(".png")) for n in renders], url)
-        )
-    if "loss.png" in files:
-        out.append(f"<h3>Loss</h3><img loading='lazy' alt='loss curve' src='{esc(url('loss.png'))}'>")
-    if len(row):
-        r = row.iloc[0]
-        kv = "".join(
-            f"<tr><td>{esc(k)}</td><td>{esc(f'{v:.6g}' if isinstance(v, float) else v)}</td></tr>"
-            for k, v in r.items()
-            if not (v is None or (isinstance(v, float) and v != v))
-        )
-        out.append(
-            "<h3>Metrics and provenance</h3><details><summary>all summary fields</summary>"
-            f"<table class='kv'>{kv}</table></details>"
-        )
-    for name, title in (
-        ("relit.png", "Relighting (evaluation views under a new environment)"),
-        ("light_fit.png", "The new environment and its SG fit"),
-        (
-            "relit_truth.png",
-            "Relit against the truth (held-out views; per light: our relit render | Mitsuba's render of the true material"
-            " | 4 x |difference|)",
-        ),
-        ("material_edit.png", "Material editing (rows: roughness x, columns: specular x)"),
-        ("metric_views.png", "Metric views"),
-        ("metric_targets.png", "Metric targets"),
-        ("roundtrip_compare.png", "Blender round trip, front view: ours | Cycles per format | 4 x |difference|"),
-    ):
-        if name in files:
-            out.append(f"<h3>{esc(title)}</h3><img loading='lazy' alt='{esc(title)}' src='{esc(url(name))}'>")
-    return "".join(out)
+) -> dict:
+    """What a cell's section shows: heading, origin, what it is compared with (``comparison``), 3D
+    ``viewer``, fidelity figures, material maps, renders, loss curve, every summary field and the
+    relighting and material-editing figures. ``url(name)``: how the page refers to the cell's file."""
+    r = row.iloc[0] if len(row) else None
+    origin = "" if r is None else str(r.get("origin", ""))
+
+    def shown(items):
+        return [{"src": url(name), "label": label} for name, label in items]
+
+    return {
+        "anchor": cell_anchor(cell),
+        "key": cell_key(cell),
+        "row": r is not None,
+        "prompt_text": "" if r is None else str(r.get("prompt_text", "")),
+        "origin": origin,
+        "origin_is_note": origin.startswith(("TEST ONLY", "IMAGE-GUIDED")),
+        "comparison": comparison,
+        "viewer": viewer,
+        "fidelity": fidelity_lines(row) if r is not None else [],
+        "maps": shown((n, n.removeprefix("texture_").removesuffix(".png")) for n in files if n.startswith("texture_")),
+        "renders": shown((n, n.removeprefix("render_").removesuffix(".png")) for n in files if n.startswith("render_")),
+        "loss": url("loss.png") if "loss.png" in files else None,
+        "fields": [] if r is None else _fields(r),
+        "figures": [{"title": title, "src": url(name)} for name, title in CELL_FIGURES if name in files],
+    }
 
 
-def gallery(items: list[tuple[str, str]], url: Callable[[str], str]) -> str:
-    """Clickable thumbnails over one large image (the first item shown)."""
-    picks = "".join(
-        f"<img loading='lazy' class='{'on' if i == 0 else ''}' alt='{esc(label)}' title='{esc(label)}' src='{esc(url(name))}'>"
-        for i, (name, label) in enumerate(items)
-    )
-    first, label = items[0]
-    return (
-        f"<div class='gallery'><div class='picks'>{picks}</div><div class='caption'>{esc(label)}</div>"
-        f"<img class='main' loading='lazy' alt='{esc(label)}' src='{esc(url(first))}'></div>"
-    )
+def _fields(r: pd.Series) -> list[tuple[str, str]]:
+    """Every summary field of a cell that has a value, as text."""
+    return [
+        (str(k), f"{v:.6g}" if isinstance(v, float) else str(v))
+        for k, v in r.items()
+        if not (v is None or (isinstance(v, float) and v != v))
+    ]
 
 
-def viewer_html(files: dict[str, Path], url: Callable[[str], str], have_viewer: bool, packed: str | None, label: str) -> str:
-    """The 3D viewer of a cell (model-viewer, started when it scrolls into view) with its light
-    toggle; without model-viewer or a model, the static preview and why."""
-    if not have_viewer or "model.glb" not in files:
-        if "preview.png" in files:
-            return f"<img class='preview viewer-img' alt='{esc(label)}' src='{esc(url('preview.png'))}'>"
-        return "<p class='skipped'>No exported model for this cell.</p>"
-    hdr = url("light.hdr") if "light.hdr" in files else ""
-    poster = f" poster='{esc(url('preview.png'))}'" if "preview.png" in files else ""
-    packed_attr = f" data-packed='{esc(packed)}'" if packed else ""
-    buttons = (
-        "<p><button data-light='learned'>learned light (light.hdr)</button> <button data-light='studio'>studio light</button></p>"
-        if hdr
-        else "<p><small>no learned light exported: a neutral studio light</small></p>"
-    )
-    return (
-        f"<div class='viewer'><model-viewer data-glb='{esc(url('model.glb'))}' data-hdr='{esc(hdr)}'{packed_attr}{poster} "
-        f"alt='{esc(label)}' camera-controls loading='lazy' reveal='auto' shadow-intensity='0.5' exposure='1' "
-        f"interaction-prompt='none'></model-viewer>{buttons}</div>"
-    )
+def viewer_context(files: dict[str, Path], url: Callable[[str], str], have_viewer: bool, packed: str | None, label: str) -> dict:
+    """A cell's 3D viewer (model-viewer, started when it scrolls into view) with its light toggle;
+    without model-viewer or a model (``model`` None), the static preview and why."""
+    model = url("model.glb") if have_viewer and "model.glb" in files else None
+    return {
+        "model": model,
+        "hdr": url("light.hdr") if model and "light.hdr" in files else "",
+        "packed": packed,
+        "preview": url("preview.png") if "preview.png" in files else None,
+        "label": label,
+    }
 
 
-def _head(title: str, extra: str = "") -> str:
-    style = (WEB / "report.css").read_text()
-    # an empty icon: a served report would otherwise ask the server for /favicon.ico
-    head = f"<meta charset='utf-8'><title>{esc(title)}</title><link rel='icon' href='data:,'><style>{style}</style>{extra}"
-    return f"<!doctype html><html><head>{head}</head><body>"
-
-
-def _no_viewer_notice() -> str:
-    return (
-        "<p class='banner' id='no-viewer'>3D viewers are off: model-viewer (an npm package) was not installed "
-        "when this report was made, so each asset shows its static preview. Install Node.js, run 'npm ci' and "
-        "rerun the report to get them.</p>"
-    )
+def _page_frame(title: str, **scripts) -> dict:
+    """The frame's context: the title, the style sheet (ours, inline) and the scripts."""
+    return {
+        "title": title,
+        "style": Markup((WEB / "report.css").read_text()),
+        "script_files": scripts.get("files", []),
+        "deferred_files": scripts.get("deferred", []),
+        "inline_head": [Markup(code) for code in scripts.get("inline", [])],
+    }
 
 
 def _place(src: Path, dst: Path) -> None:
@@ -511,7 +466,7 @@ def write_folder(
 ) -> dict:
     """Write ``index.html``, ``cells/`` and ``viewer/`` under ``report_dir`` (the summary and
     figures already there). ``thumbnail(cell)``: a PIL image. Returns counts and sizes."""
-    report_dir = Path(report_dir)
+    report_dir, env = Path(report_dir), templates()
     frame = read_summary(report_dir)
     have_viewer = Path(model_viewer).is_file()
     groups = _groups(report_dir)
@@ -539,20 +494,17 @@ def write_folder(
             packed = "assets.js"
             viewers += 1
         up = "../" * (len(cell) + 1)  # cells/<mesh>/<prompt>/<variant>/ back to the report folder
-        row = _row(frame, cell)
-        scripts = (f"<script src='{up}viewer/model-viewer.min.js'></script>" if have_viewer else "") + (
-            f"<script defer src='{up}viewer/cell.js'></script>"
+        row, label = _row(frame, cell), cell_key(cell)
+        scripts = {"files": [f"{up}viewer/model-viewer.min.js"] if have_viewer else [], "deferred": [f"{up}viewer/cell.js"]}
+        viewer = viewer_context(files, lambda n: n, have_viewer, packed, label)
+        page = env.get_template("cell.html").render(
+            **_page_frame(f"{label}: tango-stylize report", **scripts),
+            up=up,
+            banner=origin_banner(row),
+            have_viewer=have_viewer,
+            cell=cell_context(cell, row, files, lambda n: n, viewer, comparison_text(cell, groups)),
         )
-        label = cell_key(cell)
-        page = [_head(f"{label}: tango-stylize report", scripts)]
-        page.append(f"<p><a href='{up}index.html'>&larr; all cells</a></p>")
-        page.append(origin_banner(row))
-        if not have_viewer:
-            page.append(_no_viewer_notice())
-        viewer = viewer_html(files, lambda n: n, have_viewer, packed, label)
-        page.append(cell_body(cell, row, files, lambda n: n, viewer, comparison_text(cell, groups)))
-        page.append("</body></html>")
-        (folder / "index.html").write_text("".join(page))
+        (folder / "index.html").write_text(page)
     # swap the finished folders in, then the index (written last: it is the rule's marker)
     for name, d in staging.items():
         final = report_dir / name
@@ -567,7 +519,7 @@ def write_folder(
         return "cells/" + "/".join(cell) + "/thumb.png"
 
     index = _index_page(
-        frame, report_dir, len(cells), link, thumb, lambda p: Path(p).relative_to(report_dir).as_posix(), have_viewer
+        env, frame, report_dir, len(cells), (link, thumb, lambda p: Path(p).relative_to(report_dir).as_posix()), have_viewer
     )
     with atomic_path(report_dir / "index.html") as tmp:
         tmp.write_text(index)
@@ -576,23 +528,39 @@ def write_folder(
     return {"cells": len(cells), "viewers": viewers, "index_bytes": size}
 
 
-def _index_page(frame, report_dir, n_cells, link, thumb, url, have_viewer, cell_sections: str = "", head: str = "") -> str:
-    parts = [_head("tango-stylize report", head)]
-    parts.append(f"<h1>tango-stylize report: {n_cells} grid cells</h1>")
-    parts.append(origin_banner(frame))
-    if not have_viewer:
-        parts.append(_no_viewer_notice())
-    parts.append("<h2>Summary</h2>")
+def _index_page(
+    env: Environment,
+    frame: pd.DataFrame,
+    report_dir: Path,
+    n_cells: int,
+    links: tuple,
+    have_viewer: bool,
+    cells=(),
+    head=(),
+    end=(),
+) -> str:
+    """The index page. ``links``: how it refers to a cell's page, a cell's thumbnail and a file of
+    the report folder; ``cells``: the cells' sections (the one-file form); ``head`` and ``end``:
+    scripts to inline in the head and at the end."""
+    link, thumb, url = links
     csvs = [n for n in ("summary.csv", "speed_accuracy.csv") if (Path(report_dir) / n).is_file()]
-    if csvs and not cell_sections:
-        parts.append("<p>Every column: " + ", ".join(f"<a href='{n}'>{n}</a>" for n in csvs) + "</p>")
-    parts.append(filters(frame))
-    parts.append(index_table(frame, link, thumb))
-    parts.append(speed_accuracy_section(report_dir))
-    parts.append(figures_section(report_dir, url))
-    parts.append(cell_sections)
-    parts.append(f"<script>{(WEB / 'index.js').read_text()}</script></body></html>")
-    return "".join(parts)
+    overview = Path(report_dir) / "overview.png"
+    return env.get_template("index.html").render(
+        **_page_frame("tango-stylize report", inline=list(head)),
+        n_cells=n_cells,
+        banner=origin_banner(frame),
+        have_viewer=have_viewer,
+        csvs=csvs if not cells else [],
+        filters=filter_options(frame),
+        n_rows=len(frame),
+        columns=[label for _, label in INDEX_COLUMNS],
+        tables=index_tables(frame, link, thumb),
+        speed_accuracy=speed_accuracy_table(report_dir),
+        figures=figure_entries(report_dir, url),
+        overview=url(overview) if plain_file(overview, report_dir) else None,
+        cells=list(cells),
+        inline_end=[Markup(code) for code in (*end, (WEB / "index.js").read_text())],
+    )
 
 
 # ---- one file ------------------------------------------------------------------------------
@@ -604,7 +572,7 @@ def write_single_file(results: Path, report_dir: Path, cells: list[tuple[str, st
         if (report_dir / name).is_dir() and Path(out).parent == report_dir:
             log.info("removing %s: this report is one file now", report_dir / name)
             shutil.rmtree(report_dir / name)
-    frame = read_summary(report_dir)
+    frame, env = read_summary(report_dir), templates()
     have_viewer = Path(model_viewer).is_file()
     groups = _groups(report_dir)
     sections, viewers = [], 0
@@ -614,21 +582,19 @@ def write_single_file(results: Path, report_dir: Path, cells: list[tuple[str, st
         def url(name, files=files):
             return data_uri(files[name]) + ("#light.hdr" if name == "light.hdr" else "")
 
-        viewer = viewer_html(files, url, have_viewer, None, cell_key(cell))
-        viewers += "<model-viewer" in viewer
-        body = cell_body(cell, _row(frame, cell), files, url, viewer, comparison_text(cell, groups))
-        sections.append(f"<div class='cell-section'>{body}</div>")
-    extra = f"<script>{Path(model_viewer).read_text()}</script>" if have_viewer else ""
+        viewer = viewer_context(files, url, have_viewer, None, cell_key(cell))
+        viewers += viewer["model"] is not None
+        sections.append(cell_context(cell, _row(frame, cell), files, url, viewer, comparison_text(cell, groups)))
     page = _index_page(
+        env,
         frame,
         report_dir,
         len(cells),
-        lambda c: "#" + cell_anchor(c),
-        lambda c: None,
-        lambda p: data_uri(p),
+        (lambda c: "#" + cell_anchor(c), lambda c: None, data_uri),
         have_viewer,
-        "<h2>Cells</h2>" + "".join(sections) + f"<script>{(WEB / 'cell.js').read_text()}</script>",
-        extra,
+        cells=sections,
+        head=[Path(model_viewer).read_text()] if have_viewer else [],
+        end=[(WEB / "cell.js").read_text()],
     )
     with atomic_path(Path(out)) as tmp:
         tmp.write_text(page)

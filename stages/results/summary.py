@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..config.records import CELL_RECORDS, MESH_RECORDS, OptimizeRecord, StageRecord
 from ..core.errors import StageInputError
 from ..core.provenance import ORIGIN_KEY, read_origin
 from ..core.safefiles import require_plain_file
@@ -17,8 +18,6 @@ from ..core.safefiles import require_plain_file
 log = logging.getLogger(__name__)
 
 OVERVIEW_KINDS = ("rgb", "diffuse", "roughness", "specular", "normal")
-MESH_STAGES = ("normalize", "decimate", "raycache")
-CELL_STAGES = ("optimize", "bake", "export", "relight", "metrics")
 
 
 def _read(path: Path) -> dict | None:
@@ -34,14 +33,6 @@ def _need(path: Path) -> dict:
     if data is None:
         raise StageInputError(path, "file not found", "Run the stage that writes it first.")
     return data
-
-
-def weights_label(meta: dict) -> str:
-    if meta.get("test_only_weights"):
-        return "test-only random"
-    if meta.get("guidance") == "image":
-        return f"image-guided ({meta['settings']['target_material']} target)"
-    return str(meta.get("weights"))
 
 
 #: a cell's per-stage outputs that repeat the optimisation's origin (folder, file)
@@ -81,123 +72,48 @@ def summary_rows(
     lod_cells: list[tuple[str, str, str]] | None = None,
     mesh_dirs: dict[str, dict[str, str]] | None = None,
 ) -> list[dict]:
-    """One row per cell. ``mesh_dirs``: mesh id -> stage -> folder of the mesh-level work the
-    cell used (the workflow's shared ``results/meshes/<mesh>/<key>/<stage>``); a stage not
-    named there is read from ``results/<mesh>/<stage>``."""
+    """One row per cell: the cell's origin, then each stage's record (:mod:`stages.config.records`)
+    and time, mesh-level stages first. ``mesh_dirs``: mesh id -> stage -> folder of the mesh-level
+    work the cell used (the workflow's shared ``results/meshes/<mesh>/<key>/<stage>``); a stage not
+    named there is read from ``results/<mesh>/<stage>``. ``lod_cells``: the cells the run makes
+    levels of detail for (a lod folder left from a run with them on is not read)."""
     rows = []
     for mesh, prompt, variant in cells:
         mesh_work = (mesh_dirs or {}).get(mesh, {})
-
-        def stage_dir(stage: str, mesh: str = mesh, mesh_work: dict = mesh_work) -> Path:
-            return Path(mesh_work[stage]) if stage in mesh_work else results / mesh / stage
-
-        cdir = results / mesh / prompt / variant
-        opt = _need(cdir / "optimize" / "meta.json")
-        # levels of detail: only where the run makes them (a folder left from a run with them on is not read)
+        folders = {r.stage: Path(mesh_work[r.stage]) if r.stage in mesh_work else results / mesh / r.stage for r in MESH_RECORDS}
+        if mesh_work and "decimate" not in mesh_work:
+            folders.pop("decimate")  # the run does not decimate this mesh: an old folder is not read
+        cell = results / mesh / prompt / variant
         with_lod = lod_cells is None or (mesh, prompt, variant) in set(lod_cells)
-        origin = check_origins(cdir, () if with_lod else ("lod",))
-        bake = _read(cdir / "bake" / "meta.json") or {}
-        export = _read(cdir / "export" / "meta.json") or {}
-        norm = _need(stage_dir("normalize") / "meta.json")
-        dec = _read(stage_dir("decimate") / "meta.json") if not mesh_work or "decimate" in mesh_work else None
+        folders.update({r.stage: cell / r.stage for r in CELL_RECORDS if r.stage != "lod" or with_lod})
+        origin = check_origins(cell, () if with_lod else ("lod",))
         row = {
             "mesh": mesh,
             "prompt": prompt,
             "variant": variant,
-            "prompt_text": opt.get("prompt"),
-            "guidance": "image-guided (procedural targets)" if opt.get("guidance") == "image" else "CLIP",
-            "weights": weights_label(opt),
             "test_only_weights": bool(origin["test_only"]),
             "image_guided": bool(origin["image_guided"]),
             ORIGIN_KEY: origin["label"],
-            "iterations": opt["settings"]["iterations"],
-            "final_similarity": opt.get("final_similarity"),
-            "eval_psnr_db": opt.get("eval_psnr_db"),
-            "faces_before": norm["stats"]["faces"],
-            "faces_after": dec["stats"]["faces_after"] if dec else norm["stats"]["faces"],
-            "decimated": dec is not None,
-            "bake_psnr_db": bake.get("stats", {}).get("bake_psnr_db"),
-            "texture_size": bake.get("stats", {}).get("texture_size"),
-            "usd_validators": export.get("stats", {}).get("usd_validators"),
-            "usd_validation_errors": export.get("stats", {}).get("usd_validation_errors"),
-            "usd_validation_warnings": export.get("stats", {}).get("usd_validation_warnings"),
-            "gltf_validation_errors": export.get("stats", {}).get("gltf_validation_errors"),
-            "gltf_validation_warnings": export.get("stats", {}).get("gltf_validation_warnings"),
         }
-        if dec:
-            row["decimation_target"] = dec["stats"].get("target_faces")
-            row["decimation_target_reached"] = dec["stats"].get("target_reached")
-            row["decimation_shortfall"] = dec["stats"].get("target_shortfall_reason")
-        metrics = _read(cdir / "metrics" / "metrics.json") or {}
-        ev = metrics.get("evaluation") or {}
-        it = metrics.get("image_target") or {}
-        gd = metrics.get("guidance") or {}
-        row.update(
-            {
-                "guidance_similarity": gd.get("similarity"),
-                "eval_weights": ev.get("weights"),
-                "eval_test_only": ev.get("test_only"),
-                "clip_score": ev.get("clip_score"),
-                "r_precision": ev.get("r_precision"),
-                "r_precision_candidates": ev.get("candidates"),
-                "target_psnr_db": it.get("psnr_db"),
-                "target_ssim": it.get("ssim"),
-                "target_renderer": it.get("target_renderer"),
-                "target_albedo_rmse": (it.get("material") or {}).get("albedo_rmse"),
-                "target_albedo_rmse_scaled": (it.get("material") or {}).get("albedo_rmse_scaled"),
-                "target_roughness_mae": (it.get("material") or {}).get("roughness_mae"),
-                "target_normal_angle_deg": (it.get("material") or {}).get("normal_angle_deg_mean"),
-            }
-        )
-        relit = ((_read(cdir / "relight" / "meta.json") or {}).get("stats") or {}).get("ground_truth") or []
-        row.update(
-            {
-                # one entry per environment of target.relight_environments, "/"-separated (the
-                # environments " | "-separated: a path holds slashes)
-                "relit_environments": " | ".join(g["environment"] for g in relit) or None,
-                "relit_psnr_db": "/".join(f"{g['psnr_db']:.2f}" for g in relit) or None,
-                "relit_psnr_scaled_db": "/".join(f"{g['psnr_scaled_db']:.2f}" for g in relit if "psnr_scaled_db" in g) or None,
-                "relit_ceiling_psnr_db": "/".join(f"{g['ceiling_psnr_db']:.2f}" for g in relit if "ceiling_psnr_db" in g) or None,
-                # the per-channel factors of the scaled figures, "r,g,b" per environment: unequal
-                # factors mean the light's colour went into the base colour
-                "relit_scale": "/".join(",".join(f"{x:.2f}" for x in g["scale"]) for g in relit if "scale" in g) or None,
-            }
-        )
-        rt = _read(cdir / "roundtrip" / "meta.json") or {}
-        rts = rt.get("stats", {})
-        row.update(
-            {
-                "roundtrip_glb_psnr_db": rts.get("glb_psnr_db"),
-                "roundtrip_usdz_psnr_db": rts.get("usdz_psnr_db"),
-                "roundtrip_glb_diffuse_psnr_db": rts.get("glb_diffuse_psnr_db"),
-                "roundtrip_glb_lobes_summed_psnr_db": rts.get("glb_lobes_summed_psnr_db"),
-                "roundtrip_problems": rts.get("problems"),
-                "roundtrip_transport": rts.get("transport"),
-                "seconds_roundtrip": rt["timings_s"]["total"] if rt else None,
-            }
-        )
-        lod = (_read(cdir / "lod" / "meta.json") or {}).get("stats", {}).get("levels", []) if with_lod else []
-        row.update(
-            {
-                # one entry per level (lod0 = the full mesh), "/"-separated
-                "lod_faces": "/".join(str(r["faces"]) for r in lod) or None,
-                "lod_glb_bytes": "/".join(str(r["file_bytes"]["model.glb"]) for r in lod) or None,
-                "lod_fidelity_psnr_db": "/".join(f"{r['fidelity_psnr_db']:.2f}" for r in lod) or None,
-            }
-        )
-        for stage in MESH_STAGES:
-            meta = _read(stage_dir(stage) / "meta.json")
-            row[f"seconds_{stage}"] = meta["timings_s"]["total"] if meta else None
-            if stage == "raycache":
-                # the share of the hemisphere the mesh's surface sees blocked (its self-shadowing)
-                occ = (meta or {}).get("self_occlusion") or {}
-                row["self_occlusion_median"] = occ.get("median")
-                row["self_occlusion_p95"] = occ.get("p95")
-        for stage, folder in zip(CELL_STAGES, ("optimize", "bake", "export", "relight", "metrics"), strict=True):
-            meta = _read(cdir / folder / "meta.json")
-            row[f"seconds_{stage}"] = meta["timings_s"]["total"] if meta else None
+        for record in (*MESH_RECORDS, *CELL_RECORDS):
+            row.update(_record_columns(record, folders.get(record.stage)))
+        if row["faces_after"] is None:  # not decimated: the mesh as read
+            row.update(faces_after=row["faces_before"], decimated=False)
         rows.append(row)
     return rows
+
+
+#: the records a cell cannot do without (the others belong to stages a run may leave out)
+REQUIRED = ("normalize", "optimize")
+
+
+def _record_columns(record: type[StageRecord], folder: Path | None) -> dict:
+    """A stage's columns and its time (``seconds_<stage>``) from its folder; empty where the stage
+    did not run (a required one is an error)."""
+    meta = None if folder is None else (_need if record.stage in REQUIRED else _read)(folder / "meta.json")
+    data = meta if record.file == "meta.json" or meta is None else _read(folder / record.file)
+    columns = record.from_meta(data).row() if data is not None else record.empty_row()
+    return {**columns, f"seconds_{record.stage}": meta["timings_s"]["total"] if meta else None}
 
 
 def overview_image(results: Path, cells: list[tuple[str, str, str]], tile: int = 160) -> np.ndarray:
@@ -211,9 +127,9 @@ def overview_image(results: Path, cells: list[tuple[str, str, str]], tile: int =
     for j, kind in enumerate(OVERVIEW_KINDS):
         draw.text((label_w + j * tile + 4, 6), kind, fill="black")
     for i, (mesh, prompt, variant) in enumerate(cells):
-        opt = _need(results / mesh / prompt / variant / "optimize" / "meta.json")
+        opt = OptimizeRecord.from_meta(_need(results / mesh / prompt / variant / "optimize" / "meta.json"))
         y = header + i * tile
-        draw.text((4, y + 6), f"{mesh} / {prompt} / {variant}\n{weights_label(opt)[:34]}", fill="black")
+        draw.text((4, y + 6), f"{mesh} / {prompt} / {variant}\n{opt.weights_label()[:34]}", fill="black")
         for j, kind in enumerate(OVERVIEW_KINDS):
             canvas.paste(front_tile(results, (mesh, prompt, variant), kind, tile), (label_w + j * tile, y))
     return np.asarray(canvas)
