@@ -486,5 +486,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    np.seterr(all="ignore")
-    main()
+    with np.errstate(all="ignore"):  # (scoped: the docs' tests run this script in-process)
+        main()

@@ -155,5 +155,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    np.seterr(all="raise")
-    main()
+    with np.errstate(all="raise"):  # (scoped: the docs' tests run this script in-process)
+        main()

@@ -71,23 +71,7 @@ def run(
         train = RayCache(train_path)
         targets = TargetSet(targets_path, train) if mitsuba_targets else None
         run = Optimizer(settings, train, prompt, dev, targets=targets)
-    resumed_from = None
-    if ckpt.is_file():
-        state = read_torch_file(ckpt, dev, remedy="Delete it to start this optimisation afresh.")
-        if state.get("digest") != settings.digest():
-            log.warning("ignoring %s: written under other settings", ckpt)
-        elif state.get("light", run.light_record) != run.light_record:  # light: fixed, its map's file edited since
-            log.warning("ignoring %s: written under another light (%s)", ckpt, state.get("light"))
-        else:
-            try:
-                run.load(state)
-            except (KeyError, TypeError, ValueError, RuntimeError, IndexError, AttributeError) as err:
-                why = " ".join(f"{type(err).__name__}: {err}".split())[:160]
-                raise StageInputError(
-                    ckpt, f"is not a checkpoint of this optimisation ({why})", "Delete it to start afresh."
-                ) from None
-            resumed_from = run.iteration
-            log.info("resumed from %s at iteration %d", ckpt, run.iteration)
+    resumed_from = _resume(run, ckpt, settings, dev) if ckpt.is_file() else None
     progress = Progress(job_label("optimize", out_dir), settings.iterations, initial=run.iteration)
     done_here = 0
     t_loop = time.perf_counter()
@@ -155,6 +139,25 @@ def run(
         write_json_atomic(staging / "meta.json", meta)
     ckpt.unlink(missing_ok=True)
     return meta
+
+
+def _resume(run: Optimizer, ckpt: Path, settings: OptimizeSettings, dev) -> int | None:
+    """Resume ``run`` from the checkpoint when it was written under the same settings and light;
+    the iteration it resumed from, or None (a checkpoint of other settings is ignored)."""
+    state = read_torch_file(ckpt, dev, remedy="Delete it to start this optimisation afresh.")
+    if state.get("digest") != settings.digest():
+        log.warning("ignoring %s: written under other settings", ckpt)
+        return None
+    if state.get("light", run.light_record) != run.light_record:  # light: fixed, its map's file edited since
+        log.warning("ignoring %s: written under another light (%s)", ckpt, state.get("light"))
+        return None
+    try:
+        run.load(state)
+    except (KeyError, TypeError, ValueError, RuntimeError, IndexError, AttributeError) as err:
+        why = " ".join(f"{type(err).__name__}: {err}".split())[:160]
+        raise StageInputError(ckpt, f"is not a checkpoint of this optimisation ({why})", "Delete it to start afresh.") from None
+    log.info("resumed from %s at iteration %d", ckpt, run.iteration)
+    return run.iteration
 
 
 def _write_outputs(run: Optimizer, eval_path: Path, out_dir: Path, settings: OptimizeSettings, prompt: str) -> dict:

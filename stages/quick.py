@@ -30,6 +30,7 @@ import shlex
 import subprocess
 import sys
 import unicodedata
+from dataclasses import dataclass
 from pathlib import Path
 
 import yaml
@@ -158,24 +159,40 @@ def workflow_args(cores: int | None = None) -> str:
     return f"{snakefile}--cores {cores}"
 
 
-def run(
-    mesh: str,
-    prompt: str,
-    *,
-    preset: str = DEFAULT_PRESET,
-    image_guided: str | None = None,
-    test_clip: bool = False,
-    name: str | None = None,
-    config_dir: Path = CONFIG_DIR,
-    overlays: tuple[Path, ...] = (),
-    cores: int = 2,
-    dry_run: bool = False,
-    force: bool = False,
-    command: str = "python -m stages.quick",
-) -> int:
-    """Check ``mesh`` (a file, or ``builtin:<name>``), write its experiment config, say what will
-    run and run it (see the module docstring); returns Snakemake's exit status (or the plan's,
-    with ``dry_run``). Nothing is written when an argument or the mesh is bad."""
+@dataclass(frozen=True)
+class Request:
+    """What the user asks for: a ``mesh`` (a file, or ``builtin:<name>``) and a ``prompt``, the
+    optimisation ``preset``, the guidance (CLIP, ``image_guided`` by a procedural material, or the
+    tiny ``test_clip``) and the experiment's ``name`` (default: the mesh's stem and the prompt)."""
+
+    mesh: str
+    prompt: str
+    preset: str = DEFAULT_PRESET
+    image_guided: str | None = None
+    test_clip: bool = False
+    name: str | None = None
+
+
+@dataclass(frozen=True)
+class Launch:
+    """Where the config goes (``config_dir``, with ``overlays`` laid over it) and how the workflow
+    runs: on ``cores`` cores, or only its plan (``dry_run``); ``force`` replaces a config of the same
+    name; ``command``: the command line, recorded in the config."""
+
+    config_dir: Path = CONFIG_DIR
+    overlays: tuple[Path, ...] = ()
+    cores: int = 2
+    dry_run: bool = False
+    force: bool = False
+    command: str = "python -m stages.quick"
+
+
+def run(request: Request, launch: Launch = Launch()) -> int:
+    """Check the request's mesh, write its experiment config, say what will run and run it (see
+    the module docstring); returns Snakemake's exit status (or the plan's, with ``dry_run``).
+    Nothing is written when an argument or the mesh is bad."""
+    mesh, prompt, preset, image_guided = request.mesh, request.prompt, request.preset, request.image_guided
+    overlays, cores = launch.overlays, launch.cores
     if preset not in PRESETS:
         raise ConfigError(f"unknown preset {preset!r}: use one of {', '.join(sorted(PRESETS))}")
     if image_guided is not None and image_guided not in MATERIALS:
@@ -185,10 +202,10 @@ def run(
     if len(prompt) > 2000:
         raise ConfigError(f"the prompt is {len(prompt)} characters long; CLIP reads about 77 tokens: shorten it")
     checked = load_mesh(mesh, given_in=f"the command (relative paths start at {Path.cwd()})")  # raises with what to do
-    name = name or slug(f"{mesh_entry(mesh)[0]}-{slug(prompt, 40)}", max_id())
-    path = Path(config_dir) / f"{name}.yaml"
-    check_name(name, path, force)
-    config = experiment_config(mesh, prompt, name, preset, image_guided, test_clip)
+    name = request.name or slug(f"{mesh_entry(mesh)[0]}-{slug(prompt, 40)}", max_id())
+    path = Path(launch.config_dir) / f"{name}.yaml"
+    check_name(name, path, launch.force)
+    config = experiment_config(mesh, prompt, name, preset, image_guided, request.test_clip)
     configfiles = [path, *overlays]
     merged = config
     for overlay in overlays:
@@ -196,8 +213,8 @@ def run(
     cfg = WorkflowConfig(merged, ", ".join(map(str, configfiles)))  # validated as the workflow will, before writing
     check_face_count(mesh, checked, cfg.stage_settings(mesh_entry(mesh)[0], "normalize"))  # as the normalize stage will
     experiment = experiment_name(cfg.raw, configfiles)
-    guidance = guidance_text(cfg, image_guided, test_clip)
-    write_config(config, path, command, force)
+    guidance = guidance_text(cfg, image_guided, request.test_clip)
+    write_config(config, path, launch.command, launch.force)
     files = " ".join(shlex.quote(str(p)) for p in configfiles)
     lines = [
         f"mesh {mesh}: {len(checked.vertices):,} vertices, {len(checked.faces):,} faces",
@@ -209,7 +226,7 @@ def run(
     ]
     sys.stdout.write("\n".join(lines) + "\n")
     sys.stdout.flush()
-    if dry_run:
+    if launch.dry_run:
         cmd = [sys.executable, "-m", "stages.plan", "--configfile", *map(str, configfiles)]
         cmd += ["--no-calibrate"] if os.environ.get("TANGO_PLAN_CALIBRATE") == "0" else []  # as the workflow's plan
     else:
@@ -239,20 +256,10 @@ def main(argv: list[str] | None = None) -> int:
         parser.add_argument("--force", action="store_true", help="replace an existing config of this name with other settings")
 
     def body(args):
-        result["code"] = run(
-            args.mesh,
-            args.prompt,
-            preset=args.preset,
-            image_guided=args.image_guided,
-            test_clip=args.test_clip,
-            name=args.name,
-            config_dir=args.config_dir,
-            overlays=tuple(args.overlay),
-            cores=args.cores,
-            dry_run=args.dry_run,
-            force=args.force,
-            command=shlex.join(["python", "-m", "stages.quick", *(argv if argv is not None else sys.argv[1:])]),
-        )
+        request = Request(args.mesh, args.prompt, args.preset, args.image_guided, args.test_clip, args.name)
+        command = shlex.join(["python", "-m", "stages.quick", *(argv if argv is not None else sys.argv[1:])])
+        launch = Launch(args.config_dir, tuple(args.overlay), args.cores, args.dry_run, args.force, command)
+        result["code"] = run(request, launch)
 
     status = stage_main("quick", __doc__, arguments, body, argv)
     return status or result.get("code", 0)

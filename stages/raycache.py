@@ -63,32 +63,7 @@ def run(
         sets.append(("metrics", metric_views(settings)))
     for name, views in sets:
         with timer(f"trace_{name}"):
-            arrays, st = trace_views(mesh, views, tracer)
-        if st.hits == 0:
-            raise StageInputError(
-                in_mesh,
-                f"none of the {len(views)} {name} views sees the mesh (0 of {st.rays} rays hit)",
-                "Check the raycache camera settings (radius, fov_deg, anchor, eval views) for this mesh.",
-            )
-        empty = sum(h == 0 for h in st.hits_per_view)
-        if empty:
-            log.warning("%s: %d of %d %s views see nothing", in_mesh, empty, len(views), name)
-        per_hit_bytes = sum(arrays[k].nbytes for k in ("pixel", "face", "bary"))
-        summary[name] = {
-            "views": len(views),
-            "width": views.width,
-            "rays": st.rays,
-            "hits": st.hits,
-            "coverage_mean": st.hits / st.rays,
-            "hits_per_view_min": min(st.hits_per_view),
-            "hits_per_view_max": max(st.hits_per_view),
-            "empty_views": empty,
-            "bytes_per_view": per_hit_bytes / len(views),
-            "trace_seconds": st.trace_seconds,
-            "rays_per_second_trace": st.rays / st.trace_seconds,
-            "rays_per_second_total": st.rays / st.total_seconds,
-        }
-        results[name] = arrays
+            results[name], summary[name] = _trace_set(in_mesh, mesh, name, views, tracer)
     with timer("self_occlusion"):
         # Embree whatever the backend: the measurement traces millions of rays
         occlusion = measure_self_occlusion(mesh, tracer if settings.backend == "embree" else EmbreeTracer(mesh), settings.seed)
@@ -112,18 +87,6 @@ def run(
         save_cache(out_eval, results["eval"])
         if out_metrics is not None:
             save_cache(out_metrics, results["metrics"])
-    for name, s in summary.items():
-        log.info(
-            "%s %s: %d views of %dx%d, coverage %.1f%%, %.0f bytes/view, %.2f M rays/s",
-            in_mesh,
-            name,
-            s["views"],
-            s["width"],
-            s["width"],
-            100 * s["coverage_mean"],
-            s["bytes_per_view"],
-            s["rays_per_second_total"] / 1e6,
-        )
     write_json_atomic(
         out_meta,
         metadata(
@@ -143,6 +106,48 @@ def run(
         ),
     )
     return summary
+
+
+def _trace_set(in_mesh: Path, mesh, name: str, views, tracer) -> tuple[dict, dict]:
+    """One view set traced: its cache arrays and what the metadata records of it (refused when no
+    view sees the mesh)."""
+    arrays, st = trace_views(mesh, views, tracer)
+    if st.hits == 0:
+        raise StageInputError(
+            in_mesh,
+            f"none of the {len(views)} {name} views sees the mesh (0 of {st.rays} rays hit)",
+            "Check the raycache camera settings (radius, fov_deg, anchor, eval views) for this mesh.",
+        )
+    empty = sum(h == 0 for h in st.hits_per_view)
+    if empty:
+        log.warning("%s: %d of %d %s views see nothing", in_mesh, empty, len(views), name)
+    per_hit_bytes = sum(arrays[k].nbytes for k in ("pixel", "face", "bary"))
+    summary = {
+        "views": len(views),
+        "width": views.width,
+        "rays": st.rays,
+        "hits": st.hits,
+        "coverage_mean": st.hits / st.rays,
+        "hits_per_view_min": min(st.hits_per_view),
+        "hits_per_view_max": max(st.hits_per_view),
+        "empty_views": empty,
+        "bytes_per_view": per_hit_bytes / len(views),
+        "trace_seconds": st.trace_seconds,
+        "rays_per_second_trace": st.rays / st.trace_seconds,
+        "rays_per_second_total": st.rays / st.total_seconds,
+    }
+    log.info(
+        "%s %s: %d views of %dx%d, coverage %.1f%%, %.0f bytes/view, %.2f M rays/s",
+        in_mesh,
+        name,
+        len(views),
+        views.width,
+        views.width,
+        100 * summary["coverage_mean"],
+        summary["bytes_per_view"],
+        summary["rays_per_second_total"] / 1e6,
+    )
+    return arrays, summary
 
 
 def visibility_decision(settings: RaycacheSettings, occlusion: dict) -> dict:

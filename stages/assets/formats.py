@@ -454,71 +454,19 @@ def write_glb(
     A viewer without the extension shows the finest level."""
     import pygltflib as g
 
-    blobs: list[bytes] = []
-    views: list[g.BufferView] = []
-    accessors: list[g.Accessor] = []
-
-    def add_view(data: bytes, target=None) -> int:
-        offset = sum(len(b) for b in blobs)
-        pad = (-len(data)) % 4
-        blobs.append(data + b"\x00" * pad)
-        views.append(g.BufferView(buffer=0, byteOffset=offset, byteLength=len(data), target=target))
-        return len(views) - 1
-
-    def add_accessor(arr: np.ndarray, kind: str, target=g.ARRAY_BUFFER, minmax=False) -> int:
-        view = add_view(np.ascontiguousarray(arr).tobytes(), target)
-        ctype = {np.dtype(np.float32): g.FLOAT, np.dtype(np.uint32): g.UNSIGNED_INT, np.dtype(np.uint16): g.UNSIGNED_SHORT}[
-            arr.dtype
-        ]
-        acc = g.Accessor(bufferView=view, componentType=ctype, count=len(arr), type=kind)
-        if minmax:
-            acc.min = arr.min(0).astype(float).tolist()
-            acc.max = arr.max(0).astype(float).tolist()
-        accessors.append(acc)
-        return len(accessors) - 1
-
+    buffer = _GlbBuffer(g)
     images, textures, materials, meshes, nodes = [], [], [], [], []
     for k, (level, tex_dir) in enumerate([(geom, textures_dir), *lods]):
-        pos = level.positions * np.float32(meters_per_unit)
-        attrs = g.Attributes(
-            POSITION=add_accessor(pos, g.VEC3, minmax=True),
-            NORMAL=add_accessor(level.normals, g.VEC3),
-            TANGENT=add_accessor(level.tangents, g.VEC4),
-            TEXCOORD_0=add_accessor(level.uv, g.VEC2),
-        )
-        # 16-bit indices where they suffice (glTF allows both; the 65535th index is reserved for restarts)
-        index_type = np.uint16 if len(pos) < 65535 else np.uint32
-        indices = add_accessor(level.indices.reshape(-1).astype(index_type), g.SCALAR, target=g.ELEMENT_ARRAY_BUFFER)
+        tag = "" if not lods else f"lod{k}"
+        attrs, indices = buffer.geometry(level, meters_per_unit)
         first = len(textures)
         keys = ("basecolor", "metallic_roughness", "normal") + (() if brdf == "gltf" else ("specular",))
         for key in keys:
-            view = add_view(require_plain_file(Path(tex_dir) / f"{key}.png", remedy="Run the bake stage again.").read_bytes())
-            images.append(g.Image(bufferView=view, mimeType="image/png", name=key if not lods else f"lod{k}_{key}"))
+            view = buffer.view(require_plain_file(Path(tex_dir) / f"{key}.png", remedy="Run the bake stage again.").read_bytes())
+            images.append(g.Image(bufferView=view, mimeType="image/png", name=f"{tag}_{key}" if tag else key))
             textures.append(g.Texture(source=len(images) - 1, sampler=0))
-        materials.append(
-            g.Material(
-                name="TangoMaterial" if not lods else f"TangoMaterial_lod{k}",
-                pbrMetallicRoughness=g.PbrMetallicRoughness(
-                    baseColorTexture=g.TextureInfo(index=first),
-                    metallicRoughnessTexture=g.TextureInfo(index=first + 1),
-                    metallicFactor=1.0,  # the texture's blue channel is the metalness (0 for TANGO's BRDF)
-                    roughnessFactor=1.0,
-                ),
-                normalTexture=g.NormalMaterialTexture(index=first + 2),
-                occlusionTexture=g.OcclusionTextureInfo(index=first + 1) if occlusion else None,
-                doubleSided=True,
-                extensions={}
-                if brdf == "gltf"
-                else {
-                    "KHR_materials_specular": {
-                        "specularFactor": 1.0,
-                        "specularColorFactor": [25.0, 25.0, 25.0],
-                        "specularColorTexture": {"index": first + 3},
-                    }
-                },
-            )
-        )
-        label = name if not lods else f"{name}_lod{k}"
+        materials.append(_glb_material(g, f"TangoMaterial_{tag}" if tag else "TangoMaterial", first, brdf, occlusion))
+        label = f"{name}_{tag}" if tag else name
         meshes.append(g.Mesh(name=label, primitives=[g.Primitive(attributes=attrs, indices=indices, material=k)]))
         nodes.append(g.Node(mesh=k, name=label))
     used = [] if brdf == "gltf" else ["KHR_materials_specular"]
@@ -537,19 +485,83 @@ def write_glb(
         materials=materials,
         textures=textures,
         images=images,
-        samplers=[
-            g.Sampler(
-                magFilter=g.LINEAR,
-                minFilter=g.LINEAR_MIPMAP_LINEAR,
-                wrapS=g.CLAMP_TO_EDGE,
-                wrapT=g.CLAMP_TO_EDGE,
-            )
-        ],
-        accessors=accessors,
-        bufferViews=views,
-        buffers=[g.Buffer(byteLength=sum(len(b) for b in blobs))],
+        samplers=[g.Sampler(magFilter=g.LINEAR, minFilter=g.LINEAR_MIPMAP_LINEAR, wrapS=g.CLAMP_TO_EDGE, wrapT=g.CLAMP_TO_EDGE)],
+        accessors=buffer.accessors,
+        bufferViews=buffer.views,
+        buffers=[g.Buffer(byteLength=sum(len(b) for b in buffer.blobs))],
         extensionsUsed=used,
     )
-    gltf.set_binary_blob(b"".join(blobs))
+    gltf.set_binary_blob(b"".join(buffer.blobs))
     with atomic_path(path) as tmp:
         gltf.save_binary(str(tmp))
+
+
+class _GlbBuffer:
+    """The binary buffer of a GLB: its byte blobs (each padded to 4 bytes), buffer views and
+    accessors, as ``write_glb`` adds them (``g``: the pygltflib module)."""
+
+    def __init__(self, g) -> None:
+        self.g = g
+        self.blobs: list[bytes] = []
+        self.views: list = []
+        self.accessors: list = []
+
+    def view(self, data: bytes, target=None) -> int:
+        offset = sum(len(b) for b in self.blobs)
+        self.blobs.append(data + b"\x00" * ((-len(data)) % 4))
+        self.views.append(self.g.BufferView(buffer=0, byteOffset=offset, byteLength=len(data), target=target))
+        return len(self.views) - 1
+
+    def accessor(self, arr: np.ndarray, kind: str, target=None, minmax: bool = False) -> int:
+        g = self.g
+        view = self.view(np.ascontiguousarray(arr).tobytes(), g.ARRAY_BUFFER if target is None else target)
+        ctype = {np.dtype(np.float32): g.FLOAT, np.dtype(np.uint32): g.UNSIGNED_INT, np.dtype(np.uint16): g.UNSIGNED_SHORT}[
+            arr.dtype
+        ]
+        acc = g.Accessor(bufferView=view, componentType=ctype, count=len(arr), type=kind)
+        if minmax:
+            acc.min = arr.min(0).astype(float).tolist()
+            acc.max = arr.max(0).astype(float).tolist()
+        self.accessors.append(acc)
+        return len(self.accessors) - 1
+
+    def geometry(self, level: ExportMesh, meters_per_unit: float):
+        """A level's vertex attributes (positions in metres) and its index accessor."""
+        g = self.g
+        pos = level.positions * np.float32(meters_per_unit)
+        attrs = g.Attributes(
+            POSITION=self.accessor(pos, g.VEC3, minmax=True),
+            NORMAL=self.accessor(level.normals, g.VEC3),
+            TANGENT=self.accessor(level.tangents, g.VEC4),
+            TEXCOORD_0=self.accessor(level.uv, g.VEC2),
+        )
+        # 16-bit indices where they suffice (glTF allows both; the 65535th index is reserved for restarts)
+        index_type = np.uint16 if len(pos) < 65535 else np.uint32
+        indices = self.accessor(level.indices.reshape(-1).astype(index_type), g.SCALAR, target=g.ELEMENT_ARRAY_BUFFER)
+        return attrs, indices
+
+
+def _glb_material(g, name: str, first: int, brdf: str, occlusion: bool):
+    """A level's material: its textures from index ``first`` (base colour, metallic-roughness,
+    normal, and TANGO's specular colour through ``KHR_materials_specular``), the occlusion in the
+    metallic-roughness texture's red channel when baked."""
+    specular = {
+        "KHR_materials_specular": {
+            "specularFactor": 1.0,
+            "specularColorFactor": [25.0, 25.0, 25.0],
+            "specularColorTexture": {"index": first + 3},
+        }
+    }
+    return g.Material(
+        name=name,
+        pbrMetallicRoughness=g.PbrMetallicRoughness(
+            baseColorTexture=g.TextureInfo(index=first),
+            metallicRoughnessTexture=g.TextureInfo(index=first + 1),
+            metallicFactor=1.0,  # the texture's blue channel is the metalness (0 for TANGO's BRDF)
+            roughnessFactor=1.0,
+        ),
+        normalTexture=g.NormalMaterialTexture(index=first + 2),
+        occlusionTexture=g.OcclusionTextureInfo(index=first + 1) if occlusion else None,
+        doubleSided=True,
+        extensions={} if brdf == "gltf" else specular,
+    )

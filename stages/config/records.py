@@ -26,11 +26,13 @@ class StageRecord:
     place: ClassVar[str] = "stats"
     #: the summary's columns :meth:`row` gives, in order (a stage that did not run gives them empty)
     COLUMNS: ClassVar[tuple[str, ...]] = ()
+    #: figures the stage writes only where it has them (others are written, null when missing)
+    OPTIONAL: ClassVar[tuple[str, ...]] = ()
 
     def stats(self) -> dict[str, Any]:
         """The record as the stage writes it (merged into its ``stats``, or its metadata's top
-        level); a figure the stage does not have (None) is left out."""
-        return {k: v for k, v in dataclasses.asdict(self).items() if v is not None}
+        level); an :data:`OPTIONAL` figure the stage does not have is left out."""
+        return {k: v for k, v in dataclasses.asdict(self).items() if v is not None or k not in self.OPTIONAL}
 
     @classmethod
     def from_meta(cls, meta: dict) -> Self:
@@ -101,6 +103,7 @@ class OptimizeRecord(StageRecord):
 
     stage, place = "optimize", "top"
     COLUMNS = ("prompt_text", "guidance", "weights", "iterations", "final_similarity", "eval_psnr_db")
+    OPTIONAL = ("final_similarity", "eval_psnr_db")
     prompt: str
     guidance: str
     weights: str
@@ -181,6 +184,7 @@ class MetricsRecord(StageRecord):
         "target_roughness_mae",
         "target_normal_angle_deg",
     )
+    OPTIONAL = ("guidance", "evaluation", "image_target")
     guidance: dict | None = None
     evaluation: dict | None = None
     image_target: dict | None = None
@@ -247,6 +251,7 @@ class RoundtripRecord(StageRecord):
         "roundtrip_problems",
         "roundtrip_transport",
     )
+    OPTIONAL = ("glb_psnr_db", "usdz_psnr_db", "glb_diffuse_psnr_db", "glb_lobes_summed_psnr_db")
     problems: int
     transport: str
     glb_psnr_db: float | None = None

@@ -57,7 +57,7 @@ that the normal network restores detail lost to decimation; docs/measurements/ge
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -309,6 +309,58 @@ def _shortfall_reason(
     return why
 
 
+def _weld_record(settings: DecimateSettings, welding, after: dict) -> dict:
+    """What the statistics say of the welding (``welding``: None when it is off)."""
+    return {
+        "enabled": bool(settings.weld),
+        "tolerance_relative": float(settings.weld_tolerance),
+        "tolerance_absolute": welding.tolerance if welding else 0.0,
+        "exact_duplicates_merged": welding.exact_merged if welding else 0,
+        "near_duplicates_merged": welding.near_merged if welding else 0,
+        "degenerate_faces_dropped": welding.faces_dropped if welding else 0,
+        "nonmanifold_edges_after": after["nonmanifold_edges"],
+        "components_after": after["components"],
+    }
+
+
+@dataclass
+class Collapse:
+    """The collapse's outcome: the decimated mesh's id in the MeshSet, the face counts of its
+    passes with boundaries preserved (``strict``) and, where those stopped above the target, with
+    them relaxed, whether the relaxed result was taken, and why the boundaries were relaxed."""
+
+    mesh_id: int
+    strict: list[int] = field(default_factory=list)
+    relaxed: list[int] = field(default_factory=list)
+    boundary_relaxed: bool = False
+    relaxation_reason: str | None = None
+
+
+def _collapse_to(ms, welded: TriMesh, settings: DecimateSettings, limit: int, boundary_edges: int, name: str) -> Collapse:
+    """Collapse ``welded`` to ``limit`` faces with boundaries preserved; if that stops above it and
+    ``relax_boundary`` allows, again with boundary vertices free to slide, keeping the relaxed
+    result only where it reaches the target."""
+    dec_id, strict = _collapse(ms, welded, settings, limit, relaxed=False)
+    result = Collapse(dec_id, strict)
+    if not (strict[-1] > limit and settings.preserve_boundary and settings.relax_boundary and boundary_edges):
+        return result
+    target = int(settings.target_faces)
+    result.relaxation_reason = (
+        f"with boundaries preserved the collapse stopped at {strict[-1]} faces (target {target}): "
+        f"{boundary_edges} boundary edges remain after welding"
+    )
+    relaxed_id, result.relaxed = _collapse(ms, welded, settings, limit, relaxed=True)
+    if result.relaxed[-1] <= limit:
+        result.mesh_id, result.boundary_relaxed = relaxed_id, True
+        log.info("%s: %s; collapsed again with boundaries relaxed: %d faces", name, result.relaxation_reason, result.relaxed[-1])
+    else:
+        result.relaxation_reason += (
+            f"; with boundaries relaxed it stopped at {result.relaxed[-1]} faces, also above the target: "
+            "the boundary-preserving result is kept"
+        )
+    return result
+
+
 def decimate_mesh(mesh: TriMesh, settings: DecimateSettings, name: str = "mesh") -> DecimateResult:
     """Weld, then quadric edge collapse of ``mesh`` to ``settings.target_faces``; Hausdorff both ways.
 
@@ -331,43 +383,17 @@ def decimate_mesh(mesh: TriMesh, settings: DecimateSettings, name: str = "mesh")
     else:
         welding, welded = None, mesh
     after = edge_counts(welded.faces) if welding else before
-    weld_stats = {
-        "enabled": bool(settings.weld),
-        "tolerance_relative": float(settings.weld_tolerance),
-        "tolerance_absolute": welding.tolerance if welding else 0.0,
-        "exact_duplicates_merged": welding.exact_merged if welding else 0,
-        "near_duplicates_merged": welding.near_merged if welding else 0,
-        "degenerate_faces_dropped": welding.faces_dropped if welding else 0,
-        "nonmanifold_edges_after": after["nonmanifold_edges"],
-        "components_after": after["components"],
-    }
+    weld_stats = _weld_record(settings, welding, after)
     skipped = faces_before <= target
-    strict: list[int] = []
-    relaxed: list[int] = []
-    relaxation_reason = None
-    boundary_relaxed = False
     if skipped:
         log.info("%s has %d faces <= target %d: kept as is", name, faces_before, target)
-        dec_id = _add(ms, mesh, "decimated")
+        collapse = Collapse(_add(ms, mesh, "decimated"))
     elif len(welded.faces) <= target:
         log.info("%s has %d faces <= target %d after welding: welded mesh kept", name, len(welded.faces), target)
-        dec_id = _add(ms, welded, "decimated")
+        collapse = Collapse(_add(ms, welded, "decimated"))
     else:
-        dec_id, strict = _collapse(ms, welded, settings, limit, relaxed=False)
-        if strict[-1] > limit and settings.preserve_boundary and settings.relax_boundary and after["boundary_edges"]:
-            relaxation_reason = (
-                f"with boundaries preserved the collapse stopped at {strict[-1]} faces (target {target}): "
-                f"{after['boundary_edges']} boundary edges remain after welding"
-            )
-            relaxed_id, relaxed = _collapse(ms, welded, settings, limit, relaxed=True)
-            if relaxed[-1] <= limit:
-                dec_id, boundary_relaxed = relaxed_id, True
-                log.info("%s: %s; collapsed again with boundaries relaxed: %d faces", name, relaxation_reason, relaxed[-1])
-            else:
-                relaxation_reason += (
-                    f"; with boundaries relaxed it stopped at {relaxed[-1]} faces, also above the target: "
-                    "the boundary-preserving result is kept"
-                )
+        collapse = _collapse_to(ms, welded, settings, limit, after["boundary_edges"], name)
+    dec_id, strict, relaxed = collapse.mesh_id, collapse.strict, collapse.relaxed
     dec = ms.mesh(dec_id)
     out = TriMesh(np.asarray(dec.vertex_matrix(), np.float64), np.asarray(dec.face_matrix(), np.int64))
     faces_after = len(out.faces)
@@ -403,8 +429,8 @@ def decimate_mesh(mesh: TriMesh, settings: DecimateSettings, name: str = "mesh")
         "faces_after_weld": len(welded.faces),
         "weld": weld_stats,
         "collapse_passes": strict,
-        "boundary_relaxed": boundary_relaxed,
-        "boundary_relaxation_reason": relaxation_reason,
+        "boundary_relaxed": collapse.boundary_relaxed,
+        "boundary_relaxation_reason": collapse.relaxation_reason,
         "collapse_passes_relaxed": relaxed,
         "hausdorff_original_to_decimated": {k: float(fwd[k]) for k in ("max", "mean", "RMS")},
         "hausdorff_decimated_to_original": {k: float(bwd[k]) for k in ("max", "mean", "RMS")},

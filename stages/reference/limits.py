@@ -20,7 +20,9 @@ accounts for:
 
 from __future__ import annotations
 
+import dataclasses
 import time
+from dataclasses import dataclass, fields
 
 import numpy as np
 import torch
@@ -86,60 +88,61 @@ def unshadowed_integrator(mi):
 FIT_BATCH = 8192
 
 
+@dataclass
+class TruthAtHits:
+    """The true surface at hits, as our renderer shades it: ``normal`` and ``view`` ``(N, 3)``, the
+    true ``material`` (TANGO's terms, or glTF's with its base colour and metallic: the model's BRDF)
+    and the hits' ``shadows`` (a :class:`~stages.model.shadows.ShadowCache`; None: unshadowed)."""
+
+    normal: torch.Tensor
+    view: torch.Tensor
+    material: Material
+    shadows: ShadowCache | None = None
+
+    def at(self, index: torch.Tensor) -> TruthAtHits:
+        """The hits ``index`` (the shadows stay the whole set's: they are looked up by index)."""
+        picked = {
+            f.name: None if getattr(self.material, f.name) is None else getattr(self.material, f.name)[index]
+            for f in fields(Material)
+        }
+        return TruthAtHits(self.normal[index], self.view[index], Material(**picked), self.shadows)
+
+    def radiance(self, light, index: torch.Tensor | None = None, shadowed: bool = True) -> torch.Tensor:
+        """Linear radiance ``(N, 3)`` of the hits (``index``: of those hits) under ``light``: glTF's
+        BRDF through the fitted lobe, TANGO's sum through its closed form; shadowed by the hits'
+        shadows unless ``shadowed`` is false."""
+        part = self if index is None else self.at(index)
+        visibility = None if not shadowed or self.shadows is None else self.shadows.shares(light, index)
+        lobe = "fitted" if self.material.brdf == "gltf" else "isotropic"
+        return shade_material(part.normal, part.view, part.material, light, lobe, visibility).rgb
+
+
 def fit_light_to_image(
-    normal,
-    view,
-    albedo,
-    specular,
-    roughness,
-    target,
-    lobes: int,
-    energy,
-    seed: int = 0,
-    iterations: int = 400,
-    init: str = "broad",
-    brdf: str = "tango",
-    metallic=None,
-    shadows=None,
+    truth: TruthAtHits, target: torch.Tensor, lobes: int, energy, seed: int = 0, iterations: int = 400, init: str = "broad"
 ):
-    """The ``lobes``-lobe SG light that makes our renderer, given the true material and normals
-    at hits (``(N, 3)``/``(N, 1)`` tensors), best match the sRGB ``target (N, 3)`` (mean squared
-    error over random batches of hits, Adam at 0.02 on the light's logarithmic parametrisation,
-    lobes started as ``init``, :data:`~stages.config.sections.LIGHT_INITS`; ``broad`` by default: with
-    the material known and only the light to fit, broad lobes find a 5-degree disc and sharpen onto
-    it where lobes started sharp stay where they began, measured in ``tests/reference/test_sharp_light.py``).
-    ``brdf="gltf"``: glTF's BRDF, ``albedo`` then the base colour and ``metallic (N, 1)`` given: the light a
-    perfect optimisation of TANGO's model would find. ``shadows``: a
-    :class:`~stages.model.shadows.ShadowCache` of the hits (shadowed shading). Returns the light
+    """The ``lobes``-lobe SG light that makes our renderer, given the ``truth`` at hits, best match
+    the sRGB ``target (N, 3)`` (mean squared error over random batches of hits, Adam at 0.02 on the
+    light's logarithmic parametrisation, lobes started as ``init``,
+    :data:`~stages.config.sections.LIGHT_INITS`; ``broad`` by default: with the material known and
+    only the light to fit, broad lobes find a 5-degree disc and sharpen onto it where lobes started
+    sharp stay where they began, measured in ``tests/reference/test_sharp_light.py``). A glTF
+    material gives the light a perfect optimisation of glTF's model would find. Returns the light
     and the seconds taken."""
     t0 = time.perf_counter()
     gen = torch.Generator().manual_seed(seed)
     torch.manual_seed(seed)
     module = SGLightModule(lobes, rgb=True, total_energy=float(np.mean(energy)), init=init)
-    opt = torch.optim.Adam(module.parameters(), lr=0.02)
+    adam = torch.optim.Adam(module.parameters(), lr=0.02)
+    n = len(truth.normal)
     for _ in range(iterations):
-        b = torch.randint(len(normal), (min(FIT_BATCH, len(normal)),), generator=gen)
-        light = module()
-        vis = None if shadows is None else shadows.shares(light, b)
-        pred = linear_to_srgb(
-            _shade_truth(normal[b], view[b], albedo[b], specular[b], roughness[b], light, brdf, metallic, b, vis)
-        )
-        loss = torch.nn.functional.mse_loss(pred, target[b])
-        opt.zero_grad()
+        b = torch.randint(n, (min(FIT_BATCH, n),), generator=gen)
+        loss = torch.nn.functional.mse_loss(linear_to_srgb(truth.radiance(module(), b)), target[b])
+        adam.zero_grad()
         loss.backward()
-        opt.step()
+        adam.step()
     with torch.no_grad():
         light = module()
     return type(light)(light.axis.detach(), light.sharpness.detach(), light.amplitude.detach()), time.perf_counter() - t0
-
-
-def _shade_truth(normal, view, albedo, specular, roughness, light, brdf: str, metallic=None, index=None, visibility=None):
-    """Linear radiance of the true material in our renderer: TANGO's sum, or glTF's BRDF with
-    ``albedo`` as the base colour and ``metallic[index]``; ``visibility (N, K)``: shadows."""
-    if brdf == "gltf":
-        m = metallic if index is None else metallic[index]
-        return shade_material(normal, view, Material.gltf(albedo, m, roughness), light, "fitted", visibility).rgb
-    return shade_material(normal, view, Material(albedo, specular, roughness), light, "isotropic", visibility).rgb
 
 
 def _per_hit(img: np.ndarray, cache: RayCache, i: int) -> tuple[np.ndarray, np.ndarray]:
@@ -218,48 +221,61 @@ def measure_limits(
         "interreflection_mse": max(mse("direct", "target") - 2 * noise, 0.0),
         "shadows_mse": max(mse("unshadowed", "direct") - 2 * noise, 0.0),
     }
-    direction = np.concatenate([cache.view(i).direction for i in range(len(cache))])
-    view = torch.from_numpy(-direction[full]).double()
-    normal = face_viewer(torch.from_numpy(truth["normal"][full]).double(), view)
-    albedo, spec, rough = (torch.from_numpy(truth[k][full]).float() for k in ("albedo", "specular", "roughness"))
-    metallic = None
-    if brdf == "gltf":
-        albedo, metallic = (torch.from_numpy(truth[k][full]).float() for k in ("base", "metallic"))
-    v32, n32 = view.float(), normal.float()
-    rough = rough.clamp(0.01, 1.0)
     shadows = _hit_shadows(cache, full, directions, shadow_samples, seed) if visibility else None
     if shadows is not None:
         out["visibility"] = {"directions": directions, "samples": shadows.samples, "seconds": shadows.seconds}
         out["self_occlusion"] = self_occlusion(shadows.blocked_share())
+    surface = _truth_surface(cache, truth, full, brdf, shadows)
     for k in lobes:
-        errors, psnrs, seconds = {}, {}, 0.0
-        for rung in ("target", "direct", "unshadowed"):
-            goal = torch.from_numpy(srgb[rung]).float()
-            cast = shadows if rung != "unshadowed" else None
-            light, sec = fit_light_to_image(
-                n32, v32, albedo, spec, rough, goal, k, renderer.env_energy, seed, brdf=brdf, metallic=metallic, shadows=cast
-            )
-            with torch.no_grad():
-                vis = None if cast is None else cast.shares(light)
-                ours = linear_to_srgb(_shade_truth(n32, v32, albedo, spec, rough, light, brdf, metallic, visibility=vis))
-            # each Mitsuba image carries its noise; ours is noise-free
-            errors[rung] = max(float(((ours - goal) ** 2).mean()) - noise, 0.0)
-            psnrs[rung] = psnr(ours, goal)
-            seconds += sec
-        total = max(errors["target"], 1e-12)
-        out[f"lobes_{k}"] = {
-            "psnr_db": psnrs,
-            "error_mse": errors,
-            "share": {
-                "interreflection": (errors["target"] - errors["direct"]) / total,
-                "shadows": (errors["direct"] - errors["unshadowed"]) / total,
-                "brdf_light_and_closed_form": errors["unshadowed"] / total,
-            },
-            "fit_seconds": seconds,
-        }
-        if shadows is not None:
-            out[f"lobes_{k}"]["agreement_db"] = {"shadowed": psnrs["direct"], "unshadowed": psnrs["unshadowed"]}
+        out[f"lobes_{k}"] = _lobe_budget(surface, srgb, k, renderer.env_energy, noise, seed)
     return out
+
+
+def _truth_surface(cache: RayCache, truth: dict, full: np.ndarray, brdf: str, shadows: ShadowCache | None) -> TruthAtHits:
+    """The true surface at the fully covered hits, in the model's BRDF (TANGO's, or glTF's from
+    the truth's base colour and metallic)."""
+    direction = np.concatenate([cache.view(i).direction for i in range(len(cache))])
+    view = torch.from_numpy(-direction[full]).double()
+    normal = face_viewer(torch.from_numpy(truth["normal"][full]).double(), view)
+
+    def at(key):
+        return torch.from_numpy(truth[key][full]).float()
+
+    rough = at("roughness").clamp(0.01, 1.0)
+    material = (
+        Material.gltf(at("base"), at("metallic"), rough) if brdf == "gltf" else Material(at("albedo"), at("specular"), rough)
+    )
+    return TruthAtHits(normal.float(), view.float(), material, shadows)
+
+
+def _lobe_budget(surface: TruthAtHits, srgb: dict, lobes: int, energy, noise: float, seed: int) -> dict:
+    """One lobe count's error budget: the SG light fitted to each rung's image (with the surface's
+    shadows, but for the unshadowed rung), its error above the target's noise, and the shares."""
+    errors, psnrs, seconds = {}, {}, 0.0
+    for rung in ("target", "direct", "unshadowed"):
+        goal = torch.from_numpy(srgb[rung]).float()
+        truth = surface if rung != "unshadowed" else dataclasses.replace(surface, shadows=None)
+        light, sec = fit_light_to_image(truth, goal, lobes, energy, seed)
+        with torch.no_grad():
+            ours = linear_to_srgb(truth.radiance(light))
+        # each Mitsuba image carries its noise; ours is noise-free
+        errors[rung] = max(float(((ours - goal) ** 2).mean()) - noise, 0.0)
+        psnrs[rung] = psnr(ours, goal)
+        seconds += sec
+    total = max(errors["target"], 1e-12)
+    budget = {
+        "psnr_db": psnrs,
+        "error_mse": errors,
+        "share": {
+            "interreflection": (errors["target"] - errors["direct"]) / total,
+            "shadows": (errors["direct"] - errors["unshadowed"]) / total,
+            "brdf_light_and_closed_form": errors["unshadowed"] / total,
+        },
+        "fit_seconds": seconds,
+    }
+    if surface.shadows is not None:
+        budget["agreement_db"] = {"shadowed": psnrs["direct"], "unshadowed": psnrs["unshadowed"]}
+    return budget
 
 
 def _hit_shadows(cache: RayCache, full: np.ndarray, directions: int, samples: int, seed: int) -> ShadowCache:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
@@ -342,25 +343,35 @@ def _log_ndf_times_visibility(one_minus_nh: Tensor, nl: Tensor, nv: Tensor, roug
     return torch.log(a2 / math.pi) - 2.0 * torch.log(denom) - torch.log(vis)
 
 
-def _fitted_part(
-    cos_nl: Tensor,
-    cos_vl: Tensor,
-    cos_tl: Tensor,
-    cos_nv: Tensor,
-    sin_nv: Tensor,
-    theta: Tensor,
-    kappa: Tensor,
-    energy: Tensor,
-    roughness: Tensor,
-    fresnel_part: str,
-    sharpness: Tensor,
-    brdf: str = "tango",
-) -> Tensor:
+class LightCosines(NamedTuple):
+    """Each light lobe's axis against a point's frame ``(N, K)``: its cosines with the normal
+    (``nl``), the view (``vl``) and the view's tangent direction (``tl``); and per point ``(N, 1)``
+    the view's cosine with the normal (``nv``) and its sine (``sin_nv``)."""
+
+    nl: Tensor
+    vl: Tensor
+    tl: Tensor
+    nv: Tensor
+    sin_nv: Tensor
+
+
+class BrdfPart(NamedTuple):
+    """One Fresnel part of the BRDF's lobe at each point ``(N, 1)``: the fitted vMF's mean angle
+    from the normal (``theta``) and concentration (``kappa``), the part's ``energy``, and which part
+    it is (``"a"``: the ``F0``-weighted one, ``"b"``: Schlick's)."""
+
+    theta: Tensor
+    kappa: Tensor
+    energy: Tensor
+    fresnel: str
+
+
+def _fitted_part(c: LightCosines, part: BrdfPart, roughness: Tensor, sharpness: Tensor, brdf: str = "tango") -> Tensor:
     """``int f_part(l) (n . l) G_k(l) dl / energy`` for one part of the BRDF and every unit light
-    lobe ``k`` -> ``(N, K)``; see :func:`specular_radiance_fitted`. Cosines of the light axes with
-    the normal, the view and the view's tangent direction ``(N, K)``; per point ``(N, 1)``: ``n.v``,
-    its sine, the lobe's mean angle ``theta`` and concentration ``kappa``, the part's ``energy``
-    and the roughness; ``sharpness (1, K)``."""
+    lobe ``k`` -> ``(N, K)``; see :func:`specular_radiance_fitted`. ``roughness (N, 1)``,
+    ``sharpness (1, K)``."""
+    cos_nl, cos_vl, cos_tl, cos_nv, sin_nv = c
+    theta, kappa, energy, fresnel_part = part
     cos_t, sin_t = torch.cos(theta), torch.sin(theta)
     cos_ml = cos_t * cos_nl - sin_t * cos_tl  # mu = cos(theta) n - sin(theta) t: the lobe's mean direction
     lam_p, log_amp = _product_terms(kappa, sharpness, cos_ml)
@@ -447,10 +458,10 @@ def specular_radiance_fitted(
     cos_nl, cos_vl, cos_tl = normal @ axis.T, view @ axis.T, tangent @ axis.T
     a, b = directional_albedo(cos_nv, roughness, brdf)
     theta_a, kappa_a, theta_b, kappa_b = lobe_moments(cos_nv, roughness, brdf)
-    common = (cos_nl, cos_vl, cos_tl, cos_nv, sin_nv)
+    cosines = LightCosines(cos_nl, cos_vl, cos_tl, cos_nv, sin_nv)
     vis = None if visibility is None else visibility.to(work)
-    part_a = _shadowed(_fitted_part(*common, theta_a, kappa_a, a, roughness, "a", sharpness, brdf), vis) @ amplitude
-    part_b = _shadowed(_fitted_part(*common, theta_b, kappa_b, b, roughness, "b", sharpness, brdf), vis) @ amplitude
+    part_a = _shadowed(_fitted_part(cosines, BrdfPart(theta_a, kappa_a, a, "a"), roughness, sharpness, brdf), vis) @ amplitude
+    part_b = _shadowed(_fitted_part(cosines, BrdfPart(theta_b, kappa_b, b, "b"), roughness, sharpness, brdf), vis) @ amplitude
     return (specular * a * part_a + b * part_b).to(dtype)
 
 

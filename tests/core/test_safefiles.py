@@ -69,7 +69,7 @@ def test_links_fifos_and_devices_are_not_plain_files(tmp_path):
 
 
 def test_a_received_figures_json_cannot_inline_a_file_from_outside(tmp_path, caplog):
-    from stages.results.site import data_uri, figures_section
+    from stages.results.site import data_uri, figure_entries
 
     secret = tmp_path / "secret.txt"
     secret.write_text("the password")
@@ -83,9 +83,11 @@ def test_a_received_figures_json_cannot_inline_a_file_from_outside(tmp_path, cap
     ]
     entries += [{"title": "pipe", "file": "figures/pipe.png"}, {"title": "good", "file": "figures/good.png"}]
     (report / "figures.json").write_text(json.dumps({"figures": entries}))
-    html = figures_section(report, data_uri)  # single-file mode: every figure inlined
-    assert "the password" not in html and "dGhlIHBhc3N3b3Jk" not in html  # nor its base64
-    assert html.count("Not drawn") == 4 and html.count("data:image/png;base64,") == 2  # the good one: link and image
+    shown = figure_entries(report, data_uri)  # single-file mode: every figure inlined
+    text = json.dumps(shown)
+    assert "the password" not in text and "dGhlIHBhc3N3b3Jk" not in text  # nor its base64
+    assert [e["src"] is None for e in shown] == [True, True, True, True, False]  # the good one is drawn
+    assert shown[-1]["src"].startswith("data:image/png;base64,")
     assert sum("figure not shown" in r.message for r in caplog.records) == 4
 
 
@@ -136,7 +138,7 @@ def test_a_ray_cache_target_or_meta_that_is_a_link_or_a_fifo_is_one_line(tmp_pat
 
 def test_a_received_record_that_is_not_json_or_not_the_reports_is_one_line_or_ignored(tmp_path, caplog):
     from stages.core.safefiles import read_json_record
-    from stages.results.site import figures_section
+    from stages.results.site import figure_entries
 
     report = tmp_path / "results" / "exp" / "report"
     report.mkdir(parents=True)
@@ -146,5 +148,4 @@ def test_a_received_record_that_is_not_json_or_not_the_reports_is_one_line_or_ig
     assert "\n" not in str(err.value)
     for junk in ("[1, 2]", '{"figures": "x"}', '{"figures": [1, {"file": 3}]}'):
         (report / "figures.json").write_text(junk)
-        html = figures_section(report, str)
-        assert html.startswith("<h2>Figures</h2>") and "<img" not in html
+        assert all(e["src"] is None for e in figure_entries(report, str))

@@ -24,7 +24,7 @@ from stages.geometry.normalization import Similarity
 from stages.geometry.raycache import RayCache
 from stages.geometry.tangents import CornerFrames
 from stages.model.lightfit import fit_sg_light
-from stages.reference import blender
+from stages.reference import blender, roundtrip_job
 from stages.render.envmap import equirect_directions, load_env
 from stages.render.hdrio import write_exr, write_hdr
 from stages.results import summary
@@ -268,8 +268,8 @@ def test_roundtrip_reference_casts_shadows_only_for_full_transport(trained_cell)
     cache = RayCache(trained_cell / "eval.npz")
     assert field.shadows and cache.visibility_directions > 0  # the candle: auto traced it
     views = list(range(len(cache)))
-    plain = roundtrip.field_renders(field, cache, views, "cpu")
-    shadowed = roundtrip.field_renders(field, cache, views, "cpu", shadows=True)
+    plain = roundtrip_job.field_renders(field, cache, views, "cpu")
+    shadowed = roundtrip_job.field_renders(field, cache, views, "cpu", shadows=True)
     a = np.concatenate([p.diffuse + p.specular for p in plain])
     b = np.concatenate([s.diffuse + s.specular for s in shadowed])
     assert (b <= a + 1e-4).all() and (a - b).max() > 1e-3

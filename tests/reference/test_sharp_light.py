@@ -13,10 +13,10 @@ from conftest import icosphere, require_tool
 from stages.config.sections import OptimizeSettings, RaycacheSettings, TargetSettings
 from stages.geometry.meshio import save_ply
 from stages.geometry.raycache import RayCache
-from stages.model.networks import SGLightModule, broad_sharpness, initial_sharpness
+from stages.model.networks import Material, SGLightModule, broad_sharpness, initial_sharpness
 from stages.raycache import run as raycache_run
 from stages.reference import mitsuba as mref
-from stages.reference.limits import fit_light_to_image
+from stages.reference.limits import TruthAtHits, fit_light_to_image
 from stages.reference.targets import ALPHA_FULL, TargetRenderer
 from stages.render.color import srgb_encode
 from stages.render.envmap import equirect_directions
@@ -107,9 +107,8 @@ def test_fitted_light_recovers_a_sharp_disc(disc_scene):
     at most 8 to a lobe's sharpness in these steps (the next test)."""
     s = disc_scene
     albedo, specular, roughness = s["material"]
-    light, _ = fit_light_to_image(
-        s["normal"], s["view"], albedo, specular, roughness.clamp(0.01, 1.0), s["goal"], 8, s["energy"], 0, init="broad"
-    )
+    truth = TruthAtHits(s["normal"], s["view"], Material(albedo, specular, roughness.clamp(0.01, 1.0)))
+    light, _ = fit_light_to_image(truth, s["goal"], 8, s["energy"], 0, init="broad")
     axis = torch.from_numpy(DISC_AXIS).float()
     angle = torch.rad2deg(torch.acos((light.axis @ axis).clamp(-1.0, 1.0)))
     lam = light.sharpness[:, 0]

@@ -1,0 +1,169 @@
+"""The Blender round trip's work: the cell's exported files imported into Blender, checked and
+rendered with Cycles from evaluation views (:mod:`.blender`), against our render of the trained field
+at the same hits; the GLB's lobes alone, which split the gap between the BRDF models; and the
+comparison sheet."""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..config.sections import RoundtripSettings
+from ..core.errors import StageInputError
+from ..core.provenance import Timer
+from ..geometry.raycache import RayCache
+from ..imaging.views import ViewStore
+from ..render.color import srgb_encode
+from .blender import BlenderUnavailable, check_import, compare_renders, render_job, run_job
+
+log = logging.getLogger(__name__)
+
+
+#: Cycles passes of the GLB: the material as imported, its diffuse lobe alone (no specular
+#: reflection) and its specular lobe alone (black base colour)
+PASSES = {
+    "full": {},
+    "diffuse": {"Specular IOR Level": 0.0},
+    "specular": {"Base Color": (0.0, 0.0, 0.0, 1.0)},
+}
+
+
+@dataclass
+class Lobes:
+    """Our render at the hits of one view, linear ``(N, 3)`` each."""
+
+    diffuse: np.ndarray
+    specular: np.ndarray
+
+    @property
+    def rgb(self) -> np.ndarray:
+        return self.diffuse + self.specular
+
+
+def field_renders(field, cache: RayCache, views: list[int], device: str, shadows: bool = False) -> list[Lobes]:
+    """Our render of the trained field at every hit of the given views, with the field's shadows
+    when ``shadows`` (for Cycles' ``full`` transport; its ``direct_unshadowed`` casts none, so the
+    comparison of like with like is unshadowed)."""
+    store = ViewStore(cache, torch.device(device), field.normals, shadows=shadows and field.shadows)
+    out = []
+    for i in views:
+        v = store[i]
+        with torch.no_grad():
+            sh = v.shade(field).shading
+        out.append(Lobes(sh.diffuse.cpu().numpy().astype(np.float64), sh.specular.cpu().numpy().astype(np.float64)))
+    return out
+
+
+def comparison_sheet(ours: np.ndarray, theirs: dict[str, np.ndarray]) -> np.ndarray:
+    """One row: ours | each format's Cycles render | 4 x |difference| of the first; sRGB, white
+    where no pixel counted."""
+
+    def show(x):
+        return np.where(np.isnan(x), 1.0, np.clip(srgb_encode(np.clip(np.nan_to_num(x), 0, None)), 0, 1))
+
+    first = next(iter(theirs.values()))
+    diff = np.where(np.isnan(ours), np.nan, np.abs(show(first) - show(ours)) * 4.0)
+    return np.concatenate([show(ours), *(show(t) for t in theirs.values()), np.where(np.isnan(diff), 1.0, diff)], axis=1)
+
+
+@dataclass
+class RoundtripScene:
+    """What every Blender job of a cell renders and is compared with: the evaluation ``cache``, the
+    chosen ``views`` and their ``hits``, Blender's cameras for them, our render at those hits (``reference``), the
+    exported geometry with its metres per unit, the export stage's metadata, the settings and the
+    folders of the exported files and of the jobs' work."""
+
+    cache: RayCache
+    views: list[int]
+    hits: list
+    cameras: np.ndarray
+    reference: list[Lobes]
+    geom: object
+    meters_per_unit: float
+    export_meta: dict
+    settings: RoundtripSettings
+    export_dir: Path
+    work: Path
+
+
+def blender_pass(scene: RoundtripScene, fmt: str, name: str, overrides: dict, timer: Timer):
+    """One Blender job: import ``model.<fmt>`` and render it (the ``name`` pass: the material as
+    imported, or with its ``overrides``); the inspection and the renders."""
+    s = scene.settings
+    env = (scene.export_dir / "light.hdr").resolve() if fmt == "glb" else None  # the USD carries its DomeLight
+    render = render_job(
+        scene.cameras, scene.cache.fov_deg, scene.cache.width, spp=s.spp, seed=s.seed, transport=s.transport, environment=env
+    )
+    job = {
+        "asset": str((scene.export_dir / f"model.{fmt}").resolve()),
+        "inspect": name == "full",
+        "render": {**render, "principled_overrides": overrides},
+    }
+    with timer(f"blender_{fmt}_{name}"):
+        try:
+            return run_job(job, scene.work / f"{fmt}_{name}", s.timeout_s)
+        except BlenderUnavailable as exc:
+            raise StageInputError(Path("blender"), str(exc), "Or set roundtrip.enabled: false.") from None
+
+
+def graded_import(scene: RoundtripScene, fmt: str, res) -> tuple[dict, object]:
+    """A format's imported asset checked and its render graded against ours: its result record
+    and the comparison (images per view)."""
+    exported = scene.export_meta.get("stats", {})
+    occlusion = bool(exported.get("occlusion", False)) and fmt == "glb"  # Blender's USD importer drops it
+    checks = check_import(res, scene.geom, scene.meters_per_unit, exported.get("brdf", "tango"), occlusion)
+    world = [n["node"] for n in res.report.get("world", {}).get("nodes", [])]
+    if "TEX_ENVIRONMENT" not in world:
+        checks["problems"].append("the world has no environment texture (the learned light did not arrive)")
+    for problem in checks["problems"]:
+        log.warning("Blender import of model.%s: %s", fmt, problem)
+    cmp = compare_renders(scene.hits, res.renders, [r.rgb for r in scene.reference])
+    log.info(
+        "model.%s in Blender %s: %.2f dB against our render over %d object pixels (Cycles noise %.1f dB), %d problem(s)",
+        fmt,
+        res.report.get("blender"),
+        cmp.psnr_db,
+        cmp.pixels,
+        cmp.noise_psnr_db,
+        len(checks["problems"]),
+    )
+    result = {
+        "psnr_db": cmp.psnr_db,
+        "noise_psnr_db": cmp.noise_psnr_db,
+        "per_view_psnr_db": cmp.per_view_psnr_db,
+        "pixels": cmp.pixels,
+        "import": checks,
+        "blender": res.report.get("blender"),
+        "blender_seconds": res.seconds,
+        "render_seconds": res.report["render"]["seconds"],
+    }
+    return result, cmp
+
+
+def lobe_split(scene: RoundtripScene, lobes: dict) -> dict:
+    """Each of the GLB's lobes alone against ours, Blender's two lobes simply added (TANGO's sum,
+    no layering), and the specular lobe's share of our radiance."""
+    hits, reference = scene.hits, scene.reference
+    split = {
+        "diffuse_psnr_db": compare_renders(hits, lobes["diffuse"], [r.diffuse for r in reference]).psnr_db,
+        "specular_psnr_db": compare_renders(hits, lobes["specular"], [r.specular for r in reference]).psnr_db,
+    }
+    summed = lobes["diffuse"].copy()
+    summed[..., :3] += lobes["specular"][..., :3]
+    split["lobes_summed_psnr_db"] = compare_renders(hits, summed, [r.rgb for r in reference]).psnr_db
+    ours_spec = float(np.concatenate([r.specular for r in reference]).mean())
+    ours_all = float(np.concatenate([r.rgb for r in reference]).mean())
+    split["specular_share"] = ours_spec / max(ours_all, 1e-12)
+    log.info(
+        "model.glb lobes: diffuse alone %.2f dB, specular alone %.2f dB, Blender's lobes added %.2f dB "
+        "(specular is %.0f%% of our radiance)",
+        split["diffuse_psnr_db"],
+        split["specular_psnr_db"],
+        split["lobes_summed_psnr_db"],
+        100 * split["specular_share"],
+    )
+    return split
