@@ -134,7 +134,8 @@ def _hemisphere_t(sharpness: Tensor) -> Tensor:
     has no ``1 / lam`` and is finite down to ``lam = 0``; in float32 ``sqrt(lam) lam^2`` overflows
     above ``lam ~ 2e15``, far beyond the renderer's sharpest lobe, ~1e11)."""
     lam = sharpness
-    return torch.sqrt(lam) * (1.6988 * lam * lam + 10.8438 * lam) / (lam * lam + 6.2201 * lam + 10.2415)
+    root = torch.sqrt(torch.clamp(lam, min=torch.finfo(lam.dtype).tiny))  # (sqrt's derivative finite at lam = 0)
+    return root * (1.6988 * lam * lam + 10.8438 * lam) / (lam * lam + 6.2201 * lam + 10.2415)
 
 
 def sg_hemisphere_integral(sharpness: Tensor, cos_beta: Tensor) -> Tensor:
@@ -154,14 +155,17 @@ def sg_hemisphere_integral(sharpness: Tensor, cos_beta: Tensor) -> Tensor:
     ``lam`` in [1e-4, 1e4] (tested; measured 1.1%). Finite values and gradients for ``lam`` in
     [1e-6, 1e18] in float64 and [1e-6, 1e15] in float32 (tested).
 
-    ``sharpness (..., 1) > 0``, ``cos_beta (..., 1)`` in [-1, 1] -> ``(..., 1)``.
+    ``sharpness (..., 1) >= 0``, ``cos_beta (..., 1)`` in [-1, 1] -> ``(..., 1)``. At ``lam = 0`` the
+    lobe is 1 everywhere and the integral is ``2 pi`` whatever the step ``s``, whose denominator is
+    held at the dtype's smallest normal there instead of dividing 0 by 0.
     """
     lam = sharpness
     t = _hemisphere_t(lam)
     c = cos_beta
     lo = torch.exp(t * torch.clamp(c, max=0.0))  # exp(t min(c, 0)) <= 1
     hi = torch.exp(-t * torch.clamp(c, min=0.0))  # exp(-t max(c, 0)) <= 1
-    s = -torch.expm1(-t * (1.0 + c)) * lo / (-torch.expm1(-t) * (lo + hi))
+    den = torch.clamp(-torch.expm1(-t), min=torch.finfo(t.dtype).tiny)
+    s = -torch.expm1(-t * (1.0 + c)) * lo / (den * (lo + hi))
     a_u = math.pi * one_minus_exp_neg2x_over_x(0.5 * lam)  # 2 pi (1 - exp(-lam)) / lam
     return a_u * (s + torch.exp(-lam) * (1.0 - s))
 

@@ -195,7 +195,10 @@ def _product_terms(lam1: Tensor, lam2: Tensor, cos12: Tensor) -> tuple[Tensor, T
     (TF32, bfloat16) returns cosines just outside it, and ``1 + c < 0`` at opposite axes of equal
     sharpness made the square root NaN (TF32 on an H100 at step 40 of a paper run)."""
     cos12 = cos12.clamp(-1.0, 1.0)
-    lam = torch.sqrt((lam1 - lam2) ** 2 + 2.0 * lam1 * lam2 * (1.0 + cos12))
+    # 0 for lobes of equal sharpness and opposite axes (a cosine rounded to -1 by reduced-precision
+    # products reaches it): held at the dtype's smallest normal, where sqrt's derivative is finite
+    tiny = torch.finfo(cos12.dtype).tiny
+    lam = torch.sqrt(torch.clamp((lam1 - lam2) ** 2 + 2.0 * lam1 * lam2 * (1.0 + cos12), min=tiny))
     log_amp = -2.0 * lam1 * lam2 * (1.0 - cos12) / (lam + lam1 + lam2)
     return lam, log_amp
 

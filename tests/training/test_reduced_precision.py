@@ -1,0 +1,102 @@
+"""Training stays finite when the matrix products run at reduced precision: TF32 emulated on the
+CPU by rounding every float32 input of a matrix product to TF32's 10-bit mantissa (as the tensor
+cores of an Ampere or later GPU do with ``allow_tf32``)."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from torch.utils._python_dispatch import TorchDispatchMode
+
+from stages.config.sections import OptimizeSettings
+from stages.core.provenance import Timer
+from stages.geometry.raycache import RayCache
+from stages.render.sg import COS_LAMBDA, sg_hemisphere_integral
+from stages.render.shading import _product_terms
+from stages.training.optimizer import Optimizer
+
+
+def tf32(x: torch.Tensor) -> torch.Tensor:
+    """float32 rounded to a 10-bit mantissa (to nearest, ties to even), on the bits."""
+    i = x.contiguous().view(torch.int32)
+    i = (i + 0x0FFF + ((i >> 13) & 1)) & ~0x1FFF
+    return i.view(torch.float32)
+
+
+MATRIX_PRODUCTS = {
+    torch.ops.aten.mm.default,
+    torch.ops.aten.addmm.default,
+    torch.ops.aten.bmm.default,
+    torch.ops.aten.baddbmm.default,
+}
+
+
+class EmulatedTF32(TorchDispatchMode):
+    """Every float32 input of a matrix product rounded to TF32 (accumulation stays float32)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.products = 0
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        if func in MATRIX_PRODUCTS:
+            self.products += 1
+            args = tuple(tf32(a) if isinstance(a, torch.Tensor) and a.dtype == torch.float32 else a for a in args)
+        return func(*args, **(kwargs or {}))
+
+
+def test_the_emulation_rounds_to_ten_mantissa_bits():
+    # the textbook rounding in [1, 2): to the nearest multiple of 2^-10, ties to even (Python's round)
+    x = torch.tensor([1.0 + k * 2.0**-12 for k in range(64)] + [1.5 - 2.0**-20], dtype=torch.float32)
+    expected = [round(float(v) * 2**10) / 2**10 for v in x]
+    assert tf32(x).tolist() == expected
+    y = torch.tensor([-3.0e-5, 7.7e3], dtype=torch.float32)  # sign and exponent kept
+    for v, r in zip(y.tolist(), tf32(y).tolist(), strict=True):
+        m, e = math.frexp(v)
+        assert r == math.ldexp(round(m * 2**11) / 2**11, e)
+
+
+def test_lobes_of_equal_sharpness_and_opposite_axes_have_finite_gradients():
+    """The product of two lobes of equal sharpness and opposite axes has sharpness 0; its hemisphere
+    integral is then 2 pi (a lobe that is 1 everywhere), with finite gradients."""
+    lam = torch.tensor([[COS_LAMBDA]], requires_grad=True)
+    cos = torch.tensor([[-1.0]], requires_grad=True)
+    lam_q, log_q = _product_terms(lam, torch.tensor(COS_LAMBDA), cos)
+    value = sg_hemisphere_integral(lam_q, torch.ones_like(lam_q))
+    assert float(value) == pytest.approx(2 * math.pi, rel=1e-6)
+    (value + log_q).sum().backward()
+    assert torch.isfinite(lam.grad).all() and torch.isfinite(cos.grad).all()
+    zero = torch.zeros(1, 1, requires_grad=True)
+    sg_hemisphere_integral(zero, torch.tensor([[0.3]])).sum().backward()
+    assert torch.isfinite(zero.grad).all()
+
+
+@pytest.mark.slow
+def test_200_steps_with_emulated_tf32_stay_finite(cache):
+    """Light lobes started at the cosine lobe's own sharpness: a light lobe's cosine with a normal
+    rounded to -1 by a TF32 product made the product of the two lobes sharpness 0, the hemisphere
+    integral 0/0 and the loss non-finite at step 1 (float32 stayed finite)."""
+    s = OptimizeSettings(
+        iterations=200,
+        guidance="image",
+        target_renderer="sg",
+        image_size=64,
+        width=32,
+        light_lobes=16,
+        crops=0,
+        light_init="broad",
+        light_init_sharpness=COS_LAMBDA,
+        bf16_networks="off",
+        compile_shading="off",
+        lr=5e-3,
+        milestones=(120, 170),
+        gamma=0.3,
+    )
+    run = Optimizer(s, RayCache(cache / "train.npz"), "p", "cpu")
+    mode = EmulatedTF32()
+    with mode:
+        losses = [run.step(Timer())["loss"] for _ in range(200)]
+    assert mode.products > 200 and all(math.isfinite(x) for x in losses)
+    assert losses[-1] < losses[0]
