@@ -1,4 +1,7 @@
-"""bake: unwrap the mesh with xatlas and bake the trained field into PBR textures.
+"""bake: bake the trained field into PBR textures, in the input's own UV layout or a new xatlas atlas.
+
+The layout is ``bake.uv``'s (:mod:`stages.assets.layouts`): the input's own where it is usable
+(``auto``, the default, records why not where it is not), always (``keep``) or never (``atlas``).
 
 The field is evaluated at every covered texel centre (base colour, roughness, specular colour and
 the predicted normal in tangent space), the ambient occlusion is written into the
@@ -18,7 +21,15 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .assets.baking import bake_field, decode_textures, occlusion_decision, occlusion_samples, render_baked_views
+from .assets.baking import (
+    bake_field,
+    decode_textures,
+    occlusion_decision,
+    occlusion_samples,
+    render_baked_views,
+    texel_density,
+)
+from .assets.layouts import InputMesh, choose_layout
 from .config.records import BakeRecord
 from .config.sections import BakeSettings
 from .core.cli import stage_main
@@ -45,8 +56,10 @@ def run(
     out_dir: Path,
     settings: BakeSettings,
     device: str = "cpu",
+    source: InputMesh | None = None,
 ) -> dict:
-    """Bake ``field_path`` onto ``mesh_path`` and write textures, light, atlas and metadata."""
+    """Bake ``field_path`` onto ``mesh_path`` (normalised from ``source``, whose UV layout
+    ``bake.uv`` may keep) and write textures, light, atlas and metadata."""
     timer = Timer()
     for p in (mesh_path, field_path, eval_path):
         if not Path(p).is_file():
@@ -55,12 +68,18 @@ def run(
         mesh = load_ply(mesh_path)
         field, opt_settings = load_field(field_path, device)
         eval_cache = RayCache(eval_path)
+    with timer("layout"):
+        source = source or InputMesh(None, None)
+        uv, layout = choose_layout(
+            settings.uv, source.path, source.transform(), mesh, settings.size_for(len(mesh.faces)), settings.uv_max_overlap
+        )
     job = job_label("bake", out_dir)
     occlusion = occlusion_decision(settings.occlusion, field, eval_cache)
     with timer("occlusion"), heartbeat(job, "tracing the ambient occlusion"):
         ao = occlusion_samples(mesh, occlusion, settings)
-    with timer("bake"), heartbeat(job, f"unwrapping and baking {len(mesh.faces)} faces"):
-        res = bake_field(mesh, field, settings, device, ao)
+    verb = "baking the input's own layout of" if layout is not None else "unwrapping and baking"
+    with timer("bake"), heartbeat(job, f"{verb} {len(mesh.faces)} faces"):
+        res = bake_field(mesh, field, settings, device, ao, layout)
     out_dir = Path(out_dir)
     with staged_outputs(out_dir) as staging:
         with timer("write"):
@@ -70,7 +89,8 @@ def run(
             write_hdr(staging / "light.hdr", res.light_equirect)
             with atomic_path(staging / "atlas.npz") as tmp:
                 with open(tmp, "wb") as fh:
-                    np.savez(fh, uv=res.atlas.uv.astype(np.float32), **res.frames.arrays())
+                    kept = {} if layout is None else {"source_face": layout.source_face}
+                    np.savez(fh, uv=res.atlas.uv.astype(np.float32), **res.frames.arrays(), **kept)
         # fidelity: baked asset vs neural field from the evaluation views
         with timer("fidelity"), heartbeat(job, "rendering the baked asset for the fidelity check"):
             store = ViewStore(
@@ -78,7 +98,10 @@ def run(
             )  # the textures' fidelity: both unshadowed
             tex = decode_textures(res.textures)
             light = field.light()
-            baked = render_baked_views(eval_cache, res.atlas.uv, tex, res.frames, light, device, field.specular_lobe, field.brdf)
+            wrap = layout is not None  # a kept layout's textures repeat, as glTF's default sampler does
+            baked = render_baked_views(
+                eval_cache, res.atlas.uv, tex, res.frames, light, device, field.specular_lobe, field.brdf, wrap
+            )
             preds = [linear_to_srgb(b) for b in baked]
             refs = [linear_to_srgb(r) for r in radiance_at_hits(field, store)]
             bake_psnr = psnr(torch.cat(preds), torch.cat(refs))
@@ -95,6 +118,9 @@ def run(
             "atlas_utilization": res.atlas.utilization,
             "texel_coverage": res.coverage,
             "faces": len(mesh.faces),
+            # which UV layout the textures use, and why (bake.uv)
+            "uv": uv.record(),
+            "texels_per_area": texel_density(res, mesh),
             # the BRDF the textures hold (optimize.brdf): the exporters map them accordingly
             "brdf": field.brdf,
             # the ambient occlusion map in metallic_roughness.png's red channel (bake.occlusion)
@@ -102,9 +128,11 @@ def run(
             "bake_psnr_pixels": "object pixels of the evaluation views, sRGB, baked textures vs neural field",
         }
         log.info(
-            "baked %d faces into %d^2 textures (%.0f%% texels used), fidelity %.1f dB",
+            "baked %d faces into %d^2 textures (%s layout: %s; %.0f%% texels used), fidelity %.1f dB",
             len(mesh.faces),
             res.atlas.size,
+            "the input's" if uv.kept else "a new",
+            uv.why,
             100 * res.coverage,
             bake_psnr,
         )
@@ -133,9 +161,12 @@ def main(argv: list[str] | None = None) -> int:
         parser.add_argument("--eval", required=True, type=Path, help="evaluation ray cache (.npz)")
         parser.add_argument("--out-dir", required=True, type=Path)
         parser.add_argument("--settings", default="{}", help="JSON of the bake settings")
+        parser.add_argument("--source", help="the input mesh (file or builtin:<name>) whose UV layout bake.uv may keep")
+        parser.add_argument("--transform", type=Path, help="the normalisation's transform.json (with --source)")
 
     def body(args):
-        run(args.mesh, args.field, args.eval, args.out_dir, BakeSettings.from_json(args.settings), args.device)
+        source = InputMesh(args.source, args.transform)
+        run(args.mesh, args.field, args.eval, args.out_dir, BakeSettings.from_json(args.settings), args.device, source)
 
     return stage_main("bake", __doc__, arguments, body, argv, device="cpu")
 

@@ -1,6 +1,10 @@
 """export: turn a bake into an asset pack: USD (``model.usda`` + packaged ``model.usdz``), glTF 2.0
 (``model.glb``), textures, the learned light and a preview image, each file validated.
 
+Where the bake kept the input's UV layout (``bake.uv``), the asset is the input's own topology
+(:mod:`stages.assets.ownformat`): a glTF input's own document with new materials, an OBJ input's
+own lines with a new material library (``model.obj``, ``model.mtl``) beside the USD and glTF files.
+
 Geometry is returned to the input's units through the normalisation's inverse transform (or left
 normalised, ``units: normalized``); the material mapping and what each format loses are in
 :mod:`stages.assets.formats`.
@@ -15,6 +19,8 @@ from pathlib import Path
 from PIL import Image
 
 from .assets.formats import export_mesh, read_atlas, write_model_files
+from .assets.layouts import kept_source
+from .assets.ownformat import kept_geometry, write_document_glb, write_obj
 from .config.layout import TEXTURE_FILES
 from .config.records import ExportRecord
 from .config.sections import ExportSettings
@@ -36,8 +42,10 @@ def run(
     out_dir: Path,
     settings: ExportSettings,
     name: str = "model",
+    source: str | None = None,
 ) -> dict:
-    """Write the asset pack of one grid cell into ``out_dir``."""
+    """Write the asset pack of one grid cell into ``out_dir`` (``source``: the input mesh, read
+    where the bake kept its UV layout)."""
     timer = Timer()
     bake_dir, out_dir = Path(bake_dir), Path(out_dir)
     needed = [mesh_path, transform_path, bake_dir / "atlas.npz", bake_dir / "light.exr", preview]
@@ -49,7 +57,15 @@ def run(
     mesh = load_ply(mesh_path)
     atlas = read_atlas(bake_dir / "atlas.npz")
     tf = Similarity.from_json(read_json_record(transform_path))
-    geom = export_mesh(mesh, atlas, tf if settings.units == "original" else None, settings.weld)
+    bake_stats = read_json_record(bake_dir / "meta.json").get("stats", {})
+    brdf = bake_stats.get("brdf", "tango")
+    occlusion = bool(bake_stats.get("occlusion", {}).get("baked", False))
+    kept = kept_source(bake_stats, atlas, source, bake_dir)
+    if kept is None:
+        geom = export_mesh(mesh, atlas, tf if settings.units == "original" else None, settings.weld)
+    else:
+        geom = kept_geometry(kept, None if settings.units == "original" else tf)
+    extra_files: list[str] = []
     with staged_outputs(out_dir) as staging:
         with timer("copy"):
             for rel in TEXTURE_FILES.values():
@@ -61,11 +77,17 @@ def run(
                     shutil.copyfile(bake_dir / fname, tmp)
             with atomic_path(staging / "preview.png") as tmp:
                 shutil.copyfile(preview, tmp)
-        bake_stats = read_json_record(bake_dir / "meta.json").get("stats", {})
-        brdf = bake_stats.get("brdf", "tango")
-        occlusion = bool(bake_stats.get("occlusion", {}).get("baked", False))
+        glb_writer = None
+        if kept is not None and kept.kind == "gltf":
+
+            def glb_writer(path):
+                write_document_glb(path, kept, staging / "textures", origin, brdf, occlusion)
+
+        if kept is not None and kept.kind == "obj":
+            with timer("obj"):
+                extra_files = write_obj(staging, kept, None if settings.units == "original" else tf, brdf)
         checked = write_model_files(
-            staging, geom, settings.meters_per_unit, settings.usdz_root, name, origin, timer, brdf, occlusion
+            staging, geom, settings.meters_per_unit, settings.usdz_root, name, origin, timer, brdf, occlusion, glb_writer
         )
         usd, gltf = checked["usd"], checked["gltf"]
         with Image.open(staging / TEXTURE_FILES["basecolor"]) as img:
@@ -73,6 +95,8 @@ def run(
         stats = {
             "faces": len(mesh.faces),
             "vertices_exported": len(geom.positions),
+            "topology": "the input's own (kept UV layout)" if kept is not None else "the traced mesh, welded",
+            "extra_files": extra_files,
             "corners": 3 * len(geom.indices),
             "file_bytes": {f: (staging / f).stat().st_size for f in ("model.glb", "model.usdz", "model.usda")},
             "texture_size": texture_size,
@@ -95,7 +119,7 @@ def run(
                 stage="export",
                 settings=settings.to_dict(),
                 inputs={"mesh": mesh_path, "transform": transform_path, "bake": bake_dir},
-                outputs={k: out_dir / k for k in ("model.usda", "model.usdz", "model.glb")},
+                outputs={k: out_dir / k for k in ("model.usda", "model.usdz", "model.glb", *extra_files)},
                 timings={**timer.seconds, "total": timer.total()},
                 extra={"stats": stats, ORIGIN_KEY: origin},
             ),
@@ -112,10 +136,11 @@ def main(argv: list[str] | None = None) -> int:
         parser.add_argument("--out-dir", required=True, type=Path)
         parser.add_argument("--name", default="model")
         parser.add_argument("--settings", default="{}")
+        parser.add_argument("--source", help="the input mesh (read where the bake kept its UV layout)")
 
     def body(args):
         settings = ExportSettings.from_json(args.settings)
-        run(args.mesh, args.transform, args.bake_dir, args.preview, args.out_dir, settings, args.name)
+        run(args.mesh, args.transform, args.bake_dir, args.preview, args.out_dir, settings, args.name, args.source)
 
     return stage_main("export", __doc__, arguments, body, argv)
 

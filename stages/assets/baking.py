@@ -37,12 +37,14 @@ from ..geometry.normals import NormalSpec, interpolate_normals
 from ..geometry.raycache import dequantize_bary
 from ..geometry.tangents import CornerFrames, from_tangent_space, to_tangent_space
 from ..geometry.tracing import EmbreeTracer
+from ..geometry.uvlayout import face_tiles, wrapped_copies
 from ..geometry.visibility import OcclusionSamples, fibonacci_directions
 from ..model.field import shade_material
 from ..model.networks import Material
 from ..render.color import srgb_decode, srgb_encode, to_u8
 from ..render.envmap import equirect_directions
 from ..render.shading import face_viewer
+from .layouts import KeptLayout
 
 
 @dataclass
@@ -71,6 +73,25 @@ def atlas_texels(mesh: TriMesh, size: int, padding: int, max_chart_share: float 
     locate every covered texel centre on it."""
     atlas = unwrap(mesh, size, padding, max_chart_share)
     face, bary = rasterize_atlas(atlas.uv, size)
+    return locate_texels(mesh, atlas, face, bary)
+
+
+def kept_texels(mesh: TriMesh, uv: np.ndarray, size: int, islands: int) -> AtlasTexels:
+    """Locate every covered texel centre of the input's own layout ``uv (F, 3, 2)`` (per face of
+    ``mesh``; every face in one tile, :func:`~stages.geometry.uvlayout.face_tiles`) on a
+    ``size``-texel texture that repeats: each face is moved into the unit tile and its parts past an
+    edge wrap round (:func:`~stages.geometry.uvlayout.wrapped_copies`); where faces are stacked,
+    the texel takes one of them."""
+    tris, owner = wrapped_copies(uv - face_tiles(uv)[:, None, :])
+    face, bary = rasterize_atlas(tris, size)
+    face = np.where(face >= 0, owner[np.maximum(face, 0)], -1)
+    filled = face >= 0
+    atlas = Atlas(uv.astype(np.float64), size, islands, float(filled.mean()))
+    return locate_texels(mesh, atlas, face, bary)
+
+
+def locate_texels(mesh: TriMesh, atlas: Atlas, face: np.ndarray, bary: np.ndarray) -> AtlasTexels:
+    """The covered texels of ``atlas`` from the rasterised ``face (S, S)`` and ``bary (S, S, 2)``."""
     filled = face >= 0
     fi = face[filled].astype(np.int64)
     uvb = bary[filled].astype(np.float64)
@@ -182,19 +203,46 @@ def occlusion_samples(mesh: TriMesh, decision: dict, settings: BakeSettings, see
 
 
 def bake_field(
-    mesh: TriMesh, field, settings: BakeSettings, device="cpu", occlusion: OcclusionSamples | None = None
+    mesh: TriMesh,
+    field,
+    settings: BakeSettings,
+    device="cpu",
+    occlusion: OcclusionSamples | None = None,
+    layout: KeptLayout | None = None,
 ) -> BakeResult:
-    """Unwrap ``mesh``, rasterise the atlas and evaluate ``field`` at every covered texel (and the
-    ambient ``occlusion`` there, when given)."""
-    texels = atlas_texels(mesh, settings.size_for(len(mesh.faces)), settings.padding, settings.max_chart_share)
-    frames = CornerFrames.build(mesh.vertices, mesh.faces, texels.atlas.uv, field.normals)
+    """Unwrap ``mesh`` (or take the input's own ``layout``), rasterise the atlas and evaluate
+    ``field`` at every covered texel (and the ambient ``occlusion`` there, when given)."""
+    size = settings.size_for(len(mesh.faces))
+    if layout is None:
+        texels = atlas_texels(mesh, size, settings.padding, settings.max_chart_share)
+        frames = CornerFrames.build(mesh.vertices, mesh.faces, texels.atlas.uv, field.normals)
+    else:
+        texels = kept_texels(mesh, layout.uv, size, layout.check.islands)
+        frames = layout.frames(mesh)
     t, b, n = frames.at(texels.face, texels.bary)
-    normals = n / np.linalg.norm(n, axis=1, keepdims=True)
+    if layout is None:  # the frame's normals are the field's own
+        normals = n / np.linalg.norm(n, axis=1, keepdims=True)
+    else:  # the input's normals hold the frame; the field reads the normals it was trained with
+        normals = shading_normals(mesh, field.normals, texels.face, texels.bary)
     surface = evaluate_surface(field, texels.points, normals, device)
     ao = None if occlusion is None else occlusion.at(texels.points, mesh.face_normals[texels.face])
     textures = texture_images(texels, surface, to_tangent_space(surface["normal"], t, b, n), settings.dilation, ao)
     env = light_image(field, settings.light_width, device)
     return BakeResult(texels.atlas, textures, frames, float(texels.filled.mean()), env)
+
+
+def texel_density(result: BakeResult, mesh: TriMesh) -> float:
+    """Covered texels per unit of surface area (the normalised mesh's units: radius 1)."""
+    return float(result.atlas.size**2 * result.coverage / max(mesh.face_areas.sum(), 1e-300))
+
+
+def shading_normals(mesh: TriMesh, spec: NormalSpec, face: np.ndarray, bary: np.ndarray) -> np.ndarray:
+    """Unit shading normals ``(N, 3)`` of ``spec`` (flat, or smooth corner normals interpolated)
+    at ``face (N,)`` and barycentrics ``bary (N, 2)`` of ``mesh``."""
+    flat = mesh.face_normals[face]
+    if spec.mode == "flat":
+        return flat
+    return interpolate_normals(spec.corner_normals(mesh.vertices, mesh.faces), face, bary, flat)
 
 
 # ------------------------------------------------------------------------ levels of detail (high-to-low)
@@ -247,8 +295,7 @@ def project_to_surface(fine: TriMesh, points: np.ndarray, normals: np.ndarray, s
         f, b = face[found], bary[found]
         tri = fine.vertices[fine.faces[f]]
         out_p[found] = tri[:, 0] + b[:, :1] * (tri[:, 1] - tri[:, 0]) + b[:, 1:] * (tri[:, 2] - tri[:, 0])
-        flat = fine.face_normals[f]
-        n = flat if spec.mode == "flat" else interpolate_normals(spec.corner_normals(fine.vertices, fine.faces), f, b, flat)
+        n = shading_normals(fine, spec, f, b)
         n = np.where(((n * normals[found]).sum(1) < 0)[:, None], -n, n)
         out_n[found] = n
     return Projection(out_p, out_n, found, found & ~same, offset)
@@ -308,18 +355,31 @@ def decode_textures(textures: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
 
 @torch.no_grad()
 def render_baked(
-    hits, uv_faces, tex: dict, frames: CornerFrames, light, device="cpu", lobe: str = "isotropic", brdf: str = "tango"
+    hits,
+    uv_faces,
+    tex: dict,
+    frames: CornerFrames,
+    light,
+    device="cpu",
+    lobe: str = "isotropic",
+    brdf: str = "tango",
+    wrap: bool = False,
 ):
     """Shade cached hits (a :class:`BakedHits`) from the decoded textures read through the bake's
     ``frames``, with the specular model ``lobe`` and the BRDF ``brdf`` (the field's: TANGO's sum of
-    the albedo, specular and roughness textures, or glTF's of base colour, metallic and roughness).
-    Returns ``(N, 3)`` linear radiance."""
+    the albedo, specular and roughness textures, or glTF's of base colour, metallic and roughness);
+    ``wrap``: the textures repeat (a kept UV layout) rather than clamp (an atlas). Returns ``(N, 3)``
+    linear radiance."""
     f = hits.face
     tri_uv = uv_faces[f]
     # barycentrics of the hit from its point (cache stores quantised Embree barycentrics)
     bu = hits.bary
     uv = tri_uv[:, 0] + bu[:, :1] * (tri_uv[:, 1] - tri_uv[:, 0]) + bu[:, 1:] * (tri_uv[:, 2] - tri_uv[:, 0])
-    ts = sample_bilinear(tex["normal"], uv)
+
+    def sample(key):
+        return sample_bilinear(tex[key], uv, wrap)
+
+    ts = sample("normal")
     world = from_tangent_space(ts, *frames.at(f, bu))
     view = -hits.direction.astype(np.float64)
     # two-sided, as in training: flip normals of faces seen from behind
@@ -330,22 +390,32 @@ def render_baked(
         return torch.from_numpy(np.ascontiguousarray(x, dtype=np.float32)).to(device)
 
     nn_ = face_viewer(tt(world), tt(view))
-    rough = tt(np.clip(sample_bilinear(tex["roughness"], uv), 0.01, 1.0))
-    base = tt(sample_bilinear(tex["albedo"], uv))
+    rough = tt(np.clip(sample("roughness"), 0.01, 1.0))
+    base = tt(sample("albedo"))
     if brdf == "gltf":
-        material = Material.gltf(base, tt(sample_bilinear(tex["metallic"], uv)), rough)
+        material = Material.gltf(base, tt(sample("metallic")), rough)
     else:
-        material = Material(base, tt(sample_bilinear(tex["specular"], uv)), rough)
+        material = Material(base, tt(sample("specular")), rough)
     return shade_material(nn_, tt(view), material, light, lobe).rgb
 
 
 def render_baked_views(
-    cache, uv_faces, tex: dict, frames: CornerFrames, light, device="cpu", lobe: str = "isotropic", brdf: str = "tango"
+    cache,
+    uv_faces,
+    tex: dict,
+    frames: CornerFrames,
+    light,
+    device="cpu",
+    lobe: str = "isotropic",
+    brdf: str = "tango",
+    wrap: bool = False,
 ) -> list:
     """:func:`render_baked` for every view of the ray ``cache`` traced on the baked mesh: per view
     the linear radiance ``(N, 3)`` of its hits (in the cache's hit order)."""
     return [
-        render_baked(BakedHits(cache.view(i), cached_barycentrics(cache, i)), uv_faces, tex, frames, light, device, lobe, brdf)
+        render_baked(
+            BakedHits(cache.view(i), cached_barycentrics(cache, i)), uv_faces, tex, frames, light, device, lobe, brdf, wrap
+        )
         for i in range(len(cache))
     ]
 

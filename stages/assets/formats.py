@@ -66,18 +66,43 @@ class ExportMesh:
     """Indexed geometry in export space: per vertex ``positions, normals (V, 3)``, ``uv (V, 2)``
     (glTF convention), ``tangents (V, 4)`` (xyz and the handedness ``w``), and ``indices (F, 3)``.
     A vertex is a distinct combination of all four, so vertices are shared inside UV charts and
-    smooth regions and split only at UV seams, creases and handedness changes."""
+    smooth regions and split only at UV seams, creases and handedness changes.
+
+    The input's own topology (a kept UV layout, :mod:`stages.assets.layouts`) comes with
+    ``tangents`` None (viewers compute MikkTSpace, the frame the bake used), its material
+    ``slots (F,)`` (index into ``slot_names``; each slot its own material, all reading the one
+    texture set) and ``repeat`` (textures repeat past the unit square, glTF's default sampler,
+    rather than clamp at its edges)."""
 
     positions: np.ndarray
     normals: np.ndarray
     uv: np.ndarray
-    tangents: np.ndarray
+    tangents: np.ndarray | None
     indices: np.ndarray
+    slots: np.ndarray | None = None
+    slot_names: tuple[str, ...] = ()
+    repeat: bool = False
 
     def corners(self) -> ExportMesh:
         """The same mesh with every face corner its own vertex (what importers report per loop)."""
         i = self.indices.reshape(-1)
-        return ExportMesh(self.positions[i], self.normals[i], self.uv[i], self.tangents[i], np.arange(len(i)).reshape(-1, 3))
+        t = None if self.tangents is None else self.tangents[i]
+        return ExportMesh(
+            self.positions[i],
+            self.normals[i],
+            self.uv[i],
+            t,
+            np.arange(len(i)).reshape(-1, 3),
+            self.slots,
+            self.slot_names,
+            self.repeat,
+        )
+
+    def slot_faces(self) -> list[tuple[str, np.ndarray]]:
+        """``(material name, face indices)`` per slot in slot order; one unnamed slot without slots."""
+        if self.slots is None or len(self.slot_names) <= 1:
+            return [(self.slot_names[0] if self.slot_names else "", np.arange(len(self.indices)))]
+        return [(name, np.flatnonzero(self.slots == k)) for k, name in enumerate(self.slot_names) if (self.slots == k).any()]
 
 
 #: arrays of the bake's ``atlas.npz``: ``uv (F, 3, 2)`` and the frame (:meth:`CornerFrames.arrays`)
@@ -206,7 +231,7 @@ def _usd_model(stage, geom: ExportMesh, textures: str, brdf: str = "tango", occl
     textures from the folder ``textures`` (relative to the layer): TANGO's specular workflow, or
     for glTF's BRDF the metallic workflow (base colour, metallic, roughness); with ``occlusion``
     the preview surface's ``occlusion`` reads the metallic-roughness texture's red channel."""
-    from pxr import Gf, Sdf, UsdGeom, UsdShade, Vt
+    from pxr import Gf, Sdf, Tf, UsdGeom, UsdShade, Vt
 
     # typed parents: importers (Blender's among them) drop an untyped prim from the transform
     # hierarchy, and the up-axis correction applied at /Asset with it
@@ -226,24 +251,52 @@ def _usd_model(stage, geom: ExportMesh, textures: str, brdf: str = "tango", occl
     pv = UsdGeom.PrimvarsAPI(mesh).CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.vertex)
     pv.Set(Vt.Vec2fArray.FromNumpy(st))
 
-    mat = UsdShade.Material.Define(stage, "/Asset/Looks/TangoMaterial")
-    surf = UsdShade.Shader.Define(stage, "/Asset/Looks/TangoMaterial/PreviewSurface")
+    slots = geom.slot_faces()
+    taken: set[str] = set()
+    for name, faces in slots:
+        prim_name = Tf.MakeValidIdentifier(name) if name else "TangoMaterial"
+        while prim_name in taken:  # two names that make the same identifier
+            prim_name += "_"
+        taken.add(prim_name)
+        mat = _usd_material(stage, f"/Asset/Looks/{prim_name}", textures, brdf, occlusion, geom.repeat)
+        if name and prim_name != name:
+            mat.GetPrim().SetDisplayName(name)
+        if len(slots) == 1:
+            UsdShade.MaterialBindingAPI.Apply(mesh.GetPrim()).Bind(mat)
+            continue
+        subset = UsdGeom.Subset.Define(stage, f"/Asset/Geometry/Mesh/{prim_name}")
+        subset.CreateElementTypeAttr(UsdGeom.Tokens.face)
+        subset.CreateFamilyNameAttr(UsdShade.Tokens.materialBind)
+        subset.CreateIndicesAttr(Vt.IntArray.FromNumpy(faces.astype(np.int32)))
+        UsdShade.MaterialBindingAPI.Apply(subset.GetPrim()).Bind(mat)
+    if len(slots) > 1:
+        UsdGeom.Subset.SetFamilyType(mesh, UsdShade.Tokens.materialBind, UsdGeom.Tokens.partition)
+
+
+def _usd_material(stage, path: str, textures: str, brdf: str, occlusion: bool, repeat: bool):
+    """A UsdPreviewSurface material at ``path`` reading the texture set in ``textures`` (module
+    docstring), its textures repeating (``repeat``) or clamped at the edges."""
+    from pxr import Gf, Sdf, UsdShade
+
+    wrap = "repeat" if repeat else "clamp"
+    mat = UsdShade.Material.Define(stage, path)
+    surf = UsdShade.Shader.Define(stage, f"{path}/PreviewSurface")
     surf.CreateIdAttr("UsdPreviewSurface")
     surf.CreateInput("useSpecularWorkflow", Sdf.ValueTypeNames.Int).Set(0 if brdf == "gltf" else 1)
     mat.CreateSurfaceOutput().ConnectToSource(surf.ConnectableAPI(), "surface")
-    reader = UsdShade.Shader.Define(stage, "/Asset/Looks/TangoMaterial/StReader")
+    reader = UsdShade.Shader.Define(stage, f"{path}/StReader")
     reader.CreateIdAttr("UsdPrimvarReader_float2")
     varname = mat.CreateInput("frame:stPrimvarName", Sdf.ValueTypeNames.String)
     varname.Set("st")
     reader.CreateInput("varname", Sdf.ValueTypeNames.String).ConnectToSource(varname)
 
     def texture(name: str, key: str, color_space: str, scale=None, bias=None):
-        tex = UsdShade.Shader.Define(stage, f"/Asset/Looks/TangoMaterial/{name}")
+        tex = UsdShade.Shader.Define(stage, f"{path}/{name}")
         tex.CreateIdAttr("UsdUVTexture")
         tex.CreateInput("file", Sdf.ValueTypeNames.Asset).Set(f"{textures}/{key}.png")
         tex.CreateInput("sourceColorSpace", Sdf.ValueTypeNames.Token).Set(color_space)
-        tex.CreateInput("wrapS", Sdf.ValueTypeNames.Token).Set("clamp")
-        tex.CreateInput("wrapT", Sdf.ValueTypeNames.Token).Set("clamp")
+        tex.CreateInput("wrapS", Sdf.ValueTypeNames.Token).Set(wrap)
+        tex.CreateInput("wrapT", Sdf.ValueTypeNames.Token).Set(wrap)
         tex.CreateInput("st", Sdf.ValueTypeNames.Float2).ConnectToSource(reader.ConnectableAPI(), "result")
         if scale is not None:
             tex.CreateInput("scale", Sdf.ValueTypeNames.Float4).Set(Gf.Vec4f(*scale))
@@ -269,7 +322,7 @@ def _usd_model(stage, geom: ExportMesh, textures: str, brdf: str = "tango", occl
     nrm = texture("NormalTexture", "normal", "raw", (2.0, 2.0, 2.0, 1.0), (-1.0, -1.0, -1.0, 0.0))
     nrm.CreateOutput("rgb", Sdf.ValueTypeNames.Float3)
     surf.CreateInput("normal", Sdf.ValueTypeNames.Normal3f).ConnectToSource(nrm.ConnectableAPI(), "rgb")
-    UsdShade.MaterialBindingAPI.Apply(mesh.GetPrim()).Bind(mat)
+    return mat
 
 
 def _usd_dome_light(stage, light_file: str) -> None:
@@ -349,9 +402,11 @@ def write_model_files(
     timer=None,
     brdf: str = "tango",
     occlusion: bool = False,
+    glb_writer=None,
 ) -> dict:
     """Write one asset's ``model.usda``, ``model.usdz`` and ``model.glb`` into ``folder`` (which
-    already holds ``textures/*.png`` and ``light.exr``), each atomically, and validate all three:
+    already holds ``textures/*.png`` and ``light.exr``), each atomically, and validate all three
+    (``glb_writer(path)``, where given, writes the GLB instead of :func:`write_glb`):
     returns ``{"usd": [usd-core's report on model.usda, on model.usdz], "gltf": the Khronos
     report}``. Warnings are logged; any validator error raises (the folder is the caller's staging
     folder, so nothing half-checked is committed). ``timer`` (a :class:`~stages.core.provenance.Timer`)
@@ -368,7 +423,12 @@ def write_model_files(
             write_usd(tmp, geom, meters_per_unit, "light.exr", origin, brdf=brdf, occlusion=occlusion)
         package_usdz(folder / "model.usda", folder / "model.usdz", [*TEXTURE_FILES.values(), "light.exr"], usdz_root)
     with part("gltf"):
-        write_glb(folder / "model.glb", geom, folder / "textures", meters_per_unit, name, origin, brdf=brdf, occlusion=occlusion)
+        if glb_writer is not None:
+            glb_writer(folder / "model.glb")
+        else:
+            write_glb(
+                folder / "model.glb", geom, folder / "textures", meters_per_unit, name, origin, brdf=brdf, occlusion=occlusion
+            )
     with part("validate"):
         usd = [validate_usd(folder / "model.usda"), validate_usd(folder / "model.usdz")]
         gltf = validate_glb(folder / "model.glb")
@@ -454,20 +514,19 @@ def write_glb(
     A viewer without the extension shows the finest level."""
     import pygltflib as g
 
-    buffer = _GlbBuffer(g)
-    images, textures, materials, meshes, nodes = [], [], [], [], []
+    buffer = GlbBuffer(g)
+    materials, meshes, nodes = [], [], []
     for k, (level, tex_dir) in enumerate([(geom, textures_dir), *lods]):
         tag = "" if not lods else f"lod{k}"
-        attrs, indices = buffer.geometry(level, meters_per_unit)
-        first = len(textures)
-        keys = ("basecolor", "metallic_roughness", "normal") + (() if brdf == "gltf" else ("specular",))
-        for key in keys:
-            view = buffer.view(require_plain_file(Path(tex_dir) / f"{key}.png", remedy="Run the bake stage again.").read_bytes())
-            images.append(g.Image(bufferView=view, mimeType="image/png", name=f"{tag}_{key}" if tag else key))
-            textures.append(g.Texture(source=len(images) - 1, sampler=0))
-        materials.append(_glb_material(g, f"TangoMaterial_{tag}" if tag else "TangoMaterial", first, brdf, occlusion))
+        attrs, parts = buffer.geometry(level, meters_per_unit)
+        first = buffer.texture_set(tex_dir, brdf, tag)
+        primitives = []
+        for slot, indices in parts:
+            primitives.append(g.Primitive(attributes=attrs, indices=indices, material=len(materials)))
+            material = slot or (f"TangoMaterial_{tag}" if tag else "TangoMaterial")
+            materials.append(glb_material(g, material, first, brdf, occlusion))
         label = f"{name}_{tag}" if tag else name
-        meshes.append(g.Mesh(name=label, primitives=[g.Primitive(attributes=attrs, indices=indices, material=k)]))
+        meshes.append(g.Mesh(name=label, primitives=primitives))
         nodes.append(g.Node(mesh=k, name=label))
     used = [] if brdf == "gltf" else ["KHR_materials_specular"]
     if lods:
@@ -483,9 +542,9 @@ def write_glb(
         nodes=nodes,
         meshes=meshes,
         materials=materials,
-        textures=textures,
-        images=images,
-        samplers=[g.Sampler(magFilter=g.LINEAR, minFilter=g.LINEAR_MIPMAP_LINEAR, wrapS=g.CLAMP_TO_EDGE, wrapT=g.CLAMP_TO_EDGE)],
+        textures=buffer.textures,
+        images=buffer.images,
+        samplers=[glb_sampler(g, geom.repeat)],
         accessors=buffer.accessors,
         bufferViews=buffer.views,
         buffers=[g.Buffer(byteLength=sum(len(b) for b in buffer.blobs))],
@@ -496,7 +555,7 @@ def write_glb(
         gltf.save_binary(str(tmp))
 
 
-class _GlbBuffer:
+class GlbBuffer:
     """The binary buffer of a GLB: its byte blobs (each padded to 4 bytes), buffer views and
     accessors, as ``write_glb`` adds them (``g``: the pygltflib module)."""
 
@@ -505,6 +564,20 @@ class _GlbBuffer:
         self.blobs: list[bytes] = []
         self.views: list = []
         self.accessors: list = []
+        self.images: list = []
+        self.textures: list = []
+
+    def texture_set(self, folder: Path, brdf: str, tag: str = "", sampler: int = 0) -> int:
+        """Add the bake's textures in ``folder`` (base colour, metallic-roughness, normal, and for
+        TANGO's BRDF the specular colour) as images and textures; returns the first's index."""
+        g = self.g
+        first = len(self.textures)
+        keys = ("basecolor", "metallic_roughness", "normal") + (() if brdf == "gltf" else ("specular",))
+        for key in keys:
+            view = self.view(require_plain_file(Path(folder) / f"{key}.png", remedy="Run the bake stage again.").read_bytes())
+            self.images.append(g.Image(bufferView=view, mimeType="image/png", name=f"{tag}_{key}" if tag else key))
+            self.textures.append(g.Texture(source=len(self.images) - 1, sampler=sampler))
+        return first
 
     def view(self, data: bytes, target=None) -> int:
         offset = sum(len(b) for b in self.blobs)
@@ -526,22 +599,32 @@ class _GlbBuffer:
         return len(self.accessors) - 1
 
     def geometry(self, level: ExportMesh, meters_per_unit: float):
-        """A level's vertex attributes (positions in metres) and its index accessor."""
+        """A level's vertex attributes (positions in metres; tangents where it has them) and, per
+        material slot (:meth:`ExportMesh.slot_faces`), its name and index accessor."""
         g = self.g
         pos = level.positions * np.float32(meters_per_unit)
         attrs = g.Attributes(
             POSITION=self.accessor(pos, g.VEC3, minmax=True),
             NORMAL=self.accessor(level.normals, g.VEC3),
-            TANGENT=self.accessor(level.tangents, g.VEC4),
+            TANGENT=None if level.tangents is None else self.accessor(level.tangents, g.VEC4),
             TEXCOORD_0=self.accessor(level.uv, g.VEC2),
         )
         # 16-bit indices where they suffice (glTF allows both; the 65535th index is reserved for restarts)
         index_type = np.uint16 if len(pos) < 65535 else np.uint32
-        indices = self.accessor(level.indices.reshape(-1).astype(index_type), g.SCALAR, target=g.ELEMENT_ARRAY_BUFFER)
-        return attrs, indices
+        parts = []
+        for slot, faces in level.slot_faces():
+            tri = level.indices[faces].reshape(-1).astype(index_type)
+            parts.append((slot, self.accessor(tri, g.SCALAR, target=g.ELEMENT_ARRAY_BUFFER)))
+        return attrs, parts
 
 
-def _glb_material(g, name: str, first: int, brdf: str, occlusion: bool):
+def glb_sampler(g, repeat: bool):
+    """Trilinear filtering; textures repeat (a kept layout, glTF's default) or clamp (an atlas)."""
+    wrap = g.REPEAT if repeat else g.CLAMP_TO_EDGE
+    return g.Sampler(magFilter=g.LINEAR, minFilter=g.LINEAR_MIPMAP_LINEAR, wrapS=wrap, wrapT=wrap)
+
+
+def glb_material(g, name: str, first: int, brdf: str, occlusion: bool):
     """A level's material: its textures from index ``first`` (base colour, metallic-roughness,
     normal, and TANGO's specular colour through ``KHR_materials_specular``), the occlusion in the
     metallic-roughness texture's red channel when baked."""

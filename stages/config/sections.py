@@ -55,6 +55,9 @@ ClipTower = Literal["batched", "open_clip"]
 CLIP_TOWERS = get_args(ClipTower)
 Encoding = Literal["nerf", "fourier", "hashgrid", "none"]
 ENCODINGS = get_args(Encoding)
+#: the UV layout a bake writes into (:mod:`stages.assets.layouts`)
+UvLayout = Literal["auto", "keep", "atlas"]
+UV_LAYOUTS = get_args(UvLayout)
 DecimateMode = Literal["faces", "share", "budget"]
 DECIMATE_MODES = get_args(DecimateMode)
 #: Mitsuba variants the target stage may use ("auto": LLVM when a usable libLLVM is found)
@@ -661,6 +664,18 @@ class BakeSettings(Settings):
     )
     occlusion_samples: int = setting(
         32768, "surface points the occlusion is traced at (both sides) and interpolated between", ge=256, le=4_194_304
+    )
+    uv: UvLayout = setting(
+        "auto",
+        "the UV layout baked into: keep (the input's own, OBJ or glTF; stops when it is not usable), auto (the input's "
+        "where usable, else a new atlas, the reason recorded), atlas (a new xatlas atlas)",
+    )
+    uv_max_overlap: float = setting(
+        0.01,
+        "the share of faces that may overlap other faces in the input's UV layout (stacked copies of an island "
+        "excepted) for it to be kept",
+        ge=0,
+        le=1,
     )
 
     def relations(self) -> list[str]:

@@ -99,13 +99,20 @@ def dilate(values: np.ndarray, filled: np.ndarray, passes: int) -> np.ndarray:
     return v
 
 
-def sample_bilinear(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """Bilinear lookup of ``img (S, S, C)`` at glTF-convention ``uv (N, 2)`` (clamped at edges)."""
+def sample_bilinear(img: np.ndarray, uv: np.ndarray, wrap: bool = False) -> np.ndarray:
+    """Bilinear lookup of ``img (S, S, C)`` at glTF-convention ``uv (N, 2)``: clamped at the edges
+    (glTF's ``CLAMP_TO_EDGE``), or with ``wrap`` repeating (glTF's default ``REPEAT``)."""
     s = img.shape[0]
-    x = np.clip(uv[:, 0] * s - 0.5, 0, s - 1)
-    y = np.clip(uv[:, 1] * s - 0.5, 0, s - 1)
-    x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
-    x1, y1 = np.minimum(x0 + 1, s - 1), np.minimum(y0 + 1, s - 1)
-    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
+    if wrap:
+        x = np.mod(uv[:, 0] * s - 0.5, s)
+        y = np.mod(uv[:, 1] * s - 0.5, s)
+        x0, y0 = np.floor(x).astype(int) % s, np.floor(y).astype(int) % s
+        x1, y1 = (x0 + 1) % s, (y0 + 1) % s
+    else:
+        x = np.clip(uv[:, 0] * s - 0.5, 0, s - 1)
+        y = np.clip(uv[:, 1] * s - 0.5, 0, s - 1)
+        x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
+        x1, y1 = np.minimum(x0 + 1, s - 1), np.minimum(y0 + 1, s - 1)
+    fx, fy = (x - np.floor(x))[:, None], (y - np.floor(y))[:, None]
     im = img.astype(np.float64)
     return im[y0, x0] * (1 - fx) * (1 - fy) + im[y0, x1] * fx * (1 - fy) + im[y1, x0] * (1 - fx) * fy + im[y1, x1] * fx * fy

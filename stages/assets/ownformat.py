@@ -1,0 +1,224 @@
+"""The input's own asset back, with new materials: what the export writes where the bake kept the
+input's UV layout (``bake.uv``; :mod:`stages.assets.layouts`).
+
+* **glTF input** (GLB or glTF): ``model.glb`` is the input document itself, its buffers merged into
+  the one binary chunk; only materials, textures and images change. Each material that a textured
+  triangle primitive used is replaced, at its index and under its name, by one reading the baked
+  texture set (primitives without a material get one, named ``default``); the textures and images
+  no other material reads are dropped; the baked images and a repeating sampler are added. Nodes,
+  names, meshes, skins, joints, weights, animations, morph targets, cameras, extras and other
+  primitives are untouched; the provenance joins ``asset.extras``.
+* **OBJ input**: ``model.obj`` is the input's own lines (``v``, ``vt``, ``vn``, ``f``, groups,
+  smoothing, ``usemtl``) with ``mtllib model.mtl`` in place of the input's material library, and
+  ``model.mtl`` one material per input material name reading the texture set. MTL has no
+  packed-channel convention, so the roughness and metallic channels are written as their own
+  grey images beside the set (``roughness.png``, ``metallic.png``), which Blender's importer reads
+  as ``map_Pr``/``map_Pm``.
+* **USD and, for OBJ input, glTF**: the input's vertices as :func:`kept_geometry` holds them, one
+  material per input material.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+from ..core.provenance import ORIGIN_METADATA_KEY, atomic_path
+from ..geometry.normalization import Similarity
+from ..geometry.sourcemesh import ObjLines, SourceMesh, load_gltf_document
+from ..geometry.tangents import mikktspace
+from .formats import ExportMesh, GlbBuffer, glb_material, glb_sampler
+
+log = logging.getLogger(__name__)
+
+#: grey images the OBJ's material library reads, from the metallic-roughness texture's channels
+OBJ_CHANNELS = {"roughness": 1, "metallic": 2}
+
+
+def kept_geometry(source: SourceMesh, transform: Similarity | None = None) -> ExportMesh:
+    """The input's vertices (:mod:`stages.geometry.sourcemesh`: a glTF primitive's own, an OBJ's
+    distinct corners in first-use order) and triangles in file order, its UVs and normals (its
+    own; where it has none, smooth vertex normals) and material slots, in its own units and
+    position, or with ``transform`` in the normalised frame. Tangents: MikkTSpace's on its
+    normals and UVs (the frame the bake used) where every corner of a vertex has the same one,
+    else none (viewers then compute the same MikkTSpace themselves)."""
+    pos = source.positions if transform is None else transform.forward(source.positions)
+    normals = source.vertex_normals()
+    if transform is not None:
+        normals = normals @ transform.rotation.T
+    return ExportMesh(
+        pos.astype(np.float32),
+        normals.astype(np.float32),
+        source.uv.astype(np.float32),
+        vertex_tangents(pos, normals, source.uv, source.triangles),
+        source.triangles.astype(np.int64),
+        source.slot,
+        source.slot_names,
+        repeat=True,
+    )
+
+
+def vertex_tangents(positions: np.ndarray, normals: np.ndarray, uv: np.ndarray, triangles: np.ndarray) -> np.ndarray | None:
+    """MikkTSpace tangents ``(V, 4)`` (xyz and handedness) per vertex, or None where two corners of
+    one vertex get different ones (a vertex shared across a mirrored UV seam)."""
+    st = np.stack([uv[:, 0], 1.0 - uv[:, 1]], axis=-1)[triangles]
+    t, w = mikktspace(positions[triangles], normals[triangles], st)
+    corner = np.concatenate([t, np.repeat(w[:, None, None], 3, axis=1)], axis=-1).reshape(-1, 4)
+    out = np.zeros((len(positions), 4))
+    out[triangles.reshape(-1)] = corner
+    if np.abs(out[triangles.reshape(-1)] - corner).max(initial=0.0) > 1e-4:
+        return None
+    return out.astype(np.float32)
+
+
+# ------------------------------------------------------------------------------------------ OBJ
+def write_obj(folder: Path, source: SourceMesh, transform: Similarity | None, brdf: str) -> list[str]:
+    """``model.obj`` and ``model.mtl`` in ``folder`` (which holds ``textures/``), and the grey
+    channel images the MTL reads (module docstring); returns the files written (relative)."""
+    folder = Path(folder)
+    for key, channel in OBJ_CHANNELS.items():
+        with Image.open(folder / "textures" / "metallic_roughness.png") as img:
+            grey = np.asarray(img.convert("RGB"))[..., channel]
+        with atomic_path(folder / "textures" / f"{key}.png") as tmp:
+            Image.fromarray(grey).save(tmp, format="PNG")
+    with atomic_path(folder / "model.obj") as tmp:
+        tmp.write_text("\n".join(obj_lines(source, transform)) + "\n", encoding="utf-8")
+    with atomic_path(folder / "model.mtl") as tmp:
+        tmp.write_text(mtl_text(source.slot_names, brdf), encoding="utf-8")
+    return ["model.obj", "model.mtl", *(f"textures/{k}.png" for k in OBJ_CHANNELS)]
+
+
+def obj_lines(source: SourceMesh, transform: Similarity | None) -> list[str]:
+    """The input OBJ's lines with the new material library (module docstring); with ``transform``
+    the ``v`` lines are moved into the normalised frame (the only lines that change)."""
+    out = ["mtllib model.mtl"]
+    material_named = False
+    for line in ObjLines.read(source.path).lines:
+        words = line.split()
+        head = words[0] if words else ""
+        if head == "mtllib":
+            continue
+        if head == "usemtl":
+            material_named = True
+        if head == "f" and not material_named:
+            out.append("usemtl default")
+            material_named = True
+        if head == "v" and transform is not None:
+            x = transform.forward(np.array([float(w) for w in words[1:4]]))
+            line = "v " + " ".join(f"{c:.9g}" for c in x)
+        out.append(line)
+    return out
+
+
+def mtl_text(names: tuple[str, ...], brdf: str) -> str:
+    """One material per name reading the texture set: base colour, roughness, normal map, and
+    TANGO's specular colour or glTF's metallic."""
+    blocks = []
+    for name in names:
+        lines = [f"newmtl {name}", "Kd 1 1 1", "Pr 1", "map_Kd textures/basecolor.png", "map_Pr textures/roughness.png"]
+        if brdf == "gltf":
+            lines += ["Pm 1", "Ks 0 0 0", "map_Pm textures/metallic.png"]
+        else:
+            lines += ["Pm 0", "Ks 1 1 1", "map_Ks textures/specular.png"]
+        lines += ["map_Bump -bm 1 textures/normal.png", "norm textures/normal.png"]
+        blocks.append("\n".join(lines))
+    return "# tango-stylize: the baked texture set, one material per input material\n" + "\n\n".join(blocks) + "\n"
+
+
+# ----------------------------------------------------------------------------------------- glTF
+def write_document_glb(path: Path, source: SourceMesh, textures_dir: Path, origin: dict, brdf: str, occlusion: bool) -> None:
+    """``model.glb``: the input glTF document with its textured primitives' materials replaced by
+    the baked texture set's (module docstring)."""
+    import pygltflib as g
+
+    doc, blobs = load_gltf_document(source.path)
+    buffer = GlbBuffer(g)
+    _merge_buffers(doc, blobs, buffer)
+    buffer.images, buffer.textures = list(doc.images or []), list(doc.textures or [])
+    doc.samplers = [*(doc.samplers or []), glb_sampler(g, True)]
+    first = buffer.texture_set(textures_dir, brdf, "tango", sampler=len(doc.samplers) - 1)
+    doc.materials = list(doc.materials or [])
+    replaced: dict[int | None, int] = {}
+    for part in source.parts:
+        old = part["material"]
+        if old not in replaced:
+            name = "default" if old is None else (doc.materials[old].name or f"material_{old}")
+            new = glb_material(g, name, first, brdf, occlusion)
+            if old is None:
+                doc.materials.append(new)
+                replaced[old] = len(doc.materials) - 1
+            else:
+                new.extras = doc.materials[old].extras
+                doc.materials[old] = new
+                replaced[old] = old
+        doc.meshes[part["mesh"]].primitives[part["primitive"]].material = replaced[old]
+    doc.images, doc.textures = buffer.images, buffer.textures
+    _drop_unread_textures(doc)
+    used = set(doc.extensionsUsed or [])
+    if brdf != "gltf":
+        used.add("KHR_materials_specular")
+    doc.extensionsUsed = sorted(used)
+    extras = doc.asset.extras if isinstance(doc.asset.extras, dict) else {}
+    doc.asset.extras = {**extras, ORIGIN_METADATA_KEY: origin}
+    blob = b"".join(buffer.blobs)
+    doc.buffers = [g.Buffer(byteLength=len(blob))]
+    doc.bufferViews = buffer.views
+    doc.set_binary_blob(blob)
+    with atomic_path(path) as tmp:
+        doc.save_binary(str(tmp))
+
+
+def _merge_buffers(doc, blobs: list[bytes], buffer: GlbBuffer) -> None:
+    """Every buffer of ``doc`` into ``buffer``'s one blob, its views moved accordingly (keeping
+    each view's offset alignment: every buffer starts at a multiple of 8)."""
+    starts = []
+    offset = 0
+    for blob in blobs:
+        starts.append(offset)
+        pad = b"\x00" * ((-len(blob)) % 8)
+        buffer.blobs.append(blob + pad)
+        offset += len(blob) + len(pad)
+    for view in doc.bufferViews or []:
+        view.byteOffset = starts[view.buffer] + (view.byteOffset or 0)
+        view.buffer = 0
+        buffer.views.append(view)
+
+
+def _drop_unread_textures(doc) -> None:
+    """Remove the textures no material reads and the images no texture shows, renumbering the
+    references that remain (texture infos in materials and their extensions, texture sources)."""
+    read = set()
+    for m in doc.materials:
+        _texture_refs(m, lambda i: read.add(i) or i)
+    keep_tex = sorted(read)
+    tex_map = {old: new for new, old in enumerate(keep_tex)}
+    textures = [doc.textures[i] for i in keep_tex]
+    shown = sorted({t.source for t in textures if t.source is not None})
+    img_map = {old: new for new, old in enumerate(shown)}
+    for m in doc.materials:
+        _texture_refs(m, lambda i: tex_map[i])
+    for t in textures:
+        if t.source is not None:
+            t.source = img_map[t.source]
+    doc.textures = textures
+    doc.images = [doc.images[i] for i in shown]
+
+
+def _texture_refs(node, visit) -> None:
+    """Call ``visit(index)`` on every texture reference (an ``index`` under a key ending in
+    ``Texture``) in a material (pygltflib objects and extension dictionaries), storing its result."""
+    items = node.items() if isinstance(node, dict) else vars(node).items() if hasattr(node, "__dict__") else ()
+    for key, value in list(items):
+        if value is None:
+            continue
+        if str(key).endswith("Texture"):
+            if isinstance(value, dict) and "index" in value:
+                value["index"] = visit(value["index"])
+            elif hasattr(value, "index") and value.index is not None:
+                value.index = visit(value.index)
+            continue
+        if isinstance(value, dict) or hasattr(value, "__dict__"):
+            _texture_refs(value, visit)

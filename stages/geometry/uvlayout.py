@@ -1,0 +1,233 @@
+"""Is the input's own UV layout usable for baking (``bake.uv``)? Measured, not assumed.
+
+A layout is usable when:
+
+* every face is mapped (all three corners have texture coordinates);
+* no UV triangle is degenerate (UV area at most ``DEGENERATE_UV_AREA`` of the tile while the face
+  has area in 3D: its texels could not be located);
+* faces overlap each other in UV space on at most ``bake.uv_max_overlap`` of the faces, measured at
+  the bake's texture resolution (texel centres inside two or more UV triangles). Faces whose UV
+  triangle repeats another's exactly (mirrored halves, stacked copies of one island) are
+  *stacked*, not overlapping: they are legitimate, share texels by design and are baked once (from
+  one of the copies), which the record says;
+* every face lies in one UV tile: the unit square, or one UDIM tile, within ``TILE_MARGIN`` (a
+  corner may reach that far past its tile's edge, and the texture repeats there, as glTF's default
+  sampler does). A layout over several UDIM tiles needs one texture set per tile, which a glTF or
+  USD material of this tool does not hold yet: such a layout is refused with that reason.
+
+The layout must also belong to the traced mesh: the bake evaluates the field on the traced faces,
+so each input triangle must be one of them (:func:`match_faces`; a decimated mesh's faces are not).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from .meshio import TriMesh
+from .tracing import EmbreeTracer
+
+#: UV triangles of at most this area (in tile units) are degenerate
+DEGENERATE_UV_AREA = 1e-12
+#: how far (in tile units) a corner may reach past its face's tile
+TILE_MARGIN = 0.125
+#: corners of matched faces agree to this fraction of the traced mesh's radius (1)
+MATCH_TOLERANCE = 1e-5
+
+
+@dataclass(frozen=True)
+class LayoutCheck:
+    """What :func:`check_layout` measured of a UV layout (counts of faces unless named otherwise)."""
+
+    faces: int
+    unmapped: int
+    degenerate: int
+    stacked: int
+    overlapping: int
+    outside: int
+    tiles: tuple[int, ...]
+    islands: int
+    seams: int
+    resolution: int
+
+    def problems(self, max_overlap: float) -> list[str]:
+        """One line per reason the layout cannot be baked into (empty: usable)."""
+        out = []
+
+        def share(n):
+            return f"{n:,} of the {self.faces:,} faces ({100 * n / self.faces:.3g}%)"
+
+        if self.unmapped:
+            out.append(f"{share(self.unmapped)} have no texture coordinates")
+        if self.degenerate:
+            out.append(f"{share(self.degenerate)} have a degenerate (zero-area) UV triangle")
+        if self.overlapping > max_overlap * self.faces:
+            out.append(
+                f"{share(self.overlapping)} overlap other faces in UV space "
+                f"(bake.uv_max_overlap: {max_overlap:g}; stacked copies of an island excepted)"
+            )
+        if self.outside:
+            out.append(f"{share(self.outside)} reach more than {TILE_MARGIN:g} of a tile past their UV tile")
+        if len(self.tiles) > 1:
+            shown = ", ".join(str(t) for t in self.tiles[:6]) + (", ..." if len(self.tiles) > 6 else "")
+            out.append(f"the UVs span {len(self.tiles)} UDIM tiles ({shown}); one texture set per tile is not supported")
+        return out
+
+    def to_json(self) -> dict:
+        return {**asdict(self), "tiles": list(self.tiles)}
+
+
+def uv_areas(uv: np.ndarray) -> np.ndarray:
+    """Signed areas ``(F,)`` of UV triangles ``uv (F, 3, 2)``."""
+    a, b = uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]
+    return 0.5 * (a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0])
+
+
+def face_tiles(uv: np.ndarray) -> np.ndarray:
+    """Integer tile ``(F, 2)`` (u, v; glTF's v down) of each face ``uv (F, 3, 2)``: the unit square
+    where the face lies within ``TILE_MARGIN`` of it, else the tile of its UV centroid."""
+    tiles = np.floor(uv.mean(axis=1)).astype(np.int64)
+    unit = ((uv >= -TILE_MARGIN) & (uv <= 1 + TILE_MARGIN)).all(axis=(1, 2))
+    tiles[unit] = 0
+    return tiles
+
+
+def wrapped_copies(local: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """UV triangles ``local (F, 3, 2)`` (each in the unit square, up to ``TILE_MARGIN``) with a
+    copy shifted by a whole tile wherever a face reaches past an edge, so that the parts past the
+    edge land where a repeating sampler reads them: ``(K, 3, 2)`` triangles and the face of each."""
+    lo, hi = local.min(axis=1), local.max(axis=1)
+    tris, owner = [local], [np.arange(len(local))]
+    for du in (-1, 0, 1):
+        for dv in (-1, 0, 1):
+            if du == dv == 0:
+                continue
+            shifted_lo = lo + (du, dv)
+            shifted_hi = hi + (du, dv)
+            hit = ((shifted_hi > 0) & (shifted_lo < 1)).all(axis=1)
+            if hit.any():
+                tris.append(local[hit] + np.array([du, dv], np.float64))
+                owner.append(np.flatnonzero(hit))
+    return np.concatenate(tris), np.concatenate(owner)
+
+
+def udim(tiles: np.ndarray) -> np.ndarray:
+    """UDIM numbers of tiles ``(N, 2)`` in glTF's convention (v down): 1001 + u + 10 * (-v)
+    counted upwards from the unit square (OBJ/Blender's ``v`` up)."""
+    return 1001 + tiles[:, 0] + 10 * (-tiles[:, 1])
+
+
+def stacked_faces(uv: np.ndarray) -> np.ndarray:
+    """``(F,) int64``: for each face the first face with the same UV triangle (its three corners
+    as a set, to 1e-6), itself where none came before: copies of a stacked or mirrored island."""
+    corners = np.round(uv * 1e6).astype(np.int64)
+    order = np.lexsort((corners[..., 1], corners[..., 0]))  # (F, 3): each face's corners sorted
+    key = np.take_along_axis(corners, order[..., None], axis=1).reshape(len(uv), 6)
+    _, first_index, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    return first_index[inverse.reshape(-1)]
+
+
+def overlap_faces(uv: np.ndarray, size: int) -> np.ndarray:
+    """``(F,) bool``: faces with a texel centre (of a ``size``-texel tile, each face moved into its
+    own tile and wrapped at its edges, :func:`wrapped_copies`) that another face's UV triangle also
+    covers. Each face is lifted to its own height
+    (its index) and every texel centre cast at from above and from below: where the two hits
+    differ, at least two faces cover it, and both are marked."""
+    n = len(uv)
+    tris, owner = wrapped_copies(uv - face_tiles(uv)[:, None, :])
+    z = np.repeat(owner.astype(np.float64), 3)[:, None]
+    tri = np.concatenate([tris.reshape(-1, 2) * size, z], axis=1)
+    tracer = EmbreeTracer(TriMesh(tri, np.arange(3 * len(tris)).reshape(-1, 3)))
+    c = np.arange(size) + 0.5
+    cols, rows = np.meshgrid(c, c)
+    xy = np.stack([cols.ravel(), rows.ravel()], axis=1)
+    down = tracer.trace(np.concatenate([xy, np.full((len(xy), 1), n + 1.0)], 1), np.broadcast_to([0.0, 0.0, -1.0], (len(xy), 3)))
+    up = tracer.trace(np.concatenate([xy, np.full((len(xy), 1), -1.0)], 1), np.broadcast_to([0.0, 0.0, 1.0], (len(xy), 3)))
+    top = np.where(down.face >= 0, owner[np.maximum(down.face, 0)], -1)
+    bottom = np.where(up.face >= 0, owner[np.maximum(up.face, 0)], -1)
+    both = (top >= 0) & (bottom >= 0) & (top != bottom)
+    out = np.zeros(n, bool)
+    out[top[both]] = True
+    out[bottom[both]] = True
+    return out
+
+
+def seams_and_islands(positions: np.ndarray, faces: np.ndarray, uv: np.ndarray) -> tuple[int, int]:
+    """UV seams (3D edges shared by two faces whose UVs differ along it; positions compared
+    exactly) and islands (faces connected through edges that are not seams)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    _, pid = np.unique(positions, axis=0, return_inverse=True)
+    pid = pid.reshape(-1)[faces]  # (F, 3) position ids
+    f = len(faces)
+    a = pid.reshape(-1)
+    b = pid[:, [1, 2, 0]].reshape(-1)
+    ua = uv.reshape(-1, 2)
+    ub = uv[:, [1, 2, 0]].reshape(-1, 2)
+    swap = a > b
+    lo, hi = np.where(swap, b, a), np.where(swap, a, b)
+    uv_lo, uv_hi = np.where(swap[:, None], ub, ua), np.where(swap[:, None], ua, ub)
+    edge_face = np.repeat(np.arange(f), 3)
+    order = np.lexsort((hi, lo))
+    same_edge = (lo[order][1:] == lo[order][:-1]) & (hi[order][1:] == hi[order][:-1])
+    i, j = order[:-1][same_edge], order[1:][same_edge]
+    joined = (np.abs(uv_lo[i] - uv_lo[j]).max(1) <= 1e-9) & (np.abs(uv_hi[i] - uv_hi[j]).max(1) <= 1e-9)
+    seams = int((~joined).sum())
+    graph = coo_matrix((np.ones(int(joined.sum())), (edge_face[i][joined], edge_face[j][joined])), shape=(f, f))
+    islands, _ = connected_components(graph, directed=False)
+    return seams, int(islands)
+
+
+def check_layout(positions: np.ndarray, faces: np.ndarray, uv: np.ndarray, resolution: int) -> LayoutCheck:
+    """Measure the layout ``uv (F, 3, 2)`` (NaN where unmapped) of the mesh ``positions (V, 3)``,
+    ``faces (F, 3)`` at a ``resolution``-texel tile (module docstring)."""
+    mapped = np.isfinite(uv).all(axis=(1, 2))
+    area3d = 0.5 * np.linalg.norm(np.cross(*(positions[faces][:, k] - positions[faces][:, 0] for k in (1, 2))), axis=1)
+    extent = float(np.ptp(positions, axis=0).max()) or 1.0
+    m_uv = uv[mapped]
+    degenerate = (np.abs(uv_areas(m_uv)) <= DEGENERATE_UV_AREA) & (area3d[mapped] > (1e-9 * extent) ** 2)
+    tiles = face_tiles(m_uv)
+    reach = np.abs(m_uv - (tiles[:, None, :] + 0.5)).max(axis=(1, 2)) - 0.5
+    first = stacked_faces(m_uv)
+    reps = np.flatnonzero(first == np.arange(len(m_uv)))
+    overlapping = overlap_faces(m_uv[reps], resolution) if len(reps) else np.zeros(0, bool)
+    seams, islands = seams_and_islands(positions, faces[mapped], m_uv) if len(m_uv) else (0, 0)
+    stacked = int((np.bincount(first, minlength=len(m_uv))[first] > 1).sum())
+    return LayoutCheck(
+        faces=len(faces),
+        unmapped=int((~mapped).sum()),
+        degenerate=int(degenerate.sum()),
+        stacked=stacked,
+        overlapping=int(overlapping.sum()),
+        outside=int((reach > TILE_MARGIN).sum()),
+        tiles=tuple(sorted(int(t) for t in np.unique(udim(tiles)))),
+        islands=islands,
+        seams=seams,
+        resolution=int(resolution),
+    )
+
+
+def match_faces(source: np.ndarray, traced: TriMesh) -> np.ndarray:
+    """For each input triangle ``source (T, 3, 3)`` (positions in the traced mesh's frame) the
+    traced face with the same three corners (any rotation; within ``MATCH_TOLERANCE``), each
+    traced face used once; -1 where none."""
+    from scipy.spatial import cKDTree
+
+    tri = traced.vertices[traced.faces]
+    tree = cKDTree(tri.mean(axis=1))
+    k = min(8, len(tri))
+    _, cand = tree.query(source.mean(axis=1), k=k)
+    cand = np.asarray(cand).reshape(len(source), k)
+    used = np.zeros(len(tri), bool)
+    out = np.full(len(source), -1, np.int64)
+    for col in range(k):
+        c = np.minimum(cand[:, col], len(tri) - 1)
+        err = np.min([np.abs(np.roll(tri[c], r, axis=1) - source).max(axis=(1, 2)) for r in range(3)], axis=0)
+        ok = (out < 0) & (err <= MATCH_TOLERANCE) & ~used[c]
+        for i in np.flatnonzero(ok):  # duplicate faces: each traced face once
+            if not used[c[i]]:
+                used[c[i]] = True
+                out[i] = c[i]
+    return out
