@@ -113,7 +113,9 @@ def run(
             img = compose(preds[front][torch.from_numpy(needed)], lookup, spec, bg)
             save_png(staging / "preview.png", to_u8(img.permute(1, 2, 0).cpu().numpy()))
         stats = {
-            **BakeRecord(texture_size=res.atlas.size, bake_psnr_db=bake_psnr).stats(),
+            **BakeRecord(
+                texture_size=res.atlas.size, bake_psnr_db=bake_psnr, uv_layout=uv.record()["layout"], uv_why=uv.why
+            ).stats(),
             "charts": res.atlas.charts,
             "atlas_utilization": res.atlas.utilization,
             "texel_coverage": res.coverage,
@@ -128,10 +130,10 @@ def run(
             "bake_psnr_pixels": "object pixels of the evaluation views, sRGB, baked textures vs neural field",
         }
         log.info(
-            "baked %d faces into %d^2 textures (%s layout: %s; %.0f%% texels used), fidelity %.1f dB",
+            "baked %d faces into %d^2 textures (%s, %s; %.0f%% texels used), fidelity %.1f dB",
             len(mesh.faces),
             res.atlas.size,
-            "the input's" if uv.kept else "a new",
+            "the input's own layout" if uv.kept else "a new atlas",
             uv.why,
             100 * res.coverage,
             bake_psnr,

@@ -18,9 +18,9 @@ from pathlib import Path
 
 from PIL import Image
 
-from .assets.formats import export_mesh, read_atlas, write_model_files
+from .assets.formats import read_atlas, write_model_files
 from .assets.layouts import kept_source
-from .assets.ownformat import kept_geometry, write_document_glb, write_obj
+from .assets.ownformat import asset_geometry, write_document_glb, write_obj
 from .config.layout import TEXTURE_FILES
 from .config.records import ExportRecord
 from .config.sections import ExportSettings
@@ -60,11 +60,8 @@ def run(
     bake_stats = read_json_record(bake_dir / "meta.json").get("stats", {})
     brdf = bake_stats.get("brdf", "tango")
     occlusion = bool(bake_stats.get("occlusion", {}).get("baked", False))
-    kept = kept_source(bake_stats, atlas, source, bake_dir)
-    if kept is None:
-        geom = export_mesh(mesh, atlas, tf if settings.units == "original" else None, settings.weld)
-    else:
-        geom = kept_geometry(kept, None if settings.units == "original" else tf)
+    asset = asset_geometry(mesh, atlas, tf, settings, kept_source(bake_stats, atlas, source, bake_dir))
+    geom, kept = asset.geom, asset.kept
     extra_files: list[str] = []
     with staged_outputs(out_dir) as staging:
         with timer("copy"):
@@ -87,7 +84,7 @@ def run(
             with timer("obj"):
                 extra_files = write_obj(staging, kept, None if settings.units == "original" else tf, brdf)
         checked = write_model_files(
-            staging, geom, settings.meters_per_unit, settings.usdz_root, name, origin, timer, brdf, occlusion, glb_writer
+            staging, geom, asset.meters_per_unit, settings.usdz_root, name, origin, timer, brdf, occlusion, glb_writer
         )
         usd, gltf = checked["usd"], checked["gltf"]
         with Image.open(staging / TEXTURE_FILES["basecolor"]) as img:
@@ -97,6 +94,9 @@ def run(
             "vertices_exported": len(geom.positions),
             "topology": "the input's own (kept UV layout)" if kept is not None else "the traced mesh, welded",
             "extra_files": extra_files,
+            # the files' frame: metres per unit, and whether positions are the input's own
+            "meters_per_unit": asset.meters_per_unit,
+            "own_frame": asset.own_frame,
             "corners": 3 * len(geom.indices),
             "file_bytes": {f: (staging / f).stat().st_size for f in ("model.glb", "model.usdz", "model.usda")},
             "texture_size": texture_size,

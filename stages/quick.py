@@ -1,14 +1,17 @@
 """quick: stylise one's own mesh without writing YAML.
 
     python -m stages.quick MESH "PROMPT" [--preset fast|balanced|paper|...] [--image-guided MATERIAL]
-                           [--test-clip] [--name NAME] [--overlay FILE]... [--cores N] [--dry-run]
+                           [--test-clip] [--uv auto|keep|atlas] [--name NAME] [--overlay FILE]...
+                           [--cores N] [--dry-run]
 
 1. checks the mesh the way the normalize stage reads it (a missing, empty, unreadable or faceless
    file stops here, with what to do);
 2. writes a small experiment config, ``config/quick/<name>.yaml`` (``--config-dir`` elsewhere):
    the mesh by its absolute path, the prompt, the preset and the guidance; the config is validated
    like any other before it is written;
-3. prints what it will run and the command that runs it again;
+3. prints what it will run and the command that runs it again, with the UV layout the bake will
+   write into (``--uv``, ``bake.uv``: the input's own where it is usable, measured here; ``--uv
+   keep`` on a layout that is not usable stops here, with what is wrong);
 4. starts Snakemake on that config (``--dry-run``: prints the plan, with its time estimate, and
    stops). Snakemake checks the CLIP weights before any job (without them it stops at once with one
    message per model) and prints the plan with its time estimate.
@@ -37,7 +40,7 @@ import yaml
 
 from .config.presets import PRESETS
 from .config.schema import schema
-from .config.sections import MATERIALS
+from .config.sections import MATERIALS, UV_LAYOUTS
 from .config.workflow import EXPERIMENT_RE, WorkflowConfig, experiment_name, merge_config, read_yaml
 from .core.cli import stage_main
 from .core.errors import ConfigError
@@ -85,9 +88,12 @@ def mesh_entry(mesh: str) -> tuple[str, dict]:
     return mesh_id, {"path": str(path.resolve()), "object": path.stem.replace("_", " ")}
 
 
-def experiment_config(mesh: str, prompt: str, name: str, preset: str, image_guided: str | None, test_clip: bool) -> dict:
+def experiment_config(
+    mesh: str, prompt: str, name: str, preset: str, image_guided: str | None, test_clip: bool, uv: str | None = None
+) -> dict:
     """The experiment config of one mesh and one prompt (one cell: the mesh's id is its file's stem,
-    the prompt's id the prompt made an id, :func:`slug`; variant ``base``)."""
+    the prompt's id the prompt made an id, :func:`slug`; variant ``base``), and the bake's UV
+    layout where ``uv`` names one."""
     mesh_id, entry = mesh_entry(mesh)
     prompt_entry: dict = {"text": prompt, "preset": preset}
     config: dict = {"experiment": name, "meshes": {mesh_id: entry}, "prompts": {slug(prompt, 40): prompt_entry}}
@@ -97,6 +103,8 @@ def experiment_config(mesh: str, prompt: str, name: str, preset: str, image_guid
     if test_clip:
         config["optimize"] = {"clip_tiny_test": True}
         config["metrics"] = {**config.get("metrics", {}), "clip_tiny_test": True}
+    if uv is not None:
+        config["bake"] = {"uv": uv}
     return config
 
 
@@ -159,11 +167,33 @@ def workflow_args(cores: int | None = None) -> str:
     return f"{snakefile}--cores {cores}"
 
 
+def layout_text(cfg: WorkflowConfig, mesh: str) -> str:
+    """The UV layout the bake of the config's first cell will write into, and why, decided as the
+    bake stage decides (:func:`~stages.assets.layouts.choose_layout`) on the mesh as the normalize
+    stage writes it; a decimated mesh (``decimate.enabled``) is baked into a new atlas."""
+    from .assets.layouts import choose_layout
+    from .geometry.normalization import normalize_mesh
+
+    mesh_id = mesh_entry(mesh)[0]
+    cell = cfg.cells[0]
+    bake = cfg.cell_stage_settings("bake", cell.prompt, cell.variant)
+    if bake.uv != "atlas" and cfg.decimated(mesh_id):
+        why = "the mesh is decimated before tracing (decimate.enabled), so its asset has other faces"
+        if bake.uv == "keep":
+            raise ConfigError(f"--uv keep: {why}; set decimate.enabled: false, or use --uv auto")
+        return f"a new atlas ({why})"
+    normalized = normalize_mesh(mesh, cfg.stage_settings(mesh_id, "normalize"))
+    traced = normalized.mesh
+    choice, _ = choose_layout(bake.uv, mesh, normalized.transform, traced, bake.size_for(len(traced.faces)), bake.uv_max_overlap)
+    return f"the input's own ({choice.why})" if choice.kept else f"a new atlas ({choice.why})"
+
+
 @dataclass(frozen=True)
 class Request:
     """What the user asks for: a ``mesh`` (a file, or ``builtin:<name>``) and a ``prompt``, the
     optimisation ``preset``, the guidance (CLIP, ``image_guided`` by a procedural material, or the
-    tiny ``test_clip``) and the experiment's ``name`` (default: the mesh's stem and the prompt)."""
+    tiny ``test_clip``), the experiment's ``name`` (default: the mesh's stem and the prompt) and
+    the bake's ``uv`` layout (``bake.uv``; None: the config's, ``auto``)."""
 
     mesh: str
     prompt: str
@@ -171,6 +201,7 @@ class Request:
     image_guided: str | None = None
     test_clip: bool = False
     name: str | None = None
+    uv: str | None = None
 
 
 @dataclass(frozen=True)
@@ -195,6 +226,8 @@ def run(request: Request, launch: Launch = Launch()) -> int:
     overlays, cores = launch.overlays, launch.cores
     if preset not in PRESETS:
         raise ConfigError(f"unknown preset {preset!r}: use one of {', '.join(sorted(PRESETS))}")
+    if request.uv is not None and request.uv not in UV_LAYOUTS:
+        raise ConfigError(f"unknown UV layout {request.uv!r} for --uv: use one of {', '.join(UV_LAYOUTS)}")
     if image_guided is not None and image_guided not in MATERIALS:
         raise ConfigError(f"unknown material {image_guided!r} for --image-guided: use one of {', '.join(MATERIALS)}")
     if not prompt.strip():
@@ -205,7 +238,7 @@ def run(request: Request, launch: Launch = Launch()) -> int:
     name = request.name or slug(f"{mesh_entry(mesh)[0]}-{slug(prompt, 40)}", max_id())
     path = Path(launch.config_dir) / f"{name}.yaml"
     check_name(name, path, launch.force)
-    config = experiment_config(mesh, prompt, name, preset, image_guided, request.test_clip)
+    config = experiment_config(mesh, prompt, name, preset, image_guided, request.test_clip, request.uv)
     configfiles = [path, *overlays]
     merged = config
     for overlay in overlays:
@@ -214,11 +247,13 @@ def run(request: Request, launch: Launch = Launch()) -> int:
     check_face_count(mesh, checked, cfg.stage_settings(mesh_entry(mesh)[0], "normalize"))  # as the normalize stage will
     experiment = experiment_name(cfg.raw, configfiles)
     guidance = guidance_text(cfg, image_guided, request.test_clip)
+    layout = layout_text(cfg, mesh)  # raises where bake.uv: keep cannot keep the layout
     write_config(config, path, launch.command, launch.force)
     files = " ".join(shlex.quote(str(p)) for p in configfiles)
     lines = [
         f"mesh {mesh}: {len(checked.vertices):,} vertices, {len(checked.faces):,} faces",
         f'prompt "{prompt}", preset {preset}, {guidance}',
+        f"UV layout: {layout}",
         f"config: {path} (experiment {experiment}); results in results/{experiment}/, the report in "
         f"results/{experiment}/report/index.html",
         f"the same run again: snakemake {workflow_args(cores)} --configfile {files}",
@@ -246,6 +281,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.add_argument("--preset", default=DEFAULT_PRESET, help=f"optimisation preset (default {DEFAULT_PRESET})")
         parser.add_argument("--image-guided", metavar="MATERIAL", help=f"no CLIP: recover one of {', '.join(MATERIALS)}")
         parser.add_argument("--test-clip", action="store_true", help="the tiny random test CLIP (results marked TEST ONLY)")
+        parser.add_argument("--uv", choices=UV_LAYOUTS, help="the UV layout baked into (bake.uv; default auto)")
         parser.add_argument("--name", help="experiment name (default: the mesh's stem and the prompt)")
         parser.add_argument("--config-dir", type=Path, default=CONFIG_DIR, help=f"where the config goes (default {CONFIG_DIR})")
         parser.add_argument(
@@ -256,7 +292,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.add_argument("--force", action="store_true", help="replace an existing config of this name with other settings")
 
     def body(args):
-        request = Request(args.mesh, args.prompt, args.preset, args.image_guided, args.test_clip, args.name)
+        request = Request(args.mesh, args.prompt, args.preset, args.image_guided, args.test_clip, args.name, args.uv)
         command = shlex.join(["python", "-m", "stages.quick", *(argv if argv is not None else sys.argv[1:])])
         launch = Launch(args.config_dir, tuple(args.overlay), args.cores, args.dry_run, args.force, command)
         result["code"] = run(request, launch)

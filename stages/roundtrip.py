@@ -18,9 +18,11 @@ from pathlib import Path
 
 import numpy as np
 
-from .assets.formats import export_mesh, read_atlas
+from .assets.formats import read_atlas
+from .assets.layouts import kept_source
+from .assets.ownformat import asset_geometry, kept_corner_tangents
 from .config.records import RoundtripRecord
-from .config.sections import RoundtripSettings
+from .config.sections import ExportSettings, RoundtripSettings
 from .core.cli import stage_main
 from .core.errors import StageInputError
 from .core.provenance import ORIGIN_KEY, Timer, metadata, read_origin, staged_outputs, write_json_atomic
@@ -39,6 +41,7 @@ from .reference.roundtrip_job import (
     field_renders,
     graded_import,
     lobe_split,
+    own_format_check,
 )
 from .render.color import to_u8
 
@@ -52,23 +55,42 @@ def _check_inputs(paths: list[Path]) -> None:
 
 
 def _scene(files: dict, settings: RoundtripSettings, device: str, timer: Timer, work: Path) -> RoundtripScene:
-    """The cell's exported geometry, the evaluation views to render and our render of them."""
-    export_dir = Path(files["export"])
+    """The cell's exported geometry (as the export stage wrote it: :func:`asset_geometry`), the
+    evaluation views to render and our render of them."""
+    export_dir, bake_dir = Path(files["export"]), Path(files["bake"])
     export_meta = read_json_record(export_dir / "meta.json")
-    units, mpu = export_meta["settings"]["units"], float(export_meta["settings"]["meters_per_unit"])
+    export_settings = ExportSettings.from_dict(export_meta["settings"])
     with timer("load"):
         tf = Similarity.from_json(read_json_record(files["transform"]))
-        tf_export = tf if units == "original" else None
-        atlas = read_atlas(Path(files["bake"]) / "atlas.npz")
-        geom = export_mesh(load_ply(files["mesh"]), atlas, tf_export, export_meta["settings"].get("weld", True))
+        atlas = read_atlas(bake_dir / "atlas.npz")
+        bake_stats = read_json_record(bake_dir / "meta.json").get("stats", {})
+        kept = kept_source(bake_stats, atlas, files.get("source"), bake_dir)
+        asset = asset_geometry(load_ply(files["mesh"]), atlas, tf, export_settings, kept)
         field, _ = load_field(files["field"], device)
         cache = RayCache(files["eval"])
+    tf_export = tf if export_settings.units == "original" or asset.own_frame else None
     views = pick_views(len(cache), settings.views)
     hits = [cache.view(i) for i in views]
     with timer("ours"):
         reference = field_renders(field, cache, views, device, shadows=settings.transport == "full")
-    cameras = blender_cameras(np.stack([h.c2w for h in hits]), tf_export, mpu)
-    return RoundtripScene(cache, views, hits, cameras, reference, geom, mpu, export_meta, settings, export_dir, work)
+    cameras = blender_cameras(np.stack([h.c2w for h in hits]), tf_export, asset.meters_per_unit, asset.own_frame)
+    tangents = None if kept is None else kept_corner_tangents(atlas, tf if asset.own_frame else None)
+    return RoundtripScene(
+        cache,
+        views,
+        hits,
+        cameras,
+        reference,
+        asset.geom,
+        asset.meters_per_unit,
+        export_meta,
+        settings,
+        export_dir,
+        work,
+        tangents,
+        None if kept is None else kept.path,
+        kept is not None and kept.kind == "gltf",
+    )
 
 
 def run(
@@ -81,9 +103,12 @@ def run(
     out_dir: Path,
     settings: RoundtripSettings,
     device: str = "cpu",
+    source: str | None = None,
 ) -> dict:
     """Import, check and render the cell's exported assets in Blender; write ``meta.json`` and
-    ``compare.png`` into ``out_dir``."""
+    ``compare.png`` into ``out_dir``. Where the bake kept the input's UV layout (``source``: the
+    input mesh), the asset in the input's own format is also imported beside the input itself and
+    compared (:func:`~stages.reference.roundtrip_job.own_format_check`)."""
     timer = Timer()
     export_dir, bake_dir = Path(export_dir), Path(bake_dir)
     needed = [mesh_path, transform_path, field_path, eval_path, bake_dir / "atlas.npz", export_dir / "meta.json"]
@@ -96,6 +121,7 @@ def run(
         "eval": eval_path,
         "bake": bake_dir,
         "export": export_dir,
+        "source": source,
     }
     results, images, lobes = {}, {}, {}
     with tempfile.TemporaryDirectory(prefix="roundtrip-") as work:
@@ -109,10 +135,11 @@ def run(
                     results[fmt], images[fmt] = graded_import(scene, fmt, res)
                 else:
                     lobes[name] = res.renders
+        own = own_format_check(scene, timer) if scene.source is not None else None
     split = lobe_split(scene, lobes) if lobes else {}
     if split:
         results["glb"]["split"] = split
-    stats = _stats(scene, results, split)
+    stats = _stats(scene, results, split, own)
     front = scene.cache.front_view()
     k = min(range(len(scene.views)), key=lambda j: abs(scene.views[j] - front))
     sheet = comparison_sheet(images[settings.formats[0]].ours[k], {f: c.theirs[k] for f, c in images.items()})
@@ -126,14 +153,15 @@ def run(
                 inputs={"field": field_path, "eval": eval_path, "export": export_dir},
                 outputs={"compare": Path(out_dir) / "compare.png"},
                 timings={**timer.seconds, "total": timer.total()},
-                extra={"stats": stats, "formats": results, ORIGIN_KEY: origin},
+                extra={"stats": stats, "formats": results, "own_format": own, ORIGIN_KEY: origin},
             ),
         )
     return {"stats": stats, "formats": results}
 
 
-def _stats(scene: RoundtripScene, results: dict, split: dict) -> dict:
-    """The stage's statistics: the views, each format's figure, the GLB's lobes, the record."""
+def _stats(scene: RoundtripScene, results: dict, split: dict, own: dict | None = None) -> dict:
+    """The stage's statistics: the views, each format's figure, the GLB's lobes, the record (its
+    problems counting the own-format check's, where there is one)."""
     s = scene.settings
     return {
         "views": scene.views,
@@ -142,7 +170,7 @@ def _stats(scene: RoundtripScene, results: dict, split: dict) -> dict:
         **{f"{fmt}_psnr_db": r["psnr_db"] for fmt, r in results.items()},
         **{f"glb_{k}": v for k, v in split.items()},
         **RoundtripRecord(
-            problems=sum(len(r["import"]["problems"]) for r in results.values()),
+            problems=sum(len(r["import"]["problems"]) for r in results.values()) + len((own or {}).get("problems", [])),
             transport=s.transport,
             glb_psnr_db=results["glb"]["psnr_db"] if "glb" in results else None,
             usdz_psnr_db=results["usdz"]["psnr_db"] if "usdz" in results else None,
@@ -164,10 +192,22 @@ def main(argv: list[str] | None = None) -> int:
         parser.add_argument("--export-dir", required=True, type=Path)
         parser.add_argument("--out-dir", required=True, type=Path)
         parser.add_argument("--settings", default="{}")
+        parser.add_argument("--source", help="the input mesh (where the bake kept its UV layout)")
 
     def body(args):
         settings = RoundtripSettings.from_json(args.settings)
-        run(args.mesh, args.transform, args.field, args.eval, args.bake_dir, args.export_dir, args.out_dir, settings, args.device)
+        run(
+            args.mesh,
+            args.transform,
+            args.field,
+            args.eval,
+            args.bake_dir,
+            args.export_dir,
+            args.out_dir,
+            settings,
+            args.device,
+            args.source,
+        )
 
     return stage_main("roundtrip", __doc__, arguments, body, argv, device="cpu")
 

@@ -98,6 +98,18 @@ class ExportMesh:
             self.repeat,
         )
 
+    def reordered(self, order: np.ndarray) -> ExportMesh:
+        """The same mesh with its faces in ``order`` (the order a file with one primitive per slot
+        holds them: :meth:`glb_face_order`)."""
+        slots = None if self.slots is None else self.slots[order]
+        return ExportMesh(
+            self.positions, self.normals, self.uv, self.tangents, self.indices[order], slots, self.slot_names, self.repeat
+        )
+
+    def glb_face_order(self) -> np.ndarray:
+        """The faces in the order :func:`write_glb` writes them: slot after slot."""
+        return np.concatenate([faces for _, faces in self.slot_faces()])
+
     def slot_faces(self) -> list[tuple[str, np.ndarray]]:
         """``(material name, face indices)`` per slot in slot order; one unnamed slot without slots."""
         if self.slots is None or len(self.slot_names) <= 1:
@@ -129,6 +141,7 @@ def export_mesh(mesh: TriMesh, atlas: dict, transform: Similarity | None, weld: 
     handedness from ``atlas.npz``) in export space (see the module docstring), its corners welded
     where all their attributes are equal (as float32, exactly: what a viewer would share too), or
     with ``weld=False`` every corner its own vertex."""
+    kept = "source_face" in atlas  # the input's own layout (bake.uv): its textures repeat
     pos = mesh.vertices[mesh.faces].reshape(-1, 3)
     n = atlas["normal"].reshape(-1, 3)
     t = atlas["tangent"].reshape(-1, 3)
@@ -140,7 +153,7 @@ def export_mesh(mesh: TriMesh, atlas: dict, transform: Similarity | None, weld: 
     if not weld:
         c = corner
         return ExportMesh(
-            c[:, 0:3].copy(), c[:, 3:6].copy(), c[:, 6:8].copy(), c[:, 8:12].copy(), np.arange(len(c)).reshape(-1, 3)
+            c[:, 0:3].copy(), c[:, 3:6].copy(), c[:, 6:8].copy(), c[:, 8:12].copy(), np.arange(len(c)).reshape(-1, 3), repeat=kept
         )
     _, first, inverse = np.unique(corner, axis=0, return_index=True, return_inverse=True)
     order = np.argsort(first)  # vertices in the order faces first use them
@@ -153,6 +166,7 @@ def export_mesh(mesh: TriMesh, atlas: dict, transform: Similarity | None, weld: 
         np.ascontiguousarray(v[:, 6:8]),
         np.ascontiguousarray(v[:, 8:12]),
         rank[inverse.reshape(-1)].reshape(-1, 3).astype(np.int64),
+        repeat=kept,
     )
 
 

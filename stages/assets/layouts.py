@@ -109,8 +109,9 @@ def choose_layout(
     problems = layout.check.problems(max_overlap)
     if problems:
         return _refuse(setting, source, "; ".join(problems), layout.check), None
-    stacked = f"; {layout.check.stacked:,} faces are stacked copies, baked once" if layout.check.stacked else ""
-    why = f"the input's layout is usable ({layout.check.islands:,} islands{stacked})"
+    c = layout.check
+    stacked = f", {c.stacked:,} faces stacked copies baked once" if c.stacked else ""
+    why = f"usable: {c.islands:,} islands, {c.overlapping:,} of {c.faces:,} faces overlapping{stacked}"
     return UvChoice(setting, True, why, layout.check, slots), layout
 
 

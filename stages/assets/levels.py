@@ -104,14 +104,16 @@ class LevelGrader:
         pixels, rgb = self.reference[self.front]
         return front_image(pixels, rgb.cpu().numpy(), self.cache.width)
 
-    def grade(self, level_mesh: TriMesh, uv: np.ndarray, textures: dict, frames: CornerFrames) -> tuple[dict, torch.Tensor]:
-        """The level's fidelity figures and its front view."""
+    def grade(
+        self, level_mesh: TriMesh, uv: np.ndarray, textures: dict, frames: CornerFrames, wrap: bool = False
+    ) -> tuple[dict, torch.Tensor]:
+        """The level's fidelity figures and its front view (``wrap``: its textures repeat)."""
         field = self.source.field
         arrays, _ = trace_views(level_mesh, self.cameras)
         cache = RayCache(f"<{len(level_mesh.faces)}-face level traced from {self.eval_path}>", arrays)
         lobe = field.specular_lobe
         rendered = render_baked_views(
-            cache, uv, decode_textures(textures), frames, self.light, self.source.device, lobe, field.brdf
+            cache, uv, decode_textures(textures), frames, self.light, self.source.device, lobe, field.brdf, wrap
         )
         lo, hi = arrays["offsets"][self.front], arrays["offsets"][self.front + 1]
         srgb = linear_to_srgb(rendered[self.front]).cpu().numpy()
@@ -173,11 +175,14 @@ class LevelRecord:
     texel_coverage: float | None = None
     decimate_seconds: float | None = None
     validation: dict | None = None
+    #: the level's UV layout: the bake's (lod0: the input's own or an atlas), a new atlas (decimated)
+    uv_layout: str = "atlas"
 
     #: the row's keys in the order the metadata writes them
     ROW = (
         "level",
         "fraction",
+        "uv_layout",
         "faces",
         "target_faces",
         "target_reached",
@@ -204,17 +209,21 @@ class LevelRecord:
 
 
 def make_lod0(source: LodSource, grader: LevelGrader, staging: Path) -> LevelRecord:
-    """``lod0``: the full bake, as the export stage shipped it (its textures copied, graded)."""
+    """``lod0``: the full bake, as the export stage shipped it (its textures copied, graded); on
+    the traced mesh's topology, in the input's own layout where the bake kept it."""
     for rel in TEXTURE_FILES.values():
         with atomic_path(staging / "lod0" / rel) as tmp:
             shutil.copyfile(source.bake_dir / rel, tmp)
     from_bake = {key: _texture(source.bake_dir / rel) for key, rel in TEXTURE_FILES.items()}
     uv = source.atlas["uv"].astype(np.float64)
-    fidelity, image = grader.grade(source.mesh, uv, from_bake, CornerFrames.from_arrays(source.atlas))
+    kept = "source_face" in source.atlas  # the input's own layout: its textures repeat
+    fidelity, image = grader.grade(source.mesh, uv, from_bake, CornerFrames.from_arrays(source.atlas), kept)
+    layout = "kept (the input's own, on the traced mesh's topology)" if kept else "atlas"
     geom = export_mesh(source.mesh, source.atlas, source.export_transform, source.export.weld)
     return LevelRecord(
         level="lod0",
         fraction=1.0,
+        uv_layout=layout,
         faces=len(source.mesh.faces),
         vertices_exported=len(geom.positions),
         texture_size=source.full_size,
@@ -264,6 +273,7 @@ def make_level(
     found, offset = res.projection.found, np.abs(res.projection.offset[res.projection.found])
     record = LevelRecord(
         level=tag,
+        uv_layout="atlas (a decimated level has other faces than the input)",
         fraction=plan.fraction,
         faces=len(low.faces),
         target_faces=plan.target,

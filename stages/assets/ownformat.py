@@ -21,6 +21,7 @@ input's UV layout (``bake.uv``; :mod:`stages.assets.layouts`).
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -30,7 +31,7 @@ from ..core.provenance import ORIGIN_METADATA_KEY, atomic_path
 from ..geometry.normalization import Similarity
 from ..geometry.sourcemesh import ObjLines, SourceMesh, load_gltf_document
 from ..geometry.tangents import mikktspace
-from .formats import ExportMesh, GlbBuffer, glb_material, glb_sampler
+from .formats import ExportMesh, GlbBuffer, export_mesh, glb_material, glb_sampler
 
 log = logging.getLogger(__name__)
 
@@ -72,6 +73,49 @@ def vertex_tangents(positions: np.ndarray, normals: np.ndarray, uv: np.ndarray, 
     if np.abs(out[triangles.reshape(-1)] - corner).max(initial=0.0) > 1e-4:
         return None
     return out.astype(np.float32)
+
+
+@dataclass(frozen=True)
+class AssetGeometry:
+    """What an asset's files hold: ``geom`` (its geometry in export space), the input's own
+    surface where the bake kept its layout (``kept``), the metres per unit the files state, and
+    ``own_frame``: positions are the input's own (``x_original``; a glTF input's document always,
+    an OBJ's with ``export.units: original``) rather than the export space of a new atlas
+    (``R x_original``, +Y up: :mod:`stages.assets.formats`) or the normalised frame."""
+
+    geom: ExportMesh
+    kept: SourceMesh | None
+    meters_per_unit: float
+    own_frame: bool
+
+
+def asset_geometry(mesh, atlas: dict, transform: Similarity, settings, kept: SourceMesh | None) -> AssetGeometry:
+    """The geometry the export writes (and the round trip checks) for the traced ``mesh`` and the
+    bake's ``atlas`` arrays, with the export ``settings`` (units, weld, metres per unit): the
+    traced mesh welded (:func:`~stages.assets.formats.export_mesh`), or the input's own topology
+    where the bake kept its layout (:func:`kept_geometry`). A glTF input's document keeps its own
+    units (metres, by the specification) and position: ``units`` and ``meters_per_unit`` do not
+    apply to it."""
+    original = settings.units == "original"
+    if kept is None:
+        geom = export_mesh(mesh, atlas, transform if original else None, settings.weld)
+        return AssetGeometry(geom, None, settings.meters_per_unit, False)
+    if kept.kind == "gltf":
+        return AssetGeometry(kept_geometry(kept), kept, 1.0, True)
+    return AssetGeometry(kept_geometry(kept, None if original else transform), kept, settings.meters_per_unit, original)
+
+
+def kept_corner_tangents(atlas: dict, transform: Similarity | None = None) -> np.ndarray:
+    """The baked frame's tangents per corner of the input's own triangles (file order), ``(3T, 4)``
+    (xyz and handedness), from the bake's ``atlas`` arrays of a kept layout; with ``transform`` in
+    the input's own frame (the normalised frame's directions turned back by its rotation), else in
+    the normalised frame (whose directions an export space shares)."""
+    order = np.argsort(atlas["source_face"])  # input triangle -> traced face
+    t = np.asarray(atlas["tangent"], np.float64)[order]
+    if transform is not None:
+        t = t @ transform.rotation  # R^T t per corner
+    w = np.repeat(np.asarray(atlas["handedness"], np.float64)[order], 3)
+    return np.concatenate([t.reshape(-1, 3), w[:, None]], axis=1)
 
 
 # ------------------------------------------------------------------------------------------ OBJ
@@ -139,7 +183,7 @@ def write_document_glb(path: Path, source: SourceMesh, textures_dir: Path, origi
     _merge_buffers(doc, blobs, buffer)
     buffer.images, buffer.textures = list(doc.images or []), list(doc.textures or [])
     doc.samplers = [*(doc.samplers or []), glb_sampler(g, True)]
-    first = buffer.texture_set(textures_dir, brdf, "tango", sampler=len(doc.samplers) - 1)
+    first = buffer.texture_set(textures_dir, brdf, sampler=len(doc.samplers) - 1)
     doc.materials = list(doc.materials or [])
     replaced: dict[int | None, int] = {}
     for part in source.parts:

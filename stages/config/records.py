@@ -135,12 +135,15 @@ class OptimizeRecord(StageRecord):
 
 @dataclass(frozen=True)
 class BakeRecord(StageRecord):
-    """The bake: its texture size and its fidelity to the trained field."""
+    """The bake: its texture size, its fidelity to the trained field and its UV layout."""
 
     stage = "bake"
-    COLUMNS = ("bake_psnr_db", "texture_size")
+    COLUMNS = ("bake_psnr_db", "texture_size", "uv_layout", "uv_why")
     texture_size: int
     bake_psnr_db: float
+    #: the UV layout the textures use (``kept``: the input's own; ``atlas``: a new one) and why (bake.uv)
+    uv_layout: str | None = None
+    uv_why: str | None = None
 
 
 @dataclass(frozen=True)

@@ -128,28 +128,41 @@ def stacked_faces(uv: np.ndarray) -> np.ndarray:
     return first_index[inverse.reshape(-1)]
 
 
-def overlap_faces(uv: np.ndarray, size: int) -> np.ndarray:
+#: texel centres are cast at from this fraction of a texel off centre, so that an edge running
+#: exactly through centres (a 45-degree diagonal of a grid-aligned quad) does not count as overlap
+CENTRE_JITTER = (1.37e-3, 2.91e-3)
+
+
+def overlap_faces(uv: np.ndarray, size: int, max_depth: int = 64) -> np.ndarray:
     """``(F,) bool``: faces with a texel centre (of a ``size``-texel tile, each face moved into its
     own tile and wrapped at its edges, :func:`wrapped_copies`) that another face's UV triangle also
-    covers. Each face is lifted to its own height
-    (its index) and every texel centre cast at from above and from below: where the two hits
-    differ, at least two faces cover it, and both are marked."""
+    covers. Each face is lifted to its own height (its index) and every texel centre is cast at
+    from above, again and again from just below the last hit, so that every face over it is found
+    (up to ``max_depth`` deep)."""
     n = len(uv)
     tris, owner = wrapped_copies(uv - face_tiles(uv)[:, None, :])
     z = np.repeat(owner.astype(np.float64), 3)[:, None]
     tri = np.concatenate([tris.reshape(-1, 2) * size, z], axis=1)
     tracer = EmbreeTracer(TriMesh(tri, np.arange(3 * len(tris)).reshape(-1, 3)))
     c = np.arange(size) + 0.5
-    cols, rows = np.meshgrid(c, c)
+    cols, rows = np.meshgrid(c + CENTRE_JITTER[0], c + CENTRE_JITTER[1])
     xy = np.stack([cols.ravel(), rows.ravel()], axis=1)
-    down = tracer.trace(np.concatenate([xy, np.full((len(xy), 1), n + 1.0)], 1), np.broadcast_to([0.0, 0.0, -1.0], (len(xy), 3)))
-    up = tracer.trace(np.concatenate([xy, np.full((len(xy), 1), -1.0)], 1), np.broadcast_to([0.0, 0.0, 1.0], (len(xy), 3)))
-    top = np.where(down.face >= 0, owner[np.maximum(down.face, 0)], -1)
-    bottom = np.where(up.face >= 0, owner[np.maximum(up.face, 0)], -1)
-    both = (top >= 0) & (bottom >= 0) & (top != bottom)
+    top = np.full(len(xy), n + 1.0)
+    first = np.full(len(xy), -1)
     out = np.zeros(n, bool)
-    out[top[both]] = True
-    out[bottom[both]] = True
+    live = np.arange(len(xy))
+    for _ in range(max_depth):
+        origins = np.concatenate([xy[live], top[live, None]], axis=1)
+        hits = tracer.trace(origins, np.broadcast_to([0.0, 0.0, -1.0], origins.shape))
+        hit = hits.face >= 0
+        live, face = live[hit], owner[hits.face[hit]]
+        if not len(live):
+            break
+        seen = first[live] >= 0
+        out[face[seen]] = True  # a second (third, ...) face over a texel, and the first one
+        out[first[live[seen]]] = True
+        first[live[~seen]] = face[~seen]
+        top[live] = face - 0.5
     return out
 
 

@@ -131,16 +131,22 @@ def export_to_blender(points: np.ndarray, meters_per_unit: float) -> np.ndarray:
     return (np.asarray(points, np.float64) * meters_per_unit) @ Y_UP_TO_Z_UP.T
 
 
-def blender_cameras(c2w: np.ndarray, transform, meters_per_unit: float) -> np.ndarray:
+def blender_cameras(c2w: np.ndarray, transform, meters_per_unit: float, own_frame: bool = False) -> np.ndarray:
     """Our camera-to-world matrices ``(V, 4, 4)`` (normalised frame) as Blender camera matrices
     for an asset exported with ``transform`` (a :class:`~stages.geometry.normalization.Similarity`
-    back to the input's units, or None when exported normalised) and ``meters_per_unit``."""
+    back to the input's units, or None when exported normalised) and ``meters_per_unit``; with
+    ``own_frame`` the asset's positions are the input's own (``x_original``, a kept layout's
+    topology) rather than the export space ``R x_original``."""
     c2w = np.asarray(c2w, np.float64)
     eye = c2w[:, :3, 3]
-    if transform is not None:
+    rot = c2w[:, :3, :3]
+    if transform is not None and own_frame:
+        eye = transform.inverse(eye)
+        rot = transform.rotation.T @ rot
+    elif transform is not None:
         eye = eye / transform.scale + transform.rotation @ transform.centroid
     out = np.zeros_like(c2w)
-    out[:, :3, :3] = Y_UP_TO_Z_UP @ c2w[:, :3, :3]
+    out[:, :3, :3] = Y_UP_TO_Z_UP @ rot
     out[:, :3, 3] = export_to_blender(eye, meters_per_unit)
     out[:, 3, 3] = 1.0
     return out
@@ -212,7 +218,9 @@ def _angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.degrees(np.arccos(np.clip((a * b).sum(-1), -1.0, 1.0)))
 
 
-def check_import(result: JobResult, geom, meters_per_unit: float, brdf: str = "tango", occlusion: bool = False) -> dict:
+def check_import(
+    result: JobResult, geom, meters_per_unit: float, brdf: str = "tango", occlusion: bool = False, tangents=None
+) -> dict:
     """Compare what Blender imported with what we exported (``geom``: the
     :class:`~stages.assets.formats.ExportMesh` in export space, compared per face corner). Returns the measured
     figures and ``problems`` (empty when the asset arrived intact): one mesh with every face and
@@ -222,10 +230,12 @@ def check_import(result: JobResult, geom, meters_per_unit: float, brdf: str = "t
     (TANGO's BRDF: the specular texture as the specular tint; glTF's: metallic from the blue
     channel of the metallic-roughness texture; with ``occlusion``, the occlusion from its red
     channel, which Blender's glTF importer keeps in its "glTF Material Output" group: pass it for
-    a glTF asset only, as Blender's USD importer does not read UsdPreviewSurface's ``occlusion``)."""
+    a glTF asset only, as Blender's USD importer does not read UsdPreviewSurface's ``occlusion``).
+    ``tangents (3F, 4)``: the baked frame's tangents per corner, where the geometry holds none
+    per vertex (a kept layout's topology)."""
     report, c = result.report, result.corners
     geom = geom.corners()
-    meshes = [o for o in report.get("objects", []) if o["type"] == "MESH"]
+    meshes = [o for o in report.get("objects", []) if o["type"] == "MESH" and not o.get("bone_shape")]
     problems = []
     out: dict = {"blender": report.get("blender"), "mesh_objects": len(meshes)}
     if len(meshes) != 1 or not c:
@@ -253,8 +263,9 @@ def check_import(result: JobResult, geom, meters_per_unit: float, brdf: str = "t
     if out["normal_error_deg"] > 0.1:
         problems.append(f"shading normals differ by up to {out['normal_error_deg']:.2g} degrees")
     # tangents: Blender computes its own (MikkTSpace) and its normal-map node uses them
-    t_want = geom.tangents[:, :3].astype(np.float64) @ Y_UP_TO_Z_UP.T
-    b_want = geom.tangents[:, 3:4] * np.cross(normals, t_want)
+    frame = geom.tangents if tangents is None else tangents
+    t_want = frame[:, :3].astype(np.float64) @ Y_UP_TO_Z_UP.T
+    b_want = frame[:, 3:4] * np.cross(normals, t_want)
     b_blender = c["bitangent_sign"][:, None] * np.cross(c["normal"], c["tangent"])
     good = np.linalg.norm(t_want, axis=1) > 0.5  # faces with a degenerate UV triangle have no frame
     t_err, b_err = _angle_deg(c["tangent"], t_want)[good], _angle_deg(b_blender, b_want)[good]

@@ -45,8 +45,10 @@ def import_asset(path: Path) -> None:
         result = bpy.ops.import_scene.gltf(filepath=str(path))
     elif suffix in (".usd", ".usda", ".usdc", ".usdz"):
         result = bpy.ops.wm.usd_import(filepath=str(path))
+    elif suffix == ".obj":
+        result = bpy.ops.wm.obj_import(filepath=str(path))
     else:
-        raise SystemExit(f"{path}: not an asset Blender imports here (.glb, .gltf, .usd, .usda, .usdc, .usdz)")
+        raise SystemExit(f"{path}: not an asset Blender imports here (.glb, .gltf, .usd, .usda, .usdc, .usdz, .obj)")
     if "FINISHED" not in result:
         raise SystemExit(f"{path}: Blender's importer returned {result}")
     bpy.context.view_layer.update()
@@ -165,12 +167,17 @@ def inspect(out: Path) -> dict:
     scene = bpy.context.scene
     report = {"objects": [], "materials": [], "world": describe_world(scene.world)}
     arrays = {}
+    # meshes an importer made to draw bones (glTF's armatures: an icosphere) are not the asset
+    bone_shapes = {
+        pb.custom_shape.name for ob in scene.objects if ob.type == "ARMATURE" for pb in ob.pose.bones if pb.custom_shape
+    }
     for ob in scene.objects:
         entry = {
             "name": ob.name,
             "type": ob.type,
             "parent": ob.parent.name if ob.parent else None,
             "matrix_world": [list(r) for r in ob.matrix_world],
+            "bone_shape": ob.name in bone_shapes,
         }
         if ob.type == "MESH":
             me = ob.data
@@ -184,7 +191,7 @@ def inspect(out: Path) -> dict:
                 bbox_max=[max(c[i] for c in corners) for i in range(3)],
                 materials=[m.name for m in me.materials if m is not None],
             )
-            if not arrays:  # the first mesh (our assets have one)
+            if not arrays and ob.name not in bone_shapes:  # the first mesh (our assets have one)
                 arrays = mesh_corners(ob)
         report["objects"].append(entry)
     report["materials"] = [describe_material(m) for m in bpy.data.materials if m.users]

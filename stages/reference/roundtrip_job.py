@@ -88,6 +88,12 @@ class RoundtripScene:
     settings: RoundtripSettings
     export_dir: Path
     work: Path
+    #: the baked frame's tangents per corner where ``geom`` holds none per vertex (a kept layout)
+    tangents: np.ndarray | None = None
+    #: the input file where the asset is its own topology (a kept layout), for :func:`own_format_check`
+    source: Path | None = None
+    #: whether ``model.glb`` is the input's own document (faces in the input's order)
+    document: bool = False
 
 
 def blender_pass(scene: RoundtripScene, fmt: str, name: str, overrides: dict, timer: Timer):
@@ -115,7 +121,12 @@ def graded_import(scene: RoundtripScene, fmt: str, res) -> tuple[dict, object]:
     and the comparison (images per view)."""
     exported = scene.export_meta.get("stats", {})
     occlusion = bool(exported.get("occlusion", False)) and fmt == "glb"  # Blender's USD importer drops it
-    checks = check_import(res, scene.geom, scene.meters_per_unit, exported.get("brdf", "tango"), occlusion)
+    geom, tangents = scene.geom, scene.tangents
+    if fmt == "glb" and not scene.document:  # our GLB writes one primitive per material slot
+        order = geom.glb_face_order()
+        geom = geom.reordered(order)
+        tangents = None if tangents is None else tangents.reshape(-1, 3, 4)[order].reshape(-1, 4)
+    checks = check_import(res, geom, scene.meters_per_unit, exported.get("brdf", "tango"), occlusion, tangents)
     world = [n["node"] for n in res.report.get("world", {}).get("nodes", [])]
     if "TEX_ENVIRONMENT" not in world:
         checks["problems"].append("the world has no environment texture (the learned light did not arrive)")
@@ -142,6 +153,42 @@ def graded_import(scene: RoundtripScene, fmt: str, res) -> tuple[dict, object]:
         "render_seconds": res.report["render"]["seconds"],
     }
     return result, cmp
+
+
+def own_format_check(scene: RoundtripScene, timer: Timer) -> dict:
+    """The asset in the input's own format (``model.glb`` of a glTF input, ``model.obj`` of an
+    OBJ's) imported into Blender beside the input itself: the same mesh objects with the same
+    vertex, face and corner counts, and the same UVs per corner. Returns the counts of both, the
+    largest UV difference and ``problems``."""
+    own = scene.export_dir / ("model.glb" if scene.document else "model.obj")
+    got = {}
+    for key, path in (("input", scene.source), ("output", own)):
+        with timer(f"blender_{key}_import"):
+            try:
+                job = {"asset": str(Path(path).resolve()), "inspect": True}
+                res = run_job(job, scene.work / f"own_{key}", scene.settings.timeout_s)
+            except BlenderUnavailable as exc:
+                raise StageInputError(Path("blender"), str(exc), "Or set roundtrip.enabled: false.") from None
+        meshes = [o for o in res.report.get("objects", []) if o["type"] == "MESH" and not o.get("bone_shape")]
+        counts = {k: sum(int(m[k]) for m in meshes) for k in ("vertices", "faces", "corners")}
+        got[key] = {"file": Path(path).name, "mesh_objects": len(meshes), **counts, "uv": res.corners.get("uv")}
+    a, b = got["input"], got["output"]
+    problems = [
+        f"{k}: {b[k]:,} in Blender's import of {b['file']}, {a[k]:,} in its import of the input {a['file']}"
+        for k in ("mesh_objects", "vertices", "faces", "corners")
+        if a[k] != b[k]
+    ]
+    uv_error = None
+    if a["uv"] is not None and b["uv"] is not None and len(a["uv"]) == len(b["uv"]):
+        uv_error = float(np.abs(a["uv"] - b["uv"]).max())
+        if uv_error > 1e-6:
+            problems.append(f"UVs differ by up to {uv_error:.2g} from the input's in Blender")
+    elif a["uv"] is not None:
+        problems.append(f"the UVs of {b['file']} did not arrive as the input's")
+    for problem in problems:
+        log.warning("own format in Blender: %s", problem)
+    strip = {k: {kk: vv for kk, vv in v.items() if kk != "uv"} for k, v in got.items()}
+    return {**strip, "uv_error": uv_error, "problems": problems}
 
 
 def lobe_split(scene: RoundtripScene, lobes: dict) -> dict:

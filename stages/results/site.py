@@ -54,6 +54,7 @@ INDEX_COLUMNS = (
     ("iterations", "iterations"),
     ("faces_after", "faces"),
     ("bake_psnr_db", "bake (dB)"),
+    ("uv_layout", "UV layout"),
     ("relit_psnr_db", "relit (dB)"),
     ("weights", "weights"),
 )
@@ -151,8 +152,12 @@ def _figure(row, column: str) -> float | None:
 
 
 def fidelity_lines(row) -> list[str]:
-    """The cell's recovery (image targets, held-out views) and Blender round-trip figures."""
+    """The cell's UV layout, recovery (image targets, held-out views) and Blender round-trip figures."""
     lines = []
+    if "uv_layout" in row and isinstance(row["uv_layout"].iloc[0], str):
+        kind = {"kept": "the input's own", "atlas": "a new atlas"}.get(row["uv_layout"].iloc[0], row["uv_layout"].iloc[0])
+        why = row["uv_why"].iloc[0] if "uv_why" in row and isinstance(row["uv_why"].iloc[0], str) else ""
+        lines.append(f"UV layout: {kind}" + (f" ({why})" if why else ""))
     psnr, ssim = _figure(row, "target_psnr_db"), _figure(row, "target_ssim")
     if psnr is not None:
         renderer = str(row["target_renderer"].iloc[0]) if "target_renderer" in row else "?"

@@ -92,7 +92,8 @@ def test_rows_read_the_figures_the_stages_wrote_before():
     ).row()
     assert lod == {"lod_faces": "100/50", "lod_glb_bytes": "10/7", "lod_fidelity_psnr_db": "30.00/25.55"}
     # a figure the stage did not have is None in the row, not an error
-    assert r.BakeRecord.from_meta({"stats": {}}).row() == {"bake_psnr_db": None, "texture_size": None}
+    want = {"bake_psnr_db": None, "texture_size": None, "uv_layout": None, "uv_why": None}
+    assert r.BakeRecord.from_meta({"stats": {}}).row() == want
     assert (
         r.MetricsRecord.from_meta({"image_target": {"psnr_db": 22.0, "material": {"roughness_mae": 0.2}}}).row()[
             "target_roughness_mae"

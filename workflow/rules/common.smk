@@ -329,6 +329,8 @@ def export_inputs(wildcards):
         "transform": f"{mesh_work(wildcards.mesh, 'normalize')}/transform.json",
         "preview": f"{cell}/bake/preview.png",
         "bake_meta": f"{cell}/bake/meta.json",
+        # the input itself: a kept UV layout's asset is its own topology (bake.uv)
+        "source": mesh_input(wildcards),
     }
 
 
@@ -386,6 +388,7 @@ def roundtrip_inputs(wildcards):
         "eval": f"{mesh_work(wildcards.mesh, 'raycache')}/eval.npz",
         "atlas": f"{cell}/bake/atlas.npz",
         "export_meta": f"{cell}/export/meta.json",
+        "source": mesh_input(wildcards),
     }
 
 
@@ -408,6 +411,7 @@ def lod_inputs(wildcards):
         "eval": f"{mesh_work(wildcards.mesh, 'raycache')}/eval.npz",
         "atlas": f"{cell}/bake/atlas.npz",
         "export_meta": f"{cell}/export/meta.json",
+        "source": mesh_input(wildcards),
     }
 
 

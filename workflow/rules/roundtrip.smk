@@ -20,8 +20,10 @@ rule roundtrip:
         export_dir=cell_dir("export"),
         out_dir=cell_dir("roundtrip"),
         settings=cell_settings_json("roundtrip"),
+        source=mesh_source,
     shell:
         "python -m stages.roundtrip --mesh {input.mesh:q} --transform {input.transform:q} "
         "--field {input.field:q} --eval {input.eval:q} --bake-dir {params.bake_dir:q} "
         "--export-dir {params.export_dir:q} --out-dir {params.out_dir:q} "
-        "--settings {params.settings:q} --threads {threads} --device {params.device} 2> {log:q}"
+        "--settings {params.settings:q} --source={params.source:q} --threads {threads} --device {params.device} "
+        "2> {log:q}"
