@@ -27,6 +27,7 @@ from .assets.baking import (
     occlusion_decision,
     occlusion_samples,
     render_baked_views,
+    render_texture_sets,
     texel_density,
 )
 from .assets.layouts import InputMesh, choose_layout
@@ -83,8 +84,9 @@ def run(
     out_dir = Path(out_dir)
     with staged_outputs(out_dir) as staging:
         with timer("write"):
-            for name, img in res.textures.items():
-                save_png(staging / "textures" / f"{name}.png", img)
+            for folder, images in {"": res.textures, **res.sets}.items():
+                for name, img in images.items():
+                    save_png(staging / "textures" / folder / f"{name}.png", img)
             write_exr(staging / "light.exr", res.light_equirect)
             write_hdr(staging / "light.hdr", res.light_equirect)
             with atomic_path(staging / "atlas.npz") as tmp:
@@ -96,12 +98,17 @@ def run(
             store = ViewStore(
                 eval_cache, torch.device(device), field.normals, shadows=False
             )  # the textures' fidelity: both unshadowed
-            tex = decode_textures(res.textures)
             light = field.light()
-            wrap = layout is not None  # a kept layout's textures repeat, as glTF's default sampler does
-            baked = render_baked_views(
-                eval_cache, res.atlas.uv, tex, res.frames, light, device, field.specular_lobe, field.brdf, wrap
-            )
+            if layout is None:
+                tex = decode_textures(res.textures)
+                baked = render_baked_views(
+                    eval_cache, res.atlas.uv, tex, res.frames, light, device, field.specular_lobe, field.brdf
+                )
+            else:  # a kept layout's textures repeat (glTF's default sampler), one set per group of slots
+                sets = [decode_textures(res.textures), *(decode_textures(res.sets[ts.folder]) for ts in layout.sets[1:])]
+                baked = render_texture_sets(
+                    eval_cache, res.atlas.uv, sets, layout.face_set, res.frames, light, device, field.specular_lobe, field.brdf
+                )
             preds = [linear_to_srgb(b) for b in baked]
             refs = [linear_to_srgb(r) for r in radiance_at_hits(field, store)]
             bake_psnr = psnr(torch.cat(preds), torch.cat(refs))

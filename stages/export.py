@@ -19,7 +19,7 @@ from pathlib import Path
 from PIL import Image
 
 from .assets.formats import read_atlas, write_model_files
-from .assets.layouts import kept_source
+from .assets.layouts import kept_source, slot_folders
 from .assets.ownformat import asset_geometry, write_document_glb, write_obj
 from .config.layout import TEXTURE_FILES
 from .config.records import ExportRecord
@@ -27,7 +27,7 @@ from .config.sections import ExportSettings
 from .core.cli import stage_main
 from .core.errors import StageInputError
 from .core.provenance import ORIGIN_KEY, Timer, atomic_path, metadata, read_origin, staged_outputs, write_json_atomic
-from .core.safefiles import read_json_record
+from .core.safefiles import read_json_record, require_plain_file
 from .geometry.meshio import load_ply
 from .geometry.normalization import Similarity
 
@@ -60,15 +60,16 @@ def run(
     bake_stats = read_json_record(bake_dir / "meta.json").get("stats", {})
     brdf = bake_stats.get("brdf", "tango")
     occlusion = bool(bake_stats.get("occlusion", {}).get("baked", False))
-    asset = asset_geometry(mesh, atlas, tf, settings, kept_source(bake_stats, atlas, source, bake_dir))
-    geom, kept = asset.geom, asset.kept
+    kept = kept_source(bake_stats, atlas, source, bake_dir)
+    folders = () if kept is None else slot_folders(bake_stats, kept.slot_names)
+    asset = asset_geometry(mesh, atlas, tf, settings, kept, folders)
+    geom = asset.geom
     extra_files: list[str] = []
     with staged_outputs(out_dir) as staging:
         with timer("copy"):
-            for rel in TEXTURE_FILES.values():
-                (staging / "textures").mkdir(exist_ok=True)
+            for rel in geom.texture_files():  # every texture set (a kept layout may have one per slot)
                 with atomic_path(staging / rel) as tmp:
-                    shutil.copyfile(bake_dir / rel, tmp)
+                    shutil.copyfile(require_plain_file(bake_dir / rel, remedy="Rerun the bake stage."), tmp)
             for fname in ("light.exr", "light.hdr"):
                 with atomic_path(staging / fname) as tmp:
                     shutil.copyfile(bake_dir / fname, tmp)
@@ -78,11 +79,11 @@ def run(
         if kept is not None and kept.kind == "gltf":
 
             def glb_writer(path):
-                write_document_glb(path, kept, staging / "textures", origin, brdf, occlusion)
+                write_document_glb(path, kept, staging / "textures", origin, brdf, occlusion, folders)
 
         if kept is not None and kept.kind == "obj":
             with timer("obj"):
-                extra_files = write_obj(staging, kept, None if settings.units == "original" else tf, brdf)
+                extra_files = write_obj(staging, geom, kept, None if settings.units == "original" else tf, brdf)
         checked = write_model_files(
             staging, geom, asset.meters_per_unit, settings.usdz_root, name, origin, timer, brdf, occlusion, glb_writer
         )

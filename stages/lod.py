@@ -74,6 +74,14 @@ def _source(files: CellFiles, bake: BakeSettings, export: ExportSettings, name: 
     """What every level is made from, read from the cell's files."""
     mesh = load_ply(files.mesh)
     bake_meta = read_json_record(files.bake_dir / "meta.json")
+    sets = bake_meta["stats"].get("uv", {}).get("texture_sets", [])
+    if len(sets) > 1:  # lod0 is one material on the traced mesh; one texture set per slot has no place there
+        raise StageInputError(
+            files.bake_dir / "meta.json",
+            f"the bake kept the input's UV layout with {len(sets)} texture sets (one per material slot), "
+            "and levels of detail hold one material",
+            "Set bake.uv: atlas for cells with lod.enabled, or turn lod off for this mesh.",
+        )
     # the levels' occlusion maps: where the bake wrote one, from the same samples of the fine surface
     occlusion = occlusion_samples(mesh, bake_meta["stats"].get("occlusion", {"baked": False}), bake)
     return LodSource(

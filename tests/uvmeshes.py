@@ -150,3 +150,51 @@ def write_obj(path: Path, name: str = "vase", materials: tuple[str, ...] = ("Gla
             lines.append("f " + " ".join(f"{wv[i] + 1}/{i + 1}/{i + 1}" for i in f))
     Path(path).write_text("\n".join(lines) + "\n")
     return {"positions": pos, "uv": uv, "faces": faces, "welded": wpos}
+
+
+def multi_glb(path: Path) -> dict:
+    """A GLB of two meshes with their xatlas layouts under two nodes: the vase (material
+    ``Glaze``, rotated, scaled and moved by its node's TRS, with a second primitive that draws
+    lines and is not surface) and the knot (no material, moved by a matrix). Returns the nodes'
+    world matrices and the meshes' ``(positions, uv, faces)``."""
+    import pygltflib as g
+    from scipy.spatial.transform import Rotation
+
+    b = _Blob(g)
+    meshes, parts = [], []
+    for name in ("vase", "knot"):
+        pos, uv, faces = unwrapped(name)
+        attrs = g.Attributes(
+            POSITION=b.add(pos.astype(np.float32), g.VEC3, g.FLOAT, g.ARRAY_BUFFER, True),
+            NORMAL=b.add(smooth_normals(pos, faces).astype(np.float32), g.VEC3, g.FLOAT, g.ARRAY_BUFFER),
+            TEXCOORD_0=b.add(uv.astype(np.float32), g.VEC2, g.FLOAT, g.ARRAY_BUFFER),
+        )
+        idx = b.add(faces.reshape(-1).astype(np.uint16), g.SCALAR, g.UNSIGNED_SHORT, g.ELEMENT_ARRAY_BUFFER)
+        prims = [g.Primitive(attributes=attrs, indices=idx, material=0 if name == "vase" else None)]
+        if name == "vase":
+            lines = b.add(faces[:8, :2].reshape(-1).astype(np.uint16), g.SCALAR, g.UNSIGNED_SHORT, g.ELEMENT_ARRAY_BUFFER)
+            prims.append(g.Primitive(attributes=g.Attributes(POSITION=attrs.POSITION), indices=lines, mode=g.LINES))
+        meshes.append(g.Mesh(name=name, primitives=prims))
+        parts.append((pos, uv, faces))
+    quat = Rotation.from_euler("xyz", [0.2, 0.7, -0.4]).as_quat()
+    vase_node = g.Node(name="VaseNode", mesh=0, translation=[0.5, 0.0, -0.3], rotation=list(quat), scale=[1.5, 1.5, 1.5])
+    knot_matrix = np.eye(4)
+    knot_matrix[:3, 3] = [2.5, 0.2, 0.0]
+    knot_node = g.Node(name="KnotNode", mesh=1, matrix=list(knot_matrix.T.reshape(-1)))
+    doc = g.GLTF2(
+        asset=g.Asset(version="2.0", generator="tango-stylize tests"),
+        scene=0,
+        scenes=[g.Scene(nodes=[0, 1])],
+        nodes=[vase_node, knot_node],
+        meshes=meshes,
+        materials=[g.Material(name="Glaze", doubleSided=False)],
+        accessors=b.accessors,
+        bufferViews=b.views,
+        buffers=[g.Buffer(byteLength=len(b.data))],
+    )
+    doc.set_binary_blob(bytes(b.data))
+    doc.save_binary(str(path))
+    world = np.eye(4)
+    world[:3, :3] = Rotation.from_quat(quat).as_matrix() * 1.5
+    world[:3, 3] = [0.5, 0.0, -0.3]
+    return {"parts": parts, "worlds": [world, knot_matrix]}

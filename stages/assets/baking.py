@@ -25,6 +25,7 @@ predicted normal (+X right, +Y up: OpenGL/glTF/USD convention), written as ``(c 
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -49,11 +50,17 @@ from .layouts import KeptLayout
 
 @dataclass
 class BakeResult:
+    """A bake: its ``atlas`` (UVs per face), the ``textures`` (uint8 ``(S, S, 3)`` images as
+    written; a kept layout's first texture set), the frame, the share of texels covered, the
+    light's image and a kept layout's further texture ``sets`` (folder below ``textures/`` ->
+    images, one per further material slot)."""
+
     atlas: Atlas
-    textures: dict[str, np.ndarray]  # uint8 (S, S, 3) images as written
+    textures: dict[str, np.ndarray]
     frames: CornerFrames
     coverage: float
     light_equirect: np.ndarray
+    sets: dict[str, dict[str, np.ndarray]] = dataclasses.field(default_factory=dict)
 
 
 @dataclass
@@ -76,15 +83,18 @@ def atlas_texels(mesh: TriMesh, size: int, padding: int, max_chart_share: float 
     return locate_texels(mesh, atlas, face, bary)
 
 
-def kept_texels(mesh: TriMesh, uv: np.ndarray, size: int, islands: int) -> AtlasTexels:
+def kept_texels(mesh: TriMesh, uv: np.ndarray, size: int, islands: int, faces: np.ndarray | None = None) -> AtlasTexels:
     """Locate every covered texel centre of the input's own layout ``uv (F, 3, 2)`` (per face of
-    ``mesh``; every face in one tile, :func:`~stages.geometry.uvlayout.face_tiles`) on a
-    ``size``-texel texture that repeats: each face is moved into the unit tile and its parts past an
-    edge wrap round (:func:`~stages.geometry.uvlayout.wrapped_copies`); where faces are stacked,
-    the texel takes one of them."""
-    tris, owner = wrapped_copies(uv - face_tiles(uv)[:, None, :])
+    ``mesh``; every face in one tile, :func:`~stages.geometry.uvlayout.face_tiles`), or of the
+    ``faces (F,) bool`` that share one texture set, on a ``size``-texel texture that repeats: each
+    face is moved into the unit tile and its parts past an edge wrap round
+    (:func:`~stages.geometry.uvlayout.wrapped_copies`); where faces are stacked, the texel takes
+    one of them."""
+    chosen = np.arange(len(uv)) if faces is None else np.flatnonzero(faces)
+    sub = uv[chosen]
+    tris, owner = wrapped_copies(sub - face_tiles(sub)[:, None, :])
     face, bary = rasterize_atlas(tris, size)
-    face = np.where(face >= 0, owner[np.maximum(face, 0)], -1)
+    face = np.where(face >= 0, chosen[owner[np.maximum(face, 0)]], -1)
     filled = face >= 0
     atlas = Atlas(uv.astype(np.float64), size, islands, float(filled.mean()))
     return locate_texels(mesh, atlas, face, bary)
@@ -210,25 +220,49 @@ def bake_field(
     occlusion: OcclusionSamples | None = None,
     layout: KeptLayout | None = None,
 ) -> BakeResult:
-    """Unwrap ``mesh`` (or take the input's own ``layout``), rasterise the atlas and evaluate
-    ``field`` at every covered texel (and the ambient ``occlusion`` there, when given)."""
+    """Unwrap ``mesh`` (or take the input's own ``layout``, one bake per texture set), rasterise
+    the atlas and evaluate ``field`` at every covered texel (and the ambient ``occlusion`` there,
+    when given)."""
     size = settings.size_for(len(mesh.faces))
+    env = light_image(field, settings.light_width, device)
     if layout is None:
         texels = atlas_texels(mesh, size, settings.padding, settings.max_chart_share)
         frames = CornerFrames.build(mesh.vertices, mesh.faces, texels.atlas.uv, field.normals)
-    else:
-        texels = kept_texels(mesh, layout.uv, size, layout.check.islands)
-        frames = layout.frames(mesh)
+        textures = bake_texels(mesh, field, texels, frames, settings, device, occlusion, False)
+        return BakeResult(texels.atlas, textures, frames, float(texels.filled.mean()), env)
+    frames = layout.frames(mesh)
+    face_set = layout.face_set
+    baked, coverage = {}, []
+    for k, ts in enumerate(layout.sets):
+        texels = kept_texels(mesh, layout.uv, size, layout.check.islands, face_set == k)
+        baked[ts.folder] = bake_texels(mesh, field, texels, frames, settings, device, occlusion, True)
+        coverage.append(float(texels.filled.mean()))
+    first = baked.pop("")
+    atlas = Atlas(layout.uv.astype(np.float64), size, layout.check.islands, float(np.mean(coverage)))
+    return BakeResult(atlas, first, frames, float(np.mean(coverage)), env, baked)
+
+
+def bake_texels(
+    mesh: TriMesh,
+    field,
+    texels: AtlasTexels,
+    frames: CornerFrames,
+    settings: BakeSettings,
+    device="cpu",
+    occlusion: OcclusionSamples | None = None,
+    own_frame: bool = False,
+) -> dict[str, np.ndarray]:
+    """The texture images of ``texels``: the field's material and normal there, written in
+    ``frames``. ``own_frame``: the frame's normals are the input's (a kept layout), so the field
+    reads the shading normals it was trained with instead."""
     t, b, n = frames.at(texels.face, texels.bary)
-    if layout is None:  # the frame's normals are the field's own
-        normals = n / np.linalg.norm(n, axis=1, keepdims=True)
-    else:  # the input's normals hold the frame; the field reads the normals it was trained with
+    if own_frame:
         normals = shading_normals(mesh, field.normals, texels.face, texels.bary)
+    else:  # the frame's normals are the field's own
+        normals = n / np.linalg.norm(n, axis=1, keepdims=True)
     surface = evaluate_surface(field, texels.points, normals, device)
     ao = None if occlusion is None else occlusion.at(texels.points, mesh.face_normals[texels.face])
-    textures = texture_images(texels, surface, to_tangent_space(surface["normal"], t, b, n), settings.dilation, ao)
-    env = light_image(field, settings.light_width, device)
-    return BakeResult(texels.atlas, textures, frames, float(texels.filled.mean()), env)
+    return texture_images(texels, surface, to_tangent_space(surface["normal"], t, b, n), settings.dilation, ao)
 
 
 def texel_density(result: BakeResult, mesh: TriMesh) -> float:
@@ -418,6 +452,31 @@ def render_baked_views(
         )
         for i in range(len(cache))
     ]
+
+
+def render_texture_sets(
+    cache,
+    uv_faces,
+    sets: list[dict],
+    face_set: np.ndarray,
+    frames: CornerFrames,
+    light,
+    device="cpu",
+    lobe="isotropic",
+    brdf="tango",
+) -> list:
+    """:func:`render_baked_views` of a kept layout (repeating textures) with one decoded texture
+    set per group of faces: each hit reads the set of its face (``face_set (F,)``, index into
+    ``sets``)."""
+    per = [render_baked_views(cache, uv_faces, tex, frames, light, device, lobe, brdf, True) for tex in sets]
+    out = []
+    for i, rgb in enumerate(per[0]):
+        rgb = rgb.clone()
+        pick = torch.from_numpy(face_set[cache.view(i).face]).to(rgb.device)
+        for k in range(1, len(sets)):
+            rgb[pick == k] = per[k][i][pick == k]
+        out.append(rgb)
+    return out
 
 
 class BakedHits:

@@ -38,6 +38,7 @@ bake's ``specular.png`` (its F0, a preview) is then not referenced by either.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import logging
@@ -70,8 +71,8 @@ class ExportMesh:
 
     The input's own topology (a kept UV layout, :mod:`stages.assets.layouts`) comes with
     ``tangents`` None (viewers compute MikkTSpace, the frame the bake used), its material
-    ``slots (F,)`` (index into ``slot_names``; each slot its own material, all reading the one
-    texture set) and ``repeat`` (textures repeat past the unit square, glTF's default sampler,
+    ``slots (F,)`` (index into ``slot_names``; each slot its own material, reading the texture set
+    in its ``slot_textures`` folder) and ``repeat`` (textures repeat past the unit square, glTF's default sampler,
     rather than clamp at its edges)."""
 
     positions: np.ndarray
@@ -82,6 +83,8 @@ class ExportMesh:
     slots: np.ndarray | None = None
     slot_names: tuple[str, ...] = ()
     repeat: bool = False
+    #: per slot, the folder of its texture set below the textures' folder ("": that folder itself)
+    slot_textures: tuple[str, ...] = ()
 
     def corners(self) -> ExportMesh:
         """The same mesh with every face corner its own vertex (what importers report per loop)."""
@@ -102,9 +105,7 @@ class ExportMesh:
         """The same mesh with its faces in ``order`` (the order a file with one primitive per slot
         holds them: :meth:`glb_face_order`)."""
         slots = None if self.slots is None else self.slots[order]
-        return ExportMesh(
-            self.positions, self.normals, self.uv, self.tangents, self.indices[order], slots, self.slot_names, self.repeat
-        )
+        return dataclasses.replace(self, indices=self.indices[order], slots=slots)
 
     def glb_face_order(self) -> np.ndarray:
         """The faces in the order :func:`write_glb` writes them: slot after slot."""
@@ -115,6 +116,17 @@ class ExportMesh:
         if self.slots is None or len(self.slot_names) <= 1:
             return [(self.slot_names[0] if self.slot_names else "", np.arange(len(self.indices)))]
         return [(name, np.flatnonzero(self.slots == k)) for k, name in enumerate(self.slot_names) if (self.slots == k).any()]
+
+    def texture_folder(self, name: str) -> str:
+        """The folder (below the textures' folder) of the texture set of slot ``name``."""
+        if name in self.slot_names and self.slot_textures:
+            return self.slot_textures[self.slot_names.index(name)]
+        return ""
+
+    def texture_files(self) -> list[str]:
+        """Every texture set's files, relative to the asset's folder (``textures/...``)."""
+        folders = sorted(set(self.slot_textures) | {""})
+        return [str(Path("textures", f, Path(rel).name)) for f in folders for rel in TEXTURE_FILES.values()]
 
 
 #: arrays of the bake's ``atlas.npz``: ``uv (F, 3, 2)`` and the frame (:meth:`CornerFrames.arrays`)
@@ -272,7 +284,9 @@ def _usd_model(stage, geom: ExportMesh, textures: str, brdf: str = "tango", occl
         while prim_name in taken:  # two names that make the same identifier
             prim_name += "_"
         taken.add(prim_name)
-        mat = _usd_material(stage, f"/Asset/Looks/{prim_name}", textures, brdf, occlusion, geom.repeat)
+        folder = geom.texture_folder(name)
+        looks = f"{textures}/{folder}" if folder else textures
+        mat = _usd_material(stage, f"/Asset/Looks/{prim_name}", looks, brdf, occlusion, geom.repeat)
         if name and prim_name != name:
             mat.GetPrim().SetDisplayName(name)
         if len(slots) == 1:
@@ -435,7 +449,7 @@ def write_model_files(
         with atomic_path(folder / "model.usda") as tmp:
             tmp.unlink()
             write_usd(tmp, geom, meters_per_unit, "light.exr", origin, brdf=brdf, occlusion=occlusion)
-        package_usdz(folder / "model.usda", folder / "model.usdz", [*TEXTURE_FILES.values(), "light.exr"], usdz_root)
+        package_usdz(folder / "model.usda", folder / "model.usdz", [*geom.texture_files(), "light.exr"], usdz_root)
     with part("gltf"):
         if glb_writer is not None:
             glb_writer(folder / "model.glb")
@@ -533,12 +547,15 @@ def write_glb(
     for k, (level, tex_dir) in enumerate([(geom, textures_dir), *lods]):
         tag = "" if not lods else f"lod{k}"
         attrs, parts = buffer.geometry(level, meters_per_unit)
-        first = buffer.texture_set(tex_dir, brdf, tag)
+        firsts: dict[str, int] = {}
         primitives = []
         for slot, indices in parts:
+            folder = level.texture_folder(slot)
+            if folder not in firsts:  # one texture set per folder, shared by the slots that read it
+                firsts[folder] = buffer.texture_set(Path(tex_dir) / folder, brdf, tag)
             primitives.append(g.Primitive(attributes=attrs, indices=indices, material=len(materials)))
             material = slot or (f"TangoMaterial_{tag}" if tag else "TangoMaterial")
-            materials.append(glb_material(g, material, first, brdf, occlusion))
+            materials.append(glb_material(g, material, firsts[folder], brdf, occlusion))
         label = f"{name}_{tag}" if tag else name
         meshes.append(g.Mesh(name=label, primitives=primitives))
         nodes.append(g.Node(mesh=k, name=label))

@@ -8,13 +8,18 @@ atlas, with the reason logged and recorded; ``atlas`` always unwraps. Usable is 
 UV tile. The layout must also be the traced mesh's: an input format that holds one (OBJ, glTF),
 and the traced faces the input's own (a decimated mesh's are not; its asset is unwrapped anew).
 
-A mesh with several material slots keeps them: all slots share the one texture set, which is
-sound because the overlap check covers every face, across slots too; the record lists the slots.
+A mesh with several material slots keeps them, each its own material named after the input's.
+Where no two slots' islands overlap (the overlap check over every face, across slots, passes), all
+slots share one texture set; where they overlap each other (each material with its own 0-1 space,
+common in real assets) but each slot's own layout is usable, every slot gets its own texture set,
+in ``textures/<slot>/`` (the first in ``textures/``). The record lists the slots, the sets and why.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -47,6 +52,28 @@ class InputMesh:
 
 
 @dataclass(frozen=True)
+class TextureSet:
+    """One set of baked textures: the input material ``slots`` (indices) it serves and its
+    ``folder`` below ``textures/`` (``""``: ``textures/`` itself)."""
+
+    folder: str
+    slots: tuple[int, ...]
+
+
+def set_folders(names: tuple[str, ...]) -> list[str]:
+    """Folders for one texture set per slot ``names``: the first ``""`` (``textures/`` itself), the
+    others the names made file-safe (letters, digits, ``_ . -``) and unique."""
+    out, taken = [""], {""}
+    for k, name in enumerate(names[1:], 1):
+        safe = re.sub(r"[^A-Za-z0-9_.-]+", "_", name).strip("._") or f"slot{k}"
+        while safe in taken:
+            safe += "_"
+        taken.add(safe)
+        out.append(safe)
+    return out
+
+
+@dataclass(frozen=True)
 class KeptLayout:
     """The input's own layout on the traced mesh: the ``source`` surface, ``source_face (F,)`` (the
     input triangle each traced face is), ``uv (F, 3, 2)`` per traced face, the corner normals and
@@ -58,6 +85,16 @@ class KeptLayout:
     normals: np.ndarray
     tangents: np.ndarray | None
     check: LayoutCheck
+    sets: tuple[TextureSet, ...] = (TextureSet("", ()),)
+
+    @property
+    def face_set(self) -> np.ndarray:
+        """``(F,)``: the texture set of each traced face."""
+        slot = self.source.slot[self.source_face]
+        out = np.zeros(len(slot), np.int64)
+        for k, ts in enumerate(self.sets):
+            out[np.isin(slot, ts.slots)] = k
+        return out
 
     def frames(self, mesh: TriMesh) -> CornerFrames:
         """The normal-map frame a viewer rebuilds from the input's own data: its normals and its
@@ -73,21 +110,25 @@ class KeptLayout:
 
 @dataclass(frozen=True)
 class UvChoice:
-    """The layout a bake used: ``kept`` (the input's) or not, ``why``, and what was measured."""
+    """The layout a bake used: ``kept`` (the input's) or not, ``why``, what was measured, the
+    input's material ``slots`` and the texture ``sets`` they use (and why so many)."""
 
     setting: str
     kept: bool
     why: str
     check: LayoutCheck | None = None
     slots: tuple[str, ...] = ()
+    sets: tuple[TextureSet, ...] = ()
+    sets_why: str = ""
 
     def record(self) -> dict:
         out = {"setting": self.setting, "layout": "kept" if self.kept else "atlas", "why": self.why}
         if self.check is not None:
             out["check"] = self.check.to_json()
-        if self.slots:
+        if self.kept:
             out["slots"] = list(self.slots)
-            out["texture_sets"] = "one set shared by every slot (no two slots overlap in UV space)"
+            out["texture_sets"] = [{"folder": ts.folder, "slots": [self.slots[i] for i in ts.slots]} for ts in self.sets]
+            out["texture_sets_why"] = self.sets_why
         return out
 
 
@@ -105,14 +146,41 @@ def choose_layout(
     found = _read_layout(source, transform, mesh, size)
     if isinstance(found, str):
         return _refuse(setting, source, found), None
-    layout, slots = found
-    problems = layout.check.problems(max_overlap)
+    c = found.check
+    sets, sets_why, problems = _texture_sets(found, size, max_overlap)
     if problems:
-        return _refuse(setting, source, "; ".join(problems), layout.check), None
-    c = layout.check
+        return _refuse(setting, source, "; ".join(problems), c), None
+    layout = dataclasses.replace(found, sets=sets)
     stacked = f", {c.stacked:,} faces stacked copies baked once" if c.stacked else ""
-    why = f"usable: {c.islands:,} islands, {c.overlapping:,} of {c.faces:,} faces overlapping{stacked}"
-    return UvChoice(setting, True, why, layout.check, slots), layout
+    why = f"usable: {c.islands:,} islands{stacked}; {sets_why}"
+    return UvChoice(setting, True, why, c, found.source.slot_names, sets, sets_why), layout
+
+
+def _texture_sets(layout: KeptLayout, size: int, max_overlap: float):
+    """``(sets, why, problems)``: one set for every slot where the whole layout is usable; else,
+    for several slots each usable alone, one set per slot; else the whole layout's problems."""
+    src = layout.source
+    slots = tuple(range(len(src.slot_names)))
+    problems = layout.check.problems(max_overlap)
+    if not problems:
+        shared = f"{layout.check.overlapping:,} of {layout.check.faces:,} faces overlapping"
+        why = f"{shared}; one texture set shared by every slot" if len(slots) > 1 else f"{shared}; one material"
+        return (TextureSet("", slots),), why, []
+    if len(slots) == 1:
+        return (), "", problems
+    alone = []
+    for k in slots:
+        mine = src.slot == k
+        check = check_layout(src.positions, src.triangles[mine], src.corner_uv[mine], size)
+        alone += [f"slot {src.slot_names[k]!r}: {p}" for p in check.problems(max_overlap)]
+    if alone:
+        return (), "", alone
+    sets = tuple(TextureSet(folder, (k,)) for k, folder in zip(slots, set_folders(src.slot_names), strict=True))
+    why = (
+        f"one texture set per slot: the slots overlap each other in UV space ({layout.check.overlapping:,} faces), "
+        "each alone does not"
+    )
+    return sets, why, []
 
 
 def _refuse(setting: str, source: str | None, why: str, check: LayoutCheck | None = None) -> UvChoice:
@@ -125,7 +193,7 @@ def _refuse(setting: str, source: str | None, why: str, check: LayoutCheck | Non
 
 
 def _read_layout(source: str | None, transform: Similarity | None, mesh: TriMesh, size: int):
-    """``(KeptLayout, slot names)``, or a string saying why the input has no layout to keep."""
+    """The input's :class:`KeptLayout` (one texture set), or a string saying why it has none to keep."""
     if source is None or transform is None:
         return "no input file was given to read a layout from"
     if source.startswith(BUILTIN_PREFIX):
@@ -150,8 +218,14 @@ def _read_layout(source: str | None, transform: Similarity | None, mesh: TriMesh
     if src.tangents is not None:
         t = src.tangents[tri]
         tangents = np.concatenate([t[..., :3] @ transform.rotation.T, t[..., 3:]], axis=-1)
-    layout = KeptLayout(src, order, src.uv[tri], normals, tangents, check)
-    return layout, src.slot_names
+    return KeptLayout(src, order, src.uv[tri], normals, tangents, check)
+
+
+def slot_folders(bake_stats: dict, names: tuple[str, ...]) -> tuple[str, ...]:
+    """Per input material slot ``names``, the folder of its texture set below ``textures/`` as the
+    bake recorded it (``uv.texture_sets``; ``""`` for ``textures/`` itself)."""
+    folder = {name: ts["folder"] for ts in bake_stats.get("uv", {}).get("texture_sets", []) for name in ts["slots"]}
+    return tuple(folder.get(name, "") for name in names)
 
 
 def kept_source(bake_stats: dict, atlas: dict, source: str | None, bake_dir: Path) -> SourceMesh | None:

@@ -39,7 +39,7 @@ log = logging.getLogger(__name__)
 OBJ_CHANNELS = {"roughness": 1, "metallic": 2}
 
 
-def kept_geometry(source: SourceMesh, transform: Similarity | None = None) -> ExportMesh:
+def kept_geometry(source: SourceMesh, transform: Similarity | None = None, folders: tuple[str, ...] = ()) -> ExportMesh:
     """The input's vertices (:mod:`stages.geometry.sourcemesh`: a glTF primitive's own, an OBJ's
     distinct corners in first-use order) and triangles in file order, its UVs and normals (its
     own; where it has none, smooth vertex normals) and material slots, in its own units and
@@ -59,6 +59,7 @@ def kept_geometry(source: SourceMesh, transform: Similarity | None = None) -> Ex
         source.slot,
         source.slot_names,
         repeat=True,
+        slot_textures=folders,
     )
 
 
@@ -89,20 +90,23 @@ class AssetGeometry:
     own_frame: bool
 
 
-def asset_geometry(mesh, atlas: dict, transform: Similarity, settings, kept: SourceMesh | None) -> AssetGeometry:
+def asset_geometry(
+    mesh, atlas: dict, transform: Similarity, settings, kept: SourceMesh | None, folders: tuple[str, ...] = ()
+) -> AssetGeometry:
     """The geometry the export writes (and the round trip checks) for the traced ``mesh`` and the
     bake's ``atlas`` arrays, with the export ``settings`` (units, weld, metres per unit): the
     traced mesh welded (:func:`~stages.assets.formats.export_mesh`), or the input's own topology
-    where the bake kept its layout (:func:`kept_geometry`). A glTF input's document keeps its own
-    units (metres, by the specification) and position: ``units`` and ``meters_per_unit`` do not
-    apply to it."""
+    where the bake kept its layout (:func:`kept_geometry`; ``folders``: each slot's texture set).
+    A glTF input's document keeps its own units (metres, by the specification) and position:
+    ``units`` and ``meters_per_unit`` do not apply to it."""
     original = settings.units == "original"
     if kept is None:
         geom = export_mesh(mesh, atlas, transform if original else None, settings.weld)
         return AssetGeometry(geom, None, settings.meters_per_unit, False)
     if kept.kind == "gltf":
-        return AssetGeometry(kept_geometry(kept), kept, 1.0, True)
-    return AssetGeometry(kept_geometry(kept, None if original else transform), kept, settings.meters_per_unit, original)
+        return AssetGeometry(kept_geometry(kept, None, folders), kept, 1.0, True)
+    geom = kept_geometry(kept, None if original else transform, folders)
+    return AssetGeometry(geom, kept, settings.meters_per_unit, original)
 
 
 def kept_corner_tangents(atlas: dict, transform: Similarity | None = None) -> np.ndarray:
@@ -119,20 +123,25 @@ def kept_corner_tangents(atlas: dict, transform: Similarity | None = None) -> np
 
 
 # ------------------------------------------------------------------------------------------ OBJ
-def write_obj(folder: Path, source: SourceMesh, transform: Similarity | None, brdf: str) -> list[str]:
+def write_obj(folder: Path, geom: ExportMesh, source: SourceMesh, transform: Similarity | None, brdf: str) -> list[str]:
     """``model.obj`` and ``model.mtl`` in ``folder`` (which holds ``textures/``), and the grey
-    channel images the MTL reads (module docstring); returns the files written (relative)."""
+    channel images the MTL reads (module docstring), for ``geom`` (:func:`kept_geometry` of
+    ``source``: its slots and texture sets); returns the files written (relative)."""
     folder = Path(folder)
-    for key, channel in OBJ_CHANNELS.items():
-        with Image.open(folder / "textures" / "metallic_roughness.png") as img:
-            grey = np.asarray(img.convert("RGB"))[..., channel]
-        with atomic_path(folder / "textures" / f"{key}.png") as tmp:
-            Image.fromarray(grey).save(tmp, format="PNG")
+    written = ["model.obj", "model.mtl"]
+    for sub in sorted(set(geom.slot_textures) | {""}):
+        textures = folder / "textures" / sub
+        for key, channel in OBJ_CHANNELS.items():
+            with Image.open(textures / "metallic_roughness.png") as img:
+                grey = np.asarray(img.convert("RGB"))[..., channel]
+            with atomic_path(textures / f"{key}.png") as tmp:
+                Image.fromarray(grey).save(tmp, format="PNG")
+            written.append(str(Path("textures", sub, f"{key}.png")))
     with atomic_path(folder / "model.obj") as tmp:
         tmp.write_text("\n".join(obj_lines(source, transform)) + "\n", encoding="utf-8")
     with atomic_path(folder / "model.mtl") as tmp:
-        tmp.write_text(mtl_text(source.slot_names, brdf), encoding="utf-8")
-    return ["model.obj", "model.mtl", *(f"textures/{k}.png" for k in OBJ_CHANNELS)]
+        tmp.write_text(mtl_text(source.slot_names, [geom.texture_folder(n) for n in source.slot_names], brdf), encoding="utf-8")
+    return written
 
 
 def obj_lines(source: SourceMesh, transform: Similarity | None) -> list[str]:
@@ -157,25 +166,29 @@ def obj_lines(source: SourceMesh, transform: Similarity | None) -> list[str]:
     return out
 
 
-def mtl_text(names: tuple[str, ...], brdf: str) -> str:
-    """One material per name reading the texture set: base colour, roughness, normal map, and
-    TANGO's specular colour or glTF's metallic."""
+def mtl_text(names: tuple[str, ...], folders: list[str], brdf: str) -> str:
+    """One material per name reading its texture set (in ``textures/<folder>``): base colour,
+    roughness, normal map, and TANGO's specular colour or glTF's metallic."""
     blocks = []
-    for name in names:
-        lines = [f"newmtl {name}", "Kd 1 1 1", "Pr 1", "map_Kd textures/basecolor.png", "map_Pr textures/roughness.png"]
+    for name, sub in zip(names, folders, strict=True):
+        t = "/".join(p for p in ("textures", sub) if p)
+        lines = [f"newmtl {name}", "Kd 1 1 1", "Pr 1", f"map_Kd {t}/basecolor.png", f"map_Pr {t}/roughness.png"]
         if brdf == "gltf":
-            lines += ["Pm 1", "Ks 0 0 0", "map_Pm textures/metallic.png"]
+            lines += ["Pm 1", "Ks 0 0 0", f"map_Pm {t}/metallic.png"]
         else:
-            lines += ["Pm 0", "Ks 1 1 1", "map_Ks textures/specular.png"]
-        lines += ["map_Bump -bm 1 textures/normal.png", "norm textures/normal.png"]
+            lines += ["Pm 0", "Ks 1 1 1", f"map_Ks {t}/specular.png"]
+        lines += [f"map_Bump -bm 1 {t}/normal.png", f"norm {t}/normal.png"]
         blocks.append("\n".join(lines))
-    return "# tango-stylize: the baked texture set, one material per input material\n" + "\n\n".join(blocks) + "\n"
+    return "# tango-stylize: the baked texture sets, one material per input material\n" + "\n\n".join(blocks) + "\n"
 
 
 # ----------------------------------------------------------------------------------------- glTF
-def write_document_glb(path: Path, source: SourceMesh, textures_dir: Path, origin: dict, brdf: str, occlusion: bool) -> None:
+def write_document_glb(
+    path: Path, source: SourceMesh, textures_dir: Path, origin: dict, brdf: str, occlusion: bool, folders: tuple[str, ...] = ()
+) -> None:
     """``model.glb``: the input glTF document with its textured primitives' materials replaced by
-    the baked texture set's (module docstring)."""
+    ones reading the baked texture sets (module docstring; ``folders``: each slot's set below
+    ``textures_dir``)."""
     import pygltflib as g
 
     doc, blobs = load_gltf_document(source.path)
@@ -183,14 +196,17 @@ def write_document_glb(path: Path, source: SourceMesh, textures_dir: Path, origi
     _merge_buffers(doc, blobs, buffer)
     buffer.images, buffer.textures = list(doc.images or []), list(doc.textures or [])
     doc.samplers = [*(doc.samplers or []), glb_sampler(g, True)]
-    first = buffer.texture_set(textures_dir, brdf, sampler=len(doc.samplers) - 1)
+    firsts: dict[str, int] = {}
     doc.materials = list(doc.materials or [])
     replaced: dict[int | None, int] = {}
-    for part in source.parts:
+    for k, part in enumerate(source.parts):
         old = part["material"]
         if old not in replaced:
-            name = "default" if old is None else (doc.materials[old].name or f"material_{old}")
-            new = glb_material(g, name, first, brdf, occlusion)
+            name = source.slot_names[source.slot[source.part == k][0]]
+            sub = folders[source.slot_names.index(name)] if folders else ""
+            if sub not in firsts:
+                firsts[sub] = buffer.texture_set(Path(textures_dir) / sub, brdf, sampler=len(doc.samplers) - 1)
+            new = glb_material(g, name, firsts[sub], brdf, occlusion)
             if old is None:
                 doc.materials.append(new)
                 replaced[old] = len(doc.materials) - 1

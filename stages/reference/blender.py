@@ -232,28 +232,45 @@ def check_import(
     channel, which Blender's glTF importer keeps in its "glTF Material Output" group: pass it for
     a glTF asset only, as Blender's USD importer does not read UsdPreviewSurface's ``occlusion``).
     ``tangents (3F, 4)``: the baked frame's tangents per corner, where the geometry holds none
-    per vertex (a kept layout's topology)."""
+    per vertex (a kept layout's topology).
+
+    An asset of several mesh objects (a kept glTF document with several mesh nodes) is checked for
+    its total faces and corners and its wiring; its corners, which Blender orders object by object,
+    are compared by the round trip's own-format check instead (the input's import against the
+    output's: :func:`~stages.reference.roundtrip_job.own_format_check`)."""
     report, c = result.report, result.corners
     geom = geom.corners()
     meshes = [o for o in report.get("objects", []) if o["type"] == "MESH" and not o.get("bone_shape")]
-    problems = []
     out: dict = {"blender": report.get("blender"), "mesh_objects": len(meshes)}
-    if len(meshes) != 1 or not c:
-        return {**out, "problems": [f"expected one mesh object, found {len(meshes)}"]}
     n = len(geom.positions)
-    out.update(faces=meshes[0]["faces"], corners=meshes[0]["corners"], uv_maps=meshes[0]["uv_maps"])
-    if meshes[0]["corners"] != n or meshes[0]["faces"] != n // 3 or not np.all(c["face_sizes"] == 3):
-        problems.append(f"{meshes[0]['faces']} faces / {meshes[0]['corners']} corners arrived, {n // 3} / {n} exported")
-        return {**out, "problems": problems}
+    faces, corners = sum(m["faces"] for m in meshes), sum(m["corners"] for m in meshes)
+    out.update(faces=faces, corners=corners, uv_maps=sorted({u for m in meshes for u in m["uv_maps"]}))
+    if not meshes or not c:
+        return {**out, "problems": [f"expected one mesh object, found {len(meshes)}"]}
+    if corners != n or faces != n // 3:
+        return {**out, "problems": [f"{faces} faces / {corners} corners arrived, {n // 3} / {n} exported"]}
+    if len(meshes) == 1:
+        out["bbox_min"], out["bbox_max"] = meshes[0]["bbox_min"], meshes[0]["bbox_max"]
+        problems = _corner_checks(out, c, geom, meters_per_unit, tangents)
+    else:
+        out["corners_compared"] = f"by the own-format check ({len(meshes)} mesh objects)"
+        problems = []
+    problems += _wiring_checks(out, report, brdf, occlusion)
+    return {**out, "problems": problems}
+
+
+def _corner_checks(out: dict, c: dict, geom, meters_per_unit: float, tangents) -> list[str]:
+    """:func:`check_import`'s per-corner comparison of one imported mesh (its figures go into ``out``)."""
+    problems = []
+    if not np.all(c["face_sizes"] == 3):
+        return ["the faces did not arrive as triangles"]
     want = export_to_blender(geom.positions, meters_per_unit)
     diag = float(np.linalg.norm(want.max(0) - want.min(0)))
     out["position_error_rel"] = float(np.abs(c["position"] - want).max() / diag)
-    out["bbox_min"], out["bbox_max"] = meshes[0]["bbox_min"], meshes[0]["bbox_max"]
     if out["position_error_rel"] > 1e-5:
         problems.append(f"positions differ by {out['position_error_rel']:.2g} of the diagonal (units or up axis)")
     if not out["uv_maps"] or "uv" not in c:
-        problems.append("no UV map arrived")
-        return {**out, "problems": problems}
+        return [*problems, "no UV map arrived"]
     uv_want = np.stack([geom.uv[:, 0], 1.0 - geom.uv[:, 1]], axis=1)
     out["uv_error"] = float(np.abs(c["uv"] - uv_want).max())
     if out["uv_error"] > 1e-5:
@@ -277,6 +294,12 @@ def check_import(
             f"Blender's tangent frame differs from the baked one (tangents p99 {out['tangent_error_deg_p99']:.2g} deg, "
             f"handedness agrees on {100 * out['handedness_agreement']:.2f}% of corners)"
         )
+    return problems
+
+
+def _wiring_checks(out: dict, report: dict, brdf: str, occlusion: bool) -> list[str]:
+    """:func:`check_import`'s check of the Principled BSDF's inputs (its figures go into ``out``)."""
+    problems = []
     wiring = material_wiring(report)
     out["wiring"] = wiring
     expect = {
@@ -302,7 +325,7 @@ def check_import(
     if wiring and wiring.get("Normal", {}).get("normal_space") != "TANGENT":
         problems.append("the normal map is not a tangent-space Normal Map node")
     out["specular_f0_scale"] = wiring.get("specular_f0_scale", 0.0) if wiring else 0.0
-    return {**out, "problems": problems}
+    return problems
 
 
 def pick_views(count: int, wanted: int) -> list[int]:
