@@ -155,3 +155,25 @@ def test_a_mesh_past_the_face_limit_a_reserved_name_and_a_folder_with_spaces(tmp
     out = capsys.readouterr().out
     assert f"--configfile '{configs}/pot-a-pot.yaml'" in out, out
     assert f"snakemake --configfile '{configs}/pot-a-pot.yaml'" in (configs / "pot-a-pot.yaml").read_text()
+
+
+def test_the_uv_layout_is_decided_and_said_before_anything_runs(tmp_path):
+    """``--uv``: the layout the bake will use, measured on the mesh as the normalize stage reads it,
+    is printed with why; ``--uv keep`` on a mesh without a usable layout stops before anything is
+    written."""
+    import uvmeshes
+
+    vase = tmp_path / "vase.obj"
+    uvmeshes.write_obj(vase)
+    proc = quick(tmp_path, str(vase), "a vase made of wood", "--test-clip", "--uv", "keep", "--dry-run")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "UV layout: the input's own (usable: " in proc.stdout
+    (written,) = (tmp_path / "config" / "quick").iterdir()
+    assert yaml.safe_load(written.read_text())["bake"] == {"uv": "keep"}
+    bare = tmp_path / "pot.obj"
+    bare.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 2 3\nf 1 2 4\nf 1 3 4\nf 2 3 4\n")
+    proc = quick(tmp_path, str(bare), "a pot", "--test-clip", "--dry-run")
+    assert proc.returncode == 0 and "UV layout: a new atlas (auto: the input has no texture coordinates)" in proc.stdout
+    proc = quick(tmp_path, "builtin:vase", "a vase", "--test-clip", "--uv", "keep", "--name", "vk", "--dry-run")
+    assert proc.returncode == 2 and "bake.uv: keep, but builtin:vase has no UV layout" in proc.stderr
+    assert not (tmp_path / "config" / "quick" / "vk.yaml").exists()
