@@ -39,6 +39,7 @@ from .core.progress import heartbeat, job_label
 from .core.provenance import ORIGIN_KEY, Timer, atomic_path, metadata, staged_outputs, write_json_atomic
 from .geometry.meshio import load_ply
 from .geometry.raycache import RayCache
+from .geometry.uvlayout import density_percentiles
 from .imaging.images import compose, gather_points, global_spec
 from .imaging.quality import psnr
 from .imaging.sheets import save_png
@@ -130,6 +131,8 @@ def run(
             # which UV layout the textures use, and why (bake.uv)
             "uv": uv.record(),
             "texels_per_area": texel_density(res, mesh),
+            # how evenly the layout spends them: per face, at percentiles of the surface area
+            "texels_per_area_percentiles": density_percentiles(mesh.vertices, mesh.faces, res.atlas.uv, res.atlas.size),
             # the BRDF the textures hold (optimize.brdf): the exporters map them accordingly
             "brdf": field.brdf,
             # the ambient occlusion map in metallic_roughness.png's red channel (bake.occlusion)

@@ -222,6 +222,19 @@ def check_layout(positions: np.ndarray, faces: np.ndarray, uv: np.ndarray, resol
     )
 
 
+def density_percentiles(positions: np.ndarray, faces: np.ndarray, uv: np.ndarray, size: int) -> dict[str, float]:
+    """Texel density per face (texels of a ``size``-texel texture per unit of surface area: UV area
+    times ``size`` squared over 3D area) at the 10th, 50th and 90th percentile of the surface area
+    (faces without area left out): how evenly a layout spends its texels."""
+    tri = positions[faces]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    ok = area > 0
+    density = np.abs(uv_areas(uv[ok])) * size**2 / area[ok]
+    order = np.argsort(density)
+    cum = np.cumsum(area[ok][order]) / area[ok].sum()
+    return {f"p{q}": float(density[order][min(np.searchsorted(cum, q / 100), len(cum) - 1)]) for q in (10, 50, 90)}
+
+
 def match_faces(source: np.ndarray, traced: TriMesh) -> np.ndarray:
     """For each input triangle ``source (T, 3, 3)`` (positions in the traced mesh's frame) the
     traced face with the same three corners (any rotation; within ``MATCH_TOLERANCE``), each
