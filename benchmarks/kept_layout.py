@@ -3,7 +3,9 @@ fidelity, texel density, seams and the exported asset, side by side in one run.
 
 For each mesh with its own layout (``../shared/meshes/spot.obj`` and the others named, in a developer
 checkout), this normalises it, traces 24 evaluation views at 256 pixels and bakes one field into
-both layouts with the stages' own code (``bake.run``, then ``export.run``), at the texture size
+the layout ``bake.uv: auto`` chooses (the input's own where usable, with ``--max-overlap`` as
+``bake.uv_max_overlap``) and into a new atlas (``atlas``) with the stages' own code (``bake.run``,
+then ``export.run``), at the texture size
 the bake's rule gives the mesh (``bake.texels_per_face``) or ``--size``. The field has detail at
 texel scale: the ``fast`` preset's networks with their SVBRDF weights perturbed by seeded noise
 (std 0.3), as in ``benchmarks/bake_charts.py`` (its files are marked test-only: it was not
@@ -16,7 +18,8 @@ vertex count and the validators' errors and warnings. With ``--roundtrip`` (Blen
 asset is also imported in the input's own format beside the input (vertices, UVs) and both layouts
 are rendered with Cycles against the field (GLB, 2 views, 64 spp).
 
-    python benchmarks/kept_layout.py [--meshes spot.obj,...] [--size N] [--roundtrip]
+    bash scripts/fetch_uv_meshes.sh   # build/uv-meshes: duck, milk truck, jeep (benchmarks/SOURCES.md)
+    python benchmarks/kept_layout.py [--meshes spot.obj,...] [--size N] [--max-overlap 0.01] [--roundtrip]
 """
 
 from __future__ import annotations
@@ -32,8 +35,39 @@ REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared" / "meshes"
 sys.path.insert(0, str(REPO))
 
-#: the shared meshes with their own layouts (SOURCES.md): the measured set
-MESHES = "spot.obj,duck.glb,fuze.obj"
+#: the measured set: spot (../shared/meshes), a made lathe layout, and the meshes
+#: scripts/fetch_uv_meshes.sh fetches into build/uv-meshes (licences: benchmarks/SOURCES.md)
+MESHES = "spot.obj,made:lathe-vase,build/uv-meshes/duck.glb,build/uv-meshes/milktruck.glb,build/uv-meshes/jeep.glb"
+
+
+def lathe_vase(path: Path, segments: int = 48, samples: int = 24) -> Path:
+    """The built-in vase with the layout an artist gives a surface of revolution (a lathe unwrap):
+    ``u`` the angle around the axis (a seam at 0), ``v`` the arc length along the profile from the
+    base's centre to the floor's, each pole split per segment; written as an OBJ."""
+    import numpy as np
+
+    from stages.geometry.shapes import vase
+
+    v, f = vase(segments, samples)
+    n_rings = (len(v) - 2) // segments
+    ring_pts = v[1 : 1 + n_rings * segments : segments]  # each ring's point at angle 0
+    profile = np.concatenate([v[:1], ring_pts, v[-1:]])
+    arc = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(profile, axis=0), axis=1))]
+    arc /= arc[-1]
+    ring = np.where(np.arange(len(v)) == 0, -1, (np.arange(len(v)) - 1) // segments)
+    ring[-1] = n_rings
+    k = (np.arange(len(v)) - 1) % segments
+    pole = (ring[f] < 0) | (ring[f] == n_rings)
+    cu = np.where(pole, np.nan, k[f] / segments)
+    span = np.nanmax(cu, axis=1) - np.nanmin(cu, axis=1) > 0.5  # across the seam: small u go past 1
+    cu[span] = np.where(cu[span] < 0.5, cu[span] + 1.0, cu[span])
+    cu = np.where(pole, np.nanmean(cu, axis=1, keepdims=True), cu)
+    cv = arc[ring[f] + 1]
+    lines = [f"v {x:.9g} {y:.9g} {z:.9g}" for x, y, z in v]
+    lines += [f"vt {u:.9g} {t:.9g}" for u, t in zip(cu.reshape(-1), cv.reshape(-1), strict=True)]
+    lines += [f"f {a + 1}/{3 * i + 1} {b + 1}/{3 * i + 2} {c + 1}/{3 * i + 3}" for i, (a, b, c) in enumerate(f)]
+    path.write_text("\n".join(lines) + "\n")
+    return path
 
 
 def perturbed_field():
@@ -70,7 +104,7 @@ def prepare(src: Path, d: Path, field, settings) -> None:
     save_field(d / "field.pt", field, settings, "benchmark", origin)
 
 
-def one_layout(src: Path, d: Path, uv: str, size: int | None, roundtrip: bool) -> dict:
+def one_layout(src: Path, d: Path, uv: str, size: int | None, roundtrip: bool, max_overlap: float = 0.01) -> dict:
     """Bake and export ``d``'s field into layout ``uv``; the figures of both (and of the round trip)."""
     import numpy as np
 
@@ -81,7 +115,7 @@ def one_layout(src: Path, d: Path, uv: str, size: int | None, roundtrip: bool) -
     from stages.geometry.uvlayout import seams_and_islands
 
     t0 = time.perf_counter()
-    settings = BakeSettings(uv=uv, texture_size=size)
+    settings = BakeSettings(uv=uv, texture_size=size, uv_max_overlap=max_overlap)
     stats = bake.run(
         d / "mesh.ply",
         d / "field.pt",
@@ -120,6 +154,7 @@ def one_layout(src: Path, d: Path, uv: str, size: int | None, roundtrip: bool) -
         "gltf": f"{out['gltf_validation_errors']}/{out['gltf_validation_warnings']}",
         "usd": f"{out['usd_validation_errors']}/{out['usd_validation_warnings']}",
         "why": stats["uv"]["why"],
+        "layout": stats["uv"]["layout"],
     }
     if roundtrip:
         row.update(blender(src, d, uv))
@@ -143,7 +178,7 @@ def blender(src: Path, d: Path, uv: str) -> dict:
         d / f"rt_{uv}",
         settings,
         "cpu",
-        str(src) if uv == "keep" else None,
+        str(src),
     )
     own = json.loads((d / f"rt_{uv}" / "meta.json").read_text())["own_format"]
     out = {"cycles_psnr": res["formats"]["glb"]["psnr_db"], "import_problems": len(res["formats"]["glb"]["import"]["problems"])}
@@ -161,6 +196,7 @@ def main() -> None:
     parser.add_argument("--meshes", default=MESHES, help="files with their own layouts (names: in ../shared/meshes)")
     parser.add_argument("--size", type=int, help="texture width for both layouts (default: the bake's rule)")
     parser.add_argument("--roundtrip", action="store_true", help="also through Blender (Cycles, own-format import)")
+    parser.add_argument("--max-overlap", type=float, default=0.01, help="bake.uv_max_overlap for the auto layout")
     parser.add_argument("--threads", type=int, default=2)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
@@ -171,19 +207,21 @@ def main() -> None:
     print(f"# a perturbed field with texel-scale detail; fidelity over 24 views at 256 px; {'; '.join(cols)}")
     kv = {}
     for name in args.meshes.split(","):
-        src = Path(name) if Path(name).is_file() else SHARED / name
-        if not src.is_file():
-            print(f"{name}: not here (a developer checkout has ../shared/meshes)", flush=True)
-            continue
         with tempfile.TemporaryDirectory() as d:
             d = Path(d)
+            src = Path(name) if Path(name).is_file() else REPO / name if (REPO / name).is_file() else SHARED / name
+            if name == "made:lathe-vase":
+                src = lathe_vase(d / "lathe-vase.obj")
+            if not src.is_file():
+                print(f"{name}: not here (../shared/meshes in a developer checkout; scripts/fetch_uv_meshes.sh)", flush=True)
+                continue
             prepare(src, d, field, settings)
-            rows = {uv: one_layout(src, d, uv, args.size, args.roundtrip) for uv in ("keep", "atlas")}
+            rows = {uv: one_layout(src, d, uv, args.size, args.roundtrip, args.max_overlap) for uv in ("auto", "atlas")}
         for uv, row in rows.items():
             cells = [f"{row.get(c, '-'):.4g}" if isinstance(row.get(c), float) else str(row.get(c, "-")) for c in cols]
-            print(f"{src.name:<12}{uv:<6}" + " ".join(cells), flush=True)
+            print(f"{src.name:<16}{uv}:{row['layout']:<7}" + " ".join(cells), flush=True)
             kv.update({f"{c}_{src.stem}_{uv}": row[c] for c in ("psnr", "density", "seams", "bake_s") if c in row})
-        print(f"{src.name:<12}why   {rows['keep']['why']}", flush=True)
+        print(f"{src.name:<16}why: {rows['auto']['why']}", flush=True)
     print(" ".join(f"{k}={v:.4g}" for k, v in kv.items()))
 
 

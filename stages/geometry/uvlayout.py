@@ -6,10 +6,12 @@ A layout is usable when:
 * no UV triangle is degenerate (UV area at most ``DEGENERATE_UV_AREA`` of the tile while the face
   has area in 3D: its texels could not be located);
 * faces overlap each other in UV space on at most ``bake.uv_max_overlap`` of the faces, measured at
-  the bake's texture resolution (texel centres inside two or more UV triangles). Faces whose UV
-  triangle repeats another's exactly (mirrored halves, stacked copies of one island) are
-  *stacked*, not overlapping: they are legitimate, share texels by design and are baked once (from
-  one of the copies), which the record says;
+  the bake's texture resolution (texel centres inside two or more UV triangles, every face over a
+  texel found). Stacked islands are not overlap: faces whose UV triangle repeats another's
+  exactly, and islands that lie over the same texels as another island (on at least
+  ``COINCIDENT`` of the larger: mirrored halves and repeated parts, however triangulated) share
+  texels by design and are baked once (from one of the copies), which the record says; partial
+  overlaps between islands and folds inside one are overlap;
 * every face lies in one UV tile: the unit square, or one UDIM tile, within ``TILE_MARGIN`` (a
   corner may reach that far past its tile's edge, and the texture repeats there, as glTF's default
   sampler does). A layout over several UDIM tiles needs one texture set per tile, which a glTF or
@@ -133,12 +135,12 @@ def stacked_faces(uv: np.ndarray) -> np.ndarray:
 CENTRE_JITTER = (1.37e-3, 2.91e-3)
 
 
-def overlap_faces(uv: np.ndarray, size: int, max_depth: int = 64) -> np.ndarray:
-    """``(F,) bool``: faces with a texel centre (of a ``size``-texel tile, each face moved into its
-    own tile and wrapped at its edges, :func:`wrapped_copies`) that another face's UV triangle also
-    covers. Each face is lifted to its own height (its index) and every texel centre is cast at
-    from above, again and again from just below the last hit, so that every face over it is found
-    (up to ``max_depth`` deep)."""
+def texel_cover(uv: np.ndarray, size: int, max_depth: int = 64) -> tuple[np.ndarray, np.ndarray]:
+    """Every (texel, face) with the texel's centre inside the face's UV triangle, on a
+    ``size``-texel tile, each face moved into its own tile and wrapped at its edges
+    (:func:`wrapped_copies`): ``(texel index, face index)`` arrays. Each face is lifted to its own
+    height (its index) and every texel centre is cast at from above, again and again from just
+    below the last hit, so that every face over it is found (up to ``max_depth`` deep)."""
     n = len(uv)
     tris, owner = wrapped_copies(uv - face_tiles(uv)[:, None, :])
     z = np.repeat(owner.astype(np.float64), 3)[:, None]
@@ -148,9 +150,8 @@ def overlap_faces(uv: np.ndarray, size: int, max_depth: int = 64) -> np.ndarray:
     cols, rows = np.meshgrid(c + CENTRE_JITTER[0], c + CENTRE_JITTER[1])
     xy = np.stack([cols.ravel(), rows.ravel()], axis=1)
     top = np.full(len(xy), n + 1.0)
-    first = np.full(len(xy), -1)
-    out = np.zeros(n, bool)
     live = np.arange(len(xy))
+    texels, faces = [], []
     for _ in range(max_depth):
         origins = np.concatenate([xy[live], top[live, None]], axis=1)
         hits = tracer.trace(origins, np.broadcast_to([0.0, 0.0, -1.0], origins.shape))
@@ -158,17 +159,81 @@ def overlap_faces(uv: np.ndarray, size: int, max_depth: int = 64) -> np.ndarray:
         live, face = live[hit], owner[hits.face[hit]]
         if not len(live):
             break
-        seen = first[live] >= 0
-        out[face[seen]] = True  # a second (third, ...) face over a texel, and the first one
-        out[first[live[seen]]] = True
-        first[live[~seen]] = face[~seen]
+        texels.append(live)
+        faces.append(face)
         top[live] = face - 0.5
+    if not texels:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    return np.concatenate(texels), np.concatenate(faces)
+
+
+def overlap_faces(uv: np.ndarray, size: int) -> np.ndarray:
+    """``(F,) bool``: faces with a texel centre that another face's UV triangle also covers
+    (:func:`texel_cover`)."""
+    texel, face = texel_cover(uv, size)
+    count = np.bincount(texel, minlength=size * size)
+    out = np.zeros(len(uv), bool)
+    out[face[count[texel] >= 2]] = True
     return out
+
+
+#: two islands over the same texels on at least this share of the larger one are stacked copies
+COINCIDENT = 0.8
+
+
+def classify_overlap(uv: np.ndarray, size: int, island: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(overlapping, stacked)``, ``(F,) bool`` each, of faces ``uv (F, 3, 2)`` in UV charts
+    ``island (F,)`` (:func:`uv_islands`): faces sharing texels with other faces (:func:`texel_cover`)
+    are *stacked* where all those faces belong to charts that cover the same texels as theirs (on
+    at least ``COINCIDENT`` of the larger chart: mirrored halves and repeated parts, however
+    triangulated), and *overlapping* otherwise (partial overlaps between charts, and folds inside
+    one)."""
+    texel, face = texel_cover(uv, size)
+    isl = island[face]
+    n_isl = int(island.max(initial=-1)) + 1
+    area = np.bincount(isl, minlength=n_isl)  # texels each island covers (its own faces never double)
+    # pairs of distinct faces over one texel
+    order = np.lexsort((face, texel))
+    texel, face, isl = texel[order], face[order], isl[order]
+    starts = np.flatnonzero(np.r_[True, texel[1:] != texel[:-1]])
+    counts = np.diff(np.r_[starts, len(texel)])
+    pairs_a, pairs_b = [], []
+    for depth in range(2, int(counts.max(initial=1)) + 1):
+        group = starts[counts == depth]
+        for i in range(depth):
+            for j in range(i + 1, depth):
+                pairs_a.append(group + i)
+                pairs_b.append(group + j)
+    overlapping = np.zeros(len(uv), bool)
+    stacked = np.zeros(len(uv), bool)
+    if not pairs_a:
+        return overlapping, stacked
+    a, b = np.concatenate(pairs_a), np.concatenate(pairs_b)
+    ia, ib = isl[a], isl[b]
+    lo, hi = np.minimum(ia, ib), np.maximum(ia, ib)
+    key = lo * n_isl + hi
+    uniq, inverse, shared = np.unique(key, return_inverse=True, return_counts=True)
+    big = np.maximum(area[uniq // n_isl], area[uniq % n_isl])
+    coincident = (uniq // n_isl != uniq % n_isl) & (shared >= COINCIDENT * big)
+    good = coincident[inverse]
+    overlapping[face[a[~good]]] = True
+    overlapping[face[b[~good]]] = True
+    stacked[face[a[good]]] = True
+    stacked[face[b[good]]] = True
+    return overlapping, stacked & ~overlapping
 
 
 def seams_and_islands(positions: np.ndarray, faces: np.ndarray, uv: np.ndarray) -> tuple[int, int]:
     """UV seams (3D edges shared by two faces whose UVs differ along it; positions compared
     exactly) and islands (faces connected through edges that are not seams)."""
+    seams, labels, _ = uv_islands(positions, faces, uv)
+    return seams, int(labels.max(initial=-1)) + 1
+
+
+def uv_islands(positions: np.ndarray, faces: np.ndarray, uv: np.ndarray) -> tuple[int, np.ndarray, np.ndarray]:
+    """The UV seams (:func:`seams_and_islands`), each face's island ``(F,)`` and its chart ``(F,)``:
+    its island split where the UV orientation flips (mirrored halves glued along their symmetry
+    line are one island of two charts, laid over each other)."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
@@ -188,9 +253,12 @@ def seams_and_islands(positions: np.ndarray, faces: np.ndarray, uv: np.ndarray) 
     i, j = order[:-1][same_edge], order[1:][same_edge]
     joined = (np.abs(uv_lo[i] - uv_lo[j]).max(1) <= 1e-9) & (np.abs(uv_hi[i] - uv_hi[j]).max(1) <= 1e-9)
     seams = int((~joined).sum())
-    graph = coo_matrix((np.ones(int(joined.sum())), (edge_face[i][joined], edge_face[j][joined])), shape=(f, f))
-    islands, _ = connected_components(graph, directed=False)
-    return seams, int(islands)
+    fi, fj = edge_face[i][joined], edge_face[j][joined]
+    _, islands = connected_components(coo_matrix((np.ones(len(fi)), (fi, fj)), shape=(f, f)), directed=False)
+    side = uv_areas(uv) > 0
+    keep = side[fi] == side[fj]
+    _, charts = connected_components(coo_matrix((np.ones(int(keep.sum())), (fi[keep], fj[keep])), shape=(f, f)), directed=False)
+    return seams, islands.astype(np.int64), charts.astype(np.int64)
 
 
 def check_layout(positions: np.ndarray, faces: np.ndarray, uv: np.ndarray, resolution: int) -> LayoutCheck:
@@ -203,11 +271,19 @@ def check_layout(positions: np.ndarray, faces: np.ndarray, uv: np.ndarray, resol
     degenerate = (np.abs(uv_areas(m_uv)) <= DEGENERATE_UV_AREA) & (area3d[mapped] > (1e-9 * extent) ** 2)
     tiles = face_tiles(m_uv)
     reach = np.abs(m_uv - (tiles[:, None, :] + 0.5)).max(axis=(1, 2)) - 0.5
-    first = stacked_faces(m_uv)
+    seams, island, chart = (
+        uv_islands(positions, faces[mapped], m_uv) if len(m_uv) else (0, np.zeros(0, np.int64), np.zeros(0, np.int64))
+    )
+    first = stacked_faces(m_uv)  # exact copies of a UV triangle: one is rasterised
     reps = np.flatnonzero(first == np.arange(len(m_uv)))
-    overlapping = overlap_faces(m_uv[reps], resolution) if len(reps) else np.zeros(0, bool)
-    seams, islands = seams_and_islands(positions, faces[mapped], m_uv) if len(m_uv) else (0, 0)
-    stacked = int((np.bincount(first, minlength=len(m_uv))[first] > 1).sum())
+    overlapping, coincident = (
+        classify_overlap(m_uv[reps], resolution, chart[reps]) if len(reps) else (np.zeros(0, bool), np.zeros(0, bool))
+    )
+    copies = np.bincount(first, minlength=len(m_uv))[first] > 1
+    stacked_islands = np.zeros(len(m_uv), bool)
+    stacked_islands[reps[coincident]] = True
+    stacked = int((copies | stacked_islands[first]).sum())
+    islands = int(island.max(initial=-1)) + 1
     return LayoutCheck(
         faces=len(faces),
         unmapped=int((~mapped).sum()),

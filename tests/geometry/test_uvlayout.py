@@ -271,3 +271,30 @@ def test_repeating_lookup_against_the_formula():
     # clamping (the atlas's sampler) differs from repeating at the edges only
     inner = (uv > 0.1).all(1) & (uv < 0.9).all(1)
     np.testing.assert_allclose(sample_bilinear(img, uv[inner]), got[inner], atol=1e-12)
+
+
+def test_mirrored_halves_glued_along_their_line_are_stacked_not_overlap():
+    """Two halves of a symmetric strip share the UVs of their common edge (one island) and lie
+    over each other mirrored, with different triangulations: two charts over the same texels,
+    baked once. A third quad half over one half is a partial overlap."""
+    # 3D: a strip of two squares, (0..1) and (1..2) in x; UV: both squares onto [0.2, 0.7]^2, the
+    # second mirrored about the shared edge x = 1 (u = 0.7 there) and split along the other diagonal
+    pos = np.array([(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0), (2, 0, 0), (2, 1, 0)], float)
+    faces = np.array([(0, 1, 2), (0, 2, 3), (1, 4, 5), (1, 5, 2)])
+    lo, hi = 0.2, 0.7
+    uv = np.array(
+        [
+            [(lo, lo), (hi, lo), (hi, hi)],
+            [(lo, lo), (hi, hi), (lo, hi)],
+            [(hi, lo), (lo, lo), (lo, hi)],  # the mirror: x = 2 maps back to u = lo
+            [(hi, lo), (lo, hi), (hi, hi)],
+        ]
+    )
+    c = check_layout(pos, faces, uv, 64)
+    assert c.islands == 1 and (c.stacked, c.overlapping) == (4, 0)
+    # half a square more, over the left half only: partial
+    pos2 = np.concatenate([pos, [(5, 0, 0), (6, 0, 0), (6, 1, 0)]])
+    faces2 = np.concatenate([faces, [(6, 7, 8)]])
+    uv2 = np.concatenate([uv, [[(lo, lo), (0.45, lo), (0.45, 0.45)]]])
+    c = check_layout(pos2, faces2, uv2, 64)
+    assert c.overlapping >= 1 and c.stacked <= 4
