@@ -63,9 +63,11 @@ def lathe_vase(path: Path, segments: int = 48, samples: int = 24) -> Path:
     cu[span] = np.where(cu[span] < 0.5, cu[span] + 1.0, cu[span])
     cu = np.where(pole, np.nanmean(cu, axis=1, keepdims=True), cu)
     cv = arc[ring[f] + 1]
+    table, vt = np.unique(np.round(np.stack([cu, cv], -1).reshape(-1, 2), 12), axis=0, return_inverse=True)
+    vt = vt.reshape(-1, 3)  # corners with the same (u, v) share a vt, as an artist's file does
     lines = [f"v {x:.9g} {y:.9g} {z:.9g}" for x, y, z in v]
-    lines += [f"vt {u:.9g} {t:.9g}" for u, t in zip(cu.reshape(-1), cv.reshape(-1), strict=True)]
-    lines += [f"f {a + 1}/{3 * i + 1} {b + 1}/{3 * i + 2} {c + 1}/{3 * i + 3}" for i, (a, b, c) in enumerate(f)]
+    lines += [f"vt {u:.9g} {t:.9g}" for u, t in table]
+    lines += [" ".join(["f", *(f"{i + 1}/{j + 1}" for i, j in zip(fi, ti, strict=True))]) for fi, ti in zip(f, vt, strict=True)]
     path.write_text("\n".join(lines) + "\n")
     return path
 

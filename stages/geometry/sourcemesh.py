@@ -11,8 +11,9 @@ or USD file can hold of an OBJ). Faces keep the file's order; an OBJ polygon is 
 
 Texture coordinates are glTF's (``v`` down): an OBJ's ``vt`` is ``(u, 1 - v)``. Normals are the
 file's, in the frame of the positions; where a file has none, what its consumers assume: the glTF
-specification's flat normals, or for an OBJ smooth normals per vertex (the angle-weighted mean of
-the faces that share it; Thürmer & Wüthrich 1998), which the glTF and USD exports then write out.
+specification's flat normals, or for an OBJ smooth normals per position (the angle-weighted mean of
+the faces around it, Thürmer & Wüthrich 1998: what an OBJ's smoothing group gives), which the glTF
+and USD exports then write out.
 
 Positions are in the file's units; a glTF node's transforms (matrix or TRS, down the scene graph)
 are applied, as the traced mesh's reader applies them (a skinned mesh is read in its node's frame,
@@ -81,19 +82,19 @@ class SourceMesh:
 
     def vertex_normals(self) -> np.ndarray:
         """``(V, 3)``: the file's normals, or where none the angle-weighted mean of the unit normals
-        of the faces using the vertex (zero where they cancel, then any unit vector)."""
+        of the faces around the vertex's position (vertices at one position, split at a UV seam,
+        share it: an OBJ's smoothing by ``v``; zero where they cancel, then any unit vector)."""
         p = self.positions[self.triangles]
         e1 = p[:, [1, 2, 0]] - p
         e2 = p[:, [2, 0, 1]] - p
         cos = (_unit(e1) * _unit(e2)).sum(-1)
         angle = np.arccos(np.clip(cos, -1.0, 1.0))
-        acc = np.zeros_like(self.positions)
-        np.add.at(
-            acc,
-            self.triangles.reshape(-1),
-            (angle[..., None] * unit_face_normals(self.positions, self.triangles)[:, None]).reshape(-1, 3),
-        )
-        acc = _unit(acc)
+        _, where = np.unique(self.positions, axis=0, return_inverse=True)
+        where = where.reshape(-1)
+        acc = np.zeros((int(where.max(initial=-1)) + 1, 3))
+        weighted = angle[..., None] * unit_face_normals(self.positions, self.triangles)[:, None]
+        np.add.at(acc, where[self.triangles.reshape(-1)], weighted.reshape(-1, 3))
+        acc = _unit(acc)[where]
         acc[np.linalg.norm(acc, axis=1) == 0] = (0.0, 1.0, 0.0)
         given = np.isfinite(self.normals).all(1)
         acc[given] = _unit(self.normals[given])
