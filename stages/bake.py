@@ -96,30 +96,7 @@ def run(
                     np.savez(fh, uv=res.atlas.uv.astype(np.float32), **res.frames.arrays(), **kept)
         # fidelity: baked asset vs neural field from the evaluation views
         with timer("fidelity"), heartbeat(job, "rendering the baked asset for the fidelity check"):
-            store = ViewStore(
-                eval_cache, torch.device(device), field.normals, shadows=False
-            )  # the textures' fidelity: both unshadowed
-            light = field.light()
-            if layout is None:
-                tex = decode_textures(res.textures)
-                baked = render_baked_views(
-                    eval_cache, res.atlas.uv, tex, res.frames, light, device, field.specular_lobe, field.brdf
-                )
-            else:  # a kept layout's textures repeat (glTF's default sampler), one set per group of slots
-                sets = [decode_textures(res.textures), *(decode_textures(res.sets[ts.folder]) for ts in layout.sets[1:])]
-                baked = render_texture_sets(
-                    eval_cache, res.atlas.uv, sets, layout.face_set, res.frames, light, device, field.specular_lobe, field.brdf
-                )
-            preds = [linear_to_srgb(b) for b in baked]
-            refs = [linear_to_srgb(r) for r in radiance_at_hits(field, store)]
-            bake_psnr = psnr(torch.cat(preds), torch.cat(refs))
-            # the preview: the baked asset from the evaluation view nearest the anchor (front) view
-            front = eval_cache.front_view()
-            spec = global_spec(store.width, settings.eval_width)
-            needed, (lookup,) = gather_points([spec], store[front].index)
-            bg = torch.ones(3, settings.eval_width, settings.eval_width, device=preds[front].device)
-            img = compose(preds[front][torch.from_numpy(needed)], lookup, spec, bg)
-            save_png(staging / "preview.png", to_u8(img.permute(1, 2, 0).cpu().numpy()))
+            bake_psnr = fidelity(res, layout, field, eval_cache, settings.eval_width, device, staging / "preview.png")
         stats = {
             **BakeRecord(
                 texture_size=res.atlas.size, bake_psnr_db=bake_psnr, uv_layout=uv.record()["layout"], uv_why=uv.why
@@ -164,6 +141,31 @@ def run(
             ),
         )
     return stats
+
+
+def fidelity(res, layout, field, eval_cache: RayCache, width: int, device: str, preview: Path) -> float:
+    """The bake's PSNR (sRGB, object pixels of the evaluation views) against the neural field, both
+    unshadowed, with the baked asset's front view written to ``preview`` (``width`` pixels): the
+    textures read as a viewer reads them (a kept layout's repeating, one set per group of slots)."""
+    store = ViewStore(eval_cache, torch.device(device), field.normals, shadows=False)
+    light = field.light()
+    if layout is None:
+        tex = decode_textures(res.textures)
+        baked = render_baked_views(eval_cache, res.atlas.uv, tex, res.frames, light, device, field.specular_lobe, field.brdf)
+    else:
+        sets = [decode_textures(res.textures), *(decode_textures(res.sets[ts.folder]) for ts in layout.sets[1:])]
+        lobe, brdf = field.specular_lobe, field.brdf
+        baked = render_texture_sets(eval_cache, res.atlas.uv, sets, layout.face_set, res.frames, light, device, lobe, brdf)
+    preds = [linear_to_srgb(b) for b in baked]
+    refs = [linear_to_srgb(r) for r in radiance_at_hits(field, store)]
+    # the preview: the baked asset from the evaluation view nearest the anchor (front) view
+    front = eval_cache.front_view()
+    spec = global_spec(store.width, width)
+    needed, (lookup,) = gather_points([spec], store[front].index)
+    bg = torch.ones(3, width, width, device=preds[front].device)
+    img = compose(preds[front][torch.from_numpy(needed)], lookup, spec, bg)
+    save_png(preview, to_u8(img.permute(1, 2, 0).cpu().numpy()))
+    return psnr(torch.cat(preds), torch.cat(refs))
 
 
 def main(argv: list[str] | None = None) -> int:

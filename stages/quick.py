@@ -38,6 +38,7 @@ from pathlib import Path
 
 import yaml
 
+from .assets.layouts import choose_layout
 from .config.presets import PRESETS
 from .config.schema import schema
 from .config.sections import MATERIALS, UV_LAYOUTS
@@ -46,7 +47,7 @@ from .core.cli import stage_main
 from .core.errors import ConfigError
 from .core.provenance import atomic_path
 from .geometry.meshio import load_mesh
-from .geometry.normalization import check_face_count
+from .geometry.normalization import check_face_count, normalize_mesh
 
 log = logging.getLogger(__name__)
 
@@ -171,9 +172,6 @@ def layout_text(cfg: WorkflowConfig, mesh: str) -> str:
     """The UV layout the bake of the config's first cell will write into, and why, decided as the
     bake stage decides (:func:`~stages.assets.layouts.choose_layout`) on the mesh as the normalize
     stage writes it; a decimated mesh (``decimate.enabled``) is baked into a new atlas."""
-    from .assets.layouts import choose_layout
-    from .geometry.normalization import normalize_mesh
-
     mesh_id = mesh_entry(mesh)[0]
     cell = cfg.cells[0]
     bake = cfg.cell_stage_settings("bake", cell.prompt, cell.variant)

@@ -14,7 +14,7 @@ import numpy as np
 import pygltflib
 import pytest
 import uvmeshes
-from conftest import require_blender, require_tool
+from conftest import REPO, require_blender, require_tool
 
 from stages import bake, export, optimize, roundtrip
 from stages.assets.baking import kept_texels
@@ -286,3 +286,22 @@ def test_blender_imports_the_own_format_as_it_imports_the_input(cells, name):
     if name == "skinned":  # one mesh object: every corner compared with what was exported
         assert out["formats"]["glb"]["import"]["problems"] == []
         assert out["formats"]["glb"]["import"]["uv_error"] < 1e-5
+
+
+def test_the_measured_meshes_fetch_and_read_with_their_layouts(tmp_path):
+    """scripts/fetch_uv_meshes.sh (benchmarks/kept_layout.py's artist-made meshes) fetches Debian's
+    assimp test models and converts them; each reads back with texture coordinates on every face."""
+    import shutil
+    import subprocess
+
+    require_tool(shutil.which("apt-get") is not None and shutil.which("dpkg-deb") is not None, "apt-get and dpkg-deb (Debian)")
+    out = tmp_path / "uv-meshes"
+    script = REPO / "scripts" / "fetch_uv_meshes.sh"
+    proc = subprocess.run(["bash", str(script), str(out)], capture_output=True, text=True, timeout=600, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    faces = {}
+    for name in ("duck", "milktruck", "jeep"):
+        s = read_source(out / f"{name}.glb")
+        assert s.mapped.all()
+        faces[name] = len(s.triangles)
+    assert faces == {"duck": 4212, "milktruck": 3624, "jeep": 2032}  # as benchmarks/SOURCES.md lists them

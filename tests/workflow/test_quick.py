@@ -42,6 +42,12 @@ def test_test_clip_run_on_an_open_shared_mesh(tmp_path):
     assert "TEST ONLY" in json.dumps(meta["origin"])
     index = (tmp_path / "results" / "spot-gold" / "report" / "index.html").read_text()
     assert "TEST ONLY: 1 of 1 cells" in index and "a-cow-made-of-gold" in index
+    # spot's own UV layout is usable: the workflow hands the input to the bake and the export
+    assert "UV layout: the input's own (usable: 13 islands" in proc.stdout
+    bake = json.loads((cell / "bake" / "meta.json").read_text())["stats"]
+    assert bake["uv"]["layout"] == "kept" and bake["uv_layout"] == "kept"
+    assert (cell / "export" / "model.obj").is_file() and (cell / "export" / "model.mtl").is_file()
+    assert "UV layout" in index and ">kept<" in index
 
 
 def test_without_weights_it_stops_at_once_with_one_message_per_model(tmp_path):
@@ -177,3 +183,29 @@ def test_the_uv_layout_is_decided_and_said_before_anything_runs(tmp_path):
     proc = quick(tmp_path, "builtin:vase", "a vase", "--test-clip", "--uv", "keep", "--name", "vk", "--dry-run")
     assert proc.returncode == 2 and "bake.uv: keep, but builtin:vase has no UV layout" in proc.stderr
     assert not (tmp_path / "config" / "quick" / "vk.yaml").exists()
+
+
+@pytest.mark.slow(minutes=1)
+def test_a_rigged_animated_glb_through_the_workflow(tmp_path):
+    """A skinned, animated, two-material GLB with its own UV layout through the whole workflow:
+    its asset is its own document with new textures (skeleton, weights, animation, vertex order
+    and UVs as they were), valid for the Khronos validator."""
+    import pygltflib
+    import uvmeshes
+
+    mesh = tmp_path / "rigged.glb"
+    uvmeshes.skinned_glb(mesh)
+    overlay = tmp_path / "tiny.yaml"
+    overlay.write_text(yaml.safe_dump({**TINY, "prompts": {"a-wooden-vase": {"optimize": TINY_OPTIMIZE}}}))
+    proc = quick(tmp_path, str(mesh), "a wooden vase", "--test-clip", "--uv", "keep", "--name", "rig", "--overlay", str(overlay))
+    assert proc.returncode == 0, proc.stderr[-4000:]
+    cell = tmp_path / "results" / "rig" / "rigged" / "a-wooden-vase" / "base"
+    a, b = pygltflib.GLTF2().load(str(mesh)), pygltflib.GLTF2().load(str(cell / "export" / "model.glb"))
+    ja, jb = json.loads(a.to_json()), json.loads(b.to_json())
+    for key in ("nodes", "skins", "animations", "meshes", "accessors"):
+        keep = ("bufferView",) if key == "accessors" else ()
+        strip = [{k: v for k, v in x.items() if k not in keep} for x in ja[key]]
+        assert strip == [{k: v for k, v in x.items() if k not in keep} for x in jb[key]], key
+    assert [m["name"] for m in jb["materials"]] == ["Body", "Rim"]
+    export = json.loads((cell / "export" / "meta.json").read_text())["stats"]
+    assert export["topology"].startswith("the input's own") and export["gltf_validation_errors"] == 0
