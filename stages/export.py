@@ -19,7 +19,7 @@ from pathlib import Path
 from PIL import Image
 
 from .assets.formats import read_atlas, write_model_files
-from .assets.layouts import kept_source, slot_folders
+from .assets.layouts import kept_materials, kept_source
 from .assets.ownformat import asset_geometry, write_document_glb, write_obj
 from .config.layout import TEXTURE_FILES
 from .config.records import ExportRecord
@@ -61,8 +61,8 @@ def run(
     brdf = bake_stats.get("brdf", "tango")
     occlusion = bool(bake_stats.get("occlusion", {}).get("baked", False))
     kept = kept_source(bake_stats, atlas, source, bake_dir)
-    folders = () if kept is None else slot_folders(bake_stats, kept.slot_names)
-    asset = asset_geometry(mesh, atlas, tf, settings, kept, folders)
+    materials = None if kept is None else kept_materials(bake_stats, kept)
+    asset = asset_geometry(mesh, atlas, tf, settings, kept, materials)
     geom = asset.geom
     extra_files: list[str] = []
     with staged_outputs(out_dir) as staging:
@@ -79,7 +79,7 @@ def run(
         if kept is not None and kept.kind == "gltf":
 
             def glb_writer(path):
-                write_document_glb(path, kept, staging / "textures", origin, brdf, occlusion, folders)
+                write_document_glb(path, kept, staging / "textures", origin, brdf, occlusion, geom.slot_textures)
 
         if kept is not None and kept.kind == "obj":
             with timer("obj"):

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from .assets.formats import read_atlas
-from .assets.layouts import kept_source, slot_folders
+from .assets.layouts import kept_materials, kept_source
 from .assets.ownformat import asset_geometry, kept_corner_tangents
 from .config.records import RoundtripRecord
 from .config.sections import ExportSettings, RoundtripSettings
@@ -65,8 +65,8 @@ def _scene(files: dict, settings: RoundtripSettings, device: str, timer: Timer, 
         atlas = read_atlas(bake_dir / "atlas.npz")
         bake_stats = read_json_record(bake_dir / "meta.json").get("stats", {})
         kept = kept_source(bake_stats, atlas, files.get("source"), bake_dir)
-        folders = () if kept is None else slot_folders(bake_stats, kept.slot_names)
-        asset = asset_geometry(load_ply(files["mesh"]), atlas, tf, export_settings, kept, folders)
+        materials = None if kept is None else kept_materials(bake_stats, kept)
+        asset = asset_geometry(load_ply(files["mesh"]), atlas, tf, export_settings, kept, materials)
         field, _ = load_field(files["field"], device)
         cache = RayCache(files["eval"])
     tf_export = tf if export_settings.units == "original" or asset.own_frame else None

@@ -130,10 +130,11 @@ def _translation(t) -> np.ndarray:
     return m
 
 
-def write_obj(path: Path, name: str = "vase", materials: tuple[str, ...] = ("Glaze",), quads: bool = False) -> dict:
+def write_obj(path: Path, name: str = "vase", materials: tuple[str, ...] = ("Glaze",), udim: bool = False) -> dict:
     """``name`` with its xatlas layout as an OBJ: shared ``v`` (welded positions), ``vt`` and ``vn``
     lines, ``f v/vt/vn`` faces (``materials`` assigned to consecutive runs of faces), an ``o``,
-    ``s`` and a comment the copy must keep."""
+    ``s`` and a comment the copy must keep. ``udim``: the second half of the faces reads a copy of
+    the layout moved one tile to the right (UDIM 1002)."""
     pos, uv, faces = unwrapped(name)
     normals = smooth_normals(pos, faces)
     wpos, wv = np.unique(pos.round(12), axis=0, return_inverse=True)
@@ -141,13 +142,17 @@ def write_obj(path: Path, name: str = "vase", materials: tuple[str, ...] = ("Gla
     lines = ["# a test mesh with its own layout", f"mtllib {Path(path).stem}.mtl", f"o {name}"]
     lines += [f"v {x:.9g} {y:.9g} {z:.9g}" for x, y, z in wpos]
     lines += [f"vt {u:.9g} {1.0 - v:.9g}" for u, v in uv]
+    if udim:
+        lines += [f"vt {u + 1.0:.9g} {1.0 - v:.9g}" for u, v in uv]
     lines += [f"vn {x:.9g} {y:.9g} {z:.9g}" for x, y, z in normals]
     lines.append("s 1")
     runs = np.array_split(np.arange(len(faces)), len(materials))
+    moved = np.arange(len(faces)) >= len(faces) // 2 if udim else np.zeros(len(faces), bool)
     for mat, run in zip(materials, runs, strict=True):
         lines.append(f"usemtl {mat}")
-        for f in faces[run]:
-            lines.append("f " + " ".join(f"{wv[i] + 1}/{i + 1}/{i + 1}" for i in f))
+        for k in run:
+            shift = len(uv) if moved[k] else 0
+            lines.append("f " + " ".join(f"{wv[i] + 1}/{i + 1 + shift}/{i + 1}" for i in faces[k]))
     Path(path).write_text("\n".join(lines) + "\n")
     return {"positions": pos, "uv": uv, "faces": faces, "welded": wpos}
 

@@ -32,7 +32,7 @@ from ..geometry.normalization import Similarity
 from ..geometry.normals import unit_face_normals
 from ..geometry.sourcemesh import LAYOUT_SUFFIXES, SourceMesh, read_source
 from ..geometry.tangents import CornerFrames, mikktspace
-from ..geometry.uvlayout import LayoutCheck, check_layout, match_faces
+from ..geometry.uvlayout import LayoutCheck, check_layout, face_tiles, match_faces, udim
 
 log = logging.getLogger(__name__)
 
@@ -53,11 +53,12 @@ class InputMesh:
 
 @dataclass(frozen=True)
 class TextureSet:
-    """One set of baked textures: the input material ``slots`` (indices) it serves and its
-    ``folder`` below ``textures/`` (``""``: ``textures/`` itself)."""
+    """One set of baked textures: the input material ``slots`` (indices) and the UDIM ``tile`` it
+    serves, and its ``folder`` below ``textures/`` (``""``: ``textures/`` itself)."""
 
     folder: str
     slots: tuple[int, ...]
+    tile: int = 1001
 
 
 def set_folders(names: tuple[str, ...]) -> list[str]:
@@ -89,11 +90,12 @@ class KeptLayout:
 
     @property
     def face_set(self) -> np.ndarray:
-        """``(F,)``: the texture set of each traced face."""
+        """``(F,)``: the texture set of each traced face (its material slot's, in its UDIM tile)."""
         slot = self.source.slot[self.source_face]
+        tile = udim(face_tiles(self.uv))
         out = np.zeros(len(slot), np.int64)
         for k, ts in enumerate(self.sets):
-            out[np.isin(slot, ts.slots)] = k
+            out[np.isin(slot, ts.slots) & (tile == ts.tile)] = k
         return out
 
     def frames(self, mesh: TriMesh) -> CornerFrames:
@@ -127,7 +129,9 @@ class UvChoice:
             out["check"] = self.check.to_json()
         if self.kept:
             out["slots"] = list(self.slots)
-            out["texture_sets"] = [{"folder": ts.folder, "slots": [self.slots[i] for i in ts.slots]} for ts in self.sets]
+            out["texture_sets"] = [
+                {"folder": ts.folder, "slots": [self.slots[i] for i in ts.slots], "tile": ts.tile} for ts in self.sets
+            ]
             out["texture_sets_why"] = self.sets_why
         return out
 
@@ -158,21 +162,23 @@ def choose_layout(
 
 def _texture_sets(layout: KeptLayout, size: int, max_overlap: float):
     """``(sets, why, problems)``: one set for every slot where the whole layout is usable; else,
-    for several slots each usable alone, one set per slot; else the whole layout's problems."""
+    for several slots each usable alone, one set per slot; else the whole layout's problems. Each
+    set is then split by UDIM tile (:func:`_by_tile`)."""
     src = layout.source
+    udim_ok = src.kind == "obj"
     slots = tuple(range(len(src.slot_names)))
-    problems = layout.check.problems(max_overlap)
+    problems = layout.check.problems(max_overlap, udim_ok)
     if not problems:
         shared = f"{layout.check.overlapping:,} of {layout.check.faces:,} faces overlapping"
         why = f"{shared}; one texture set shared by every slot" if len(slots) > 1 else f"{shared}; one material"
-        return (TextureSet("", slots),), why, []
+        return _by_tile((TextureSet("", slots),), src, why)
     if len(slots) == 1:
         return (), "", problems
     alone = []
     for k in slots:
         mine = src.slot == k
         check = check_layout(src.positions, src.triangles[mine], src.corner_uv[mine], size)
-        alone += [f"slot {src.slot_names[k]!r}: {p}" for p in check.problems(max_overlap)]
+        alone += [f"slot {src.slot_names[k]!r}: {p}" for p in check.problems(max_overlap, udim_ok)]
     if alone:
         return (), "", alone
     sets = tuple(TextureSet(folder, (k,)) for k, folder in zip(slots, set_folders(src.slot_names), strict=True))
@@ -180,7 +186,24 @@ def _texture_sets(layout: KeptLayout, size: int, max_overlap: float):
         f"one texture set per slot: the slots overlap each other in UV space ({layout.check.overlapping:,} faces), "
         "each alone does not"
     )
-    return sets, why, []
+    return _by_tile(sets, src, why)
+
+
+def _by_tile(groups: tuple[TextureSet, ...], src: SourceMesh, why: str):
+    """``groups`` split by the UDIM tiles their faces lie in: one set per group and tile. With
+    several tiles the first set stays in ``textures/``; a group's others go into a folder named
+    after the tile (``textures/1002/``, ``textures/<slot>/1002/``)."""
+    tile = udim(face_tiles(src.corner_uv))
+    several = len(np.unique(tile)) > 1
+    out = []
+    for g in groups:
+        for t in sorted(set(tile[np.isin(src.slot, g.slots)].tolist())):
+            first = not out
+            folder = g.folder if not several or first else "/".join(p for p in (g.folder, str(t)) if p)
+            out.append(TextureSet(folder, g.slots, int(t)))
+    if several:
+        why += f"; one texture set per UDIM tile ({len(np.unique(tile))} tiles)"
+    return tuple(out), why, []
 
 
 def _refuse(setting: str, source: str | None, why: str, check: LayoutCheck | None = None) -> UvChoice:
@@ -221,11 +244,24 @@ def _read_layout(source: str | None, transform: Similarity | None, mesh: TriMesh
     return KeptLayout(src, order, src.uv[tri], normals, tangents, check)
 
 
-def slot_folders(bake_stats: dict, names: tuple[str, ...]) -> tuple[str, ...]:
-    """Per input material slot ``names``, the folder of its texture set below ``textures/`` as the
-    bake recorded it (``uv.texture_sets``; ``""`` for ``textures/`` itself)."""
-    folder = {name: ts["folder"] for ts in bake_stats.get("uv", {}).get("texture_sets", []) for name in ts["slots"]}
-    return tuple(folder.get(name, "") for name in names)
+def kept_materials(bake_stats: dict, source: SourceMesh) -> tuple[np.ndarray, tuple[str, ...], tuple[str, ...]]:
+    """The asset's materials where the bake kept the input's layout: per input triangle its
+    material ``(T,)``, the materials' names and the folders of their texture sets below
+    ``textures/``, as the bake recorded the sets (``uv.texture_sets``). A material is an input slot
+    in one UDIM tile, named after the slot (``<slot>.<tile>`` where the slot spans several tiles),
+    in the order of the slots and then of the tiles."""
+    sets = bake_stats.get("uv", {}).get("texture_sets", [])
+    folder = {(name, int(ts.get("tile", 1001))): ts["folder"] for ts in sets for name in ts["slots"]}
+    tile = udim(face_tiles(source.corner_uv))
+    combos, names, folders = {}, [], []
+    for k, slot in enumerate(source.slot_names):
+        tiles = sorted(set(tile[source.slot == k].tolist()))
+        for t in tiles:
+            combos[(k, t)] = len(names)
+            names.append(slot if len(tiles) == 1 else f"{slot}.{t}")
+            folders.append(folder.get((slot, t), ""))
+    material = np.array([combos[(int(s), int(t))] for s, t in zip(source.slot, tile, strict=True)], np.int64)
+    return material, tuple(names), tuple(folders)
 
 
 def kept_source(bake_stats: dict, atlas: dict, source: str | None, bake_dir: Path) -> SourceMesh | None:

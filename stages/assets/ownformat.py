@@ -39,25 +39,28 @@ log = logging.getLogger(__name__)
 OBJ_CHANNELS = {"roughness": 1, "metallic": 2}
 
 
-def kept_geometry(source: SourceMesh, transform: Similarity | None = None, folders: tuple[str, ...] = ()) -> ExportMesh:
+def kept_geometry(source: SourceMesh, transform: Similarity | None = None, materials=None) -> ExportMesh:
     """The input's vertices (:mod:`stages.geometry.sourcemesh`: a glTF primitive's own, an OBJ's
     distinct corners in first-use order) and triangles in file order, its UVs and normals (its
-    own; where it has none, smooth vertex normals) and material slots, in its own units and
-    position, or with ``transform`` in the normalised frame. Tangents: MikkTSpace's on its
-    normals and UVs (the frame the bake used) where every corner of a vertex has the same one,
-    else none (viewers then compute the same MikkTSpace themselves)."""
+    own; where it has none, smooth vertex normals) and materials (``materials``: per triangle, the
+    names and the texture sets' folders, :func:`~stages.assets.layouts.kept_materials`; None: the
+    input's slots, one set), in its own units and position, or with ``transform`` in the
+    normalised frame. Tangents: MikkTSpace's on its normals and UVs (the frame the bake used) where
+    every corner of a vertex has the same one, else none (viewers then compute the same
+    MikkTSpace themselves)."""
     pos = source.positions if transform is None else transform.forward(source.positions)
     normals = source.vertex_normals()
     if transform is not None:
         normals = normals @ transform.rotation.T
+    material, names, folders = materials or (source.slot, source.slot_names, ())
     return ExportMesh(
         pos.astype(np.float32),
         normals.astype(np.float32),
         source.uv.astype(np.float32),
         vertex_tangents(pos, normals, source.uv, source.triangles),
         source.triangles.astype(np.int64),
-        source.slot,
-        source.slot_names,
+        material,
+        names,
         repeat=True,
         slot_textures=folders,
     )
@@ -90,22 +93,20 @@ class AssetGeometry:
     own_frame: bool
 
 
-def asset_geometry(
-    mesh, atlas: dict, transform: Similarity, settings, kept: SourceMesh | None, folders: tuple[str, ...] = ()
-) -> AssetGeometry:
+def asset_geometry(mesh, atlas: dict, transform: Similarity, settings, kept: SourceMesh | None, materials=None) -> AssetGeometry:
     """The geometry the export writes (and the round trip checks) for the traced ``mesh`` and the
     bake's ``atlas`` arrays, with the export ``settings`` (units, weld, metres per unit): the
     traced mesh welded (:func:`~stages.assets.formats.export_mesh`), or the input's own topology
-    where the bake kept its layout (:func:`kept_geometry`; ``folders``: each slot's texture set).
-    A glTF input's document keeps its own units (metres, by the specification) and position:
-    ``units`` and ``meters_per_unit`` do not apply to it."""
+    where the bake kept its layout (:func:`kept_geometry`, with its ``materials``). A glTF input's
+    document keeps its own units (metres, by the specification) and position: ``units`` and
+    ``meters_per_unit`` do not apply to it."""
     original = settings.units == "original"
     if kept is None:
         geom = export_mesh(mesh, atlas, transform if original else None, settings.weld)
         return AssetGeometry(geom, None, settings.meters_per_unit, False)
     if kept.kind == "gltf":
-        return AssetGeometry(kept_geometry(kept, None, folders), kept, 1.0, True)
-    geom = kept_geometry(kept, None if original else transform, folders)
+        return AssetGeometry(kept_geometry(kept, None, materials), kept, 1.0, True)
+    geom = kept_geometry(kept, None if original else transform, materials)
     return AssetGeometry(geom, kept, settings.meters_per_unit, original)
 
 
@@ -138,27 +139,42 @@ def write_obj(folder: Path, geom: ExportMesh, source: SourceMesh, transform: Sim
                 Image.fromarray(grey).save(tmp, format="PNG")
             written.append(str(Path("textures", sub, f"{key}.png")))
     with atomic_path(folder / "model.obj") as tmp:
-        tmp.write_text("\n".join(obj_lines(source, transform)) + "\n", encoding="utf-8")
+        tmp.write_text("\n".join(obj_lines(source, transform, geom)) + "\n", encoding="utf-8")
     with atomic_path(folder / "model.mtl") as tmp:
-        tmp.write_text(mtl_text(source.slot_names, [geom.texture_folder(n) for n in source.slot_names], brdf), encoding="utf-8")
+        tmp.write_text(mtl_text(geom.slot_names, [geom.texture_folder(n) for n in geom.slot_names], brdf), encoding="utf-8")
     return written
 
 
-def obj_lines(source: SourceMesh, transform: Similarity | None) -> list[str]:
+def obj_lines(source: SourceMesh, transform: Similarity | None, geom: ExportMesh | None = None) -> list[str]:
     """The input OBJ's lines with the new material library (module docstring); with ``transform``
-    the ``v`` lines are moved into the normalised frame (the only lines that change)."""
+    the ``v`` lines are moved into the normalised frame (the only lines that change). The
+    ``usemtl`` lines name ``geom``'s materials (:func:`kept_geometry`): an input slot's own
+    ``usemtl`` line stays where it names a material; where a slot spans several UDIM tiles a
+    ``usemtl <slot>.<tile>`` line goes before each run of its faces in one tile (faces before any
+    ``usemtl``: ``default``)."""
+    names = geom.slot_names if geom is not None and geom.slot_names else source.slot_names
+    per_face = geom.slots if geom is not None and geom.slots is not None else source.slot
+    first = np.unique(source.part, return_index=True)[1]  # each polygon's first triangle
+    polygon_material = per_face[first]
     out = ["mtllib model.mtl"]
-    material_named = False
+    current, polygon = None, 0
     for line in ObjLines.read(source.path).lines:
         words = line.split()
         head = words[0] if words else ""
         if head == "mtllib":
             continue
         if head == "usemtl":
-            material_named = True
-        if head == "f" and not material_named:
-            out.append("usemtl default")
-            material_named = True
+            name = line.split(None, 1)[1].strip() if len(words) > 1 else ""
+            if name in names:
+                out.append(line)
+                current = name
+            continue
+        if head == "f":
+            want = names[polygon_material[polygon]]
+            polygon += 1
+            if want != current:
+                out.append(f"usemtl {want}")
+                current = want
         if head == "v" and transform is not None:
             x = transform.forward(np.array([float(w) for w in words[1:4]]))
             line = "v " + " ".join(f"{c:.9g}" for c in x)

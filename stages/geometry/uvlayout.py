@@ -12,10 +12,11 @@ A layout is usable when:
   ``COINCIDENT`` of the larger: mirrored halves and repeated parts, however triangulated) share
   texels by design and are baked once (from one of the copies), which the record says; partial
   overlaps between islands and folds inside one are overlap;
-* every face lies in one UV tile: the unit square, or one UDIM tile, within ``TILE_MARGIN`` (a
-  corner may reach that far past its tile's edge, and the texture repeats there, as glTF's default
-  sampler does). A layout over several UDIM tiles needs one texture set per tile, which a glTF or
-  USD material of this tool does not hold yet: such a layout is refused with that reason.
+* every face lies in one UV tile: the unit square, or one UDIM tile (1001-1100: ten tiles across,
+  upwards), within ``TILE_MARGIN`` (a corner may reach that far past its tile's edge, and the
+  texture repeats there, as glTF's default sampler does). Several UDIM tiles get one texture set
+  each, in an OBJ's asset; a glTF document's primitives are kept as they are and cannot read one
+  set per tile, so there they are refused.
 
 The layout must also belong to the traced mesh: the bake evaluates the field on the traced faces,
 so each input triangle must be one of them (:func:`match_faces`; a decimated mesh's faces are not).
@@ -53,8 +54,9 @@ class LayoutCheck:
     seams: int
     resolution: int
 
-    def problems(self, max_overlap: float) -> list[str]:
-        """One line per reason the layout cannot be baked into (empty: usable)."""
+    def problems(self, max_overlap: float, udim: bool = False) -> list[str]:
+        """One line per reason the layout cannot be baked into (empty: usable); ``udim``: several
+        UDIM tiles are usable (one texture set per tile: an OBJ's, not a glTF document's)."""
         out = []
 
         def share(n):
@@ -71,9 +73,14 @@ class LayoutCheck:
             )
         if self.outside:
             out.append(f"{share(self.outside)} reach more than {TILE_MARGIN:g} of a tile past their UV tile")
-        if len(self.tiles) > 1:
+        if len(self.tiles) > 1 and not udim:
             shown = ", ".join(str(t) for t in self.tiles[:6]) + (", ..." if len(self.tiles) > 6 else "")
-            out.append(f"the UVs span {len(self.tiles)} UDIM tiles ({shown}); one texture set per tile is not supported")
+            out.append(
+                f"the UVs span {len(self.tiles)} UDIM tiles ({shown}); a glTF document's primitives, kept as they are, "
+                "cannot read one texture set per tile"
+            )
+        if any(t < 1001 or t > 1100 for t in self.tiles):
+            out.append(f"UDIM tiles outside 1001-1100 ({', '.join(str(t) for t in self.tiles if t < 1001 or t > 1100)})")
         return out
 
     def to_json(self) -> dict:
@@ -87,11 +94,15 @@ def uv_areas(uv: np.ndarray) -> np.ndarray:
 
 
 def face_tiles(uv: np.ndarray) -> np.ndarray:
-    """Integer tile ``(F, 2)`` (u, v; glTF's v down) of each face ``uv (F, 3, 2)``: the unit square
-    where the face lies within ``TILE_MARGIN`` of it, else the tile of its UV centroid."""
+    """Integer tile ``(F, 2)`` (u, v; glTF's v down) of each face ``uv (F, 3, 2)``: the tile of its
+    UV centroid; but a face that lies within ``TILE_MARGIN`` of the unit square counts to the unit
+    square unless its centroid's tile is one the layout uses (a face lies there beyond the
+    margin): a corner reaching past the edge is not a UDIM tile of its own."""
     tiles = np.floor(uv.mean(axis=1)).astype(np.int64)
-    unit = ((uv >= -TILE_MARGIN) & (uv <= 1 + TILE_MARGIN)).all(axis=(1, 2))
-    tiles[unit] = 0
+    near_unit = ((uv >= -TILE_MARGIN) & (uv <= 1 + TILE_MARGIN)).all(axis=(1, 2))
+    used = {tuple(t) for t in np.unique(tiles[~near_unit], axis=0)} if (~near_unit).any() else set()
+    borrowed = near_unit & np.array([tuple(t) not in used for t in tiles], bool).reshape(len(tiles))
+    tiles[borrowed] = 0
     return tiles
 
 
