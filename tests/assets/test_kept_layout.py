@@ -84,12 +84,14 @@ def baked(src: Path, d: Path, uv: str = "auto", **extra) -> dict:
 
 @pytest.fixture(scope="module")
 def cells(tmp_path_factory):
-    """The three inputs, each trained once and baked with ``bake.uv: auto``: ``{name: (input, folder)}``."""
+    """The four inputs (the fourth an OBJ over two UDIM tiles), each trained once and baked with
+    ``bake.uv: auto``: ``{name: (input, folder)}``."""
     root = tmp_path_factory.mktemp("kept")
-    inputs = {"skinned": root / "skinned.glb", "multi": root / "multi.glb", "obj": root / "vase.obj"}
+    inputs = {"skinned": root / "skinned.glb", "multi": root / "multi.glb", "obj": root / "vase.obj", "udim": root / "tiles.obj"}
     uvmeshes.skinned_glb(inputs["skinned"])
     uvmeshes.multi_glb(inputs["multi"])
     uvmeshes.write_obj(inputs["obj"], materials=("Glaze", "Foot"))
+    uvmeshes.write_obj(inputs["udim"], udim=True)
     out = {}
     for name, src in inputs.items():
         d = trained(src, root / name)
@@ -262,7 +264,7 @@ def test_export_refuses_an_input_that_changed_since_the_bake(cells, tmp_path):
         )
 
 
-@pytest.mark.parametrize("name", ["skinned", "multi", "obj"])
+@pytest.mark.parametrize("name", ["skinned", "multi", "obj", "udim"])
 def test_blender_imports_the_own_format_as_it_imports_the_input(cells, name):
     require_blender()
     src, d = cells[name]
@@ -282,7 +284,7 @@ def test_blender_imports_the_own_format_as_it_imports_the_input(cells, name):
     own = json.loads((d / "rt" / "meta.json").read_text())["own_format"]
     assert own["problems"] == [] and own["uv_error"] == 0.0
     assert own["input"]["vertices"] == own["output"]["vertices"] > 0
-    assert own["output"]["file"] == ("model.obj" if name == "obj" else "model.glb")
+    assert own["output"]["file"] == ("model.obj" if name in ("obj", "udim") else "model.glb")
     if name == "skinned":  # one mesh object: every corner compared with what was exported
         assert out["formats"]["glb"]["import"]["problems"] == []
         assert out["formats"]["glb"]["import"]["uv_error"] < 1e-5
@@ -307,18 +309,16 @@ def test_the_measured_meshes_fetch_and_read_with_their_layouts(tmp_path):
     assert faces == {"duck": 4212, "milktruck": 3624, "jeep": 2032}  # as benchmarks/SOURCES.md lists them
 
 
-def test_udim_tiles_of_an_obj_get_one_texture_set_each(tmp_path):
+def test_udim_tiles_of_an_obj_get_one_texture_set_each(cells):
     """An OBJ whose one material spans two UDIM tiles: one texture set per tile, a material per
     tile (``Glaze.1001``, ``Glaze.1002``) in every format, and ``usemtl`` lines before each run of
     faces in a tile, the OBJ's other lines as they were."""
-    src = tmp_path / "tiles.obj"
-    uvmeshes.write_obj(src, udim=True)
-    d = trained(src, tmp_path / "cell")
-    stats = baked(src, d, "keep")
+    src, d = cells["udim"]
+    stats = meta(d, "bake_auto")["stats"]
     sets = stats["uv"]["texture_sets"]
     assert [(ts["folder"], ts["tile"]) for ts in sets] == [("", 1001), ("1002", 1002)]
     assert "one texture set per UDIM tile (2 tiles)" in stats["uv"]["why"]
-    export_dir = d / "export_keep"
+    export_dir = d / "export_auto"
     assert (export_dir / "textures" / "1002" / "basecolor.png").is_file()
     lines = (export_dir / "model.obj").read_text().splitlines()
     original = ObjLines.read(src).lines
@@ -333,6 +333,6 @@ def test_udim_tiles_of_an_obj_get_one_texture_set_each(tmp_path):
     assert [m.name for m in doc.materials] == ["Glaze.1001", "Glaze.1002"]
     a, b = (m.pbrMetallicRoughness.baseColorTexture.index for m in doc.materials)
     assert doc.textures[a].source != doc.textures[b].source
-    assert meta(d, "export_keep")["stats"]["gltf_validation_errors"] == 0
+    assert meta(d, "export_auto")["stats"]["gltf_validation_errors"] == 0
     # the fidelity reads each face's tile's set: as good as one tile's (the field is the same)
     assert stats["bake_psnr_db"] > 35.0
