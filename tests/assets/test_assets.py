@@ -642,6 +642,10 @@ def test_report_fidelity_lines_per_cell():
     metal = wood.assign(target_albedo_rmse=[0.112], target_albedo_rmse_scaled=[None])
     assert "albedo RMSE 0.112, roughness" in " ".join(fidelity_lines(metal))
     assert fidelity_lines(pd.DataFrame({"target_psnr_db": [None]})) == []
+    kept = pd.DataFrame({"uv_layout": ["kept"], "uv_why": ["usable: 13 islands; one material"]})
+    assert fidelity_lines(kept) == ["UV layout: the input's own (usable: 13 islands; one material)"]
+    atlas = pd.DataFrame({"uv_layout": ["atlas"], "uv_why": ["auto: the input has no texture coordinates"]})
+    assert fidelity_lines(atlas) == ["UV layout: a new atlas (auto: the input has no texture coordinates)"]
     lod = pd.DataFrame(
         {
             "lod_faces": ["20352/10176/407"],
