@@ -420,9 +420,14 @@ def _half_vector_terms(nl, cos_tl, c: LightCosines, theta, kappa, sharpness, lam
     b2 = (sharpness * c.bl / lam_p) ** 2  # xi' along n x t, squared
     n_c, t_c = nl + c.nv, t_x + c.sin_nv  # xi' + v along n and t
     across = t_c**2 + b2
-    length = torch.sqrt(n_c**2 + across)
-    tiny = torch.finfo(length.dtype).tiny
-    one_minus_nh = across / torch.clamp(length * (length + n_c), min=tiny)
+    # |xi' + v| held at 1e-6 where the axis is opposite the view (h undefined; the square root's
+    # derivative at 0 is infinite)
+    length = torch.sqrt(torch.clamp(n_c**2 + across, min=1e-12))
+    # 1 - n.h: the sum of squares where h is above the horizon (n_c > 0: no cancellation can reach
+    # the denominator), the plain difference below it (1 - n.h > 1: none to fear)
+    up = n_c > 0
+    den = torch.where(up, length * (length + n_c), torch.ones_like(length))
+    one_minus_nh = torch.where(up, across / den, 1.0 - n_c / length)
     apart = (nl - c.nv) ** 2 + (t_x - c.sin_nv) ** 2 + b2  # |xi' - v|^2
     one_minus_vh = apart / (2.0 * (2.0 + length))
     return one_minus_nh, torch.clamp(one_minus_vh, min=0.0, max=1.0)

@@ -100,3 +100,33 @@ def test_200_steps_with_emulated_tf32_stay_finite(cache):
         losses = [run.step(Timer())["loss"] for _ in range(200)]
     assert mode.products > 200 and all(math.isfinite(x) for x in losses)
     assert losses[-1] < losses[0]
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_half_vector_terms_finite_where_the_product_axis_is_opposite_the_view(dtype):
+    """The fitted lobe's half vector between a product lobe's axis and the view: where that axis is
+    exactly opposite the view (``xi' + v = 0``, the half vector undefined) and where the half vector
+    lies below the horizon, values and gradients stay finite. ``|xi' + v|`` as a bare square root
+    had an infinite derivative at 0: a 3,560-step run's loss was non-finite at step 1,499."""
+    from stages.render.shading import LightCosines, _half_vector_terms
+
+    nv = torch.tensor([[0.6], [0.6], [0.2]], dtype=dtype)
+    sin_nv = torch.sqrt(1 - nv**2)
+    theta = torch.tensor([[0.3], [0.3], [1.2]], dtype=dtype)
+    kappa = torch.tensor([[5.0], [5.0], [40.0]], dtype=dtype)
+    # one light lobe; its sharpness and axis chosen so that xi' = (kappa mu + nu xi) / lam_p is -v
+    # (rows 0 and 1: exactly, and 1e-7 off) or points below the horizon (row 2)
+    nl = torch.tensor([[-0.6], [-0.6 + 1e-7], [-0.9]], dtype=dtype, requires_grad=True)
+    tl = (-sin_nv).clone().requires_grad_()
+    bl = torch.zeros(3, 1, dtype=dtype, requires_grad=True)
+    nu = torch.ones(1, 1, dtype=dtype, requires_grad=True)
+    lam_p = torch.ones(3, 1, dtype=dtype, requires_grad=True)
+    sharp = nu.expand(1, 1)
+    # with nu = lam_p = 1 and kappa sin(theta) folded into tl, t_x = tl - kappa sin(theta) / lam_p
+    tl_in = tl + kappa * torch.sin(theta)
+    c = LightCosines(nl, nl, tl_in, nv, sin_nv, bl)
+    one_minus_nh, one_minus_vh = _half_vector_terms(nl, tl_in, c, theta, kappa, sharp, lam_p)
+    assert torch.isfinite(one_minus_nh).all() and torch.isfinite(one_minus_vh).all()
+    assert float(one_minus_vh[0]) == pytest.approx(1.0)  # v.h = |xi' + v| / 2 = 0
+    grads = torch.autograd.grad((one_minus_nh.sum() + one_minus_vh.sum()), [nl, tl, bl, nu, lam_p])
+    assert all(torch.isfinite(g).all() for g in grads)
