@@ -162,8 +162,11 @@ def sg_hemisphere_integral(sharpness: Tensor, cos_beta: Tensor) -> Tensor:
     lam = sharpness
     t = _hemisphere_t(lam)
     c = cos_beta
-    lo = torch.exp(t * torch.clamp(c, max=0.0))  # exp(t min(c, 0)) <= 1
-    hi = torch.exp(-t * torch.clamp(c, min=0.0))  # exp(-t max(c, 0)) <= 1
+    # exp(t min(c, 0)) and exp(-t max(c, 0)), both <= 1, by one branch each: two clamps would both
+    # pass the gradient at c = 0 exactly (a lobe on the horizon) and double the step's part in it
+    below = c < 0
+    lo = torch.exp(t * torch.where(below, c, torch.zeros_like(c)))
+    hi = torch.exp(-t * torch.where(below, torch.zeros_like(c), c))
     den = torch.clamp(-torch.expm1(-t), min=torch.finfo(t.dtype).tiny)
     s = -torch.expm1(-t * (1.0 + c)) * lo / (den * (lo + hi))
     a_u = math.pi * one_minus_exp_neg2x_over_x(0.5 * lam)  # 2 pi (1 - exp(-lam)) / lam

@@ -394,8 +394,14 @@ def _view_tangent(normal: Tensor, view: Tensor, cos_nv: Tensor) -> tuple[Tensor,
     """The unit direction ``t (N, 3)`` of the view across the normal and the view's sine with it
     ``(N, 1)``: ``(v - (n.v) n) / sin``; at a normal view (sine below 1e-7), where the lobe's mean
     is the normal and any direction across it serves, ``n x e`` normalised for the coordinate axis
-    ``e`` least aligned with ``n``, so that ``(n, t, n x t)`` stays a frame."""
-    tangent = view - cos_nv * normal
+    ``e`` least aligned with ``n``, so that ``(n, t, n x t)`` stays a frame.
+
+    ``v - (n.v) n`` is taken as ``(n x v) x n`` (equal for a unit ``n``): a cross product with ``n``
+    is perpendicular to ``n`` to its own rounding, where the difference near a normal view keeps
+    float32's rounding of ``n.v`` along ``n`` (at a sine of 1.3e-7 the "tangent" pointed mostly along
+    the normal, and a horizon lobe's specular came out 13 times too dark in float32; found by
+    ``benchmarks/precision.py``)."""
+    tangent = torch.linalg.cross(torch.linalg.cross(normal, view, dim=-1), normal, dim=-1)
     sin_nv = torch.linalg.vector_norm(tangent, dim=-1, keepdim=True)
     pick = torch.nn.functional.one_hot(normal.abs().argmin(dim=-1), 3).to(normal.dtype)
     across = torch.nn.functional.normalize(torch.linalg.cross(normal, pick, dim=-1), dim=-1)

@@ -401,6 +401,21 @@ def test_hemisphere_integral_finite_over_stated_range(dtype):
     assert torch.isfinite(lam.grad).all() and torch.isfinite(c.grad).all()
 
 
+@pytest.mark.parametrize("lam", [1e-2, 1.0, 100.0, 1e5])
+def test_hemisphere_integral_gradient_on_the_horizon(lam):
+    """A lobe exactly on the horizon (``c = 0``: an axis-aligned normal and a light lobe on the
+    equator) has the derivative of the smooth function there, the central difference's: the two
+    branches' clamps once both passed the gradient at 0 and doubled the step's part (found by
+    ``benchmarks/precision.py``: the diffuse term's gradient to the normal 290 times too large at
+    sharpness 100)."""
+    lt = torch.tensor([[lam]], dtype=F64)
+    c = torch.zeros(1, 1, dtype=F64, requires_grad=True)
+    sg_hemisphere_integral(lt, c).sum().backward()
+    h = 1e-6 / math.sqrt(lam)
+    step = lambda x: sg_hemisphere_integral(lt, torch.tensor([[x]], dtype=F64)).item()  # noqa: E731
+    assert c.grad.item() == pytest.approx((step(h) - step(-h)) / (2 * h), rel=1e-5)
+
+
 #: sg.py's COS_* docstring: within 0.008 of max(v . n, 0) on the upper hemisphere (measured 0.0077)
 COSINE_FIT_BOUND = 0.008
 
