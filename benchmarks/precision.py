@@ -169,55 +169,45 @@ def _directions(count: int, dtype: torch.dtype) -> Tensor:
     return fibonacci_sphere(count).to(dtype)
 
 
-def _shares(l: dict[str, Tensor], f: dict) -> Tensor:
+def _shares(lt: dict[str, Tensor], f: dict) -> Tensor:
     """The shadows' shares as training computes them: the quadrature's products in bfloat16 under
     the bfloat16 column's autocast (``f["bf16_products"]``), the rest of the renderer outside it."""
     normal = f["normal"]
     with torch.autocast("cpu", dtype=torch.bfloat16, enabled=f["bf16_products"]):
-        return lobe_visibility_bits(normal, f["bits"], _directions(DIRECTIONS, normal.dtype), l["axis"], l["sharpness"])
+        return lobe_visibility_bits(normal, f["bits"], _directions(DIRECTIONS, normal.dtype), lt["axis"], lt["sharpness"])
+
+
+def _specular(model: Callable, *brdf: str) -> tuple[tuple[str, ...], Callable]:
+    reads = ("normal", "view", "specular", "roughness")
+    return reads, lambda p, lt, f: model(*(p[k] for k in reads), _light(lt), *brdf)
 
 
 #: term -> (the point inputs it reads, its function of (points, light, fixed) -> (N, C))
 TERMS: dict[str, tuple[tuple[str, ...], Callable]] = {
-    "light radiance L(d)": (("direction",), lambda p, l, f: _light(l).radiance(p["direction"])),
-    "diffuse (TANGO)": (("normal", "albedo"), lambda p, l, f: sh.diffuse_radiance(p["normal"], p["albedo"], _light(l))),
+    "light radiance L(d)": (("direction",), lambda p, lt, f: _light(lt).radiance(p["direction"])),
+    "diffuse (TANGO)": (("normal", "albedo"), lambda p, lt, f: sh.diffuse_radiance(p["normal"], p["albedo"], _light(lt))),
     "diffuse (glTF, Fresnel-weighted)": (
         ("normal", "view", "albedo", "metallic"),
-        lambda p, l, f: sh.diffuse_radiance_gltf(p["normal"], p["view"], p["albedo"] * (1 - p["metallic"]), _light(l)),
+        lambda p, lt, f: sh.diffuse_radiance_gltf(p["normal"], p["view"], p["albedo"] * (1 - p["metallic"]), _light(lt)),
     ),
-    "specular isotropic (TANGO)": (
-        ("normal", "view", "specular", "roughness"),
-        lambda p, l, f: sh.specular_radiance(p["normal"], p["view"], p["specular"], p["roughness"], _light(l)),
-    ),
-    "specular split sum (TANGO)": (
-        ("normal", "view", "specular", "roughness"),
-        lambda p, l, f: sh.specular_radiance_split_sum(p["normal"], p["view"], p["specular"], p["roughness"], _light(l), "tango"),
-    ),
-    "specular split sum (glTF)": (
-        ("normal", "view", "specular", "roughness"),
-        lambda p, l, f: sh.specular_radiance_split_sum(p["normal"], p["view"], p["specular"], p["roughness"], _light(l), "gltf"),
-    ),
-    "specular fitted (TANGO)": (
-        ("normal", "view", "specular", "roughness"),
-        lambda p, l, f: sh.specular_radiance_fitted(p["normal"], p["view"], p["specular"], p["roughness"], _light(l), "tango"),
-    ),
-    "specular fitted (glTF)": (
-        ("normal", "view", "specular", "roughness"),
-        lambda p, l, f: sh.specular_radiance_fitted(p["normal"], p["view"], p["specular"], p["roughness"], _light(l), "gltf"),
-    ),
-    "visible shares (512 directions)": ((), lambda p, l, f: _shares(l, f)),
+    "specular isotropic (TANGO)": _specular(sh.specular_radiance),
+    "specular split sum (TANGO)": _specular(sh.specular_radiance_split_sum, "tango"),
+    "specular split sum (glTF)": _specular(sh.specular_radiance_split_sum, "gltf"),
+    "specular fitted (TANGO)": _specular(sh.specular_radiance_fitted, "tango"),
+    "specular fitted (glTF)": _specular(sh.specular_radiance_fitted, "gltf"),
+    "visible shares (512 directions)": ((), lambda p, lt, f: _shares(lt, f)),
     "glTF shading with shares": (
         ("normal", "view", "albedo", "metallic", "roughness"),
-        lambda p, l, f: (
+        lambda p, lt, f: (
             sh.shade_gltf(
                 p["normal"],
                 p["view"],
                 p["albedo"],
                 p["metallic"],
                 p["roughness"],
-                _light(l),
+                _light(lt),
                 "fitted",
-                _shares(l, f),
+                _shares(lt, f),
             ).rgb
         ),
     ),
@@ -235,20 +225,31 @@ class Run:
 
 @dataclass(frozen=True)
 class Precision:
-    """How a column computes: ``rounded`` the dtype the networks' outputs are rounded to,
-    ``compute`` the dtype of the tensors, ``autocast`` the shares' products in bfloat16 (the
-    autocast training opens around them alone)."""
+    """How a column computes: every input first rounded to ``inputs``, the networks' outputs
+    further to ``network``, the term run on ``compute`` tensors, and ``autocast``: the shares'
+    products in bfloat16 (the autocast training opens around them alone). ``reference``: the
+    float64 run it is compared with."""
 
     name: str
-    rounded: torch.dtype
+    inputs: torch.dtype
+    network: torch.dtype
     compute: torch.dtype
     autocast: bool = False
+    reference: Precision | None = None
 
 
-REFERENCE = Precision("float64", F64, F64)
+REFERENCE = Precision("float64", F64, F64, F64)
+#: float32 against float64 on the same (float32) inputs: the code's arithmetic alone (the
+#: inputs' own rounding is the problem's conditioning, which no code removes)
+FLOAT32 = Precision(
+    "float32", torch.float32, torch.float32, torch.float32, reference=Precision("float64", torch.float32, torch.float32, F64)
+)
 #: bfloat16 as training uses it (``bf16_networks``): the networks' outputs carry bfloat16's
-#: rounding, the renderer computes in float32, the shares' products in bfloat16 (autocast)
-PRECISIONS = (Precision("float32", torch.float32, torch.float32), Precision("bfloat16", torch.bfloat16, torch.float32, True))
+#: rounding (an upper bound: the normal network's output is a bounded tilt of a float32 normal),
+#: the renderer computes in float32, the shares' products in bfloat16; against float64 on the
+#: unrounded inputs, so that it shows what the lever costs
+BFLOAT16 = Precision("bfloat16", torch.float32, torch.bfloat16, torch.float32, autocast=True, reference=REFERENCE)
+PRECISIONS = (FLOAT32, BFLOAT16)
 #: the point inputs that the networks produce (rounded to ``Precision.rounded``)
 NETWORK_OUTPUTS = frozenset({"normal", "albedo", "specular", "metallic", "roughness"})
 #: inputs that are unit vectors: only their gradients' components across the vector count (the
@@ -261,12 +262,16 @@ def _tangential(grad: Tensor, unit: Tensor) -> Tensor:
     return grad - (grad * unit).sum(-1, keepdim=True) * unit
 
 
-def _grads(leaves: dict[str, Tensor], keys, ref: dict[str, Tensor], rows: int) -> list[Tensor]:
+def _grads(leaves: dict[str, Tensor], keys, rows: int) -> list[Tensor]:
+    """The leaves' gradients, float64, ``(rows, -1)`` each; a unit vector's on the sphere at the
+    leaf's own (normalised) value."""
     out = []
     for k in keys:
-        g = leaves[k].grad
-        g = torch.zeros_like(ref[k]) if g is None else g.to(F64)
-        out.append((_tangential(g, ref[k]) if k in UNIT else g).reshape(rows, -1))
+        leaf = leaves[k].detach().to(F64)
+        g = torch.zeros_like(leaf) if leaves[k].grad is None else leaves[k].grad.to(F64)
+        if k in UNIT:
+            g = _tangential(g, torch.nn.functional.normalize(leaf, dim=-1))
+        out.append(g.reshape(rows, -1))
     return out
 
 
@@ -277,11 +282,12 @@ def run_term(fn: Callable, reads: tuple[str, ...], case: Case, precision: Precis
 
     def leaf(key: str, v: Tensor, grad: bool) -> Tensor:
         # copies: the float64 pass must not make the case's own tensors leaves with gradients
-        rounded = v.detach().to(precision.rounded if key in NETWORK_OUTPUTS else precision.compute)
+        rounded = v.detach().to(precision.inputs)
+        rounded = rounded.to(precision.network) if key in NETWORK_OUTPUTS else rounded
         return rounded.to(precision.compute, copy=True).requires_grad_(grad)
 
     points = {k: leaf(k, v, k in reads) for k, v in source.items()}
-    if precision.rounded != precision.compute and "normal" in points:
+    if precision.network == torch.bfloat16 and "normal" in points:
         # the field normalises its normal network's output and keeps it facing the viewer
         with torch.no_grad():
             unit = torch.nn.functional.normalize(points["normal"], dim=-1)
@@ -292,8 +298,8 @@ def run_term(fn: Callable, reads: tuple[str, ...], case: Case, precision: Precis
     weights = torch.linspace(0.5, 1.5, out.numel(), dtype=F64).view_as(out)
     (out.to(F64) * weights).sum().backward()
     n = out.shape[0]
-    grads = _grads(points, reads, {k: v.to(F64) for k, v in source.items()}, n)
-    lgrads = [g.reshape(-1) for g in _grads(light, light, case.light, 1)]
+    grads = _grads(points, reads, n)
+    lgrads = [g.reshape(-1) for g in _grads(light, light, 1)]
     return Run(out.detach().to(F64), torch.cat(grads, dim=1) if grads else None, torch.cat(lgrads) if lgrads else None)
 
 
@@ -340,9 +346,9 @@ def measure(cases: list[Case], terms: dict[str, tuple[tuple[str, ...], Callable]
     for name, (reads, fn) in terms.items():
         errors = {p: {q: Errors() for q in ("value", "point grad", "light grad")} for p in ("float32", "bfloat16")}
         for case in cases:
-            ref = run_term(fn, reads, case, REFERENCE)
             for precision in PRECISIONS:
                 prec = precision.name
+                ref = run_term(fn, reads, case, precision.reference)
                 got = run_term(fn, reads, case, precision)
                 errors[prec]["value"].add(ref.value, got.value, case.labels)
                 if ref.point_grad is not None:
@@ -378,11 +384,11 @@ def light_cases(grid: Grid, seed: int = 1) -> list[Case]:
     return cases
 
 
-def _light_module(p, l, f) -> Tensor:
+def _light_module(p, lt, f) -> Tensor:
     from stages.model.networks import SGLightModule
 
-    module = SGLightModule(LOBES).to(l["axis_raw"].dtype)
-    light = torch.func.functional_call(module, dict(l), ())
+    module = SGLightModule(LOBES).to(lt["axis_raw"].dtype)
+    light = torch.func.functional_call(module, dict(lt), ())
     return torch.cat([light.axis, light.sharpness, light.amplitude], dim=1)
 
 
@@ -460,15 +466,15 @@ def storage_angles(seed: int = 2) -> list[tuple[str, float]]:
     return out
 
 
-def _mesh_shading(p, l, f) -> Tensor:
-    return sh.shade_gltf(p["normal"], p["view"], p["albedo"], p["metallic"], p["roughness"], _light(l), "fitted").rgb
+def _mesh_shading(p, lt, f) -> Tensor:
+    return sh.shade_gltf(p["normal"], p["view"], p["albedo"], p["metallic"], p["roughness"], _light(lt), "fitted").rgb
 
 
 def all_measurements(grid: Grid) -> dict[str, dict[str, dict[str, Summary]]]:
     results = measure(shading_cases(grid), TERMS)
     results |= measure(
         hemisphere_cases(grid),
-        {"SG hemisphere integral": (("lam", "cos"), lambda p, l, f: sg_hemisphere_integral(p["lam"], p["cos"]))},
+        {"SG hemisphere integral": (("lam", "cos"), lambda p, lt, f: sg_hemisphere_integral(p["lam"], p["cos"]))},
     )
     results |= measure(light_cases(grid), {"light parametrisation": ((), _light_module)})
     results |= measure(

@@ -365,7 +365,9 @@ def log_soft_cosine(cos: Tensor, width: float = HORIZON_SOFTNESS) -> Tensor:
 class LightCosines(NamedTuple):
     """Each light lobe's axis against a point's frame ``(N, K)``: its cosines with the normal
     (``nl``), the view (``vl``), the view's tangent direction (``tl``) and ``n x t`` (``bl``); and
-    per point ``(N, 1)`` the view's cosine with the normal (``nv``) and its sine (``sin_nv``). The
+    per point ``(N, 1)`` the view's components along the normal (``nv``), along ``t`` (its sine,
+    ``sin_nv``) and along ``n x t`` (``vb``: 0, but its gradient is the view's motion across the
+    plane, which the sine alone loses where the view is normal and ``t`` an arbitrary choice). The
     axis's component across the ``n``-``t`` plane is ``bl`` itself, not ``1 - nl^2 - tl^2``: that
     difference cancels where the axis lies in the plane and, clamped at 0, left a kink that
     float32's rounding of a unit normal crossed (the fitted lobe's gradient to the normal erred by
@@ -377,6 +379,7 @@ class LightCosines(NamedTuple):
     nv: Tensor
     sin_nv: Tensor
     bl: Tensor
+    vb: Tensor | float = 0.0
 
 
 class BrdfPart(NamedTuple):
@@ -423,7 +426,8 @@ def _half_vector_terms(nl, cos_tl, c: LightCosines, theta, kappa, sharpness, lam
     to 127 as the step shrank; float32's gradient erred by 29% to the view and 8% to the normal)."""
     sin_t = torch.sin(theta)
     t_x = (sharpness * cos_tl - kappa * sin_t) / lam_p  # xi' along t
-    b2 = (sharpness * c.bl / lam_p) ** 2  # xi' along n x t, squared
+    b_x = sharpness * c.bl / lam_p  # xi' along n x t
+    b2 = (b_x + c.vb) ** 2  # (xi' + v) along n x t, squared
     n_c, t_c = nl + c.nv, t_x + c.sin_nv  # xi' + v along n and t
     across = t_c**2 + b2
     # |xi' + v| held at 1e-6 where the axis is opposite the view (h undefined; the square root's
@@ -434,7 +438,7 @@ def _half_vector_terms(nl, cos_tl, c: LightCosines, theta, kappa, sharpness, lam
     up = n_c > 0
     den = torch.where(up, length * (length + n_c), torch.ones_like(length))
     one_minus_nh = torch.where(up, across / den, 1.0 - n_c / length)
-    apart = (nl - c.nv) ** 2 + (t_x - c.sin_nv) ** 2 + b2  # |xi' - v|^2
+    apart = (nl - c.nv) ** 2 + (t_x - c.sin_nv) ** 2 + (b_x - c.vb) ** 2  # |xi' - v|^2
     one_minus_vh = apart / (2.0 * (2.0 + length))
     return one_minus_nh, torch.clamp(one_minus_vh, min=0.0, max=1.0)
 
@@ -443,7 +447,7 @@ def _fitted_part(c: LightCosines, part: BrdfPart, roughness: Tensor, sharpness: 
     """``int f_part(l) (n . l) G_k(l) dl / energy`` for one part of the BRDF and every unit light
     lobe ``k`` -> ``(N, K)``; see :func:`specular_radiance_fitted`. ``roughness (N, 1)``,
     ``sharpness (1, K)``."""
-    cos_nl, cos_vl, cos_tl, cos_nv, sin_nv, _ = c
+    cos_nl, cos_tl, cos_nv = c.nl, c.tl, c.nv
     theta, kappa, energy, fresnel_part = part
     cos_t, sin_t = torch.cos(theta), torch.sin(theta)
     cos_ml = cos_t * cos_nl - sin_t * cos_tl  # mu = cos(theta) n - sin(theta) t: the lobe's mean direction
@@ -523,12 +527,15 @@ def specular_radiance_fitted(
     normal, view, specular, roughness = (x.to(work) for x in (normal, view, specular, roughness))
     axis, sharpness, amplitude = light.axis.to(work), light.sharpness.to(work).T, light.amplitude.to(work)
     cos_nv = torch.clamp((normal * view).sum(-1, keepdim=True), min=1e-6, max=1.0)
-    tangent, sin_nv = _view_tangent(normal, view, cos_nv)
-    cos_nl, cos_vl, cos_tl = normal @ axis.T, view @ axis.T, tangent @ axis.T
-    cos_bl = torch.linalg.cross(normal, tangent, dim=-1) @ axis.T
+    tangent, _ = _view_tangent(normal, view, cos_nv)
+    across = torch.linalg.cross(normal, tangent, dim=-1)
+    cos_nl, cos_vl, cos_tl, cos_bl = normal @ axis.T, view @ axis.T, tangent @ axis.T, across @ axis.T
+    # the view's components across the normal as products with the frame, so that its gradient
+    # holds in every direction across n (at a normal view the sine's norm had none)
+    sin_nv, view_b = (view * tangent).sum(-1, keepdim=True), (view * across).sum(-1, keepdim=True)
     a, b = directional_albedo(cos_nv, roughness, brdf)
     theta_a, kappa_a, theta_b, kappa_b = lobe_moments(cos_nv, roughness, brdf)
-    cosines = LightCosines(cos_nl, cos_vl, cos_tl, cos_nv, sin_nv, cos_bl)
+    cosines = LightCosines(cos_nl, cos_vl, cos_tl, cos_nv, sin_nv, cos_bl, view_b)
     vis = None if visibility is None else visibility.to(work)
     part_a = _shadowed(_fitted_part(cosines, BrdfPart(theta_a, kappa_a, a, "a"), roughness, sharpness, brdf), vis) @ amplitude
     part_b = _shadowed(_fitted_part(cosines, BrdfPart(theta_b, kappa_b, b, "b"), roughness, sharpness, brdf), vis) @ amplitude

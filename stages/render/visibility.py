@@ -70,16 +70,23 @@ VISIBILITY_BLOCK = 512
 
 
 class _VisibleSums(torch.autograd.Function):
-    """``lit = (c * v) @ w.T`` and ``whole = c @ w.T`` with ``c = max(normal @ directions.T, 0)``
-    and ``v`` the unpacked bits, block by block of :data:`VISIBILITY_BLOCK` points, without
-    keeping the ``(N, D)`` matrices: the backward (to ``w`` alone: the normals and the bits are
-    data) rebuilds each block's and adds ``g_lit.T @ (c * v) + g_whole.T @ c``. Each block's two
-    matrices are stacked, ``[c * v; c] (2 n, D)``, so that each block is one product each way;
-    ``products``: the dtype they are built and multiplied in (the sums are returned in ``w``'s)."""
+    """Each lobe's visible share ``(lit + e) / (lit + blocked + e)`` (``e`` :data:`_EMPTY`) from
+    ``lit = (c * v) @ w.T`` and ``blocked = (c * (1 - v)) @ w.T``, with ``c = max(normal @
+    directions.T, 0)`` and ``v`` the unpacked bits, block by block of :data:`VISIBILITY_BLOCK`
+    points, without keeping the ``(N, D)`` matrices: the backward (to ``w`` alone: the normals and
+    the bits are data) rebuilds each block's and adds ``a.T @ (c * v) + b.T @ (c * (1 - v))`` with
+    the share's derivatives ``a = g blocked / S^2`` and ``b = -g (lit + e) / S^2``, ``S`` the
+    denominator: products, never differences. (Through autograd's ``1 / S - (lit + e) / S^2``
+    the two terms cancel where a point's share is near 1, and their float32 rounding, times a
+    sun's sharpness, made its axis's gradient 1e4 times too large at an open point; found by
+    ``benchmarks/precision.py``.) Each block's two matrices are stacked, ``[c * v; c * (1 - v)]
+    (2 n, D)``, so that each block is one product each way; ``products``: the dtype they are built
+    and multiplied in (the share is returned in ``w``'s)."""
 
     @staticmethod
     def _blocks(normal: Tensor, bits: Tensor, directions: Tensor, products: torch.dtype):
-        """``(start, stop, [c * v; c])`` per block of points, ``(2 (stop - start), D)`` in ``products``."""
+        """``(start, stop, [c * v; c * (1 - v)])`` per block of points, ``(2 (stop - start), D)``
+        in ``products``."""
         count = directions.shape[0]
         for start in range(0, normal.shape[0], VISIBILITY_BLOCK):
             stop = min(start + VISIBILITY_BLOCK, normal.shape[0])
@@ -88,28 +95,32 @@ class _VisibleSums(torch.autograd.Function):
             cos = both[n:]
             cos.copy_(torch.mm(normal[start:stop], directions.T).clamp_(min=0.0))
             torch.mul(cos, unpack_bits(bits[start:stop], count, products), out=both[:n])
+            cos -= both[:n]  # exact: v is 0 or 1
             yield start, stop, both
 
     @staticmethod
     def forward(ctx, normal: Tensor, bits: Tensor, directions: Tensor, w: Tensor, products: torch.dtype):
         wt = w.T.to(products).contiguous()
-        lit, whole = [], []
+        lit, blocked = [], []
         for start, stop, both in _VisibleSums._blocks(normal, bits, directions, products):
             sums = torch.mm(both, wt)
             lit.append(sums[: stop - start])
-            whole.append(sums[stop - start :])
-        ctx.save_for_backward(normal, bits, directions)
+            blocked.append(sums[stop - start :])
+        lit, blocked = torch.cat(lit).to(w.dtype), torch.cat(blocked).to(w.dtype)
+        ctx.save_for_backward(normal, bits, directions, lit, blocked)
         ctx.products = products
-        return torch.cat(lit).to(w.dtype), torch.cat(whole).to(w.dtype)
+        return (lit + _EMPTY) / (lit + blocked + _EMPTY)
 
     @staticmethod
     @torch.autograd.function.once_differentiable
-    def backward(ctx, g_lit: Tensor, g_whole: Tensor):
-        normal, bits, directions = ctx.saved_tensors
-        g_w = torch.zeros(g_lit.shape[1], directions.shape[0], dtype=g_lit.dtype, device=g_lit.device)
-        k = g_lit.shape[1]
+    def backward(ctx, grad: Tensor):
+        normal, bits, directions, lit, blocked = ctx.saved_tensors
+        whole = lit + blocked + _EMPTY  # (its square underflows in float32 where both sums vanish)
+        g_lit, g_blocked = grad * (blocked / whole) / whole, -grad * ((lit + _EMPTY) / whole) / whole
+        g_w = torch.zeros(grad.shape[1], directions.shape[0], dtype=grad.dtype, device=grad.device)
+        k = grad.shape[1]
         for start, stop, both in _VisibleSums._blocks(normal, bits, directions, ctx.products):
-            g = torch.cat([g_lit[start:stop], g_whole[start:stop]])
+            g = torch.cat([g_lit[start:stop], g_blocked[start:stop]])
             sums = torch.mm(_split(g, ctx.products).T, both).to(g_w.dtype)
             g_w += sums if sums.shape[0] == k else sums[:k] + sums[k:]
         return None, None, None, g_w, None
@@ -118,8 +129,9 @@ class _VisibleSums(torch.autograd.Function):
 def _split(x: Tensor, dtype: torch.dtype) -> Tensor:
     """``(n, K)`` -> ``(n, 2 K)``: ``x`` rounded to ``dtype`` and the rounding's remainder, side by
     side (their sum holds ``x`` to about twice ``dtype``'s mantissa), or ``(n, K)`` of ``x`` alone
-    when ``dtype`` is ``x``'s. In the backward, the lit sum's and the whole sum's terms, of opposite
-    sign, cancel to about a tenth; rounded once, the gradient erred by 4% of its norm (measured)."""
+    when ``dtype`` is ``x``'s. In the backward the lit and blocked sums' terms, of opposite sign,
+    cancel to about a tenth; rounded once, the gradient erred by 4% of its norm (measured when the
+    backward summed the lit and whole sums' terms)."""
     if dtype == x.dtype:
         return x
     high = x.to(dtype)
@@ -150,8 +162,7 @@ def lobe_visibility_bits(normal: Tensor, bits: Tensor, directions: Tensor, axis:
         # weights below the smallest normal float are 0 to the sums' precision, and as subnormal
         # operands they made the products several times slower (measured: 67 ms against 28 ms)
         w = torch.where(w >= torch.finfo(work).tiny, w, torch.zeros_like(w))
-        lit, whole = _VisibleSums.apply(normal, bits, directions, w, products)
-        return (lit + _EMPTY) / (whole + _EMPTY)
+        return _VisibleSums.apply(normal, bits, directions, w, products)
 
 
 def _full_precision(device: torch.device):
