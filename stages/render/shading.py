@@ -29,6 +29,10 @@ GLTF_DIELECTRIC_F0 = 0.04
 _LOG_RATIO_FLOOR = -80.0
 #: the width of the fitted lobe's soft horizon (:func:`log_soft_cosine`), in cosine
 HORIZON_SOFTNESS = 1e-3
+#: the split sum's average light is the ratio of its two integrals where the lobe's mean cosine
+#: with the normal exceeds this (above the cosine fit's error, 0.008), the light along the lobe
+#: where it is 0 (a lobe on the horizon), a blend between
+SPLIT_SUM_TRUSTED_COSINE = 0.01
 
 
 @dataclass(frozen=True)
@@ -41,9 +45,17 @@ class SGLight:
     amplitude: Tensor
 
     def radiance(self, directions: Tensor) -> Tensor:
-        """``L(w)`` at unit ``directions (..., 3)`` -> ``(..., C)``: the sum of the lobes."""
-        cos = directions @ self.axis.T  # (..., K)
-        return torch.exp(self.sharpness.T * (cos - 1.0)) @ self.amplitude
+        """``L(w)`` at unit ``directions (..., 3)`` -> ``(..., C)``: the sum of the lobes, each
+        ``exp(lam (w . xi - 1))`` with ``w . xi - 1 = -|w - xi|^2 / 2`` (for unit vectors): the
+        difference ``w . xi - 1`` loses the angle below float32's 3.5e-4 radians, which a lobe of
+        sharpness 1e5 (3e-3 radians wide) resolves, and its gradient was the large ``lam xi``
+        whose part across ``w``, small near the axis, drowned in that vector's rounding (both 2%
+        in float32; ``benchmarks/precision.py``)."""
+        work = torch.promote_types(directions.dtype, torch.float32)  # (cdist has no bfloat16)
+        flat, axis = directions.reshape(-1, 3).to(work), self.axis.to(work)
+        apart = torch.cdist(flat, axis, compute_mode="donot_use_mm_for_euclid_dist")  # |w - xi|, (M, K)
+        out = torch.exp(-0.5 * self.sharpness.T.to(work) * apart * apart) @ self.amplitude.to(work)
+        return out.reshape(*directions.shape[:-1], -1).to(torch.promote_types(directions.dtype, self.amplitude.dtype))
 
 
 @dataclass(frozen=True)
@@ -233,6 +245,36 @@ def gltf_f0(base: Tensor, metallic: Tensor) -> Tensor:
     return GLTF_DIELECTRIC_F0 * (1.0 - metallic) + base * metallic
 
 
+def _one_minus_schlick(vh: Tensor) -> Tensor:
+    """``1 - (1 - x)^5`` as its expanded polynomial ``x (5 - 10 x + 10 x^2 - 5 x^3 + x^4)``: the
+    difference loses its relative precision as ``x`` nears 0 (a half vector nearly across the
+    view), the polynomial keeps it."""
+    return vh * (5.0 + vh * (-10.0 + vh * (10.0 + vh * (-5.0 + vh))))
+
+
+def _diffuse_half_vector_cosine(normal: Tensor, view: Tensor, cos_nv: Tensor, light: SGLight) -> Tensor:
+    """``v . h`` ``(N, K)`` with ``h`` the half vector of the view and the axis ``q = (c n + lam xi)
+    / lam_q`` of each light lobe's product with the clamped cosine's SG (``c`` its sharpness),
+    from the components of ``q + v`` in the frame ``(n, t, n x t)`` of the view's tangent
+    direction ``t``: ``v . h = |q + v| / 2``, a sum of squares. The difference ``1 + q . v``
+    cancels where the product's axis is opposite the view (a broad lobe under the horizon seen
+    along the normal: float32's value was 150 times too small there; ``benchmarks/precision.py``).
+    Held at 1e-6 where ``q = -v`` (``h`` undefined; the square root's derivative infinite)."""
+    tangent, _ = _view_tangent(normal, view, cos_nv)
+    across = torch.linalg.cross(normal, tangent, dim=-1)
+    lam = light.sharpness.T
+    cos_n, cos_t, cos_b = normal @ light.axis.T, tangent @ light.axis.T, across @ light.axis.T
+    lam_q, _ = _product_terms(lam, torch.as_tensor(COS_LAMBDA, dtype=lam.dtype, device=lam.device), cos_n)
+    defined = lam_q > 0  # else q is the normal (the product is the cosine's lobe alone)
+    safe = torch.where(defined, lam_q, torch.ones_like(lam_q))
+    q_n = torch.where(defined, (COS_LAMBDA + lam * cos_n) / safe, torch.ones_like(lam_q))
+    q_t = torch.where(defined, lam * cos_t / safe, torch.zeros_like(lam_q))
+    q_b = torch.where(defined, lam * cos_b / safe, torch.zeros_like(lam_q))
+    v_t, v_b = (view * tangent).sum(-1, keepdim=True), (view * across).sum(-1, keepdim=True)
+    squared = (q_n + cos_nv) ** 2 + (q_t + v_t) ** 2 + (q_b + v_b) ** 2  # |q + v|^2
+    return torch.sqrt(torch.clamp(squared / 4.0, min=1e-12, max=1.0))
+
+
 def diffuse_radiance_gltf(
     normal: Tensor, view: Tensor, diffuse_color: Tensor, light: SGLight, visibility: Tensor | None = None
 ) -> Tensor:
@@ -246,17 +288,11 @@ def diffuse_radiance_gltf(
     with the clamped cosine's SG (where the integrand sits): exact for a lobe far sharper than the
     cosine (a sun), and for a broad one the weight at ``h`` between ``v`` and ``n``. Tested against
     Monte Carlo of the specification's formula. ``visibility (N, K)``: each lobe's visible share."""
-    cos_n = normal @ light.axis.T  # (N, K)
-    cos_v = view @ light.axis.T
     cos_nv = (normal * view).sum(-1, keepdim=True)
     lam = light.sharpness.T
+    cos_n = normal @ light.axis.T  # (N, K)
     per_lobe = _cosine_weighted_hemisphere(lam, cos_n, torch.zeros_like(lam))
-    lam_q, _ = _product_terms(lam, torch.as_tensor(COS_LAMBDA, dtype=lam.dtype, device=lam.device), cos_n)
-    safe = torch.where(lam_q > 0, lam_q, torch.ones_like(lam_q))
-    cos_qv = torch.where(lam_q > 0, (COS_LAMBDA * cos_nv + lam * cos_v) / safe, cos_nv.expand_as(lam_q))
-    # v . h from |v + xi'| = 2 v.h; kept off 0, where the square root's gradient is infinite
-    vh = torch.sqrt(torch.clamp((1.0 + cos_qv) / 2.0, min=1e-12, max=1.0))
-    weight = (1.0 - GLTF_DIELECTRIC_F0) * (1.0 - (1.0 - vh) ** FRESNEL_POWER)
+    weight = (1.0 - GLTF_DIELECTRIC_F0) * _one_minus_schlick(_diffuse_half_vector_cosine(normal, view, cos_nv, light))
     irradiance = _shadowed(per_lobe * weight, visibility) @ light.amplitude
     return diffuse_color / math.pi * torch.clamp(irradiance, min=0.0)
 
@@ -322,7 +358,13 @@ def specular_radiance_split_sum(
     whole = _cosine_weighted_hemisphere(w_lam, cos_nw.clamp(-1.0, 1.0), torch.zeros_like(w_lam))  # (N, 1)
     tiny = torch.finfo(whole.dtype).tiny
     brightest = light.amplitude.sum(0, keepdim=True)  # (1, C): no average of the light exceeds it
-    mean = torch.minimum(torch.clamp(lit, min=0.0) / torch.clamp(whole, min=tiny), brightest)
+    ratio = torch.minimum(torch.clamp(lit, min=0.0) / torch.clamp(whole, min=tiny), brightest)
+    # a lobe on the horizon: the cosine's SG fit errs by up to 0.008 in the cosine, and both
+    # integrals sink into that error (``whole`` came out negative at n . v = 1e-3, and the ratio
+    # of two vanishing numbers was the brightest light in float64 and 0 in float32); there the
+    # average tends to the light along the lobe, taken where ``whole`` falls below the fit's error
+    trust = torch.clamp(whole * w_lam / (2.0 * math.pi * SPLIT_SUM_TRUSTED_COSINE), min=0.0, max=1.0)
+    mean = trust * ratio + (1.0 - trust) * light.radiance(w_axis)
     a, b = directional_albedo(cos_nv, roughness, brdf)
     return (specular * a + b) * mean
 

@@ -978,3 +978,26 @@ def test_smith_k_convention_swap_fails_every_case_it_changes(monkeypatch):
     assert {case for case in SPEC_CASES if model[case] > 1} == changed
     brdf = specular_scores("brdf")
     assert {case for case in SPEC_CASES if brdf[case] > 1} <= changed
+
+
+def test_light_radiance_of_a_sun_in_float32():
+    """``SGLight.radiance`` of a lobe of sharpness 1e5 (3e-3 radians wide) in float32 at 0.3 to 3
+    widths from its axis, against ``exp(lam (cos t - 1))`` from the angle ``t`` in float64 (the
+    textbook form): within 1e-4, and the gradient to the direction within 1e-3. Taken through
+    ``w . xi - 1``, float32 resolved the angle to 3.5e-4 radians only: 0.6% off in value and the
+    gradient's part across the direction 2% off."""
+    g = torch.Generator().manual_seed(4)
+    axis = unit(torch.randn(1, 3, generator=g, dtype=F64))
+    across = unit(torch.linalg.cross(axis, torch.randn(1, 3, generator=g, dtype=F64), dim=-1))
+    angle = torch.linspace(0.3, 3.0, 50, dtype=F64)[:, None] / math.sqrt(1e5)
+    w = torch.cos(angle) * axis + torch.sin(angle) * across
+    light = SGLight(axis.float(), torch.full((1, 1), 1e5), torch.ones(1, 3))
+    wf = w.float().requires_grad_()
+    out = light.radiance(wf)[:, 0]
+    out.sum().backward()
+    want = torch.exp(1e5 * (torch.cos(angle[:, 0]) - 1.0))
+    assert torch.allclose(out.double(), want, rtol=1e-4, atol=0)
+    # d/dw along the direction of growing angle: -lam sin(t) exp(...) (the textbook derivative)
+    away = -torch.sin(angle) * axis + torch.cos(angle) * across
+    slope = (wf.grad.double() * away).sum(-1)
+    assert torch.allclose(slope, -1e5 * torch.sin(angle[:, 0]) * want, rtol=1e-3, atol=0)
