@@ -500,11 +500,17 @@ def _fitted_part(c: LightCosines, part: BrdfPart, roughness: Tensor, sharpness: 
     inner = kappa * torch.expm1(-2.0 * lam_p) / (lam_p * torch.expm1(-2.0 * kappa))
     # the product lobe's axis xi' = (kappa mu + nu xi) / lam_p: its cosines with n and v
     nl = (kappa * cos_t + sharpness * cos_nl) / lam_p
-    # kappa (mu . xi' - 1) = -kappa nu^2 (1 - c^2) / (lam_p (kappa + nu c + lam_p)), c = mu . xi
-    denom = torch.clamp(kappa + sharpness * cos_ml + lam_p, min=1e-12)
+    # kappa (mu . xi' - 1) = -kappa x / lam_p, c = mu . xi, with x = lam_p - (kappa + nu c), which
+    # equals nu^2 (1 - c^2) / (kappa + nu c + lam_p) (their product is lam_p^2 - (kappa + nu c)^2):
+    # the quotient where kappa + nu c >= 0 (the difference cancels as xi nears mu), the difference,
+    # a sum of positives, where kappa + nu c < 0 (there the quotient's denominator cancels to 0 as
+    # xi nears -mu: float32 held it at 1e-12 and the fit came out e^80 too large)
+    toward = kappa + sharpness * cos_ml
     # 1 - (mu . xi)^2 = |mu x xi|^2, from the components (no cancellation where xi nears mu)
     across = (cos_t * cos_tl + sin_t * cos_nl) ** 2 + c.bl**2
-    log_fit = torch.log(kappa / (-2.0 * math.pi * torch.expm1(-2.0 * kappa))) - kappa * sharpness**2 * across / (lam_p * denom)
+    ahead = toward >= 0
+    x = torch.where(ahead, sharpness**2 * across / torch.where(ahead, toward + lam_p, torch.ones_like(lam_p)), lam_p - toward)
+    log_fit = torch.log(kappa / (-2.0 * math.pi * torch.expm1(-2.0 * kappa))) - kappa * x / lam_p
     # the BRDF part times the cosine at xi', over the part's energy: the true lobe's density there
     nl_c = torch.clamp(nl, min=0.0, max=1.0)
     one_minus_nh, one_minus_vh = _half_vector_terms(nl, cos_tl, c, theta, kappa, sharpness, lam_p)

@@ -345,3 +345,31 @@ def test_split_sum_on_the_horizon_agrees_in_float32():
             n.float().to(dtype), v.float().to(dtype), spec, rough, light, "gltf"
         )
     assert torch.allclose(out[torch.float32].double(), out[F64], rtol=1e-3, atol=1e-6)
+
+
+@pytest.mark.parametrize("brdf", ["tango", "gltf"])
+def test_fitted_lobe_with_the_light_opposite_the_lobe_in_float32(brdf):
+    """Light lobes straight under the horizon (opposite the normal) and views within 1e-5 to 1e-2
+    radians of the normal: the fitted lobe's mean and the light's axis are opposite, where
+    ``kappa + nu c + lam_p`` cancels to 0; float32 held it at 1e-12 and the radiance came out 2e25
+    instead of 6e-28 (found by ``benchmarks/precision.py``'s bfloat16 column, whose rounded normals
+    land there). Float32 as dark as float64 on the same inputs, its gradients as small."""
+    g = torch.Generator().manual_seed(15)
+    n = torch.nn.functional.normalize(torch.randn(1, 3, generator=g, dtype=F64), dim=-1).expand(64, 3)
+    side = torch.nn.functional.normalize(torch.linalg.cross(n, torch.randn(64, 3, generator=g, dtype=F64), dim=-1), dim=-1)
+    angle = torch.logspace(-5, -2, 64, dtype=F64)[:, None]
+    v = torch.cos(angle) * n + torch.sin(angle) * side
+    axis = torch.nn.functional.normalize(-n[:4] + 1e-8 * torch.randn(4, 3, generator=g, dtype=F64), dim=-1)
+    results = {}
+    for dtype in (F64, torch.float32):
+        nn_ = n.float().to(dtype, copy=True).requires_grad_()
+        light = SGLight(axis.float().to(dtype), torch.full((4, 1), 10.0, dtype=dtype), torch.ones(4, 3, dtype=dtype))
+        rough = torch.full((64, 1), 0.6, dtype=dtype)
+        out = shading_module.specular_radiance_fitted(
+            nn_, v.float().to(dtype), torch.ones(64, 3, dtype=dtype), rough, light, brdf
+        )
+        out.sum().backward()
+        results[dtype] = (out.double(), nn_.grad.double())
+    (v64, g64), (v32, g32) = results[F64], results[torch.float32]
+    assert v64.max() < 1e-20 and torch.allclose(v32, v64, rtol=1e-2, atol=1e-25)
+    assert g64.abs().max() < 1e-20 and g32.abs().max() < 1e-20
