@@ -128,6 +128,10 @@ def sg_inner_product(
     return 2.0 * math.pi * mu * one_minus_exp_neg2x_over_x(lam)
 
 
+#: Meder & Bruderlin's ``t(lam) = sqrt(lam) (T_A lam^2 + T_B lam) / (lam^2 + T_D lam + T_E)``
+T_A, T_B, T_D, T_E = 1.6988, 10.8438, 6.2201, 10.2415
+
+
 def _hemisphere_t(sharpness: Tensor) -> Tensor:
     """Meder & Bruderlin's fitted ``t(lam) = sqrt(lam) (1.6988 lam^2 + 10.8438 lam) /
     (lam^2 + 6.2201 lam + 10.2415)`` (their rational form multiplied through by ``lam^2``, so it
@@ -135,7 +139,32 @@ def _hemisphere_t(sharpness: Tensor) -> Tensor:
     above ``lam ~ 2e15``, far beyond the renderer's sharpest lobe, ~1e11)."""
     lam = sharpness
     root = torch.sqrt(torch.clamp(lam, min=torch.finfo(lam.dtype).tiny))  # (sqrt's derivative finite at lam = 0)
-    return root * (1.6988 * lam * lam + 10.8438 * lam) / (lam * lam + 6.2201 * lam + 10.2415)
+    return root * (T_A * lam * lam + T_B * lam) / (lam * lam + T_D * lam + T_E)
+
+
+def hemisphere_t_difference(lam: Tensor, lam_q: Tensor, delta: Tensor) -> Tensor:
+    """``t(lam_q) - t(lam)`` of :func:`_hemisphere_t` for ``delta = lam_q - lam`` given without
+    cancellation: the square roots' difference as ``delta / (sqrt(lam_q) + sqrt(lam))`` and the
+    rational part's by the divided difference ``N(x) D(y) - N(y) D(x) = (x - y) ((T_A T_D - T_B) x y
+    + T_A T_E (x + y) + T_B T_E)`` (exact algebra). Any matching shapes."""
+    tiny = torch.finfo(lam.dtype).tiny
+    root, root_q = torch.sqrt(torch.clamp(lam, min=tiny)), torch.sqrt(torch.clamp(lam_q, min=tiny))
+    den, den_q = lam * lam + T_D * lam + T_E, lam_q * lam_q + T_D * lam_q + T_E
+    rational_q = (T_A * lam_q * lam_q + T_B * lam_q) / den_q
+    rational_diff = delta * ((T_A * T_D - T_B) * lam * lam_q + T_A * T_E * (lam + lam_q) + T_B * T_E) / (den * den_q)
+    return delta / (root + root_q) * rational_q + root * rational_diff
+
+
+def hemisphere_terms(sharpness: Tensor, cos_beta: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """:func:`sg_hemisphere_integral` ``= a + b p s`` in its factors, for callers that take
+    differences of two integrals: ``a = A_u e^-lam`` (the opposite hemisphere's share),
+    ``b = A_u (1 - e^-lam)``, ``p = (1 - e^-(t (1 + c))) / (1 - e^-t)`` and the logistic
+    ``s = sigma(t c)``, with ``t = t(lam)`` (returned last). Any matching shapes."""
+    lam, c = sharpness, cos_beta
+    t = _hemisphere_t(lam)
+    a_u = math.pi * one_minus_exp_neg2x_over_x(0.5 * lam)
+    p = -torch.expm1(-t * (1.0 + c)) / torch.clamp(-torch.expm1(-t), min=torch.finfo(t.dtype).tiny)
+    return a_u * torch.exp(-lam), a_u * -torch.expm1(-lam), p, torch.sigmoid(t * c), t
 
 
 def sg_hemisphere_integral(sharpness: Tensor, cos_beta: Tensor) -> Tensor:

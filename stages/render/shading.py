@@ -16,7 +16,16 @@ import torch
 from torch import Tensor
 
 from ..config.sections import BRDFS, SPECULAR_LOBES
-from .sg import COS_LAMBDA, COS_MU, COS_OFFSET, sg_hemisphere_integral, sg_product, warp_ndf_to_light
+from .sg import (
+    COS_LAMBDA,
+    COS_MU,
+    COS_OFFSET,
+    hemisphere_t_difference,
+    hemisphere_terms,
+    sg_hemisphere_integral,
+    sg_product,
+    warp_ndf_to_light,
+)
 from .specular_albedo import directional_albedo, lobe_moments
 
 #: SG normal distribution ``D(h) = exp(NDF_SHARPNESS / alpha^2 (h . n - 1)) / (pi alpha^2)``, ``alpha = r^2`` [Zhang21]
@@ -217,10 +226,12 @@ def _product_terms(lam1: Tensor, lam2: Tensor, cos12: Tensor) -> tuple[Tensor, T
     return lam, log_amp
 
 
-def _cosine_weighted_hemisphere(lam: Tensor, cos_n: Tensor, log_amp: Tensor) -> Tensor:
+def cosine_weighted_hemisphere_reference(lam: Tensor, cos_n: Tensor, log_amp: Tensor) -> Tensor:
     """``int_{v.n >= 0} exp(log_amp) G(v; xi, lam, 1) max(v . n, 0) dv`` from ``lam`` and
     ``cos_n = xi . n`` (any matching shapes), with the cosine's SG fit and the hemisphere
-    integral, as :func:`_hemisphere_product_with_cosine`."""
+    integral, as :func:`_hemisphere_product_with_cosine`: the fit's two terms, ``COS_MU`` and
+    ``COS_OFFSET`` times nearly equal integrals, subtracted as they stand (the plain reference
+    of :func:`_cosine_weighted_hemisphere`)."""
     cos_lam = torch.as_tensor(COS_LAMBDA, dtype=lam.dtype, device=lam.device)
     lam_q, log_q = _product_terms(lam, cos_lam, cos_n)
     safe = torch.where(lam_q > 0, lam_q, torch.ones_like(lam_q))
@@ -228,6 +239,51 @@ def _cosine_weighted_hemisphere(lam: Tensor, cos_n: Tensor, log_amp: Tensor) -> 
     first = COS_MU * torch.exp(log_amp + log_q) * sg_hemisphere_integral(lam_q, cos_qn.clamp(-1.0, 1.0))
     second = COS_OFFSET * torch.exp(log_amp) * sg_hemisphere_integral(lam, cos_n)
     return first - second
+
+
+def _cosine_weighted_hemisphere(lam: Tensor, cos_n: Tensor, log_amp: Tensor) -> Tensor:
+    """:func:`cosine_weighted_hemisphere_reference` (the same function, exact algebra: equal to
+    5e-11 in float64) without its cancellation. The fit's two terms are ``COS_MU`` and
+    ``COS_OFFSET`` (32.7 and 31.7) times hemisphere integrals of nearly the same lobe (the light's,
+    and its product with the cosine's broad lobe), so their difference, near the horizon a
+    thousandth of either for a sharp lobe, kept float32's rounding of each times a thousand (the
+    diffuse term's gradient erred by 1.5% there; ``benchmarks/precision.py``). With each integral
+    ``a + b p s`` (:func:`~stages.render.sg.hemisphere_terms`) and ``q`` the product's:
+
+        COS_MU e^(log_q) H_q - COS_OFFSET H = (COS_MU e^(log_q) a_q - COS_OFFSET a)
+            + b ((rho - COS_OFFSET) p_q s_q + COS_OFFSET ((p_q - p) s_q + p (s_q - s)))
+
+    with ``rho - COS_OFFSET = (COS_MU - COS_OFFSET) + COS_MU expm1(log_q + log(b_q / b))``, the
+    logistic's difference ``s_q - s = s_q sigma(-t c) (1 - e^-(x_q - x))`` and ``x_q - x``,
+    ``lam_q - lam``, ``c_q - c`` and ``t_q - t`` each from their own closed forms
+    (:func:`~stages.render.sg.hemisphere_t_difference`), so that no two large numbers are
+    subtracted. The first bracket cancels only for broad lobes, where the integrals are not small."""
+    tiny = torch.finfo(lam.dtype).tiny
+    c = cos_n
+    lam_q, log_q = _product_terms(lam, torch.as_tensor(COS_LAMBDA, dtype=lam.dtype, device=lam.device), c)
+    delta = (COS_LAMBDA**2 + 2.0 * COS_LAMBDA * lam * c) / (lam_q + lam)  # lam_q - lam
+    c_q = torch.clamp((COS_LAMBDA + lam * c) / lam_q, -1.0, 1.0)
+    a, b, p, s, t = hemisphere_terms(lam, c)
+    a_q, b_q, p_q, s_q, t_q = hemisphere_terms(lam_q, c_q)
+    lam_pos = torch.clamp(lam, min=tiny)
+    # log(b_q / b) = 2 log((1 - e^-lam_q) / (1 - e^-lam)) - log(lam_q / lam), each as log1p, where
+    # the two lobes are close (lam_q > lam / 2); where the product's lobe all but vanishes (equal
+    # sharpness, opposite axes: lam_q at its floor) the logs themselves, which do not cancel there
+    near = delta > -0.5 * lam_pos
+    d_near = torch.where(near, delta, torch.zeros_like(delta))
+    grown = torch.exp(-lam) * -torch.expm1(-d_near) / torch.clamp(-torch.expm1(-lam_pos), min=tiny)
+    close = 2.0 * torch.log1p(grown) - torch.log1p(d_near / lam_pos)
+    b, b_q = torch.clamp(b, min=tiny), torch.clamp(b_q, min=tiny)
+    log_b_ratio = torch.where(near, close, torch.log(torch.where(near, torch.ones_like(b_q), b_q / b)))
+    rho_minus_offset = (COS_MU - COS_OFFSET) + COS_MU * torch.expm1(log_q + log_b_ratio)
+    # x_q - x = t_q c_q - t c by its closed form where the lobes are close, as it stands elsewhere
+    # (where lam_q nears its floor c_q is held in [-1, 1] and the closed form divides by lam_q)
+    x_close = t * (COS_LAMBDA - d_near * c) / lam_q + hemisphere_t_difference(lam, lam_q, d_near) * c_q
+    x_diff = torch.where(near, x_close, t_q * c_q - t * c)
+    s_diff = s_q * torch.sigmoid(-t * c) * -torch.expm1(-x_diff)
+    opposite = COS_MU * torch.exp(log_q) * a_q - COS_OFFSET * a
+    toward = b * (rho_minus_offset * p_q * s_q + COS_OFFSET * ((p_q - p) * s_q + p * s_diff))
+    return torch.exp(log_amp) * (opposite + toward)
 
 
 def diffuse_radiance(normal: Tensor, albedo: Tensor, light: SGLight, visibility: Tensor | None = None) -> Tensor:

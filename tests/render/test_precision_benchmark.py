@@ -1,0 +1,94 @@
+"""``benchmarks/precision.py``: float32 and bfloat16 against float64 at the extremes. Its measure
+is checked on formulas whose float32 behaviour is known from the textbook (an angle by ``acos``
+of a dot product, ill-conditioned near 0; by ``atan2`` of the cross and dot products, stable), its
+rule for inputs of negligible gradient on hand-made numbers, and the quick grid end to end."""
+
+from __future__ import annotations
+
+import math
+import sys
+
+import torch
+from conftest import REPO
+
+sys.path.insert(0, str(REPO / "benchmarks"))
+
+import precision  # noqa: E402
+
+F64 = torch.float64
+
+
+def _angle_cases() -> list[precision.Case]:
+    """Directions at 1e-4 to 1e-1 radians from a unit axis (the light's), float64."""
+    g = torch.Generator().manual_seed(0)
+    axis = torch.nn.functional.normalize(torch.randn(1, 3, generator=g, dtype=F64), dim=-1)
+    side = torch.nn.functional.normalize(torch.linalg.cross(axis, torch.randn(1, 3, generator=g, dtype=F64), dim=-1), dim=-1)
+    angle = torch.logspace(-4, -1, 40, dtype=F64)[:, None]
+    d = torch.cos(angle) * axis + torch.sin(angle) * side
+    light = {"axis": axis, "sharpness": torch.ones(1, 1, dtype=F64), "amplitude": torch.ones(1, 3, dtype=F64)}
+    return [precision.Case("angles", {"direction": d}, light, [f"angle {a:.1e}" for a in angle[:, 0].tolist()])]
+
+
+def _acos_angle(p, lt, f):
+    return torch.acos(torch.clamp((p["direction"] * lt["axis"]).sum(-1, keepdim=True), -1.0, 1.0))
+
+
+def _kahan_angle(p, lt, f):
+    apart, sum_ = p["direction"] - lt["axis"], p["direction"] + lt["axis"]
+    norm = lambda x: torch.linalg.vector_norm(x, dim=-1, keepdim=True)  # noqa: E731
+    return 2.0 * torch.atan2(norm(apart), norm(sum_))
+
+
+def test_the_measure_tells_an_unstable_formula_from_a_stable_one():
+    """The same angle two ways: ``acos(d . a)`` loses float32's precision as the angle nears 0
+    (its derivative ``1 / sqrt(1 - x^2)`` from a rounded ``x``), Kahan's ``2 atan2(|d - a|,
+    |d + a|)`` keeps it. The benchmark's float32 worst must show the first and clear the second."""
+    results = precision.measure(_angle_cases(), {"acos": (("direction",), _acos_angle), "kahan": (("direction",), _kahan_angle)})
+    unstable = results["acos"]["float32"]
+    stable = results["kahan"]["float32"]
+    assert unstable["value"].worst > 1e-2 and unstable["point grad"].worst > 1e-2
+    assert stable["value"].worst < 1e-5 and stable["point grad"].worst < 1e-4
+    assert unstable["value"].where.startswith("angle 1.0e-04")
+
+
+def test_inputs_of_negligible_norm_are_reported_apart_not_skipped():
+    errors = precision.Errors()
+    ref = torch.tensor([[1.0], [2.0], [1.0], [1e-9]], dtype=F64)
+    out = torch.tensor([[1.0], [2.2], [1.0], [0.0]], dtype=F64)
+    errors.add(ref, out, ["a", "b", "c", "tiny"])
+    s = errors.summary()
+    assert math.isclose(s.worst, 0.2 / 2.0) and s.where == "b"
+    assert s.apart == 1 and math.isclose(s.apart_worst, 1e-9 / 1.0)  # |0 - 1e-9| over the median, 1
+
+
+def test_a_non_finite_output_is_an_infinite_error():
+    errors = precision.Errors()
+    errors.add(torch.ones(2, 3, dtype=F64), torch.tensor([[1.0, 1.0, 1.0], [1.0, math.nan, 1.0]], dtype=F64), ["a", "b"])
+    assert errors.summary().worst == math.inf and errors.summary().where == "b"
+
+
+def test_the_quick_grid_end_to_end(capsys):
+    """Every term on the quick grid: the table, the placement of the worst cases, the inputs
+    reported apart, the input's own float32 positions, and the last line; float32 within 1e-2 for
+    the light, its parametrisation, the hemisphere integral, the shadows' shares and a mesh at any
+    scale, and the shading's values within 1e-2 (the gradients of sharp lobes near the horizon and
+    at the normal are not yet: docs/measurements/precision.md)."""
+    assert precision.main(["--quick"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    last = lines[-1]
+    assert last.startswith("worst_grad_rel_f32=") and " worst_grad_rel_bf16=" in last
+    figures = dict(part.split("=") for part in last.split())
+    assert all(math.isfinite(float(v)) for v in figures.values())
+    table = lines[: lines.index("")]  # the first table
+    rows = {line.split(" | ")[0].lstrip("| "): [c.strip() for c in line.strip("| ").split(" | ")[1:]] for line in table[2:]}
+    assert len(rows) == len(precision.TERMS) + 3
+    for term in (
+        "light radiance L(d)",
+        "visible shares (512 directions)",
+        "light parametrisation",
+        "SG hemisphere integral",
+        "mesh: glTF shading (fitted)",
+    ):
+        assert all(c == "-" or float(c) <= 1e-2 for c in rows[term][:3]), (term, rows[term])
+    assert all(float(cells[0]) <= 1e-2 for cells in rows.values()), rows
+    assert any("offset 1000 radii" in line and "degrees" in line for line in lines)
