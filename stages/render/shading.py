@@ -8,7 +8,9 @@ positive light sharpness and amplitude; the networks' parametrisation guarantees
 
 from __future__ import annotations
 
+import functools
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -646,6 +648,22 @@ def specular_radiance_fitted(
     return (specular * a * part_a + b * part_b).to(dtype)
 
 
+def _outside_autocast(render: Callable) -> Callable:
+    """``render`` with any enclosing autocast switched off: the renderer's cosines come from matrix
+    products, which an autocast would round to bfloat16 (8 bits of mantissa: a lobe of sharpness
+    1e3 then errs by a factor e^4, and the fitted lobe's correction, fed such cosines, reached
+    1e28). Training opens its autocast around the networks and the shadows' shares alone; this
+    keeps the renderer in its own precision whatever a caller opened."""
+
+    @functools.wraps(render)
+    def in_own_precision(normal: Tensor, *args, **kwargs) -> Shading:
+        with torch.autocast(normal.device.type, enabled=False):
+            return render(normal, *args, **kwargs)
+
+    return in_own_precision
+
+
+@_outside_autocast
 def shade_gltf(
     normal: Tensor,
     view: Tensor,
@@ -673,6 +691,7 @@ def shade_gltf(
     raise ValueError(f"the glTF BRDF has no {lobe!r} specular model; use fitted or split_sum")
 
 
+@_outside_autocast
 def shade(
     normal: Tensor,
     view: Tensor,

@@ -373,3 +373,31 @@ def test_fitted_lobe_with_the_light_opposite_the_lobe_in_float32(brdf):
     (v64, g64), (v32, g32) = results[F64], results[torch.float32]
     assert v64.max() < 1e-20 and torch.allclose(v32, v64, rtol=1e-2, atol=1e-25)
     assert g64.abs().max() < 1e-20 and g32.abs().max() < 1e-20
+
+
+@pytest.mark.parametrize("brdf", ["tango", "gltf"])
+def test_the_renderer_keeps_its_precision_inside_an_autocast(brdf):
+    """Called inside a bfloat16 autocast (as a caller's mixed-precision code might), the renderer
+    gives what it gives outside it: its cosines are matrix products, which the autocast would
+    round to 8 bits of mantissa (the fitted lobe's correction then reached 1e28)."""
+    g = torch.Generator().manual_seed(16)
+    n = torch.nn.functional.normalize(torch.randn(2048, 3, generator=g), dim=-1)
+    v = torch.nn.functional.normalize(n + torch.randn(2048, 3, generator=g), dim=-1)
+    v = torch.where((v * n).sum(-1, keepdim=True) < 0.05, n, v)
+    colour, rough = torch.rand(2048, 3, generator=g), torch.rand(2048, 1, generator=g) * 0.9 + 0.05
+    light = SGLight(
+        torch.nn.functional.normalize(torch.randn(16, 3, generator=g), dim=-1),
+        torch.logspace(0, 4, 16)[:, None],
+        torch.rand(16, 3, generator=g),
+    )
+
+    def run(lobe: str) -> torch.Tensor:
+        if brdf == "gltf":
+            return shade_gltf(n, v, colour, rough, rough, light, lobe).rgb
+        return shading_module.shade(n, v, colour, light, colour, rough, lobe).rgb
+
+    for lobe in ("fitted", "split_sum"):
+        plain = run(lobe)
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            inside = run(lobe)
+        assert inside.dtype == torch.float32 and torch.equal(inside, plain), lobe
