@@ -343,8 +343,8 @@ def test_bfloat16_products_agree_with_float32():
     """Under a bfloat16 autocast (the networks' lever in training) the quadrature's products run in
     bfloat16: each share within 0.01 of float32's (each sum rounded to 8 bits of mantissa: at most
     2^-8 of it, so the ratio within about 2^-7), and the gradients to the axes and sharpnesses at a
-    cosine above 0.999 to float32's (measured: 0.99997; the backward's coefficients are the share's
-    derivatives to the lit and blocked sums, products that do not cancel, rounded once)."""
+    cosine above 0.999 to float32's (the backward's two sums, of opposite sign, meet inside one
+    product, from the gradient split in two bfloat16 parts)."""
     case = _bf16_case()
     ref = _share_and_grads(*case, bf16=False)
     got = _share_and_grads(*case, bf16=True)
