@@ -310,25 +310,21 @@ def _one_minus_schlick(vh: Tensor) -> Tensor:
     return vh * (5.0 + vh * (-10.0 + vh * (10.0 + vh * (-5.0 + vh))))
 
 
-def _diffuse_half_vector_cosine(normal: Tensor, view: Tensor, cos_nv: Tensor, light: SGLight) -> Tensor:
+def _diffuse_half_vector_cosine(normal: Tensor, view: Tensor, cos_nv: Tensor, cos_n: Tensor, light: SGLight) -> Tensor:
     """``v . h`` ``(N, K)`` with ``h`` the half vector of the view and the axis ``q = (c n + lam xi)
     / lam_q`` of each light lobe's product with the clamped cosine's SG (``c`` its sharpness),
     from the components of ``q + v`` in the frame ``(n, t, n x t)`` of the view's tangent
     direction ``t``: ``v . h = |q + v| / 2``, a sum of squares. The difference ``1 + q . v``
     cancels where the product's axis is opposite the view (a broad lobe under the horizon seen
     along the normal: float32's value was 150 times too small there; ``benchmarks/precision.py``).
-    Held at 1e-6 where ``q = -v`` (``h`` undefined; the square root's derivative infinite)."""
-    tangent, _ = _view_tangent(normal, view, cos_nv)
-    across = torch.linalg.cross(normal, tangent, dim=-1)
+    Held at 1e-6 where ``q = -v`` (``h`` undefined; the square root's derivative infinite).
+    ``cos_n (N, K)``: the lobes' cosines with the normal."""
+    tangent, across, v_t, v_b = _view_frame(normal, view, cos_nv)
     lam = light.sharpness.T
-    cos_n, cos_t, cos_b = normal @ light.axis.T, tangent @ light.axis.T, across @ light.axis.T
+    cos_t, cos_b = tangent @ light.axis.T, across @ light.axis.T
+    # lam_q is positive (held at its floor by _product_terms)
     lam_q, _ = _product_terms(lam, torch.as_tensor(COS_LAMBDA, dtype=lam.dtype, device=lam.device), cos_n)
-    defined = lam_q > 0  # else q is the normal (the product is the cosine's lobe alone)
-    safe = torch.where(defined, lam_q, torch.ones_like(lam_q))
-    q_n = torch.where(defined, (COS_LAMBDA + lam * cos_n) / safe, torch.ones_like(lam_q))
-    q_t = torch.where(defined, lam * cos_t / safe, torch.zeros_like(lam_q))
-    q_b = torch.where(defined, lam * cos_b / safe, torch.zeros_like(lam_q))
-    v_t, v_b = (view * tangent).sum(-1, keepdim=True), (view * across).sum(-1, keepdim=True)
+    q_n, q_t, q_b = (COS_LAMBDA + lam * cos_n) / lam_q, lam * cos_t / lam_q, lam * cos_b / lam_q
     squared = (q_n + cos_nv) ** 2 + (q_t + v_t) ** 2 + (q_b + v_b) ** 2  # |q + v|^2
     return torch.sqrt(torch.clamp(squared / 4.0, min=1e-12, max=1.0))
 
@@ -350,7 +346,7 @@ def diffuse_radiance_gltf(
     lam = light.sharpness.T
     cos_n = normal @ light.axis.T  # (N, K)
     per_lobe = _cosine_weighted_hemisphere(lam, cos_n, torch.zeros_like(lam))
-    weight = (1.0 - GLTF_DIELECTRIC_F0) * _one_minus_schlick(_diffuse_half_vector_cosine(normal, view, cos_nv, light))
+    weight = (1.0 - GLTF_DIELECTRIC_F0) * _one_minus_schlick(_diffuse_half_vector_cosine(normal, view, cos_nv, cos_n, light))
     irradiance = _shadowed(per_lobe * weight, visibility) @ light.amplitude
     return diffuse_color / math.pi * torch.clamp(irradiance, min=0.0)
 
@@ -513,6 +509,16 @@ def _view_tangent(normal: Tensor, view: Tensor, cos_nv: Tensor) -> tuple[Tensor,
     return tangent, sin_nv
 
 
+def _view_frame(normal: Tensor, view: Tensor, cos_nv: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The frame ``(n, t, n x t)`` of the view's tangent direction (:func:`_view_tangent`) as
+    ``t, n x t (N, 3)``, and the view's components along them ``(N, 1)`` (its sine, and 0) as
+    products with the frame, so that their gradient holds in every direction across ``n`` (at a
+    normal view the sine's norm had none)."""
+    tangent, _ = _view_tangent(normal, view, cos_nv)
+    across = torch.linalg.cross(normal, tangent, dim=-1)
+    return tangent, across, (view * tangent).sum(-1, keepdim=True), (view * across).sum(-1, keepdim=True)
+
+
 def _half_vector_terms(nl, cos_tl, c: LightCosines, theta, kappa, sharpness, lam_p):
     """``1 - n.h`` and ``1 - v.h`` of the half vector ``h = (xi' + v) / |xi' + v|`` between the
     product lobe's axis ``xi' = (kappa mu + nu xi) / lam_p`` and the view, ``(N, K)`` each, from the
@@ -633,12 +639,8 @@ def specular_radiance_fitted(
     normal, view, specular, roughness = (x.to(work) for x in (normal, view, specular, roughness))
     axis, sharpness, amplitude = light.axis.to(work), light.sharpness.to(work).T, light.amplitude.to(work)
     cos_nv = torch.clamp((normal * view).sum(-1, keepdim=True), min=1e-6, max=1.0)
-    tangent, _ = _view_tangent(normal, view, cos_nv)
-    across = torch.linalg.cross(normal, tangent, dim=-1)
+    tangent, across, sin_nv, view_b = _view_frame(normal, view, cos_nv)
     cos_nl, cos_vl, cos_tl, cos_bl = normal @ axis.T, view @ axis.T, tangent @ axis.T, across @ axis.T
-    # the view's components across the normal as products with the frame, so that its gradient
-    # holds in every direction across n (at a normal view the sine's norm had none)
-    sin_nv, view_b = (view * tangent).sum(-1, keepdim=True), (view * across).sum(-1, keepdim=True)
     a, b = directional_albedo(cos_nv, roughness, brdf)
     theta_a, kappa_a, theta_b, kappa_b = lobe_moments(cos_nv, roughness, brdf)
     cosines = LightCosines(cos_nl, cos_vl, cos_tl, cos_nv, sin_nv, cos_bl, view_b)
