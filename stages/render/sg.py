@@ -155,16 +155,27 @@ def hemisphere_t_difference(lam: Tensor, lam_q: Tensor, delta: Tensor) -> Tensor
     return delta / (root + root_q) * rational_q + root * rational_diff
 
 
-def hemisphere_terms(sharpness: Tensor, cos_beta: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+def hemisphere_terms(sharpness: Tensor, cos_beta: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
     """:func:`sg_hemisphere_integral` ``= a + b p s`` in its factors, for callers that take
     differences of two integrals: ``a = A_u e^-lam`` (the opposite hemisphere's share),
-    ``b = A_u (1 - e^-lam)``, ``p = (1 - e^-(t (1 + c))) / (1 - e^-t)`` and the logistic
-    ``s = sigma(t c)``, with ``t = t(lam)`` (returned last). Any matching shapes."""
+    ``b = A_u (1 - e^-lam)``, ``p = (1 - e^-(t (1 + c))) / (1 - e^-t)``, ``p - 1 = (e^-t -
+    e^-(t (1 + c))) / (1 - e^-t)`` on its own (for a sharp lobe ``p`` is 1 to ``e^-t`` and the
+    difference of two ``p`` as they stand is float32's rounding of 1: 3e-5 of the cosine-weighted
+    integral at sharpness 50), the logistic ``s = sigma(t c)`` and ``t = t(lam)`` (last). The
+    exponentials' difference is ``e^-t (1 - e^-(t c))`` above the horizon and ``-e^-(t (1 + c))
+    (1 - e^(t c))`` below it, each by ``expm1`` of a negative number and on its own side's ``c``
+    (no exponential overflows, and neither branch's gradient is inf times 0). Any matching shapes."""
     lam, c = sharpness, cos_beta
     t = _hemisphere_t(lam)
     a_u = math.pi * one_minus_exp_neg2x_over_x(0.5 * lam)
-    p = -torch.expm1(-t * (1.0 + c)) / torch.clamp(-torch.expm1(-t), min=torch.finfo(t.dtype).tiny)
-    return a_u * torch.exp(-lam), a_u * -torch.expm1(-lam), p, torch.sigmoid(t * c), t
+    den = torch.clamp(-torch.expm1(-t), min=torch.finfo(t.dtype).tiny)
+    p = -torch.expm1(-t * (1.0 + c)) / den
+    above = c >= 0
+    c_up, c_down = torch.where(above, c, torch.zeros_like(c)), torch.where(above, torch.zeros_like(c), c)
+    up = torch.exp(-t) * -torch.expm1(-t * c_up)
+    down = torch.exp(-t * (1.0 + c_down)) * torch.expm1(t * c_down)
+    p_minus_one = torch.where(above, up, down) / den
+    return a_u * torch.exp(-lam), a_u * -torch.expm1(-lam), p, p_minus_one, torch.sigmoid(t * c), t
 
 
 def sg_hemisphere_integral(sharpness: Tensor, cos_beta: Tensor) -> Tensor:

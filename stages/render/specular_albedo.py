@@ -179,7 +179,7 @@ def build_table(brdf: str = "tango") -> dict[str, np.ndarray]:
 
 
 #: the table's columns (each ``(NV_NODES, R_NODES)``); ``a, b`` and ``kappa_*`` are interpolated in
-#: the log, ``theta_*`` as is
+#: the log, ``theta_*`` as the tilts ``acos(n . v) - theta_*`` (:func:`lobe_moments`)
 TABLE_COLUMNS = ("a", "b", "theta_a", "kappa_a", "theta_b", "kappa_b")
 
 
@@ -210,6 +210,10 @@ def _read_table(device: str, dtype: torch.dtype, brdf: str) -> dict[str, Tensor]
         if missing:
             raise ValueError(f"{path} lacks the columns {missing} (an older table); rebuild it with {rebuild}")
         grids = {key: z[key] if key.startswith("theta") else np.log(np.maximum(z[key], LOG_FLOOR)) for key in TABLE_COLUMNS}
+        view_angle = np.arccos(np.clip(z["nv"], 0.0, 1.0))[:, None]
+    for part in ("a", "b"):
+        # the mean's angle counted from the mirror direction (see lobe_moments), in float64 here
+        grids["tilt_" + part] = view_angle - grids.pop("theta_" + part)
     return {key: torch.as_tensor(value, dtype=dtype, device=device) for key, value in grids.items()}
 
 
@@ -239,7 +243,7 @@ def _lookup(cos_nv: Tensor, roughness: Tensor, keys: tuple[str, ...], brdf: str 
     out = []
     for key in keys:
         value = _bilinear(table[key], t, s)
-        out.append((value if key.startswith("theta") else torch.exp(value)).to(cos_nv.dtype))
+        out.append((value if key.startswith("tilt") else torch.exp(value)).to(cos_nv.dtype))
     return out
 
 
@@ -253,13 +257,19 @@ def directional_albedo(cos_nv: Tensor, roughness: Tensor, brdf: str = "tango") -
 
 
 def lobe_moments(cos_nv: Tensor, roughness: Tensor, brdf: str = "tango") -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """``theta_a, kappa_a, theta_b, kappa_b`` at ``cos_nv`` and ``roughness`` (as
+    """``tilt_a, kappa_a, tilt_b, kappa_b`` at ``cos_nv`` and ``roughness`` (as
     :func:`directional_albedo`): for the ``A`` part (weighted by ``1 - (1 - v.h)^5``) and the ``B``
-    part (by ``(1 - v.h)^5``) of the BRDF's lobe ``f_r (n . l)``, the angle of its mean direction
-    from the normal towards the mirror side, in [0, pi/2], and the concentration of the vMF with the
-    same mean resultant length (0.3 for the broadest lobe to ~1e8 for the sharpest)."""
-    theta_a, kappa_a, theta_b, kappa_b = _lookup(cos_nv, roughness, ("theta_a", "kappa_a", "theta_b", "kappa_b"), brdf)
-    return theta_a, kappa_a, theta_b, kappa_b
+    part (by ``(1 - v.h)^5``) of the BRDF's lobe ``f_r (n . l)``, the angle from the mirror
+    direction to its mean direction, towards the normal (the mean's angle from the normal is
+    ``acos(n . v) - tilt``, in [0, pi/2]; the ``B`` part's mean can lie beyond the mirror direction,
+    a negative tilt), and the concentration of the vMF with the same mean resultant length (0.3 for
+    the broadest lobe to ~1e8 for the sharpest). The tilt rather than the angle, so that the
+    renderer measures the lobe from the view it reflects: a glossy lobe's mean is within a small
+    tilt of the mirror direction, and the half vector between them, which a sharp NDF amplifies,
+    is then that tilt's to float precision, not the difference of two rounded angles near pi/2 (in
+    float32 the fitted lobe's gradient erred by 1.4% at n.v 0.01, roughness 0.05)."""
+    tilt_a, kappa_a, tilt_b, kappa_b = _lookup(cos_nv, roughness, ("tilt_a", "kappa_a", "tilt_b", "kappa_b"), brdf)
+    return tilt_a, kappa_a, tilt_b, kappa_b
 
 
 def main(argv: list[str] | None = None) -> int:

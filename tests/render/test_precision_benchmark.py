@@ -71,8 +71,9 @@ def test_the_quick_grid_end_to_end(capsys):
     """Every term on the quick grid: the table, the placement of the worst cases, the inputs
     reported apart, the input's own float32 positions, and the last line; float32 within 1e-2 for
     the light, its parametrisation, the hemisphere integral, the shadows' shares and a mesh at any
-    scale, and the shading's values within 1e-2 (the gradients of sharp lobes near the horizon and
-    at the normal are not yet: docs/measurements/precision.md)."""
+    scale, and the shading's values within 1e-2 (not every gradient: on this grid's rotation a sun
+    reflected at the mirror direction of a mirror-like lobe is at float32's conditioning,
+    docs/measurements/precision.md)."""
     assert precision.main(["--quick"]) == 0
     lines = capsys.readouterr().out.splitlines()
     last = lines[-1]
@@ -92,3 +93,31 @@ def test_the_quick_grid_end_to_end(capsys):
         assert all(c == "-" or float(c) <= 1e-2 for c in rows[term][:3]), (term, rows[term])
     assert all(float(cells[0]) <= 1e-2 for cells in rows.values()), rows
     assert any("offset 1000 radii" in line and "degrees" in line for line in lines)
+
+
+def _float32_point_grad(term: str, names: tuple[str, ...]) -> float:
+    """The worst relative float32 error of the point gradient of ``term`` on the full grid's cases
+    ``names`` (against float64 on the same float32 inputs)."""
+    cases = [c for c in precision.shading_cases(precision.FULL) if c.name in names]
+    assert len(cases) == len(names)
+    return precision.measure(cases, {term: precision.TERMS[term]})[term]["float32"]["point grad"].worst
+
+
+def test_split_sum_gradient_at_a_grazing_view_in_float32():
+    """The split sum's average light is the ratio of two integrals of the same lobe; at n.v 1e-4 the
+    warped lobe lies on the horizon, both integrals' gradients are dominated by its cut and their
+    ratio's gradient by what is left of them (a cancellation of 5e6). The cosine fit's first term
+    minus its second (32.7 and 31.7 times nearly equal numbers) kept float32's rounding at 4e-5 of
+    the integral, and the gradient erred by 9.7e-2 (TANGO) and 6.6e-2 (glTF); within 1e-2 now."""
+    for brdf in ("TANGO", "glTF"):
+        cases = ("lam 0.1, n.l 0", "lam 0.1, n.l 0.0001", "lam 1, n.l -0.0001")
+        worst = _float32_point_grad(f"specular split sum ({brdf})", cases)
+        assert worst <= 1e-2, (brdf, worst)
+
+
+def test_fitted_lobe_gradient_near_the_mirror_configuration_in_float32():
+    """A glossy glTF lobe (roughness 0.05) at n.v 0.01: the half vector between the product lobe's
+    axis and the view lay along the difference of the view's sine and the lobe's mean's, two
+    numbers near 1 (the mean's from a tabulated angle near pi/2), which a sharp NDF amplifies; the
+    gradient erred by 1.4e-2. Measured from the mirror direction by the table's tilt, within 5e-3."""
+    assert _float32_point_grad("specular fitted (glTF)", ("lam 10, n.l -1", "lam 10, n.l -0.5")) <= 5e-3

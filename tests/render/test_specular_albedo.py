@@ -113,11 +113,13 @@ def monte_carlo_mean_direction(nv: float, r: float, part: str, n: int = 1_000_00
 @pytest.mark.parametrize("nv", [0.05, 0.3, 1.0])
 @pytest.mark.parametrize("r", [0.1, 0.5, 1.0])
 def test_lobe_moments_match_monte_carlo(nv, r):
-    """The table's mean direction (angle from n) and vMF concentration of each part's lobe, looked
-    up at (n.v, r), against the mean of l by Monte Carlo; the concentration against the mean
-    resultant length ``coth(kappa) - 1/kappa`` of a vMF, written out here."""
+    """The table's mean direction (its tilt from the mirror direction, so its angle from n is
+    ``acos(n.v) - tilt``) and vMF concentration of each part's lobe, looked up at (n.v, r), against
+    the mean of l by Monte Carlo; the concentration against the mean resultant length
+    ``coth(kappa) - 1/kappa`` of a vMF, written out here."""
     got = sa.lobe_moments(torch.tensor([nv], dtype=torch.float64), torch.tensor([r], dtype=torch.float64))
-    for part, theta, kappa in (("a", got[0], got[1]), ("b", got[2], got[3])):
+    for part, tilt, kappa in (("a", got[0], got[1]), ("b", got[2], got[3])):
+        theta = math.acos(nv) - float(tilt)
         mx, mz, se = monte_carlo_mean_direction(nv, r, part)
         assert abs(float(theta) - math.atan2(-mx, mz)) < 0.005 + 5 * se, (part, float(theta), math.atan2(-mx, mz), se)
         kappa = float(kappa)
@@ -153,7 +155,10 @@ def test_finite_values_and_gradients_at_the_extremes(dtype):
     a, b = sa.directional_albedo(nv, r)
     moments = sa.lobe_moments(nv, r)
     assert all(m.dtype == dtype and torch.isfinite(m).all() for m in moments)
-    assert all((m >= 0).all() for m in moments) and all((m <= math.pi / 2 + 1e-2).all() for m in moments[::2])
+    view_angle = torch.acos(nv.detach().double().clamp(sa.NV_MIN, 1.0))
+    assert all((m > 0).all() for m in moments[1::2])
+    for tilt in moments[::2]:  # the mean's angle from the normal in [0, pi/2]
+        assert (view_angle - tilt.double() >= -1e-2).all() and (view_angle - tilt.double() <= math.pi / 2 + 1e-2).all()
     sum(m.float().sum() for m in moments).backward(retain_graph=True)
     a, b = sa.directional_albedo(nv, r)
     assert a.dtype == dtype and torch.isfinite(a).all() and torch.isfinite(b).all()
