@@ -21,7 +21,9 @@ For each term and precision the table gives the worst, over its inputs, of
 and where it occurs. Inputs whose float64 norm is below 1e-6 of the term's median norm (a lobe's
 value 1e5 radians of sharpness away from its axis, a point lit only below its horizon) are not
 in the worst; they are counted in the last columns with their worst ``|g - g64|`` over the median,
-so that nothing is skipped silently. The last line:
+so that nothing is skipped silently. Beside each term's worst float32 gradient: how far float64's
+own gradient moves at that input when the unit vectors among the inputs turn by float32's
+roundoff (:func:`conditioning`), the floor of any float32 arithmetic there. The last line:
 ``worst_grad_rel_f32=... worst_grad_rel_bf16=...`` over every term and both gradient kinds.
 
     python benchmarks/precision.py             # the full grid (about a minute on 2 cores)
@@ -34,7 +36,7 @@ import argparse
 import math
 import sys
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -305,20 +307,24 @@ def run_term(fn: Callable, reads: tuple[str, ...], case: Case, precision: Precis
 
 @dataclass
 class Errors:
-    """Reference norms, difference norms and labels of one quantity of one term, over inputs."""
+    """Reference norms, difference norms and labels of one quantity of one term, over inputs, with
+    each input's place (its case's index and its row, or ``None`` for a whole case)."""
 
     ref: list[float] = field(default_factory=list)
     diff: list[float] = field(default_factory=list)
     labels: list[str] = field(default_factory=list)
+    places: list[tuple[int, int | None]] = field(default_factory=list)
 
-    def add(self, ref: Tensor, out: Tensor, labels: list[str]) -> None:
-        """Rows of ``ref``/``out (M, ...)`` as M inputs (non-finite outputs count as infinite error)."""
+    def add(self, ref: Tensor, out: Tensor, labels: list[str], case: int = 0, whole: bool = False) -> None:
+        """Rows of ``ref``/``out (M, ...)`` as M inputs (non-finite outputs count as infinite error);
+        ``whole``: one input, the whole case ``case``."""
         ref, out = ref.reshape(len(labels), -1), out.reshape(len(labels), -1)
         diff = (out - ref).norm(dim=1)
         diff = torch.where(torch.isfinite(out).all(dim=1), diff, torch.full_like(diff, math.inf))
         self.ref += ref.norm(dim=1).tolist()
         self.diff += diff.tolist()
         self.labels += labels
+        self.places += [(case, None)] if whole else [(case, row) for row in range(len(labels))]
 
     def summary(self) -> Summary:
         ref, diff = np.asarray(self.ref), np.asarray(self.diff)
@@ -329,7 +335,8 @@ class Errors:
         rel = np.where(tiny, -1.0, diff / np.where(tiny, 1.0, ref))
         worst = int(np.argmax(rel))
         apart = float(diff[tiny].max() / median) if tiny.any() and median > 0 else (math.inf if tiny.any() else 0.0)
-        return Summary(float(rel[worst]) if not tiny.all() else math.nan, self.labels[worst], int(tiny.sum()), apart)
+        rel_worst = float(rel[worst]) if not tiny.all() else math.nan
+        return Summary(rel_worst, self.labels[worst], int(tiny.sum()), apart, self.places[worst])
 
 
 @dataclass(frozen=True)
@@ -338,6 +345,52 @@ class Summary:
     where: str
     apart: int  # inputs whose reference norm is below TINY_SHARE of the median
     apart_worst: float  # their largest |difference| over the median norm
+    place: tuple[int, int | None] = (0, None)  # the worst input's case and row
+    floor: float = math.nan  # float64's own change there when the unit inputs turn by float32's rounding
+
+
+#: float32's unit roundoff, 2^-24: a unit vector's components rounded to float32 turn it by about
+#: this many radians
+ROUNDOFF_F32 = 2.0**-24
+#: random turns of the inputs per conditioning figure (the largest change counts)
+TURNS = 8
+EXACT = Precision("float64", F64, F64, F64)
+
+
+def _turned(values: dict[str, Tensor], g: torch.Generator) -> dict[str, Tensor]:
+    """``values`` with every unit vector turned by float32's roundoff in a random direction across it."""
+    out = dict(values)
+    for key in UNIT & values.keys():
+        x = values[key].to(torch.float32).to(F64)
+        across = torch.nn.functional.normalize(_tangential(torch.randn(x.shape, generator=g, dtype=F64), x), dim=-1)
+        # its length kept (to u^2): a float32-rounded vector is unit only to u, and normalising it
+        # would move a cosine by as much as the turn does
+        out[key] = x + ROUNDOFF_F32 * torch.linalg.vector_norm(x, dim=-1, keepdim=True) * across
+    return out
+
+
+def conditioning(fn: Callable, reads: tuple[str, ...], case: Case, quantity: str, row: int | None, seed: int = 0) -> float:
+    """The largest relative change, over :data:`TURNS` draws, of ``quantity`` of float64 at the
+    input ``row`` of ``case`` (``None``: the whole case) when the unit vectors among the float32
+    inputs turn by float32's roundoff: what storing directions in float32 alone makes uncertain,
+    a floor for any float32 arithmetic (NaN where the case has no unit vector to turn or its
+    points are not given in float64)."""
+    if case.points_in is not None or not (UNIT & (case.points.keys() | case.light.keys())):
+        return math.nan
+    g = torch.Generator().manual_seed(seed)
+    rounded = {k: v.to(torch.float32).to(F64) for k, v in case.points.items()}
+    light = {k: v.to(torch.float32).to(F64) for k, v in case.light.items()}
+    pick = {"value": lambda r: r.value, "point grad": lambda r: r.point_grad, "light grad": lambda r: r.light_grad[None]}
+    pick = pick[quantity]
+    base = pick(run_term(fn, reads, Case(case.name, rounded, light, case.labels, case.fixed), EXACT))
+    base = base if row is None else base[row : row + 1]
+    worst = 0.0
+    for _ in range(TURNS):
+        turned = Case(case.name, _turned(rounded, g), _turned(light, g), case.labels, case.fixed)
+        moved = pick(run_term(fn, reads, turned, EXACT))
+        moved = moved if row is None else moved[row : row + 1]
+        worst = max(worst, float((moved - base).norm() / base.norm()))
+    return worst
 
 
 def measure(cases: list[Case], terms: dict[str, tuple[tuple[str, ...], Callable]]) -> dict[str, dict[str, dict[str, Summary]]]:
@@ -345,17 +398,20 @@ def measure(cases: list[Case], terms: dict[str, tuple[tuple[str, ...], Callable]
     out = {}
     for name, (reads, fn) in terms.items():
         errors = {p: {q: Errors() for q in ("value", "point grad", "light grad")} for p in ("float32", "bfloat16")}
-        for case in cases:
+        for index, case in enumerate(cases):
             for precision in PRECISIONS:
                 prec = precision.name
                 ref = run_term(fn, reads, case, precision.reference)
                 got = run_term(fn, reads, case, precision)
-                errors[prec]["value"].add(ref.value, got.value, case.labels)
+                errors[prec]["value"].add(ref.value, got.value, case.labels, index)
                 if ref.point_grad is not None:
-                    errors[prec]["point grad"].add(ref.point_grad, got.point_grad, case.labels)
+                    errors[prec]["point grad"].add(ref.point_grad, got.point_grad, case.labels, index)
                 if ref.light_grad is not None:
-                    errors[prec]["light grad"].add(ref.light_grad[None], got.light_grad[None], [case.name])
+                    errors[prec]["light grad"].add(ref.light_grad[None], got.light_grad[None], [case.name], index, whole=True)
         out[name] = {p: {q: e.summary() for q, e in qs.items()} for p, qs in errors.items()}
+        for q, s in out[name]["float32"].items():
+            if not math.isnan(s.worst):
+                out[name]["float32"][q] = replace(s, floor=conditioning(fn, reads, cases[s.place[0]], q, s.place[1]))
     return out
 
 
@@ -500,13 +556,19 @@ def report(results) -> list[str]:
     for name, r in results.items():
         cells = [fmt(r[p][q].worst) for p in ("float32", "bfloat16") for q in ("value", "point grad", "light grad")]
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
-    lines += ["", "Where float32's worst gradient is (the larger of the two kinds):", ""]
+    lines += [
+        "",
+        "Where float32's worst gradient is (the larger of the two kinds), and how far float64's own gradient",
+        f"moves there when the unit vectors among the inputs turn by float32's roundoff ({ROUNDOFF_F32:.1e} rad):",
+        "",
+    ]
     for name, r in results.items():
         pick = max(
             (s for q, s in r["float32"].items() if q != "value" and not math.isnan(s.worst)), key=lambda s: s.worst, default=None
         )
         if pick is not None:
-            lines.append(f"- {name}: {fmt(pick.worst)} at {pick.where}")
+            floor = "" if math.isnan(pick.floor) else f" (float64 itself moves by {fmt(pick.floor)} there)"
+            lines.append(f"- {name}: {fmt(pick.worst)} at {pick.where}{floor}")
     lines += [
         "",
         f"Inputs whose float64 norm is below {TINY_SHARE:g} of the term's median (not in the worst above):",

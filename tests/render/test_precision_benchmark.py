@@ -121,3 +121,21 @@ def test_fitted_lobe_gradient_near_the_mirror_configuration_in_float32():
     numbers near 1 (the mean's from a tabulated angle near pi/2), which a sharp NDF amplifies; the
     gradient erred by 1.4e-2. Measured from the mirror direction by the table's tilt, within 5e-3."""
     assert _float32_point_grad("specular fitted (glTF)", ("lam 10, n.l -1", "lam 10, n.l -0.5")) <= 5e-3
+
+
+def test_conditioning_is_what_turning_the_inputs_by_float32_roundoff_does():
+    """``conditioning`` on ``d . a`` at an angle ``t`` from the axis: turning ``d`` by ``u`` moves
+    the cosine by at most ``u sin t`` (to first order), a relative ``u tan t``; the largest of eight
+    random turns lies between a third of that and that. No unit vector among the inputs: NaN."""
+    u = precision.ROUNDOFF_F32
+    for t in (0.3, 1.0, 1.4):
+        axis = torch.tensor([[0.0, 0.0, 1.0]], dtype=F64)
+        d = torch.tensor([[math.sin(t), 0.0, math.cos(t)]], dtype=F64)
+        case = precision.Case("dot", {"direction": d}, {"axis": axis}, ["d"])
+        floor = precision.conditioning(
+            lambda p, lt, f: (p["direction"] * lt["axis"]).sum(-1, keepdim=True), ("direction",), case, "value", 0
+        )
+        bound = 2 * u * math.tan(t)  # both vectors turn: each at most u sin t
+        assert bound / 6 <= floor <= bound * 1.01, (t, floor / (u * math.tan(t)))
+    plain = precision.Case("plain", {"lam": torch.ones(1, 1, dtype=F64)}, {}, ["x"])
+    assert math.isnan(precision.conditioning(lambda p, lt, f: p["lam"] * 2, ("lam",), plain, "value", 0))
