@@ -108,7 +108,7 @@ def test_half_vector_terms_finite_where_the_product_axis_is_opposite_the_view(dt
     exactly opposite the view (``xi' + v = 0``, the half vector undefined) and where the half vector
     lies below the horizon, values and gradients stay finite. ``|xi' + v|`` as a bare square root
     had an infinite derivative at 0: a 3,560-step run's loss was non-finite at step 1,499."""
-    from stages.render.shading import LightCosines, _half_vector_terms
+    from stages.render.shading import LightCosines, LobeMean, _half_vector_terms
 
     nv = torch.tensor([[0.6], [0.6], [0.2]], dtype=dtype)
     sin_nv = torch.sqrt(1 - nv**2)
@@ -125,7 +125,11 @@ def test_half_vector_terms_finite_where_the_product_axis_is_opposite_the_view(dt
     # with nu = lam_p = 1 and kappa sin(theta) folded into tl, t_x = tl - kappa sin(theta) / lam_p
     tl_in = tl + kappa * torch.sin(theta)
     c = LightCosines(nl, nl, tl_in, nv, sin_nv, bl)
-    one_minus_nh, one_minus_vh = _half_vector_terms(nl, tl_in, c, theta, kappa, sharp, lam_p)
+    # the lobe's mean at theta from the normal; mu . xi as the product lobe's sharpness implies it,
+    # lam_p^2 = kappa^2 + nu^2 + 2 kappa nu (mu . xi), so that lam_p - kappa is what it is here
+    mean = LobeMean(torch.cos(theta), torch.sin(theta), torch.zeros_like(theta), sin_nv - torch.sin(theta))
+    cos_ml = (lam_p**2 - kappa**2 - nu**2) / (2 * kappa * nu)
+    one_minus_nh, one_minus_vh = _half_vector_terms(nl, tl_in, c, mean, cos_ml, kappa, sharp, lam_p)
     assert torch.isfinite(one_minus_nh).all() and torch.isfinite(one_minus_vh).all()
     assert float(one_minus_vh[0]) == pytest.approx(1.0)  # v.h = |xi' + v| / 2 = 0
     grads = torch.autograd.grad((one_minus_nh.sum() + one_minus_vh.sum()), [nl, tl, bl, nu, lam_p])
