@@ -4,8 +4,12 @@ a fresh process: start-up, CLIP loading, 300 iterations, the evaluation renders 
 against the target of 90 seconds. ``defaults`` is what a user gets (the bfloat16 levers on
 ``auto``: bfloat16 where the CPU has it natively); ``float32`` turns both off.
 
-``defaults+compiled`` runs first with inductor's cache as it finds it (cold on a fresh machine) and
-again as ``defaults+compiled (warm)``, when the compiled code is cached on disk. The ray cache is the
+``defaults`` compiles the renderer where the same renderer has been compiled on this machine
+before (``compile_shading: auto``; a first compilation pays from 1,000 iterations, a cached one
+from 100), so it depends on the machine's history: ``eager`` runs the same with the renderer
+eager; ``defaults+compiled`` compiles whatever the cache holds (cold on a fresh machine: the run
+pays the first compilation) and leaves the cache warm for ``defaults`` and for
+``defaults+compiled (warm)`` after it. The ray cache is the
 default one (64 views at 512x512) of ``--mesh`` (built-in vase). No CLIP
 weights reach our machines, so ViT-B-32 runs with random weights saved once as a local
 checkpoint (``optimize.clip_checkpoint``): timing does not depend on the weights. Quality under
@@ -34,6 +38,7 @@ TARGET_S = 90.0
 #: (names without commas: ``--levers`` is a comma-separated list of them)
 LEVERS = {
     "float32": {"bf16": "off", "bf16_networks": "off"},
+    "eager": {"compile_shading": "off"},
     "defaults": {},
     "bf16 CLIP only": {"bf16": "on", "bf16_networks": "off"},
     "defaults+compiled": {"compile_shading": True},

@@ -137,9 +137,10 @@ def shading_side_by_side(points: int, lobes: int) -> dict[str, float]:
         (out.diffuse.sum() + out.specular.sum()).backward()
 
     from stages.core.device import use_inductor_cache
+    from stages.model.field import compiled_shade_material
 
     use_inductor_cache()  # the training's own cache folder
-    compiled = torch.compile(shade_material, dynamic=True)
+    compiled = compiled_shade_material("gltf", torch.device("cpu"))  # as training compiles it
     t0 = time.perf_counter()
     once(compiled)
     first = time.perf_counter() - t0

@@ -12,7 +12,9 @@ width 256, 32 light lobes, 1 view with 1 global image and 4 crops per step) it r
 * a profile of ``--profile-steps`` steps: the top CUDA kernels by device time, host-to-device and
   device-to-host copies per step, and the share of the step the GPU was busy (low: the Python
   overhead of small kernels dominates);
-* the levers side by side (``--levers``): bfloat16 for CLIP and the networks, TF32 products.
+* the levers side by side (``--levers``): bfloat16 for CLIP and the networks, TF32 products, and
+  the renderer compiled by torch.compile (``compile_shading: on``, Triton; the compilation is
+  paid in the lever's warm-up, not in its timed iterations, and printed apart).
 
 The mesh is ``../shared/meshes/person.obj`` when present, else the built-in vase. Without CUDA it
 stops with a message (tests/gpu holds the GPU tests; both skip or stop on a CPU machine).
@@ -43,11 +45,13 @@ TARGET_S = 60.0
 TARGET_GIB = 4.0
 
 
-def run(train: Path, iterations: int, warmup: int, bf16: bool, tf32: bool) -> dict:
+def run(train: Path, iterations: int, warmup: int, bf16: bool, tf32: bool, compiled: bool = False) -> dict:
     torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = tf32
-    s = OptimizeSettings(iterations=iterations, bf16=bf16, bf16_networks=bf16)
+    s = OptimizeSettings(iterations=iterations, bf16=bf16, bf16_networks=bf16, compile_shading="on" if compiled else "off")
     guide = vit_b32_random(bf16=s.bf16, tower=s.clip_tower, device="cuda")
-    opt = Optimizer(s, RayCache(train), "a person made of wood", "cuda", guide=guide)
+    t0 = time.perf_counter()
+    opt = Optimizer(s, RayCache(train), "a person made of wood", "cuda", guide=guide)  # compiles the renderer
+    setup = time.perf_counter() - t0
     for _ in range(warmup):
         opt.step(Timer())
     torch.cuda.synchronize()
@@ -61,7 +65,8 @@ def run(train: Path, iterations: int, warmup: int, bf16: bool, tf32: bool) -> di
         "wall_s": wall,
         "s_per_iter": wall / iterations,
         "peak_gib": torch.cuda.max_memory_allocated() / 2**30,
-        "precision": f"clip {guide.precision}; networks {opt.network_precision}; tf32 {tf32}",
+        "precision": f"clip {guide.precision}; networks {opt.network_precision}; tf32 {tf32}; shading {opt.shading_path}",
+        "setup_s": setup,
         "opt": opt,
     }
 
@@ -125,17 +130,18 @@ def levers(train: Path, warmup: int) -> None:
     """200 iterations under each lever, side by side; a lever whose run fails (a non-finite loss,
     as TF32 products gave on an H100 before the SG product's cosine was held in [-1, 1]) is
     reported as such."""
-    print(f"{'lever':<24}{'s/iter':>9}{'x fp32':>8}{'peak GiB':>10}", flush=True)
+    print(f"{'lever':<36}{'s/iter':>9}{'x fp32':>8}{'peak GiB':>10}{'setup s':>9}", flush=True)
     base = None
-    for bf16, tf32 in ((False, False), (False, True), (True, False)):
-        label = f"bf16={bf16} tf32={tf32}"
+    for bf16, tf32, compiled in ((False, False, False), (False, True, False), (True, False, False), (False, False, True)):
+        label = f"bf16={bf16} tf32={tf32} compiled={compiled}"
         try:
-            r = run(train, 200, warmup, bf16, tf32)
+            r = run(train, 200, warmup, bf16, tf32, compiled)
         except (FloatingPointError, RuntimeError) as exc:
-            print(f"{label:<24} failed: {type(exc).__name__}: {str(exc).splitlines()[0][:120]}", flush=True)
+            print(f"{label:<36} failed: {type(exc).__name__}: {str(exc).splitlines()[0][:120]}", flush=True)
             continue
         base = base or r["s_per_iter"]
-        print(f"{label:<24}{r['s_per_iter']:>9.4f}{base / r['s_per_iter']:>8.2f}{r['peak_gib']:>10.2f}", flush=True)
+        row = f"{label:<36}{r['s_per_iter']:>9.4f}{base / r['s_per_iter']:>8.2f}{r['peak_gib']:>10.2f}{r['setup_s']:>9.1f}"
+        print(row + ("" if not compiled else f"  ({r['precision'].split('; ')[-1]})"), flush=True)
 
 
 if __name__ == "__main__":

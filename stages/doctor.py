@@ -116,13 +116,17 @@ def tried(check: Check, use: Callable[[], str], fix: str) -> Check:
 def check_torch(cfg) -> Check:
     import torch
 
+    from .model.field import compiled_before, renderer_kind
+
     device = resolve_device(cfg.device if cfg.device != "auto" else "auto")
     build = f"CUDA {torch.version.cuda} build" if torch.version.cuda else "CPU build"
     gpu = f"{torch.cuda.device_count()} GPU(s): {torch.cuda.get_device_name(0)}" if torch.cuda.is_available() else "no GPU"
     bf16, why = bf16_support(device)
     settings = [cfg.optimize_settings(c.prompt, c.variant) for c in cfg.cells]
     levers = sorted({(s.bf16, s.bf16_networks) for s in settings})
-    renderers = sorted({compile_choice(s.compile_shading, device, s.iterations)[1] for s in settings})
+    renderers = sorted(
+        {compile_choice(s.compile_shading, device, s.iterations, compiled_before(renderer_kind(s), device))[1] for s in settings}
+    )
     detail = (
         f"torch {torch.__version__} ({build}, {gpu}); this config's torch stages run on {device.type} "
         f"(device: {cfg.device}); {torch.get_num_threads()} CPU threads; bfloat16: {why}; training runs "

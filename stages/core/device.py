@@ -87,13 +87,15 @@ def bf16_choice(setting: str | bool, device: torch.device, what: str) -> tuple[b
     return supported, f"bfloat16 autocast ({why})" if supported else f"float32 ({why})"
 
 
-#: ``compile_shading: auto`` compiles the renderer for runs of at least this many iterations: on
-#: this project's CPU the compilation cost 66-94 s from an empty inductor cache and 13-20 s from a
-#: warm one, and saved 0.07-0.09 s per step at the ``fast`` preset's 17,000 points and 16 lobes
-#: (repaid after 1,046 steps from an empty cache, 278 from a warm one) and 0.31 s at the paper's
-#: 25,000 points and 32 lobes (repaid after about 300 even from an empty cache), so from about 1,000
-#: steps it pays on a machine's first run (docs/measurements/speed.md, ``benchmarks/fast_step.py``)
+#: ``compile_shading: auto`` compiles the renderer for runs of at least this many iterations on a
+#: machine where it has not been compiled before: the first compilation took 75-85 s on this
+#: project's 2-core CPU (an empty inductor cache) and saves 0.045 s per step at the ``fast``
+#: preset's 17,000 points and 16 lobes, 0.14 s at the paper's 25,000 points and 32 lobes
+#: (docs/measurements/speed.md, ``benchmarks/fast_step.py``): it pays from about 1,000 steps
 COMPILE_MIN_ITERATIONS = 1000
+#: ... and for runs of at least this many where the same renderer has been compiled before on this
+#: machine (inductor's and AOTAutograd's caches warm: 3 s, repaid after about 70 ``fast`` steps)
+COMPILE_MIN_ITERATIONS_WARM = 100
 
 
 def cpp_compiler() -> str | None:
@@ -130,8 +132,14 @@ def use_inductor_cache() -> None:
 def compile_support(device: torch.device) -> tuple[bool, str]:
     """Whether torch.compile can build the renderer for ``device``, and why: on a CPU it needs a
     C++ compiler (:func:`cpp_compiler`) and the Python headers (:func:`python_headers`); on a GPU,
-    Triton. (What can still fail, :meth:`~stages.model.field.StyleField.use_compiled_shading`
-    finds by compiling once, and then runs eager.)"""
+    Triton; on either, a platform and Python that torch.compile supports (dynamo's own check:
+    it has refused Windows and new Pythons in some releases). (What can still fail,
+    :meth:`~stages.model.field.StyleField.use_compiled_shading` finds by compiling once, and then
+    runs eager.)"""
+    import torch._dynamo
+
+    if not torch._dynamo.is_dynamo_supported():
+        return False, "torch.compile does not support this platform or Python"
     if device.type == "cpu":
         cxx = cpp_compiler()
         if not cxx:
@@ -146,14 +154,16 @@ def compile_support(device: torch.device) -> tuple[bool, str]:
     return False, f"no inductor backend for {device.type}"
 
 
-def compile_choice(setting: str | bool, device: torch.device, iterations: int) -> tuple[bool, str]:
+def compile_choice(setting: str | bool, device: torch.device, iterations: int, warm: bool = False) -> tuple[bool, str]:
     """Whether the renderer is compiled for a run of ``iterations`` steps on ``device``
     (``optimize.compile_shading``: one of :data:`BF16_CHOICES`; booleans mean on and off), and what
     runs, for the metadata and the plan: ``"torch.compile (<why>)"``, ``"eager"`` (off) or
-    ``"eager (<why not>)"``. ``auto`` compiles on a CPU with a C++ compiler for runs of at least
-    :data:`COMPILE_MIN_ITERATIONS` steps, where the compilation has been measured to pay; on a GPU
-    it stays eager (not measured there); ``on`` compiles wherever a backend is found and otherwise
-    warns and runs eager."""
+    ``"eager (<why not>)"``. ``warm``: the same renderer has been compiled on this machine before
+    (:func:`~stages.model.field.compiled_before`), so its compilation is read from the caches.
+    ``auto`` compiles on a CPU with a C++ compiler for runs of at least
+    :data:`COMPILE_MIN_ITERATIONS` steps, or :data:`COMPILE_MIN_ITERATIONS_WARM` when ``warm``,
+    where the compilation has been measured to pay; on a GPU it stays eager (not measured there);
+    ``on`` compiles wherever a backend is found and otherwise warns and runs eager."""
     choice = lever_choice(setting, "compile_shading")
     if choice == "off":
         return False, "eager"
@@ -164,11 +174,13 @@ def compile_choice(setting: str | bool, device: torch.device, iterations: int) -
         return supported, f"torch.compile ({why})" if supported else f"eager ({why})"
     if device.type != "cpu":
         return False, f"eager (auto: compiling the renderer on {device.type} has not been measured to pay)"
-    if iterations < COMPILE_MIN_ITERATIONS:
-        return False, f"eager (auto: {iterations} iterations, fewer than the {COMPILE_MIN_ITERATIONS} that repay a compilation)"
+    needed = COMPILE_MIN_ITERATIONS_WARM if warm else COMPILE_MIN_ITERATIONS
+    cache = "compiled before on this machine" if warm else "not compiled on this machine before"
+    if iterations < needed:
+        return False, f"eager (auto: {iterations} iterations, fewer than the {needed} that repay a compilation; {cache})"
     if not supported:
         return False, f"eager (auto: {why})"
-    return True, f"torch.compile (auto: {iterations} iterations; {why})"
+    return True, f"torch.compile (auto: {iterations} iterations; {cache}; {why})"
 
 
 def precision_summary(bf16: str | bool, bf16_networks: str | bool, device: torch.device, reason: bool = True) -> str:

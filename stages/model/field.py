@@ -5,9 +5,13 @@ hits to shaded colour that training, evaluation, relighting (a light override), 
 
 from __future__ import annotations
 
+import functools
+import hashlib
 import logging
+import sys
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 
 import torch
 from torch import Tensor, nn
@@ -26,6 +30,65 @@ class FieldOutput:
     shading: Shading
     material: Material
     normal: Tensor  # (N, 3) shading normal (predicted, facing the viewer)
+
+
+def renderer_kind(s: FieldSettings, shadowed: bool | None = None) -> str:
+    """What the compiled renderer's graph depends on beyond its code: the BRDF, the lobe model,
+    whether it is given shadows (``shadowed``; None: as the settings ask, which a ray cache without
+    visibility overrides) and the light's channels (the numbers of points and lobes are free in it)."""
+    shadows = "shadows" if (s.shadows if shadowed is None else shadowed) else "no shadows"
+    return f"{s.brdf} BRDF, {s.specular_lobe} lobe, {shadows}, {'RGB' if s.light_rgb else 'monochrome'} light"
+
+
+def _compile_marker(kind: str, device: torch.device) -> Path:
+    """The file that says this renderer (``kind``, this code and tables, this torch and Python) has
+    been compiled into this machine's inductor cache (:func:`~stages.core.device.use_inductor_cache`)."""
+    from torch._inductor.runtime.cache_dir_utils import cache_dir
+
+    use_inductor_cache()
+    stages = Path(__file__).resolve().parents[1]
+    digest = hashlib.sha256("\0".join((torch.__version__, sys.version, device.type, kind)).encode())
+    for source in [*sorted((stages / "render").rglob("*.py")), *sorted((stages / "render").rglob("*.npz")), Path(__file__)]:
+        digest.update(source.read_bytes())
+    return Path(cache_dir()) / "stages-renderer" / digest.hexdigest()[:24]
+
+
+def compiled_before(kind: str, device: torch.device) -> bool:
+    """Whether the renderer of ``kind`` has been compiled on this machine before, by this code:
+    its compilation is then read from inductor's and AOTAutograd's caches (3 s against 75-85 s).
+    The caches may have been emptied since; the first compilation then pays in full once."""
+    return _compile_marker(kind, torch.device(device)).is_file()
+
+
+def _mark_compiled(kind: str, device: torch.device) -> None:
+    marker = _compile_marker(kind, device)
+    try:
+        marker.parent.mkdir(parents=True, exist_ok=True)
+        part = marker.with_suffix(".part")
+        part.write_text(f"{kind}\n")
+        part.replace(marker)
+    except OSError as exc:  # a read-only cache: the next run decides as if cold
+        log.debug("could not mark the compiled renderer in %s: %s", marker, exc)
+
+
+def compiled_shade_material(brdf: str, device: torch.device) -> Callable[..., Shading]:
+    """:func:`shade_material` through ``torch.compile(dynamic=True)`` (the number of points and of
+    lobes free), as training runs it: ``brdf``'s specular table read first on ``device`` (read
+    inside the compiled function, the file read broke its graph in two), and Python floats (the
+    renderer's constants) taken as the constants they are (``specialize_float``; as inputs, dynamo
+    traced the renderer twice per process). The compilation happens at the first call; with
+    inductor's and AOTAutograd's caches warm it took 3 s (20 s before these two changes)."""
+    from ..render.specular_albedo import preload_table
+
+    preload_table(device, brdf)
+    compiled = torch.compile(shade_material, dynamic=True)
+
+    @functools.wraps(shade_material)
+    def shade_compiled(*args, **kwargs) -> Shading:
+        with torch._dynamo.config.patch(specialize_float=True):
+            return compiled(*args, **kwargs)
+
+    return shade_compiled
 
 
 def shade_material(
@@ -128,8 +191,11 @@ class StyleField(nn.Module):
         self.compiled_shade = None
         #: what shades while training, and why (:meth:`use_compiled_shading`), for the metadata
         self.shading_path = "eager"
+        self._settings = s
 
-    def use_compiled_shading(self, setting: str | bool, device: torch.device, iterations: int) -> str:
+    def use_compiled_shading(
+        self, setting: str | bool, device: torch.device, iterations: int, shadowed: bool | None = None
+    ) -> str:
         """Shade through ``torch.compile(shade, dynamic=True)`` in training mode where the
         optimisation's option ``compile_shading`` (``auto``, ``on``, ``off``) resolves to on for a
         run of ``iterations`` steps on ``device`` (:func:`~stages.core.device.compile_choice`):
@@ -138,30 +204,39 @@ class StyleField(nn.Module):
         and backward, on a few points of this field's kind (BRDF, lobe model, lobes, shadows), so
         that a compilation that fails (a compiler that cannot build, missing headers) costs a
         warning and the eager renderer, not the run; inductor's disk cache is
-        :func:`~stages.core.device.use_inductor_cache`'s. Returns what runs, for the metadata
+        :func:`~stages.core.device.use_inductor_cache`'s. ``shadowed``: whether the step will pass
+        each lobe's visible share (None: :attr:`shadows`; a ray cache without visibility passes
+        none), which the compiled graph depends on. Returns what runs, for the metadata
         (:attr:`shading_path`)."""
-        enabled, path = compile_choice(setting, torch.device(device), iterations)
+        device = torch.device(device)
+        shadowed = self.shadows if shadowed is None else shadowed
+        kind = renderer_kind(self._settings, shadowed)
+        enabled, path = compile_choice(setting, device, iterations, compiled_before(kind, device))
         self.compiled_shade = None
         if enabled:
             use_inductor_cache()
-            compiled = torch.compile(shade_material, dynamic=True)
+            compiled = compiled_shade_material(self.brdf, device)
             try:
-                self._first_compiled_pass(compiled, torch.device(device))
+                self._first_compiled_pass(compiled, device, shadowed)
             except Exception as exc:  # noqa: BLE001 - any failure to build means: run eager
                 why = f"{type(exc).__name__}: {str(exc).strip().splitlines()[0][:200] if str(exc).strip() else ''}"
                 log.warning("compile_shading: the renderer's compilation failed (%s); it runs eager", why)
                 path = f"eager (the compilation failed: {why})"
             else:
                 self.compiled_shade = compiled
+                _mark_compiled(kind, device)
         self.shading_path = path
         return path
 
-    def _first_compiled_pass(self, compiled: Callable, device: torch.device) -> None:
+    def _first_compiled_pass(self, compiled: Callable, device: torch.device, shadowed: bool) -> None:
         """``compiled`` forward and backward on 16 random points shaped as this field shades in
-        training (the same BRDF, lobe model, lobes and shadows; every input but the view needing
-        gradients, as the networks' outputs and the light do), so the step reuses what it built."""
+        training (the same BRDF, lobe model, lobes and shadows; the same inputs needing gradients:
+        the networks' outputs, the light and the shares, the normal where a network predicts it),
+        so the step reuses what it built (its guards check which inputs need gradients)."""
         gen = torch.Generator().manual_seed(0)
-        n = 16
+        # as many points as no other size (lobes, channels, 1): sizes that happen to be equal are
+        # taken as one symbol (duck sizing), and the step's differ: a second compilation
+        n = 2 * self.light.lobes + 3
 
         def leaf(*shape: int) -> Tensor:
             return torch.rand(*shape, generator=gen).to(device).requires_grad_()
@@ -179,8 +254,11 @@ class StyleField(nn.Module):
             light = self.light()
         k = light.axis.shape[0]
         light = SGLight(torch.nn.functional.normalize(leaf(k, 3), dim=-1), leaf(k, 1) + 1.0, leaf(k, light.amplitude.shape[1]))
-        shares = leaf(n, k) if self.shadows else None
-        out = compiled(normal.requires_grad_(), view, material, light, self.specular_lobe, shares)
+        shares = leaf(n, k) if shadowed else None
+        # the shading normal needs a gradient only where a network predicts it: a mismatch with the
+        # step's made torch.compile compile the renderer a second time at the first step (58 s cold)
+        normal.requires_grad_(self.normal_net is not None)
+        out = compiled(normal, view, material, light, self.specular_lobe, shares)
         out.rgb.sum().backward()
 
     def use_bf16(self, setting: str | bool, device: torch.device) -> str:

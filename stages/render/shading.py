@@ -712,6 +712,11 @@ def _outside_autocast(render: Callable) -> Callable:
 
     @functools.wraps(render)
     def in_own_precision(normal: Tensor, *args, **kwargs) -> Shading:
+        if not torch.is_autocast_enabled(normal.device.type):
+            # no autocast to leave: no context either (under torch.compile an autocast context in
+            # the graph bypasses AOTAutograd's cache, and every process traced the renderer's
+            # joint graph again, 12 s)
+            return render(normal, *args, **kwargs)
         with torch.autocast(normal.device.type, enabled=False):
             return render(normal, *args, **kwargs)
 

@@ -198,6 +198,12 @@ def _table(device: str, dtype: torch.dtype, brdf: str = "tango") -> dict[str, Te
     return table
 
 
+def preload_table(device: torch.device | str, brdf: str = "tango") -> None:
+    """Read ``brdf``'s table for ``device`` now (as a lookup on that device would: float32, the
+    device's full name), so that a compiled renderer finds it in memory."""
+    _table(str(torch.empty(0, device=device).device), torch.float32, brdf)
+
+
 def _read_table(device: str, dtype: torch.dtype, brdf: str) -> dict[str, Tensor]:
     if brdf not in TABLE_PATHS:
         raise ValueError(f"unknown BRDF {brdf!r}; choose one of {', '.join(BRDFS)}")

@@ -21,26 +21,46 @@ CPU, CUDA = torch.device("cpu"), torch.device("cuda")
 GXX = (True, "C++ compiler /usr/bin/g++ (simulated)")
 NONE = (False, "no C++ compiler (simulated)")
 LONG, SHORT = policy.COMPILE_MIN_ITERATIONS, policy.COMPILE_MIN_ITERATIONS - 1
+WARM = policy.COMPILE_MIN_ITERATIONS_WARM
+COLD_NOTE, WARM_NOTE = "not compiled on this machine before", "compiled before on this machine"
 
 
 @pytest.mark.parametrize(
-    ("setting", "device", "iterations", "support", "runs", "label"),
+    ("setting", "device", "iterations", "warm", "support", "runs", "label"),
     [
-        ("auto", CPU, LONG, GXX, True, f"torch.compile (auto: {LONG} iterations; C++ compiler /usr/bin/g++ (simulated))"),
-        ("auto", CPU, SHORT, GXX, False, f"eager (auto: {SHORT} iterations, fewer than the {LONG} that repay a compilation)"),
-        ("auto", CPU, LONG, NONE, False, "eager (auto: no C++ compiler (simulated))"),
-        ("auto", CUDA, LONG, GXX, False, "eager (auto: compiling the renderer on cuda has not been measured to pay)"),
-        ("on", CPU, 1, GXX, True, "torch.compile (C++ compiler /usr/bin/g++ (simulated))"),
-        ("on", CPU, 1, NONE, False, "eager (no C++ compiler (simulated))"),
-        ("off", CPU, LONG, GXX, False, "eager"),
-        (True, CPU, 1, GXX, True, "torch.compile (C++ compiler /usr/bin/g++ (simulated))"),
-        (False, CPU, LONG, GXX, False, "eager"),
+        ("auto", CPU, LONG, False, GXX, True, f"torch.compile (auto: {LONG} iterations; {COLD_NOTE}; {GXX[1]})"),
+        (
+            "auto",
+            CPU,
+            SHORT,
+            False,
+            GXX,
+            False,
+            f"eager (auto: {SHORT} iterations, fewer than the {LONG} that repay a compilation; {COLD_NOTE})",
+        ),
+        ("auto", CPU, WARM, True, GXX, True, f"torch.compile (auto: {WARM} iterations; {WARM_NOTE}; {GXX[1]})"),
+        (
+            "auto",
+            CPU,
+            WARM - 1,
+            True,
+            GXX,
+            False,
+            f"eager (auto: {WARM - 1} iterations, fewer than the {WARM} that repay a compilation; {WARM_NOTE})",
+        ),
+        ("auto", CPU, LONG, False, NONE, False, "eager (auto: no C++ compiler (simulated))"),
+        ("auto", CUDA, LONG, True, GXX, False, "eager (auto: compiling the renderer on cuda has not been measured to pay)"),
+        ("on", CPU, 1, False, GXX, True, "torch.compile (C++ compiler /usr/bin/g++ (simulated))"),
+        ("on", CPU, 1, False, NONE, False, "eager (no C++ compiler (simulated))"),
+        ("off", CPU, LONG, True, GXX, False, "eager"),
+        (True, CPU, 1, False, GXX, True, "torch.compile (C++ compiler /usr/bin/g++ (simulated))"),
+        (False, CPU, LONG, False, GXX, False, "eager"),
     ],
 )
-def test_each_setting_on_each_kind_of_machine(monkeypatch, caplog, setting, device, iterations, support, runs, label):
+def test_each_setting_on_each_kind_of_machine(monkeypatch, caplog, setting, device, iterations, warm, support, runs, label):
     monkeypatch.setattr(policy, "compile_support", lambda d: support)
     with caplog.at_level(logging.WARNING, logger="stages.core.device"):
-        assert policy.compile_choice(setting, device, iterations) == (runs, label)
+        assert policy.compile_choice(setting, device, iterations, warm) == (runs, label)
     warned = [r.getMessage() for r in caplog.records]
     # only an explicit "on" that cannot be honoured warns: auto's eager renderer is a decision
     assert bool(warned) == (setting in ("on", True) and not support[0]), warned
@@ -76,23 +96,25 @@ def test_a_real_run_without_a_compiler_runs_eager_and_says_why(monkeypatch, cach
     compilation stays eager whatever the machine has."""
     monkeypatch.setenv("PATH", str(tmp_path / "nothing-here"))
     monkeypatch.delenv("CXX", raising=False)
+    monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", str(tmp_path / "inductor"))  # a machine that never compiled
     s = OptimizeSettings(**TINY_OPTIMIZE, clip_tiny_test=True, crops=0, normal_network=False, compile_shading=setting)
     optimize.run(cache / "train.npz", cache / "eval.npz", "a vase made of wood", tmp_path, s, "cpu")
     meta = json.loads((tmp_path / "meta.json").read_text())
     expect = {
         "on": "eager (no C++ compiler ($CXX, else g++) for inductor)",
-        "auto": f"eager (auto: 3 iterations, fewer than the {LONG} that repay a compilation)",
+        "auto": f"eager (auto: 3 iterations, fewer than the {LONG} that repay a compilation; {COLD_NOTE})",
     }[setting]
     assert meta["shading_path"] == expect and meta["settings"]["compile_shading"] == setting
 
 
-def test_the_doctor_says_which_renderer_each_run_gets(monkeypatch):
+def test_the_doctor_says_which_renderer_each_run_gets(monkeypatch, tmp_path):
     """The doctor's torch line names the renderer this config's trainings get: a paper-length
     variant compiled, the 3-iteration ones eager, each with its reason."""
     from stages import doctor
     from stages.config.workflow import WorkflowConfig
 
     monkeypatch.setattr(policy, "compile_support", lambda d: GXX)
+    monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", str(tmp_path / "inductor"))
     cfg = WorkflowConfig(
         {
             "device": "cpu",
@@ -104,7 +126,7 @@ def test_the_doctor_says_which_renderer_each_run_gets(monkeypatch):
     )
     detail = doctor.check_torch(cfg).detail
     assert "renderer: eager (auto: 3 iterations, fewer than the 1000" in detail
-    assert "torch.compile (auto: 1500 iterations; C++ compiler /usr/bin/g++ (simulated))" in detail
+    assert f"torch.compile (auto: 1500 iterations; {COLD_NOTE}; C++ compiler /usr/bin/g++ (simulated))" in detail
 
 
 def test_missing_python_headers_are_named(monkeypatch):
@@ -139,3 +161,39 @@ def test_a_compiler_that_cannot_build_costs_a_warning_not_the_run(tmp_path):
     path, eager = proc.stdout.strip().splitlines()[-2:]
     assert path.startswith("eager (the compilation failed: ") and eager == "True", proc.stdout
     assert "compile_shading: the renderer's compilation failed" in proc.stderr
+
+
+def test_a_renderer_compiled_before_is_known_by_its_kind_code_and_torch(monkeypatch, tmp_path):
+    """The mark a successful compilation leaves in the inductor cache: found for the same kind of
+    renderer, not for another kind, another torch or another cache (a machine that never compiled)."""
+    from stages.model import field
+
+    monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", str(tmp_path / "one"))
+    kind = field.renderer_kind(OptimizeSettings().field_settings())
+    other = field.renderer_kind(OptimizeSettings(brdf="tango").field_settings())
+    assert kind != other and "gltf BRDF, fitted lobe" in kind
+    assert not field.compiled_before(kind, CPU)
+    field._mark_compiled(kind, CPU)
+    assert field.compiled_before(kind, CPU) and not field.compiled_before(other, CPU)
+    assert list((tmp_path / "one" / "stages-renderer").iterdir())  # inside the cache, nowhere else
+    monkeypatch.setattr(torch, "__version__", "0.0.0")
+    assert not field.compiled_before(kind, CPU)
+    monkeypatch.undo()
+    monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", str(tmp_path / "two"))
+    assert not field.compiled_before(kind, CPU)
+
+
+def test_a_platform_torch_compile_does_not_support_runs_eager(monkeypatch):
+    """dynamo's own check says no (Windows and new Pythons in some releases): the renderer runs
+    eager under on and auto, and the field says why, without trying to compile."""
+    import torch._dynamo
+
+    from stages.model.field import StyleField
+
+    monkeypatch.setattr(torch._dynamo, "is_dynamo_supported", lambda: False)
+    assert policy.compile_support(CPU) == (False, "torch.compile does not support this platform or Python")
+    f = StyleField(OptimizeSettings(width=16, light_lobes=4).field_settings())
+    monkeypatch.setattr(torch, "compile", lambda *a, **k: pytest.fail("compiled where torch.compile is not supported"))
+    assert f.use_compiled_shading("on", CPU, 1) == "eager (torch.compile does not support this platform or Python)"
+    assert f.use_compiled_shading("auto", CPU, 10_000) == "eager (auto: torch.compile does not support this platform or Python)"
+    assert f.compiled_shade is None

@@ -159,6 +159,36 @@ def _timer():
 
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+@pytest.mark.slow(minutes=2)
+def test_compiled_renderer_on_cuda_equals_eager():
+    """``compile_shading: on`` on CUDA (Triton): the field's compiled renderer gives the eager
+    renderer's colours and, to float32's rounding in another order, its gradients; or, where
+    Triton cannot build, the field says so and runs eager."""
+    import copy
+
+    s = OptimizeSettings(width=16, light_lobes=8)
+    eager = StyleField(s.field_settings()).cuda()
+    compiled = copy.deepcopy(eager)
+    path = compiled.use_compiled_shading("on", torch.device("cuda"), 1, shadowed=False)
+    if not path.startswith("torch.compile"):
+        assert path.startswith("eager (") and compiled.compiled_shade is None, path
+        return
+    g = torch.Generator().manual_seed(3)
+    pts = (torch.rand(4096, 3, generator=g) * 2 - 1).cuda()
+    nrm = torch.nn.functional.normalize(torch.randn(4096, 3, generator=g), dim=-1).cuda()
+    view = torch.nn.functional.normalize(nrm + 0.5 * torch.randn(4096, 3, generator=g).cuda(), dim=-1)
+    outs = []
+    for f in (eager, compiled):
+        rgb = f(pts, nrm, view).shading.rgb
+        (rgb * torch.linspace(0, 1, rgb.numel(), device="cuda").view_as(rgb)).sum().backward()
+        outs.append((rgb.detach(), [p.grad for p in f.parameters()]))
+    torch.testing.assert_close(outs[1][0], outs[0][0], rtol=1e-4, atol=1e-5)
+    for a, b in zip(outs[1][1], outs[0][1], strict=True):
+        assert float((a - b).norm() / b.norm().clamp(min=1e-12)) < 3e-3
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 def test_bf16_finite_at_the_extremes_on_cuda():
     """bfloat16 networks and CLIP on the GPU: finite values and gradients at the box's corners,
     both poles and a grazing normal, and for black and white images."""
