@@ -16,7 +16,8 @@ CLIP ViT-B-32 at 224x224, networks of width 256, 32 light lobes) it measures:
   the optimizer) divided by the machine's peak matrix-multiply rate measured in float32 and in
   bfloat16 (``floor_fp32_s``, ``floor_bf16_s``), and ``ratio_to_floor = s_per_iter`` over the
   floor of what the machine runs (``floor_s``, ``floor_of``: bfloat16 only where it is native).
-  The last line prints these with the precision that ran and the target (``target_s``).
+  The last line prints these with the precision that ran and the target (``target_s``: 0.6 s where
+  the CPU runs bfloat16 natively, 1.2 s where it does not).
 
 First, CLIP alone along its paths (open_clip's modules or the batched tower, float32 or
 bfloat16 autocast): seconds and the cosines of embeddings and image gradients against open_clip
@@ -64,8 +65,11 @@ from stages.training.optimizer import Optimizer
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "meshes"
 PARTS = ("gather", "mlp", "shading", "clip", "optimizer")
-#: issue 34's target for the paper's step (width 256, 1 global image and 4 crops) on the development machine
-TARGET_S = 0.8
+#: the target for the paper's step (width 256, 1 global image and 4 crops) on a 2-core CPU that runs
+#: bfloat16 natively (AMX or AVX-512 BF16), and on one that does not (AVX2 only); the last line
+#: names the one this machine is held to, decided at run time
+TARGET_NATIVE_BF16_S = 0.6
+TARGET_AVX2_S = 1.2
 
 
 def build_cache(tmp: Path) -> tuple[Path, str]:
@@ -475,7 +479,7 @@ def main() -> None:
     # the last line: the figures the speed issue asks for, and the precision that ran
     last = {
         "s_per_iter": s_per_iter,
-        "target_s": TARGET_S,
+        "target_s": TARGET_NATIVE_BF16_S if bf16_support(torch.device("cpu"))[0] else TARGET_AVX2_S,
         "floor_s": best,
         "ratio_to_floor": s_per_iter / best,
         "floor_fp32_s": floors["fp32"],
