@@ -401,3 +401,29 @@ def test_the_renderer_keeps_its_precision_inside_an_autocast(brdf):
         with torch.autocast("cpu", dtype=torch.bfloat16):
             inside = run(lobe)
         assert inside.dtype == torch.float32 and torch.equal(inside, plain), lobe
+
+
+def test_no_autocast_context_in_the_compiled_renderer_where_none_is_open():
+    """Outside any autocast the renderer's entry points open no context of their own: traced by
+    torch.compile, an autocast context in the graph keeps AOTAutograd from caching it, and every
+    training process traced the renderer's joint graph again (a warm compilation 20 s, not 3 s).
+    Inside one, the context that switches it off is there (the test above: its precision)."""
+    seen: list[list[str]] = []
+
+    def record(gm, example_inputs):
+        seen.append([str(node.target) for node in gm.graph.nodes])
+        return gm.forward
+
+    g = torch.Generator().manual_seed(17)
+    n = torch.nn.functional.normalize(torch.randn(64, 3, generator=g), dim=-1)
+    v = torch.nn.functional.normalize(n + 0.3 * torch.randn(64, 3, generator=g), dim=-1)
+    colour, rough = torch.rand(64, 3, generator=g), torch.rand(64, 1, generator=g) * 0.9 + 0.05
+    light = SGLight(torch.nn.functional.normalize(torch.randn(4, 3, generator=g), dim=-1), torch.ones(4, 1), torch.ones(4, 3))
+    torch._dynamo.reset()
+    compiled = torch.compile(lambda: shade_gltf(n, v, colour, rough, rough, light, "split_sum").rgb, backend=record)
+    compiled()
+    assert seen and not any("autocast" in target for graph in seen for target in graph), seen
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        compiled()
+    assert any("autocast" in target for target in seen[-1])
+    torch._dynamo.reset()
