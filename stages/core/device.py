@@ -10,6 +10,7 @@ the settings) stays free of it.
 from __future__ import annotations
 
 import logging
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
@@ -129,6 +130,61 @@ def use_inductor_cache() -> None:
         os.environ["TORCHINDUCTOR_CACHE_DIR"] = os.path.join(os.environ["XDG_CACHE_HOME"], "torchinductor")
 
 
+def renderer_kind(settings, shadowed: bool | None = None) -> str:
+    """What the compiled renderer's graph depends on beyond its code, from a field's settings
+    (``brdf``, ``specular_lobe``, ``shadows``, ``light_rgb``): the BRDF, the lobe model, whether it
+    is given shadows (``shadowed``; None: as the settings ask, which a ray cache without visibility
+    overrides) and the light's channels (the numbers of points and lobes are free in it)."""
+    shadows = "shadows" if (settings.shadows if shadowed is None else shadowed) else "no shadows"
+    light = "RGB" if settings.light_rgb else "monochrome"
+    return f"{settings.brdf} BRDF, {settings.specular_lobe} lobe, {shadows}, {light} light"
+
+
+#: the compiled renderer's code and data, relative to the ``stages`` package: a change to any of
+#: them makes its compilation new
+RENDERER_SOURCES = ("render/*.py", "render/data/*.npz", "model/field.py")
+
+
+def _compile_marker(kind: str, device: torch.device) -> Path:
+    """The file that says the renderer of ``kind`` (this code and tables, this torch and Python)
+    has been compiled into this machine's inductor cache (:func:`use_inductor_cache`)."""
+    import hashlib
+    import sys
+
+    import torch
+    from torch._inductor.runtime.cache_dir_utils import cache_dir
+
+    use_inductor_cache()
+    package = Path(__file__).resolve().parents[1]
+    digest = hashlib.sha256("\0".join((torch.__version__, sys.version, device.type, kind)).encode())
+    for pattern in RENDERER_SOURCES:
+        for source in sorted(package.glob(pattern)):
+            digest.update(source.read_bytes())
+    return Path(cache_dir()) / "stages-renderer" / digest.hexdigest()[:24]
+
+
+def compiled_before(kind: str, device: torch.device) -> bool:
+    """Whether the renderer of ``kind`` has been compiled on this machine before, by this code:
+    its compilation is then read from inductor's and AOTAutograd's caches (3 s against 75-86 s).
+    The caches may have been emptied since; the next compilation then pays in full, once."""
+    import torch
+
+    return _compile_marker(kind, torch.device(device)).is_file()
+
+
+def mark_compiled(kind: str, device: torch.device) -> None:
+    """Leave :func:`compiled_before`'s mark after a successful compilation (written whole or not
+    at all; a cache that cannot be written only means the next run decides as if it were cold)."""
+    marker = _compile_marker(kind, device)
+    try:
+        marker.parent.mkdir(parents=True, exist_ok=True)
+        part = marker.with_suffix(".part")
+        part.write_text(f"{kind}\n")
+        part.replace(marker)
+    except OSError as exc:
+        log.debug("could not mark the compiled renderer in %s: %s", marker, exc)
+
+
 def compile_support(device: torch.device) -> tuple[bool, str]:
     """Whether torch.compile can build the renderer for ``device``, and why: on a CPU it needs a
     C++ compiler (:func:`cpp_compiler`) and the Python headers (:func:`python_headers`); on a GPU,
@@ -159,7 +215,7 @@ def compile_choice(setting: str | bool, device: torch.device, iterations: int, w
     (``optimize.compile_shading``: one of :data:`BF16_CHOICES`; booleans mean on and off), and what
     runs, for the metadata and the plan: ``"torch.compile (<why>)"``, ``"eager"`` (off) or
     ``"eager (<why not>)"``. ``warm``: the same renderer has been compiled on this machine before
-    (:func:`~stages.model.field.compiled_before`), so its compilation is read from the caches.
+    (:func:`compiled_before`), so its compilation is read from the caches.
     ``auto`` compiles on a CPU with a C++ compiler for runs of at least
     :data:`COMPILE_MIN_ITERATIONS` steps, or :data:`COMPILE_MIN_ITERATIONS_WARM` when ``warm``,
     where the compilation has been measured to pay; on a GPU it stays eager (not measured there);

@@ -6,20 +6,18 @@ hits to shaded colour that training, evaluation, relighting (a light override), 
 from __future__ import annotations
 
 import functools
-import hashlib
 import logging
-import sys
 from collections.abc import Callable
 from dataclasses import dataclass
-from pathlib import Path
 
 import torch
 from torch import Tensor, nn
 
 from ..config.sections import FieldSettings
-from ..core.device import bf16_choice, compile_choice, use_inductor_cache
+from ..core.device import bf16_choice, compile_choice, compiled_before, mark_compiled, renderer_kind, use_inductor_cache
 from ..geometry.normals import NormalSpec
 from ..render.shading import SGLight, Shading, face_viewer, shade, shade_gltf
+from ..render.specular_albedo import preload_table
 from .networks import Material, NormalNet, SGLightModule, SVBRDFNet, make_encoding, symmetric
 
 log = logging.getLogger(__name__)
@@ -32,45 +30,6 @@ class FieldOutput:
     normal: Tensor  # (N, 3) shading normal (predicted, facing the viewer)
 
 
-def renderer_kind(s: FieldSettings, shadowed: bool | None = None) -> str:
-    """What the compiled renderer's graph depends on beyond its code: the BRDF, the lobe model,
-    whether it is given shadows (``shadowed``; None: as the settings ask, which a ray cache without
-    visibility overrides) and the light's channels (the numbers of points and lobes are free in it)."""
-    shadows = "shadows" if (s.shadows if shadowed is None else shadowed) else "no shadows"
-    return f"{s.brdf} BRDF, {s.specular_lobe} lobe, {shadows}, {'RGB' if s.light_rgb else 'monochrome'} light"
-
-
-def _compile_marker(kind: str, device: torch.device) -> Path:
-    """The file that says this renderer (``kind``, this code and tables, this torch and Python) has
-    been compiled into this machine's inductor cache (:func:`~stages.core.device.use_inductor_cache`)."""
-    from torch._inductor.runtime.cache_dir_utils import cache_dir
-
-    use_inductor_cache()
-    stages = Path(__file__).resolve().parents[1]
-    digest = hashlib.sha256("\0".join((torch.__version__, sys.version, device.type, kind)).encode())
-    for source in [*sorted((stages / "render").rglob("*.py")), *sorted((stages / "render").rglob("*.npz")), Path(__file__)]:
-        digest.update(source.read_bytes())
-    return Path(cache_dir()) / "stages-renderer" / digest.hexdigest()[:24]
-
-
-def compiled_before(kind: str, device: torch.device) -> bool:
-    """Whether the renderer of ``kind`` has been compiled on this machine before, by this code:
-    its compilation is then read from inductor's and AOTAutograd's caches (3 s against 75-85 s).
-    The caches may have been emptied since; the first compilation then pays in full once."""
-    return _compile_marker(kind, torch.device(device)).is_file()
-
-
-def _mark_compiled(kind: str, device: torch.device) -> None:
-    marker = _compile_marker(kind, device)
-    try:
-        marker.parent.mkdir(parents=True, exist_ok=True)
-        part = marker.with_suffix(".part")
-        part.write_text(f"{kind}\n")
-        part.replace(marker)
-    except OSError as exc:  # a read-only cache: the next run decides as if cold
-        log.debug("could not mark the compiled renderer in %s: %s", marker, exc)
-
-
 def compiled_shade_material(brdf: str, device: torch.device) -> Callable[..., Shading]:
     """:func:`shade_material` through ``torch.compile(dynamic=True)`` (the number of points and of
     lobes free), as training runs it: ``brdf``'s specular table read first on ``device`` (read
@@ -78,8 +37,6 @@ def compiled_shade_material(brdf: str, device: torch.device) -> Callable[..., Sh
     renderer's constants) taken as the constants they are (``specialize_float``; as inputs, dynamo
     traced the renderer twice per process). The compilation happens at the first call; with
     inductor's and AOTAutograd's caches warm it took 3 s (20 s before these two changes)."""
-    from ..render.specular_albedo import preload_table
-
     preload_table(device, brdf)
     compiled = torch.compile(shade_material, dynamic=True)
 
@@ -224,7 +181,7 @@ class StyleField(nn.Module):
                 path = f"eager (the compilation failed: {why})"
             else:
                 self.compiled_shade = compiled
-                _mark_compiled(kind, device)
+                mark_compiled(kind, device)
         self.shading_path = path
         return path
 

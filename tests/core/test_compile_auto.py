@@ -166,21 +166,19 @@ def test_a_compiler_that_cannot_build_costs_a_warning_not_the_run(tmp_path):
 def test_a_renderer_compiled_before_is_known_by_its_kind_code_and_torch(monkeypatch, tmp_path):
     """The mark a successful compilation leaves in the inductor cache: found for the same kind of
     renderer, not for another kind, another torch or another cache (a machine that never compiled)."""
-    from stages.model import field
-
     monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", str(tmp_path / "one"))
-    kind = field.renderer_kind(OptimizeSettings().field_settings())
-    other = field.renderer_kind(OptimizeSettings(brdf="tango").field_settings())
+    kind = policy.renderer_kind(OptimizeSettings().field_settings())
+    other = policy.renderer_kind(OptimizeSettings(brdf="tango").field_settings())
     assert kind != other and "gltf BRDF, fitted lobe" in kind
-    assert not field.compiled_before(kind, CPU)
-    field._mark_compiled(kind, CPU)
-    assert field.compiled_before(kind, CPU) and not field.compiled_before(other, CPU)
+    assert not policy.compiled_before(kind, CPU)
+    policy.mark_compiled(kind, CPU)
+    assert policy.compiled_before(kind, CPU) and not policy.compiled_before(other, CPU)
     assert list((tmp_path / "one" / "stages-renderer").iterdir())  # inside the cache, nowhere else
     monkeypatch.setattr(torch, "__version__", "0.0.0")
-    assert not field.compiled_before(kind, CPU)
+    assert not policy.compiled_before(kind, CPU)
     monkeypatch.undo()
     monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", str(tmp_path / "two"))
-    assert not field.compiled_before(kind, CPU)
+    assert not policy.compiled_before(kind, CPU)
 
 
 def test_a_platform_torch_compile_does_not_support_runs_eager(monkeypatch):

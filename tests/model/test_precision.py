@@ -12,8 +12,8 @@ from torch._dynamo.utils import counters
 
 from stages.config.sections import OptimizeSettings
 from stages.core import device as policy
-from stages.core.device import bf16_support
-from stages.model.field import StyleField, compiled_before, renderer_kind
+from stages.core.device import bf16_support, compiled_before, renderer_kind
+from stages.model.field import StyleField
 from stages.model.networks import FourierFeatures
 
 CPU = torch.device("cpu")
