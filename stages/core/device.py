@@ -9,6 +9,7 @@ the settings) stays free of it.
 
 from __future__ import annotations
 
+import functools
 import logging
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -145,6 +146,20 @@ def renderer_kind(settings, shadowed: bool | None = None) -> str:
 RENDERER_SOURCES = ("render/*.py", "render/data/*.npz", "model/field.py")
 
 
+@functools.cache
+def _renderer_sources_digest() -> str:
+    """sha256 of :data:`RENDERER_SOURCES`' contents (read once per process: the doctor asks for
+    every cell of a grid)."""
+    import hashlib
+
+    package = Path(__file__).resolve().parents[1]
+    digest = hashlib.sha256()
+    for pattern in RENDERER_SOURCES:
+        for source in sorted(package.glob(pattern)):
+            digest.update(source.read_bytes())
+    return digest.hexdigest()
+
+
 def _compile_marker(kind: str, device: torch.device) -> Path:
     """The file that says the renderer of ``kind`` (this code and tables, this torch and Python)
     has been compiled into this machine's inductor cache (:func:`use_inductor_cache`)."""
@@ -155,11 +170,8 @@ def _compile_marker(kind: str, device: torch.device) -> Path:
     from torch._inductor.runtime.cache_dir_utils import cache_dir
 
     use_inductor_cache()
-    package = Path(__file__).resolve().parents[1]
-    digest = hashlib.sha256("\0".join((torch.__version__, sys.version, device.type, kind)).encode())
-    for pattern in RENDERER_SOURCES:
-        for source in sorted(package.glob(pattern)):
-            digest.update(source.read_bytes())
+    parts = (torch.__version__, sys.version, device.type, kind, _renderer_sources_digest())
+    digest = hashlib.sha256("\0".join(parts).encode())
     return Path(cache_dir()) / "stages-renderer" / digest.hexdigest()[:24]
 
 
