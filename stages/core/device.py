@@ -181,20 +181,24 @@ def compiled_before(kind: str, device: torch.device) -> bool:
     The caches may have been emptied since; the next compilation then pays in full, once."""
     import torch
 
-    return _compile_marker(kind, torch.device(device)).is_file()
+    try:
+        return _compile_marker(kind, torch.device(device)).is_file()
+    except OSError as exc:  # a cache folder that cannot be made: as if never compiled
+        log.debug("no inductor cache to look in: %s", exc)
+        return False
 
 
 def mark_compiled(kind: str, device: torch.device) -> None:
     """Leave :func:`compiled_before`'s mark after a successful compilation (written whole or not
     at all; a cache that cannot be written only means the next run decides as if it were cold)."""
-    marker = _compile_marker(kind, device)
     try:
+        marker = _compile_marker(kind, device)
         marker.parent.mkdir(parents=True, exist_ok=True)
         part = marker.with_suffix(".part")
         part.write_text(f"{kind}\n")
         part.replace(marker)
     except OSError as exc:
-        log.debug("could not mark the compiled renderer in %s: %s", marker, exc)
+        log.debug("could not mark the compiled renderer in the inductor cache: %s", exc)
 
 
 def compile_support(device: torch.device) -> tuple[bool, str]:

@@ -195,3 +195,14 @@ def test_a_platform_torch_compile_does_not_support_runs_eager(monkeypatch):
     assert f.use_compiled_shading("on", CPU, 1) == "eager (torch.compile does not support this platform or Python)"
     assert f.use_compiled_shading("auto", CPU, 10_000) == "eager (auto: torch.compile does not support this platform or Python)"
     assert f.compiled_shade is None
+
+
+def test_a_cache_that_cannot_be_written_only_means_the_next_run_decides_as_if_cold(monkeypatch, tmp_path):
+    """The mark cannot be written (the cache folder is a file here; a read-only cache alike): no
+    error, and the renderer counts as not compiled before."""
+    blocked = tmp_path / "cache-is-a-file"
+    blocked.write_text("")
+    monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", str(blocked))
+    kind = policy.renderer_kind(OptimizeSettings().field_settings())
+    policy.mark_compiled(kind, CPU)
+    assert not policy.compiled_before(kind, CPU)
