@@ -23,7 +23,7 @@ from .config.layout import OPTIMIZE_FILES, RENDER_KINDS
 from .config.records import OptimizeRecord
 from .config.sections import OptimizeSettings
 from .core.cli import stage_main
-from .core.device import resolve_device
+from .core.device import cpu_isa, resolve_device
 from .core.errors import StageInputError
 from .core.progress import Progress, job_label
 from .core.provenance import ORIGIN_KEY, Timer, atomic_path, metadata, staged_outputs, write_json_atomic
@@ -118,6 +118,8 @@ def run(
             extra={
                 **record.stats(),
                 "device": str(dev),
+                # the CPU's instruction set and features (what the timings and bfloat16's choice depend on)
+                "cpu": cpu_isa(),
                 "clip_precision": run.guidance.clip_precision,
                 "clip_tower": run.guidance.clip_tower,
                 "network_precision": run.network_precision,

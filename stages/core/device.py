@@ -121,14 +121,60 @@ def python_headers() -> str | None:
     return str(header) if header.is_file() else None
 
 
+#: the prefix of the inductor cache's folder for one CPU (:func:`use_inductor_cache`)
+CPU_FOLDER_PREFIX = "cpu-"
+
+
+@functools.cache
+def _cpu_features_digest() -> str:
+    """8 hex digits of this CPU's feature flags (Linux: ``/proc/cpuinfo``'s first ``flags`` or
+    ``Features`` line; elsewhere the processor's name): what ``-march=native`` compiles for."""
+    import hashlib
+    import platform
+
+    flags = platform.processor()
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as info:
+            flags = next((line for line in info if line.split(":")[0].strip() in ("flags", "Features")), flags)
+    except OSError:
+        pass
+    return hashlib.sha256(flags.encode()).hexdigest()[:8]
+
+
+def cpu_isa() -> str:
+    """This CPU as the code inductor generates for it depends on it, e.g. ``x86_64-avx512-1a2b3c4d``:
+    the architecture, the vector instruction set torch's kernels use (``avx512``, ``avx2``,
+    ``default``...; ``ATEN_CPU_CAPABILITY`` lowers it, and inductor's vectors follow) and a digest
+    of the CPU's feature flags (inductor compiles with ``-march=native``)."""
+    import platform
+
+    import torch
+
+    capability = torch.backends.cpu.get_cpu_capability().lower().replace(" ", "-")
+    return f"{platform.machine().lower() or 'cpu'}-{capability}-{_cpu_features_digest()}"
+
+
 def use_inductor_cache() -> None:
-    """Point inductor's disk cache at ``$XDG_CACHE_HOME/torchinductor`` (the project's ``.cache/``
-    once ``.venv/bin/activate`` is sourced) unless ``TORCHINDUCTOR_CACHE_DIR`` is set (neither:
-    inductor's own default, under the temporary folder)."""
+    """Point inductor's disk cache at this CPU's folder (``cpu-`` and :func:`cpu_isa`) under
+    ``TORCHINDUCTOR_CACHE_DIR`` where it is set, else under ``$XDG_CACHE_HOME/torchinductor`` (the
+    project's ``.cache/`` once ``.venv/bin/activate`` is sourced), else under inductor's default
+    in the temporary folder. Inductor's cache does not tell CPUs apart: with torch 2.13, code
+    generated for AVX-512 and read back under AVX2 gave wrong values, the reverse a corrupted
+    heap, and either under no vectors a compile error (``tests/core/test_compile_auto.py``); a
+    project folder shared by the nodes of a cluster is where that happens. Calling it again, in
+    this process or a child (under another instruction set), names the folder anew; the variable
+    set to inductor's default (importing inductor sets it so) counts as not set."""
     import os
 
-    if os.environ.get("XDG_CACHE_HOME") and not os.environ.get("TORCHINDUCTOR_CACHE_DIR"):
-        os.environ["TORCHINDUCTOR_CACHE_DIR"] = os.path.join(os.environ["XDG_CACHE_HOME"], "torchinductor")
+    from torch._inductor.runtime.cache_dir_utils import default_cache_dir
+
+    folder = Path(os.environ.get("TORCHINDUCTOR_CACHE_DIR") or default_cache_dir())
+    if folder.name.startswith(CPU_FOLDER_PREFIX):
+        folder = folder.parent
+    # inductor sets the variable to its default where it finds none: that default is no one's choice
+    if folder == Path(default_cache_dir()) and os.environ.get("XDG_CACHE_HOME"):
+        folder = Path(os.environ["XDG_CACHE_HOME"]) / "torchinductor"
+    os.environ["TORCHINDUCTOR_CACHE_DIR"] = str(folder / f"{CPU_FOLDER_PREFIX}{cpu_isa()}")
 
 
 def renderer_kind(settings, shadowed: bool | None = None) -> str:

@@ -7,10 +7,13 @@ from __future__ import annotations
 
 import json
 import logging
+import os
+import subprocess
+import sys
 
 import pytest
 import torch
-from conftest import TINY_OPTIMIZE
+from conftest import REPO, TINY_OPTIMIZE
 
 from stages import optimize
 from stages.config.sections import OptimizeSettings
@@ -105,6 +108,7 @@ def test_a_real_run_without_a_compiler_runs_eager_and_says_why(monkeypatch, cach
         "auto": f"eager (auto: 3 iterations, fewer than the {LONG} that repay a compilation; {COLD_NOTE})",
     }[setting]
     assert meta["shading_path"] == expect and meta["settings"]["compile_shading"] == setting
+    assert meta["cpu"] == policy.cpu_isa()  # what the timings and the precision depended on
 
 
 def test_the_doctor_says_which_renderer_each_run_gets(monkeypatch, tmp_path):
@@ -141,12 +145,6 @@ def test_a_compiler_that_cannot_build_costs_a_warning_not_the_run(tmp_path):
     inductor cache so that inductor must call it: the field compiles its renderer once when asked,
     the failure is logged, and it shades eager and says why; taken for real, in a process of its
     own (the failed compilation must not touch this one's torch.compile state)."""
-    import os
-    import subprocess
-    import sys
-
-    from conftest import REPO
-
     script = (
         "import torch\n"
         "from stages.config.sections import OptimizeSettings\n"
@@ -173,7 +171,7 @@ def test_a_renderer_compiled_before_is_known_by_its_kind_code_and_torch(monkeypa
     assert not policy.compiled_before(kind, CPU)
     policy.mark_compiled(kind, CPU)
     assert policy.compiled_before(kind, CPU) and not policy.compiled_before(other, CPU)
-    assert list((tmp_path / "one" / "stages-renderer").iterdir())  # inside the cache, nowhere else
+    assert list((tmp_path / "one" / f"cpu-{policy.cpu_isa()}" / "stages-renderer").iterdir())  # this CPU's folder
     monkeypatch.setattr(torch, "__version__", "0.0.0")
     assert not policy.compiled_before(kind, CPU)
     monkeypatch.undo()
@@ -206,3 +204,67 @@ def test_a_cache_that_cannot_be_written_only_means_the_next_run_decides_as_if_co
     kind = policy.renderer_kind(OptimizeSettings().field_settings())
     policy.mark_compiled(kind, CPU)
     assert not policy.compiled_before(kind, CPU)
+
+
+#: compiled in a process of its own under an instruction set: a reduction, a matrix product and
+#: pointwise functions, with dynamic sizes as the renderer's; prints its largest error against eager
+ISA_SCRIPT = """
+import torch
+from stages.core.device import use_inductor_cache
+use_inductor_cache()
+torch.manual_seed(0)
+def f(x, w):
+    return torch.sigmoid(x @ w).exp().sum(-1) * x.norm(dim=-1)
+x, w = torch.randn(1003, 37), torch.randn(37, 19)
+print((torch.compile(f, dynamic=True)(x, w) - f(x, w)).abs().max().item())
+"""
+#: the instruction set below each one (``ATEN_CPU_CAPABILITY``), where a machine can take both
+LOWER_ISA = {"AVX512": "avx2", "AVX2": "default"}
+
+
+@pytest.mark.slow(minutes=0.5)
+def test_code_compiled_under_one_instruction_set_is_not_read_back_under_another(tmp_path):
+    """One project cache, two instruction sets (the nodes of a cluster sharing the project folder;
+    here this CPU's own and the one below it, by ``ATEN_CPU_CAPABILITY``): each compiles its own
+    code and gets eager's values. Inductor's cache keys neither: with one folder for both, the
+    code generated for AVX-512 and read back under AVX2 gave errors of 300, the reverse a
+    corrupted heap, and AVX2's under no vectors a compile error."""
+    native = torch.backends.cpu.get_cpu_capability()
+    if native not in LOWER_ISA:
+        pytest.skip(f"no lower instruction set to take on this CPU ({native})")
+    env = {k: v for k, v in os.environ.items() if k not in ("TORCHINDUCTOR_CACHE_DIR", "ATEN_CPU_CAPABILITY")}
+    env["XDG_CACHE_HOME"] = str(tmp_path / "cache")
+    for isa in (native.lower(), LOWER_ISA[native], native.lower()):
+        proc = subprocess.run(
+            [sys.executable, "-c", ISA_SCRIPT],
+            capture_output=True,
+            text=True,
+            cwd=REPO,
+            env={**env, "ATEN_CPU_CAPABILITY": isa},
+            timeout=600,
+        )
+        assert proc.returncode == 0, f"{isa}: {proc.stderr[-2000:]}"
+        assert float(proc.stdout.split()[-1]) < 1e-3, f"{isa}: {proc.stdout}"
+    folders = sorted(p.name for p in (tmp_path / "cache" / "torchinductor").iterdir())
+    assert len(folders) == 2 and all(f.startswith("cpu-") for f in folders), folders
+
+
+def test_the_inductor_cache_is_the_projects_unless_the_user_names_one(monkeypatch, tmp_path):
+    """``$XDG_CACHE_HOME/torchinductor`` (the project's ``.cache`` once activated), also where
+    importing inductor has set ``TORCHINDUCTOR_CACHE_DIR`` to its own default (it did, and the
+    renderer compiled into the temporary folder); a folder the user names is kept; each gets this
+    CPU's folder inside, once."""
+    from torch._inductor.runtime.cache_dir_utils import default_cache_dir
+
+    here = f"cpu-{policy.cpu_isa()}"
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    for before in (None, default_cache_dir()):
+        monkeypatch.delenv("TORCHINDUCTOR_CACHE_DIR", raising=False)
+        if before:
+            monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", before)
+        policy.use_inductor_cache()
+        policy.use_inductor_cache()
+        assert os.environ["TORCHINDUCTOR_CACHE_DIR"] == str(tmp_path / "xdg" / "torchinductor" / here)
+    monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", str(tmp_path / "mine" / "cpu-x86_64-avx2-00000000"))
+    policy.use_inductor_cache()
+    assert os.environ["TORCHINDUCTOR_CACHE_DIR"] == str(tmp_path / "mine" / here)
