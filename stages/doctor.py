@@ -39,7 +39,7 @@ from .assets.formats import GLTF_VALIDATOR, MODEL_VIEWER
 from .assets.probes import probe_gltf, probe_node_validator, probe_usd
 from .config.workflow import load_config_files
 from .core.cli import stage_main
-from .core.device import bf16_support, compile_choice, cpu_isa, compiled_before, precision_summary, renderer_kind, resolve_device
+from .core.device import bf16_support, compile_choice, compiled_before, cpu_isa, precision_summary, renderer_kind, resolve_device
 from .core.progress import duration
 from .geometry.probes import PROBE_GLB_FACES, PROBE_TIMEOUT_S, probe_embree, probe_pymeshlab, probe_xatlas, write_probe_glb
 from .guidance.clip import ClipWeightsUnavailable, resolve_weights
