@@ -32,14 +32,20 @@ native (an emulated rate would make a floor slower than the float32 one); ``floo
 CLIP has random weights here (timing does not depend on them). The mesh is
 ``../shared/meshes/person.obj`` when present, else the built-in vase.
 
+``--isa avx2`` runs all of it with torch held to AVX2 (``stages.core.device.AVX2_ONLY_ENV``, in a
+new process: no native bfloat16, so float32 and the 1.2 s target), this CPU standing in for one
+without AVX-512; the last line's ``cpu`` names what ran.
+
     python benchmarks/optimize.py [--steps 8] [--threads 2] [--precision defaults|float32] [--clip-only]
-        [--no-levers] [--lever hash ...]
+        [--no-levers] [--lever hash ...] [--isa native|avx2]
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -50,7 +56,7 @@ from torch.utils._python_dispatch import TorchDispatchMode
 from torch.utils.flop_counter import FlopCounterMode
 
 from stages.config.sections import NormalizeSettings, OptimizeSettings, RaycacheSettings
-from stages.core.device import bf16_support
+from stages.core.device import AVX2_ONLY_ENV, bf16_support, cpu_isa
 from stages.core.provenance import Timer
 from stages.geometry.meshio import save_ply
 from stages.geometry.normalization import normalize_mesh
@@ -361,8 +367,12 @@ def main() -> None:
     )
     parser.add_argument("--no-levers", action="store_true", help="skip the table of CPU levers")
     parser.add_argument("--lever", action="append", help="only the levers whose name contains this (repeatable)")
+    parser.add_argument("--isa", choices=("native", "avx2"), default="native", help="avx2: torch held to AVX2 (a new process)")
     args = parser.parse_args()
+    if args.isa == "avx2" and any(os.environ.get(k) != v for k, v in AVX2_ONLY_ENV.items()):
+        os.execve(sys.executable, [sys.executable, *sys.argv], {**os.environ, **AVX2_ONLY_ENV})
     torch.set_num_threads(args.threads)
+    print(f"# CPU {cpu_isa()}", flush=True)
     clip_rows = clip_paths(args.steps)
     print("# CLIP ViT-B-32 forward+backward to 5 images at 224; cosines against open_clip's modules in float32")
     print(f"{'tower':<11}{'precision':<58}{'s':>8}{'speed-up':>9}{'cos emb':>10}{'cos grad':>10}")
@@ -409,11 +419,12 @@ def main() -> None:
         print(f"# soft floor (CLIP's own time + MLP FLOPs at that rate) {floor_s:.3f} s; ratio {s_per_iter / floor_s:.2f}")
         # the true floor: every FLOP of a step, counted, at the machine's peak matrix-multiply rate
         counts = step_flops(opt, guide, max(2, args.steps // 2))
-        peak = {"fp32": peak_matmul_rate(torch.float32), "bf16": peak_matmul_rate(torch.bfloat16)}
-        floors = {k: counts["total"] / r for k, r in peak.items()}
         # the floor of what this machine can run: bfloat16 only where it is native (emulated
-        # bfloat16 is slower than float32, and its "floor" would mean nothing)
+        # bfloat16 is slower than float32, and its "floor" would mean nothing; measured on a small
+        # product there: 0.3 GFLOP/s, a minute for one at 2048)
         native, why = bf16_support(torch.device("cpu"))
+        peak = {"fp32": peak_matmul_rate(torch.float32), "bf16": peak_matmul_rate(torch.bfloat16, 2048 if native else 256)}
+        floors = {k: counts["total"] / r for k, r in peak.items()}
         floor_of = "bf16" if native and floors["bf16"] < floors["fp32"] else "fp32"
         best = floors[floor_of]
         print(
@@ -422,7 +433,8 @@ def main() -> None:
             f"total {counts['total'] / 1e9:.2f} GFLOP"
         )
         print(
-            f"# peak matmul (2048^2, {args.threads} threads): fp32 {peak['fp32'] / 1e9:.0f} GFLOP/s, "
+            f"# peak matmul (2048^2; bfloat16 256^2 where emulated; {args.threads} threads): "
+            f"fp32 {peak['fp32'] / 1e9:.0f} GFLOP/s, "
             f"bf16 {peak['bf16'] / 1e9:.0f} GFLOP/s ({'native' if native else 'emulated: not a floor'}); "
             f"floor fp32 {floors['fp32']:.3f} s, bf16 {floors['bf16']:.3f} s; the floor here: {floor_of} ({why}); "
             f"ratio to it {s_per_iter / best:.1f}"
@@ -486,7 +498,7 @@ def main() -> None:
     }
     if native:
         last["floor_bf16_s"] = floors["bf16"]
-    print(" ".join(f"{k}={v:.4g}" for k, v in last.items()) + f" floor_of={floor_of} precision={precision}")
+    print(" ".join(f"{k}={v:.4g}" for k, v in last.items()) + f" floor_of={floor_of} precision={precision} cpu={cpu_isa()}")
 
 
 if __name__ == "__main__":

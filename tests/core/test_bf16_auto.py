@@ -7,10 +7,13 @@ from __future__ import annotations
 
 import json
 import logging
+import os
+import subprocess
+import sys
 
 import pytest
 import torch
-from conftest import TINY_OPTIMIZE
+from conftest import REPO, TINY_OPTIMIZE
 
 from stages import optimize
 from stages.config.sections import OptimizeSettings
@@ -87,6 +90,25 @@ def test_auto_decides_a_real_run_and_its_metadata_says_so(monkeypatch, cache, tm
     assert meta["clip_precision"].startswith(expect) and meta["network_precision"].startswith(expect), meta
     assert meta["settings"]["bf16"] == "auto" and meta["settings"]["bf16_networks"] == "auto"
     assert seen and any(seen) == support[0]
+
+
+@pytest.mark.slow(minutes=0.3)
+def test_a_cpu_without_native_bfloat16_taken_for_real(cache, tmp_path):
+    """Not simulated: a real optimisation in a process where torch is held to AVX2
+    (``AVX2_ONLY_ENV``: oneDNN without AVX-512, so without bfloat16 kernels), as on a CPU that has
+    only AVX2: auto runs CLIP and the networks in float32, and meta.json says why and names the CPU."""
+    if torch.backends.cpu.get_cpu_capability() != "AVX512":
+        pytest.skip("this CPU has no AVX-512 to hold back (test_the_real_answer_on_this_machine_matches_onednn takes it)")
+    settings = json.dumps(OptimizeSettings(**TINY).to_dict())
+    cmd = [sys.executable, "-m", "stages.optimize", "--train", str(cache / "train.npz"), "--eval", str(cache / "eval.npz")]
+    cmd += ["--prompt", "a vase made of wood", "--out-dir", str(tmp_path), "--settings", settings, "--device", "cpu"]
+    env = {**os.environ, **policy.AVX2_ONLY_ENV}
+    proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, env=env, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    meta = json.loads((tmp_path / "meta.json").read_text())
+    expect = "float32 (auto: this CPU has no native bfloat16 (no AVX-512 BF16 or AMX for oneDNN))"
+    assert meta["clip_precision"] == expect and meta["network_precision"] == expect, meta
+    assert meta["cpu"].startswith(f"{policy.cpu_isa().split('-')[0]}-avx2-"), meta["cpu"]
 
 
 def test_the_plan_and_the_doctor_show_what_will_run(monkeypatch):
