@@ -185,12 +185,16 @@ def use_inductor_cache() -> None:
 
 def renderer_kind(settings, shadowed: bool | None = None) -> str:
     """What the compiled renderer's graph depends on beyond its code, from a field's settings
-    (``brdf``, ``specular_lobe``, ``shadows``, ``light_rgb``): the BRDF, the lobe model, whether it
-    is given shadows (``shadowed``; None: as the settings ask, which a ray cache without visibility
-    overrides) and the light's channels (the numbers of points and lobes are free in it)."""
+    (``brdf``, ``specular_lobe``, ``shadows``, ``light_rgb``, ``normal_network``): the BRDF, the
+    lobe model, whether it is given shadows (``shadowed``; None: as the settings ask, which a ray
+    cache without visibility overrides), the light's channels and whether the shading normal takes
+    a gradient (a normal network predicts it: its backward differs; without it in the kind, the
+    ``fast`` preset, which has none, was marked warm by the paper's compilation and compiled for
+    67 s). The numbers of points and lobes are free in it."""
     shadows = "shadows" if (settings.shadows if shadowed is None else shadowed) else "no shadows"
     light = "RGB" if settings.light_rgb else "monochrome"
-    return f"{settings.brdf} BRDF, {settings.specular_lobe} lobe, {shadows}, {light} light"
+    normals = "learned normals" if settings.normal_network else "fixed normals"
+    return f"{settings.brdf} BRDF, {settings.specular_lobe} lobe, {shadows}, {light} light, {normals}"
 
 
 #: the compiled renderer's code and data, relative to the ``stages`` package: a change to any of

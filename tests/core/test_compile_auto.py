@@ -168,6 +168,10 @@ def test_a_renderer_compiled_before_is_known_by_its_kind_code_and_torch(monkeypa
     kind = policy.renderer_kind(OptimizeSettings().field_settings())
     other = policy.renderer_kind(OptimizeSettings(brdf="tango").field_settings())
     assert kind != other and "gltf BRDF, fitted lobe" in kind
+    # the fast preset has no normal network: its normal takes no gradient, another backward (a
+    # cold compilation of 67 s where the paper's renderer was marked)
+    fixed = policy.renderer_kind(OptimizeSettings(normal_network=False).field_settings())
+    assert fixed != kind and fixed.endswith("fixed normals") and kind.endswith("learned normals")
     assert not policy.compiled_before(kind, CPU)
     policy.mark_compiled(kind, CPU)
     assert policy.compiled_before(kind, CPU) and not policy.compiled_before(other, CPU)
