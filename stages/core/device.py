@@ -183,17 +183,21 @@ def use_inductor_cache() -> None:
     os.environ["TORCHINDUCTOR_CACHE_DIR"] = str(folder / f"{CPU_FOLDER_PREFIX}{cpu_isa()}")
 
 
-def renderer_kind(settings, shadowed: bool | None = None) -> str:
+def renderer_kind(settings, shadowed: bool | None = None, light_learns: bool | None = None) -> str:
     """What the compiled renderer's graph depends on beyond its code, from a field's settings
     (``brdf``, ``specular_lobe``, ``shadows``, ``light_rgb``, ``normal_network``): the BRDF, the
     lobe model, whether it is given shadows (``shadowed``; None: as the settings ask, which a ray
     cache without visibility overrides), the light's channels and whether the shading normal takes
     a gradient (a normal network predicts it: its backward differs; without it in the kind, the
     ``fast`` preset, which has none, was marked warm by the paper's compilation and compiled for
-    67 s). The numbers of points and lobes are free in it."""
+    67 s), and whether the light learns (``light_learns``; None: as the settings' ``light`` says
+    where they have it, the optimisation's, else learned): a fixed light takes no gradient. The
+    numbers of points and lobes are free in it."""
     shadows = "shadows" if (settings.shadows if shadowed is None else shadowed) else "no shadows"
     light = "RGB" if settings.light_rgb else "monochrome"
     normals = "learned normals" if settings.normal_network else "fixed normals"
+    learns = getattr(settings, "light", "learn") == "learn" if light_learns is None else light_learns
+    light += " learned" if learns else " fixed"
     return f"{settings.brdf} BRDF, {settings.specular_lobe} lobe, {shadows}, {light} light, {normals}"
 
 

@@ -167,7 +167,7 @@ class StyleField(nn.Module):
         (:attr:`shading_path`)."""
         device = torch.device(device)
         shadowed = self.shadows if shadowed is None else shadowed
-        kind = renderer_kind(self._settings, shadowed)
+        kind = renderer_kind(self._settings, shadowed, self.light_learns)
         enabled, path = compile_choice(setting, device, iterations, compiled_before(kind, device))
         self.compiled_shade = None
         if enabled:
@@ -185,18 +185,24 @@ class StyleField(nn.Module):
         self.shading_path = path
         return path
 
+    @property
+    def light_learns(self) -> bool:
+        """Whether the light is learned (not held at a known environment's fit, ``light: fixed``)."""
+        return any(p.requires_grad for p in self.light.parameters())
+
     def _first_compiled_pass(self, compiled: Callable, device: torch.device, shadowed: bool) -> None:
         """``compiled`` forward and backward on 16 random points shaped as this field shades in
         training (the same BRDF, lobe model, lobes and shadows; the same inputs needing gradients:
-        the networks' outputs, the light and the shares, the normal where a network predicts it),
+        the networks' outputs, the light and the shares where the light learns, the normal where a
+        network predicts it),
         so the step reuses what it built (its guards check which inputs need gradients)."""
         gen = torch.Generator().manual_seed(0)
         # as many points as no other size (lobes, channels, 1): sizes that happen to be equal are
         # taken as one symbol (duck sizing), and the step's differ: a second compilation
         n = 2 * self.light.lobes + 3
 
-        def leaf(*shape: int) -> Tensor:
-            return torch.rand(*shape, generator=gen).to(device).requires_grad_()
+        def leaf(*shape: int, grad: bool = True) -> Tensor:
+            return torch.rand(*shape, generator=gen).to(device).requires_grad_(grad)
 
         normal = torch.nn.functional.normalize(torch.randn(n, 3, generator=gen), dim=-1)
         view = torch.nn.functional.normalize(normal + 0.5 * torch.randn(n, 3, generator=gen), dim=-1)
@@ -209,9 +215,12 @@ class StyleField(nn.Module):
             material = Material(leaf(n, 3), leaf(n, 3), rough)
         with torch.no_grad():
             light = self.light()
-        k = light.axis.shape[0]
-        light = SGLight(torch.nn.functional.normalize(leaf(k, 3), dim=-1), leaf(k, 1) + 1.0, leaf(k, light.amplitude.shape[1]))
-        shares = leaf(n, k) if shadowed else None
+        k, learns = light.axis.shape[0], self.light_learns
+        # a fixed light (``light: fixed``) and its shares take no gradient: another backward
+        axis, sharpness = leaf(k, 3, grad=learns), leaf(k, 1, grad=learns)
+        amplitude = leaf(k, light.amplitude.shape[1], grad=learns)
+        light = SGLight(torch.nn.functional.normalize(axis, dim=-1), sharpness + 1.0, amplitude)
+        shares = leaf(n, k, grad=learns) if shadowed else None
         # the shading normal needs a gradient only where a network predicts it: a mismatch with the
         # step's made torch.compile compile the renderer a second time at the first step (58 s cold)
         normal.requires_grad_(self.normal_net is not None)

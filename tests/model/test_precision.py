@@ -122,8 +122,11 @@ def test_shadow_shares_follow_the_networks_lever_in_training_only(monkeypatch):
 
 
 @pytest.mark.slow(minutes=1)
-@pytest.mark.parametrize(("init", "tolerance", "normal_network"), [("broad", 3e-4, True), ("tango", 3e-3, False)])
-def test_compiled_shading_equals_eager_in_training_only(init, tolerance, normal_network):
+@pytest.mark.parametrize(
+    ("init", "tolerance", "normal_network", "fixed_light"),
+    [("broad", 3e-4, True, False), ("tango", 3e-3, False, False), ("broad", 3e-4, False, True)],
+)
+def test_compiled_shading_equals_eager_in_training_only(init, tolerance, normal_network, fixed_light):
     """``compile_shading``: the field shades through torch.compile while training, with the same
     colours and gradients as the eager renderer; evaluation (baking, relighting) stays eager.
     Gradients agree to float32's rounding summed in another order: 3e-4 with broad lobes (measured
@@ -134,10 +137,13 @@ def test_compiled_shading_equals_eager_in_training_only(init, tolerance, normal_
         width=16, light_lobes=4, specular_lobe="isotropic", brdf="tango", light_init=init, normal_network=normal_network
     )
     eager = StyleField(s.field_settings())
+    if fixed_light:  # as light: fixed holds it (lightfit.hold_environment): no gradient, another backward
+        eager.light.requires_grad_(False)
     compiled = copy.deepcopy(eager)
     # no visibility passed below: compiled for a renderer without shadows
     assert compiled.use_compiled_shading("on", CPU, 1, shadowed=False).startswith("torch.compile (C++ compiler ")
-    assert compiled_before(renderer_kind(s.field_settings(), False), CPU)  # the next run's auto knows its caches are warm
+    kind = renderer_kind(s.field_settings(), False, not fixed_light)
+    assert compiled_before(kind, CPU)  # the next run's auto knows its caches are warm
     assert eager.use_compiled_shading("off", CPU, 1) == "eager" and eager.compiled_shade is None
     pts, nrm = _extreme_inputs()
     view = torch.nn.functional.normalize(nrm + 0.3 * torch.randn(nrm.shape, generator=torch.Generator().manual_seed(1)), dim=-1)
@@ -146,9 +152,10 @@ def test_compiled_shading_equals_eager_in_training_only(init, tolerance, normal_
     for f in (eager, compiled):
         rgb = f(pts, nrm, view).shading.rgb
         (rgb * torch.linspace(0, 1, rgb.numel()).view_as(rgb)).sum().backward()
-        outs.append((rgb.detach(), [p.grad for p in f.parameters()]))
-    # the first compiled pass built what the step runs: no second compilation (a normal needing a
-    # gradient only there, or its points as many as the lobes, made one at the first step: 58 s)
+        outs.append((rgb.detach(), [p.grad for p in f.parameters() if p.requires_grad]))
+    # the first compiled pass built what the step runs: no second compilation (a normal or a fixed
+    # light needing a gradient only there, or its points as many as the lobes, made one at the
+    # first step: 58 s)
     assert counters["frames"]["ok"] == compilations
     torch.testing.assert_close(outs[1][0], outs[0][0], rtol=1e-5, atol=1e-6)
     for a, b in zip(outs[1][1], outs[0][1], strict=True):
