@@ -122,8 +122,14 @@ def check_torch(cfg) -> Check:
     bf16, why = bf16_support(device)
     settings = [cfg.optimize_settings(c.prompt, c.variant) for c in cfg.cells]
     levers = sorted({(s.bf16, s.bf16_networks) for s in settings})
+    # a mesh whose ray cache traces no visibility is shaded without shadows whatever optimize asks
+    # (auto decides per mesh when its cache is made: taken here as optimize asks)
+    shadowed = [False if cfg.stage_settings(c.mesh, "raycache").visibility == "off" else None for c in cfg.cells]
     renderers = sorted(
-        {compile_choice(s.compile_shading, device, s.iterations, compiled_before(renderer_kind(s), device))[1] for s in settings}
+        {
+            compile_choice(s.compile_shading, device, s.iterations, compiled_before(renderer_kind(s, shade), device))[1]
+            for s, shade in zip(settings, shadowed, strict=True)
+        }
     )
     detail = (
         f"torch {torch.__version__} ({build}, {gpu}); this config's torch stages run on {device.type} "

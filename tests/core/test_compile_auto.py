@@ -133,6 +133,26 @@ def test_the_doctor_says_which_renderer_each_run_gets(monkeypatch, tmp_path):
     assert f"torch.compile (auto: 1500 iterations; {COLD_NOTE}; C++ compiler /usr/bin/g++ (simulated))" in detail
 
 
+def test_the_doctor_knows_a_mesh_without_visibility_is_shaded_without_shadows(monkeypatch, tmp_path):
+    """Its ray cache traces no visibility (``raycache.visibility: off``): the run compiles the
+    renderer without shadows, so the doctor looks for that one's mark, not the shadowed one's."""
+    from stages import doctor
+    from stages.config.workflow import WorkflowConfig
+
+    monkeypatch.setattr(policy, "compile_support", lambda d: GXX)
+    monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", str(tmp_path / "inductor"))
+    policy.mark_compiled(policy.renderer_kind(OptimizeSettings(), shadowed=False), CPU)
+    raw = {
+        "device": "cpu",
+        "meshes": {"vase": {"builtin": "vase"}},
+        "prompts": {"wood": {"text": "a {object} made of wood"}},
+        "optimize": {"clip_tiny_test": True, "iterations": WARM},
+    }
+    warm = f"torch.compile (auto: {WARM} iterations; {WARM_NOTE}"
+    assert warm not in doctor.check_torch(WorkflowConfig(raw)).detail  # shadows asked for: another renderer
+    assert warm in doctor.check_torch(WorkflowConfig({**raw, "raycache": {"visibility": "off"}})).detail
+
+
 def test_missing_python_headers_are_named(monkeypatch):
     monkeypatch.setattr(policy, "cpp_compiler", lambda: "/usr/bin/g++")
     monkeypatch.setattr(policy, "python_headers", lambda: None)
