@@ -117,16 +117,7 @@ def run(
             timings=timings,
             extra={
                 **record.stats(),
-                "device": str(dev),
-                # the CPU's instruction set and features (what the timings and bfloat16's choice depend on)
-                "cpu": cpu_isa(),
-                "clip_precision": run.guidance.clip_precision,
-                "clip_tower": run.guidance.clip_tower,
-                "network_precision": run.network_precision,
-                "shading_path": run.shading_path,
-                # what the shading cast: shadows from the cache's visibility, or none (and why)
-                "shadows": shadow_record(run.field.shadows, run.views.cache.visibility_directions),
-                ORIGIN_KEY: run.guidance.origin,
+                **_how_it_ran(run, dev),
                 "resumed_from_iteration": resumed_from,
                 "seconds_per_iteration": loop_s / iters_here,
                 "points_per_iteration": run.points_last,
@@ -141,6 +132,23 @@ def run(
         write_json_atomic(staging / "meta.json", meta)
     ckpt.unlink(missing_ok=True)
     return meta
+
+
+def _how_it_ran(run: Optimizer, dev: torch.device) -> dict:
+    """What the run ran on and in, for the metadata: the device and the CPU (its instruction set and
+    features: what the timings and bfloat16's choice depend on), CLIP's and the networks'
+    precision, the renderer, the shadows cast (from the cache's visibility, or none and why) and
+    the guidance's origin."""
+    return {
+        "device": str(dev),
+        "cpu": cpu_isa(),
+        "clip_precision": run.guidance.clip_precision,
+        "clip_tower": run.guidance.clip_tower,
+        "network_precision": run.network_precision,
+        "shading_path": run.shading_path,
+        "shadows": shadow_record(run.field.shadows, run.views.cache.visibility_directions),
+        ORIGIN_KEY: run.guidance.origin,
+    }
 
 
 def _resume(run: Optimizer, ckpt: Path, settings: OptimizeSettings, dev) -> int | None:
