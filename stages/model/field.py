@@ -191,11 +191,11 @@ class StyleField(nn.Module):
         return any(p.requires_grad for p in self.light.parameters())
 
     def _first_compiled_pass(self, compiled: Callable, device: torch.device, shadowed: bool) -> None:
-        """``compiled`` forward and backward on 16 random points shaped as this field shades in
+        """``compiled`` forward and backward on a few random points shaped as this field shades in
         training (the same BRDF, lobe model, lobes and shadows; the same inputs needing gradients:
         the networks' outputs, the light and the shares where the light learns, the normal where a
-        network predicts it),
-        so the step reuses what it built (its guards check which inputs need gradients)."""
+        network predicts it), so the step reuses what it built (its guards check which inputs need
+        gradients)."""
         gen = torch.Generator().manual_seed(0)
         # as many points as no other size (lobes, channels, 1): sizes that happen to be equal are
         # taken as one symbol (duck sizing), and the step's differ: a second compilation
