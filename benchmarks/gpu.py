@@ -12,14 +12,16 @@ width 256, 32 light lobes, 1 view with 1 global image and 4 crops per step) it r
 * a profile of ``--profile-steps`` steps: the top CUDA kernels by device time, host-to-device and
   device-to-host copies per step, and the share of the step the GPU was busy (low: the Python
   overhead of small kernels dominates);
-* the levers side by side (``--levers``): bfloat16 for CLIP and the networks, TF32 products, and
-  the renderer compiled by torch.compile (``compile_shading: on``, Triton; the compilation is
-  paid in the lever's warm-up, not in its timed iterations, and printed apart).
+* the levers side by side (``--levers``, or ``--levers "float32,one graph"`` for some):
+  bfloat16 for CLIP and the networks, TF32 products, the renderer compiled by torch.compile
+  (``compile_shading: on``, Triton), and the networks compiled into the renderer's graph
+  (``compile_networks: on``; fewer launches); a compilation is paid in the lever's setup, not
+  in its timed iterations, and printed apart.
 
 The mesh is ``../shared/meshes/person.obj`` when present, else the built-in vase. Without CUDA it
 stops with a message (tests/gpu holds the GPU tests; both skip or stop on a CPU machine).
 
-    python benchmarks/gpu.py [--iterations 1500] [--levers] [--bf16] [--tf32]
+    python benchmarks/gpu.py [--iterations 1500] [--levers [NAMES]] [--bf16] [--tf32]
 """
 
 from __future__ import annotations
@@ -45,9 +47,17 @@ TARGET_S = 60.0
 TARGET_GIB = 4.0
 
 
-def run(train: Path, iterations: int, warmup: int, bf16: bool, tf32: bool, compiled: bool = False) -> dict:
+def run(train: Path, iterations: int, warmup: int, bf16: bool, tf32: bool, compiled: str = "") -> dict:
+    """``compiled``: "" eager, "renderer" the renderer compiled, "one graph" the networks and the
+    renderer compiled together (``compile_networks``)."""
     torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = tf32
-    s = OptimizeSettings(iterations=iterations, bf16=bf16, bf16_networks=bf16, compile_shading="on" if compiled else "off")
+    s = OptimizeSettings(
+        iterations=iterations,
+        bf16=bf16,
+        bf16_networks=bf16,
+        compile_shading="on" if compiled else "off",
+        compile_networks="on" if compiled == "one graph" else "off",
+    )
     guide = vit_b32_random(bf16=s.bf16, tower=s.clip_tower, device="cuda")
     t0 = time.perf_counter()
     opt = Optimizer(s, RayCache(train), "a person made of wood", "cuda", guide=guide)  # compiles the renderer
@@ -101,7 +111,12 @@ def main() -> None:
     parser.add_argument("--profile-steps", type=int, default=20)
     parser.add_argument("--bf16", action="store_true", help="bfloat16 autocast for CLIP and the networks")
     parser.add_argument("--tf32", action="store_true", help="TF32 matrix products for the float32 parts")
-    parser.add_argument("--levers", action="store_true", help="also time 200 iterations under each lever")
+    parser.add_argument(
+        "--levers",
+        nargs="?",
+        const=",".join(LEVERS),
+        help=f"also time 200 iterations under each lever (comma-separated, of: {', '.join(LEVERS)}; all when bare)",
+    )
     args = parser.parse_args()
     if not torch.cuda.is_available():
         raise SystemExit("benchmarks/gpu.py needs a CUDA device (torch sees none); on a CPU use benchmarks/optimize.py")
@@ -123,24 +138,39 @@ def main() -> None:
         )
         profile(main_run["opt"], args.profile_steps)
         if args.levers:
-            levers(train, args.warmup)
+            names = [n.strip() for n in args.levers.split(",") if n.strip()]
+            unknown = [n for n in names if n not in LEVERS]
+            if unknown:
+                raise SystemExit(f"--levers: unknown {', '.join(unknown)}; choose from {', '.join(LEVERS)}")
+            levers(train, args.warmup, names)
 
 
-def levers(train: Path, warmup: int) -> None:
-    """200 iterations under each lever, side by side; a lever whose run fails (a non-finite loss,
-    as TF32 products gave on an H100 before the SG product's cosine was held in [-1, 1]) is
-    reported as such."""
-    print(f"{'lever':<36}{'s/iter':>9}{'x fp32':>8}{'peak GiB':>10}{'setup s':>9}", flush=True)
+#: the levers ``--levers`` times, by name: (bf16, tf32, compiled)
+LEVERS = {
+    "float32": (False, False, ""),
+    "tf32": (False, True, ""),
+    "bf16": (True, False, ""),
+    "compiled renderer": (False, False, "renderer"),
+    "one graph": (False, False, "one graph"),
+}
+
+
+def levers(train: Path, warmup: int, names: list[str]) -> None:
+    """200 iterations under each lever of ``names`` (:data:`LEVERS`), side by side, the first the
+    ratios' base; a lever whose run fails (a non-finite loss, as TF32 products gave on an H100
+    before the SG product's cosine was held in [-1, 1]) is reported as such. A compiled lever
+    pays its compilation in its setup (printed apart), not in its timed iterations."""
+    print(f"{'lever':<22}{'s/iter':>9}{'x first':>9}{'peak GiB':>10}{'setup s':>9}", flush=True)
     base = None
-    for bf16, tf32, compiled in ((False, False, False), (False, True, False), (True, False, False), (False, False, True)):
-        label = f"bf16={bf16} tf32={tf32} compiled={compiled}"
+    for name in names:
+        bf16, tf32, compiled = LEVERS[name]
         try:
             r = run(train, 200, warmup, bf16, tf32, compiled)
         except (FloatingPointError, RuntimeError) as exc:
-            print(f"{label:<36} failed: {type(exc).__name__}: {str(exc).splitlines()[0][:120]}", flush=True)
+            print(f"{name:<22} failed: {type(exc).__name__}: {str(exc).splitlines()[0][:120]}", flush=True)
             continue
         base = base or r["s_per_iter"]
-        row = f"{label:<36}{r['s_per_iter']:>9.4f}{base / r['s_per_iter']:>8.2f}{r['peak_gib']:>10.2f}{r['setup_s']:>9.1f}"
+        row = f"{name:<22}{r['s_per_iter']:>9.4f}{base / r['s_per_iter']:>9.2f}{r['peak_gib']:>10.2f}{r['setup_s']:>9.1f}"
         print(row + ("" if not compiled else f"  ({r['precision'].split('; ')[-1]})"), flush=True)
 
 

@@ -24,7 +24,8 @@ bfloat16 autocast): seconds and the cosines of embeddings and image gradients ag
 in float32. It then shows the trade between MLP width and step time, the cost of local crops, the
 cost and benefit of supersampling (error of 1 and 2 samples per pixel against 4, same field), and
 the CPU levers (``LEVERS``: CLIP's tower, bfloat16 for CLIP and for the networks, the compiled
-renderer, hash-grid encodings with width-64 networks) on the real step, side by side (``--lever``
+renderer alone or in one graph with the networks (``compile_networks``), hash-grid encodings with
+width-64 networks) on the real step, side by side (``--lever``
 picks some by name; the reference always runs). ``--precision float32`` measures the main step with
 both bfloat16 levers off (the defaults: ``auto``, bfloat16 where the CPU has it natively). The
 floor printed last is of what this machine can run: the bfloat16 floor only where bfloat16 is
@@ -181,8 +182,10 @@ def timed_split(opt: Optimizer, steps: int) -> dict[str, float]:
     """Time the parts of a step with the graph cut between them (same functions as the loop); the
     shading includes the shadows' visible shares where the view has them and runs the field's
     BRDF (glTF's from its base colour and metallic, or TANGO's sum), compiled where the step's is;
-    a first, untimed pass compiles it."""
+    a first, untimed pass compiles it. Where the networks are compiled into the renderer's graph
+    (``compile_networks``) there is nothing to cut: the ``mlp`` part is both and ``shading`` NaN."""
     s = opt.settings
+    together = opt.field.compiled_field is not None
     parts = {k: [] for k in ("gather", "mlp", "shading", "clip", "optimizer")}
     for i in range(steps + 1):
         t0 = time.perf_counter()
@@ -193,16 +196,20 @@ def timed_split(opt: Optimizer, steps: int) -> dict[str, float]:
         pts, nrm, view = v.points[sel], v.normals[sel], v.view[sel]
         bg = torch.zeros(3, s.image_size, s.image_size)
         t1 = time.perf_counter()
-        # the field's own forward pass, cut between its networks and its renderer
-        mat, normal = opt.field.surface(pts, nrm, view)
-        mlp_out = [normal, mat.albedo, mat.specular, mat.roughness]
-        if mat.metallic is not None:  # glTF's BRDF shades from these
-            mlp_out += [mat.base, mat.metallic]
-        leaves = [x.detach().requires_grad_() for x in mlp_out]
-        t2 = time.perf_counter()
         shadows = v.shadows  # the shading's shadows, as the real step casts them (None: none)
         visibility = None if shadows is None else (lambda lt, sh=shadows, sel=sel: sh.shares(lt, sel))
-        color = linear_to_srgb(opt.field.shade(Material(*leaves[1:]), leaves[0], view, visibility=visibility).rgb)
+        if together:  # one compiled graph: nothing to cut it at; its time is the networks' column
+            mlp_out, leaves = [], []
+            color = linear_to_srgb(opt.field(pts, nrm, view, visibility=visibility).shading.rgb)
+        else:  # the field's own forward pass, cut between its networks and its renderer
+            mat, normal = opt.field.surface(pts, nrm, view)
+            mlp_out = [normal, mat.albedo, mat.specular, mat.roughness]
+            if mat.metallic is not None:  # glTF's BRDF shades from these
+                mlp_out += [mat.base, mat.metallic]
+            leaves = [x.detach().requires_grad_() for x in mlp_out]
+        t2 = time.perf_counter()
+        if not together:
+            color = linear_to_srgb(opt.field.shade(Material(*leaves[1:]), leaves[0], view, visibility=visibility).rgb)
         c_leaf = color.detach().requires_grad_()
         t3 = time.perf_counter()
         imgs = [compose(c_leaf, lk, sp, bg) for lk, sp in zip(lookups, specs, strict=True)]
@@ -214,15 +221,16 @@ def timed_split(opt: Optimizer, steps: int) -> dict[str, float]:
         t5 = time.perf_counter()
         # no normal network: no grad; glTF's BRDF shades from base and metallic, not albedo and specular
         pairs = [(o, x.grad) for o, x in zip(mlp_out, leaves, strict=True) if o.requires_grad and x.grad is not None]
-        torch.autograd.backward([o for o, _ in pairs], [g for _, g in pairs])
+        if pairs:
+            torch.autograd.backward([o for o, _ in pairs], [g for _, g in pairs])
         t6 = time.perf_counter()
         opt.adamw.step()
         t7 = time.perf_counter()
         if i == 0:
             continue
         parts["gather"].append(t1 - t0)
-        parts["mlp"].append((t2 - t1) + (t6 - t5))
-        parts["shading"].append((t3 - t2) + (t5 - t4))
+        parts["mlp"].append((t2 - t1) + (t6 - t5) + ((t3 - t2) + (t5 - t4) if together else 0.0))
+        parts["shading"].append(float("nan") if together else (t3 - t2) + (t5 - t4))
         parts["clip"].append(t4 - t3)
         parts["optimizer"].append(t7 - t6)
     return {k: statistics.mean(v) for k, v in parts.items()} | {"points": len(needed)}
@@ -293,7 +301,15 @@ LEVERS = {
     "+ bf16 networks": {"bf16": "off", "bf16_networks": "on"},
     "+ bf16 CLIP and networks": {"bf16": "on", "bf16_networks": "on"},
     "defaults (bf16 auto)": {},
-    "+ bf16 and compiled shading": {"bf16": "on", "bf16_networks": "on", "compile_shading": True},
+    "+ bf16 and compiled shading": {"bf16": "on", "bf16_networks": "on", "compile_shading": True, "compile_networks": "off"},
+    "+ bf16, networks and shading in one graph": {
+        "bf16": "on",
+        "bf16_networks": "on",
+        "compile_shading": True,
+        "compile_networks": "on",
+    },
+    "float32, compiled shading": {**FP32, "compile_shading": True, "compile_networks": "off"},
+    "float32, networks and shading in one graph": {**FP32, "compile_shading": True, "compile_networks": "on"},
     "NeRF encodings, width 64": {"width": 64, **FP32},
     "hash grids, width 64": {"material_encoding": "hashgrid", "normal_encoding": "hashgrid", "width": 64, **FP32},
     "hash grids, width 64, + bf16 CLIP and networks": {
@@ -310,6 +326,7 @@ LEVERS = {
         "bf16": "on",
         "bf16_networks": "on",
         "compile_shading": True,
+        "compile_networks": "off",
     },
 }
 
@@ -389,10 +406,9 @@ def main() -> None:
         paper = OptimizeSettings(crops=4, width=256, light_lobes=32, **(FP32 if args.precision == "float32" else {}))
         guide = vit_b32_random(bf16=paper.bf16, tower=paper.clip_tower)
         opt = make_optimizer(paper, train, guide)
-        precision = (
-            f"clip:{'bf16' if guide.bf16 else 'fp32'},networks:{'bf16' if opt.field.bf16 else 'fp32'},"
-            f"renderer:{'compiled' if opt.field.compiled_shade is not None else 'eager'}"
-        )
+        f = opt.field
+        renderer = "one graph" if f.compiled_field is not None else "compiled" if f.compiled_shade is not None else "eager"
+        precision = f"clip:{'bf16' if guide.bf16 else 'fp32'},networks:{'bf16' if f.bf16 else 'fp32'},renderer:{renderer}"
         s_per_iter, points = step_time(opt, args.steps)
         split = timed_split(opt, args.steps)
         clip_s = clip_time(guide, 5, args.steps)
@@ -409,7 +425,7 @@ def main() -> None:
         print(f"{'part':<22}{'s/iter':>10}")
         for k in ("gather", "mlp", "shading", "clip", "optimizer"):
             print(f"{k:<22}{split[k]:>10.3f}")
-        print(f"{'sum of parts':<22}{sum(split[k] for k in PARTS):>10.3f}")
+        print(f"{'sum of parts':<22}{sum(split[k] for k in PARTS if split[k] == split[k]):>10.3f}")  # NaN: not cut
         print(f"{'real step':<22}{s_per_iter:>10.3f}")
         print(
             f"# ceilings: CLIP fwd+bwd (5 images) {clip_s:.3f} s; "

@@ -39,7 +39,16 @@ from .assets.formats import GLTF_VALIDATOR, MODEL_VIEWER
 from .assets.probes import probe_gltf, probe_node_validator, probe_usd
 from .config.workflow import load_config_files
 from .core.cli import stage_main
-from .core.device import bf16_support, compile_choice, compiled_before, cpu_isa, precision_summary, renderer_kind, resolve_device
+from .core.device import (
+    bf16_choice,
+    bf16_support,
+    compile_plan,
+    cpu_isa,
+    networks_kind,
+    precision_summary,
+    renderer_kind,
+    resolve_device,
+)
 from .core.progress import duration
 from .geometry.probes import PROBE_GLB_FACES, PROBE_TIMEOUT_S, probe_embree, probe_pymeshlab, probe_xatlas, write_probe_glb
 from .guidance.clip import ClipWeightsUnavailable, resolve_weights
@@ -113,6 +122,14 @@ def tried(check: Check, use: Callable[[], str], fix: str) -> Check:
     return check
 
 
+def _compiled_path(s, device, shadowed: bool | None) -> str:
+    """What an optimisation of settings ``s`` on ``device`` would compile (the field's own plan)."""
+    kind = renderer_kind(s, shadowed)
+    bf16 = bf16_choice(s.bf16_networks, device, "bf16_networks")[0]
+    kinds = (kind, f"{kind}, {networks_kind(s.field_settings(), bf16)}")
+    return compile_plan((s.compile_shading, s.compile_networks), device, s.iterations, kinds, bf16)[2]
+
+
 def check_torch(cfg) -> Check:
     import torch
 
@@ -125,12 +142,7 @@ def check_torch(cfg) -> Check:
     # a mesh whose ray cache traces no visibility is shaded without shadows whatever optimize asks
     # (auto decides per mesh when its cache is made: taken here as optimize asks)
     shadowed = [False if cfg.stage_settings(c.mesh, "raycache").visibility == "off" else None for c in cfg.cells]
-    renderers = sorted(
-        {
-            compile_choice(s.compile_shading, device, s.iterations, compiled_before(renderer_kind(s, shade), device))[1]
-            for s, shade in zip(settings, shadowed, strict=True)
-        }
-    )
+    renderers = sorted({_compiled_path(s, device, shade) for s, shade in zip(settings, shadowed, strict=True)})
     detail = (
         f"torch {torch.__version__} ({build}, {gpu}); this config's torch stages run on {device.type} "
         f"(device: {cfg.device}); {torch.get_num_threads()} CPU threads ({cpu_isa()}); bfloat16: {why}; training runs "

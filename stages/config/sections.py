@@ -587,6 +587,13 @@ class OptimizeSettings(ClipChoice, FieldSettings):
         "processes under .cache/torchinductor: 3 s instead of about 80), where it pays; the metadata's shading_path "
         "says what ran",
     )
+    compile_networks: Switch = setting(
+        "auto",
+        "compile the SVBRDF and normal networks into the compiled renderer's graph while training (one graph: "
+        "inductor fuses the networks' pointwise operations with the renderer's; fewer kernel launches); only where "
+        "compile_shading compiles the renderer. auto leaves them out: on a CPU one graph was measured no faster, and "
+        "on a GPU it has not been measured; on puts them in; the metadata's shading_path says what ran",
+    )
     target_material: Material = setting("wood", "procedural material of the image targets (guidance: image)")
     target_renderer: TargetRenderer = setting(
         "mitsuba",
@@ -600,8 +607,8 @@ class OptimizeSettings(ClipChoice, FieldSettings):
     eval_width: int = setting(256, "width = height in pixels of each evaluation render (renders/*.png)", ge=8, le=4096)
 
     #: settings that do not change what training computes: left out of :meth:`digest`, so a run
-    #: resumes across them (compile_shading: the same renderer, compiled or not)
-    UNTRAINED: ClassVar[tuple[str, ...]] = ("checkpoint_every", "eval_width", "compile_shading")
+    #: resumes across them (compile_shading, compile_networks: the same functions, compiled or not)
+    UNTRAINED: ClassVar[tuple[str, ...]] = ("checkpoint_every", "eval_width", "compile_shading", "compile_networks")
 
     def relations(self) -> list[str]:
         p = super().relations()

@@ -203,7 +203,7 @@ def renderer_kind(settings, shadowed: bool | None = None, light_learns: bool | N
 
 #: the compiled renderer's code and data, relative to the ``stages`` package: a change to any of
 #: them makes its compilation new
-RENDERER_SOURCES = ("render/*.py", "render/data/*.npz", "model/field.py")
+RENDERER_SOURCES = ("render/*.py", "render/data/*.npz", "model/field.py", "model/networks.py")
 
 
 @functools.cache
@@ -313,6 +313,60 @@ def compile_choice(setting: str | bool, device: torch.device, iterations: int, w
     if not supported:
         return False, f"eager (auto: {why})"
     return True, f"torch.compile (auto: {iterations} iterations; {cache}; {why})"
+
+
+def compile_networks_choice(setting: str | bool, device: torch.device, renderer: bool, bf16_networks: bool) -> tuple[bool, str]:
+    """Whether the SVBRDF and normal networks are compiled into the renderer's graph while training
+    (``optimize.compile_networks``: one of :data:`BF16_CHOICES`; booleans mean on and off), and
+    why, for the metadata: only where the renderer itself is compiled (``renderer``,
+    :func:`compile_choice`). ``auto`` keeps them out: on a CPU one graph was measured no faster
+    per paper step, in bfloat16 (``bf16_networks``) or float32, and its compilation was not read
+    back from inductor's cache (docs/measurements/speed.md); on a GPU, where a step is bound by
+    kernel launches and one graph launches fewer, it has not been measured yet. ``on`` puts them
+    in wherever the renderer is compiled and otherwise warns."""
+    choice = lever_choice(setting, "compile_networks")
+    if choice == "off":
+        return False, "compile_networks: off"
+    if not renderer:
+        if choice == "on":
+            log.warning("compile_networks asked for, but the renderer is not compiled (compile_shading): the networks run eager")
+        return False, "compile_networks: the renderer is not compiled"
+    if choice == "on":
+        return True, "compile_networks: on"
+    if device.type != "cpu":
+        return False, f"compile_networks auto: one graph has not been measured on {device.type}"
+    precision = "bfloat16" if bf16_networks else "float32"
+    return False, f"compile_networks auto: on a CPU one graph was measured no faster ({precision} networks here)"
+
+
+def compile_plan(
+    settings: tuple[str | bool, str | bool], device: torch.device, iterations: int, kinds: tuple[str, str], bf16_networks: bool
+) -> tuple[bool, bool, str]:
+    """What training compiles, as planned before any compilation: ``settings`` are
+    ``(compile_shading, compile_networks)``, ``kinds`` the renderer's (:func:`renderer_kind`) and
+    the whole graph's (the same plus :func:`networks_kind`), whose marks say whether the
+    compilation would be read from the caches (the whole graph's where the networks would be in
+    it). Returns whether the renderer is compiled, whether the networks are in its graph, and what
+    runs, for the metadata, the plan and the doctor (:func:`compile_choice`'s words, or
+    ``"torch.compile, networks and renderer in one graph (<why>)"``)."""
+    wanted = compile_networks_choice(settings[1], device, True, bf16_networks)[0]
+    renderer, path = compile_choice(settings[0], device, iterations, compiled_before(kinds[1] if wanted else kinds[0], device))
+    whole, why = compile_networks_choice(settings[1], device, renderer, bf16_networks)
+    if whole:
+        path = f"torch.compile, networks and renderer in one graph ({path.removeprefix('torch.compile (')[:-1]}; {why})"
+    return renderer, whole, path
+
+
+def networks_kind(field_settings, bf16: bool) -> str:
+    """What the networks compiled into the renderer's graph depend on (to add to
+    :func:`renderer_kind`): their settings (encodings, widths, heads, normal network; every field
+    setting but the seed, which changes only the starting values) and their precision."""
+    import dataclasses
+    import hashlib
+
+    fields = {k: v for k, v in dataclasses.asdict(field_settings).items() if k != "seed"}
+    digest = hashlib.sha256(repr(sorted(fields.items())).encode()).hexdigest()[:12]
+    return f"networks {digest} in the graph, {'bfloat16' if bf16 else 'float32'}"
 
 
 def precision_summary(bf16: str | bool, bf16_networks: str | bool, device: torch.device, reason: bool = True) -> str:

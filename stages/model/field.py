@@ -14,7 +14,14 @@ import torch
 from torch import Tensor, nn
 
 from ..config.sections import FieldSettings
-from ..core.device import bf16_choice, compile_choice, compiled_before, mark_compiled, renderer_kind, use_inductor_cache
+from ..core.device import (
+    bf16_choice,
+    compile_plan,
+    mark_compiled,
+    networks_kind,
+    renderer_kind,
+    use_inductor_cache,
+)
 from ..geometry.normals import NormalSpec
 from ..render.shading import SGLight, Shading, face_viewer, shade, shade_gltf
 from ..render.specular_albedo import preload_table
@@ -30,22 +37,27 @@ class FieldOutput:
     normal: Tensor  # (N, 3) shading normal (predicted, facing the viewer)
 
 
-def compiled_shade_material(brdf: str, device: torch.device) -> Callable[..., Shading]:
-    """:func:`shade_material` through ``torch.compile(dynamic=True)`` (the number of points and of
-    lobes free), as training runs it: ``brdf``'s specular table read first on ``device`` (read
-    inside the compiled function, the file read broke its graph in two), and Python floats (the
-    renderer's constants) taken as the constants they are (``specialize_float``; as inputs, dynamo
-    traced the renderer twice per process). The compilation happens at the first call; with
-    inductor's and AOTAutograd's caches warm it took 3 s (20 s before these two changes)."""
+def compiled(fn: Callable, brdf: str, device: torch.device) -> Callable:
+    """``fn`` through ``torch.compile(dynamic=True)`` (the number of points and of lobes free), as
+    training runs it: ``brdf``'s specular table read first on ``device`` (read inside the compiled
+    function, the file read broke its graph in two), and Python floats (the renderer's constants)
+    taken as the constants they are (``specialize_float``; as inputs, dynamo traced the renderer
+    twice per process). The compilation happens at the first call; with inductor's and
+    AOTAutograd's caches warm it took 3 s (20 s before these two changes)."""
     preload_table(device, brdf)
-    compiled = torch.compile(shade_material, dynamic=True)
+    graph = torch.compile(fn, dynamic=True)
 
-    @functools.wraps(shade_material)
-    def shade_compiled(*args, **kwargs) -> Shading:
+    @functools.wraps(fn)
+    def run_compiled(*args, **kwargs):
         with torch._dynamo.config.patch(specialize_float=True):
-            return compiled(*args, **kwargs)
+            return graph(*args, **kwargs)
 
-    return shade_compiled
+    return run_compiled
+
+
+def compiled_shade_material(brdf: str, device: torch.device) -> Callable[..., Shading]:
+    """:func:`shade_material` through :func:`compiled` (the renderer alone)."""
+    return compiled(shade_material, brdf, device)
 
 
 def shade_material(
@@ -146,21 +158,31 @@ class StyleField(nn.Module):
         self.bf16 = False
         #: the renderer compiled by torch.compile for training (:meth:`use_compiled_shading`)
         self.compiled_shade = None
+        #: the networks and the renderer compiled together for training (:meth:`use_compiled_shading`)
+        self.compiled_field = None
         #: what shades while training, and why (:meth:`use_compiled_shading`), for the metadata
         self.shading_path = "eager"
         self._settings = s
 
     def use_compiled_shading(
-        self, setting: str | bool, device: torch.device, iterations: int, shadowed: bool | None = None
+        self,
+        setting: str | bool,
+        device: torch.device,
+        iterations: int,
+        shadowed: bool | None = None,
+        networks: str | bool = "off",
     ) -> str:
         """Shade through ``torch.compile(shade, dynamic=True)`` in training mode where the
         optimisation's option ``compile_shading`` (``auto``, ``on``, ``off``) resolves to on for a
         run of ``iterations`` steps on ``device`` (:func:`~stages.core.device.compile_choice`):
         inductor fuses the renderer's many small pointwise operations into a few loops. The same
-        function (``tests/model/test_precision.py`` compares them). It is compiled here, forward
-        and backward, on a few points of this field's kind (BRDF, lobe model, lobes, shadows), so
-        that a compilation that fails (a compiler that cannot build, missing headers) costs a
-        warning and the eager renderer, not the run; inductor's disk cache is
+        function (``tests/model/test_precision.py`` compares them). ``networks``
+        (``compile_networks``, :func:`~stages.core.device.compile_networks_choice`): the networks
+        compiled into the same graph (:meth:`surface_and_shade`), where the renderer is. It is
+        compiled here, forward and backward, on a few points of this field's kind (BRDF, lobe
+        model, lobes, shadows, and the networks where they are in it), so that a compilation that
+        fails (a compiler that cannot build, missing headers) costs a warning and the renderer
+        alone, or the eager one, not the run; inductor's disk cache is
         :func:`~stages.core.device.use_inductor_cache`'s. ``shadowed``: whether the step will pass
         each lobe's visible share (None: :attr:`shadows`; a ray cache without visibility passes
         none), which the compiled graph depends on. Returns what runs, for the metadata
@@ -168,29 +190,49 @@ class StyleField(nn.Module):
         device = torch.device(device)
         shadowed = self.shadows if shadowed is None else shadowed
         kind = renderer_kind(self._settings, shadowed, self.light_learns)
-        enabled, path = compile_choice(setting, device, iterations, compiled_before(kind, device))
-        self.compiled_shade = None
+        whole_kind = f"{kind}, {networks_kind(self._settings, self.bf16)}"
+        enabled, whole, path = compile_plan((setting, networks), device, iterations, (kind, whole_kind), self.bf16)
+        self.compiled_shade = self.compiled_field = None
         if enabled:
             use_inductor_cache()
-            compiled = compiled_shade_material(self.brdf, device)
-            try:
-                self._first_compiled_pass(compiled, device, shadowed)
-            except Exception as exc:  # noqa: BLE001 - any failure to build means: run eager
-                why = f"{type(exc).__name__}: {str(exc).strip().splitlines()[0][:200] if str(exc).strip() else ''}"
-                log.warning("compile_shading: the renderer's compilation failed (%s); it runs eager", why)
-                path = f"eager (the compilation failed: {why})"
+        if whole:
+            graph = compiled(self.surface_and_shade, self.brdf, device)
+            failed = self._failed("the networks' and renderer's", lambda: self._first_field_pass(graph, device, shadowed))
+            if failed is None:
+                self.compiled_field = graph
+                mark_compiled(whole_kind, device)
             else:
-                self.compiled_shade = compiled
+                reasons = path[path.index("(") + 1 : -1]
+                path = f"torch.compile ({reasons}; the networks' graph failed: {failed})"
+        if enabled and self.compiled_field is None:
+            graph = compiled_shade_material(self.brdf, device)
+            failed = self._failed("the renderer's", lambda: self._first_compiled_pass(graph, device, shadowed))
+            if failed is None:
+                self.compiled_shade = graph
                 mark_compiled(kind, device)
+            else:
+                path = f"eager (the compilation failed: {failed})"
         self.shading_path = path
         return path
+
+    @staticmethod
+    def _failed(what: str, first_pass: Callable[[], None]) -> str | None:
+        """Run a compiled graph's ``first_pass``: None where it ran, else why it failed, with a
+        warning naming ``what`` was compiled (any failure to build means: run without it)."""
+        try:
+            first_pass()
+        except Exception as exc:  # noqa: BLE001 - any failure to build means: run without it
+            why = f"{type(exc).__name__}: {str(exc).strip().splitlines()[0][:200] if str(exc).strip() else ''}"
+            log.warning("compile_shading: %s compilation failed (%s); it runs without it", what, why)
+            return why
+        return None
 
     @property
     def light_learns(self) -> bool:
         """Whether the light is learned (not held at a known environment's fit, ``light: fixed``)."""
         return any(p.requires_grad for p in self.light.parameters())
 
-    def _first_compiled_pass(self, compiled: Callable, device: torch.device, shadowed: bool) -> None:
+    def _first_compiled_pass(self, graph: Callable, device: torch.device, shadowed: bool) -> None:
         """``compiled`` forward and backward on a few random points shaped as this field shades in
         training (the same BRDF, lobe model, lobes and shadows; the same inputs needing gradients:
         the networks' outputs, the light and the shares where the light learns, the normal where a
@@ -224,8 +266,28 @@ class StyleField(nn.Module):
         # the shading normal needs a gradient only where a network predicts it: a mismatch with the
         # step's made torch.compile compile the renderer a second time at the first step (58 s cold)
         normal.requires_grad_(self.normal_net is not None)
-        out = compiled(normal, view, material, light, self.specular_lobe, shares)
+        out = graph(normal, view, material, light, self.specular_lobe, shares)
         out.rgb.sum().backward()
+
+    def _first_field_pass(self, graph: Callable, device: torch.device, shadowed: bool) -> None:
+        """``graph`` (:meth:`surface_and_shade` compiled) forward and backward as the step runs it,
+        on a few random points (as many as no other size: see :meth:`_first_compiled_pass`; and more
+        than 16: inductor computes a matrix product of at most 16 rows pointwise, and the guard it
+        leaves made the step compile a second time) under the field's own light, with random
+        shares where the step passes them (a gradient where the light learns); the gradients it
+        leaves on the parameters are dropped."""
+        gen = torch.Generator().manual_seed(0)
+        n = 2 * self.light.lobes + 67
+        points = (2.0 * torch.rand(n, 3, generator=gen) - 1.0).to(device)
+        normals = torch.nn.functional.normalize(torch.randn(n, 3, generator=gen), dim=-1)
+        view = torch.nn.functional.normalize(normals + 0.5 * torch.randn(n, 3, generator=gen), dim=-1)
+        view = torch.where((view * normals).sum(-1, keepdim=True) < 0, -view, view).to(device)
+        light = self.light()
+        shares = None
+        if shadowed:
+            shares = torch.rand(n, light.axis.shape[0], generator=gen).to(device).requires_grad_(self.light_learns)
+        graph(points, normals.to(device), view, light, shares)[2].rgb.sum().backward()
+        self.zero_grad(set_to_none=True)
 
     def use_bf16(self, setting: str | bool, device: torch.device) -> str:
         """Run the networks' matrix products under bfloat16 autocast in training mode (the
@@ -291,10 +353,31 @@ class StyleField(nn.Module):
         (unit, surface -> eye) under the learned light, or under ``light`` (relighting), with the
         material optionally edited (``edit``); ``visibility``: each lobe's visible share ``(N, K)``
         of a light (shadows; :meth:`~stages.imaging.views.CachedView.shade` passes its view's)."""
+        if self.compiled_field is not None and self.training and light is None and edit is None:
+            light = self.light()
+            material, normal, shading = self.compiled_field(points, normals, view, light, self._shares(visibility, light))
+            return FieldOutput(shading, material, normal)
         material, normal = self.surface(points, normals, view)
         if edit is not None:
             material = edit.apply(material, self.svbrdf.min_roughness)
         return FieldOutput(self.shade(material, normal, view, light, visibility), material, normal)
+
+    def surface_and_shade(
+        self, points: Tensor, normals: Tensor, view: Tensor, light: SGLight, shares: Tensor | None
+    ) -> tuple[Material, Tensor, Shading]:
+        """Training's forward pass as one function (:meth:`surface`, then the renderer under
+        ``light`` with each lobe's visible ``shares``), for the networks and the renderer compiled
+        together (``compile_networks``): the material, the unit shading normal and the shading."""
+        material, normal = self.surface(points, normals, view)
+        return material, normal, shade_material(normal, view, material, light, self.specular_lobe, shares)
+
+    def _shares(self, visibility: Callable[[SGLight], Tensor] | None, light: SGLight) -> Tensor | None:
+        """Each lobe of ``light``'s visible share at the shaded points, where ``visibility`` gives
+        them (shadows), in bfloat16 products with the networks' (``lobe_visibility_bits``)."""
+        if visibility is None:
+            return None
+        with torch.autocast(light.axis.device.type, dtype=torch.bfloat16, enabled=self.bf16 and self.training):
+            return visibility(light)
 
     def shade(
         self,
@@ -308,10 +391,6 @@ class StyleField(nn.Module):
         :meth:`surface`) seen along ``view``, under the learned light or ``light``, shadowed by
         ``visibility(light)`` when given."""
         light = light if light is not None else self.light()
-        shares = None
-        if visibility is not None:
-            # the shares' quadrature products in bfloat16 with the networks' (lobe_visibility_bits)
-            with torch.autocast(normal.device.type, dtype=torch.bfloat16, enabled=self.bf16 and self.training):
-                shares = visibility(light)
+        shares = self._shares(visibility, light)
         fn = self.compiled_shade if self.compiled_shade is not None and self.training else shade_material
         return fn(normal, view, material, light, self.specular_lobe, shares)

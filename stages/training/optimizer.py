@@ -74,7 +74,9 @@ class Optimizer:
         #: what the networks' products ran in during training, for the metadata
         self.network_precision = self.field.use_bf16(settings.bf16_networks, self.device)
         self.views = ViewStore(train, self.device, self.field.normals, targets, shadows=self.field.shadows)
-        self.field.use_compiled_shading(settings.compile_shading, self.device, settings.iterations, self.views.shadows)
+        self.field.use_compiled_shading(
+            settings.compile_shading, self.device, settings.iterations, self.views.shadows, settings.compile_networks
+        )
         self.prompt = prompt
         self.adamw = torch.optim.AdamW(self.param_groups(), lr=settings.lr, weight_decay=settings.weight_decay)
         self.lr_schedule = torch.optim.lr_scheduler.MultiStepLR(

@@ -124,13 +124,15 @@ def test_the_doctor_says_which_renderer_each_run_gets(monkeypatch, tmp_path):
             "device": "cpu",
             "meshes": {"vase": {"builtin": "vase"}},
             "prompts": {"wood": {"text": "a {object} made of wood"}},
-            "variants": {"short": {"optimize": {"iterations": 3}}, "paper": {}},
-            "optimize": {"clip_tiny_test": True},
+            "variants": {"short": {"optimize": {"iterations": 3}}, "paper": {}, "one": {"optimize": {"compile_networks": "on"}}},
+            "optimize": {"clip_tiny_test": True, "compile_networks": "off"},
         }
     )
     detail = doctor.check_torch(cfg).detail
     assert "renderer: eager (auto: 3 iterations, fewer than the 1000" in detail
     assert f"torch.compile (auto: 1500 iterations; {COLD_NOTE}; C++ compiler /usr/bin/g++ (simulated))" in detail
+    one = "torch.compile, networks and renderer in one graph (auto: 1500 iterations; "
+    assert f"{one}{COLD_NOTE}; C++ compiler /usr/bin/g++ (simulated); compile_networks: on)" in detail
 
 
 def test_the_doctor_knows_a_mesh_without_visibility_is_shaded_without_shadows(monkeypatch, tmp_path):
@@ -146,7 +148,7 @@ def test_the_doctor_knows_a_mesh_without_visibility_is_shaded_without_shadows(mo
         "device": "cpu",
         "meshes": {"vase": {"builtin": "vase"}},
         "prompts": {"wood": {"text": "a {object} made of wood"}},
-        "optimize": {"clip_tiny_test": True, "iterations": WARM},
+        "optimize": {"clip_tiny_test": True, "iterations": WARM, "compile_networks": "off"},
     }
     warm = f"torch.compile (auto: {WARM} iterations; {WARM_NOTE}"
     assert warm not in doctor.check_torch(WorkflowConfig(raw)).detail  # shadows asked for: another renderer
@@ -172,13 +174,17 @@ def test_a_compiler_that_cannot_build_costs_a_warning_not_the_run(tmp_path):
         "f = StyleField(OptimizeSettings(width=16, light_lobes=4).field_settings())\n"
         "print(f.use_compiled_shading('on', torch.device('cpu'), 1))\n"
         "print(f.compiled_shade is None)\n"
+        "print(f.use_compiled_shading('on', torch.device('cpu'), 1, networks='on'))\n"
+        "print(f.compiled_shade is None and f.compiled_field is None)\n"
     )
     env = dict(os.environ, CXX="false", TORCHINDUCTOR_CACHE_DIR=str(tmp_path / "inductor"))
     proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=REPO, env=env, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
-    path, eager = proc.stdout.strip().splitlines()[-2:]
+    path, eager, path_both, eager_both = proc.stdout.strip().splitlines()[-4:]
     assert path.startswith("eager (the compilation failed: ") and eager == "True", proc.stdout
+    assert path_both.startswith("eager (the compilation failed: ") and eager_both == "True", proc.stdout
     assert "compile_shading: the renderer's compilation failed" in proc.stderr
+    assert "compile_shading: the networks' and renderer's compilation failed" in proc.stderr
 
 
 def test_a_renderer_compiled_before_is_known_by_its_kind_code_and_torch(monkeypatch, tmp_path):
@@ -292,3 +298,88 @@ def test_the_inductor_cache_is_the_projects_unless_the_user_names_one(monkeypatc
     monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", str(tmp_path / "mine" / "cpu-x86_64-avx2-00000000"))
     policy.use_inductor_cache()
     assert os.environ["TORCHINDUCTOR_CACHE_DIR"] == str(tmp_path / "mine" / here)
+
+
+@pytest.mark.parametrize(
+    ("setting", "device", "renderer", "bf16", "runs", "why"),
+    [
+        (
+            "auto",
+            CPU,
+            True,
+            True,
+            False,
+            "compile_networks auto: on a CPU one graph was measured no faster (bfloat16 networks here)",
+        ),
+        (
+            "auto",
+            CPU,
+            True,
+            False,
+            False,
+            "compile_networks auto: on a CPU one graph was measured no faster (float32 networks here)",
+        ),
+        ("auto", CUDA, True, True, False, "compile_networks auto: one graph has not been measured on cuda"),
+        ("auto", CPU, False, True, False, "compile_networks: the renderer is not compiled"),
+        ("on", CPU, True, False, True, "compile_networks: on"),
+        ("on", CPU, False, True, False, "compile_networks: the renderer is not compiled"),
+        ("off", CPU, True, True, False, "compile_networks: off"),
+        (True, CUDA, True, False, True, "compile_networks: on"),
+    ],
+)
+def test_the_networks_join_the_renderers_graph_only_where_asked(caplog, setting, device, renderer, bf16, runs, why):
+    """``compile_networks``: auto keeps the networks out of the compiled renderer's graph (on a CPU
+    measured no faster; on a GPU not measured), on puts them in where the renderer is compiled,
+    never without it; only an explicit on that cannot be honoured warns."""
+    with caplog.at_level(logging.WARNING, logger="stages.core.device"):
+        assert policy.compile_networks_choice(setting, device, renderer, bf16) == (runs, why)
+    warned = [r.getMessage() for r in caplog.records]
+    assert bool(warned) == (setting == "on" and not renderer), warned
+    with pytest.raises(ConfigError, match=r"compile_networks must be one of auto, on, off, got 'fast'"):
+        OptimizeSettings(compile_networks="fast")
+
+
+def test_the_plan_looks_for_the_whole_graphs_mark_where_the_networks_join(monkeypatch, tmp_path):
+    """A warm renderer alone does not make the one graph warm (its compilation is another): auto
+    looks for the mark of what it would compile, and names it."""
+    monkeypatch.setattr(policy, "compile_support", lambda d: GXX)
+    monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", str(tmp_path / "inductor"))
+    s = OptimizeSettings()
+    kind = policy.renderer_kind(s.field_settings())
+    whole = f"{kind}, {policy.networks_kind(s.field_settings(), True)}"
+    assert whole != f"{kind}, {policy.networks_kind(s.field_settings(), False)}"
+    assert whole != f"{kind}, {policy.networks_kind(OptimizeSettings(width=128).field_settings(), True)}"
+    assert whole == f"{kind}, {policy.networks_kind(OptimizeSettings(seed=5).field_settings(), True)}"
+    policy.mark_compiled(kind, CPU)
+    plan = policy.compile_plan(("auto", "on"), CPU, WARM, (kind, whole), True)
+    assert plan == (False, False, f"eager (auto: {WARM} iterations, fewer than the {LONG} that repay a compilation; {COLD_NOTE})")
+    policy.mark_compiled(whole, CPU)
+    assert policy.compile_plan(("auto", "on"), CPU, WARM, (kind, whole), True) == (
+        True,
+        True,
+        f"torch.compile, networks and renderer in one graph (auto: {WARM} iterations; {WARM_NOTE}; {GXX[1]}; "
+        "compile_networks: on)",
+    )
+    # auto: the renderer alone, whose own mark says its compilation is warm
+    assert policy.compile_plan(("auto", "auto"), CPU, WARM, (kind, whole), True)[:2] == (True, False)
+    assert policy.compile_plan(("auto", "off"), CPU, WARM, (kind, whole), True)[:2] == (True, False)
+
+
+@pytest.mark.slow(minutes=0.5)
+def test_a_graph_of_the_networks_that_fails_leaves_the_renderer_compiled(monkeypatch, caplog):
+    """Where the networks' and renderer's graph cannot be built, the renderer is compiled alone,
+    with a warning, and the metadata's words say so."""
+    from stages.model.field import StyleField
+
+    def fails(*args):
+        raise RuntimeError("simulated")
+
+    monkeypatch.setattr(StyleField, "_first_field_pass", fails)
+    f = StyleField(OptimizeSettings(width=16, light_lobes=4).field_settings())
+    with caplog.at_level(logging.WARNING, logger="stages.model.field"):
+        path = f.use_compiled_shading("on", CPU, 1, networks="on")
+    assert f.compiled_field is None and f.compiled_shade is not None
+    assert path.startswith("torch.compile (C++ compiler ") and path.endswith(
+        "; the networks' graph failed: RuntimeError: simulated)"
+    )
+    assert any("the networks' and renderer's compilation failed" in r.getMessage() for r in caplog.records)

@@ -168,3 +168,47 @@ def test_compiled_shading_equals_eager_in_training_only(init, tolerance, normal_
     compiled.eval()
     with torch.no_grad():
         torch.testing.assert_close(compiled(pts, nrm, view).shading.rgb, eager.eval()(pts, nrm, view).shading.rgb)
+
+
+@pytest.mark.slow(minutes=1.5)
+def test_networks_compiled_with_the_renderer_equal_eager_in_training_only():
+    """``compile_networks``: the SVBRDF and normal networks compiled into the renderer's graph
+    (one graph, :meth:`StyleField.surface_and_shade`) give the colours, materials, normals and
+    every parameter's gradient of the eager field, with shadows' shares passed, compiled once: the
+    first pass leaves no gradient behind and builds what the step runs; evaluation stays eager."""
+    s = OptimizeSettings(width=16, light_lobes=4, normal_network=True, light_init="broad")
+    eager = StyleField(s.field_settings())
+    compiled = copy.deepcopy(eager)
+    path = compiled.use_compiled_shading("on", CPU, 1, shadowed=True, networks="on")
+    assert path.startswith("torch.compile, networks and renderer in one graph (C++ compiler ") and path.endswith(
+        "; compile_networks: on)"
+    )
+    assert compiled.compiled_field is not None and compiled.compiled_shade is None
+    assert all(p.grad is None for p in compiled.parameters())  # the first pass's gradients dropped
+    pts, nrm = _extreme_inputs()
+    view = torch.nn.functional.normalize(nrm + 0.3 * torch.randn(nrm.shape, generator=torch.Generator().manual_seed(1)), dim=-1)
+
+    def visibility(light):  # a differentiable share per lobe, as the shadows' are
+        return (0.5 + 0.5 * (nrm @ light.axis.T)).clamp(0.0, 1.0)
+
+    outs, compilations = [], counters["frames"]["ok"]
+    for f in (eager, compiled):
+        out = f(pts, nrm, view, visibility=visibility)
+        weights = torch.linspace(0, 1, out.shading.rgb.numel()).view_as(out.shading.rgb)
+        ((out.shading.rgb * weights).sum() + out.material.roughness.sum() + out.normal[:, 0].sum()).backward()
+        outs.append((out, [p.grad for p in f.parameters() if p.requires_grad]))
+    assert counters["frames"]["ok"] == compilations  # no second compilation at the first step
+    (a, grads_a), (b, grads_b) = outs
+    torch.testing.assert_close(b.shading.rgb, a.shading.rgb, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(b.material.albedo, a.material.albedo, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(b.normal, a.normal, rtol=1e-5, atol=1e-6)
+    for ga, gb in zip(grads_a, grads_b, strict=True):
+        assert float((gb - ga).norm() / ga.norm()) < 3e-4
+
+    def not_in_evaluation(*args, **kwargs):
+        raise AssertionError("the compiled graph ran outside training")
+
+    compiled.compiled_field = not_in_evaluation
+    compiled.eval()
+    with torch.no_grad():
+        torch.testing.assert_close(compiled(pts, nrm, view).shading.rgb, eager.eval()(pts, nrm, view).shading.rgb)
