@@ -63,19 +63,36 @@ def lobe_visibility(normal: Tensor, visible: Tensor, directions: Tensor, axis: T
     return (lit + _EMPTY) / (whole + _EMPTY)
 
 
-#: points per block of the fused quadrature: a block's two stacked (points, directions) matrices
-#: (4 MB at 1,024 directions in float32, 2 MB in bfloat16) stay near the core between the
+#: points per block of the fused quadrature on a CPU: a block's two stacked (points, directions)
+#: matrices (4 MB at 1,024 directions in float32, 2 MB in bfloat16) stay near the core between the
 #: operations that use them
 VISIBILITY_BLOCK = 512
+#: the most bytes of a block's stacked matrices on a GPU: there a block's operations are kernel
+#: launches whose cost does not depend on its size (a step's shares in blocks of 512 points were
+#: about 50 blocks of 8 launches forward and 11 backward), and memory is plentiful, so a step's
+#: points go in one block (256 MiB: 65,536 points at 512 directions in float32)
+GPU_BLOCK_BYTES = 256 * 2**20
+
+
+def visibility_block(device: torch.device, directions: int, products: torch.dtype) -> int:
+    """Points per block of the fused quadrature (:class:`_VisibleSums`) on ``device`` for
+    ``directions`` stored directions with products in ``products``: :data:`VISIBILITY_BLOCK` on a
+    CPU (cache-sized), else as many as :data:`GPU_BLOCK_BYTES` holds (at least as many). The
+    shares do not depend on it beyond the order of float sums (tested)."""
+    if device.type == "cpu":
+        return VISIBILITY_BLOCK
+    itemsize = torch.empty((), dtype=products).element_size()
+    return max(VISIBILITY_BLOCK, GPU_BLOCK_BYTES // (2 * directions * itemsize))
 
 
 class _VisibleSums(torch.autograd.Function):
     """Each lobe's visible share ``(lit + e) / (lit + blocked + e)`` (``e`` :data:`_EMPTY`) from
     ``lit = (c * v) @ w.T`` and ``blocked = (c * (1 - v)) @ w.T``, with ``c = max(normal @
-    directions.T, 0)`` and ``v`` the unpacked bits, block by block of :data:`VISIBILITY_BLOCK`
-    points, without keeping the ``(N, D)`` matrices: the backward (to ``w`` alone: the normals and
-    the bits are data) rebuilds each block's and adds ``a.T @ (c * v) + b.T @ (c * (1 - v))`` with
-    the share's derivatives ``a = g blocked / S^2`` and ``b = -g (lit + e) / S^2``, ``S`` the
+    directions.T, 0)`` and ``v`` the unpacked bits, block by block of points
+    (:func:`visibility_block`: cache-sized on a CPU, a whole step's on a GPU), without keeping
+    the ``(N, D)`` matrices: the backward (to ``w`` alone: the normals and the bits are data)
+    rebuilds each block's and adds ``a.T @ (c * v) + b.T @ (c * (1 - v))`` with the share's
+    derivatives ``a = g blocked / S^2`` and ``b = -g (lit + e) / S^2``, ``S`` the
     denominator: products, never differences. (Through autograd's ``1 / S - (lit + e) / S^2``
     the two terms cancel where a point's share is near 1, and their float32 rounding, times a
     sun's sharpness, made its axis's gradient 1e4 times too large at an open point; found by
@@ -88,8 +105,9 @@ class _VisibleSums(torch.autograd.Function):
         """``(start, stop, [c * v; c * (1 - v)])`` per block of points, ``(2 (stop - start), D)``
         in ``products``."""
         count = directions.shape[0]
-        for start in range(0, normal.shape[0], VISIBILITY_BLOCK):
-            stop = min(start + VISIBILITY_BLOCK, normal.shape[0])
+        block = visibility_block(normal.device, count, products)
+        for start in range(0, normal.shape[0], block):
+            stop = min(start + block, normal.shape[0])
             n = stop - start
             both = torch.empty(2 * n, count, dtype=products, device=normal.device)
             cos = both[n:]

@@ -33,6 +33,7 @@ from stages.render.visibility import (
     lobe_visibility_reference,
     resolvable_sharpness,
     unpack_bits,
+    visibility_block,
 )
 
 
@@ -166,6 +167,41 @@ def test_the_fused_blocks_equal_the_matrix_form_in_value_and_gradient(dtype):
         scale = float(want.abs().max())
         torch.testing.assert_close(got / scale, want / scale, rtol=0, atol=tol if dtype == torch.float64 else 1e-3)
     assert torch.isfinite(results[0][1]).all() and torch.isfinite(results[0][2]).all()
+
+
+def test_a_gpus_single_block_equals_the_cpus_blocks(monkeypatch):
+    """On a GPU a step's points go in one block (a block's operations are launches whose cost does
+    not depend on its size): the shares and their gradients are those of the CPU's blocks of
+    :data:`VISIBILITY_BLOCK` points to float32's rounding of sums taken in another order, and one
+    block is one unpacking of the bits each way."""
+    g = torch.Generator().manual_seed(5)
+    n_pts, count = 3 * VISIBILITY_BLOCK + 11, 512
+    dirs = torch.tensor(fibonacci_directions(count), dtype=torch.float32)
+    normal = _unit(torch.randn(n_pts, 3, generator=g))
+    bits = torch.from_numpy(np.packbits((torch.rand(n_pts, count, generator=g) > 0.4).numpy(), axis=1))
+    raw, lam = torch.randn(6, 3, generator=g), torch.logspace(-2, 3, 6)[:, None]
+    weight = torch.rand(n_pts, 6, generator=g)
+    unpacked = []
+    monkeypatch.setattr(
+        visibility_module, "unpack_bits", lambda *a, real=visibility_module.unpack_bits: unpacked.append(1) or real(*a)
+    )
+    results = []
+    for block in (None, 10**9):  # the CPU's, then one block for every point
+        if block:
+            monkeypatch.setattr(visibility_module, "visibility_block", lambda *a, b=block: b)
+        unpacked.clear()
+        a, s_ = raw.clone().requires_grad_(), lam.clone().requires_grad_()
+        out = lobe_visibility_bits(normal, bits, dirs, _unit(a), s_)
+        (out * weight).sum().backward()
+        results.append((out.detach(), a.grad, s_.grad, len(unpacked)))
+    assert (results[0][3], results[1][3]) == (2 * 4, 2)  # 4 blocks forward and backward, then 1
+    for got, want in zip(results[1][:3], results[0][:3], strict=True):
+        torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-6)
+    sizes = [
+        visibility_block(torch.device(d), 512, t)
+        for d, t in (("cpu", torch.float32), ("cuda", torch.float32), ("cuda", torch.bfloat16))
+    ]
+    assert sizes == [VISIBILITY_BLOCK, 65536, 131072]  # a paper step's 25,000 points: one block on a GPU
 
 
 def test_the_fused_blocks_gradient_in_float32_where_a_share_is_nearly_1():
