@@ -121,6 +121,19 @@ def test_shadow_shares_follow_the_networks_lever_in_training_only(monkeypatch):
         assert seen[-1] == want and torch.isfinite(out.rgb).all()
 
 
+def _evaluation_stays_eager(compiled: StyleField, eager: StyleField, graph: str, pts, nrm, view) -> None:
+    """Outside training ``compiled`` never runs its compiled ``graph`` (an attribute of the field)
+    and shades as ``eager`` does."""
+
+    def not_in_evaluation(*args, **kwargs):
+        raise AssertionError(f"the {graph} ran outside training")
+
+    setattr(compiled, graph, not_in_evaluation)
+    compiled.eval()
+    with torch.no_grad():
+        torch.testing.assert_close(compiled(pts, nrm, view).shading.rgb, eager.eval()(pts, nrm, view).shading.rgb)
+
+
 @pytest.mark.slow(minutes=1)
 @pytest.mark.parametrize(
     ("init", "tolerance", "normal_network", "fixed_light"),
@@ -160,14 +173,7 @@ def test_compiled_shading_equals_eager_in_training_only(init, tolerance, normal_
     torch.testing.assert_close(outs[1][0], outs[0][0], rtol=1e-5, atol=1e-6)
     for a, b in zip(outs[1][1], outs[0][1], strict=True):
         assert float((a - b).norm() / b.norm()) < tolerance
-
-    def not_in_evaluation(*args, **kwargs):
-        raise AssertionError("the compiled renderer ran outside training")
-
-    compiled.compiled_shade = not_in_evaluation
-    compiled.eval()
-    with torch.no_grad():
-        torch.testing.assert_close(compiled(pts, nrm, view).shading.rgb, eager.eval()(pts, nrm, view).shading.rgb)
+    _evaluation_stays_eager(compiled, eager, "compiled_shade", pts, nrm, view)
 
 
 @pytest.mark.slow(minutes=1.5)
@@ -204,11 +210,4 @@ def test_networks_compiled_with_the_renderer_equal_eager_in_training_only():
     torch.testing.assert_close(b.normal, a.normal, rtol=1e-5, atol=1e-6)
     for ga, gb in zip(grads_a, grads_b, strict=True):
         assert float((gb - ga).norm() / ga.norm()) < 3e-4
-
-    def not_in_evaluation(*args, **kwargs):
-        raise AssertionError("the compiled graph ran outside training")
-
-    compiled.compiled_field = not_in_evaluation
-    compiled.eval()
-    with torch.no_grad():
-        torch.testing.assert_close(compiled(pts, nrm, view).shading.rgb, eager.eval()(pts, nrm, view).shading.rgb)
+    _evaluation_stays_eager(compiled, eager, "compiled_field", pts, nrm, view)
