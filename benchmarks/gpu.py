@@ -14,9 +14,10 @@ width 256, 32 light lobes, 1 view with 1 global image and 4 crops per step) it r
   overhead of small kernels dominates);
 * the levers side by side (``--levers``, or ``--levers "float32,one graph"`` for some):
   bfloat16 for CLIP and the networks, TF32 products, the renderer compiled by torch.compile
-  (``compile_shading: on``, Triton), and the networks compiled into the renderer's graph
-  (``compile_networks: on``; fewer launches); a compilation is paid in the lever's setup, not
-  in its timed iterations, and printed apart.
+  (``compile_shading: on``, Triton), the networks compiled into the renderer's graph
+  (``compile_networks: on``; fewer launches), and that graph captured as CUDA graphs
+  (``compile_static: on``: the points padded to the largest view's, one launch per graph); a
+  compilation is paid in the lever's setup, not in its timed iterations, and printed apart.
 
 The mesh is ``../shared/meshes/person.obj`` when present, else the built-in vase. Without CUDA it
 stops with a message (tests/gpu holds the GPU tests; both skip or stop on a CPU machine).
@@ -49,14 +50,16 @@ TARGET_GIB = 4.0
 
 def run(train: Path, iterations: int, warmup: int, bf16: bool, tf32: bool, compiled: str = "") -> dict:
     """``compiled``: "" eager, "renderer" the renderer compiled, "one graph" the networks and the
-    renderer compiled together (``compile_networks``)."""
+    renderer compiled together (``compile_networks``), "cuda graphs" that graph captured as CUDA
+    graphs (``compile_static``)."""
     torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = tf32
     s = OptimizeSettings(
         iterations=iterations,
         bf16=bf16,
         bf16_networks=bf16,
         compile_shading="on" if compiled else "off",
-        compile_networks="on" if compiled == "one graph" else "off",
+        compile_networks="on" if compiled in ("one graph", "cuda graphs") else "off",
+        compile_static="on" if compiled == "cuda graphs" else "off",
     )
     guide = vit_b32_random(bf16=s.bf16, tower=s.clip_tower, device="cuda")
     t0 = time.perf_counter()
@@ -152,6 +155,7 @@ LEVERS = {
     "bf16": (True, False, ""),
     "compiled renderer": (False, False, "renderer"),
     "one graph": (False, False, "one graph"),
+    "cuda graphs": (False, False, "cuda graphs"),
 }
 
 

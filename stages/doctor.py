@@ -127,7 +127,7 @@ def _compiled_path(s, device, shadowed: bool | None) -> str:
     kind = renderer_kind(s, shadowed)
     bf16 = bf16_choice(s.bf16_networks, device, "bf16_networks")[0]
     kinds = (kind, f"{kind}, {networks_kind(s.field_settings(), bf16)}")
-    return compile_plan((s.compile_shading, s.compile_networks), device, s.iterations, kinds, bf16)[2]
+    return compile_plan((s.compile_shading, s.compile_networks, s.compile_static), device, s.iterations, kinds, bf16)[3]
 
 
 def check_torch(cfg) -> Check:

@@ -594,6 +594,15 @@ class OptimizeSettings(ClipChoice, FieldSettings):
         "compile_shading compiles the renderer. auto leaves them out: on a CPU one graph was measured no faster, and "
         "on a GPU it has not been measured; on puts them in; the metadata's shading_path says what ran",
     )
+    compile_static: Switch = setting(
+        "auto",
+        "compile the one graph of compile_networks for a fixed number of points: each step's points padded to the "
+        "training pool's largest view (copies of its first point, whose outputs are dropped), so that on CUDA "
+        "torch.compile captures the graph, forward and backward, as CUDA graphs (its reduce-overhead mode: one launch "
+        "per graph, not one per kernel); on a CPU the same graph with static shapes. Only where the networks are in "
+        "the renderer's graph. auto leaves it off (not yet measured to pay); on puts it in; the metadata's "
+        "shading_path says what ran",
+    )
     target_material: Material = setting("wood", "procedural material of the image targets (guidance: image)")
     target_renderer: TargetRenderer = setting(
         "mitsuba",
@@ -607,8 +616,15 @@ class OptimizeSettings(ClipChoice, FieldSettings):
     eval_width: int = setting(256, "width = height in pixels of each evaluation render (renders/*.png)", ge=8, le=4096)
 
     #: settings that do not change what training computes: left out of :meth:`digest`, so a run
-    #: resumes across them (compile_shading, compile_networks: the same functions, compiled or not)
-    UNTRAINED: ClassVar[tuple[str, ...]] = ("checkpoint_every", "eval_width", "compile_shading", "compile_networks")
+    #: resumes across them (compile_shading, compile_networks, compile_static: the same functions,
+    #: compiled or not)
+    UNTRAINED: ClassVar[tuple[str, ...]] = (
+        "checkpoint_every",
+        "eval_width",
+        "compile_shading",
+        "compile_networks",
+        "compile_static",
+    )
 
     def relations(self) -> list[str]:
         p = super().relations()

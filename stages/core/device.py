@@ -339,22 +339,60 @@ def compile_networks_choice(setting: str | bool, device: torch.device, renderer:
     return False, f"compile_networks auto: on a CPU one graph was measured no faster ({precision} networks here)"
 
 
+#: what the one graph's kind (:func:`networks_kind`) adds when it has static shapes: its compilation
+#: is another (:func:`compile_plan`, :meth:`~stages.model.field.StyleField.use_compiled_shading`)
+STATIC_KIND = ", static shapes"
+
+
+def compile_static_choice(setting: str | bool, device: torch.device, whole: bool) -> tuple[bool, str]:
+    """Whether the one graph (networks and renderer, :func:`compile_networks_choice`) is compiled for
+    a fixed number of points (``optimize.compile_static``: one of :data:`BF16_CHOICES`; booleans
+    mean on and off): each step's points padded to the training pool's largest view, so that on
+    CUDA torch.compile captures it as CUDA graphs (mode ``reduce-overhead``), and on a CPU it runs
+    with static shapes; and why, for the metadata. Only where the networks are in the renderer's
+    graph (``whole``). ``auto`` leaves it off: on a CPU static shapes were measured slower than
+    free ones (a paper step 0.86 s against 0.66: the points padded to the largest view's are 1.4
+    times a step's on average), and on a GPU the capture has not been measured yet; ``on`` puts it in where
+    the one graph is built and otherwise warns."""
+    choice = lever_choice(setting, "compile_static")
+    if choice == "off":
+        return False, "compile_static: off"
+    if not whole:
+        if choice == "on":
+            log.warning("compile_static asked for, but the networks are not in the renderer's graph (compile_networks)")
+        return False, "compile_static: no one graph"
+    capture = "CUDA graphs" if device.type == "cuda" else "static shapes"
+    if choice == "on":
+        return True, f"compile_static: on, {capture}"
+    if device.type != "cpu":
+        return False, f"compile_static auto: CUDA graphs have not been measured on {device.type}"
+    return False, "compile_static auto: on a CPU static shapes were measured slower (the padded points' arithmetic)"
+
+
 def compile_plan(
-    settings: tuple[str | bool, str | bool], device: torch.device, iterations: int, kinds: tuple[str, str], bf16_networks: bool
-) -> tuple[bool, bool, str]:
+    settings: tuple[str | bool, ...], device: torch.device, iterations: int, kinds: tuple[str, str], bf16_networks: bool
+) -> tuple[bool, bool, bool, str]:
     """What training compiles, as planned before any compilation: ``settings`` are
-    ``(compile_shading, compile_networks)``, ``kinds`` the renderer's (:func:`renderer_kind`) and
-    the whole graph's (the same plus :func:`networks_kind`), whose marks say whether the
-    compilation would be read from the caches (the whole graph's where the networks would be in
-    it). Returns whether the renderer is compiled, whether the networks are in its graph, and what
-    runs, for the metadata, the plan and the doctor (:func:`compile_choice`'s words, or
-    ``"torch.compile, networks and renderer in one graph (<why>)"``)."""
-    wanted = compile_networks_choice(settings[1], device, True, bf16_networks)[0]
-    renderer, path = compile_choice(settings[0], device, iterations, compiled_before(kinds[1] if wanted else kinds[0], device))
-    whole, why = compile_networks_choice(settings[1], device, renderer, bf16_networks)
+    ``(compile_shading, compile_networks[, compile_static])`` (``compile_static`` off where left
+    out), ``kinds`` the renderer's (:func:`renderer_kind`) and the whole graph's (the same plus
+    :func:`networks_kind`), whose marks say whether the compilation would be read from the caches
+    (the whole graph's where the networks would be in it). Returns whether the renderer is
+    compiled, whether the networks are in its graph, whether that graph has static shapes (CUDA
+    graphs on CUDA), and what runs, for the metadata, the plan and the doctor
+    (:func:`compile_choice`'s words, or ``"torch.compile, networks and renderer in one graph
+    (<why>)"``)."""
+    shading, networks, static_setting = (*settings, "off")[:3]
+    wanted = compile_networks_choice(networks, device, True, bf16_networks)[0]
+    whole_kind = kinds[1] + (STATIC_KIND if compile_static_choice(static_setting, device, True)[0] else "")
+    renderer, path = compile_choice(shading, device, iterations, compiled_before(whole_kind if wanted else kinds[0], device))
+    whole, why = compile_networks_choice(networks, device, renderer, bf16_networks)
+    static, static_why = compile_static_choice(static_setting, device, whole)
     if whole:
-        path = f"torch.compile, networks and renderer in one graph ({path.removeprefix('torch.compile (')[:-1]}; {why})"
-    return renderer, whole, path
+        reasons = f"{path.removeprefix('torch.compile (')[:-1]}; {why}"
+        reasons += "" if static_setting in ("off", False) else f"; {static_why}"
+        graph = " as CUDA graphs" if static and device.type == "cuda" else ", static shapes" if static else ""
+        path = f"torch.compile, networks and renderer in one graph{graph} ({reasons})"
+    return renderer, whole, static, path
 
 
 def networks_kind(field_settings, bf16: bool) -> str:

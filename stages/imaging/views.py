@@ -78,6 +78,11 @@ class ViewStore:
         return len(self.cache)
 
     @property
+    def largest(self) -> int:
+        """The most hits any view holds: the most points a step shades per view."""
+        return int(np.diff(self.cache.arrays["offsets"]).max(initial=0))
+
+    @property
     def width(self) -> int:
         return self.cache.width
 

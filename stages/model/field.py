@@ -5,6 +5,7 @@ hits to shaded colour that training, evaluation, relighting (a light override), 
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import logging
 from collections.abc import Callable
@@ -15,6 +16,7 @@ from torch import Tensor, nn
 
 from ..config.sections import FieldSettings
 from ..core.device import (
+    STATIC_KIND,
     bf16_choice,
     compile_plan,
     mark_compiled,
@@ -37,15 +39,24 @@ class FieldOutput:
     normal: Tensor  # (N, 3) shading normal (predicted, facing the viewer)
 
 
-def compiled(fn: Callable, brdf: str, device: torch.device) -> Callable:
+def compiled(fn: Callable, brdf: str, device: torch.device, static: bool = False) -> Callable:
     """``fn`` through ``torch.compile(dynamic=True)`` (the number of points and of lobes free), as
     training runs it: ``brdf``'s specular table read first on ``device`` (read inside the compiled
     function, the file read broke its graph in two), and Python floats (the renderer's constants)
     taken as the constants they are (``specialize_float``; as inputs, dynamo traced the renderer
     twice per process). The compilation happens at the first call; with inductor's and
-    AOTAutograd's caches warm it took 3 s (20 s before these two changes)."""
+    AOTAutograd's caches warm it took 3 s (20 s before these two changes). ``static``: compiled
+    for the shapes of its first call instead (``dynamic=False``; another shape compiles again), and
+    on CUDA with the options of the ``reduce-overhead`` mode, which captures the graph, forward and
+    backward, as CUDA graphs replayed with one launch each (``compile_static``), and with a graph
+    that cannot be captured whole an error (``cudagraph_or_error``; by default inductor would run
+    it uncaptured with a log line, while the metadata said CUDA graphs)."""
     preload_table(device, brdf)
-    graph = torch.compile(fn, dynamic=True)
+    if static:
+        capture = {"triton.cudagraphs": True, "triton.cudagraph_or_error": True} if device.type == "cuda" else None
+        graph = torch.compile(fn, dynamic=False, options=capture)
+    else:
+        graph = torch.compile(fn, dynamic=True)
 
     @functools.wraps(fn)
     def run_compiled(*args, **kwargs):
@@ -69,6 +80,20 @@ def shade_material(
     if material.metallic is not None:
         return shade_gltf(normal, view, material.base, material.metallic, material.roughness, light, lobe, visibility)
     return shade(normal, view, material.albedo, light, material.specular, material.roughness, lobe, visibility)
+
+
+def first_rows(value, n: int):
+    """A :class:`~stages.model.networks.Material` or :class:`~stages.render.shading.Shading` (any
+    dataclass of ``(N, ...)`` tensors or None) cut to its first ``n`` rows."""
+    return dataclasses.replace(
+        value, **{f.name: getattr(value, f.name)[:n] for f in dataclasses.fields(value) if getattr(value, f.name) is not None}
+    )
+
+
+def padded(x: Tensor, size: int) -> Tensor:
+    """``x (N, ...)``, ``0 < N <= size``, with ``size - N`` copies of its first row appended: rows
+    whose values are as finite as a real one's and whose outputs, dropped, give them no gradient."""
+    return torch.cat([x, x[:1].expand(size - x.shape[0], *x.shape[1:])]) if x.shape[0] < size else x
 
 
 @dataclass(frozen=True)
@@ -160,6 +185,11 @@ class StyleField(nn.Module):
         self.compiled_shade = None
         #: the networks and the renderer compiled together for training (:meth:`use_compiled_shading`)
         self.compiled_field = None
+        #: the number of points the one graph is compiled for, each call's padded to it (0: any number)
+        self.static_points = 0
+        self._warned_size = False
+        #: whether that graph is captured as CUDA graphs (a training step then begins with :meth:`begin_step`)
+        self.cuda_graphs = False
         #: what shades while training, and why (:meth:`use_compiled_shading`), for the metadata
         self.shading_path = "eager"
         self._settings = s
@@ -171,6 +201,8 @@ class StyleField(nn.Module):
         iterations: int,
         shadowed: bool | None = None,
         networks: str | bool = "off",
+        static: str | bool = "off",
+        points: int = 0,
     ) -> str:
         """Shade through ``torch.compile(shade, dynamic=True)`` in training mode where the
         optimisation's option ``compile_shading`` (``auto``, ``on``, ``off``) resolves to on for a
@@ -185,22 +217,32 @@ class StyleField(nn.Module):
         alone, or the eager one, not the run; inductor's disk cache is
         :func:`~stages.core.device.use_inductor_cache`'s. ``shadowed``: whether the step will pass
         each lobe's visible share (None: :attr:`shadows`; a ray cache without visibility passes
-        none), which the compiled graph depends on. Returns what runs, for the metadata
-        (:attr:`shading_path`)."""
+        none), which the compiled graph depends on. ``static`` (``compile_static``,
+        :func:`~stages.core.device.compile_static_choice`): that one graph compiled for ``points``
+        points (the most a step shades: the training pool's largest view), each call's points
+        padded to them (:meth:`forward`), and on CUDA captured as CUDA graphs. Returns what runs,
+        for the metadata (:attr:`shading_path`)."""
         device = torch.device(device)
         shadowed = self.shadows if shadowed is None else shadowed
         kind = renderer_kind(self._settings, shadowed, self.light_learns)
         whole_kind = f"{kind}, {networks_kind(self._settings, self.bf16)}"
-        enabled, whole, path = compile_plan((setting, networks), device, iterations, (kind, whole_kind), self.bf16)
+        enabled, whole, static, path = compile_plan(
+            (setting, networks, static), device, iterations, (kind, whole_kind), self.bf16
+        )
+        if static and points < 1:
+            raise ValueError(f"compile_static: a static graph needs the number of points to pad to, got {points}")
         self.compiled_shade = self.compiled_field = None
+        self.static_points, self.cuda_graphs = 0, False
         if enabled:
             use_inductor_cache()
         if whole:
-            graph = compiled(self.surface_and_shade, self.brdf, device)
-            failed = self._failed("the networks' and renderer's", lambda: self._first_field_pass(graph, device, shadowed))
+            graph = compiled(self.surface_and_shade, self.brdf, device, static)
+            size = points if static else 0
+            failed = self._failed("the networks' and renderer's", lambda: self._first_field_pass(graph, device, shadowed, size))
             if failed is None:
                 self.compiled_field = graph
-                mark_compiled(whole_kind, device)
+                self.static_points, self.cuda_graphs = size, static and device.type == "cuda"
+                mark_compiled(whole_kind + (STATIC_KIND if static else ""), device)
             else:
                 reasons = path[path.index("(") + 1 : -1]
                 path = f"torch.compile ({reasons}; the networks' graph failed: {failed})"
@@ -269,15 +311,24 @@ class StyleField(nn.Module):
         out = graph(normal, view, material, light, self.specular_lobe, shares)
         out.rgb.sum().backward()
 
-    def _first_field_pass(self, graph: Callable, device: torch.device, shadowed: bool) -> None:
+    def _first_field_pass(self, graph: Callable, device: torch.device, shadowed: bool, size: int = 0) -> None:
         """``graph`` (:meth:`surface_and_shade` compiled) forward and backward as the step runs it,
         on a few random points (as many as no other size: see :meth:`_first_compiled_pass`; and more
         than 16: inductor computes a matrix product of at most 16 rows pointwise, and the guard it
-        leaves made the step compile a second time) under the field's own light, with random
-        shares where the step passes them (a gradient where the light learns); the gradients it
-        leaves on the parameters are dropped."""
+        leaves made the step compile a second time), or on ``size`` of them for a static graph,
+        under the field's own light, with random shares where the step passes them (a gradient
+        where the light learns); the gradients it leaves on the parameters are dropped. A graph
+        captured as CUDA graphs is run three times, as CUDA graph trees take a first call to warm
+        up, a second to capture and a third to replay: a capture that fails, fails here."""
+        for _ in range(3 if size and device.type == "cuda" else 1):
+            if size and device.type == "cuda":
+                torch.compiler.cudagraph_mark_step_begin()
+            self._field_pass(graph, device, shadowed, size or 2 * self.light.lobes + 67)
+        self.zero_grad(set_to_none=True)
+
+    def _field_pass(self, graph: Callable, device: torch.device, shadowed: bool, n: int) -> None:
+        """One of :meth:`_first_field_pass`'s passes, on ``n`` random points."""
         gen = torch.Generator().manual_seed(0)
-        n = 2 * self.light.lobes + 67
         points = (2.0 * torch.rand(n, 3, generator=gen) - 1.0).to(device)
         normals = torch.nn.functional.normalize(torch.randn(n, 3, generator=gen), dim=-1)
         view = torch.nn.functional.normalize(normals + 0.5 * torch.randn(n, 3, generator=gen), dim=-1)
@@ -287,7 +338,6 @@ class StyleField(nn.Module):
         if shadowed:
             shares = torch.rand(n, light.axis.shape[0], generator=gen).to(device).requires_grad_(self.light_learns)
         graph(points, normals.to(device), view, light, shares)[2].rgb.sum().backward()
-        self.zero_grad(set_to_none=True)
 
     def use_bf16(self, setting: str | bool, device: torch.device) -> str:
         """Run the networks' matrix products under bfloat16 autocast in training mode (the
@@ -355,12 +405,42 @@ class StyleField(nn.Module):
         of a light (shadows; :meth:`~stages.imaging.views.CachedView.shade` passes its view's)."""
         if self.compiled_field is not None and self.training and light is None and edit is None:
             light = self.light()
-            material, normal, shading = self.compiled_field(points, normals, view, light, self._shares(visibility, light))
+            shares = self._shares(visibility, light)
+            if self.static_points:
+                return self._static_forward(points, normals, view, light, shares)
+            material, normal, shading = self.compiled_field(points, normals, view, light, shares)
             return FieldOutput(shading, material, normal)
         material, normal = self.surface(points, normals, view)
         if edit is not None:
             material = edit.apply(material, self.svbrdf.min_roughness)
         return FieldOutput(self.shade(material, normal, view, light, visibility), material, normal)
+
+    def _static_forward(
+        self, points: Tensor, normals: Tensor, view: Tensor, light: SGLight, shares: Tensor | None
+    ) -> FieldOutput:
+        """The static graph (``compile_static``) at the ``N`` points padded to :attr:`static_points`
+        (:func:`padded`), its outputs cut back to ``N`` rows. A call with more points than that, or
+        none, runs the same function eager (the training pool's largest view sets the size, so
+        only a pool changed under a running field has more; it is warned once)."""
+        n, size = points.shape[0], self.static_points
+        if not 0 < n <= size:
+            if n > size and not self._warned_size:
+                self._warned_size = True
+                log.warning("compile_static: %d points, more than the %d the graph was compiled for: they run eager", n, size)
+            material, normal, shading = self.surface_and_shade(points, normals, view, light, shares)
+            return FieldOutput(shading, material, normal)
+        shares = None if shares is None else padded(shares, size)
+        material, normal, shading = self.compiled_field(
+            padded(points, size), padded(normals, size), padded(view, size), light, shares
+        )
+        return FieldOutput(first_rows(shading, n), first_rows(material, n), normal[:n])
+
+    def begin_step(self) -> None:
+        """Mark the start of a training step for CUDA graph trees, where the one graph is captured
+        as CUDA graphs (:attr:`cuda_graphs`): a step may call the field several times (one per
+        view) before its backward, and the last step's outputs are no longer read."""
+        if self.cuda_graphs and self.compiled_field is not None:
+            torch.compiler.cudagraph_mark_step_begin()
 
     def surface_and_shade(
         self, points: Tensor, normals: Tensor, view: Tensor, light: SGLight, shares: Tensor | None

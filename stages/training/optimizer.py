@@ -75,7 +75,13 @@ class Optimizer:
         self.network_precision = self.field.use_bf16(settings.bf16_networks, self.device)
         self.views = ViewStore(train, self.device, self.field.normals, targets, shadows=self.field.shadows)
         self.field.use_compiled_shading(
-            settings.compile_shading, self.device, settings.iterations, self.views.shadows, settings.compile_networks
+            settings.compile_shading,
+            self.device,
+            settings.iterations,
+            self.views.shadows,
+            settings.compile_networks,
+            settings.compile_static,
+            self.views.largest,
         )
         self.prompt = prompt
         self.adamw = torch.optim.AdamW(self.param_groups(), lr=settings.lr, weight_decay=settings.weight_decay)
@@ -224,6 +230,7 @@ class Optimizer:
 
     def step(self, timer: Timer) -> dict:
         settings = self.settings
+        self.field.begin_step()
         with timer("gather"):
             ids = self.np_rng.choice(
                 len(self.views), size=settings.views_per_step, replace=len(self.views) < settings.views_per_step

@@ -132,7 +132,10 @@ def test_the_doctor_says_which_renderer_each_run_gets(monkeypatch, tmp_path):
     assert "renderer: eager (auto: 3 iterations, fewer than the 1000" in detail
     assert f"torch.compile (auto: 1500 iterations; {COLD_NOTE}; C++ compiler /usr/bin/g++ (simulated))" in detail
     one = "torch.compile, networks and renderer in one graph (auto: 1500 iterations; "
-    assert f"{one}{COLD_NOTE}; C++ compiler /usr/bin/g++ (simulated); compile_networks: on)" in detail
+    assert (
+        f"{one}{COLD_NOTE}; C++ compiler /usr/bin/g++ (simulated); compile_networks: on; compile_static auto: on a CPU "
+        "static shapes were measured slower (the padded points' arithmetic))"
+    ) in detail
 
 
 def test_the_doctor_knows_a_mesh_without_visibility_is_shaded_without_shadows(monkeypatch, tmp_path):
@@ -352,17 +355,89 @@ def test_the_plan_looks_for_the_whole_graphs_mark_where_the_networks_join(monkey
     assert whole == f"{kind}, {policy.networks_kind(OptimizeSettings(seed=5).field_settings(), True)}"
     policy.mark_compiled(kind, CPU)
     plan = policy.compile_plan(("auto", "on"), CPU, WARM, (kind, whole), True)
-    assert plan == (False, False, f"eager (auto: {WARM} iterations, fewer than the {LONG} that repay a compilation; {COLD_NOTE})")
+    assert plan == (
+        False,
+        False,
+        False,
+        f"eager (auto: {WARM} iterations, fewer than the {LONG} that repay a compilation; {COLD_NOTE})",
+    )
     policy.mark_compiled(whole, CPU)
     assert policy.compile_plan(("auto", "on"), CPU, WARM, (kind, whole), True) == (
         True,
         True,
+        False,
         f"torch.compile, networks and renderer in one graph (auto: {WARM} iterations; {WARM_NOTE}; {GXX[1]}; "
         "compile_networks: on)",
     )
     # auto: the renderer alone, whose own mark says its compilation is warm
     assert policy.compile_plan(("auto", "auto"), CPU, WARM, (kind, whole), True)[:2] == (True, False)
     assert policy.compile_plan(("auto", "off"), CPU, WARM, (kind, whole), True)[:2] == (True, False)
+
+
+@pytest.mark.parametrize(
+    ("setting", "device", "whole", "runs", "why"),
+    [
+        (
+            "auto",
+            CPU,
+            True,
+            False,
+            "compile_static auto: on a CPU static shapes were measured slower (the padded points' arithmetic)",
+        ),
+        ("auto", CUDA, True, False, "compile_static auto: CUDA graphs have not been measured on cuda"),
+        ("on", CPU, True, True, "compile_static: on, static shapes"),
+        ("on", CUDA, True, True, "compile_static: on, CUDA graphs"),
+        ("on", CUDA, False, False, "compile_static: no one graph"),
+        ("auto", CUDA, False, False, "compile_static: no one graph"),
+        ("off", CUDA, True, False, "compile_static: off"),
+        (True, CPU, True, True, "compile_static: on, static shapes"),
+    ],
+)
+def test_static_shapes_only_where_asked_and_only_in_one_graph(caplog, setting, device, whole, runs, why):
+    """``compile_static``: auto leaves the one graph's shapes free (on a CPU measured no faster; on
+    a GPU not measured), on fixes them (CUDA graphs on CUDA) where the networks are in the
+    renderer's graph, never without it; only an explicit on that cannot be honoured warns."""
+    with caplog.at_level(logging.WARNING, logger="stages.core.device"):
+        assert policy.compile_static_choice(setting, device, whole) == (runs, why)
+    warned = [r.getMessage() for r in caplog.records]
+    assert bool(warned) == (setting == "on" and not whole), warned
+    with pytest.raises(ConfigError, match=r"compile_static must be one of auto, on, off, got 'cuda'"):
+        OptimizeSettings(compile_static="cuda")
+
+
+def test_the_plan_of_a_graph_with_static_shapes(monkeypatch, tmp_path):
+    """``compile_static: on`` names static shapes (CUDA graphs on CUDA) in what runs, and its
+    compilation has its own mark: a warm one graph of free shapes does not make it warm."""
+    monkeypatch.setattr(policy, "compile_support", lambda d: GXX)
+    monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", str(tmp_path / "inductor"))
+    s = OptimizeSettings()
+    kind = policy.renderer_kind(s.field_settings())
+    whole = f"{kind}, {policy.networks_kind(s.field_settings(), True)}"
+    policy.mark_compiled(whole, CPU)
+    assert policy.compile_plan(("auto", "on", "off"), CPU, WARM, (kind, whole), True)[:3] == (True, True, False)
+    assert policy.compile_plan(("auto", "on", "on"), CPU, WARM, (kind, whole), True)[:3] == (False, False, False)
+    policy.mark_compiled(whole + policy.STATIC_KIND, CPU)
+    assert policy.compile_plan(("auto", "on", "on"), CPU, WARM, (kind, whole), True) == (
+        True,
+        True,
+        True,
+        f"torch.compile, networks and renderer in one graph, static shapes (auto: {WARM} iterations; {WARM_NOTE}; "
+        f"{GXX[1]}; compile_networks: on; compile_static: on, static shapes)",
+    )
+    assert policy.compile_plan(("on", "on", "on"), CUDA, 1, (kind, whole), True) == (
+        True,
+        True,
+        True,
+        f"torch.compile, networks and renderer in one graph as CUDA graphs ({GXX[1]}; compile_networks: on; "
+        "compile_static: on, CUDA graphs)",
+    )
+    assert policy.compile_plan(("on", "on", "auto"), CUDA, 1, (kind, whole), True) == (
+        True,
+        True,
+        False,
+        f"torch.compile, networks and renderer in one graph ({GXX[1]}; compile_networks: on; "
+        "compile_static auto: CUDA graphs have not been measured on cuda)",
+    )
 
 
 @pytest.mark.slow(minutes=0.5)

@@ -5,6 +5,7 @@ and never silently ignored."""
 from __future__ import annotations
 
 import copy
+import logging
 
 import pytest
 import torch
@@ -211,3 +212,49 @@ def test_networks_compiled_with_the_renderer_equal_eager_in_training_only():
     for ga, gb in zip(grads_a, grads_b, strict=True):
         assert float((gb - ga).norm() / ga.norm()) < 3e-4
     _evaluation_stays_eager(compiled, eager, "compiled_field", pts, nrm, view)
+
+
+@pytest.mark.slow(minutes=2)
+def test_a_graph_of_static_shapes_pads_each_step_and_trains_as_eager(cache, caplog):
+    """``compile_static``: the one graph compiled for the training pool's largest view; each step's
+    points (fewer, and as many as no other step's) padded to it and the outputs cut back, so that
+    three steps of the optimiser take the eager run's losses and end at its parameters, all from
+    the one compilation of the first pass; a step with more points than that runs eager, warned."""
+    from stages.core.provenance import Timer
+    from stages.geometry.raycache import RayCache
+    from stages.training.optimizer import Optimizer
+
+    def run(**compile_settings) -> Optimizer:
+        s = OptimizeSettings(
+            clip_tiny_test=True,
+            image_size=64,
+            width=16,
+            crops=2,
+            light_lobes=4,
+            iterations=4,
+            bf16="off",
+            bf16_networks="off",
+            **compile_settings,
+        )
+        return Optimizer(s, RayCache(cache / "train.npz"), "a vase", "cpu")
+
+    eager = run(compile_shading="off")
+    compilations = counters["frames"]["ok"]
+    static = run(compile_shading="on", compile_networks="on", compile_static="on")
+    assert "one graph, static shapes (" in static.shading_path, static.shading_path
+    assert counters["frames"]["ok"] > compilations  # (the counter counts compilations)
+    assert static.field.static_points == static.views.largest > 0 and not static.field.cuda_graphs
+    compilations = counters["frames"]["ok"]
+    rows = [(eager.step(Timer()), static.step(Timer())) for _ in range(3)]
+    assert counters["frames"]["ok"] == compilations  # padded: the first pass's graph, never another
+    points = [a["points"] for a, _ in rows]
+    assert len(set(points)) > 1 and min(points) < max(points) <= static.field.static_points, points  # some padded
+    for a, b in rows:
+        assert a["points"] == b["points"] and abs(a["loss"] - b["loss"]) <= 1e-5 * abs(a["loss"]) + 1e-7, (a, b)
+    for (name, pa), pb in zip(eager.field.named_parameters(), static.field.parameters(), strict=True):
+        assert float((pb - pa).norm() / pa.norm().clamp(min=1e-12)) < 1e-4, name
+    static.field.static_points = 10  # a step of more points than the graph's: eager
+    with caplog.at_level(logging.WARNING, logger="stages.model.field"):
+        a, b = eager.step(Timer()), static.step(Timer())
+    assert abs(a["loss"] - b["loss"]) <= 1e-5 * abs(a["loss"]) + 1e-7
+    assert any("more than the" in r.getMessage() and "they run eager" in r.getMessage() for r in caplog.records)
