@@ -122,10 +122,12 @@ def python_headers() -> str | None:
 
 
 #: the environment under which torch uses no more than AVX2 on a CPU that has more: its own kernels
-#: and inductor's code (``ATEN_CPU_CAPABILITY``) and oneDNN's (``ONEDNN_MAX_CPU_ISA``: no AVX-512,
-#: so no native bfloat16); the benchmarks' stand-in for an AVX2-only CPU, read when torch loads (a
-#: new process). The clock, caches and memory stay this CPU's.
-AVX2_ONLY_ENV = {"ATEN_CPU_CAPABILITY": "avx2", "ONEDNN_MAX_CPU_ISA": "AVX2"}
+#: and inductor's code (``ATEN_CPU_CAPABILITY``), oneDNN's (``ONEDNN_MAX_CPU_ISA``: no AVX-512, so
+#: no native bfloat16) and MKL's, which computes torch's float32 matrix products
+#: (``MKL_ENABLE_INSTRUCTIONS``; on an AMD CPU MKL takes its AVX2 code in any case); the
+#: benchmarks' stand-in for an AVX2-only CPU, read when torch loads (a new process). The clock,
+#: caches and memory stay this CPU's.
+AVX2_ONLY_ENV = {"ATEN_CPU_CAPABILITY": "avx2", "ONEDNN_MAX_CPU_ISA": "AVX2", "MKL_ENABLE_INSTRUCTIONS": "AVX2"}
 
 #: the prefix of the inductor cache's folder for one CPU (:func:`use_inductor_cache`)
 CPU_FOLDER_PREFIX = "cpu-"
