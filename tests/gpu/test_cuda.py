@@ -135,6 +135,20 @@ def test_field_forward_backward_in_float32_matches_float64(dev):
         assert rel(grads["float32"][k], g) < (1e-2 if k == "svbrdf.trunk.0.weight" else 1e-3), k
 
 
+@pytest.mark.skipif(torch.cuda.is_available(), reason="takes the path of a machine without CUDA")
+def test_the_gpu_checks_stop_with_a_message_without_cuda(tmp_path):
+    """``benchmarks/gpu_checks.sh`` (and ``benchmarks/gpu.py`` under it) on a machine without CUDA:
+    one line saying so and what to run instead, exit status 2, no logs that look like results."""
+    import subprocess
+
+    done = subprocess.run(
+        ["bash", str(REPO / "benchmarks" / "gpu_checks.sh"), str(tmp_path / "out")], capture_output=True, text=True, timeout=120
+    )
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert "torch sees no CUDA device; on a CPU use benchmarks/optimize.py" in done.stderr
+    assert not any((tmp_path / "out").iterdir())
+
+
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 def test_training_steps_on_cuda_match_cpu(cache):
