@@ -24,7 +24,8 @@ bfloat16 autocast): seconds and the cosines of embeddings and image gradients ag
 in float32. It then shows the trade between MLP width and step time, the cost of local crops, the
 cost and benefit of supersampling (error of 1 and 2 samples per pixel against 4, same field), and
 the CPU levers (``LEVERS``: CLIP's tower, bfloat16 for CLIP and for the networks, the compiled
-renderer alone or in one graph with the networks (``compile_networks``), hash-grid encodings with
+renderer alone or in one graph with the networks (``compile_networks``, of free or static shapes:
+``compile_static``), hash-grid encodings with
 width-64 networks) on the real step, side by side (``--lever``
 picks some by name; the reference always runs). ``--precision float32`` measures the main step with
 both bfloat16 levers off (the defaults: ``auto``, bfloat16 where the CPU has it natively). The
@@ -308,6 +309,13 @@ LEVERS = {
         "compile_shading": True,
         "compile_networks": "on",
     },
+    "+ bf16, one graph of static shapes": {
+        "bf16": "on",
+        "bf16_networks": "on",
+        "compile_shading": True,
+        "compile_networks": "on",
+        "compile_static": "on",
+    },
     "float32, compiled shading": {**FP32, "compile_shading": True, "compile_networks": "off"},
     "float32, networks and shading in one graph": {**FP32, "compile_shading": True, "compile_networks": "on"},
     "NeRF encodings, width 64": {"width": 64, **FP32},
@@ -407,7 +415,8 @@ def main() -> None:
         guide = vit_b32_random(bf16=paper.bf16, tower=paper.clip_tower)
         opt = make_optimizer(paper, train, guide)
         f = opt.field
-        renderer = "one graph" if f.compiled_field is not None else "compiled" if f.compiled_shade is not None else "eager"
+        renderer = "compiled" if f.compiled_shade is not None else "eager"
+        renderer = ("static graph" if f.static_points else "one graph") if f.compiled_field is not None else renderer
         precision = f"clip:{'bf16' if guide.bf16 else 'fp32'},networks:{'bf16' if f.bf16 else 'fp32'},renderer:{renderer}"
         s_per_iter, points = step_time(opt, args.steps)
         split = timed_split(opt, args.steps)
