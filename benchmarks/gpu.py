@@ -22,7 +22,7 @@ width 256, 32 light lobes, 1 view with 1 global image and 4 crops per step) it r
 The mesh is ``../shared/meshes/person.obj`` when present, else the built-in vase. Without CUDA it
 stops with a message (tests/gpu holds the GPU tests; both skip or stop on a CPU machine).
 
-    python benchmarks/gpu.py [--iterations 1500] [--levers [NAMES]] [--bf16] [--tf32]
+    python benchmarks/gpu.py [--iterations 1500] [--levers [NAMES]] [--lever-iterations 200] [--bf16] [--tf32]
 """
 
 from __future__ import annotations
@@ -118,8 +118,9 @@ def main() -> None:
         "--levers",
         nargs="?",
         const=",".join(LEVERS),
-        help=f"also time 200 iterations under each lever (comma-separated, of: {', '.join(LEVERS)}; all when bare)",
+        help=f"also time --lever-iterations under each lever (comma-separated, of: {', '.join(LEVERS)}; all when bare)",
     )
+    parser.add_argument("--lever-iterations", type=int, default=200, help="iterations timed under each lever")
     args = parser.parse_args()
     if not torch.cuda.is_available():
         raise SystemExit("benchmarks/gpu.py needs a CUDA device (torch sees none); on a CPU use benchmarks/optimize.py")
@@ -145,7 +146,7 @@ def main() -> None:
             unknown = [n for n in names if n not in LEVERS]
             if unknown:
                 raise SystemExit(f"--levers: unknown {', '.join(unknown)}; choose from {', '.join(LEVERS)}")
-            levers(train, args.warmup, names)
+            levers(train, args.warmup, names, args.lever_iterations)
 
 
 #: the levers ``--levers`` times, by name: (bf16, tf32, compiled)
@@ -159,8 +160,8 @@ LEVERS = {
 }
 
 
-def levers(train: Path, warmup: int, names: list[str]) -> None:
-    """200 iterations under each lever of ``names`` (:data:`LEVERS`), side by side, the first the
+def levers(train: Path, warmup: int, names: list[str], iterations: int = 200) -> None:
+    """``iterations`` under each lever of ``names`` (:data:`LEVERS`), side by side, the first the
     ratios' base; a lever whose run fails (a non-finite loss, as TF32 products gave on an H100
     before the SG product's cosine was held in [-1, 1]) is reported as such. A compiled lever
     pays its compilation in its setup (printed apart), not in its timed iterations."""
@@ -169,7 +170,7 @@ def levers(train: Path, warmup: int, names: list[str]) -> None:
     for name in names:
         bf16, tf32, compiled = LEVERS[name]
         try:
-            r = run(train, 200, warmup, bf16, tf32, compiled)
+            r = run(train, iterations, warmup, bf16, tf32, compiled)
         except (FloatingPointError, RuntimeError) as exc:
             print(f"{name:<22} failed: {type(exc).__name__}: {str(exc).splitlines()[0][:120]}", flush=True)
             continue

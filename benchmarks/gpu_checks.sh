@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The GPU checks in one command, for a machine with a CUDA device and the project's Python
 # dependencies: the paper step's levers side by side (benchmarks/gpu.py: a short main run, its
-# profile, then each lever at 200 iterations) and the GPU tests (pytest -m gpu tests/gpu, the
+# profile, then each lever at 100 iterations) and the GPU tests (pytest -m gpu tests/gpu, the
 # end-to-end workflows left out: they need Mitsuba and Blender), each under its own time limit so
 # that one slow part cannot cost the other's figures. Logs and a summary go to OUT.
 #
@@ -9,14 +9,18 @@
 #
 # OUT defaults to gpu-checks/; LEVERS (benchmarks/gpu.py's names, comma-separated) to the levers not
 # yet measured first, then the baseline: "float32,cuda graphs,one graph,compiled renderer,tf32".
-# GPU_LEVERS_S (360) and GPU_TESTS_S (200) are the two parts' limits in seconds; the levers run
-# in order, so a limit cuts the last ones off.
+# GPU_LEVERS_S (330) and GPU_TESTS_S (250) are the two parts' limits in seconds (together within a
+# 10-minute command); the levers run in order, so a limit cuts the last ones off.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 out=${1:-gpu-checks}
 levers=${2:-float32,cuda graphs,one graph,compiled renderer,tf32}
 mkdir -p "$out"
-python -c "import torch, sys; sys.exit(0 if torch.cuda.is_available() else 1)" || {
+python -c "import torch" 2>/dev/null || {
+    echo "gpu_checks: python cannot import torch: run it in the project's environment (source .venv/bin/activate)" >&2
+    exit 2
+}
+python -c "import sys, torch; sys.exit(0 if torch.cuda.is_available() else 1)" || {
     echo "gpu_checks: torch sees no CUDA device; on a CPU use benchmarks/optimize.py" >&2
     exit 2
 }
@@ -28,14 +32,14 @@ python -c "import torch, sys; sys.exit(0 if torch.cuda.is_available() else 1)" |
 } >"$out/device.txt"
 cat "$out/device.txt"
 
-echo "== levers (limit ${GPU_LEVERS_S:-360} s): $levers"
-timeout "${GPU_LEVERS_S:-360}" python benchmarks/gpu.py --iterations 200 --warmup 5 --profile-steps 10 \
-    --levers "$levers" >"$out/levers.log" 2>&1
+echo "== levers (limit ${GPU_LEVERS_S:-330} s): $levers"
+timeout "${GPU_LEVERS_S:-330}" python benchmarks/gpu.py --iterations 200 --warmup 5 --profile-steps 10 \
+    --levers "$levers" --lever-iterations 100 >"$out/levers.log" 2>&1
 echo "levers exit $?" >>"$out/levers.log"
 grep -E "^(# |iterations=|lever|float32|tf32|bf16|compiled|one graph|cuda graphs|levers exit)" "$out/levers.log"
 
-echo "== GPU tests (limit ${GPU_TESTS_S:-200} s)"
-timeout "${GPU_TESTS_S:-200}" python -m pytest -o addopts="" -q -m gpu tests/gpu -k "not workflow" \
+echo "== GPU tests (limit ${GPU_TESTS_S:-250} s)"
+timeout "${GPU_TESTS_S:-250}" python -m pytest -o addopts="" -q -m gpu tests/gpu -k "not workflow" \
     -p no:cacheprovider --durations=10 >"$out/tests.log" 2>&1
 echo "tests exit $?" >>"$out/tests.log"
 tail -25 "$out/tests.log"

@@ -341,9 +341,11 @@ def compile_networks_choice(setting: str | bool, device: torch.device, renderer:
     return False, f"compile_networks auto: on a CPU one graph was measured no faster ({precision} networks here)"
 
 
-#: what the one graph's kind (:func:`networks_kind`) adds when it has static shapes: its compilation
-#: is another (:func:`compile_plan`, :meth:`~stages.model.field.StyleField.use_compiled_shading`)
-STATIC_KIND = ", static shapes"
+def static_kind(points: int, lobes: int) -> str:
+    """What the one graph's kind (:func:`networks_kind`) adds when it has static shapes, compiled
+    for ``points`` points and ``lobes`` light lobes: each size is another compilation
+    (:func:`compile_plan`, :meth:`~stages.model.field.StyleField.use_compiled_shading`)."""
+    return f", static shapes of {points} points and {lobes} lobes"
 
 
 def compile_static_choice(setting: str | bool, device: torch.device, whole: bool) -> tuple[bool, str]:
@@ -372,20 +374,28 @@ def compile_static_choice(setting: str | bool, device: torch.device, whole: bool
 
 
 def compile_plan(
-    settings: tuple[str | bool, ...], device: torch.device, iterations: int, kinds: tuple[str, str], bf16_networks: bool
+    settings: tuple[str | bool, ...],
+    device: torch.device,
+    iterations: int,
+    kinds: tuple[str, str],
+    bf16_networks: bool,
+    static_shape: tuple[int, int] = (0, 0),
 ) -> tuple[bool, bool, bool, str]:
     """What training compiles, as planned before any compilation: ``settings`` are
     ``(compile_shading, compile_networks[, compile_static])`` (``compile_static`` off where left
     out), ``kinds`` the renderer's (:func:`renderer_kind`) and the whole graph's (the same plus
     :func:`networks_kind`), whose marks say whether the compilation would be read from the caches
-    (the whole graph's where the networks would be in it). Returns whether the renderer is
+    (the whole graph's where the networks would be in it; with static shapes, of ``static_shape``'s
+    points and lobes, :func:`static_kind`: sizes unknown, as the doctor's before any ray cache
+    exists, count as not compiled before). Returns whether the renderer is
     compiled, whether the networks are in its graph, whether that graph has static shapes (CUDA
     graphs on CUDA), and what runs, for the metadata, the plan and the doctor
     (:func:`compile_choice`'s words, or ``"torch.compile, networks and renderer in one graph
     (<why>)"``)."""
     shading, networks, static_setting = (*settings, "off")[:3]
     wanted = compile_networks_choice(networks, device, True, bf16_networks)[0]
-    whole_kind = kinds[1] + (STATIC_KIND if compile_static_choice(static_setting, device, True)[0] else "")
+    static_wanted = compile_static_choice(static_setting, device, True)[0]
+    whole_kind = kinds[1] + (static_kind(*static_shape) if static_wanted else "")
     renderer, path = compile_choice(shading, device, iterations, compiled_before(whole_kind if wanted else kinds[0], device))
     whole, why = compile_networks_choice(networks, device, renderer, bf16_networks)
     static, static_why = compile_static_choice(static_setting, device, whole)

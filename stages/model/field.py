@@ -16,12 +16,13 @@ from torch import Tensor, nn
 
 from ..config.sections import FieldSettings
 from ..core.device import (
-    STATIC_KIND,
     bf16_choice,
     compile_plan,
+    lever_choice,
     mark_compiled,
     networks_kind,
     renderer_kind,
+    static_kind,
     use_inductor_cache,
 )
 from ..geometry.normals import NormalSpec
@@ -46,15 +47,17 @@ def compiled(fn: Callable, brdf: str, device: torch.device, static: bool = False
     taken as the constants they are (``specialize_float``; as inputs, dynamo traced the renderer
     twice per process). The compilation happens at the first call; with inductor's and
     AOTAutograd's caches warm it took 3 s (20 s before these two changes). ``static``: compiled
-    for the shapes of its first call instead (``dynamic=False``; another shape compiles again), and
-    on CUDA with the options of the ``reduce-overhead`` mode, which captures the graph, forward and
-    backward, as CUDA graphs replayed with one launch each (``compile_static``), and with a graph
-    that cannot be captured whole an error (``cudagraph_or_error``; by default inductor would run
-    it uncaptured with a log line, while the metadata said CUDA graphs)."""
+    for the shapes of its first call instead (``dynamic=False``; another shape compiles again) as
+    one graph (``fullgraph``: a graph break is an error, not a piece run outside it), and on CUDA
+    with the option of the ``reduce-overhead`` mode that captures the graph, forward and backward,
+    as CUDA graphs replayed with one launch each (``compile_static``), and a graph that cannot be
+    captured whole an error: ``cudagraph_or_error``, with inductor's graph partitions off, which
+    would otherwise run the operations CUDA graphs cannot hold outside them (left alone, inductor
+    runs such a graph uncaptured with a log line, while the metadata said CUDA graphs)."""
     preload_table(device, brdf)
     if static:
-        capture = {"triton.cudagraphs": True, "triton.cudagraph_or_error": True} if device.type == "cuda" else None
-        graph = torch.compile(fn, dynamic=False, options=capture)
+        capture = {"triton.cudagraphs": True, "triton.cudagraph_or_error": True, "graph_partition": False}
+        graph = torch.compile(fn, dynamic=False, fullgraph=True, options=capture if device.type == "cuda" else None)
     else:
         graph = torch.compile(fn, dynamic=True)
 
@@ -187,6 +190,8 @@ class StyleField(nn.Module):
         self.compiled_field = None
         #: the number of points the one graph is compiled for, each call's padded to it (0: any number)
         self.static_points = 0
+        #: :meth:`use_compiled_shading`'s arguments, to compile again where the lobes change
+        self._compile_args: tuple = ()
         self._warned_size = False
         #: whether that graph is captured as CUDA graphs (a training step then begins with :meth:`begin_step`)
         self.cuda_graphs = False
@@ -220,29 +225,29 @@ class StyleField(nn.Module):
         none), which the compiled graph depends on. ``static`` (``compile_static``,
         :func:`~stages.core.device.compile_static_choice`): that one graph compiled for ``points``
         points (the most a step shades: the training pool's largest view), each call's points
-        padded to them (:meth:`forward`), and on CUDA captured as CUDA graphs. Returns what runs,
-        for the metadata (:attr:`shading_path`)."""
+        padded to them (:meth:`forward`), and on CUDA captured as CUDA graphs (none where the
+        pool has no points: free shapes, warned). Returns what runs, for the metadata
+        (:attr:`shading_path`)."""
         device = torch.device(device)
+        self._compile_args = (setting, device, iterations, shadowed, networks, static, points)
         shadowed = self.shadows if shadowed is None else shadowed
+        if points < 1 and lever_choice(static, "compile_static") == "on":
+            log.warning("compile_static asked for, but the training pool has no points to pad to: free shapes")
+            static = "off"
         kind = renderer_kind(self._settings, shadowed, self.light_learns)
         whole_kind = f"{kind}, {networks_kind(self._settings, self.bf16)}"
+        shape = (points, self.light.lobes)
         enabled, whole, static, path = compile_plan(
-            (setting, networks, static), device, iterations, (kind, whole_kind), self.bf16
+            (setting, networks, static), device, iterations, (kind, whole_kind), self.bf16, shape
         )
-        if static and points < 1:
-            raise ValueError(f"compile_static: a static graph needs the number of points to pad to, got {points}")
         self.compiled_shade = self.compiled_field = None
         self.static_points, self.cuda_graphs = 0, False
         if enabled:
             use_inductor_cache()
         if whole:
-            graph = compiled(self.surface_and_shade, self.brdf, device, static)
-            size = points if static else 0
-            failed = self._failed("the networks' and renderer's", lambda: self._first_field_pass(graph, device, shadowed, size))
+            failed = self._compile_one_graph(device, shadowed, points if static else 0)
             if failed is None:
-                self.compiled_field = graph
-                self.static_points, self.cuda_graphs = size, static and device.type == "cuda"
-                mark_compiled(whole_kind + (STATIC_KIND if static else ""), device)
+                mark_compiled(whole_kind + (static_kind(*shape) if static else ""), device)
             else:
                 reasons = path[path.index("(") + 1 : -1]
                 path = f"torch.compile ({reasons}; the networks' graph failed: {failed})"
@@ -256,6 +261,25 @@ class StyleField(nn.Module):
                 path = f"eager (the compilation failed: {failed})"
         self.shading_path = path
         return path
+
+    def _compile_one_graph(self, device: torch.device, shadowed: bool, size: int) -> str | None:
+        """Compile :meth:`surface_and_shade` (free shapes, or for ``size`` points: static, CUDA
+        graphs on CUDA) and run its first pass: None where it ran (the graph then trains), else why
+        it failed."""
+        graph = compiled(self.surface_and_shade, self.brdf, device, size > 0)
+        failed = self._failed("the networks' and renderer's", lambda: self._first_field_pass(graph, device, shadowed, size))
+        if failed is None:
+            self.compiled_field = graph
+            self.static_points, self.cuda_graphs = size, size > 0 and device.type == "cuda"
+        return failed
+
+    def lobes_changed(self) -> None:
+        """The light's number of lobes changed (light pruning, or a pruned checkpoint loaded): a
+        graph of static shapes, compiled for the old number, is compiled anew for the new one
+        through the same plan, first pass and fallbacks (:meth:`use_compiled_shading`), rather
+        than inside a training step, where a failure would end the run. Free shapes need nothing."""
+        if self.static_points and self.compiled_field is not None:
+            self.use_compiled_shading(*self._compile_args)
 
     @staticmethod
     def _failed(what: str, first_pass: Callable[[], None]) -> str | None:
@@ -320,9 +344,13 @@ class StyleField(nn.Module):
         where the light learns); the gradients it leaves on the parameters are dropped. A graph
         captured as CUDA graphs is run three times, as CUDA graph trees take a first call to warm
         up, a second to capture and a third to replay: a capture that fails, fails here."""
-        for _ in range(3 if size and device.type == "cuda" else 1):
-            if size and device.type == "cuda":
+        captured = size > 0 and device.type == "cuda"
+        for _ in range(3 if captured else 1):
+            if captured:
                 torch.compiler.cudagraph_mark_step_begin()
+            # each pass from no gradients, as a step is: a captured graph's gradients live in its
+            # memory, which the next pass frees (adding to them would raise)
+            self.zero_grad(set_to_none=True)
             self._field_pass(graph, device, shadowed, size or 2 * self.light.lobes + 67)
         self.zero_grad(set_to_none=True)
 

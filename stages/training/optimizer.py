@@ -133,6 +133,7 @@ class Optimizer:
         self.field.load_state_dict(state["field"])
         if self.field.light.lobes != lobes:  # pruned before the checkpoint: the light's parameters are new
             self.adamw.param_groups[1]["params"] = list(self.field.light.parameters())
+            self.field.lobes_changed()
         self.adamw.load_state_dict(state["optimizer"])
         self.light_pruned = state.get("light_pruned")
         self.lr_schedule.load_state_dict(state["scheduler"])
@@ -161,6 +162,8 @@ class Optimizer:
                     }
                 group[next(i for i, p in enumerate(group) if p is old)] = new
         self.light_pruned = {"iteration": self.iteration, "kept": len(index), "dropped": dropped}
+        if dropped:
+            self.field.lobes_changed()
         return dropped
 
     # -- one step

@@ -414,10 +414,14 @@ def test_the_plan_of_a_graph_with_static_shapes(monkeypatch, tmp_path):
     kind = policy.renderer_kind(s.field_settings())
     whole = f"{kind}, {policy.networks_kind(s.field_settings(), True)}"
     policy.mark_compiled(whole, CPU)
-    assert policy.compile_plan(("auto", "on", "off"), CPU, WARM, (kind, whole), True)[:3] == (True, True, False)
-    assert policy.compile_plan(("auto", "on", "on"), CPU, WARM, (kind, whole), True)[:3] == (False, False, False)
-    policy.mark_compiled(whole + policy.STATIC_KIND, CPU)
-    assert policy.compile_plan(("auto", "on", "on"), CPU, WARM, (kind, whole), True) == (
+    shape = (35440, 32)
+    assert policy.compile_plan(("auto", "on", "off"), CPU, WARM, (kind, whole), True, shape)[:3] == (True, True, False)
+    assert policy.compile_plan(("auto", "on", "on"), CPU, WARM, (kind, whole), True, shape)[:3] == (False, False, False)
+    policy.mark_compiled(whole + policy.static_kind(*shape), CPU)
+    # another size is another compilation: cold (and the doctor's, of sizes not yet known)
+    for other in ((35441, 32), (35440, 31), (0, 0)):
+        assert policy.compile_plan(("auto", "on", "on"), CPU, WARM, (kind, whole), True, other)[:3] == (False, False, False)
+    assert policy.compile_plan(("auto", "on", "on"), CPU, WARM, (kind, whole), True, shape) == (
         True,
         True,
         True,

@@ -206,9 +206,10 @@ def test_compiled_renderer_on_cuda_equals_eager():
 @pytest.mark.slow(minutes=3)
 def test_one_graph_captured_as_cuda_graphs_trains_as_eager(cache):
     """``compile_static: on`` on CUDA: the networks' and renderer's graph, each step's points padded
-    to the largest view's, captured whole as CUDA graphs (a capture inductor skips is an error,
-    and none was skipped), trains as the eager field: three steps of two views each (two calls of
-    the graph before one backward) take the eager run's losses."""
+    to the largest view's, captured whole as CUDA graphs (a graph break, a skipped capture or a
+    partition left outside is an error, which would fall back to the renderer alone), trains as
+    the eager field: three steps of two views each (two calls of the graph before one backward)
+    take the eager run's losses, with no compilation inside a step."""
     from torch._dynamo.utils import counters
 
     from stages.core.device import compile_support
@@ -218,15 +219,15 @@ def test_one_graph_captured_as_cuda_graphs_trains_as_eager(cache):
     s = {"guidance": "image", "target_renderer": "sg", "image_size": 64, "width": 32, "crops": 2, "light_lobes": 8}
     s.update(iterations=3, views_per_step=2, bf16_networks="off")
     eager = Optimizer(OptimizeSettings(**s), RayCache(cache / "train.npz"), "", "cuda")
-    skips = counters["inductor"]["cudagraph_skips"]
     on = {"compile_shading": "on", "compile_networks": "on", "compile_static": "on"}
     graphs = Optimizer(OptimizeSettings(**s, **on), RayCache(cache / "train.npz"), "", "cuda")
     assert "one graph as CUDA graphs (" in graphs.shading_path and graphs.field.cuda_graphs, graphs.shading_path
     assert graphs.field.static_points == graphs.views.largest
+    compiled = counters["stats"]["unique_graphs"]
     for _ in range(3):
         a, b = eager.step(_timer()), graphs.step(_timer())
         assert math.isfinite(b["loss"]) and abs(a["loss"] - b["loss"]) <= 1e-4 * abs(a["loss"]) + 1e-6, (a, b)
-    assert counters["inductor"]["cudagraph_skips"] == skips
+    assert counters["stats"]["unique_graphs"] == compiled  # replayed, never compiled again in a step
 
 
 @pytest.mark.gpu
