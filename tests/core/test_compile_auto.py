@@ -444,6 +444,22 @@ def test_the_plan_of_a_graph_with_static_shapes(monkeypatch, tmp_path):
     )
 
 
+def test_a_pool_without_points_compiles_free_shapes(monkeypatch, caplog, tmp_path):
+    """``compile_static: on`` with nothing to pad to (a training pool without hits) warns and
+    compiles the one graph with free shapes, and the metadata's words do not say static."""
+    from stages.model.field import StyleField
+
+    sizes = []
+    monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", str(tmp_path / "inductor"))  # (its mark goes there)
+    monkeypatch.setattr(policy, "compile_support", lambda d: GXX)
+    monkeypatch.setattr(StyleField, "_compile_one_graph", lambda self, device, shadowed, size: sizes.append(size))
+    f = StyleField(OptimizeSettings(width=16, light_lobes=4).field_settings())
+    with caplog.at_level(logging.WARNING, logger="stages.model.field"):
+        path = f.use_compiled_shading("on", CPU, 1, networks="on", static="on", points=0)
+    assert sizes == [0] and "static" not in path and path.startswith("torch.compile, networks and renderer in one graph (")
+    assert any("no points to pad to: free shapes" in r.getMessage() for r in caplog.records)
+
+
 @pytest.mark.slow(minutes=0.5)
 def test_a_graph_of_the_networks_that_fails_leaves_the_renderer_compiled(monkeypatch, caplog):
     """Where the networks' and renderer's graph cannot be built, the renderer is compiled alone,
