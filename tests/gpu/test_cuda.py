@@ -139,11 +139,13 @@ def test_field_forward_backward_in_float32_matches_float64(dev):
 def test_the_gpu_checks_stop_with_a_message_without_cuda(tmp_path):
     """``benchmarks/gpu_checks.sh`` (and ``benchmarks/gpu.py`` under it) on a machine without CUDA:
     one line saying so and what to run instead, exit status 2, no logs that look like results."""
+    import os
     import subprocess
+    import sys
 
-    done = subprocess.run(
-        ["bash", str(REPO / "benchmarks" / "gpu_checks.sh"), str(tmp_path / "out")], capture_output=True, text=True, timeout=120
-    )
+    env = {**os.environ, "PATH": f"{os.path.dirname(sys.executable)}{os.pathsep}{os.environ.get('PATH', '')}"}  # this torch's
+    script = [str(REPO / "benchmarks" / "gpu_checks.sh"), str(tmp_path / "out")]
+    done = subprocess.run(["bash", *script], capture_output=True, text=True, timeout=120, env=env)
     assert done.returncode == 2, done.stdout + done.stderr
     assert "torch sees no CUDA device; on a CPU use benchmarks/optimize.py" in done.stderr
     assert not any((tmp_path / "out").iterdir())
