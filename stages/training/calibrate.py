@@ -70,8 +70,9 @@ def seconds_per_step(settings: OptimizeSettings, raycache: RaycacheSettings, dev
     else:  # image targets from our renderer: Mitsuba's are rendered once per mesh by the target stage
         settings = dataclasses.replace(settings, target_renderer="sg")
     # the eager renderer: a compiled one (compile_shading) would spend its compilation, 13 s to
-    # 94 s, inside the plan; the estimate of a compiled run is then on the slow side
-    settings = dataclasses.replace(settings, compile_shading="off")
+    # 94 s, inside the plan; the estimate of a compiled run is then on the slow side. The levers
+    # that ride on it off too: asked for without it, they would only warn that they cannot run
+    settings = dataclasses.replace(settings, compile_shading="off", compile_networks="off", compile_static="off")
     opt = Optimizer(settings, train, "a vase made of wood", device, guide=guide)
     timer = Timer()
     opt.step(timer)

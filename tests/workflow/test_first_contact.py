@@ -152,3 +152,21 @@ def test_calibration_times_real_steps_of_a_random_architecture():
     assert 0 < seconds < math.inf
     guide = random_guide(TINY_MODEL, False, settings.clip_tower, "cpu")
     assert guide.test_only and guide.weights_id == "calibration: random weights"
+
+
+def test_calibration_times_the_eager_renderer_without_warnings_of_levers_it_leaves_off(caplog):
+    """The calibration times the eager renderer (a compilation would be spent inside the plan):
+    settings that ask for the compiled forms (the one graph, static shapes) are timed eager, without
+    the warnings those levers give when asked for without a compiled renderer."""
+    import logging
+    import math
+
+    from stages.config.sections import OptimizeSettings, RaycacheSettings
+    from stages.guidance.clip import TINY_MODEL
+    from stages.training.calibrate import seconds_per_step
+
+    on = {"compile_shading": "on", "compile_networks": "on", "compile_static": "on"}
+    settings = OptimizeSettings(clip_model=TINY_MODEL, image_size=64, width=16, crops=0, light_lobes=4, iterations=10, **on)
+    with caplog.at_level(logging.WARNING, logger="stages"):
+        assert 0 < seconds_per_step(settings, RaycacheSettings(views=4, resolution=64), "cpu", steps=1) < math.inf
+    assert not [r.getMessage() for r in caplog.records if "compile_" in r.getMessage()]
