@@ -192,9 +192,10 @@ class StyleField(nn.Module):
         self.static_points = 0
         #: :meth:`use_compiled_shading`'s arguments, to compile again where the lobes change
         self._compile_args: tuple = ()
-        self._warned_size = False
         #: whether that graph is captured as CUDA graphs (a training step then begins with :meth:`begin_step`)
         self.cuda_graphs = False
+        #: whether a call with more points than :attr:`static_points` has been warned of (once a run)
+        self._warned_size = False
         #: what shades while training, and why (:meth:`use_compiled_shading`), for the metadata
         self.shading_path = "eager"
         self._settings = s
