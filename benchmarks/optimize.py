@@ -174,7 +174,7 @@ def step_flops(opt: Optimizer, guide: ClipGuide, steps: int) -> dict[str, float]
         total_mm, total_pw = total_mm + mm, total_pw + pw
     text = guide.embed_text("a person")
     x = torch.rand(5, 3, 224, 224, requires_grad=True)
-    clip_mm, _ = counted(lambda: guide.similarity(x[:1], text).add(guide.similarity(x[1:], text)).backward())
+    clip_mm, _ = counted(lambda: clip_backward(guide, x, text))
     total_mm, total_pw = total_mm / steps, total_pw / steps
     return {"clip": clip_mm, "mlp": total_mm - clip_mm, "pointwise": total_pw, "total": total_mm + total_pw}
 
@@ -250,13 +250,19 @@ def step_time(opt: Optimizer, steps: int) -> tuple[float, float]:
     return statistics.mean(ts), statistics.mean(pts)
 
 
+def clip_backward(guide: ClipGuide, x: torch.Tensor, text: torch.Tensor) -> None:
+    """CLIP's part of the step: the similarities of 1 global image and the crops, as one batch
+    through the tower (``ClipGuide.similarities``), backward to the images."""
+    sum(guide.similarities([x[:1], x[1:]], text)).backward()
+
+
 def clip_time(guide: ClipGuide, images: int, steps: int) -> float:
     text = guide.embed_text("a person")
     ts = []
     for _ in range(steps + 1):
         x = torch.rand(images, 3, 224, 224, requires_grad=True)
         t0 = time.perf_counter()
-        guide.similarity(x[:1], text).add(guide.similarity(x[1:], text)).backward()
+        clip_backward(guide, x, text)
         ts.append(time.perf_counter() - t0)
     return statistics.mean(ts[1:])
 
@@ -276,7 +282,7 @@ def clip_paths(steps: int) -> list[dict]:
     for (tower, bf16), guide in zip(CLIP_PATHS, guides, strict=True):
         x = x0.clone().requires_grad_()
         emb = guide.embed_images(x).detach().flatten()
-        guide.similarity(x[:1], text).add(guide.similarity(x[1:], text)).backward()
+        clip_backward(guide, x, text)
         ref = ref or (emb, x.grad.flatten())
         cos = torch.nn.functional.cosine_similarity
         rows.append(

@@ -113,12 +113,12 @@ class ClipGuidance(Guidance):
         self.clip_tower = self.guide.tower
 
     def loss(self, rendered: ImageBatch, target: ImageBatch | None) -> tuple[torch.Tensor, dict]:
-        sim_g = self.guide.similarity(torch.stack(rendered.globals), self.text)
-        loss, stats = -sim_g, {"similarity_global": float(sim_g.detach())}
+        groups = [torch.stack(rendered.globals)] + ([torch.stack(rendered.crops)] if rendered.crops else [])
+        sims = self.guide.similarities(groups, self.text)  # one batch through the tower
+        loss, stats = -sims[0], {"similarity_global": float(sims[0].detach())}
         if rendered.crops:
-            sim_c = self.guide.similarity(torch.stack(rendered.crops), self.text)
-            loss = loss - sim_c
-            stats["similarity_crops"] = float(sim_c.detach())
+            loss = loss - sims[1]
+            stats["similarity_crops"] = float(sims[1].detach())
         return loss, stats
 
     @torch.no_grad()

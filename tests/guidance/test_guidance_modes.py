@@ -60,6 +60,17 @@ def test_the_clip_loss_is_minus_the_similarity_of_the_globals_and_of_the_crops()
     loss, stats = g.loss(ImageBatch(globals_, crops), None)
     assert float(loss) == pytest.approx(-float(cosine(globals_) + cosine(crops)), abs=1e-5)
     assert set(stats) == {"similarity_global", "similarity_crops"}
+    # the globals and the crops go through the tower as one batch, with the gradients of two
+    calls, encode = [], guide.model.encode_image
+    guide.model.encode_image = lambda x: calls.append(len(x)) or encode(x)
+    leaves = [x.clone().requires_grad_() for x in globals_ + crops]
+    g.loss(ImageBatch(leaves[:2], leaves[2:]), None)[0].backward()
+    assert calls == [5]
+    guide.model.encode_image = encode
+    apart = [x.clone().requires_grad_() for x in globals_ + crops]
+    (-cosine(apart[:2]) - cosine(apart[2:])).backward()
+    for a, b in zip(leaves, apart, strict=True):
+        assert float((a.grad - b.grad).norm() / b.grad.norm()) < 1e-4
     alone, stats = g.loss(ImageBatch(globals_, []), None)
     assert float(alone) == pytest.approx(-float(cosine(globals_)), abs=1e-5) and "similarity_crops" not in stats
 
