@@ -267,6 +267,47 @@ def clip_time(guide: ClipGuide, images: int, steps: int) -> float:
     return statistics.mean(ts[1:])
 
 
+def clip_batching(steps: int) -> list[dict]:
+    """CLIP's part of the step (the batched tower; float32, and bfloat16 where the CPU runs it
+    natively) with the global image and the 4 crops through the tower apart (two calls of
+    ``ClipGuide.similarity``, 50 and 200 rows per product) and as one batch (``similarities``,
+    250 rows, what the step runs), measured alternately on the same images: median seconds each
+    and the median of the paired ratios, and the relative difference of the image gradients."""
+    x0 = torch.rand(5, 3, 224, 224, generator=torch.Generator().manual_seed(3))
+    rows = []
+    for bf16 in (False, True) if bf16_support(torch.device("cpu"))[0] else (False,):
+        guide = vit_b32_random(bf16=bf16)
+        text = guide.embed_text("a person")
+
+        def apart(x, guide=guide, text=text):
+            guide.similarity(x[:1], text).add(guide.similarity(x[1:], text)).backward()
+
+        def together(x, guide=guide, text=text):
+            clip_backward(guide, x, text)
+
+        times, grads = {"apart": [], "together": []}, {}
+        for i in range(steps + 1):
+            for name, fn in (("apart", apart), ("together", together)):
+                x = x0.clone().requires_grad_()
+                t0 = time.perf_counter()
+                fn(x)
+                if i:
+                    times[name].append(time.perf_counter() - t0)
+                grads[name] = x.grad
+        ratios = [a / b for a, b in zip(times["apart"], times["together"], strict=True)]
+        diff = float((grads["apart"] - grads["together"]).norm() / grads["apart"].norm())
+        rows.append(
+            {
+                "precision": "bf16" if bf16 else "fp32",
+                "apart_s": statistics.median(times["apart"]),
+                "together_s": statistics.median(times["together"]),
+                "ratio": statistics.median(ratios),
+                "grad_rel_diff": diff,
+            }
+        )
+    return rows
+
+
 #: CLIP's paths compared side by side: (tower, bfloat16); the first is the reference
 CLIP_PATHS = (("open_clip", False), ("batched", False), ("open_clip", True), ("batched", True))
 
@@ -413,6 +454,12 @@ def main() -> None:
             f"{r['cos_embedding']:>10.5f}{r['cos_gradient']:>10.5f}",
             flush=True,
         )
+    batching = clip_batching(args.steps)
+    print("# a step's 1 global image and 4 crops through CLIP's tower apart (50 + 200 rows) or as one batch (250 rows)")
+    print(f"{'precision':<10}{'apart s':>9}{'one batch s':>12}{'ratio':>7}{'grad diff':>11}")
+    for r in batching:
+        print(f"{r['precision']:<10}{r['apart_s']:>9.3f}{r['together_s']:>12.3f}{r['ratio']:>7.2f}{r['grad_rel_diff']:>11.1e}")
+    print(" ".join(f"clip_one_batch_ratio_{r['precision']}={r['ratio']:.3f}" for r in batching), flush=True)
     if args.clip_only:
         return
     with tempfile.TemporaryDirectory() as d:
