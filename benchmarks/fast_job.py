@@ -76,6 +76,52 @@ def prepare(work: Path, mesh: str) -> Path:
     return work / "vit-b-32-random.pt"
 
 
+def peak_rates() -> dict:
+    """This process's peak matrix-multiply rates (``optimize.peak_matmul_rate``) in float32 and,
+    where the CPU runs it natively, bfloat16 (else None: an emulated rate is no ceiling)."""
+    import torch
+    from optimize import peak_matmul_rate
+
+    from stages.core.device import bf16_support
+
+    native = bf16_support(torch.device("cpu"))[0]
+    return {"fp32": peak_matmul_rate(torch.float32), "bf16": peak_matmul_rate(torch.bfloat16) if native else None}
+
+
+def peaks_under(name: str, threads: int) -> dict:
+    """:func:`peak_rates` in a fresh process under lever ``name``'s environment (its instruction set)."""
+    cmd = [sys.executable, __file__, "--peaks", "--threads", str(threads)]
+    proc = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, **ENVIRONMENTS.get(name, {})}, check=True)
+    return json.loads(proc.stdout.splitlines()[-1])
+
+
+def step_counts(work: Path) -> dict:
+    """The ``fast`` preset's step FLOPs (``optimize.step_flops``: CLIP's to its images, the
+    networks' products and the pointwise, and the points shaded), counted on 3 real steps in
+    this process on the jobs' ray cache; the precision does not change the count."""
+    from optimize import make_optimizer, step_flops, vit_b32_random
+
+    from stages.config.presets import PRESETS
+    from stages.config.sections import OptimizeSettings
+
+    settings = OptimizeSettings(**{**PRESETS["fast"], "bf16": "off", "bf16_networks": "off", "compile_shading": "off"})
+    guide = vit_b32_random()
+    opt = make_optimizer(settings, work / "train.npz", guide)
+    return step_flops(opt, guide, 3, settings.views_per_step * (1 + settings.crops))
+
+
+def loop_floor(counts: dict, row: dict, rates: dict) -> float:
+    """The FLOP floor of a job's loop: its iterations times CLIP's FLOPs at the peak rate of CLIP's
+    precision plus the rest's per point (``counts``, :func:`step_counts`) times the job's points
+    per iteration at the networks'; NaN where a part ran bfloat16 without a native rate."""
+    clip_bf16, networks_bf16 = row["precision"].startswith("clip bfloat16"), "networks bfloat16" in row["precision"]
+    if (clip_bf16 or networks_bf16) and rates["bf16"] is None:
+        return float("nan")
+    rate = {True: rates["bf16"], False: rates["fp32"]}
+    rest_per_point = (counts["mlp"] + counts["pointwise"]) / counts["points"]
+    return row["iterations"] * (counts["clip"] / rate[clip_bf16] + rest_per_point * row["points"] / rate[networks_bf16])
+
+
 def job(work: Path, checkpoint: Path, name: str, overrides: dict, threads: int) -> dict:
     from stages.config.presets import PRESETS
     from stages.config.sections import OptimizeSettings
@@ -97,6 +143,7 @@ def job(work: Path, checkpoint: Path, name: str, overrides: dict, threads: int) 
         "timings_s": meta["timings_s"],
         "s_per_iter": meta["seconds_per_iteration"],
         "points": meta["points_per_iteration"],
+        "iterations": settings.iterations,
         "cpu": meta["cpu"],
         "precision": f"clip {meta['clip_precision'].split(' (')[0]}, networks {meta['network_precision'].split(' (')[0]}, "
         f"shading {meta['shading_path']}",
@@ -108,31 +155,47 @@ def main() -> None:
     parser.add_argument("--mesh", default="vase")
     parser.add_argument("--levers", default=",".join(LEVERS), help=f"comma-separated, of: {', '.join(LEVERS)}")
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--peaks", action="store_true", help=argparse.SUPPRESS)  # peak_rates() as JSON (peaks_under)
     args = parser.parse_args()
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    if args.peaks:
+        import torch
+
+        torch.set_num_threads(args.threads)
+        print(json.dumps(peak_rates()))
+        return
     names = [n.strip() for n in args.levers.split(",") if n.strip()]
     with tempfile.TemporaryDirectory() as d:
         work = Path(d)
         t0 = time.perf_counter()
         ckpt = prepare(work, args.mesh)
         print(f"# built-in {args.mesh}: default ray cache and a random ViT-B-32 checkpoint in {time.perf_counter() - t0:.0f} s")
+        counts = step_counts(work)
         print(
-            f"{'lever':<26}{'job s':>8}{'start s':>8}{'setup s':>8}{'loop s':>8}{'output s':>9}{'s/iter':>8}{'points':>8}"
-            "  precision; cpu",
+            f"# the fast step counted: CLIP {counts['clip'] / 1e9:.2f} GFLOP, networks {counts['mlp'] / 1e9:.2f} GFLOP "
+            f"and pointwise {counts['pointwise'] / 1e9:.3f} GFLOP at {counts['points']:.0f} points; the loop's floor: "
+            "them at the peak rates of each lever's precisions and instruction set (nan: bfloat16 emulated)"
+        )
+        print(
+            f"{'lever':<26}{'job s':>8}{'start s':>8}{'setup s':>8}{'loop s':>8}{'floor s':>8}{'x floor':>8}{'output s':>9}"
+            f"{'s/iter':>8}{'points':>8}  precision; cpu",
             flush=True,
         )
         rows = {}
         for name in names:
             r = rows[name] = job(work, ckpt, name, LEVERS[name], args.threads)
+            r["floor_s"] = loop_floor(counts, r, peaks_under(name, args.threads))
             print(
                 f"{name:<26}{r['wall_s']:>8.1f}{r['wall_s'] - r['timings_s']['total']:>8.1f}{r['timings_s']['setup']:>8.1f}"
-                f"{r['loop_s']:>8.1f}{r['timings_s']['outputs']:>9.1f}{r['s_per_iter']:>8.3f}{r['points']:>8}"
-                f"  {r['precision']}; {r['cpu']}",
+                f"{r['loop_s']:>8.1f}{r['floor_s']:>8.1f}{r['loop_s'] / r['floor_s']:>8.1f}{r['timings_s']['outputs']:>9.1f}"
+                f"{r['s_per_iter']:>8.3f}{r['points']:>8}  {r['precision']}; {r['cpu']}",
                 flush=True,
             )
     best = min(rows, key=lambda k: rows[k]["wall_s"])
     shown = "defaults" if "defaults" in rows else best
     print(
         f"fast_job_s={rows[shown]['wall_s']:.1f} target_s={TARGET_S:.0f} of={shown} best={best.replace(' ', '_')} "
+        f"loop_ratio_to_floor={rows[shown]['loop_s'] / rows[shown]['floor_s']:.1f} "
         + " ".join(f"{k.replace(' ', '_')}_s={v['wall_s']:.1f}" for k, v in rows.items())
     )
 

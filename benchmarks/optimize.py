@@ -163,20 +163,27 @@ def peak_matmul_rate(dtype: torch.dtype, n: int = 2048) -> float:
     return matmul_rate(n, n, n, dtype)
 
 
-def step_flops(opt: Optimizer, guide: ClipGuide, steps: int) -> dict[str, float]:
+def step_flops(opt: Optimizer, guide: ClipGuide, steps: int, images: int = 5) -> dict[str, float]:
     """FLOPs of one training step, counted (not estimated) on ``steps`` real steps: the matrix
-    products of CLIP (its forward and backward to the 5 images, counted alone on random images)
-    and of the rest (the MLPs forward and backward), and the pointwise FLOPs of everything
-    (shading, activations, normalisations, the optimizer)."""
-    total_mm, total_pw = 0, 0
+    products of CLIP (its forward and backward to the step's ``images``, counted alone on random
+    images) and of the rest (the MLPs forward and backward), and the pointwise FLOPs of
+    everything (shading, activations, normalisations, the optimizer); ``points``: the mean
+    points the networks shaded in those steps."""
+    total_mm, total_pw, points = 0, 0, 0
     for _ in range(steps):
         mm, pw = counted(lambda: opt.step(Timer()))
-        total_mm, total_pw = total_mm + mm, total_pw + pw
+        total_mm, total_pw, points = total_mm + mm, total_pw + pw, points + opt.points_last
     text = guide.embed_text("a person")
-    x = torch.rand(5, 3, 224, 224, requires_grad=True)
+    x = torch.rand(images, 3, guide.image_size, guide.image_size, requires_grad=True)
     clip_mm, _ = counted(lambda: clip_backward(guide, x, text))
     total_mm, total_pw = total_mm / steps, total_pw / steps
-    return {"clip": clip_mm, "mlp": total_mm - clip_mm, "pointwise": total_pw, "total": total_mm + total_pw}
+    return {
+        "clip": clip_mm,
+        "mlp": total_mm - clip_mm,
+        "pointwise": total_pw,
+        "total": total_mm + total_pw,
+        "points": points / steps,
+    }
 
 
 def timed_split(opt: Optimizer, steps: int) -> dict[str, float]:
@@ -251,9 +258,10 @@ def step_time(opt: Optimizer, steps: int) -> tuple[float, float]:
 
 
 def clip_backward(guide: ClipGuide, x: torch.Tensor, text: torch.Tensor) -> None:
-    """CLIP's part of the step: the similarities of 1 global image and the crops, as one batch
-    through the tower (``ClipGuide.similarities``), backward to the images."""
-    sum(guide.similarities([x[:1], x[1:]], text)).backward()
+    """CLIP's part of the step: the similarities of 1 global image and the crops (none where
+    ``x`` holds one image), as one batch through the tower (``ClipGuide.similarities``), backward
+    to the images."""
+    sum(guide.similarities([x[:1], x[1:]] if len(x) > 1 else [x], text)).backward()
 
 
 def clip_time(guide: ClipGuide, images: int, steps: int) -> float:
@@ -386,9 +394,20 @@ LEVERS = {
 }
 
 
-def lever_steps(train: Path, steps: int, only: list[str] | None = None) -> dict[str, dict]:
+def lever_floor(counts: dict[str, float], clip_bf16: bool, networks_bf16: bool, peak: dict[str, float], native: bool) -> float:
+    """The FLOP floor of one lever's step: CLIP's counted FLOPs at the peak rate of its precision
+    plus the rest's (the networks' products and the pointwise) at the networks'; NaN where a part
+    runs bfloat16 on a CPU that only emulates it (no floor: the emulated rate is not a ceiling)."""
+    if (clip_bf16 or networks_bf16) and not native:
+        return float("nan")
+    rate = {True: peak["bf16"], False: peak["fp32"]}
+    return counts["clip"] / rate[clip_bf16] + (counts["mlp"] + counts["pointwise"]) / rate[networks_bf16]
+
+
+def lever_steps(train: Path, steps: int, only: list[str] | None, peak: dict[str, float], native: bool) -> dict[str, dict]:
     """The real step (``Optimizer.step``) and its split under each of :data:`LEVERS` (those whose
-    name contains one of ``only``, and the reference), side by side."""
+    name contains one of ``only``, and the reference), side by side, each with its FLOP floor
+    (:func:`lever_floor`, from FLOPs counted on two of its own steps)."""
     out = {}
     for i, (name, over) in enumerate(LEVERS.items()):
         if i and only and not any(o in name for o in only):
@@ -403,7 +422,8 @@ def lever_steps(train: Path, steps: int, only: list[str] | None = None) -> dict[
         split = timed_split(opt, max(2, steps // 2))
         short = {True: "bf16", False: "fp32"}
         path = f"clip {short[guide.bf16]}, networks {short[opt.field.bf16]}, shading {opt.shading_path}"
-        out[name] = {"s": t, "first_s": first, **split, "precision": path}
+        floor = lever_floor(step_flops(opt, guide, 2), guide.bf16, opt.field.bf16, peak, native)
+        out[name] = {"s": t, "first_s": first, **split, "precision": path, "floor_s": floor}
     return out
 
 
@@ -529,14 +549,16 @@ def main() -> None:
         err = supersampling_error(opt)
         print(f"# supersampling benefit: RMSE vs 4 spp: 1 spp {err[1]:.4f}, 2 spp {err[2]:.4f}")
         if not args.no_levers:
-            levers = lever_steps(train, max(3, args.steps // 2), args.lever)
-            print("# CPU levers on the real step (paper counts), side by side in this run")
-            print(f"{'lever':<48}{'s/iter':>8}{'x ref':>7}{'mlp':>7}{'shading':>8}{'clip':>7}{'1st s':>7}  precision")
+            levers = lever_steps(train, max(3, args.steps // 2), args.lever, peak, native)
+            print("# CPU levers on the real step (paper counts), side by side in this run; floor: its FLOPs at the peak")
+            print("# rates above for its precisions (nan: bfloat16 emulated here, no floor)")
+            head = f"{'lever':<48}{'s/iter':>8}{'x ref':>7}{'floor':>7}{'x floor':>8}{'mlp':>7}{'shading':>8}{'clip':>7}"
+            print(f"{head}{'1st s':>7}  precision")
             ref_s = next(iter(levers.values()))["s"]
             for name, r in levers.items():
                 print(
-                    f"{name:<48}{r['s']:>8.3f}{ref_s / r['s']:>7.2f}{r['mlp']:>7.3f}{r['shading']:>8.3f}{r['clip']:>7.3f}"
-                    f"{r['first_s']:>7.1f}"
+                    f"{name:<48}{r['s']:>8.3f}{ref_s / r['s']:>7.2f}{r['floor_s']:>7.3f}{r['s'] / r['floor_s']:>8.2f}"
+                    f"{r['mlp']:>7.3f}{r['shading']:>8.3f}{r['clip']:>7.3f}{r['first_s']:>7.1f}"
                     f"  {r['precision']}",
                     flush=True,
                 )
