@@ -21,6 +21,12 @@ only`` runs the defaults with torch held to AVX2 (``stages.core.device.AVX2_ONLY
 bfloat16, inductor's code for AVX2 in that CPU's own cache folder, cold on its first run), this
 CPU standing in for one without AVX-512.
 
+Each lever's loop is set against its FLOP floor: the ``fast`` step's FLOPs counted on three real
+steps in this process (``optimize.step_flops``: CLIP's forward and backward to its image, the
+networks' products and the pointwise, per point shaded), times the job's iterations and its points
+per iteration, at the peak matrix-multiply rates of the lever's precisions, measured in a fresh
+process under the lever's environment (``x floor``; NaN where bfloat16 is emulated).
+
     python benchmarks/fast_job.py [--mesh vase] [--levers float32,defaults] [--threads 2]
 """
 

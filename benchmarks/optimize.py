@@ -26,7 +26,8 @@ cost and benefit of supersampling (error of 1 and 2 samples per pixel against 4,
 the CPU levers (``LEVERS``: CLIP's tower, bfloat16 for CLIP and for the networks, the compiled
 renderer alone or in one graph with the networks (``compile_networks``, of free or static shapes:
 ``compile_static``), hash-grid encodings with
-width-64 networks) on the real step, side by side (``--lever``
+width-64 networks) on the real step, side by side, each against its own FLOP floor (its FLOPs
+counted on two of its steps, at the peak rates of its precisions; ``--lever``
 picks some by name; the reference always runs). ``--precision float32`` measures the main step with
 both bfloat16 levers off (the defaults: ``auto``, bfloat16 where the CPU has it natively). The
 floor printed last is of what this machine can run: the bfloat16 floor only where bfloat16 is
@@ -45,6 +46,7 @@ without AVX-512; the last line's ``cpu`` names what ran.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import statistics
 import sys
@@ -347,6 +349,8 @@ def clip_paths(steps: int) -> list[dict]:
     return rows
 
 
+#: nothing compiled (the FLOPs of a lever are counted on such a twin: :func:`lever_steps`)
+EAGER = {"compile_shading": "off", "compile_networks": "off", "compile_static": "off"}
 #: both bfloat16 levers off (the defaults are auto: bfloat16 where the machine has it natively)
 FP32 = {"bf16": "off", "bf16_networks": "off"}
 #: the CPU levers measured on the real step at the paper's counts: name -> settings overrides
@@ -394,6 +398,15 @@ LEVERS = {
 }
 
 
+def eager_flops(settings: OptimizeSettings, train: Path, guide: ClipGuide, steps: int) -> dict[str, float]:
+    """:func:`step_flops` of ``settings``'s step, counted on a twin with nothing compiled (the same
+    arithmetic; its first steps, the same views as the measured one's): a compiled function run
+    under the counters' dispatch modes is skipped by dynamo from then on, so that a later
+    compilation of it runs eager, or with ``fullgraph`` finds no frames and fails (torch 2.13)."""
+    twin = make_optimizer(dataclasses.replace(settings, **EAGER), train, guide)
+    return step_flops(twin, guide, steps)
+
+
 def lever_floor(counts: dict[str, float], clip_bf16: bool, networks_bf16: bool, peak: dict[str, float], native: bool) -> float:
     """The FLOP floor of one lever's step: CLIP's counted FLOPs at the peak rate of its precision
     plus the rest's (the networks' products and the pointwise) at the networks'; NaN where a part
@@ -422,7 +435,7 @@ def lever_steps(train: Path, steps: int, only: list[str] | None, peak: dict[str,
         split = timed_split(opt, max(2, steps // 2))
         short = {True: "bf16", False: "fp32"}
         path = f"clip {short[guide.bf16]}, networks {short[opt.field.bf16]}, shading {opt.shading_path}"
-        floor = lever_floor(step_flops(opt, guide, 2), guide.bf16, opt.field.bf16, peak, native)
+        floor = lever_floor(eager_flops(s, train, guide, 2), guide.bf16, opt.field.bf16, peak, native)
         out[name] = {"s": t, "first_s": first, **split, "precision": path, "floor_s": floor}
     return out
 
@@ -516,7 +529,7 @@ def main() -> None:
         )
         print(f"# soft floor (CLIP's own time + MLP FLOPs at that rate) {floor_s:.3f} s; ratio {s_per_iter / floor_s:.2f}")
         # the true floor: every FLOP of a step, counted, at the machine's peak matrix-multiply rate
-        counts = step_flops(opt, guide, max(2, args.steps // 2))
+        counts = eager_flops(paper, train, guide, max(2, args.steps // 2))
         # the floor of what this machine can run: bfloat16 only where it is native (emulated
         # bfloat16 is slower than float32, and its "floor" would mean nothing; measured on a small
         # product there: 0.3 GFLOP/s, a minute for one at 2048)
