@@ -398,13 +398,17 @@ LEVERS = {
 }
 
 
-def eager_flops(settings: OptimizeSettings, train: Path, guide: ClipGuide, steps: int) -> dict[str, float]:
+def eager_flops(settings: OptimizeSettings, train: Path, guide: ClipGuide, steps: int, points: float) -> dict[str, float]:
     """:func:`step_flops` of ``settings``'s step, counted on a twin with nothing compiled (the same
-    arithmetic; its first steps, the same views as the measured one's): a compiled function run
-    under the counters' dispatch modes is skipped by dynamo from then on, so that a later
-    compilation of it runs eager, or with ``fullgraph`` finds no frames and fails (torch 2.13)."""
+    arithmetic): a compiled function run under the counters' dispatch modes is skipped by dynamo
+    from then on, so that a later compilation of it would run eager (or fail, compiled as one
+    graph; torch 2.13). The networks' and the pointwise FLOPs, which grow with the points shaded,
+    are scaled from the twin's ``steps`` to the measured steps' mean ``points``."""
     twin = make_optimizer(dataclasses.replace(settings, **EAGER), train, guide)
-    return step_flops(twin, guide, steps)
+    counts = step_flops(twin, guide, steps)
+    scale = points / counts["points"]
+    counts["mlp"], counts["pointwise"] = counts["mlp"] * scale, counts["pointwise"] * scale
+    return counts | {"total": counts["clip"] + counts["mlp"] + counts["pointwise"], "points": points}
 
 
 def lever_floor(counts: dict[str, float], clip_bf16: bool, networks_bf16: bool, peak: dict[str, float], native: bool) -> float:
@@ -431,11 +435,11 @@ def lever_steps(train: Path, steps: int, only: list[str] | None, peak: dict[str,
         t0 = time.perf_counter()
         opt.step(Timer())  # the first step compiles (compile_shading)
         first = time.perf_counter() - t0
-        t, _ = step_time(opt, steps)
+        t, points = step_time(opt, steps)
         split = timed_split(opt, max(2, steps // 2))
         short = {True: "bf16", False: "fp32"}
         path = f"clip {short[guide.bf16]}, networks {short[opt.field.bf16]}, shading {opt.shading_path}"
-        floor = lever_floor(eager_flops(s, train, guide, 2), guide.bf16, opt.field.bf16, peak, native)
+        floor = lever_floor(eager_flops(s, train, guide, 2, points), guide.bf16, opt.field.bf16, peak, native)
         out[name] = {"s": t, "first_s": first, **split, "precision": path, "floor_s": floor}
     return out
 
@@ -529,7 +533,7 @@ def main() -> None:
         )
         print(f"# soft floor (CLIP's own time + MLP FLOPs at that rate) {floor_s:.3f} s; ratio {s_per_iter / floor_s:.2f}")
         # the true floor: every FLOP of a step, counted, at the machine's peak matrix-multiply rate
-        counts = eager_flops(paper, train, guide, max(2, args.steps // 2))
+        counts = eager_flops(paper, train, guide, max(2, args.steps // 2), points)
         # the floor of what this machine can run: bfloat16 only where it is native (emulated
         # bfloat16 is slower than float32, and its "floor" would mean nothing; measured on a small
         # product there: 0.3 GFLOP/s, a minute for one at 2048)

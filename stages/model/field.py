@@ -41,8 +41,11 @@ class FieldOutput:
 
 
 def compiled(fn: Callable, brdf: str, device: torch.device, static: bool = False) -> Callable:
-    """``fn`` through ``torch.compile(dynamic=True)`` (the number of points and of lobes free), as
-    training runs it: ``brdf``'s specular table read first on ``device`` (read inside the compiled
+    """``fn`` through ``torch.compile(dynamic=True, fullgraph=True)`` (the number of points and of
+    lobes free; one graph or an error, never pieces of it run eager, nor all of it where dynamo
+    has given up on ``fn``'s code, which it does for good once ``fn`` has run under a dispatch
+    mode, such as a FLOP counter's: the callers fall back to eager and say so), as training runs
+    it: ``brdf``'s specular table read first on ``device`` (read inside the compiled
     function, the file read broke its graph in two), and Python floats (the renderer's constants)
     taken as the constants they are (``specialize_float``; as inputs, dynamo traced the renderer
     twice per process). The compilation happens at the first call; with inductor's and
@@ -59,7 +62,7 @@ def compiled(fn: Callable, brdf: str, device: torch.device, static: bool = False
         capture = {"triton.cudagraphs": True, "triton.cudagraph_or_error": True, "graph_partition": False}
         graph = torch.compile(fn, dynamic=False, fullgraph=True, options=capture if device.type == "cuda" else None)
     else:
-        graph = torch.compile(fn, dynamic=True)
+        graph = torch.compile(fn, dynamic=True, fullgraph=True)
 
     @functools.wraps(fn)
     def run_compiled(*args, **kwargs):

@@ -190,6 +190,37 @@ def test_a_compiler_that_cannot_build_costs_a_warning_not_the_run(tmp_path):
     assert "compile_shading: the networks' and renderer's compilation failed" in proc.stderr
 
 
+def test_a_renderer_dynamo_gave_up_on_runs_eager_and_says_so():
+    """Once a compiled function has run under a dispatch mode (a FLOP counter's, as a benchmark
+    counts a step), dynamo skips its code for good (torch 2.13): a renderer compiled again in the
+    same process would run eager while the metadata said compiled. Compiled as one graph or an
+    error (``fullgraph``), the field's first pass fails instead: it shades eager and says so, the
+    renderer alone and in one graph with the networks. In a process of its own (the skip is
+    process-wide)."""
+    script = (
+        "import torch\n"
+        "from torch.utils.flop_counter import FlopCounterMode\n"
+        "from stages.config.sections import OptimizeSettings\n"
+        "from stages.model.field import StyleField\n"
+        "settings = OptimizeSettings(width=16, light_lobes=4).field_settings()\n"
+        "f = StyleField(settings)\n"
+        "with FlopCounterMode(display=False):\n"
+        "    print(f.use_compiled_shading('on', torch.device('cpu'), 1))\n"
+        "    print(f.use_compiled_shading('on', torch.device('cpu'), 1, networks='on'))\n"
+        "g = StyleField(settings)\n"
+        "print(g.use_compiled_shading('on', torch.device('cpu'), 1))\n"
+        "print(g.compiled_shade is None)\n"
+        "print(g.use_compiled_shading('on', torch.device('cpu'), 1, networks='on'))\n"
+        "print(g.compiled_shade is None and g.compiled_field is None)\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=REPO, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    path, eager, path_both, eager_both = proc.stdout.strip().splitlines()[-4:]
+    assert path.startswith("eager (the compilation failed: ") and "no compiled frames" in path and eager == "True", path
+    assert path_both.startswith("eager (the compilation failed: ") and eager_both == "True", path_both
+    assert "compile_shading: the renderer's compilation failed" in proc.stderr
+
+
 def test_a_renderer_compiled_before_is_known_by_its_kind_code_and_torch(monkeypatch, tmp_path):
     """The mark a successful compilation leaves in the inductor cache: found for the same kind of
     renderer, not for another kind, another torch or another cache (a machine that never compiled)."""
