@@ -190,11 +190,13 @@ def main() -> None:
         rows = {}
         for name in names:
             r = rows[name] = job(work, ckpt, name, LEVERS[name], args.threads)
-            r["floor_s"] = loop_floor(counts, r, peaks_under(name, args.threads))
+            rates = peaks_under(name, args.threads)
+            r["floor_s"] = loop_floor(counts, r, rates)
+            peaks = ", ".join(f"{k} {v / 1e9:.0f}" for k, v in rates.items() if v is not None)
             print(
                 f"{name:<26}{r['wall_s']:>8.1f}{r['wall_s'] - r['timings_s']['total']:>8.1f}{r['timings_s']['setup']:>8.1f}"
                 f"{r['loop_s']:>8.1f}{r['floor_s']:>8.1f}{r['loop_s'] / r['floor_s']:>8.1f}{r['timings_s']['outputs']:>9.1f}"
-                f"{r['s_per_iter']:>8.3f}{r['points']:>8}  {r['precision']}; {r['cpu']}",
+                f"{r['s_per_iter']:>8.3f}{r['points']:>8.0f}  {r['precision']}; {r['cpu']}; peaks GFLOP/s {peaks}",
                 flush=True,
             )
     best = min(rows, key=lambda k: rows[k]["wall_s"])

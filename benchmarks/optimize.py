@@ -177,12 +177,13 @@ def step_flops(opt: Optimizer, guide: ClipGuide, steps: int, images: int = 5) ->
         total_mm, total_pw, points = total_mm + mm, total_pw + pw, points + opt.points_last
     text = guide.embed_text("a person")
     x = torch.rand(images, 3, guide.image_size, guide.image_size, requires_grad=True)
-    clip_mm, _ = counted(lambda: clip_backward(guide, x, text))
+    clip_mm, clip_pw = counted(lambda: clip_backward(guide, x, text))
     total_mm, total_pw = total_mm / steps, total_pw / steps
     return {
         "clip": clip_mm,
         "mlp": total_mm - clip_mm,
         "pointwise": total_pw,
+        "clip_pointwise": clip_pw,
         "total": total_mm + total_pw,
         "points": points / steps,
     }
@@ -403,11 +404,12 @@ def eager_flops(settings: OptimizeSettings, train: Path, guide: ClipGuide, steps
     arithmetic): a compiled function run under the counters' dispatch modes is skipped by dynamo
     from then on, so that a later compilation of it would run eager (or fail, compiled as one
     graph; torch 2.13). The networks' and the pointwise FLOPs, which grow with the points shaded,
-    are scaled from the twin's ``steps`` to the measured steps' mean ``points``."""
+    (but CLIP's pointwise) are scaled from the twin's ``steps`` to the measured steps' mean ``points``."""
     twin = make_optimizer(dataclasses.replace(settings, **EAGER), train, guide)
     counts = step_flops(twin, guide, steps)
-    scale = points / counts["points"]
-    counts["mlp"], counts["pointwise"] = counts["mlp"] * scale, counts["pointwise"] * scale
+    scale = points / counts["points"]  # CLIP's pointwise (its norms, activations) does not grow with them
+    counts["mlp"] *= scale
+    counts["pointwise"] = counts["clip_pointwise"] + (counts["pointwise"] - counts["clip_pointwise"]) * scale
     return counts | {"total": counts["clip"] + counts["mlp"] + counts["pointwise"], "points": points}
 
 

@@ -120,7 +120,7 @@ def run(
                 **_how_it_ran(run, dev),
                 "resumed_from_iteration": resumed_from,
                 "seconds_per_iteration": loop_s / iters_here,
-                "points_per_iteration": run.points_last,
+                "points_per_iteration": run.points_total / max(run.steps_taken, 1),
                 "parameters": sum(p.numel() for p in run.field.parameters()),
                 "light_energy": run.field.light.energy().tolist(),
                 "light_lobes": run.field.light.lobes,

@@ -124,10 +124,8 @@ class ClipGuidance(Guidance):
     @torch.no_grad()
     def eval_score(self, renders, views, width, out_width) -> EvalScore:
         size = self.guide.image_size
-        sims = []
-        for rgb in renders:
-            img = F.interpolate(rgb[None], size=(size, size), mode="bilinear", align_corners=False)
-            sims.append(float(self.guide.similarity(img, self.text)))
+        images = [F.interpolate(rgb[None], size=(size, size), mode="bilinear", align_corners=False) for rgb in renders]
+        sims = [float(s) for s in self.guide.similarities(images, self.text)]  # each view's, in one batch
         return EvalScore({"final_similarity": float(np.mean(sims)), "final_similarity_per_view": sims})
 
 

@@ -66,10 +66,33 @@ def compiled(fn: Callable, brdf: str, device: torch.device, static: bool = False
 
     @functools.wraps(fn)
     def run_compiled(*args, **kwargs):
-        with torch._dynamo.config.patch(specialize_float=True):
-            return graph(*args, **kwargs)
+        if run_compiled.gave_up is not None:
+            return fn(*args, **kwargs)
+        try:
+            with torch._dynamo.config.patch(specialize_float=True):
+                out = graph(*args, **kwargs)
+        except (torch._dynamo.exc.Unsupported, torch._dynamo.exc.FailOnRecompileLimitHit, RuntimeError) as exc:
+            if not run_compiled.ran or not _refused(exc):
+                raise  # the first call's failure is the caller's to handle (it falls back and says so)
+            run_compiled.gave_up = f"{type(exc).__name__}: {str(exc).splitlines()[0]}"
+            log.warning("torch.compile gave up on %s in training (%s): eager from here", fn.__name__, run_compiled.gave_up)
+            return fn(*args, **kwargs)
+        run_compiled.ran = True
+        return out
 
+    #: whether a call ran compiled, and why dynamo refused a later one (the rest then run ``fn``)
+    run_compiled.ran, run_compiled.gave_up = False, None
     return run_compiled
+
+
+def _refused(exc: BaseException) -> bool:
+    """Whether ``exc`` is dynamo refusing to run a graph compiled as one (``fullgraph``), before any
+    of it ran compiled: its recompilation limit reached, a graph break in a new recompilation, or
+    its code skipped (the call then ran eager, its result dropped: the renderer and the networks'
+    forward change no state, so running them again changes nothing)."""
+    if isinstance(exc, torch._dynamo.exc.Unsupported | torch._dynamo.exc.FailOnRecompileLimitHit):
+        return True
+    return isinstance(exc, RuntimeError) and "found no compiled frames" in str(exc)
 
 
 def compiled_shade_material(brdf: str, device: torch.device) -> Callable[..., Shading]:
@@ -199,8 +222,8 @@ class StyleField(nn.Module):
         self.cuda_graphs = False
         #: whether a call with more points than :attr:`static_points` has been warned of (once a run)
         self._warned_size = False
-        #: what shades while training, and why (:meth:`use_compiled_shading`), for the metadata
-        self.shading_path = "eager"
+        #: what shades while training, and why (:meth:`use_compiled_shading`; :attr:`shading_path`)
+        self._shading_path = "eager"
         self._settings = s
 
     def use_compiled_shading(
@@ -263,8 +286,16 @@ class StyleField(nn.Module):
                 mark_compiled(kind, device)
             else:
                 path = f"eager (the compilation failed: {failed})"
-        self.shading_path = path
+        self._shading_path = path
         return path
+
+    @property
+    def shading_path(self) -> str:
+        """What shades while training, and why, for the metadata: :meth:`use_compiled_shading`'s
+        decision, and where dynamo gave up on the compiled graph during training, when and why."""
+        graph = self.compiled_field if self.compiled_field is not None else self.compiled_shade
+        gave_up = getattr(graph, "gave_up", None)
+        return self._shading_path if gave_up is None else f"{self._shading_path}; eager since torch.compile gave up ({gave_up})"
 
     def _compile_one_graph(self, device: torch.device, shadowed: bool, size: int) -> str | None:
         """Compile :meth:`surface_and_shade` (free shapes, or for ``size`` points: static, CUDA

@@ -95,6 +95,8 @@ class Optimizer:
         self.history_stride = 1
         self.guidance = choose_guidance(settings, prompt, self.device, guide, targets.description if targets else None)
         self.points_last = 0
+        #: points shaded and steps taken by this process (the mean per step for the metadata)
+        self.points_total, self.steps_taken = 0, 0
         #: when the light was pruned (``light_prune_after``): iteration, lobes kept and dropped
         self.light_pruned: dict | None = None
 
@@ -278,6 +280,7 @@ class Optimizer:
             self.lr_schedule.step()
         self.iteration += 1
         self.points_last = npts
+        self.points_total, self.steps_taken = self.points_total + npts, self.steps_taken + 1
         row = {"iteration": self.iteration, "loss": float(loss.detach()), "lr": lr, "points": npts, **stats}
         row["light_lobes"] = self.field.light.lobes
         if self.iteration == settings.light_prune_after:

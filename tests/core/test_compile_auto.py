@@ -13,7 +13,7 @@ import sys
 
 import pytest
 import torch
-from conftest import REPO, TINY_OPTIMIZE
+from conftest import REPO, TINY_OPTIMIZE, require_tool
 
 from stages import optimize
 from stages.config.sections import OptimizeSettings
@@ -196,7 +196,8 @@ def test_a_renderer_dynamo_gave_up_on_runs_eager_and_says_so():
     same process would run eager while the metadata said compiled. Compiled as one graph or an
     error (``fullgraph``), the field's first pass fails instead: it shades eager and says so, the
     renderer alone and in one graph with the networks. In a process of its own (the skip is
-    process-wide)."""
+    process-wide); it needs the C++ compiler that the compilation would use."""
+    require_tool(policy.compile_support(CPU)[0], "no C++ compiler for inductor")
     script = (
         "import torch\n"
         "from torch.utils.flop_counter import FlopCounterMode\n"
@@ -219,6 +220,35 @@ def test_a_renderer_dynamo_gave_up_on_runs_eager_and_says_so():
     assert path.startswith("eager (the compilation failed: ") and "no compiled frames" in path and eager == "True", path
     assert path_both.startswith("eager (the compilation failed: ") and eager_both == "True", path_both
     assert "compile_shading: the renderer's compilation failed" in proc.stderr
+
+
+def _doubled_sine(x):
+    return 2.0 * torch.sin(x)
+
+
+def test_a_graph_dynamo_refuses_during_training_runs_eager_from_there_and_says_so(caplog):
+    """A compiled graph whose later call dynamo refuses (here: its code skipped once a call ran
+    under a dispatch mode; in training, a recompilation past dynamo's limit or with a graph break)
+    runs that call and the rest eager, warned once, and the field's ``shading_path`` says so; a
+    first call's refusal is raised (the field then falls back before training and says why)."""
+    from torch.utils.flop_counter import FlopCounterMode
+
+    from stages.model.field import StyleField, compiled
+
+    x = torch.linspace(-1.0, 1.0, 7)
+    graph = compiled(_doubled_sine, "gltf", CPU)
+    assert torch.allclose(graph(x), 2.0 * torch.sin(x)) and graph.ran and graph.gave_up is None
+    with caplog.at_level(logging.WARNING, logger="stages.model.field"), FlopCounterMode(display=False):
+        assert torch.allclose(graph(x + 1.0), 2.0 * torch.sin(x + 1.0))
+    assert graph.gave_up is not None and "no compiled frames" in graph.gave_up
+    assert torch.allclose(graph(x), 2.0 * torch.sin(x))
+    assert sum("gave up on _doubled_sine" in r.getMessage() for r in caplog.records) == 1
+    f = StyleField(OptimizeSettings(width=16, light_lobes=4).field_settings())
+    f._shading_path, f.compiled_shade = "torch.compile (on)", graph
+    assert f.shading_path.startswith("torch.compile (on); eager since torch.compile gave up (RuntimeError: ")
+    fresh = compiled(lambda v: 3.0 * torch.cos(v), "gltf", CPU)
+    with FlopCounterMode(display=False), pytest.raises(RuntimeError, match="no compiled frames"):
+        fresh(x)
 
 
 def test_a_renderer_compiled_before_is_known_by_its_kind_code_and_torch(monkeypatch, tmp_path):

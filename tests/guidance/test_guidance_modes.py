@@ -45,7 +45,7 @@ def test_the_settings_choose_one_class_and_its_origin():
         choose_guidance(OptimizeSettings(**MITSUBA), "a vase", "cpu")
 
 
-def test_the_clip_loss_is_minus_the_similarity_of_the_globals_and_of_the_crops():
+def test_the_clip_loss_is_minus_the_similarity_of_the_globals_and_of_the_crops(monkeypatch):
     gen = torch.Generator().manual_seed(0)
     guide = load_clip(OptimizeSettings(**CLIP).clip_spec(), device="cpu")
     g = ClipGuidance(OptimizeSettings(**CLIP), "a vase made of wood", "cpu", guide)
@@ -62,11 +62,11 @@ def test_the_clip_loss_is_minus_the_similarity_of_the_globals_and_of_the_crops()
     assert set(stats) == {"similarity_global", "similarity_crops"}
     # the globals and the crops go through the tower as one batch, with the gradients of two
     calls, encode = [], guide.model.encode_image
-    guide.model.encode_image = lambda x: calls.append(len(x)) or encode(x)
+    monkeypatch.setattr(guide.model, "encode_image", lambda x: calls.append(len(x)) or encode(x))
     leaves = [x.clone().requires_grad_() for x in globals_ + crops]
     g.loss(ImageBatch(leaves[:2], leaves[2:]), None)[0].backward()
     assert calls == [5]
-    guide.model.encode_image = encode
+    monkeypatch.undo()
     apart = [x.clone().requires_grad_() for x in globals_ + crops]
     (-cosine(apart[:2]) - cosine(apart[2:])).backward()
     for a, b in zip(leaves, apart, strict=True):

@@ -132,6 +132,8 @@ def test_outputs_and_metadata(cache, tmp_path):
     assert saved["versions"]["torch"] and saved["timings_s"]["loop"] > 0
     rows = (tmp_path / "loss.csv").read_text().splitlines()
     assert rows[0].startswith("iteration") and len(rows) == 4
+    points = [int(float(r.split(",")[rows[0].split(",").index("points")])) for r in rows[1:]]
+    assert saved["points_per_iteration"] == pytest.approx(sum(points) / 3) and len(set(points)) > 1, points  # the mean
     light = np.load(tmp_path / "light.npz")
     assert light["equirect"].shape == (128, 256, 3) and (light["equirect"] > 0).all()
     field, settings = load_field(tmp_path / "field.pt")
