@@ -117,15 +117,14 @@ def step_counts(work: Path) -> dict:
 
 
 def loop_floor(counts: dict, row: dict, rates: dict) -> float:
-    """The FLOP floor of a job's loop: its iterations times CLIP's FLOPs at the peak rate of CLIP's
-    precision plus the rest's per point (``counts``, :func:`step_counts`) times the job's points
-    per iteration at the networks'; NaN where a part ran bfloat16 without a native rate."""
+    """The FLOP floor of a job's loop: its iterations times the floor of a step of its mean points
+    (``optimize.lever_floor`` of ``counts``, :func:`step_counts`, at those points) at the ``rates``
+    of its precisions; NaN where a part ran bfloat16 without a native rate."""
+    from optimize import at_points, lever_floor
+
     clip_bf16, networks_bf16 = row["precision"].startswith("clip bfloat16"), "networks bfloat16" in row["precision"]
-    if (clip_bf16 or networks_bf16) and rates["bf16"] is None:
-        return float("nan")
-    rate = {True: rates["bf16"], False: rates["fp32"]}
-    rest_per_point = (counts["mlp"] + counts["pointwise"]) / counts["points"]
-    return row["iterations"] * (counts["clip"] / rate[clip_bf16] + rest_per_point * row["points"] / rate[networks_bf16])
+    step = lever_floor(at_points(counts, row["points"]), clip_bf16, networks_bf16, rates, rates["bf16"] is not None)
+    return row["iterations"] * step
 
 
 def job(work: Path, checkpoint: Path, name: str, overrides: dict, threads: int) -> dict:

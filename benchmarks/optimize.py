@@ -406,11 +406,17 @@ def eager_flops(settings: OptimizeSettings, train: Path, guide: ClipGuide, steps
     graph; torch 2.13). The networks' and the pointwise FLOPs, which grow with the points shaded,
     (but CLIP's pointwise) are scaled from the twin's ``steps`` to the measured steps' mean ``points``."""
     twin = make_optimizer(dataclasses.replace(settings, **EAGER), train, guide)
-    counts = step_flops(twin, guide, steps)
-    scale = points / counts["points"]  # CLIP's pointwise (its norms, activations) does not grow with them
-    counts["mlp"] *= scale
-    counts["pointwise"] = counts["clip_pointwise"] + (counts["pointwise"] - counts["clip_pointwise"]) * scale
-    return counts | {"total": counts["clip"] + counts["mlp"] + counts["pointwise"], "points": points}
+    return at_points(step_flops(twin, guide, steps), points)
+
+
+def at_points(counts: dict[str, float], points: float) -> dict[str, float]:
+    """:func:`step_flops`'s ``counts`` for a step of ``points`` points: the networks' and the
+    pointwise FLOPs scaled from the counted steps' points, but CLIP's pointwise (its norms and
+    activations), which does not grow with them."""
+    scale = points / counts["points"]
+    pointwise = counts["clip_pointwise"] + (counts["pointwise"] - counts["clip_pointwise"]) * scale
+    mlp = counts["mlp"] * scale
+    return counts | {"mlp": mlp, "pointwise": pointwise, "total": counts["clip"] + mlp + pointwise, "points": points}
 
 
 def lever_floor(counts: dict[str, float], clip_bf16: bool, networks_bf16: bool, peak: dict[str, float], native: bool) -> float:

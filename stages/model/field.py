@@ -292,7 +292,7 @@ class StyleField(nn.Module):
     @property
     def shading_path(self) -> str:
         """What shades while training, and why, for the metadata: :meth:`use_compiled_shading`'s
-        decision, and where dynamo gave up on the compiled graph during training, when and why."""
+        decision, and, where dynamo gave up on the compiled graph during training, that and why."""
         graph = self.compiled_field if self.compiled_field is not None else self.compiled_shade
         gave_up = getattr(graph, "gave_up", None)
         return self._shading_path if gave_up is None else f"{self._shading_path}; eager since torch.compile gave up ({gave_up})"
