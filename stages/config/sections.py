@@ -582,10 +582,11 @@ class OptimizeSettings(ClipChoice, FieldSettings):
     compile_shading: Switch = setting(
         "auto",
         "run the renderer through torch.compile while training (inductor fuses its pointwise operations; on a CPU it "
-        "needs a C++ compiler): auto compiles on a CPU with a C++ compiler for runs of at least 1,000 iterations, or "
-        "100 where the same renderer has been compiled on this machine before (the compilation is cached across "
-        "processes under .cache/torchinductor: 3 s instead of about 80), where it pays; the metadata's shading_path "
-        "says what ran",
+        "needs a C++ compiler, on CUDA Triton): auto compiles on a CPU with a C++ compiler for runs of at least 1,000 "
+        "iterations, or 100 where the same renderer has been compiled on this machine before (the compilation is "
+        "cached across processes under .cache/torchinductor: 3 s instead of about 80), and on CUDA for runs of at "
+        "least 1,400 (a compilation of about 80 s, then steps twice as fast), where it pays; the metadata's "
+        "shading_path says what ran",
     )
     compile_networks: Switch = setting(
         "auto",

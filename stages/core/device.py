@@ -98,6 +98,12 @@ COMPILE_MIN_ITERATIONS = 1000
 #: ... and for runs of at least this many where the same renderer has been compiled before on this
 #: machine (inductor's and AOTAutograd's caches warm: 3 s, repaid after about 70 ``fast`` steps)
 COMPILE_MIN_ITERATIONS_WARM = 100
+#: ... and on CUDA (Triton), warm or not, for runs of at least this many: on an H200 the paper step's
+#: first compilation took 82 s and the compiled renderer's step 0.065 s against the eager one's 0.127 s
+#: (``benchmarks/gpu.py --levers "float32,compiled renderer"``, docs/measurements/speed.md): repaid
+#: after 82 / 0.062 = about 1,310 steps, rounded up to 1,400 for one run's spread (the paper's 1,500
+#: compile); a compilation read from a warm cache has not been timed on CUDA, so it counts as cold
+COMPILE_MIN_ITERATIONS_CUDA = 1400
 
 
 def cpp_compiler() -> str | None:
@@ -295,9 +301,10 @@ def compile_choice(setting: str | bool, device: torch.device, iterations: int, w
     ``"eager (<why not>)"``. ``warm``: the same renderer has been compiled on this machine before
     (:func:`compiled_before`), so its compilation is read from the caches.
     ``auto`` compiles on a CPU with a C++ compiler for runs of at least
-    :data:`COMPILE_MIN_ITERATIONS` steps, or :data:`COMPILE_MIN_ITERATIONS_WARM` when ``warm``,
-    where the compilation has been measured to pay; on a GPU it stays eager (not measured there);
-    ``on`` compiles wherever a backend is found and otherwise warns and runs eager."""
+    :data:`COMPILE_MIN_ITERATIONS` steps, or :data:`COMPILE_MIN_ITERATIONS_WARM` when ``warm``, and
+    on CUDA with Triton for runs of at least :data:`COMPILE_MIN_ITERATIONS_CUDA` (warm or not),
+    where the compilation has been measured to pay; on other devices it stays eager (not measured
+    there); ``on`` compiles wherever a backend is found and otherwise warns and runs eager."""
     choice = lever_choice(setting, "compile_shading")
     if choice == "off":
         return False, "eager"
@@ -306,9 +313,11 @@ def compile_choice(setting: str | bool, device: torch.device, iterations: int, w
         if not supported:
             log.warning("compile_shading asked for, but %s: the renderer runs eager", why)
         return supported, f"torch.compile ({why})" if supported else f"eager ({why})"
-    if device.type != "cpu":
+    if device.type not in ("cpu", "cuda"):
         return False, f"eager (auto: compiling the renderer on {device.type} has not been measured to pay)"
-    needed = COMPILE_MIN_ITERATIONS_WARM if warm else COMPILE_MIN_ITERATIONS
+    needed = (
+        COMPILE_MIN_ITERATIONS_CUDA if device.type == "cuda" else COMPILE_MIN_ITERATIONS_WARM if warm else COMPILE_MIN_ITERATIONS
+    )
     cache = "compiled before on this machine" if warm else "not compiled on this machine before"
     if iterations < needed:
         return False, f"eager (auto: {iterations} iterations, fewer than the {needed} that repay a compilation; {cache})"

@@ -1,6 +1,6 @@
 """The compiled renderer decided at run time (``optimize.compile_shading``: auto, on, off): auto
-compiles on a CPU with a C++ compiler for runs long enough to repay the compilation and stays
-eager elsewhere; on without a compiler warns and runs eager; what ran reaches the metadata. The
+compiles on a CPU with a C++ compiler, and on CUDA with Triton, for runs long enough to repay the
+compilation and stays eager elsewhere; on without a compiler warns and runs eager; what ran reaches the metadata. The
 machine without a C++ compiler is taken for real (an empty PATH), not only simulated."""
 
 from __future__ import annotations
@@ -25,6 +25,9 @@ GXX = (True, "C++ compiler /usr/bin/g++ (simulated)")
 NONE = (False, "no C++ compiler (simulated)")
 LONG, SHORT = policy.COMPILE_MIN_ITERATIONS, policy.COMPILE_MIN_ITERATIONS - 1
 WARM = policy.COMPILE_MIN_ITERATIONS_WARM
+GPU_LONG = policy.COMPILE_MIN_ITERATIONS_CUDA
+TRITON = (True, "Triton for CUDA (simulated)")
+NO_TRITON = (False, "no Triton for inductor on CUDA (simulated)")
 COLD_NOTE, WARM_NOTE = "not compiled on this machine before", "compiled before on this machine"
 
 
@@ -52,7 +55,28 @@ COLD_NOTE, WARM_NOTE = "not compiled on this machine before", "compiled before o
             f"eager (auto: {WARM - 1} iterations, fewer than the {WARM} that repay a compilation; {WARM_NOTE})",
         ),
         ("auto", CPU, LONG, False, NONE, False, "eager (auto: no C++ compiler (simulated))"),
-        ("auto", CUDA, LONG, True, GXX, False, "eager (auto: compiling the renderer on cuda has not been measured to pay)"),
+        ("auto", CUDA, GPU_LONG, False, TRITON, True, f"torch.compile (auto: {GPU_LONG} iterations; {COLD_NOTE}; {TRITON[1]})"),
+        # on CUDA a warm cache does not lower the threshold (its compilation was not timed there)
+        (
+            "auto",
+            CUDA,
+            GPU_LONG - 1,
+            True,
+            TRITON,
+            False,
+            f"eager (auto: {GPU_LONG - 1} iterations, fewer than the {GPU_LONG} that repay a compilation; {WARM_NOTE})",
+        ),
+        ("auto", CUDA, GPU_LONG, False, NO_TRITON, False, f"eager (auto: {NO_TRITON[1]})"),
+        (
+            "auto",
+            torch.device("mps"),
+            GPU_LONG,
+            True,
+            TRITON,
+            False,
+            "eager (auto: compiling the renderer on mps has not been measured to pay)",
+        ),
+        ("on", CUDA, 1, False, NO_TRITON, False, f"eager ({NO_TRITON[1]})"),
         ("on", CPU, 1, False, GXX, True, "torch.compile (C++ compiler /usr/bin/g++ (simulated))"),
         ("on", CPU, 1, False, NONE, False, "eager (no C++ compiler (simulated))"),
         ("off", CPU, LONG, True, GXX, False, "eager"),
@@ -68,7 +92,7 @@ def test_each_setting_on_each_kind_of_machine(monkeypatch, caplog, setting, devi
     # only an explicit "on" that cannot be honoured warns: auto's eager renderer is a decision
     assert bool(warned) == (setting in ("on", True) and not support[0]), warned
     if warned:
-        assert warned[0] == "compile_shading asked for, but no C++ compiler (simulated): the renderer runs eager"
+        assert warned[0] == f"compile_shading asked for, but {support[1]}: the renderer runs eager"
 
 
 def test_a_bad_setting_is_refused_by_name():
@@ -544,3 +568,16 @@ def test_a_graph_of_the_networks_that_fails_leaves_the_renderer_compiled(monkeyp
         "; the networks' graph failed: RuntimeError: simulated)"
     )
     assert any("the networks' and renderer's compilation failed" in r.getMessage() for r in caplog.records)
+
+
+def test_the_settings_description_quotes_the_thresholds_auto_uses():
+    """The configuration reference (generated from compile_shading's description) says the
+    iterations from which auto compiles: the same numbers as the constants the choice reads."""
+    import dataclasses
+
+    from stages.core.settings import spec_of
+
+    field = next(f for f in dataclasses.fields(OptimizeSettings) if f.name == "compile_shading")
+    doc = spec_of(field).doc
+    for n in (LONG, WARM, GPU_LONG):
+        assert f"at least {n:,}" in doc or f"or {n:,} where" in doc, (n, doc)
