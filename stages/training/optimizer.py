@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from ..config.sections import OptimizeSettings
+from ..core.allocator import keep_freed_memory
 from ..core.provenance import Timer, atomic_path
 from ..geometry.raycache import RayCache
 from ..guidance.objective import ImageBatch, choose_guidance
@@ -71,6 +72,8 @@ class Optimizer:
         self.light_record: dict = {"mode": settings.light}
         if settings.light == "fixed":
             self.light_record.update(hold_environment(self.field.light, settings.light_map))
+        #: what the C allocator does with the memory a step frees, for the metadata
+        self.allocator = keep_freed_memory(settings.keep_freed_memory)[1]
         #: what the networks' products ran in during training, for the metadata
         self.network_precision = self.field.use_bf16(settings.bf16_networks, self.device)
         self.views = ViewStore(train, self.device, self.field.normals, targets, shadows=self.field.shadows)

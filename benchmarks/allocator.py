@@ -1,0 +1,105 @@
+"""The C allocator keeping the memory a step frees (``optimize.keep_freed_memory``) against the
+allocator as it is, on the paper's training step: the setting holds for a whole process, so the
+two are compared in child processes taken in turns (off, on, off, on, ...), each timing
+``--steps`` real steps (``Optimizer.step``) after 3 untimed ones. Each prints its seconds per
+step, minor page faults per step and peak resident memory; the last line gives the median of the
+paired ratios (off over on).
+
+The mesh is ``../shared/meshes/person.obj`` when present, else the built-in vase; the paper's
+settings (a 512 x 512 ray cache of 8 views, CLIP ViT-B-32 with random weights, width 256, 32 lobes,
+1 global image and 4 crops per step) and the defaults' levers, as ``benchmarks/optimize.py``'s
+measured step, whose last line also gives the step's FLOP floor. ``--isa avx2`` holds torch to AVX2.
+
+    python benchmarks/allocator.py [--rounds 3] [--steps 8] [--isa native|avx2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from stages.core.device import AVX2_ONLY_ENV, cpu_isa  # noqa: E402
+
+
+def child(train: Path, setting: str, steps: int) -> dict:
+    """``steps`` paper steps under ``keep_freed_memory: setting`` in this process."""
+    import torch
+    from optimize import make_optimizer, vit_b32_random
+
+    from stages.config.sections import OptimizeSettings
+    from stages.core.provenance import Timer
+
+    torch.manual_seed(0)
+    s = OptimizeSettings(iterations=1500, keep_freed_memory=setting)
+    opt = make_optimizer(s, train, vit_b32_random(bf16=s.bf16))
+    for _ in range(3):
+        opt.step(Timer())
+    faults0, t0 = resource.getrusage(resource.RUSAGE_SELF).ru_minflt, time.perf_counter()
+    for _ in range(steps):
+        opt.step(Timer())
+    wall = time.perf_counter() - t0
+    return {
+        "setting": setting,
+        "s_per_step": wall / steps,
+        "faults_per_step": (resource.getrusage(resource.RUSAGE_SELF).ru_minflt - faults0) / steps,
+        "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 / 1e9,
+        "allocator": opt.allocator,
+        "step": f"{opt.shading_path}; networks {opt.network_precision}",
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--rounds", type=int, default=3, help="pairs of processes (off, then on)")
+    parser.add_argument("--steps", type=int, default=8, help="timed steps per process")
+    parser.add_argument("--isa", choices=("native", "avx2"), default="native", help="avx2: torch held to AVX2")
+    parser.add_argument("--child", nargs=2, metavar=("TRAIN", "SETTING"), help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.child:
+        print(json.dumps(child(Path(args.child[0]), args.child[1], args.steps)), flush=True)
+        return
+    from optimize import build_cache
+
+    env = {**os.environ, **(AVX2_ONLY_ENV if args.isa == "avx2" else {})}
+    with tempfile.TemporaryDirectory() as d:
+        train, mesh = build_cache(Path(d))
+        print(f"# mesh {mesh}; the paper step; {args.steps} steps per process; torch held to {args.isa}", flush=True)
+        print(f"{'round':>5} {'setting':<8}{'s/step':>8}{'faults/step':>13}{'peak GB':>9}  allocator", flush=True)
+        rows: dict[str, list[dict]] = {"off": [], "on": []}
+        for r in range(args.rounds):
+            for setting in ("off", "on"):
+                cmd = [sys.executable, __file__, "--steps", str(args.steps), "--child", str(train), setting]
+                out = subprocess.run(cmd, env=env, capture_output=True, text=True, check=True).stdout
+                row = json.loads(out.strip().splitlines()[-1])
+                rows[setting].append(row)
+                print(
+                    f"{r + 1:>5} {setting:<8}{row['s_per_step']:>8.3f}{row['faults_per_step']:>13.0f}"
+                    f"{row['peak_rss_gb']:>9.2f}  {row['allocator']}",
+                    flush=True,
+                )
+    step = rows["on"][-1]["step"]
+    ratios = [a["s_per_step"] / b["s_per_step"] for a, b in zip(rows["off"], rows["on"], strict=True)]
+    med = {k: statistics.median(r["s_per_step"] for r in v) for k, v in rows.items()}
+    faults = {k: statistics.median(r["faults_per_step"] for r in v) for k, v in rows.items()}
+    rss = {k: max(r["peak_rss_gb"] for r in v) for k, v in rows.items()}
+    print(f"# the step: {step}; CPU {cpu_isa() if args.isa == 'native' else 'held to AVX2'}")
+    print(
+        f"s_per_step_off={med['off']:.4g} s_per_step_on={med['on']:.4g} paired_ratio={statistics.median(ratios):.3f} "
+        f"faults_off={faults['off']:.0f} faults_on={faults['on']:.0f} "
+        f"peak_rss_gb_off={rss['off']:.2f} peak_rss_gb_on={rss['on']:.2f}"
+    )
+
+
+if __name__ == "__main__":
+    main()
