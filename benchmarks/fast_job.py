@@ -19,7 +19,8 @@ bfloat16 is measured where it can be, on image targets (``benchmarks/recovery.py
 and as the cosines of CLIP's outputs (``benchmarks/optimize.py --clip-only``). ``defaults AVX2
 only`` runs the defaults with torch held to AVX2 (``stages.core.device.AVX2_ONLY_ENV``: no native
 bfloat16, inductor's code for AVX2 in that CPU's own cache folder, cold on its first run), this
-CPU standing in for one without AVX-512.
+CPU standing in for one without AVX-512. ``allocator as it is`` runs the defaults with the C
+allocator left to give freed memory back (``keep_freed_memory: off``).
 
 Each lever's loop is set against its FLOP floor: the ``fast`` step's FLOPs counted on three real
 steps in this process (``optimize.step_flops``: CLIP's forward and backward to its image, the
@@ -59,6 +60,7 @@ LEVERS = {
     "defaults+compiled (warm)": {"compile_shading": True},
     "float32 open_clip tower": {"clip_tower": "open_clip", "bf16": "off", "bf16_networks": "off"},
     "defaults AVX2 only": {},
+    "allocator as it is": {"keep_freed_memory": "off"},
 }
 #: lever name -> the environment its job runs under (on top of this one's)
 ENVIRONMENTS = {"defaults AVX2 only": AVX2_ONLY_ENV}
