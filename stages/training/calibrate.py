@@ -71,8 +71,12 @@ def seconds_per_step(settings: OptimizeSettings, raycache: RaycacheSettings, dev
         settings = dataclasses.replace(settings, target_renderer="sg")
     # the eager renderer: a compiled one (compile_shading) would spend its compilation, 13 s to
     # 94 s, inside the plan; the estimate of a compiled run is then on the slow side. The levers
-    # that ride on it off too: asked for without it, they would only warn that they cannot run
-    settings = dataclasses.replace(settings, compile_shading="off", compile_networks="off", compile_static="off")
+    # that ride on it off too: asked for without it, they would only warn that they cannot run.
+    # The C allocator as it is: the plan runs inside Snakemake's own process, which would otherwise
+    # keep the calibration's memory for the whole workflow (the estimate errs on the slow side again)
+    settings = dataclasses.replace(
+        settings, compile_shading="off", compile_networks="off", compile_static="off", keep_freed_memory="off"
+    )
     opt = Optimizer(settings, train, "a vase made of wood", device, guide=guide)
     timer = Timer()
     opt.step(timer)

@@ -170,3 +170,20 @@ def test_calibration_times_the_eager_renderer_without_warnings_of_levers_it_leav
     with caplog.at_level(logging.WARNING, logger="stages"):
         assert 0 < seconds_per_step(settings, RaycacheSettings(views=4, resolution=64), "cpu", steps=1) < math.inf
     assert not [r.getMessage() for r in caplog.records if "compile_" in r.getMessage()]
+
+
+def test_calibration_leaves_the_plans_process_allocator_as_it_is(monkeypatch):
+    """The plan runs inside Snakemake's own process: its calibration must not make that process
+    keep its memory for the whole workflow (keep_freed_memory), whatever the settings ask."""
+    from stages.config.sections import OptimizeSettings, RaycacheSettings
+    from stages.core import allocator
+    from stages.guidance.clip import TINY_MODEL
+    from stages.training.calibrate import seconds_per_step
+
+    asked = []
+    monkeypatch.setattr(allocator, "keep_freed_memory", lambda setting: asked.append(setting) or (False, "recorded"))
+    monkeypatch.setattr("stages.training.optimizer.keep_freed_memory", allocator.keep_freed_memory)
+    settings = OptimizeSettings(clip_model=TINY_MODEL, image_size=64, width=16, crops=0, light_lobes=4, iterations=10)
+    assert settings.keep_freed_memory == "auto"
+    seconds_per_step(settings, RaycacheSettings(views=4, resolution=64), "cpu", steps=1)
+    assert asked == ["off"]
