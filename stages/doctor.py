@@ -38,6 +38,7 @@ from pathlib import Path
 from .assets.formats import GLTF_VALIDATOR, MODEL_VIEWER
 from .assets.probes import probe_gltf, probe_node_validator, probe_usd
 from .config.workflow import load_config_files
+from .core.allocator import allocator_plan
 from .core.cli import stage_main
 from .core.device import (
     bf16_choice,
@@ -148,6 +149,7 @@ def check_torch(cfg) -> Check:
         f"(device: {cfg.device}); {torch.get_num_threads()} CPU threads ({cpu_isa()}); bfloat16: {why}; training runs "
         + ("; ".join(precision_summary(a, b, device, reason=False) for a, b in levers) or "none in this config")
         + (f"; renderer: {'; '.join(renderers)}" if renderers else "")
+        + (f"; C allocator: {allocator_plan([s.keep_freed_memory for s in settings])}" if settings else "")
     )
     if cfg.device == "cuda" and not torch.cuda.is_available():
         return Check(

@@ -44,6 +44,27 @@ def glibc() -> Any | None:
     return libc if hasattr(libc, "gnu_get_libc_version") and hasattr(libc, "mallopt") else None
 
 
+def glibc_version(libc: Any) -> str:
+    """glibc's version, e.g. ``"2.36"``."""
+    libc.gnu_get_libc_version.restype = ctypes.c_char_p
+    return libc.gnu_get_libc_version().decode()
+
+
+def allocator_plan(settings: list[str | bool]) -> str:
+    """What training's :func:`keep_freed_memory` would do under each of ``settings`` on this
+    machine, without doing it (the doctor's line): e.g. ``"keeps freed memory while training (glibc
+    2.36; keep_freed_memory: auto)"``, ``"as it is (keep_freed_memory: off)"``."""
+    libc = glibc()
+    parts = []
+    for setting in dict.fromkeys(lever_choice(s, "keep_freed_memory") for s in settings):
+        if setting != "off" and libc is not None:
+            parts.append(f"keeps freed memory while training (glibc {glibc_version(libc)}; keep_freed_memory: {setting})")
+        else:
+            why = "the C library is not glibc" if setting != "off" else "keep_freed_memory: off"
+            parts.append(f"as it is ({why})")
+    return "; ".join(parts)
+
+
 def keep_freed_memory(setting: str | bool) -> tuple[bool, str]:
     """Ask the C allocator to keep freed memory for the next step (``setting``: ``auto``, ``on``,
     ``off``; booleans mean on and off), for the whole process from now on. Returns whether it
@@ -56,8 +77,7 @@ def keep_freed_memory(setting: str | bool) -> tuple[bool, str]:
     libc = glibc()
     why = "the C library is not glibc" if libc is None else ""
     if libc is not None:
-        libc.gnu_get_libc_version.restype = ctypes.c_char_p
-        version = libc.gnu_get_libc_version().decode()
+        version = glibc_version(libc)
         # both are asked for, in this order, whatever the first answers
         refused = [
             name

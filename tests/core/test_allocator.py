@@ -121,3 +121,28 @@ def test_a_run_records_what_the_allocator_did_and_resumes_across_it(monkeypatch,
     assert meta["settings"]["keep_freed_memory"] == "auto"
     off = OptimizeSettings(**TINY_OPTIMIZE, clip_tiny_test=True, crops=0, normal_network=False, keep_freed_memory="off")
     assert off.digest() == s.digest()
+
+
+@pytest.mark.parametrize("libc", [None, 1])
+def test_the_doctor_says_what_each_run_s_allocator_will_do(monkeypatch, libc):
+    """The doctor's torch line names what training's allocator will do under each setting of this
+    config's runs (without doing it), on glibc and elsewhere (simulated)."""
+    from stages import doctor
+    from stages.config.workflow import WorkflowConfig
+
+    fake = None if libc is None else FakeLibc(libc)
+    monkeypatch.setattr(allocator, "glibc", lambda: fake)
+    cfg = WorkflowConfig(
+        {
+            "device": "cpu",
+            "meshes": {"vase": {"builtin": "vase"}},
+            "prompts": {"wood": {"text": "a {object} made of wood"}},
+            "variants": {"kept": {}, "as_is": {"optimize": {"keep_freed_memory": "off"}}},
+            "optimize": {"clip_tiny_test": True, "iterations": 3},
+        }
+    )
+    detail = doctor.check_torch(cfg).detail
+    kept = "keeps freed memory while training (glibc 2.99; keep_freed_memory: auto)"
+    expect = f"C allocator: {kept}; " if fake else "C allocator: as it is (the C library is not glibc); "
+    assert expect + "as it is (keep_freed_memory: off)" in detail, detail
+    assert fake is None or fake.calls == []  # the doctor asks nothing of the allocator
