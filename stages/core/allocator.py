@@ -56,13 +56,21 @@ def allocator_plan(settings: list[str | bool]) -> str:
     2.36; keep_freed_memory: auto)"``, ``"as it is (keep_freed_memory: off)"``."""
     libc = glibc()
     parts = []
-    for setting in dict.fromkeys(lever_choice(s, "keep_freed_memory") for s in settings):
-        if setting != "off" and libc is not None:
-            parts.append(f"keeps freed memory while training (glibc {glibc_version(libc)}; keep_freed_memory: {setting})")
+    for choice in dict.fromkeys(lever_choice(s, "keep_freed_memory") for s in settings):
+        why = _left_as_is(choice, libc)
+        if why is None:
+            parts.append(f"keeps freed memory while training (glibc {glibc_version(libc)}; keep_freed_memory: {choice})")
         else:
-            why = "the C library is not glibc" if setting != "off" else "keep_freed_memory: off"
             parts.append(f"as it is ({why})")
     return "; ".join(parts)
+
+
+def _left_as_is(choice: str, libc: Any | None) -> str | None:
+    """Why the allocator is left as it is under ``choice`` (one of auto, on, off) with ``libc``
+    (:func:`glibc`), before asking glibc anything; None where glibc is to be asked."""
+    if choice == "off":
+        return "keep_freed_memory: off"
+    return "the C library is not glibc" if libc is None else None
 
 
 def keep_freed_memory(setting: str | bool) -> tuple[bool, str]:
@@ -72,11 +80,11 @@ def keep_freed_memory(setting: str | bool) -> tuple[bool, str]:
     ``"the C allocator as it is (<why>)"``. ``auto`` and ``on`` do it where the C library is
     glibc; ``on`` elsewhere, or where glibc refuses the values, warns."""
     choice = lever_choice(setting, "keep_freed_memory")
+    libc = glibc() if choice != "off" else None
+    why = _left_as_is(choice, libc)
     if choice == "off":
-        return False, "the C allocator as it is (keep_freed_memory: off)"
-    libc = glibc()
-    why = "the C library is not glibc" if libc is None else ""
-    if libc is not None:
+        return False, f"the C allocator as it is ({why})"
+    if why is None:
         version = glibc_version(libc)
         # both are asked for, in this order, whatever the first answers
         refused = [

@@ -315,9 +315,10 @@ def compile_choice(setting: str | bool, device: torch.device, iterations: int, w
         return supported, f"torch.compile ({why})" if supported else f"eager ({why})"
     if device.type not in ("cpu", "cuda"):
         return False, f"eager (auto: compiling the renderer on {device.type} has not been measured to pay)"
-    needed = (
-        COMPILE_MIN_ITERATIONS_CUDA if device.type == "cuda" else COMPILE_MIN_ITERATIONS_WARM if warm else COMPILE_MIN_ITERATIONS
-    )
+    if device.type == "cuda":  # a warm cache's compilation has not been timed there
+        needed = COMPILE_MIN_ITERATIONS_CUDA
+    else:
+        needed = COMPILE_MIN_ITERATIONS_WARM if warm else COMPILE_MIN_ITERATIONS
     cache = "compiled before on this machine" if warm else "not compiled on this machine before"
     if iterations < needed:
         return False, f"eager (auto: {iterations} iterations, fewer than the {needed} that repay a compilation; {cache})"
