@@ -86,6 +86,11 @@ class ViewStore:
     def width(self) -> int:
         return self.cache.width
 
+    def global_points(self, out_size: int, supersample: int = 1, view: int = 0) -> int:
+        """The points ``view``'s global image of ``out_size`` pixels (``supersample`` rays each)
+        gathers: about as many as a step's call of the field shades (its crops add some)."""
+        return len(gather_points([global_spec(self.width, out_size, supersample)], self[view].index)[0])
+
     def azimuths(self) -> np.ndarray:
         """Distinct azimuths of a grid of views (contact sheets of it have one column each)."""
         return np.unique(np.round(self.cache.arrays["azimuth"], 9))

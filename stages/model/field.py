@@ -40,6 +40,35 @@ class FieldOutput:
     normal: Tensor  # (N, 3) shading normal (predicted, facing the viewer)
 
 
+#: inductor's C++ code sums a float32 reduction of more than this many terms in chunks (for its
+#: accuracy) and guards on the side of it that the first call's number fell on (torch 2.13,
+#: ``CppKernel.need_use_acc_helper``): a graph first run on fewer points than a step's compiled
+#: again at the first step (70 s cold, as long as the first compilation)
+INDUCTOR_SUM_CHUNK = 4096
+
+
+def first_pass_points(least: int, typical: int, device: torch.device) -> int:
+    """Points of a compiled graph's first pass (free shapes), so that the steps reuse what it
+    built: the step's ``typical`` number where that is more than :data:`INDUCTOR_SUM_CHUNK` (the
+    sums' side, and on a GPU the sizes inductor tunes its kernels for, the step's; no other
+    dimension of the graph is that large: lobes, channels, directions and widths are at most
+    4,096). Else, on a CPU, one more than the chunk, and the calls with fewer points are padded
+    to it (:func:`padded_points`): steps whose points fall on both sides (views of a thin object
+    from the front and from the side) compiled twice. Elsewhere ``least``, a number the caller
+    picks equal to no other size of the graph (lobes, channels, 1): sizes that happen to be equal
+    are taken as one symbol (duck sizing), and the step's differ: a second compilation."""
+    if typical > INDUCTOR_SUM_CHUNK:
+        return typical
+    return INDUCTOR_SUM_CHUNK + 1 if device.type == "cpu" else least
+
+
+def padded_points(device: torch.device) -> int:
+    """The fewest points a call of a compiled graph of free shapes on ``device`` takes, fewer
+    padded to them (:func:`padded`): one more than :data:`INDUCTOR_SUM_CHUNK` on a CPU (where
+    inductor's code guards on that side: :func:`first_pass_points`), else none (0)."""
+    return INDUCTOR_SUM_CHUNK + 1 if device.type == "cpu" else 0
+
+
 def compiled(fn: Callable, brdf: str, device: torch.device, static: bool = False) -> Callable:
     """``fn`` through ``torch.compile(dynamic=True, fullgraph=True)`` (the number of points and of
     lobes free; one graph or an error, never pieces of it run eager, nor all of it where dynamo
@@ -116,6 +145,15 @@ def first_rows(value, n: int):
     dataclass of ``(N, ...)`` tensors or None) cut to its first ``n`` rows."""
     return dataclasses.replace(
         value, **{f.name: getattr(value, f.name)[:n] for f in dataclasses.fields(value) if getattr(value, f.name) is not None}
+    )
+
+
+def padded_rows(value, size: int):
+    """:func:`padded` for each tensor of a :class:`~stages.model.networks.Material` (any dataclass
+    of ``(N, ...)`` tensors or None)."""
+    return dataclasses.replace(
+        value,
+        **{f.name: padded(getattr(value, f.name), size) for f in dataclasses.fields(value) if getattr(value, f.name) is not None},
     )
 
 
@@ -218,6 +256,11 @@ class StyleField(nn.Module):
         self.static_points = 0
         #: :meth:`use_compiled_shading`'s arguments, to compile again where the lobes change
         self._compile_args: tuple = ()
+        #: the points a step's call shades, about (:meth:`use_compiled_shading`; 0: unknown)
+        self.typical_points = 0
+        #: calls of a compiled graph of free shapes with fewer points are padded to these (0: none;
+        #: :func:`padded_points`)
+        self.least_points = 0
         #: whether that graph is captured as CUDA graphs (a training step then begins with :meth:`begin_step`)
         self.cuda_graphs = False
         #: whether a call with more points than :attr:`static_points` has been warned of (once a run)
@@ -235,6 +278,7 @@ class StyleField(nn.Module):
         networks: str | bool = "off",
         static: str | bool = "off",
         points: int = 0,
+        typical: int = 0,
     ) -> str:
         """Shade through ``torch.compile(shade, dynamic=True)`` in training mode where the
         optimisation's option ``compile_shading`` (``auto``, ``on``, ``off``) resolves to on for a
@@ -253,10 +297,12 @@ class StyleField(nn.Module):
         :func:`~stages.core.device.compile_static_choice`): that one graph compiled for ``points``
         points (the most a step shades: the training pool's largest view), each call's points
         padded to them (:meth:`forward`), and on CUDA captured as CUDA graphs (none where the
-        pool has no points: free shapes, warned). Returns what runs, for the metadata
-        (:attr:`shading_path`)."""
+        pool has no points: free shapes, warned). ``typical``: the points a step's call shades
+        (about; 0: unknown), which sizes the first pass of a graph of free shapes
+        (:func:`first_pass_points`). Returns what runs, for the metadata (:attr:`shading_path`)."""
         device = torch.device(device)
-        self._compile_args = (setting, device, iterations, shadowed, networks, static, points)
+        self._compile_args = (setting, device, iterations, shadowed, networks, static, points, typical)
+        self.typical_points = typical
         shadowed = self.shadows if shadowed is None else shadowed
         if points < 1 and lever_choice(static, "compile_static") == "on":
             log.warning("compile_static asked for, but the training pool has no points to pad to: free shapes")
@@ -269,6 +315,7 @@ class StyleField(nn.Module):
         )
         self.compiled_shade = self.compiled_field = None
         self.static_points, self.cuda_graphs = 0, False
+        self.least_points = padded_points(device) if enabled else 0
         if enabled:
             use_inductor_cache()
         if whole:
@@ -340,9 +387,7 @@ class StyleField(nn.Module):
         network predicts it), so the step reuses what it built (its guards check which inputs need
         gradients)."""
         gen = torch.Generator().manual_seed(0)
-        # as many points as no other size (lobes, channels, 1): sizes that happen to be equal are
-        # taken as one symbol (duck sizing), and the step's differ: a second compilation
-        n = 2 * self.light.lobes + 3
+        n = first_pass_points(2 * self.light.lobes + 3, self.typical_points, device)
 
         def leaf(*shape: int, grad: bool = True) -> Tensor:
             return torch.rand(*shape, generator=gen).to(device).requires_grad_(grad)
@@ -372,9 +417,9 @@ class StyleField(nn.Module):
 
     def _first_field_pass(self, graph: Callable, device: torch.device, shadowed: bool, size: int = 0) -> None:
         """``graph`` (:meth:`surface_and_shade` compiled) forward and backward as the step runs it,
-        on a few random points (as many as no other size: see :meth:`_first_compiled_pass`; and more
-        than 16: inductor computes a matrix product of at most 16 rows pointwise, and the guard it
-        leaves made the step compile a second time), or on ``size`` of them for a static graph,
+        on random points (:func:`first_pass_points`; at least 17: inductor computes a matrix product
+        of at most 16 rows pointwise, and the guard it leaves made the step compile a second time),
+        or on ``size`` of them for a static graph,
         under the field's own light, with random shares where the step passes them (a gradient
         where the light learns); the gradients it leaves on the parameters are dropped. A graph
         captured as CUDA graphs is run three times, as CUDA graph trees take a first call to warm
@@ -386,7 +431,9 @@ class StyleField(nn.Module):
             # each pass from no gradients, as a step is: a captured graph's gradients live in its
             # memory, which the next pass frees (adding to them would raise)
             self.zero_grad(set_to_none=True)
-            self._field_pass(graph, device, shadowed, size or 2 * self.light.lobes + 67)
+            self._field_pass(
+                graph, device, shadowed, size or first_pass_points(2 * self.light.lobes + 67, self.typical_points, device)
+            )
         self.zero_grad(set_to_none=True)
 
     def _field_pass(self, graph: Callable, device: torch.device, shadowed: bool, n: int) -> None:
@@ -471,8 +518,8 @@ class StyleField(nn.Module):
             shares = self._shares(visibility, light)
             if self.static_points:
                 return self._static_forward(points, normals, view, light, shares)
-            material, normal, shading = self.compiled_field(points, normals, view, light, shares)
-            return FieldOutput(shading, material, normal)
+            n = points.shape[0]  # fewer points padded to the graph's side (first_pass_points); none: as they are
+            return self._padded_forward(points, normals, view, light, shares, max(n, self.least_points) if n else 0)
         material, normal = self.surface(points, normals, view)
         if edit is not None:
             material = edit.apply(material, self.svbrdf.min_roughness)
@@ -492,10 +539,20 @@ class StyleField(nn.Module):
                 log.warning("compile_static: %d points, more than the %d the graph was compiled for: they run eager", n, size)
             material, normal, shading = self.surface_and_shade(points, normals, view, light, shares)
             return FieldOutput(shading, material, normal)
+        return self._padded_forward(points, normals, view, light, shares, size)
+
+    def _padded_forward(
+        self, points: Tensor, normals: Tensor, view: Tensor, light: SGLight, shares: Tensor | None, size: int
+    ) -> FieldOutput:
+        """The one graph at the ``N`` points padded to ``size`` (:func:`padded`, ``0 < N <= size``),
+        its outputs cut back to ``N`` rows (nothing padded where ``N`` is ``size``)."""
+        n = points.shape[0]
         shares = None if shares is None else padded(shares, size)
         material, normal, shading = self.compiled_field(
             padded(points, size), padded(normals, size), padded(view, size), light, shares
         )
+        if n == size:
+            return FieldOutput(shading, material, normal)
         return FieldOutput(first_rows(shading, n), first_rows(material, n), normal[:n])
 
     def begin_step(self) -> None:
@@ -535,5 +592,14 @@ class StyleField(nn.Module):
         ``visibility(light)`` when given."""
         light = light if light is not None else self.light()
         shares = self._shares(visibility, light)
-        fn = self.compiled_shade if self.compiled_shade is not None and self.training else shade_material
-        return fn(normal, view, material, light, self.specular_lobe, shares)
+        if self.compiled_shade is None or not self.training:
+            return shade_material(normal, view, material, light, self.specular_lobe, shares)
+        n = normal.shape[0]
+        if not 0 < n < self.least_points:
+            return self.compiled_shade(normal, view, material, light, self.specular_lobe, shares)
+        size = self.least_points  # fewer points padded to the graph's side (first_pass_points)
+        shares = None if shares is None else padded(shares, size)
+        out = self.compiled_shade(
+            padded(normal, size), padded(view, size), padded_rows(material, size), light, self.specular_lobe, shares
+        )
+        return first_rows(out, n)

@@ -85,6 +85,7 @@ class Optimizer:
             settings.compile_networks,
             settings.compile_static,
             self.views.largest,
+            self.views.global_points(settings.image_size, settings.supersample),
         )
         self.prompt = prompt
         self.adamw = torch.optim.AdamW(self.param_groups(), lr=settings.lr, weight_decay=settings.weight_decay)

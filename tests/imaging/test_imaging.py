@@ -117,3 +117,22 @@ def test_compose_gathers_like_advanced_indexing_in_value_and_gradient():
     (plain_grad,) = torch.autograd.grad((plain * weights).sum(), colors)
     torch.testing.assert_close(img, plain, rtol=0, atol=0)
     torch.testing.assert_close(grad, plain_grad, rtol=1e-15, atol=1e-15)
+
+
+def test_a_views_global_image_gathers_its_hits_counted_from_the_cache(cache):
+    """``ViewStore.global_points`` (which sizes a compiled renderer's first pass): at the cache's
+    own resolution, one sample a pixel, a view's global image gathers every hit of the view (the
+    cache's offsets); at half of it, between a fifth and all of them; at half of it with 2 x 2
+    rays a pixel, all of them again."""
+    from stages.geometry.normals import NormalSpec
+    from stages.geometry.raycache import RayCache
+    from stages.imaging.views import ViewStore
+
+    rc = RayCache(cache / "train.npz")
+    views = ViewStore(rc, "cpu", NormalSpec())
+    hits = np.diff(rc.arrays["offsets"])
+    for i in (0, len(hits) - 1):
+        assert views.global_points(rc.width, view=i) == hits[i] > 0
+        half = views.global_points(rc.width // 2, view=i)
+        assert 0.2 * hits[i] <= half <= hits[i]
+    assert views.global_points(rc.width // 2, supersample=2) == hits[0]

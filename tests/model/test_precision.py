@@ -14,7 +14,7 @@ from torch._dynamo.utils import counters
 from stages.config.sections import OptimizeSettings
 from stages.core import device as policy
 from stages.core.device import bf16_support, compiled_before, renderer_kind
-from stages.model.field import StyleField
+from stages.model.field import INDUCTOR_SUM_CHUNK, StyleField
 from stages.model.networks import FourierFeatures
 
 CPU = torch.device("cpu")
@@ -37,6 +37,40 @@ def _extreme_inputs():
     nrm = torch.randn(len(pts), 3, generator=g)
     nrm[:4] = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 1e-7]])
     return pts, nrm / nrm.norm(dim=-1, keepdim=True)
+
+
+def _compilations() -> tuple[int, int]:
+    return counters["frames"]["ok"], counters["stats"]["unique_graphs"]
+
+
+def _more_points_than_the_chunk(compiled: StyleField, eager: StyleField, shadowed: bool = False) -> None:
+    """A training call of more points than inductor's sum chunk runs the graph the first pass
+    built (the extreme inputs, fewer, were padded to that side): no compilation, the eager
+    field's colours, and every gradient within 1e-2 of its norm of float64's (the precision
+    benchmark's float32 bound: summed over 5,000 points, a broad lobe's log-sharpness gradient,
+    whose terms cancel, erred by 7e-3 compiled and 4e-4 eager when this was written, against
+    1.4e-4 at 200 points)."""
+    g = torch.Generator().manual_seed(2)
+    n = INDUCTOR_SUM_CHUNK + 904
+    pts = torch.rand(n, 3, generator=g, dtype=torch.float64) * 2 - 1
+    nrm = torch.nn.functional.normalize(torch.randn(n, 3, generator=g, dtype=torch.float64), dim=-1)
+    view = torch.nn.functional.normalize(nrm + 0.3 * torch.randn(n, 3, generator=g, dtype=torch.float64), dim=-1)
+    reference = copy.deepcopy(eager).double()
+
+    def visibility(light):
+        return (0.5 + 0.5 * (nrm.to(light.axis.dtype) @ light.axis.T)).clamp(0.0, 1.0)
+
+    before, outs = _compilations(), []
+    for f in (reference, eager, compiled):
+        f.zero_grad(set_to_none=True)
+        dtype = next(f.parameters()).dtype
+        rgb = f(pts.to(dtype), nrm.to(dtype), view.to(dtype), visibility=visibility if shadowed else None).shading.rgb
+        (rgb * torch.linspace(0, 1, rgb.numel(), dtype=dtype).view_as(rgb)).sum().backward()
+        outs.append((rgb.detach(), [(name, p.grad.double()) for name, p in f.named_parameters() if p.requires_grad]))
+    assert _compilations() == before
+    torch.testing.assert_close(outs[2][0], outs[1][0], rtol=1e-5, atol=1e-6)
+    for (name, want), (_, got) in zip(outs[0][1], outs[2][1], strict=True):
+        assert float((got - want).norm() / want.norm()) < 1e-2, name
 
 
 @pytest.mark.parametrize("encoding", ["nerf", "fourier", "hashgrid"])
@@ -162,18 +196,20 @@ def test_compiled_shading_equals_eager_in_training_only(init, tolerance, normal_
     pts, nrm = _extreme_inputs()
     view = torch.nn.functional.normalize(nrm + 0.3 * torch.randn(nrm.shape, generator=torch.Generator().manual_seed(1)), dim=-1)
     outs = []
-    compilations = counters["frames"]["ok"]
+    compilations = _compilations()
     for f in (eager, compiled):
         rgb = f(pts, nrm, view).shading.rgb
         (rgb * torch.linspace(0, 1, rgb.numel()).view_as(rgb)).sum().backward()
         outs.append((rgb.detach(), [p.grad for p in f.parameters() if p.requires_grad]))
     # the first compiled pass built what the step runs: no second compilation (a normal or a fixed
     # light needing a gradient only there, or its points as many as the lobes, made one at the
-    # first step: 58 s)
-    assert counters["frames"]["ok"] == compilations
+    # first step: 58 s; so did a step's points on the other side of inductor's sum chunk: 70 s)
+    assert _compilations() == compilations
     torch.testing.assert_close(outs[1][0], outs[0][0], rtol=1e-5, atol=1e-6)
     for a, b in zip(outs[1][1], outs[0][1], strict=True):
         assert float((a - b).norm() / b.norm()) < tolerance
+    assert len(pts) <= INDUCTOR_SUM_CHUNK == compiled.least_points - 1  # the extreme inputs were padded
+    _more_points_than_the_chunk(compiled, eager)
     _evaluation_stays_eager(compiled, eager, "compiled_shade", pts, nrm, view)
 
 
@@ -198,19 +234,20 @@ def test_networks_compiled_with_the_renderer_equal_eager_in_training_only():
     def visibility(light):  # a differentiable share per lobe, as the shadows' are
         return (0.5 + 0.5 * (nrm @ light.axis.T)).clamp(0.0, 1.0)
 
-    outs, compilations = [], counters["frames"]["ok"]
+    outs, compilations = [], _compilations()
     for f in (eager, compiled):
         out = f(pts, nrm, view, visibility=visibility)
         weights = torch.linspace(0, 1, out.shading.rgb.numel()).view_as(out.shading.rgb)
         ((out.shading.rgb * weights).sum() + out.material.roughness.sum() + out.normal[:, 0].sum()).backward()
         outs.append((out, [p.grad for p in f.parameters() if p.requires_grad]))
-    assert counters["frames"]["ok"] == compilations  # no second compilation at the first step
+    assert _compilations() == compilations  # no second compilation at the first step
     (a, grads_a), (b, grads_b) = outs
     torch.testing.assert_close(b.shading.rgb, a.shading.rgb, rtol=1e-5, atol=1e-6)
     torch.testing.assert_close(b.material.albedo, a.material.albedo, rtol=1e-5, atol=1e-6)
     torch.testing.assert_close(b.normal, a.normal, rtol=1e-5, atol=1e-6)
     for ga, gb in zip(grads_a, grads_b, strict=True):
         assert float((gb - ga).norm() / ga.norm()) < 3e-4
+    _more_points_than_the_chunk(compiled, eager, shadowed=True)
     _evaluation_stays_eager(compiled, eager, "compiled_field", pts, nrm, view)
 
 
@@ -243,6 +280,7 @@ def test_a_graph_of_static_shapes_pads_each_step_and_trains_as_eager(cache, capl
         return Optimizer(s, RayCache(cache / "train.npz"), "a vase", "cpu")
 
     eager = run(compile_shading="off")
+    assert eager.field.typical_points == eager.views.global_points(64) > 0  # what a first pass of free shapes takes
     compilations = counters["stats"]["unique_graphs"]
     static = run(compile_shading="on", compile_networks="on", compile_static="on")
     assert "one graph, static shapes (" in static.shading_path, static.shading_path
@@ -289,3 +327,16 @@ def test_each_pass_of_a_captured_graph_starts_from_no_gradients(monkeypatch):
     seen.clear()
     f._first_field_pass(None, CPU, False, 123)
     assert seen == [(123, True)] and all(p.grad is None for p in f.parameters())
+
+
+def test_a_compiled_graphs_first_pass_takes_the_steps_side_of_inductors_sum_chunk():
+    """The first pass of a graph of free shapes runs on a step's typical points where they are
+    more than inductor's sum chunk; fewer (or unknown) on a CPU, one more than the chunk, the
+    calls then padded to it; elsewhere the caller's number, and no padding."""
+    from stages.model.field import first_pass_points, padded_points
+
+    cuda = torch.device("cuda")  # (a device object: nothing runs on it)
+    chunk = INDUCTOR_SUM_CHUNK
+    assert [first_pass_points(11, t, CPU) for t in (0, 300, chunk, chunk + 1, 25_000)] == [chunk + 1] * 3 + [chunk + 1, 25_000]
+    assert [first_pass_points(11, t, cuda) for t in (0, 300, chunk, chunk + 1, 25_000)] == [11] * 3 + [chunk + 1, 25_000]
+    assert padded_points(CPU) == chunk + 1 and padded_points(cuda) == 0
