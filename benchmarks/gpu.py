@@ -17,7 +17,9 @@ width 256, 32 light lobes, 1 view with 1 global image and 4 crops per step) it r
   (``compile_shading: on``, Triton), the networks compiled into the renderer's graph
   (``compile_networks: on``; fewer launches), and that graph captured as CUDA graphs
   (``compile_static: on``: the points padded to the largest view's, one launch per graph); a
-  compilation is paid in the lever's setup, not in its timed iterations, and printed apart.
+  compilation is paid in the lever's setup, not in its timed iterations, and printed apart, with
+  the warm-up's seconds and the graphs dynamo compiled in the setup, the warm-up and the timed
+  iterations (a graph compiled after the setup is a second compilation that a real run pays).
 
 The mesh is ``../shared/meshes/person.obj`` when present, else the built-in vase. Without CUDA it
 stops with a message (tests/gpu holds the GPU tests; both skip or stop on a CPU machine).
@@ -62,26 +64,42 @@ def run(train: Path, iterations: int, warmup: int, bf16: bool, tf32: bool, compi
         compile_static="on" if compiled == "cuda graphs" else "off",
     )
     guide = vit_b32_random(bf16=s.bf16, tower=s.clip_tower, device="cuda")
+    graphs = [compiled_graphs()]
     t0 = time.perf_counter()
     opt = Optimizer(s, RayCache(train), "a person made of wood", "cuda", guide=guide)  # compiles the renderer
     setup = time.perf_counter() - t0
+    graphs.append(compiled_graphs())
+    t0 = time.perf_counter()
     for _ in range(warmup):
         opt.step(Timer())
     torch.cuda.synchronize()
+    warm = time.perf_counter() - t0
+    graphs.append(compiled_graphs())
     torch.cuda.reset_peak_memory_stats()
     t0 = time.perf_counter()
     for _ in range(iterations):
         opt.step(Timer())
     torch.cuda.synchronize()
     wall = time.perf_counter() - t0
+    graphs.append(compiled_graphs())
     return {
         "wall_s": wall,
         "s_per_iter": wall / iterations,
         "peak_gib": torch.cuda.max_memory_allocated() / 2**30,
         "precision": f"clip {guide.precision}; networks {opt.network_precision}; tf32 {tf32}; shading {opt.shading_path}",
         "setup_s": setup,
+        "warmup_s": warm,
+        # graphs dynamo compiled in the setup, the warm-up and the timed iterations
+        "graphs": "/".join(str(b - a) for a, b in zip(graphs, graphs[1:], strict=False)),
         "opt": opt,
     }
+
+
+def compiled_graphs() -> int:
+    """Graphs dynamo has compiled in this process so far."""
+    from torch._dynamo.utils import counters
+
+    return counters["stats"]["unique_graphs"]
 
 
 def profile(opt: Optimizer, steps: int) -> None:
@@ -164,8 +182,9 @@ def levers(train: Path, warmup: int, names: list[str], iterations: int = 200) ->
     """``iterations`` under each lever of ``names`` (:data:`LEVERS`), side by side, the first the
     ratios' base; a lever whose run fails (a non-finite loss, as TF32 products gave on an H100
     before the SG product's cosine was held in [-1, 1]) is reported as such. A compiled lever
-    pays its compilation in its setup (printed apart), not in its timed iterations."""
-    print(f"{'lever':<22}{'s/iter':>9}{'x first':>9}{'peak GiB':>10}{'setup s':>9}", flush=True)
+    pays its compilation in its setup (printed apart), not in its timed iterations; ``graphs``:
+    those dynamo compiled in the setup, the warm-up and the timed iterations (``1/0/0``: once)."""
+    print(f"{'lever':<22}{'s/iter':>9}{'x first':>9}{'peak GiB':>10}{'setup s':>9}{'warm-up s':>10}{'graphs':>9}", flush=True)
     base = None
     for name in names:
         bf16, tf32, compiled = LEVERS[name]
@@ -175,7 +194,10 @@ def levers(train: Path, warmup: int, names: list[str], iterations: int = 200) ->
             print(f"{name:<22} failed: {type(exc).__name__}: {str(exc).splitlines()[0][:120]}", flush=True)
             continue
         base = base or r["s_per_iter"]
-        row = f"{name:<22}{r['s_per_iter']:>9.4f}{base / r['s_per_iter']:>9.2f}{r['peak_gib']:>10.2f}{r['setup_s']:>9.1f}"
+        row = (
+            f"{name:<22}{r['s_per_iter']:>9.4f}{base / r['s_per_iter']:>9.2f}{r['peak_gib']:>10.2f}{r['setup_s']:>9.1f}"
+            f"{r['warmup_s']:>10.1f}{r['graphs']:>9}"
+        )
         print(row + ("" if not compiled else f"  ({r['precision'].split('; ')[-1]})"), flush=True)
 
 
