@@ -47,26 +47,26 @@ class FieldOutput:
 INDUCTOR_SUM_CHUNK = 4096
 
 
-def first_pass_points(least: int, typical: int, device: torch.device) -> int:
+def first_pass_points(least: int, typical: int) -> int:
     """Points of a compiled graph's first pass (free shapes), so that the steps reuse what it
     built: the step's ``typical`` number where that is more than :data:`INDUCTOR_SUM_CHUNK` (the
     sums' side, and on a GPU the sizes inductor tunes its kernels for, the step's; no other
     dimension of the graph is that large: lobes, channels, directions and widths are at most
-    4,096). Else, on a CPU, one more than the chunk, and the calls with fewer points are padded
-    to it (:func:`padded_points`): steps whose points fall on both sides (views of a thin object
-    from the front and from the side) compiled twice. Elsewhere ``least``, a number the caller
-    picks equal to no other size of the graph (lobes, channels, 1): sizes that happen to be equal
-    are taken as one symbol (duck sizing), and the step's differ: a second compilation."""
-    if typical > INDUCTOR_SUM_CHUNK:
-        return typical
-    return INDUCTOR_SUM_CHUNK + 1 if device.type == "cpu" else least
+    4,096), else ``least``, a number the caller picks equal to no other size of the graph (lobes,
+    channels, 1): sizes that happen to be equal are taken as one symbol (duck sizing), and the
+    step's differ: a second compilation. On a CPU the calls of fewer points than the chunk are
+    then padded past it (:func:`padded_points`); a call of more than the chunk where ``typical``
+    was fewer (small images, a step's crops) compiles once more."""
+    return typical if typical > INDUCTOR_SUM_CHUNK else least
 
 
-def padded_points(device: torch.device) -> int:
-    """The fewest points a call of a compiled graph of free shapes on ``device`` takes, fewer
-    padded to them (:func:`padded`): one more than :data:`INDUCTOR_SUM_CHUNK` on a CPU (where
-    inductor's code guards on that side: :func:`first_pass_points`), else none (0)."""
-    return INDUCTOR_SUM_CHUNK + 1 if device.type == "cpu" else 0
+def padded_points(device: torch.device, typical: int) -> int:
+    """The fewest points a call of a compiled graph of free shapes takes on ``device`` where a
+    step's ``typical`` points sized its first pass, fewer padded to them (:func:`padded`): one more
+    than :data:`INDUCTOR_SUM_CHUNK` on a CPU where those were more (inductor's code there guards
+    on that side: :func:`first_pass_points`; steps of a thin object's views fall on both, and
+    each side compiled once), else none (0): a run of small steps pays no padding."""
+    return INDUCTOR_SUM_CHUNK + 1 if device.type == "cpu" and typical > INDUCTOR_SUM_CHUNK else 0
 
 
 def compiled(fn: Callable, brdf: str, device: torch.device, static: bool = False) -> Callable:
@@ -315,7 +315,7 @@ class StyleField(nn.Module):
         )
         self.compiled_shade = self.compiled_field = None
         self.static_points, self.cuda_graphs = 0, False
-        self.least_points = padded_points(device) if enabled else 0
+        self.least_points = padded_points(device, typical) if enabled else 0
         if enabled:
             use_inductor_cache()
         if whole:
@@ -387,7 +387,7 @@ class StyleField(nn.Module):
         network predicts it), so the step reuses what it built (its guards check which inputs need
         gradients)."""
         gen = torch.Generator().manual_seed(0)
-        n = first_pass_points(2 * self.light.lobes + 3, self.typical_points, device)
+        n = first_pass_points(2 * self.light.lobes + 3, self.typical_points)
 
         def leaf(*shape: int, grad: bool = True) -> Tensor:
             return torch.rand(*shape, generator=gen).to(device).requires_grad_(grad)
@@ -431,9 +431,7 @@ class StyleField(nn.Module):
             # each pass from no gradients, as a step is: a captured graph's gradients live in its
             # memory, which the next pass frees (adding to them would raise)
             self.zero_grad(set_to_none=True)
-            self._field_pass(
-                graph, device, shadowed, size or first_pass_points(2 * self.light.lobes + 67, self.typical_points, device)
-            )
+            self._field_pass(graph, device, shadowed, size or first_pass_points(2 * self.light.lobes + 67, self.typical_points))
         self.zero_grad(set_to_none=True)
 
     def _field_pass(self, graph: Callable, device: torch.device, shadowed: bool, n: int) -> None:

@@ -18,6 +18,8 @@ from stages.model.field import INDUCTOR_SUM_CHUNK, StyleField
 from stages.model.networks import FourierFeatures
 
 CPU = torch.device("cpu")
+#: a step's typical points, more than inductor's sum chunk (the compiled tests' first passes)
+MANY = INDUCTOR_SUM_CHUNK + 904
 
 
 def _extreme_inputs():
@@ -51,7 +53,7 @@ def _more_points_than_the_chunk(compiled: StyleField, eager: StyleField, shadowe
     whose terms cancel, erred by 7e-3 compiled and 4e-4 eager when this was written, against
     1.4e-4 at 200 points)."""
     g = torch.Generator().manual_seed(2)
-    n = INDUCTOR_SUM_CHUNK + 904
+    n = MANY
     pts = torch.rand(n, 3, generator=g, dtype=torch.float64) * 2 - 1
     nrm = torch.nn.functional.normalize(torch.randn(n, 3, generator=g, dtype=torch.float64), dim=-1)
     view = torch.nn.functional.normalize(nrm + 0.3 * torch.randn(n, 3, generator=g, dtype=torch.float64), dim=-1)
@@ -189,7 +191,7 @@ def test_compiled_shading_equals_eager_in_training_only(init, tolerance, normal_
         eager.light.requires_grad_(False)
     compiled = copy.deepcopy(eager)
     # no visibility passed below: compiled for a renderer without shadows
-    assert compiled.use_compiled_shading("on", CPU, 1, shadowed=False).startswith("torch.compile (C++ compiler ")
+    assert compiled.use_compiled_shading("on", CPU, 1, shadowed=False, typical=MANY).startswith("torch.compile (C++ compiler ")
     kind = renderer_kind(s.field_settings(), False, not fixed_light)
     assert compiled_before(kind, CPU)  # the next run's auto knows its caches are warm
     assert eager.use_compiled_shading("off", CPU, 1) == "eager" and eager.compiled_shade is None
@@ -222,7 +224,7 @@ def test_networks_compiled_with_the_renderer_equal_eager_in_training_only():
     s = OptimizeSettings(width=16, light_lobes=4, normal_network=True, light_init="broad")
     eager = StyleField(s.field_settings())
     compiled = copy.deepcopy(eager)
-    path = compiled.use_compiled_shading("on", CPU, 1, shadowed=True, networks="on")
+    path = compiled.use_compiled_shading("on", CPU, 1, shadowed=True, networks="on", typical=MANY)
     assert path.startswith("torch.compile, networks and renderer in one graph (C++ compiler ") and path.endswith(
         "; compile_networks: on)"
     )
@@ -331,12 +333,13 @@ def test_each_pass_of_a_captured_graph_starts_from_no_gradients(monkeypatch):
 
 def test_a_compiled_graphs_first_pass_takes_the_steps_side_of_inductors_sum_chunk():
     """The first pass of a graph of free shapes runs on a step's typical points where they are
-    more than inductor's sum chunk; fewer (or unknown) on a CPU, one more than the chunk, the
-    calls then padded to it; elsewhere the caller's number, and no padding."""
+    more than inductor's sum chunk, then on a CPU the calls of fewer are padded past it; fewer (or
+    unknown), on the caller's number, and no padding (a run of small steps pays none)."""
     from stages.model.field import first_pass_points, padded_points
 
     cuda = torch.device("cuda")  # (a device object: nothing runs on it)
     chunk = INDUCTOR_SUM_CHUNK
-    assert [first_pass_points(11, t, CPU) for t in (0, 300, chunk, chunk + 1, 25_000)] == [chunk + 1] * 3 + [chunk + 1, 25_000]
-    assert [first_pass_points(11, t, cuda) for t in (0, 300, chunk, chunk + 1, 25_000)] == [11] * 3 + [chunk + 1, 25_000]
-    assert padded_points(CPU) == chunk + 1 and padded_points(cuda) == 0
+    typical = (0, 300, chunk, chunk + 1, 25_000)
+    assert [first_pass_points(11, t) for t in typical] == [11, 11, 11, chunk + 1, 25_000]
+    assert [padded_points(CPU, t) for t in typical] == [0, 0, 0, chunk + 1, chunk + 1]
+    assert [padded_points(cuda, t) for t in typical] == [0] * 5
