@@ -41,8 +41,10 @@ def _extreme_inputs():
     return pts, nrm / nrm.norm(dim=-1, keepdim=True)
 
 
-def _compilations() -> tuple[int, int]:
-    return counters["frames"]["ok"], counters["stats"]["unique_graphs"]
+def _compilations() -> int:
+    """Graphs dynamo has compiled in this process (its ``frames.ok`` counts none under
+    ``fullgraph``: an assertion on it could not fail)."""
+    return counters["stats"]["unique_graphs"]
 
 
 def _more_points_than_the_chunk(compiled: StyleField, eager: StyleField, shadowed: bool = False) -> None:
