@@ -8,8 +8,8 @@ pass), each step's seconds, and the graphs dynamo compiled at the setup and in e
 that compiles again (its points on the other side of a size the first pass's code guards on)
 takes as long as the setup's compilation; none should.
 
-``--preset paper``: the paper's step (1 view from a 512x512 ray cache of ``--views`` views, 1
-global image and 4 crops, width 256, 32 lobes); ``--preset fast``: the ``fast`` preset's settings
+``--preset paper``: the paper's step (1 view from a 512x512 ray cache of 8 views, 1 global
+image and 4 crops, width 256, 32 lobes); ``--preset fast``: the ``fast`` preset's settings
 (no crops, width 64, 16 lobes). The mesh is ``../shared/meshes/person.obj`` when present (a tall,
 thin figure: its views' points differ most from front to side), else the built-in vase; CLIP
 ViT-B-32 at 224 with random weights (timing does not depend on them).
