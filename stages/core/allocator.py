@@ -82,8 +82,6 @@ def keep_freed_memory(setting: str | bool) -> tuple[bool, str]:
     choice = lever_choice(setting, "keep_freed_memory")
     libc = glibc() if choice != "off" else None
     why = _left_as_is(choice, libc)
-    if choice == "off":
-        return False, f"the C allocator as it is ({why})"
     if why is None:
         version = glibc_version(libc)
         # both are asked for, in this order, whatever the first answers
