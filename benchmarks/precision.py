@@ -8,7 +8,9 @@ as the fitted lobe and the shares do, does so). The grid: light lobes of sharpne
 whose axes lie at n . l from -1 (below the horizon) through 0 (on it) to 1, views at n . v from
 1e-4 (grazing) to 1, roughness 0.02 to 1, each configuration turned by its own random rotation;
 the mesh rows take a sphere at scales 1e-4 to 1e4, centred and off its origin by 1,000 radii,
-with its positions stored in float32 (as glTF stores them) and normalised by the pipeline.
+with its positions stored in float32 (as glTF stores them) and normalised by the pipeline; the
+last rows sum the light's gradient over 100,000 points (10,000 on the quick grid) whose normals
+cover the sphere, where its terms cancel (:func:`many_point_cases`).
 
 For each term and precision the table gives the worst, over its inputs, of
 
@@ -26,7 +28,7 @@ own gradient moves at that input when the unit vectors among the inputs turn by 
 roundoff (:func:`conditioning`), the floor of any float32 arithmetic there. The last line:
 ``worst_grad_rel_f32=... worst_grad_rel_bf16=...`` over every term and both gradient kinds.
 
-    python benchmarks/precision.py             # the full grid (about a minute on 2 cores)
+    python benchmarks/precision.py             # the full grid (about 90 s on 2 cores)
     python benchmarks/precision.py --quick     # a coarser grid (the test's)
 """
 
@@ -448,6 +450,57 @@ def _light_module(p, lt, f) -> Tensor:
     return torch.cat([light.axis, light.sharpness, light.amplitude], dim=1)
 
 
+#: points of the many-point rows (the full grid's, the quick grid's): the light's gradient there is
+#: one sum over all of them
+MANY_POINTS = (100_000, 10_000)
+#: the many-point rows' lights: the parametrisation's initial lobes (32, as the defaults)
+MANY_POINT_LIGHTS = ("tango", "broad")
+
+
+def many_point_cases(points: int, seed: int = 3) -> list[Case]:
+    """``points`` points whose normals cover the sphere evenly (a Fibonacci sphere), each seen
+    from a random direction on its side, random glTF materials, under the light's
+    parametrisation (:class:`~stages.model.networks.SGLightModule`: raw axes, log-sharpnesses and
+    log-energies as the leaves) at TANGO's sharp initial lobes and at broad ones. A lobe's
+    gradient is then one sum over all the points whose terms cancel: the parametrisation holds a
+    lobe's energy, and over a whole sphere of normals its irradiance depends on neither its shape
+    nor its direction. The benchmark's weighting of the colours is positive everywhere (a loss that
+    brightens every point): rounding that leans one way in every term then adds up over the points
+    while the terms themselves cancel. What a step's light gradient sums, over fewer points."""
+    from stages.model.networks import SGLightModule, fibonacci_sphere
+
+    g = torch.Generator().manual_seed(seed)
+    normal = fibonacci_sphere(points).to(F64)
+    view = torch.nn.functional.normalize(normal + torch.randn(points, 3, generator=g, dtype=F64), dim=-1)
+    view = torch.where((view * normal).sum(-1, keepdim=True) < 0.05, normal, view)
+    materials = {
+        "normal": normal,
+        "view": view,
+        "albedo": torch.rand(points, 3, generator=g, dtype=F64),
+        "metallic": torch.rand(points, 1, generator=g, dtype=F64),
+        "roughness": torch.rand(points, 1, generator=g, dtype=F64) * 0.9 + 0.1,
+    }
+    cases = []
+    for init in MANY_POINT_LIGHTS:
+        params = {k: v.detach().to(F64) for k, v in SGLightModule(32, init=init).named_parameters()}
+        # one case per leaf, the others fixed: each leaf's gradient is its own input (as one vector
+        # the energies' gradient, the largest, hid the sharpnesses')
+        for leaf in params:
+            label = f"{points:,} points, {init} lobes, {leaf}"
+            fixed = {k: v for k, v in params.items() if k != leaf}
+            cases.append(Case(label, materials, {leaf: params[leaf]}, [f"{label}, point {i}" for i in range(points)], fixed))
+    return cases
+
+
+def _many_point_shading(p, lt, f) -> Tensor:
+    from stages.model.networks import SGLightModule
+
+    params = {k: v for k, v in (f | lt).items() if k in ("axis_raw", "log_sharpness", "log_energy")}
+    module = SGLightModule(params["axis_raw"].shape[0]).to(params["axis_raw"].dtype)
+    light = torch.func.functional_call(module, params, ())
+    return sh.shade_gltf(p["normal"], p["view"], p["albedo"], p["metallic"], p["roughness"], light, "fitted").rgb
+
+
 #: the mesh rows: scales and offsets (in radii) of a sphere whose float32 positions the pipeline
 #: normalises, and the camera's distance in normalised units
 MESH_SCALES = (1e-4, 1.0, 1e4)
@@ -536,6 +589,9 @@ def all_measurements(grid: Grid) -> dict[str, dict[str, dict[str, Summary]]]:
     results |= measure(
         mesh_cases(), {"mesh: glTF shading (fitted)": (("normal", "view", "albedo", "metallic", "roughness"), _mesh_shading)}
     )
+    points = MANY_POINTS[grid is QUICK]
+    many = {f"light over {points:,} points: glTF shading (fitted)": ((), _many_point_shading)}
+    results |= measure(many_point_cases(points), many)
     return results
 
 

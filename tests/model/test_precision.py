@@ -50,10 +50,11 @@ def _compilations() -> int:
 def _more_points_than_the_chunk(compiled: StyleField, eager: StyleField, shadowed: bool = False) -> None:
     """A training call of more points than inductor's sum chunk runs the graph the first pass
     built (the extreme inputs, fewer, were padded to that side): no compilation, the eager
-    field's colours, and every gradient within 1e-2 of its norm of float64's (the precision
-    benchmark's float32 bound: summed over 5,000 points, a broad lobe's log-sharpness gradient,
-    whose terms cancel, erred by 7e-3 compiled and 4e-4 eager when this was written, against
-    1.4e-4 at 200 points)."""
+    field's colours, every gradient within 1e-2 of its norm of float64's (the precision
+    benchmark's float32 bound) and the light's within 2e-3. Summed over 5,000 points a broad
+    lobe's log-sharpness gradient, whose terms cancel, erred by 5.4e-3 compiled (6e-4 eager) while
+    the renderer summed it over the points in float32; in float64
+    (``tests/render/test_light_gradient.py``), 5.2e-4."""
     g = torch.Generator().manual_seed(2)
     n = MANY
     pts = torch.rand(n, 3, generator=g, dtype=torch.float64) * 2 - 1
@@ -74,7 +75,7 @@ def _more_points_than_the_chunk(compiled: StyleField, eager: StyleField, shadowe
     assert _compilations() == before
     torch.testing.assert_close(outs[2][0], outs[1][0], rtol=1e-5, atol=1e-6)
     for (name, want), (_, got) in zip(outs[0][1], outs[2][1], strict=True):
-        assert float((got - want).norm() / want.norm()) < 1e-2, name
+        assert float((got - want).norm() / want.norm()) < (2e-3 if name.startswith("light.") else 1e-2), name
 
 
 @pytest.mark.parametrize("encoding", ["nerf", "fourier", "hashgrid"])
