@@ -442,11 +442,17 @@ def light_cases(grid: Grid, seed: int = 1) -> list[Case]:
     return cases
 
 
-def _light_module(p, lt, f) -> Tensor:
+def _parametrised_light(params: dict[str, Tensor]) -> sh.SGLight:
+    """The light of :class:`~stages.model.networks.SGLightModule`'s raw parameters ``params``
+    (``axis_raw``, ``log_sharpness``, ``log_energy``), in their dtype, differentiable in them."""
     from stages.model.networks import SGLightModule
 
-    module = SGLightModule(LOBES).to(lt["axis_raw"].dtype)
-    light = torch.func.functional_call(module, dict(lt), ())
+    module = SGLightModule(params["axis_raw"].shape[0]).to(params["axis_raw"].dtype)
+    return torch.func.functional_call(module, dict(params), ())
+
+
+def _light_module(p, lt, f) -> Tensor:
+    light = _parametrised_light(lt)
     return torch.cat([light.axis, light.sharpness, light.amplitude], dim=1)
 
 
@@ -493,11 +499,7 @@ def many_point_cases(points: int, seed: int = 3) -> list[Case]:
 
 
 def _many_point_shading(p, lt, f) -> Tensor:
-    from stages.model.networks import SGLightModule
-
-    params = {k: v for k, v in (f | lt).items() if k in ("axis_raw", "log_sharpness", "log_energy")}
-    module = SGLightModule(params["axis_raw"].shape[0]).to(params["axis_raw"].dtype)
-    light = torch.func.functional_call(module, params, ())
+    light = _parametrised_light({k: v for k, v in (f | lt).items() if k in ("axis_raw", "log_sharpness", "log_energy")})
     return sh.shade_gltf(p["normal"], p["view"], p["albedo"], p["metallic"], p["roughness"], light, "fitted").rgb
 
 

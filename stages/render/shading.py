@@ -334,7 +334,7 @@ def diffuse_radiance(normal: Tensor, albedo: Tensor, light: SGLight, visibility:
     """Fused :func:`diffuse_radiance_reference` (same result): ``(N, 3)``."""
     cos_n = _cosines(normal, light.axis)  # (N, K)
     lam = lobes_at_points(light.sharpness.T, len(normal))
-    per_lobe = _cosine_weighted_hemisphere(lam, cos_n, torch.zeros_like(cos_n))
+    per_lobe = _cosine_weighted_hemisphere(lam, cos_n, torch.zeros_like(light.sharpness.T))
     irradiance = _lit(per_lobe, visibility, light.amplitude)
     return albedo / math.pi * torch.clamp(irradiance, min=0.0)
 
@@ -352,7 +352,9 @@ def _one_minus_schlick(vh: Tensor) -> Tensor:
     return vh * (5.0 + vh * (-10.0 + vh * (10.0 + vh * (-5.0 + vh))))
 
 
-def _diffuse_half_vector_cosine(normal: Tensor, view: Tensor, cos_nv: Tensor, cos_n: Tensor, light: SGLight) -> Tensor:
+def _diffuse_half_vector_cosine(
+    normal: Tensor, view: Tensor, cos_nv: Tensor, cos_n: Tensor, lam: Tensor, light: SGLight
+) -> Tensor:
     """``v . h`` ``(N, K)`` with ``h`` the half vector of the view and the axis ``q = (c n + lam xi)
     / lam_q`` of each light lobe's product with the clamped cosine's SG (``c`` its sharpness),
     from the components of ``q + v`` in the frame ``(n, t, n x t)`` of the view's tangent
@@ -360,9 +362,9 @@ def _diffuse_half_vector_cosine(normal: Tensor, view: Tensor, cos_nv: Tensor, co
     cancels where the product's axis is opposite the view (a broad lobe under the horizon seen
     along the normal: float32's value was 150 times too small there; ``benchmarks/precision.py``).
     Held at 1e-6 where ``q = -v`` (``h`` undefined; the square root's derivative infinite).
-    ``cos_n (N, K)``: the lobes' cosines with the normal."""
+    ``cos_n (N, K)``: the lobes' cosines with the normal; ``lam (N, K)``: their sharpnesses at the
+    points (:func:`lobes_at_points`)."""
     tangent, across, v_t, v_b = _view_frame(normal, view, cos_nv)
-    lam = lobes_at_points(light.sharpness.T, len(normal))
     cos_t, cos_b = _cosines(tangent, light.axis), _cosines(across, light.axis)
     # lam_q is positive (held at its floor by _product_terms)
     lam_q, _ = _product_terms(lam, torch.as_tensor(COS_LAMBDA, dtype=lam.dtype, device=lam.device), cos_n)
@@ -386,8 +388,9 @@ def diffuse_radiance_gltf(
     Monte Carlo of the specification's formula. ``visibility (N, K)``: each lobe's visible share."""
     cos_nv = (normal * view).sum(-1, keepdim=True)
     cos_n = _cosines(normal, light.axis)  # (N, K)
-    per_lobe = _cosine_weighted_hemisphere(lobes_at_points(light.sharpness.T, len(normal)), cos_n, torch.zeros_like(cos_n))
-    weight = (1.0 - GLTF_DIELECTRIC_F0) * _one_minus_schlick(_diffuse_half_vector_cosine(normal, view, cos_nv, cos_n, light))
+    lam = lobes_at_points(light.sharpness.T, len(normal))
+    per_lobe = _cosine_weighted_hemisphere(lam, cos_n, torch.zeros_like(light.sharpness.T))
+    weight = (1.0 - GLTF_DIELECTRIC_F0) * _one_minus_schlick(_diffuse_half_vector_cosine(normal, view, cos_nv, cos_n, lam, light))
     irradiance = _lit(per_lobe * weight, visibility, light.amplitude)
     return diffuse_color / math.pi * torch.clamp(irradiance, min=0.0)
 
