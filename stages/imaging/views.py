@@ -17,7 +17,7 @@ from ..model.field import FieldOutput, StyleField
 from ..model.shadows import ShadowCache
 from ..render.color import linear_to_srgb
 from ..render.shading import face_viewer
-from .images import compose, gather_points, global_spec, index_map, render_cached_view
+from .images import compose, gather_points, global_spec, index_map, render_cached_view, summed_area
 from .targets import TargetSet
 
 
@@ -25,13 +25,14 @@ from .targets import TargetSet
 class CachedView:
     """Tensors of one cached view on the device: hit ``points``, shading ``normals`` (flat or
     smooth, turned to the side of the face the viewer sees) and unit ``view`` directions
-    (surface -> eye) ``(N, 3)``, plus the ``(W, W)`` hit-index map and mask."""
+    (surface -> eye) ``(N, 3)``, plus the ``(W, W)`` hit-index map and its mask's summed-area
+    table ``(W + 1, W + 1)`` (:func:`~stages.imaging.images.summed_area`: the crops' coverage)."""
 
     points: torch.Tensor
     normals: torch.Tensor
     view: torch.Tensor
     index: np.ndarray
-    mask: np.ndarray
+    mask_sums: np.ndarray
     #: image targets at the hits (linear radiance ``(N, 3)``, coverage ``(N,)``), when given
     target: torch.Tensor | None = None
     coverage: torch.Tensor | None = None
@@ -112,7 +113,7 @@ class ViewStore:
                 normals,
                 view,
                 idx,
-                idx >= 0,
+                summed_area(idx >= 0),
                 target,
                 coverage,
                 self._shadows(i, h) if self.shadows else None,

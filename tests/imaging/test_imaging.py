@@ -9,7 +9,16 @@ import pytest
 import torch
 
 from stages.guidance.clip import clip_normalize
-from stages.imaging.images import background, compose, gather_points, global_spec, index_map, region_spec, sample_crops
+from stages.imaging.images import (
+    background,
+    compose,
+    gather_points,
+    global_spec,
+    index_map,
+    region_spec,
+    sample_crops,
+    summed_area,
+)
 from stages.render.color import linear_to_srgb
 
 
@@ -35,7 +44,7 @@ def test_crops_meet_coverage_and_small_crops_render_natively():
     width, size = 512, 224
     mask = disc_mask(width, 150)
     rng = np.random.default_rng(0)
-    crops = sample_crops(mask, 20, scale=(0.01, 0.1), min_coverage=0.6, max_tries=50, out_size=size, rng=rng)
+    crops = sample_crops(summed_area(mask), 20, scale=(0.01, 0.1), min_coverage=0.6, max_tries=50, out_size=size, rng=rng)
     assert all(c.coverage >= 0.6 for c in crops)
     for c in crops:
         h = c.rows.shape[0]
@@ -46,13 +55,47 @@ def test_crops_meet_coverage_and_small_crops_render_natively():
     assert len(needed) <= sum(lk.size for lk in lookups)
 
 
+def test_gather_points_matches_a_sort():
+    """The unique hits and each pixel's index into them, as ``np.unique`` and ``np.searchsorted``
+    give them (the reference, written here), over random crops that overlap, cross the object's
+    edge and miss it, and a view with no hits."""
+    rng = np.random.default_rng(3)
+    width = 96
+    mask = rng.random((width, width)) < 0.3
+    idx = index_map(np.flatnonzero(mask.ravel()), width)
+    specs = [global_spec(width, 40)] + [region_spec(*rng.uniform(0, 60, 2), rng.uniform(4, 36), 32) for _ in range(6)]
+    needed, lookups = gather_points(specs, idx)
+    per = [idx[s.rows, s.cols] for s in specs]
+    flat = np.concatenate([p.ravel() for p in per])
+    want = np.unique(flat[flat >= 0])
+    np.testing.assert_array_equal(needed, want)
+    for p, lk in zip(per, lookups, strict=True):
+        np.testing.assert_array_equal(lk, np.where(p >= 0, np.searchsorted(want, p), -1))
+        assert lk.dtype == np.int64 and lk.shape == p.shape
+    empty = np.full((width, width), -1, np.int64)
+    needed, (lk,) = gather_points([global_spec(width, 40)], empty)
+    assert needed.size == 0 and (lk == -1).all()
+
+
+def test_summed_area_counts_every_rectangle():
+    rng = np.random.default_rng(4)
+    mask = rng.random((37, 37)) < 0.4
+    table = summed_area(mask)
+    assert table.shape == (38, 38)
+    for _ in range(200):
+        t0, t1 = sorted(rng.integers(0, 38, 2))
+        l0, l1 = sorted(rng.integers(0, 38, 2))
+        count = table[t1, l1] - table[t0, l1] - table[t1, l0] + table[t0, l0]
+        assert count == mask[t0:t1, l0:l1].sum()
+
+
 def test_thin_object_crops_terminate_with_best_effort():
     width = 256
     mask = np.zeros((width, width), bool)
     mask[128, 100:140] = True  # a one-pixel-thin object: no crop can reach 90% coverage
     rng = np.random.default_rng(1)
     t0 = time.perf_counter()
-    crops = sample_crops(mask, 4, scale=(0.01, 0.02), min_coverage=0.9, max_tries=30, out_size=64, rng=rng)
+    crops = sample_crops(summed_area(mask), 4, scale=(0.01, 0.02), min_coverage=0.9, max_tries=30, out_size=64, rng=rng)
     assert time.perf_counter() - t0 < 1.0
     assert len(crops) == 4 and all(c.coverage < 0.9 for c in crops)
 

@@ -54,14 +54,15 @@ def test_one_clip_step_changes_parameters(cache):
     assert 0 < row["points"] <= 3 * 64 * 64
 
 
-def test_a_non_finite_gradient_stops_the_step_before_it_reaches_the_parameters(cache, monkeypatch):
-    """A NaN in one lobe's gradient (from a hook on the light's sharpness) raises a clear error naming
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), -float("inf")])
+def test_a_non_finite_gradient_stops_the_step_before_it_reaches_the_parameters(cache, bad):
+    """A NaN (or an infinity) in one lobe's gradient (from a hook on the light's sharpness) raises a clear error naming
     the step and the parameter, and the parameters and the optimiser's state stay as they were: a NaN
     that reached them would spread to every later step and checkpoint."""
     opt = Optimizer(OptimizeSettings(iterations=3, **TINY), RayCache(cache / "train.npz"), "a vase", "cpu")
     opt.step(Timer())
     before, state = params(opt.field), json.dumps(str(opt.adamw.state_dict()["state"]))
-    hook = opt.field.light.log_sharpness.register_hook(lambda g: g.index_fill(0, torch.tensor([0]), float("nan")))
+    hook = opt.field.light.log_sharpness.register_hook(lambda g: g.index_fill(0, torch.tensor([0]), bad))
     with pytest.raises(FloatingPointError, match=r"step 2: the gradient of light\.log_sharpness is not finite"):
         opt.step(Timer())
     hook.remove()
