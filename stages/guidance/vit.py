@@ -15,7 +15,8 @@ for 5 images) and the cast of the frozen weights to bfloat16 at every forward.
 * attention: :class:`BatchedMultiheadAttention` is ``nn.MultiheadAttention`` with the same
   parameters and state dict; for self-attention without masks (every block of CLIP's image tower)
   it computes multi-head scaled dot-product attention (Vaswani et al. 2017, "Attention Is All You
-  Need", eq. 1 and Sec. 3.2.2) with plain matrix products on contiguous ``(N, H, L, D)`` tensors;
+  Need", eq. 1 and Sec. 3.2.2) with plain matrix products on ``(N, H, L, D)`` tensors (on a GPU
+  with torch's fused kernel: :func:`fused_attention`);
   anything else (masks, cross-attention, dropout while training) goes to the parent's forward;
 * patch embedding: a convolution whose stride equals its kernel (ViT's ``conv1``) is a linear map
   of the non-overlapping patches (:class:`PatchEmbedding`, Dosovitskiy et al. 2021, eq. 1);
@@ -34,24 +35,44 @@ from torch.nn import functional as F
 
 from ..config.sections import CLIP_TOWERS
 
-__all__ = ["CLIP_TOWERS", "BatchedMultiheadAttention", "PatchEmbedding", "self_attention", "use_fast_tower"]
+__all__ = ["CLIP_TOWERS", "BatchedMultiheadAttention", "PatchEmbedding", "fused_attention", "self_attention", "use_fast_tower"]
+
+
+def fused_attention(device: torch.device) -> bool:
+    """Whether :func:`self_attention` runs torch's fused kernel (``scaled_dot_product_attention``)
+    on ``device``: on a GPU, where a step is bound by kernel launches and the fused kernel is one
+    launch each way where the plain products take about six forward and eight backward per block
+    (``python benchmarks/launches.py --part CLIP``); not on a CPU, where it measured 2.2 times
+    slower under bfloat16 autocast (8.5 ms against 3.9 ms for one ViT-B-32 block's forward and
+    backward on 5 images) and no faster in float32."""
+    return device.type == "cuda"
 
 
 def self_attention(
-    x: Tensor, in_weight: Tensor, in_bias: Tensor | None, out_weight: Tensor, out_bias: Tensor | None, heads: int
+    x: Tensor,
+    in_weight: Tensor,
+    in_bias: Tensor | None,
+    out_weight: Tensor,
+    out_bias: Tensor | None,
+    heads: int,
+    fused: bool | None = None,
 ) -> Tensor:
     """Multi-head self-attention of batch-first tokens ``x (N, L, E)``: ``[q k v] = x W_in^T + b_in``
     split into ``heads`` heads of width ``D = E / heads``, ``softmax(q k^T / sqrt(D)) v`` per head,
     heads concatenated, then ``W_out``, ``b_out``. Shapes: ``in_weight (3E, E)``, ``in_bias (3E,)``,
     ``out_weight (E, E)``, ``out_bias (E,)``; returns ``(N, L, E)``. Exact (no approximation):
-    the same function as ``nn.MultiheadAttention`` without masks or dropout, up to float rounding."""
+    the same function as ``nn.MultiheadAttention`` without masks or dropout, up to float rounding.
+    ``fused``: the heads' attention by torch's fused kernel rather than plain products (None:
+    :func:`fused_attention` decides by the device); the same function either way."""
     n, length, e = x.shape
     d = e // heads
     qkv = F.linear(x, in_weight, in_bias).view(n, length, 3, heads, d).permute(2, 0, 3, 1, 4)
     q, k, v = qkv.unbind(0)  # (N, H, L, D) each
-    weights = torch.softmax((q * d**-0.5) @ k.transpose(-1, -2), dim=-1)
-    out = (weights @ v).transpose(1, 2).reshape(n, length, e)
-    return F.linear(out, out_weight, out_bias)
+    if fused_attention(x.device) if fused is None else fused:
+        out = F.scaled_dot_product_attention(q, k, v)
+    else:
+        out = torch.softmax((q * d**-0.5) @ k.transpose(-1, -2), dim=-1) @ v
+    return F.linear(out.transpose(1, 2).reshape(n, length, e), out_weight, out_bias)
 
 
 class BatchedMultiheadAttention(nn.MultiheadAttention):

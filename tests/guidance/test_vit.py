@@ -11,8 +11,9 @@ import torch
 from torch import nn
 
 from stages.config.sections import ClipSpec
+from stages.guidance import vit
 from stages.guidance.clip import TINY_MODEL, load_clip
-from stages.guidance.vit import BatchedMultiheadAttention, PatchEmbedding, use_fast_tower
+from stages.guidance.vit import BatchedMultiheadAttention, PatchEmbedding, fused_attention, use_fast_tower
 
 
 def _pair(heads: int, embed: int = 48, dtype=torch.float64):
@@ -27,11 +28,14 @@ def _pair(heads: int, embed: int = 48, dtype=torch.float64):
     return ref, ours
 
 
+@pytest.mark.parametrize("fused", [False, True], ids=["products", "fused kernel"])
 @pytest.mark.parametrize("heads", [1, 3, 12])
-def test_batched_self_attention_equals_torch_multihead_attention(heads):
+def test_batched_self_attention_equals_torch_multihead_attention(heads, fused, monkeypatch):
     """Values, gradients to the tokens and gradients to every weight agree with torch's module to
     float64 rounding, for one and several heads (a head split in the wrong order, a missing or
-    wrong 1/sqrt(d) scale, or swapped q/k/v would each fail here)."""
+    wrong 1/sqrt(d) scale, or swapped q/k/v would each fail here), by plain products (a CPU's
+    path) and by torch's fused kernel (a GPU's: :func:`fused_attention`), both taken here."""
+    monkeypatch.setattr(vit, "fused_attention", lambda device: fused)
     ref, ours = _pair(heads)
     x = torch.randn(5, 7, 48, dtype=torch.float64)
     outs, grads = [], []
@@ -45,6 +49,25 @@ def test_batched_self_attention_equals_torch_multihead_attention(heads):
     torch.testing.assert_close(outs[1], outs[0], rtol=1e-10, atol=1e-10)
     for g_ours, g_ref in zip(grads[1], grads[0], strict=True):
         torch.testing.assert_close(g_ours, g_ref, rtol=1e-9, atol=1e-10)
+
+
+def test_fused_attention_on_a_gpu_only():
+    assert fused_attention(torch.device("cuda")) and fused_attention(torch.device("cuda", 1))
+    assert not fused_attention(torch.device("cpu"))
+
+
+def test_fused_attention_under_bfloat16_autocast_matches_the_products():
+    """Under training's bfloat16 autocast both paths give the tower's attention to bfloat16's
+    rounding of the float64 function (the fused kernel in bfloat16 operands as the products are)."""
+    torch.manual_seed(0)
+    x, w_in, b_in = torch.randn(5, 50, 64), torch.randn(192, 64) * 0.1, torch.randn(192) * 0.1
+    w_out, b_out = torch.randn(64, 64) * 0.1, torch.randn(64) * 0.1
+    want = vit.self_attention(*(t.double() for t in (x, w_in, b_in, w_out, b_out)), heads=4, fused=False)
+    for fused in (False, True):
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            got = vit.self_attention(x, w_in, b_in, w_out, b_out, heads=4, fused=fused)
+        assert got.dtype == torch.bfloat16
+        assert (got.double() - want).abs().max() < 2e-2 * want.abs().max()
 
 
 def test_batched_attention_falls_back_for_masks_and_weights():
