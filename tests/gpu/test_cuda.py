@@ -303,3 +303,27 @@ def test_shadow_shares_on_cuda_match_the_cpu():
     out = shadows.shares(SGLight(axis.float().to(CUDA), sharp.float().to(CUDA), torch.ones(8, 3, device=CUDA)), index)
     assert out.device.type == "cuda"
     assert float((out.double().cpu() - ref[index.cpu()]).abs().max()) < 1e-4
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_clip_attention_on_cuda_takes_the_fused_kernel_and_matches_float64():
+    """CLIP's self-attention on the GPU takes torch's fused kernel (``fused_attention``) and gives
+    the float64 function's values and gradients (plain products on the CPU) to float32 rounding."""
+    from stages.guidance import vit
+
+    assert vit.fused_attention(CUDA)
+    gen = torch.Generator().manual_seed(0)
+    x, b_in = torch.randn(5, 50, 768, generator=gen), torch.randn(2304, generator=gen)
+    w_in = torch.randn(2304, 768, generator=gen) * 0.03
+    w_out, b_out = torch.randn(768, 768, generator=gen) * 0.03, torch.randn(768, generator=gen)
+    weight = torch.linspace(-1, 1, x.numel()).view_as(x)
+    results = []
+    for dev, dtype in (("cpu", torch.float64), ("cuda", torch.float32)):
+        xi = x.to(dev, dtype).requires_grad_()
+        y = vit.self_attention(xi, *(t.to(dev, dtype) for t in (w_in, b_in, w_out, b_out)), heads=12)
+        (y * weight.to(dev, dtype)).sum().backward()
+        results.append((y.detach().double().cpu(), xi.grad.double().cpu()))
+    (y64, g64), (y32, g32) = results
+    assert float((y32 - y64).norm() / y64.norm()) < 1e-5
+    assert float((g32 - g64).norm() / g64.norm()) < 1e-5
