@@ -154,6 +154,8 @@ def count(train: Path, steps: int, gpu_paths: bool) -> tuple[Counter, Counter, C
     opt = make_optimizer(s, train, vit_b32_random(tower=s.clip_tower))
     parts = Parts()
     field = opt.field
+    modules = [(field_module, "shade_material"), (optimizer_module, "compose"), (optimizer_module, "linear_to_srgb")]
+    originals = [getattr(m, attr) for m, attr in modules]  # (put back after: the next count wraps its own)
     for owner, attr, name in (
         (field_module, "shade_material", "renderer"),
         (field, "surface", "networks"),
@@ -178,6 +180,8 @@ def count(train: Path, steps: int, gpu_paths: bool) -> tuple[Counter, Counter, C
                 opt.step(PartTimer(parts))
     finally:
         visibility.visibility_block, vit.fused_attention = block, fused
+        for (module, attr), fn in zip(modules, originals, strict=True):
+            setattr(module, attr, fn)
     return tuple(Counter({k: v / steps for k, v in c.items()}) for c in (mode.counts, mode.by_part, mode.in_part))
 
 

@@ -64,12 +64,14 @@ def global_spec(width: int, out_size: int, supersample: int = 1) -> ImageSpec:
 
 
 def summed_area(mask: np.ndarray) -> np.ndarray:
-    """``(W + 1, W + 1) int64`` summed-area table of ``mask (W, W) bool``: entry ``[r, c]`` counts
-    the true pixels above row ``r`` and left of column ``c`` (Crow, SIGGRAPH 1984), so that any
-    rectangle's count is four lookups. A view's is built once (:class:`~stages.imaging.views.CachedView`),
-    not at every step's crops."""
-    table = np.zeros((mask.shape[0] + 1, mask.shape[1] + 1), np.int64)
-    table[1:, 1:] = mask.astype(np.int64).cumsum(0).cumsum(1)
+    """``(H + 1, W + 1)`` summed-area table of ``mask (H, W) bool``: entry ``[r, c]`` counts the
+    true pixels above row ``r`` and left of column ``c`` (Crow, SIGGRAPH 1984), so that any
+    rectangle's count is four lookups; int32 where the mask has fewer than 2^31 pixels (every
+    cache: at most 8,192 x 8,192), else int64. A view's is built once
+    (:attr:`~stages.imaging.views.CachedView.mask_sums`), not at every step's crops."""
+    dtype = np.int32 if mask.size < 2**31 else np.int64
+    table = np.zeros((mask.shape[0] + 1, mask.shape[1] + 1), dtype)
+    table[1:, 1:] = mask.astype(dtype).cumsum(0, dtype=dtype).cumsum(1, dtype=dtype)
     return table
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -25,20 +26,25 @@ from .targets import TargetSet
 class CachedView:
     """Tensors of one cached view on the device: hit ``points``, shading ``normals`` (flat or
     smooth, turned to the side of the face the viewer sees) and unit ``view`` directions
-    (surface -> eye) ``(N, 3)``, plus the ``(W, W)`` hit-index map and its mask's summed-area
-    table ``(W + 1, W + 1)`` (:func:`~stages.imaging.images.summed_area`: the crops' coverage)."""
+    (surface -> eye) ``(N, 3)``, plus the ``(W, W)`` hit-index map."""
 
     points: torch.Tensor
     normals: torch.Tensor
     view: torch.Tensor
     index: np.ndarray
-    mask_sums: np.ndarray
     #: image targets at the hits (linear radiance ``(N, 3)``, coverage ``(N,)``), when given
     target: torch.Tensor | None = None
     coverage: torch.Tensor | None = None
     #: the hits' shadows (each light lobe's visible share), when the field casts them and the
     #: cache holds their visibility
     shadows: ShadowCache | None = None
+
+    @functools.cached_property
+    def mask_sums(self) -> np.ndarray:
+        """The summed-area table ``(W + 1, W + 1)`` of the view's mask (its hit pixels), which the
+        crops' coverage reads (:func:`~stages.imaging.images.summed_area`): built at the first
+        crops, once (training's views), not by stages that draw none."""
+        return summed_area(self.index >= 0)
 
     def shade(self, field: StyleField, sel: torch.Tensor | None = None, light=None, edit=None) -> FieldOutput:
         """The field's forward pass at the hits ``sel`` (all when None), with this view's shadows."""
@@ -113,7 +119,6 @@ class ViewStore:
                 normals,
                 view,
                 idx,
-                summed_area(idx >= 0),
                 target,
                 coverage,
                 self._shadows(i, h) if self.shadows else None,

@@ -308,9 +308,21 @@ def test_shadow_shares_on_cuda_match_the_cpu():
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 def test_clip_attention_on_cuda_takes_the_fused_kernel_and_matches_float64():
-    """CLIP's self-attention on the GPU takes torch's fused kernel (``fused_attention``) and gives
-    the float64 function's values and gradients (plain products on the CPU) to float32 rounding."""
+    """CLIP's self-attention on the GPU takes torch's fused kernel (``fused_attention``; a
+    scaled-dot-product operation dispatched) and gives the float64 function's values and gradients
+    (plain products on the CPU) to float32 rounding."""
+    from torch.utils._python_dispatch import TorchDispatchMode
+
     from stages.guidance import vit
+
+    class Ops(TorchDispatchMode):
+        def __init__(self) -> None:
+            super().__init__()
+            self.names: set[str] = set()
+
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            self.names.add(func.overloadpacket.__name__)
+            return func(*args, **(kwargs or {}))
 
     assert vit.fused_attention(CUDA)
     gen = torch.Generator().manual_seed(0)
@@ -321,7 +333,9 @@ def test_clip_attention_on_cuda_takes_the_fused_kernel_and_matches_float64():
     results = []
     for dev, dtype in (("cpu", torch.float64), ("cuda", torch.float32)):
         xi = x.to(dev, dtype).requires_grad_()
-        y = vit.self_attention(xi, *(t.to(dev, dtype) for t in (w_in, b_in, w_out, b_out)), heads=12)
+        with Ops() as ops:
+            y = vit.self_attention(xi, *(t.to(dev, dtype) for t in (w_in, b_in, w_out, b_out)), heads=12)
+        assert any("scaled_dot_product" in name for name in ops.names) == (dev == "cuda"), ops.names
         (y * weight.to(dev, dtype)).sum().backward()
         results.append((y.detach().double().cpu(), xi.grad.double().cpu()))
     (y64, g64), (y32, g32) = results

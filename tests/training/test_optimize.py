@@ -3,6 +3,7 @@ run, ablations build less, outputs and metadata, and image-target recovery (>= 3
 
 from __future__ import annotations
 
+import copy
 import json
 import math
 import sys
@@ -87,6 +88,26 @@ def test_kill_and_resume_matches_uninterrupted_run(cache, tmp_path):
         torch.testing.assert_close(a[k], b[k], rtol=0, atol=0, msg=k)
     assert not (out / "checkpoint.pt").exists()
     assert ref["final_similarity"] == pytest.approx(resumed["final_similarity"], abs=1e-6)
+
+
+def test_a_checkpoint_of_the_unfused_optimiser_resumes_fused_to_the_same_step(cache):
+    """A checkpoint written before AdamW was fused (its groups say ``fused: None``) resumes fused,
+    and its next step gives the parameters the one from the same checkpoint marked fused gives."""
+    s = OptimizeSettings(iterations=4, **TINY)
+    opt = Optimizer(s, RayCache(cache / "train.npz"), "a vase", "cpu")
+    opt.step(Timer())
+    state = copy.deepcopy(opt.state())
+    old = copy.deepcopy(state)
+    old["optimizer"]["param_groups"] = [{**g, "fused": None} for g in old["optimizer"]["param_groups"]]
+    after = []
+    for saved in (state, old):
+        resumed = Optimizer(s, RayCache(cache / "train.npz"), "a vase", "cpu")
+        resumed.load(saved)
+        assert all(g["fused"] for g in resumed.adamw.param_groups)
+        resumed.step(Timer())
+        after.append(params(resumed.field))
+    for k in after[0]:
+        torch.testing.assert_close(after[1][k], after[0][k], rtol=0, atol=0, msg=k)
 
 
 def test_hash_grid_run_trains_its_tables_and_resumes_bit_identical(cache, tmp_path):
