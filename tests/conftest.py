@@ -206,6 +206,23 @@ def require_tool(available: bool, reason: str) -> None:
     pytest.skip(reason)
 
 
+@contextlib.contextmanager
+def dispatched_ops():
+    """A region whose dispatched operations' names (forward and backward, as ``aten`` names them)
+    gather in the yielded set: which kernels a path really ran."""
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    names: set[str] = set()
+
+    class Ops(TorchDispatchMode):
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            names.add(func.overloadpacket.__name__)
+            return func(*args, **(kwargs or {}))
+
+    with Ops():
+        yield names
+
+
 def require_blender() -> None:
     """:func:`require_tool` for Blender (bpy, the ``blender`` extra)."""
     from stages.reference import blender

@@ -16,7 +16,7 @@ import shutil
 
 import pytest
 import torch
-from conftest import REPO, run_snakemake
+from conftest import REPO, dispatched_ops, run_snakemake
 
 from stages.config.sections import ClipSpec, OptimizeSettings
 from stages.geometry.raycache import RayCache
@@ -311,18 +311,7 @@ def test_clip_attention_on_cuda_takes_the_fused_kernel_and_matches_float64():
     """CLIP's self-attention on the GPU takes torch's fused kernel (``fused_attention``; a
     scaled-dot-product operation dispatched) and gives the float64 function's values and gradients
     (plain products on the CPU) to float32 rounding."""
-    from torch.utils._python_dispatch import TorchDispatchMode
-
     from stages.guidance import vit
-
-    class Ops(TorchDispatchMode):
-        def __init__(self) -> None:
-            super().__init__()
-            self.names: set[str] = set()
-
-        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
-            self.names.add(func.overloadpacket.__name__)
-            return func(*args, **(kwargs or {}))
 
     assert vit.fused_attention(CUDA)
     gen = torch.Generator().manual_seed(0)
@@ -333,9 +322,9 @@ def test_clip_attention_on_cuda_takes_the_fused_kernel_and_matches_float64():
     results = []
     for dev, dtype in (("cpu", torch.float64), ("cuda", torch.float32)):
         xi = x.to(dev, dtype).requires_grad_()
-        with Ops() as ops:
+        with dispatched_ops() as names:
             y = vit.self_attention(xi, *(t.to(dev, dtype) for t in (w_in, b_in, w_out, b_out)), heads=12)
-        assert any("scaled_dot_product" in name for name in ops.names) == (dev == "cuda"), ops.names
+        assert any("scaled_dot_product" in name for name in names) == (dev == "cuda"), names
         (y * weight.to(dev, dtype)).sum().backward()
         results.append((y.detach().double().cpu(), xi.grad.double().cpu()))
     (y64, g64), (y32, g32) = results

@@ -8,8 +8,8 @@ import copy
 
 import pytest
 import torch
+from conftest import dispatched_ops
 from torch import nn
-from torch.utils._python_dispatch import TorchDispatchMode
 
 from stages.config.sections import ClipSpec
 from stages.guidance import vit
@@ -57,25 +57,15 @@ def test_fused_attention_on_a_gpu_only():
     assert not fused_attention(torch.device("cpu"))
 
 
-class _Ops(TorchDispatchMode):
-    def __init__(self) -> None:
-        super().__init__()
-        self.names: set[str] = set()
-
-    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
-        self.names.add(func.overloadpacket.__name__)
-        return func(*args, **(kwargs or {}))
-
-
 @pytest.mark.parametrize("fused", [False, True])
 def test_each_path_runs_its_own_kernels(fused):
     """The fused path dispatches torch's attention kernel and no batched product; the plain path
     the reverse (so neither quietly runs the other)."""
     x, w_in, w_out = torch.randn(2, 9, 16), torch.randn(48, 16), torch.randn(16, 16)
-    with _Ops() as ops:
+    with dispatched_ops() as names:
         vit.self_attention(x.requires_grad_(), w_in, None, w_out, None, heads=4, fused=fused).sum().backward()
-    attention = any("scaled_dot_product" in name for name in ops.names)
-    assert attention == fused and ("bmm" in ops.names) != fused
+    attention = any("scaled_dot_product" in name for name in names)
+    assert attention == fused and ("bmm" in names) != fused
 
 
 def test_fused_attention_under_bfloat16_autocast_matches_the_products():
