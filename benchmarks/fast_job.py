@@ -20,7 +20,9 @@ and as the cosines of CLIP's outputs (``benchmarks/optimize.py --clip-only``). `
 only`` runs the defaults with torch held to AVX2 (``stages.core.device.AVX2_ONLY_ENV``: no native
 bfloat16, inductor's code for AVX2 in that CPU's own cache folder, cold on its first run), this
 CPU standing in for one without AVX-512. ``allocator as it is`` runs the defaults with the C
-allocator left to give freed memory back (``keep_freed_memory: off``).
+allocator left to give freed memory back (``keep_freed_memory: off``). The float32 linear layers
+run by oneDNN where it measured faster (``onednn_products: auto``, ``stages.render.products``);
+``float32 with ATen's products`` and ``AVX2 only with ATen's products`` keep ATen's (MKL's).
 
 Each lever's loop is set against its FLOP floor: the ``fast`` step's FLOPs counted on three real
 steps in this process (``optimize.step_flops``: CLIP's forward and backward to its image, the
@@ -60,10 +62,12 @@ LEVERS = {
     "defaults+compiled (warm)": {"compile_shading": True},
     "float32 open_clip tower": {"clip_tower": "open_clip", "bf16": "off", "bf16_networks": "off"},
     "defaults AVX2 only": {},
+    "AVX2 only with ATen's products": {"onednn_products": "off"},
+    "float32 with ATen's products": {"bf16": "off", "bf16_networks": "off", "onednn_products": "off"},
     "allocator as it is": {"keep_freed_memory": "off"},
 }
 #: lever name -> the environment its job runs under (on top of this one's)
-ENVIRONMENTS = {"defaults AVX2 only": AVX2_ONLY_ENV}
+ENVIRONMENTS = {"defaults AVX2 only": AVX2_ONLY_ENV, "AVX2 only with ATen's products": AVX2_ONLY_ENV}
 
 
 def prepare(work: Path, mesh: str) -> Path:
@@ -153,7 +157,7 @@ def job(work: Path, checkpoint: Path, name: str, overrides: dict, threads: int) 
         "iterations": settings.iterations,
         "cpu": meta["cpu"],
         "precision": f"clip {meta['clip_precision'].split(' (')[0]}, networks {meta['network_precision'].split(' (')[0]}, "
-        f"shading {meta['shading_path']}",
+        f"float32 by {meta['float32_products'].split(' (')[0]}, shading {meta['shading_path']}",
     }
 
 

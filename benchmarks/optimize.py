@@ -71,6 +71,7 @@ from stages.imaging.images import compose, gather_points, global_spec
 from stages.model.networks import Material
 from stages.raycache import run as raycache_run
 from stages.render.color import linear_to_srgb
+from stages.render.products import linear, onednn_available, onednn_choice, onednn_products
 from stages.training.optimizer import Optimizer
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "meshes"
@@ -122,14 +123,31 @@ def mlp_flops_per_point(field) -> float:
     return 6.0 * macs
 
 
-def matmul_rate(rows: int, inner: int, cols: int, dtype: torch.dtype = torch.float32, repeats: int = 5) -> float:
-    """FLOP/s of the best of ``repeats`` ``(rows x inner) @ (inner x cols)`` products in ``dtype``."""
+def matmul_rate(
+    rows: int, inner: int, cols: int, dtype: torch.dtype = torch.float32, repeats: int = 5, kernels: str = "best"
+) -> float:
+    """FLOP/s of the best of ``repeats`` ``(rows x inner) @ (inner x cols)`` products in ``dtype``
+    by ``kernels``: ``aten`` (``torch.mm``: MKL's for float32), ``onednn`` (float32 only: the
+    linear layer of ``stages.render.products``, which training routes there where it is faster) or
+    ``best``: the faster of the two (ATen's alone where oneDNN does not apply)."""
+    if kernels == "best":
+        both = dtype == torch.float32 and onednn_available()
+        rates = [matmul_rate(rows, inner, cols, dtype, repeats, k) for k in (("aten", "onednn") if both else ("aten",))]
+        return max(rates)
     a, b = torch.randn(rows, inner, dtype=dtype), torch.randn(inner, cols, dtype=dtype)
-    torch.mm(a, b)
+    bt = b.T.contiguous()
+
+    def product():
+        if kernels == "aten":
+            return torch.mm(a, b)
+        with onednn_products(True):
+            return linear(a, bt)
+
+    product()
     ts = []
     for _ in range(repeats):
         t0 = time.perf_counter()
-        torch.mm(a, b)
+        product()
         ts.append(time.perf_counter() - t0)
     return 2.0 * rows * inner * cols / min(ts)
 
@@ -159,10 +177,11 @@ def counted(fn) -> tuple[int, int]:
     return mm.get_total_flops(), pw.flops
 
 
-def peak_matmul_rate(dtype: torch.dtype, n: int = 2048) -> float:
+def peak_matmul_rate(dtype: torch.dtype, n: int = 2048, kernels: str = "best") -> float:
     """The machine's peak matrix-multiply rate for this build and thread count: square ``n x n``
-    products in ``dtype`` (oneDNN uses AVX-512 BF16 / AMX for bfloat16 where the CPU has them)."""
-    return matmul_rate(n, n, n, dtype)
+    products in ``dtype`` (oneDNN uses AVX-512 BF16 / AMX for bfloat16 where the CPU has them;
+    float32 by the faster of ATen's and oneDNN's kernels, :func:`matmul_rate`)."""
+    return matmul_rate(n, n, n, dtype, kernels=kernels)
 
 
 def step_flops(opt: Optimizer, guide: ClipGuide, steps: int, images: int = 5) -> dict[str, float]:
@@ -199,52 +218,60 @@ def timed_split(opt: Optimizer, steps: int) -> dict[str, float]:
     together = opt.field.compiled_field is not None
     parts = {k: [] for k in ("gather", "mlp", "shading", "clip", "optimizer")}
     for i in range(steps + 1):
-        t0 = time.perf_counter()
-        v = opt.views[int(opt.np_rng.integers(len(opt.views)))]
-        specs = opt.image_specs(v)
-        needed, lookups = gather_points(specs, v.index)
-        sel = torch.from_numpy(needed)
-        pts, nrm, view = v.points[sel], v.normals[sel], v.view[sel]
-        bg = torch.zeros(3, s.image_size, s.image_size)
-        t1 = time.perf_counter()
-        shadows = v.shadows  # the shading's shadows, as the real step casts them (None: none)
-        visibility = None if shadows is None else (lambda lt, sh=shadows, sel=sel: sh.shares(lt, sel))
-        if together:  # one compiled graph: nothing to cut it at; its time is the networks' column
-            mlp_out, leaves = [], []
-            color = linear_to_srgb(opt.field(pts, nrm, view, visibility=visibility).shading.rgb)
-        else:  # the field's own forward pass, cut between its networks and its renderer
-            mat, normal = opt.field.surface(pts, nrm, view)
-            mlp_out = [normal, mat.albedo, mat.specular, mat.roughness]
-            if mat.metallic is not None:  # glTF's BRDF shades from these
-                mlp_out += [mat.base, mat.metallic]
-            leaves = [x.detach().requires_grad_() for x in mlp_out]
-        t2 = time.perf_counter()
-        if not together:
-            color = linear_to_srgb(opt.field.shade(Material(*leaves[1:]), leaves[0], view, visibility=visibility).rgb)
-        c_leaf = color.detach().requires_grad_()
-        t3 = time.perf_counter()
-        imgs = [compose(c_leaf, lk, sp, bg) for lk, sp in zip(lookups, specs, strict=True)]
-        loss, _ = opt.guidance.loss(ImageBatch(imgs[:1], imgs[1:]), None)
-        opt.adamw.zero_grad(set_to_none=True)
-        loss.backward()
-        t4 = time.perf_counter()
-        color.backward(c_leaf.grad)
-        t5 = time.perf_counter()
-        # no normal network: no grad; glTF's BRDF shades from base and metallic, not albedo and specular
-        pairs = [(o, x.grad) for o, x in zip(mlp_out, leaves, strict=True) if o.requires_grad and x.grad is not None]
-        if pairs:
-            torch.autograd.backward([o for o, _ in pairs], [g for _, g in pairs])
-        t6 = time.perf_counter()
-        opt.adamw.step()
-        t7 = time.perf_counter()
+        with onednn_products(opt.onednn):  # as the step routes its float32 linear layers
+            times, points = _split_once(opt, together, s)
         if i == 0:
             continue
+        t0, t1, t2, t3, t4, t5, t6, t7 = times
         parts["gather"].append(t1 - t0)
         parts["mlp"].append((t2 - t1) + (t6 - t5) + ((t3 - t2) + (t5 - t4) if together else 0.0))
         parts["shading"].append(float("nan") if together else (t3 - t2) + (t5 - t4))
         parts["clip"].append(t4 - t3)
         parts["optimizer"].append(t7 - t6)
-    return {k: statistics.mean(v) for k, v in parts.items()} | {"points": len(needed)}
+    return {k: statistics.mean(v) for k, v in parts.items()} | {"points": points}
+
+
+def _split_once(opt: Optimizer, together: bool, s: OptimizeSettings) -> tuple[tuple[float, ...], int]:
+    """One step of :func:`timed_split`, cut between its parts: the times at each cut, and its points."""
+    t0 = time.perf_counter()
+    v = opt.views[int(opt.np_rng.integers(len(opt.views)))]
+    specs = opt.image_specs(v)
+    needed, lookups = gather_points(specs, v.index)
+    sel = torch.from_numpy(needed)
+    pts, nrm, view = v.points[sel], v.normals[sel], v.view[sel]
+    bg = torch.zeros(3, s.image_size, s.image_size)
+    t1 = time.perf_counter()
+    shadows = v.shadows  # the shading's shadows, as the real step casts them (None: none)
+    visibility = None if shadows is None else (lambda lt, sh=shadows, sel=sel: sh.shares(lt, sel))
+    if together:  # one compiled graph: nothing to cut it at; its time is the networks' column
+        mlp_out, leaves = [], []
+        color = linear_to_srgb(opt.field(pts, nrm, view, visibility=visibility).shading.rgb)
+    else:  # the field's own forward pass, cut between its networks and its renderer
+        mat, normal = opt.field.surface(pts, nrm, view)
+        mlp_out = [normal, mat.albedo, mat.specular, mat.roughness]
+        if mat.metallic is not None:  # glTF's BRDF shades from these
+            mlp_out += [mat.base, mat.metallic]
+        leaves = [x.detach().requires_grad_() for x in mlp_out]
+    t2 = time.perf_counter()
+    if not together:
+        color = linear_to_srgb(opt.field.shade(Material(*leaves[1:]), leaves[0], view, visibility=visibility).rgb)
+    c_leaf = color.detach().requires_grad_()
+    t3 = time.perf_counter()
+    imgs = [compose(c_leaf, lk, sp, bg) for lk, sp in zip(lookups, specs, strict=True)]
+    loss, _ = opt.guidance.loss(ImageBatch(imgs[:1], imgs[1:]), None)
+    opt.adamw.zero_grad(set_to_none=True)
+    loss.backward()
+    t4 = time.perf_counter()
+    color.backward(c_leaf.grad)
+    t5 = time.perf_counter()
+    # no normal network: no grad; glTF's BRDF shades from base and metallic, not albedo and specular
+    pairs = [(o, x.grad) for o, x in zip(mlp_out, leaves, strict=True) if o.requires_grad and x.grad is not None]
+    if pairs:
+        torch.autograd.backward([o for o, _ in pairs], [g for _, g in pairs])
+    t6 = time.perf_counter()
+    opt.adamw.step()
+    t7 = time.perf_counter()
+    return (t0, t1, t2, t3, t4, t5, t6, t7), len(needed)
 
 
 def step_time(opt: Optimizer, steps: int) -> tuple[float, float]:
@@ -358,6 +385,7 @@ FP32 = {"bf16": "off", "bf16_networks": "off"}
 LEVERS = {
     "reference (open_clip tower, float32)": {"clip_tower": "open_clip", **FP32},
     "batched CLIP tower, float32": FP32,
+    "float32, ATen's products (onednn_products: off)": {**FP32, "onednn_products": "off"},
     "+ bf16 CLIP": {"bf16": "on", "bf16_networks": "off"},
     "+ bf16 networks": {"bf16": "off", "bf16_networks": "on"},
     "+ bf16 CLIP and networks": {"bf16": "on", "bf16_networks": "on"},
@@ -446,7 +474,8 @@ def lever_steps(train: Path, steps: int, only: list[str] | None, peak: dict[str,
         t, points = step_time(opt, steps)
         split = timed_split(opt, max(2, steps // 2))
         short = {True: "bf16", False: "fp32"}
-        path = f"clip {short[guide.bf16]}, networks {short[opt.field.bf16]}, shading {opt.shading_path}"
+        kernels = opt.float32_products.split(" (")[0]
+        path = f"clip {short[guide.bf16]}, networks {short[opt.field.bf16]}, float32 by {kernels}, shading {opt.shading_path}"
         floor = lever_floor(eager_flops(s, train, guide, 2, points), guide.bf16, opt.field.bf16, peak, native)
         out[name] = {"s": t, "first_s": first, **split, "precision": path, "floor_s": floor}
     return out
@@ -490,6 +519,15 @@ def main() -> None:
         os.execve(sys.executable, [sys.executable, *sys.argv], {**os.environ, **AVX2_ONLY_ENV})
     torch.set_num_threads(args.threads)
     print(f"# CPU {cpu_isa()}", flush=True)
+    # CLIP measured alone below routes its float32 linear layers as a training step does
+    routed, products = onednn_choice(OptimizeSettings().onednn_products, torch.device("cpu"))
+    print(f"# float32 linear layers: {products}", flush=True)
+    with onednn_products(routed):
+        measure(args)
+
+
+def measure(args: argparse.Namespace) -> None:
+    """Everything :func:`main` prints after the CPU's line."""
     clip_rows = clip_paths(args.steps)
     print("# CLIP ViT-B-32 forward+backward to 5 images at 224; cosines against open_clip's modules in float32")
     print(f"{'tower':<11}{'precision':<58}{'s':>8}{'speed-up':>9}{'cos emb':>10}{'cos grad':>10}")
@@ -526,7 +564,7 @@ def main() -> None:
         print(f"# mesh {mesh_name}, ray cache 512x512, torch threads {args.threads}, CLIP ViT-B-32 (random weights)")
         print(
             f"# the measured step: CLIP {guide.precision}, {guide.tower} tower; networks {opt.network_precision}; "
-            f"renderer {opt.shading_path}"
+            f"renderer {opt.shading_path}; float32 linear layers {opt.float32_products}"
         )
         print("# paper counts: 1 view, 1 global + 4 crops at 224, width 256, 32 lobes")
         print(f"{'part':<22}{'s/iter':>10}")
@@ -546,7 +584,8 @@ def main() -> None:
         # bfloat16 is slower than float32, and its "floor" would mean nothing; measured on a small
         # product there: 0.3 GFLOP/s, a minute for one at 2048)
         native, why = bf16_support(torch.device("cpu"))
-        peak = {"fp32": peak_matmul_rate(torch.float32), "bf16": peak_matmul_rate(torch.bfloat16, 2048 if native else 256)}
+        fp32 = {k: peak_matmul_rate(torch.float32, kernels=k) for k in ("aten", "onednn")[: 2 if onednn_available() else 1]}
+        peak = {"fp32": max(fp32.values()), "bf16": peak_matmul_rate(torch.bfloat16, 2048 if native else 256)}
         floors = {k: counts["total"] / r for k, r in peak.items()}
         floor_of = "bf16" if native and floors["bf16"] < floors["fp32"] else "fp32"
         best = floors[floor_of]
@@ -557,7 +596,7 @@ def main() -> None:
         )
         print(
             f"# peak matmul (2048^2; bfloat16 256^2 where emulated; {args.threads} threads): "
-            f"fp32 {peak['fp32'] / 1e9:.0f} GFLOP/s, "
+            f"fp32 {peak['fp32'] / 1e9:.0f} GFLOP/s ({', '.join(f'{k} {v / 1e9:.0f}' for k, v in fp32.items())}), "
             f"bf16 {peak['bf16'] / 1e9:.0f} GFLOP/s ({'native' if native else 'emulated: not a floor'}); "
             f"floor fp32 {floors['fp32']:.3f} s, bf16 {floors['bf16']:.3f} s; the floor here: {floor_of} ({why}); "
             f"ratio to it {s_per_iter / best:.1f}"
@@ -602,6 +641,7 @@ def main() -> None:
         "mlp_gflop": counts["mlp"] / 1e9,
         "pointwise_gflop": counts["pointwise"] / 1e9,
         "peak_fp32_gflops": peak["fp32"] / 1e9,
+        **{f"peak_fp32_{k}_gflops": v / 1e9 for k, v in fp32.items()},
         "peak_bf16_gflops": peak["bf16"] / 1e9,
         "s_per_iter_width64": rows[(64, 4, 1)],
         "s_per_iter_nocrops": rows[(256, 0, 1)],

@@ -58,6 +58,7 @@ from .reference import targets as targets_ref
 from .reference.blender import INSTALL_HINT, BlenderUnavailable, find_blender
 from .reference.mitsuba import LLVM_WHEEL, choose_variant, locate_libllvm
 from .reference.targets import probe as probe_targets
+from .render.products import onednn_choice
 
 log = logging.getLogger(__name__)
 
@@ -123,6 +124,13 @@ def tried(check: Check, use: Callable[[], str], fix: str) -> Check:
     return check
 
 
+def _products_plan(settings: list, device) -> str:
+    """Who runs training's float32 linear layers under each ``onednn_products`` of these runs
+    (:func:`~stages.render.products.onednn_choice`; ``auto`` times both kernels here, 0.05 s)."""
+    choices = dict.fromkeys(s.onednn_products for s in settings)
+    return "; ".join(dict.fromkeys(onednn_choice(c, device)[1] for c in choices))
+
+
 def _compiled_path(s, device, shadowed: bool | None) -> str:
     """What an optimisation of settings ``s`` on ``device`` would compile (the field's own plan)."""
     kind = renderer_kind(s, shadowed)
@@ -150,6 +158,7 @@ def check_torch(cfg) -> Check:
         + ("; ".join(precision_summary(a, b, device, reason=False) for a, b in levers) or "none in this config")
         + (f"; renderer: {'; '.join(renderers)}" if renderers else "")
         + (f"; C allocator: {allocator_plan([s.keep_freed_memory for s in settings])}" if settings else "")
+        + (f"; float32 linear layers: {_products_plan(settings, device)}" if settings else "")
     )
     if cfg.device == "cuda" and not torch.cuda.is_available():
         return Check(

@@ -137,7 +137,8 @@ def run(
 def _how_it_ran(run: Optimizer, dev: torch.device) -> dict:
     """What the run ran on and in, for the metadata: the device and the CPU (its instruction set and
     features: what the timings and bfloat16's choice depend on), CLIP's and the networks'
-    precision, the renderer, what the C allocator does with freed memory, the shadows cast (from
+    precision, the renderer, what the C allocator does with freed memory, who runs the float32
+    linear layers (oneDNN or ATen), the shadows cast (from
     the cache's visibility, or none and why) and the guidance's origin."""
     return {
         "device": str(dev),
@@ -147,6 +148,7 @@ def _how_it_ran(run: Optimizer, dev: torch.device) -> dict:
         "network_precision": run.network_precision,
         "shading_path": run.shading_path,
         "allocator": run.allocator,
+        "float32_products": run.float32_products,
         "shadows": shadow_record(run.field.shadows, run.views.cache.visibility_directions),
         ORIGIN_KEY: run.guidance.origin,
     }

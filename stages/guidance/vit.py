@@ -21,7 +21,10 @@ for 5 images) and the cast of the frozen weights to bfloat16 at every forward.
 * patch embedding: a convolution whose stride equals its kernel (ViT's ``conv1``) is a linear map
   of the non-overlapping patches (:class:`PatchEmbedding`, Dosovitskiy et al. 2021, eq. 1);
 * under bfloat16 autocast the frozen weights that autocast would cast at every call (linear,
-  attention and patch projections, the output projection) are cast once, to the same values.
+  attention and patch projections, the output projection) are cast once, to the same values;
+* every linear map (the attention's and patch embedding's projections, the MLPs' layers) goes
+  through :func:`stages.render.products.linear`, which a float32 training step on a CPU may route
+  to oneDNN's kernels (``optimize.onednn_products``); ATen's ``linear`` everywhere else.
 
 The parents are the references: ``tests/guidance/test_vit.py`` checks the paths agree in value
 and gradient.
@@ -34,6 +37,7 @@ from torch import Tensor, nn
 from torch.nn import functional as F
 
 from ..config.sections import CLIP_TOWERS
+from ..render.products import linear, route_linear_modules
 
 __all__ = ["CLIP_TOWERS", "BatchedMultiheadAttention", "PatchEmbedding", "fused_attention", "self_attention", "use_fast_tower"]
 
@@ -66,13 +70,13 @@ def self_attention(
     :func:`fused_attention` decides by the device); the same function either way."""
     n, length, e = x.shape
     d = e // heads
-    qkv = F.linear(x, in_weight, in_bias).view(n, length, 3, heads, d).permute(2, 0, 3, 1, 4)
+    qkv = linear(x, in_weight, in_bias).view(n, length, 3, heads, d).permute(2, 0, 3, 1, 4)
     q, k, v = qkv.unbind(0)  # (N, H, L, D) each
     if fused_attention(x.device) if fused is None else fused:
         out = F.scaled_dot_product_attention(q, k, v)
     else:
         out = torch.softmax((q * d**-0.5) @ k.transpose(-1, -2), dim=-1) @ v
-    return F.linear(out.transpose(1, 2).reshape(n, length, e), out_weight, out_bias)
+    return linear(out.transpose(1, 2).reshape(n, length, e), out_weight, out_bias)
 
 
 class BatchedMultiheadAttention(nn.MultiheadAttention):
@@ -131,13 +135,14 @@ class PatchEmbedding(nn.Module):
         n, c, h, w = x.shape
         p = self.patch
         patches = x.reshape(n, c, h // p, p, w // p, p).permute(0, 2, 4, 1, 3, 5).reshape(n, h // p, w // p, c * p * p)
-        return F.linear(patches, self.weight.reshape(len(self.weight), -1), self.bias).permute(0, 3, 1, 2)
+        return linear(patches, self.weight.reshape(len(self.weight), -1), self.bias).permute(0, 3, 1, 2)
 
 
 def use_fast_tower(visual: nn.Module, bf16: bool = False) -> int:
     """Put CLIP's image tower ``visual`` (frozen) on the fast path in place, see the module's
-    docstring: batched attention, the patch embedding as a linear map, and with ``bf16`` the
-    weights autocast would cast stored in bfloat16 once. Returns how many modules changed.
+    docstring: batched attention, the patch embedding as a linear map, the linear layers by
+    :func:`stages.render.products.linear`, and with ``bf16`` the weights autocast would cast stored
+    in bfloat16 once. Returns how many modules changed.
 
     With ``bf16`` the model is changed for good: it must then only run under bfloat16 autocast
     (as :class:`~stages.guidance.clip.ClipGuide` does); load a fresh model for anything else."""
@@ -151,6 +156,7 @@ def use_fast_tower(visual: nn.Module, bf16: bool = False) -> int:
             if PatchEmbedding.applies(child):
                 setattr(parent, name, PatchEmbedding(child))
                 count += 1
+    count += route_linear_modules(visual)
     if bf16:
         with torch.no_grad():
             for m in visual.modules():

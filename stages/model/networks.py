@@ -17,6 +17,7 @@ import torch
 from torch import Tensor, nn
 
 from ..config.sections import BRDFS, LIGHT_INITS
+from ..render.products import Linear
 from ..render.sg import one_minus_exp_neg2x_over_x, sg_integral
 from ..render.shading import SGLight, gltf_f0
 
@@ -193,9 +194,9 @@ def _mlp(in_dim: int, width: int, layers: int, out_dim: int) -> nn.Sequential:
     mods: list[nn.Module] = []
     d = in_dim
     for _ in range(layers - 1):
-        mods += [nn.Linear(d, width), nn.ReLU(inplace=True)]
+        mods += [Linear(d, width), nn.ReLU(inplace=True)]
         d = width
-    mods.append(nn.Linear(d, out_dim))
+    mods.append(Linear(d, out_dim))
     return nn.Sequential(*mods)
 
 
@@ -308,9 +309,9 @@ class SVBRDFNet(nn.Module):
         self.min_roughness = min_roughness
         self.brdf = brdf
         self.trunk = nn.Sequential(
-            nn.Linear(encoding.out_dim, width),
+            Linear(encoding.out_dim, width),
             nn.ReLU(inplace=True),
-            nn.Linear(width, width),
+            Linear(width, width),
             nn.ReLU(inplace=True),
         )
         self.diffuse = _mlp(width, width, 3, 3)

@@ -30,6 +30,7 @@ from ..model.field import StyleField
 from ..model.lightfit import hold_environment
 from ..model.networks import cat_materials, material_variation, normal_tilt
 from ..render.color import linear_to_srgb
+from ..render.products import onednn_choice, onednn_products
 
 
 def _rng_state(np_rng: np.random.Generator, tgen: torch.Generator) -> dict:
@@ -77,6 +78,9 @@ class Optimizer:
         self.allocator = keep_freed_memory(settings.keep_freed_memory)[1]
         #: what the networks' products ran in during training, for the metadata
         self.network_precision = self.field.use_bf16(settings.bf16_networks, self.device)
+        #: whether a step's float32 linear layers (the networks', CLIP's) run by oneDNN, and what ran,
+        #: for the metadata
+        self.onednn, self.float32_products = onednn_choice(settings.onednn_products, self.device)
         self.views = ViewStore(train, self.device, self.field.normals, targets, shadows=self.field.shadows)
         self.field.use_compiled_shading(
             settings.compile_shading,
@@ -245,6 +249,11 @@ class Optimizer:
         )
 
     def step(self, timer: Timer) -> dict:
+        """One optimisation step (its float32 linear layers by oneDNN where :attr:`onednn`)."""
+        with onednn_products(self.onednn):
+            return self._step(timer)
+
+    def _step(self, timer: Timer) -> dict:
         settings = self.settings
         self.field.begin_step()
         with timer("gather"):

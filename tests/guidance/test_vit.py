@@ -15,6 +15,7 @@ from stages.config.sections import ClipSpec
 from stages.guidance import vit
 from stages.guidance.clip import TINY_MODEL, load_clip
 from stages.guidance.vit import BatchedMultiheadAttention, PatchEmbedding, fused_attention, use_fast_tower
+from stages.render.products import Linear, onednn_products
 
 
 def _pair(heads: int, embed: int = 48, dtype=torch.float64):
@@ -138,10 +139,13 @@ def _embeddings_and_gradients(guides, text):
 def test_fast_tower_equals_open_clips():
     """The tiny CLIP loaded both ways in float32: same image embeddings and image gradients, the
     text tower untouched, and the guide says which path runs and what it changed (2 attention
-    blocks and the patch embedding)."""
+    blocks, the patch embedding and each linear layer, now :class:`stages.render.products.Linear`)."""
     ref, ours = _guides(bf16=False)
+    linears = [m for m in ref.model.visual.modules() if type(m) is nn.Linear]
     assert (ref.tower, ref.tower_changes) == ("open_clip", 0)
-    assert (ours.tower, ours.tower_changes) == ("batched", 3)
+    assert len(linears) == 4 and (ours.tower, ours.tower_changes) == ("batched", 3 + len(linears))
+    assert sum(type(m) is Linear for m in ours.model.visual.modules()) == len(linears)
+    assert not any(type(m) is nn.Linear for m in ours.model.visual.modules())
     assert isinstance(ours.model.visual.conv1, PatchEmbedding)
     text = ref.embed_text("a vase made of wood")
     torch.testing.assert_close(ours.embed_text("a vase made of wood"), text)
@@ -165,3 +169,17 @@ def test_fast_tower_under_bf16_matches_open_clip_under_autocast():
     embs, grads = _embeddings_and_gradients((ref, ours), text)
     assert float((embs[1] - embs[0]).norm() / embs[0].norm()) < 1e-2
     assert float((grads[1] - grads[0]).norm() / grads[0].norm()) < 5e-2
+
+
+def test_fast_tower_by_onednn_equals_open_clips():
+    """Inside a step that routes float32 products to oneDNN (``optimize.onednn_products``) the
+    batched tower's projections, MLPs and patch embedding run oneDNN's kernels (none of them ATen's
+    ``addmm``), with the same embeddings and image gradients as open_clip's modules."""
+    ref, ours = _guides(bf16=False)
+    text = ref.embed_text("a vase made of wood")
+    embs, grads = _embeddings_and_gradients((ref,), text)
+    with onednn_products(True), dispatched_ops() as ops:
+        mine, my_grads = _embeddings_and_gradients((ours,), text)
+    assert "_linear_pointwise" in ops and "addmm" not in ops
+    torch.testing.assert_close(mine[0], embs[0], rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(my_grads[0], grads[0], rtol=1e-3, atol=1e-6)

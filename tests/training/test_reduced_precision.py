@@ -30,6 +30,7 @@ MATRIX_PRODUCTS = {
     torch.ops.aten.addmm.default,
     torch.ops.aten.bmm.default,
     torch.ops.aten.baddbmm.default,
+    torch.ops.mkldnn._linear_pointwise.default,  # float32 linear layers by oneDNN (optimize.onednn_products)
 }
 
 
