@@ -47,6 +47,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 import os
 import statistics
 import sys
@@ -170,9 +171,21 @@ class PointwiseCounter(TorchDispatchMode):
         return out
 
 
+def onednn_linear_flops(x_shape, w_shape, *args, out_shape=None, **kwargs) -> int:
+    """FLOPs of oneDNN's linear layer (``mkldnn._linear_pointwise``, where ``stages.render.products``
+    routes float32 layers), counted as ``FlopCounterMode`` counts ATen's ``addmm``: 2 per
+    multiply-add of ``x W^T`` (``x (..., in)``, ``W (out, in)``), the bias not counted."""
+    return 2 * math.prod(x_shape[:-1]) * w_shape[0] * w_shape[1]
+
+
+#: the products ``FlopCounterMode`` does not know, with their formulas
+PRODUCT_FLOPS = {torch.ops.mkldnn._linear_pointwise: onednn_linear_flops}
+
+
 def counted(fn) -> tuple[int, int]:
-    """``(matrix FLOPs, pointwise FLOPs)`` of running ``fn()`` (forward and backward as it runs them)."""
-    with FlopCounterMode(display=False) as mm, PointwiseCounter() as pw:
+    """``(matrix FLOPs, pointwise FLOPs)`` of running ``fn()`` (forward and backward as it runs them;
+    oneDNN's linear layers counted by :func:`onednn_linear_flops`)."""
+    with FlopCounterMode(display=False, custom_mapping=PRODUCT_FLOPS) as mm, PointwiseCounter() as pw:
         fn()
     return mm.get_total_flops(), pw.flops
 

@@ -126,9 +126,16 @@ def tried(check: Check, use: Callable[[], str], fix: str) -> Check:
 
 def _products_plan(settings: list, device) -> str:
     """Who runs training's float32 linear layers under each ``onednn_products`` of these runs
-    (:func:`~stages.render.products.onednn_choice`; ``auto`` times both kernels here, 0.05 s)."""
-    choices = dict.fromkeys(s.onednn_products for s in settings)
-    return "; ".join(dict.fromkeys(onednn_choice(c, device)[1] for c in choices))
+    (:func:`~stages.render.products.onednn_choice`; ``auto`` times both kernels here, 0.05 s), or
+    none where a run's networks and CLIP (if it guides) both run bfloat16."""
+    plans = []
+    for s in settings:
+        clip_bf16 = s.guidance != "clip" or bf16_choice(s.bf16, device, "bf16")[0]
+        if clip_bf16 and bf16_choice(s.bf16_networks, device, "bf16_networks")[0]:
+            plans.append("none (the networks' and CLIP's linear layers run bfloat16)")
+        else:
+            plans.append(onednn_choice(s.onednn_products, device)[1])
+    return "; ".join(dict.fromkeys(plans))
 
 
 def _compiled_path(s, device, shadowed: bool | None) -> str:

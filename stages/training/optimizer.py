@@ -78,9 +78,6 @@ class Optimizer:
         self.allocator = keep_freed_memory(settings.keep_freed_memory)[1]
         #: what the networks' products ran in during training, for the metadata
         self.network_precision = self.field.use_bf16(settings.bf16_networks, self.device)
-        #: whether a step's float32 linear layers (the networks', CLIP's) run by oneDNN, and what ran,
-        #: for the metadata
-        self.onednn, self.float32_products = onednn_choice(settings.onednn_products, self.device)
         self.views = ViewStore(train, self.device, self.field.normals, targets, shadows=self.field.shadows)
         self.field.use_compiled_shading(
             settings.compile_shading,
@@ -105,11 +102,22 @@ class Optimizer:
         self.history: list[dict] = []
         self.history_stride = 1
         self.guidance = choose_guidance(settings, prompt, self.device, guide, targets.description if targets else None)
+        #: whether a step's float32 linear layers (the networks', CLIP's) run by oneDNN, and what ran,
+        #: for the metadata
+        self.onednn, self.float32_products = self.products_choice()
         self.points_last = 0
         #: points shaded and steps taken by this process (the mean per step for the metadata)
         self.points_total, self.steps_taken = 0, 0
         #: when the light was pruned (``light_prune_after``): iteration, lobes kept and dropped
         self.light_pruned: dict | None = None
+
+    def products_choice(self) -> tuple[bool, str]:
+        """:func:`~stages.render.products.onednn_choice` for this run's float32 linear layers, or
+        none to route where the networks and CLIP (if it guides) both run bfloat16."""
+        clip = getattr(self.guidance, "guide", None)
+        if self.field.bf16 and (clip is None or clip.bf16):
+            return False, "none (the networks' and CLIP's linear layers run bfloat16)"
+        return onednn_choice(self.settings.onednn_products, self.device)
 
     @property
     def shading_path(self) -> str:

@@ -14,6 +14,7 @@ from torch import nn
 
 from stages import optimize
 from stages.config.sections import OptimizeSettings
+from stages.core.device import bf16_support
 from stages.render import products
 from stages.render.products import Linear, linear, onednn_choice, onednn_products, route_linear_modules
 
@@ -195,10 +196,54 @@ def test_the_doctor_names_who_runs_the_float32_linear_layers_of_each_run(monkeyp
             "device": "cpu",
             "meshes": {"vase": {"builtin": "vase"}},
             "prompts": {"wood": {"text": "a {object} made of wood"}},
-            "variants": {"routed": {}, "aten": {"optimize": {"onednn_products": "off"}}},
-            "optimize": {"clip_tiny_test": True, "iterations": 3},
+            "variants": {
+                "routed": {},
+                "aten": {"optimize": {"onednn_products": "off"}},
+                "bf16": {"optimize": {"bf16": "on", "bf16_networks": "on"}},
+            },
+            "optimize": {"clip_tiny_test": True, "iterations": 3, "bf16": "off", "bf16_networks": "off"},
         }
     )
     detail = doctor.check_torch(cfg).detail
     measured = f"measured 2.50 times ATen's speed on this CPU at {torch.get_num_threads()} threads"
-    assert f"float32 linear layers: oneDNN (auto: {measured}); ATen (onednn_products: off)" in detail, detail
+    plans = f"oneDNN (auto: {measured}); ATen (onednn_products: off)"
+    if bf16_support(torch.device("cpu"))[0]:  # (where bfloat16 is not native, "on" runs float32)
+        plans += "; none (the networks' and CLIP's linear layers run bfloat16)"
+    assert f"float32 linear layers: {plans}" in detail, detail
+
+
+def test_the_benchmarks_count_the_same_flops_whichever_kernels_run():
+    """``benchmarks/optimize.py`` counts oneDNN's linear layers (which ``FlopCounterMode`` does not
+    know) as ATen's: forward, input and weight gradients, 2 per multiply-add, the bias not counted."""
+    import importlib
+    import sys
+
+    from conftest import REPO
+
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    counted = importlib.import_module("optimize").counted
+    x, w, b = _operands((5, 7), inner=24, out=40)
+
+    def run(routed: bool) -> None:
+        with onednn_products(routed):
+            linear(x, w, b).sum().backward()
+
+    assert counted(lambda: run(True))[0] == counted(lambda: run(False))[0] == 3 * 2 * 35 * 24 * 40
+
+
+def test_nothing_is_timed_or_routed_where_every_linear_layer_runs_bfloat16(cache, monkeypatch):
+    """A run whose networks and CLIP both run bfloat16 has no float32 linear layer to route: it
+    neither times the kernels nor routes, and says so; one float32 part is enough to decide."""
+    from stages.geometry.raycache import RayCache
+    from stages.training.optimizer import Optimizer
+
+    timed = []
+    monkeypatch.setattr(products, "measured_speedup", lambda threads: timed.append(threads) or 2.0)
+    s = OptimizeSettings(**TINY_OPTIMIZE, clip_tiny_test=True, crops=0, bf16="off", bf16_networks="off")
+    opt = Optimizer(s, RayCache(cache / "train.npz"), "a vase made of wood", "cpu")
+    assert (opt.onednn, opt.float32_products.split(" (")[0]) == (True, "oneDNN") and len(timed) == 1
+    opt.field.bf16 = True  # the networks in bfloat16, CLIP still float32: still routed
+    assert opt.products_choice()[0] and len(timed) == 2
+    opt.guidance.guide.bf16 = True
+    assert opt.products_choice() == (False, "none (the networks' and CLIP's linear layers run bfloat16)")
+    assert len(timed) == 2
