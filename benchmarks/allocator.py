@@ -1,6 +1,8 @@
 """The C allocator keeping the memory a step frees (``optimize.keep_freed_memory``) against the
-allocator as it is, on the paper's training step: the setting holds for a whole process, so the
-two are compared in child processes taken in turns (off, on, off, on, ...), each timing
+allocator as it is, on the paper's training step, or another process-wide lever's off against on
+(``--lever onednn_products``: the float32 linear layers by ATen's kernels against oneDNN's): the
+setting holds for a whole process, so the two are compared in child processes taken in turns
+(off, on, off, on, ...), each timing
 ``--steps`` real steps (``Optimizer.step``) after 3 untimed ones. Each prints its seconds per
 step, minor page faults per step and peak resident memory; the last line gives the median of the
 paired ratios (off over on).
@@ -8,9 +10,11 @@ paired ratios (off over on).
 The mesh is ``../shared/meshes/person.obj`` when present, else the built-in vase; the paper's
 settings (a 512 x 512 ray cache of 8 views, CLIP ViT-B-32 with random weights, width 256, 32 lobes,
 1 global image and 4 crops per step) and the defaults' levers, as ``benchmarks/optimize.py``'s
-measured step, whose last line also gives the step's FLOP floor. ``--isa avx2`` holds torch to AVX2.
+measured step, whose last line also gives the step's FLOP floor. ``--isa avx2`` holds torch to AVX2;
+``--precision float32`` turns both bfloat16 levers off.
 
     python benchmarks/allocator.py [--rounds 3] [--steps 8] [--isa native|avx2]
+        [--lever keep_freed_memory|onednn_products] [--precision defaults|float32]
 """
 
 from __future__ import annotations
@@ -31,9 +35,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from stages.core.device import AVX2_ONLY_ENV, cpu_isa  # noqa: E402
 
+#: the process-wide levers this benchmark compares, and what the optimiser records of each
+LEVERS = {"keep_freed_memory": "allocator", "onednn_products": "float32_products"}
 
-def child(train: Path, setting: str, steps: int) -> dict:
-    """``steps`` paper steps under ``keep_freed_memory: setting`` in this process."""
+
+def child(train: Path, lever: str, setting: str, steps: int, float32: bool) -> dict:
+    """``steps`` paper steps under ``lever: setting`` in this process (``float32``: both bfloat16
+    levers off)."""
     import torch
     from optimize import make_optimizer, vit_b32_random
 
@@ -41,7 +49,8 @@ def child(train: Path, setting: str, steps: int) -> dict:
     from stages.core.provenance import Timer
 
     torch.manual_seed(0)
-    s = OptimizeSettings(iterations=1500, keep_freed_memory=setting)
+    precision = {"bf16": "off", "bf16_networks": "off"} if float32 else {}
+    s = OptimizeSettings(iterations=1500, **{lever: setting}, **precision)
     opt = make_optimizer(s, train, vit_b32_random(bf16=s.bf16))
     for _ in range(3):
         opt.step(Timer())
@@ -54,7 +63,7 @@ def child(train: Path, setting: str, steps: int) -> dict:
         "s_per_step": wall / steps,
         "faults_per_step": (resource.getrusage(resource.RUSAGE_SELF).ru_minflt - faults0) / steps,
         "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 / 1e9,
-        "allocator": opt.allocator,
+        "allocator": getattr(opt, LEVERS[lever]),
         "step": f"{opt.shading_path}; networks {opt.network_precision}",
     }
 
@@ -64,22 +73,30 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=3, help="pairs of processes (off, then on)")
     parser.add_argument("--steps", type=int, default=8, help="timed steps per process")
     parser.add_argument("--isa", choices=("native", "avx2"), default="native", help="avx2: torch held to AVX2")
+    parser.add_argument("--lever", choices=tuple(LEVERS), default="keep_freed_memory", help="the lever taken off and on")
+    parser.add_argument("--precision", choices=("defaults", "float32"), default="defaults")
     parser.add_argument("--child", nargs=2, metavar=("TRAIN", "SETTING"), help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
-        print(json.dumps(child(Path(args.child[0]), args.child[1], args.steps)), flush=True)
+        row = child(Path(args.child[0]), args.lever, args.child[1], args.steps, args.precision == "float32")
+        print(json.dumps(row), flush=True)
         return
     from optimize import build_cache
 
     env = {**os.environ, **(AVX2_ONLY_ENV if args.isa == "avx2" else {})}
     with tempfile.TemporaryDirectory() as d:
         train, mesh = build_cache(Path(d))
-        print(f"# mesh {mesh}; the paper step; {args.steps} steps per process; torch held to {args.isa}", flush=True)
-        print(f"{'round':>5} {'setting':<8}{'s/step':>8}{'faults/step':>13}{'peak GB':>9}  allocator", flush=True)
+        print(
+            f"# mesh {mesh}; the paper step ({args.precision}); {args.lever} off and on; {args.steps} steps per process; "
+            f"torch held to {args.isa}",
+            flush=True,
+        )
+        print(f"{'round':>5} {'setting':<8}{'s/step':>8}{'faults/step':>13}{'peak GB':>9}  {LEVERS[args.lever]}", flush=True)
         rows: dict[str, list[dict]] = {"off": [], "on": []}
         for r in range(args.rounds):
             for setting in ("off", "on"):
-                cmd = [sys.executable, __file__, "--steps", str(args.steps), "--child", str(train), setting]
+                cmd = [sys.executable, __file__, "--steps", str(args.steps), "--lever", args.lever]
+                cmd += ["--precision", args.precision, "--child", str(train), setting]
                 out = subprocess.run(cmd, env=env, capture_output=True, text=True, check=True).stdout
                 row = json.loads(out.strip().splitlines()[-1])
                 rows[setting].append(row)

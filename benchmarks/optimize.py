@@ -535,8 +535,51 @@ def main() -> None:
     # CLIP measured alone below routes its float32 linear layers as a training step does
     routed, products = onednn_choice(OptimizeSettings().onednn_products, torch.device("cpu"))
     print(f"# float32 linear layers: {products}", flush=True)
+    print("# float32 products at the step's shapes, GFLOP/s by kernel (the forward, and the two gradients' products)")
+    print(f"{'product':<58}{'ATen':>8}{'oneDNN':>8}{'ratio':>7}")
+    for name, rates in product_rates().items():
+        ratio = rates["onednn"] / rates["aten"] if rates.get("onednn") else float("nan")
+        print(f"{name:<58}{rates['aten'] / 1e9:>8.0f}{rates.get('onednn', float('nan')) / 1e9:>8.0f}{ratio:>7.2f}", flush=True)
     with onednn_products(routed):
         measure(args)
+
+
+#: the float32 products of a paper step, ``name -> (rows, inner, columns)`` of ``(rows x inner) @
+#: (inner x columns)``: CLIP's MLP (250 tokens) forward and its input gradient, the networks'
+#: width-256 layer (24,500 points) forward and its weight gradient (the sum over the points)
+STEP_PRODUCTS = {
+    "CLIP MLP in, forward (250 x 768 by 768 x 3072)": (250, 768, 3072),
+    "CLIP MLP in, input gradient (250 x 3072 by 3072 x 768)": (250, 3072, 768),
+    "networks, forward (24500 x 256 by 256 x 256)": (24500, 256, 256),
+}
+
+
+def product_rates() -> dict[str, dict[str, float]]:
+    """:data:`STEP_PRODUCTS` and the networks' weight gradient, FLOP/s by ATen's and by oneDNN's
+    kernels (oneDNN's where this torch has it; the weight gradient by ``torch.mm`` of the
+    transposed operand, as ATen runs it, and by oneDNN on the same views)."""
+    out = {}
+    for name, shape in STEP_PRODUCTS.items():
+        out[name] = {k: matmul_rate(*shape, kernels=k) for k in ("aten", "onednn")[: 2 if onednn_available() else 1]}
+    g, x = torch.randn(24500, 256), torch.randn(24500, 256)
+    flops = 2.0 * 24500 * 256 * 256
+    rates = {"aten": flops / _best(lambda: g.t() @ x)}
+    if onednn_available():
+        with onednn_products(True):
+            rates["onednn"] = flops / _best(lambda: linear(g.t(), x.t()))
+    out["networks, weight gradient (256 x 24500 by 24500 x 256)"] = rates
+    return out
+
+
+def _best(fn, repeats: int = 5) -> float:
+    """The best of ``repeats`` timings of ``fn()`` after one untimed call."""
+    fn()
+    ts = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        ts.append(time.perf_counter() - t0)
+    return min(ts)
 
 
 def measure(args: argparse.Namespace) -> None:
