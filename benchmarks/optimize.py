@@ -231,7 +231,7 @@ def timed_split(opt: Optimizer, steps: int) -> dict[str, float]:
     together = opt.field.compiled_field is not None
     parts = {k: [] for k in ("gather", "mlp", "shading", "clip", "optimizer")}
     for i in range(steps + 1):
-        with onednn_products(opt.onednn):  # as the step routes its float32 linear layers
+        with onednn_products(opt.onednn, opt.transposes):  # as the step routes its float32 linear layers
             times, points = _split_once(opt, together, s)
         if i == 0:
             continue

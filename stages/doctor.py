@@ -58,7 +58,7 @@ from .reference import targets as targets_ref
 from .reference.blender import INSTALL_HINT, BlenderUnavailable, find_blender
 from .reference.mitsuba import LLVM_WHEEL, choose_variant, locate_libllvm
 from .reference.targets import probe as probe_targets
-from .render.products import onednn_choice
+from .render.products import NOTHING_ROUTED, onednn_choice
 
 log = logging.getLogger(__name__)
 
@@ -127,12 +127,13 @@ def tried(check: Check, use: Callable[[], str], fix: str) -> Check:
 def _products_plan(settings: list, device) -> str:
     """Who runs training's float32 linear layers under each ``onednn_products`` of these runs
     (:func:`~stages.render.products.onednn_choice`; ``auto`` times both kernels here, 0.05 s), or
-    none where a run's networks and CLIP (if it guides) both run bfloat16."""
+    none where a run's networks run bfloat16 and CLIP (if it guides) bfloat16 or on open_clip's
+    modules."""
     plans = []
     for s in settings:
-        clip_bf16 = s.guidance != "clip" or bf16_choice(s.bf16, device, "bf16")[0]
-        if clip_bf16 and bf16_choice(s.bf16_networks, device, "bf16_networks")[0]:
-            plans.append("none (the networks' and CLIP's linear layers run bfloat16)")
+        clip_unrouted = s.guidance != "clip" or s.clip_tower != "batched" or bf16_choice(s.bf16, device, "bf16")[0]
+        if clip_unrouted and bf16_choice(s.bf16_networks, device, "bf16_networks")[0]:
+            plans.append(NOTHING_ROUTED)
         else:
             plans.append(onednn_choice(s.onednn_products, device)[1])
     return "; ".join(dict.fromkeys(plans))

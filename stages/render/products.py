@@ -5,17 +5,18 @@ torch computes a float32 ``linear`` on a CPU with ATen's matrix product, which c
 its AVX2 code even where the CPU has AVX-512, and oneDNN (which torch also carries, and uses for
 bfloat16) does not. Measured on a 2-core AMD EPYC with AVX-512 (``python benchmarks/optimize.py``,
 docs/measurements/speed.md): the products of CLIP's image tower (250 x 768 by 768 x 3,072 and
-the like) ran at 200 GFLOP/s by MKL and 450-480 by oneDNN; held to AVX2, 175-206 against 228-257.
+the like) ran at 163-182 GFLOP/s by MKL and 417-431 by oneDNN; held to AVX2, 203-205 against 231-233.
 
 :func:`linear` is ``torch.nn.functional.linear``; inside :func:`onednn_products` (entered by the
 training step where :func:`onednn_choice` decides so) a float32 product on a CPU outside any
 autocast and outside ``torch.compile`` runs forward by ``torch.ops.mkldnn._linear_pointwise``,
 with a backward written here (:class:`_OneDNNLinear`): the input's gradient ``g W`` by oneDNN
-as well (``W``'s transpose kept once for frozen weights, CLIP's), the weight's ``g^T x`` by ATen
-(the long sums over a step's points ran faster there held to AVX2: 189 against 150 GFLOP/s), the
-bias's ``sum(g)``. The same function to float32 rounding (tested against float64 in
-``tests/render/test_products.py``). Everything else, bfloat16 under autocast included, runs ATen's
-path as before (bfloat16 products already go to oneDNN).
+as well (the transposes of frozen weights, CLIP's, kept for the region's owner: a training run),
+the weight's ``g^T x`` by ATen (the long sums over a step's points: oneDNN, given the transposed
+operands it takes, ran them slower held to AVX2, 155 against 193 GFLOP/s), the bias's ``sum(g)``.
+The same function to float32 rounding (tested against float64 in
+``tests/render/test_products.py``). Everything else, bfloat16 under autocast included, runs
+ATen's path as before (bfloat16 products already go to oneDNN).
 """
 
 from __future__ import annotations
@@ -35,8 +36,11 @@ from ..core.device import lever_choice
 
 log = logging.getLogger(__name__)
 
-#: whether :func:`linear` routes float32 products on a CPU to oneDNN (:func:`onednn_products`)
-_ROUTED: ContextVar[bool] = ContextVar("onednn_products", default=False)
+#: inside :func:`onednn_products` with routing on: the transposes of frozen weights kept for the
+#: region's owner (``(data pointer, shape, strides, version) -> transpose``); None: not routed
+_ROUTED: ContextVar[dict | None] = ContextVar("onednn_products", default=None)
+#: what a run records where none of its linear layers could be routed
+NOTHING_ROUTED = "none (the networks run bfloat16, and CLIP bfloat16 or on open_clip's own modules)"
 #: ``auto`` takes oneDNN where it measured at least this many times as fast as ATen
 MIN_SPEEDUP = 1.05
 #: the shapes :func:`measured_speedup` times, ``(rows, inner, columns)``: CLIP ViT-B's MLP at a
@@ -47,7 +51,11 @@ PROBE_SHAPES = ((250, 768, 3072), (8192, 256, 256))
 def onednn_available() -> bool:
     """Whether this torch can run float32 linear layers by oneDNN on a CPU (built with it, and
     with the operator this module calls)."""
-    return torch.backends.mkldnn.is_available() and hasattr(torch.ops.mkldnn, "_linear_pointwise")
+    return (
+        torch.backends.mkldnn.is_available()
+        and torch.backends.mkldnn.enabled  # (a user's torch.backends.mkldnn.flags(enabled=False) holds)
+        and hasattr(torch.ops.mkldnn, "_linear_pointwise")
+    )
 
 
 def _onednn(x: Tensor, weight: Tensor, bias: Tensor | None) -> Tensor:
@@ -55,17 +63,19 @@ def _onednn(x: Tensor, weight: Tensor, bias: Tensor | None) -> Tensor:
     return torch.ops.mkldnn._linear_pointwise(x, weight, bias, "none", [], "")
 
 
-def _transposed(weight: Tensor) -> Tensor:
-    """``weight^T`` contiguous, kept on the tensor while its values stay the same (frozen
-    weights: CLIP's; a trained weight changes every step and is transposed at each use)."""
+def _transposed(weight: Tensor, kept: dict) -> Tensor:
+    """``weight^T`` contiguous; for a frozen weight (CLIP's) kept in ``kept`` under its memory,
+    shape, strides and version (an in-place change makes a new one; a view made afresh at each
+    call, as the patch embedding's, finds the same). A trained weight changes every step and is
+    transposed at each use. The owner of ``kept`` drops it with the weights' last use."""
     if weight.requires_grad:
         return weight.detach().t().contiguous()
-    key = (weight._version, weight.data_ptr())
-    kept = getattr(weight, "_onednn_transposed", None)
-    if kept is None or kept[0] != key:
-        kept = (key, weight.t().contiguous())
-        weight._onednn_transposed = kept
-    return kept[1]
+    key = (weight.data_ptr(), tuple(weight.shape), weight.stride(), weight._version)
+    if key not in kept:
+        for old in [k for k in kept if k[:3] == key[:3]]:  # an older version of the same weight
+            del kept[old]
+        kept[key] = weight.t().contiguous()
+    return kept[key]
 
 
 class _OneDNNLinear(torch.autograd.Function):
@@ -73,32 +83,35 @@ class _OneDNNLinear(torch.autograd.Function):
     ``db = sum of g over rows``, each only where its input needs it."""
 
     @staticmethod
-    def forward(ctx, x: Tensor, weight: Tensor, bias: Tensor | None) -> Tensor:
+    def forward(ctx, x: Tensor, weight: Tensor, bias: Tensor | None, kept: dict) -> Tensor:
         ctx.save_for_backward(x, weight)
+        ctx.kept = kept
         return _onednn(x, weight, bias)
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad: Tensor):
         x, weight = ctx.saved_tensors
-        need_x, need_w, need_b = ctx.needs_input_grad
+        need_x, need_w, need_b, _ = ctx.needs_input_grad
         grad = grad.contiguous()
         rows = grad.reshape(-1, grad.shape[-1])
-        dx = _onednn(grad, _transposed(weight), None) if need_x else None
+        dx = _onednn(grad, _transposed(weight, ctx.kept), None) if need_x else None
         dw = rows.t() @ x.reshape(-1, x.shape[-1]) if need_w else None
         db = rows.sum(0) if need_b else None
-        return dx, dw, db
+        return dx, dw, db, None
 
 
 def routed(x: Tensor, weight: Tensor) -> bool:
     """Whether :func:`linear` takes oneDNN's path for these operands here and now."""
     return (
         not torch.compiler.is_compiling()  # first: a traced graph keeps ATen's (and never reads the flag)
-        and _ROUTED.get()
+        and _ROUTED.get() is not None
         and x.device.type == "cpu"
         and x.dtype == torch.float32
         and weight.dtype == torch.float32
+        and weight.shape[-1] > 0  # (oneDNN has no product over nothing)
         and not torch.is_autocast_enabled("cpu")
+        and torch.backends.mkldnn.enabled
     )
 
 
@@ -106,7 +119,7 @@ def linear(x: Tensor, weight: Tensor, bias: Tensor | None = None) -> Tensor:
     """``torch.nn.functional.linear(x, weight, bias)``: ``x (..., in)``, ``weight (out, in)``,
     ``bias (out,)`` -> ``(..., out)``; by oneDNN where :func:`routed`, else ATen."""
     if routed(x, weight):
-        return _OneDNNLinear.apply(x, weight, bias)
+        return _OneDNNLinear.apply(x, weight, bias, _ROUTED.get())
     return F.linear(x, weight, bias)
 
 
@@ -129,9 +142,12 @@ def route_linear_modules(module: nn.Module) -> int:
 
 
 @contextlib.contextmanager
-def onednn_products(enabled: bool) -> Iterator[None]:
-    """Inside, :func:`linear` takes oneDNN's path where :func:`routed` (``enabled``), or never."""
-    token = _ROUTED.set(bool(enabled))
+def onednn_products(enabled: bool, kept: dict | None = None) -> Iterator[None]:
+    """Inside, :func:`linear` takes oneDNN's path where :func:`routed` (``enabled``), or never.
+    ``kept``: where the transposes of frozen weights are kept across regions (a training run
+    passes its own for every step, so that CLIP's are made once and dropped with the run); by
+    default the region's own."""
+    token = _ROUTED.set(({} if kept is None else kept) if enabled else None)
     try:
         yield
     finally:

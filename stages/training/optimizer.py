@@ -30,7 +30,7 @@ from ..model.field import StyleField
 from ..model.lightfit import hold_environment
 from ..model.networks import cat_materials, material_variation, normal_tilt
 from ..render.color import linear_to_srgb
-from ..render.products import onednn_choice, onednn_products
+from ..render.products import NOTHING_ROUTED, onednn_choice, onednn_products
 
 
 def _rng_state(np_rng: np.random.Generator, tgen: torch.Generator) -> dict:
@@ -105,6 +105,8 @@ class Optimizer:
         #: whether a step's float32 linear layers (the networks', CLIP's) run by oneDNN, and what ran,
         #: for the metadata
         self.onednn, self.float32_products = self.products_choice()
+        #: the transposes of CLIP's frozen weights oneDNN's path keeps for this run's steps
+        self.transposes: dict = {}
         self.points_last = 0
         #: points shaded and steps taken by this process (the mean per step for the metadata)
         self.points_total, self.steps_taken = 0, 0
@@ -113,10 +115,11 @@ class Optimizer:
 
     def products_choice(self) -> tuple[bool, str]:
         """:func:`~stages.render.products.onednn_choice` for this run's float32 linear layers, or
-        none to route where the networks and CLIP (if it guides) both run bfloat16."""
+        none to route where the networks run bfloat16 and CLIP (if it guides) bfloat16 or on
+        open_clip's own modules (which are not routed)."""
         clip = getattr(self.guidance, "guide", None)
-        if self.field.bf16 and (clip is None or clip.bf16):
-            return False, "none (the networks' and CLIP's linear layers run bfloat16)"
+        if self.field.bf16 and (clip is None or clip.bf16 or clip.tower != "batched"):
+            return False, NOTHING_ROUTED
         return onednn_choice(self.settings.onednn_products, self.device)
 
     @property
@@ -258,7 +261,7 @@ class Optimizer:
 
     def step(self, timer: Timer) -> dict:
         """One optimisation step (its float32 linear layers by oneDNN where :attr:`onednn`)."""
-        with onednn_products(self.onednn):
+        with onednn_products(self.onednn, self.transposes):
             return self._step(timer)
 
     def _step(self, timer: Timer) -> dict:

@@ -208,7 +208,7 @@ def test_the_doctor_names_who_runs_the_float32_linear_layers_of_each_run(monkeyp
     measured = f"measured 2.50 times ATen's speed on this CPU at {torch.get_num_threads()} threads"
     plans = f"oneDNN (auto: {measured}); ATen (onednn_products: off)"
     if bf16_support(torch.device("cpu"))[0]:  # (where bfloat16 is not native, "on" runs float32)
-        plans += "; none (the networks' and CLIP's linear layers run bfloat16)"
+        plans += f"; {products.NOTHING_ROUTED}"
     assert f"float32 linear layers: {plans}" in detail, detail
 
 
@@ -232,8 +232,9 @@ def test_the_benchmarks_count_the_same_flops_whichever_kernels_run():
 
 
 def test_nothing_is_timed_or_routed_where_every_linear_layer_runs_bfloat16(cache, monkeypatch):
-    """A run whose networks and CLIP both run bfloat16 has no float32 linear layer to route: it
-    neither times the kernels nor routes, and says so; one float32 part is enough to decide."""
+    """A run whose networks run bfloat16 and CLIP bfloat16 (or on open_clip's own modules, which
+    are not routed) has no float32 linear layer to route: it neither times the kernels nor routes,
+    and says so; one routed float32 part is enough to decide."""
     from stages.geometry.raycache import RayCache
     from stages.training.optimizer import Optimizer
 
@@ -244,6 +245,56 @@ def test_nothing_is_timed_or_routed_where_every_linear_layer_runs_bfloat16(cache
     assert (opt.onednn, opt.float32_products.split(" (")[0]) == (True, "oneDNN") and len(timed) == 1
     opt.field.bf16 = True  # the networks in bfloat16, CLIP still float32: still routed
     assert opt.products_choice()[0] and len(timed) == 2
-    opt.guidance.guide.bf16 = True
-    assert opt.products_choice() == (False, "none (the networks' and CLIP's linear layers run bfloat16)")
+    opt.guidance.guide.tower = "open_clip"  # CLIP float32 on open_clip's modules: not routed
+    assert opt.products_choice() == (False, products.NOTHING_ROUTED)
+    opt.guidance.guide.tower, opt.guidance.guide.bf16 = "batched", True
+    assert opt.products_choice() == (False, products.NOTHING_ROUTED)
     assert len(timed) == 2
+
+
+def test_frozen_weights_transposes_are_kept_for_their_owner_only():
+    """A run's ``kept`` holds one transpose per frozen weight across its steps: a view made afresh
+    at each call (the patch embedding's reshape) finds the same one, an in-place change replaces
+    it, and nothing is left on the weight itself (dropped with the run)."""
+    conv = torch.randn(40, 3, 2, 4)  # frozen, as CLIP's; used through a new view at each call
+    kept: dict = {}
+    x = torch.randn(6, 24, requires_grad=True)
+    for _ in range(3):
+        with onednn_products(True, kept):
+            linear(x, conv.reshape(40, -1)).sum().backward()
+    assert len(kept) == 1 and not hasattr(conv, "_onednn_transposed")
+    (transpose,) = kept.values()
+    torch.testing.assert_close(transpose, conv.reshape(40, -1).T)
+    conv.mul_(-1.0)
+    x.grad = None
+    with onednn_products(True, kept):
+        linear(x, conv.reshape(40, -1)).sum().backward()
+    assert len(kept) == 1
+    torch.testing.assert_close(x.grad, torch.ones(6, 40) @ conv.reshape(40, -1))
+
+
+def test_aten_runs_in_a_compiled_graph_off_the_cpu_for_other_dtypes_and_with_mkldnn_off():
+    """``torch.compile`` traces ATen's linear even inside a routed region (the flag never read);
+    a tensor off the CPU, a float64 weight, and torch's own switch for oneDNN turned off are not
+    routed either."""
+    layer = Linear(24, 40)
+    x = torch.randn(5, 24)
+    graphs = []
+
+    def backend(gm, inputs):  # the graph dynamo traced, kept to read its operations
+        graphs.append({str(node.target) for node in gm.graph.nodes})
+        return gm.forward
+
+    compiled = torch.compile(layer, backend=backend, fullgraph=True)
+    with onednn_products(True):
+        torch.testing.assert_close(compiled(x), torch.nn.functional.linear(x, layer.weight, layer.bias))
+    assert len(graphs) == 1 and any("linear" in t for t in graphs[0]), graphs
+    assert not any("mkldnn" in t or "OneDNN" in t for t in graphs[0]), graphs
+    with onednn_products(True):
+        assert products.routed(x, layer.weight)
+        assert not products.routed(x.to("meta"), layer.weight.to("meta"))
+        assert not products.routed(x, layer.weight.double())
+        assert not products.routed(torch.randn(5, 0), torch.randn(40, 0))
+        with torch.backends.mkldnn.flags(enabled=False):
+            assert not products.routed(x, layer.weight)
+            assert not products.onednn_available()
