@@ -124,6 +124,17 @@ def mlp_flops_per_point(field) -> float:
     return 6.0 * macs
 
 
+def _best(fn, repeats: int = 5) -> float:
+    """The best of ``repeats`` timings of ``fn()`` after one untimed call."""
+    fn()
+    ts = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        ts.append(time.perf_counter() - t0)
+    return min(ts)
+
+
 def matmul_rate(
     rows: int, inner: int, cols: int, dtype: torch.dtype = torch.float32, repeats: int = 5, kernels: str = "best"
 ) -> float:
@@ -144,13 +155,7 @@ def matmul_rate(
         with onednn_products(True):
             return linear(a, bt)
 
-    product()
-    ts = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        product()
-        ts.append(time.perf_counter() - t0)
-    return 2.0 * rows * inner * cols / min(ts)
+    return 2.0 * rows * inner * cols / _best(product, repeats)
 
 
 class PointwiseCounter(TorchDispatchMode):
@@ -569,17 +574,6 @@ def product_rates() -> dict[str, dict[str, float]]:
             rates["onednn"] = flops / _best(lambda: linear(g.t(), x.t()))
     out["networks, weight gradient (256 x 24500 by 24500 x 256)"] = rates
     return out
-
-
-def _best(fn, repeats: int = 5) -> float:
-    """The best of ``repeats`` timings of ``fn()`` after one untimed call."""
-    fn()
-    ts = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        ts.append(time.perf_counter() - t0)
-    return min(ts)
 
 
 def measure(args: argparse.Namespace) -> None:

@@ -58,7 +58,7 @@ from .reference import targets as targets_ref
 from .reference.blender import INSTALL_HINT, BlenderUnavailable, find_blender
 from .reference.mitsuba import LLVM_WHEEL, choose_variant, locate_libllvm
 from .reference.targets import probe as probe_targets
-from .render.products import NOTHING_ROUTED, onednn_choice
+from .render.products import run_choice
 
 log = logging.getLogger(__name__)
 
@@ -125,17 +125,13 @@ def tried(check: Check, use: Callable[[], str], fix: str) -> Check:
 
 
 def _products_plan(settings: list, device) -> str:
-    """Who runs training's float32 linear layers under each ``onednn_products`` of these runs
-    (:func:`~stages.render.products.onednn_choice`; ``auto`` times both kernels here, 0.05 s), or
-    none where a run's networks run bfloat16 and CLIP (if it guides) bfloat16 or on open_clip's
-    modules."""
+    """Who runs training's float32 linear layers under each of these runs' settings
+    (:func:`~stages.render.products.run_choice`; ``auto`` times both kernels here, 0.05 s)."""
     plans = []
     for s in settings:
-        clip_unrouted = s.guidance != "clip" or s.clip_tower != "batched" or bf16_choice(s.bf16, device, "bf16")[0]
-        if clip_unrouted and bf16_choice(s.bf16_networks, device, "bf16_networks")[0]:
-            plans.append(NOTHING_ROUTED)
-        else:
-            plans.append(onednn_choice(s.onednn_products, device)[1])
+        clip = (bf16_choice(s.bf16, device, "bf16")[0], s.clip_tower) if s.guidance == "clip" else None
+        networks_bf16 = bf16_choice(s.bf16_networks, device, "bf16_networks")[0]
+        plans.append(run_choice(s.onednn_products, device, networks_bf16, clip)[1])
     return "; ".join(dict.fromkeys(plans))
 
 

@@ -178,6 +178,17 @@ def measured_speedup(threads: int, repeats: int = 3) -> float:
     return aten / onednn
 
 
+def run_choice(setting: str | bool, device: torch.device, networks_bf16: bool, clip: tuple[bool, str] | None) -> tuple[bool, str]:
+    """:func:`onednn_choice` for a training run whose networks run bfloat16 or not
+    (``networks_bf16``) and whose CLIP (``clip``: ``(bfloat16, tower)``; None where CLIP does not
+    guide) runs so: ``(False, NOTHING_ROUTED)`` without timing anything where no float32 layer
+    would be routed (the networks bfloat16, and CLIP bfloat16 or on open_clip's own modules)."""
+    clip_routed = clip is not None and not clip[0] and clip[1] == "batched"
+    if networks_bf16 and not clip_routed:
+        return False, NOTHING_ROUTED
+    return onednn_choice(setting, device)
+
+
 def onednn_choice(setting: str | bool, device: torch.device) -> tuple[bool, str]:
     """Whether training's float32 linear layers (the networks', CLIP's) run by oneDNN on ``device``
     (``optimize.onednn_products``: auto, on or off; booleans mean on and off), and what runs, for

@@ -30,7 +30,7 @@ from ..model.field import StyleField
 from ..model.lightfit import hold_environment
 from ..model.networks import cat_materials, material_variation, normal_tilt
 from ..render.color import linear_to_srgb
-from ..render.products import NOTHING_ROUTED, onednn_choice, onednn_products
+from ..render.products import onednn_products, run_choice
 
 
 def _rng_state(np_rng: np.random.Generator, tgen: torch.Generator) -> dict:
@@ -114,13 +114,9 @@ class Optimizer:
         self.light_pruned: dict | None = None
 
     def products_choice(self) -> tuple[bool, str]:
-        """:func:`~stages.render.products.onednn_choice` for this run's float32 linear layers, or
-        none to route where the networks run bfloat16 and CLIP (if it guides) bfloat16 or on
-        open_clip's own modules (which are not routed)."""
+        """:func:`~stages.render.products.run_choice` for this run's networks and CLIP as built."""
         clip = getattr(self.guidance, "guide", None)
-        if self.field.bf16 and (clip is None or clip.bf16 or clip.tower != "batched"):
-            return False, NOTHING_ROUTED
-        return onednn_choice(self.settings.onednn_products, self.device)
+        return run_choice(self.settings.onednn_products, self.device, self.field.bf16, clip and (clip.bf16, clip.tower))
 
     @property
     def shading_path(self) -> str:
