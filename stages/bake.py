@@ -36,7 +36,8 @@ from .config.sections import BakeSettings
 from .core.cli import stage_main
 from .core.errors import StageInputError
 from .core.progress import heartbeat, job_label
-from .core.provenance import ORIGIN_KEY, Timer, atomic_path, metadata, staged_outputs, write_json_atomic
+from .core.provenance import ORIGIN_KEY, Timer, metadata, staged_outputs, write_json_atomic
+from .core.safefiles import atomic_stream
 from .geometry.meshio import load_ply
 from .geometry.raycache import RayCache
 from .geometry.uvlayout import density_percentiles
@@ -90,10 +91,9 @@ def run(
                     save_png(staging / "textures" / folder / f"{name}.png", img)
             write_exr(staging / "light.exr", res.light_equirect)
             write_hdr(staging / "light.hdr", res.light_equirect)
-            with atomic_path(staging / "atlas.npz") as tmp:
-                with open(tmp, "wb") as fh:
-                    kept = {} if layout is None else {"source_face": layout.source_face}
-                    np.savez(fh, uv=res.atlas.uv.astype(np.float32), **res.frames.arrays(), **kept)
+            with atomic_stream(staging / "atlas.npz") as fh:
+                kept = {} if layout is None else {"source_face": layout.source_face}
+                np.savez(fh, uv=res.atlas.uv.astype(np.float32), **res.frames.arrays(), **kept)
         # fidelity: baked asset vs neural field from the evaluation views
         with timer("fidelity"), heartbeat(job, "rendering the baked asset for the fidelity check"):
             bake_psnr = fidelity(res, layout, field, eval_cache, settings.eval_width, device, staging / "preview.png")

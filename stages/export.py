@@ -13,7 +13,6 @@ normalised, ``units: normalized``); the material mapping and what each format lo
 from __future__ import annotations
 
 import logging
-import shutil
 from pathlib import Path
 
 from PIL import Image
@@ -26,8 +25,8 @@ from .config.records import ExportRecord
 from .config.sections import ExportSettings
 from .core.cli import stage_main
 from .core.errors import StageInputError
-from .core.provenance import ORIGIN_KEY, Timer, atomic_path, metadata, read_origin, staged_outputs, write_json_atomic
-from .core.safefiles import read_json_record, require_plain_file
+from .core.provenance import ORIGIN_KEY, Timer, metadata, read_origin, staged_outputs, write_json_atomic
+from .core.safefiles import IMAGE_LIMIT, copy_file, open_read, read_json
 from .geometry.meshio import load_ply
 from .geometry.normalization import Similarity
 
@@ -56,8 +55,8 @@ def run(
     origin = read_origin(bake_dir / "meta.json")
     mesh = load_ply(mesh_path)
     atlas = read_atlas(bake_dir / "atlas.npz")
-    tf = Similarity.from_json(read_json_record(transform_path))
-    bake_stats = read_json_record(bake_dir / "meta.json").get("stats", {})
+    tf = Similarity.from_json(read_json(transform_path))
+    bake_stats = read_json(bake_dir / "meta.json").get("stats", {})
     brdf = bake_stats.get("brdf", "tango")
     occlusion = bool(bake_stats.get("occlusion", {}).get("baked", False))
     kept = kept_source(bake_stats, atlas, source, bake_dir)
@@ -68,13 +67,10 @@ def run(
     with staged_outputs(out_dir) as staging:
         with timer("copy"):
             for rel in geom.texture_files():  # every texture set (a kept layout may have one per slot)
-                with atomic_path(staging / rel) as tmp:
-                    shutil.copyfile(require_plain_file(bake_dir / rel, remedy="Rerun the bake stage."), tmp)
+                copy_file(bake_dir / rel, staging / rel, remedy="Rerun the bake stage.")
             for fname in ("light.exr", "light.hdr"):
-                with atomic_path(staging / fname) as tmp:
-                    shutil.copyfile(bake_dir / fname, tmp)
-            with atomic_path(staging / "preview.png") as tmp:
-                shutil.copyfile(preview, tmp)
+                copy_file(bake_dir / fname, staging / fname, remedy="Rerun the bake stage.")
+            copy_file(preview, staging / "preview.png", remedy="Rerun the bake stage.")
         glb_writer = None
         if kept is not None and kept.kind == "gltf":
 
@@ -88,7 +84,7 @@ def run(
             staging, geom, asset.meters_per_unit, settings.usdz_root, name, origin, timer, brdf, occlusion, glb_writer
         )
         usd, gltf = checked["usd"], checked["gltf"]
-        with Image.open(staging / TEXTURE_FILES["basecolor"]) as img:
+        with open_read(staging / TEXTURE_FILES["basecolor"], IMAGE_LIMIT) as fh, Image.open(fh) as img:
             texture_size = int(img.size[0])
         stats = {
             "faces": len(mesh.faces),

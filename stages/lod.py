@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import json
 import logging
-import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -39,7 +38,7 @@ from .config.sections import BakeSettings, DecimateSettings, ExportSettings, Lod
 from .core.cli import stage_main
 from .core.errors import ConfigError, StageInputError
 from .core.provenance import ORIGIN_KEY, Timer, metadata, read_origin, staged_outputs, write_json_atomic
-from .core.safefiles import read_json_record
+from .core.safefiles import read_json, remove_tree
 from .geometry.meshio import load_ply
 from .geometry.normalization import Similarity
 from .imaging.sheets import contact_sheet, save_png
@@ -73,7 +72,7 @@ class CellFiles:
 def _source(files: CellFiles, bake: BakeSettings, export: ExportSettings, name: str, device: str) -> LodSource:
     """What every level is made from, read from the cell's files."""
     mesh = load_ply(files.mesh)
-    bake_meta = read_json_record(files.bake_dir / "meta.json")
+    bake_meta = read_json(files.bake_dir / "meta.json")
     sets = bake_meta["stats"].get("uv", {}).get("texture_sets", [])
     if len(sets) > 1:  # lod0 is one material on the traced mesh; one texture set per slot has no place there
         raise StageInputError(
@@ -90,8 +89,8 @@ def _source(files: CellFiles, bake: BakeSettings, export: ExportSettings, name: 
         bake_dir=files.bake_dir,
         atlas=read_atlas(files.bake_dir / "atlas.npz"),
         bake_meta=bake_meta,
-        export_stats=read_json_record(files.export_meta)["stats"],
-        transform=Similarity.from_json(read_json_record(files.transform)),
+        export_stats=read_json(files.export_meta)["stats"],
+        transform=Similarity.from_json(read_json(files.transform)),
         bake=bake,
         export=export,
         occlusion=occlusion,
@@ -194,7 +193,7 @@ def _remove_old_levels(out_dir: Path, keep: set[str]) -> None:
     for old in sorted(out_dir.glob("lod*")):
         if old.is_dir() and old.name not in keep:
             log.info("removing %s: not a level of this run", old)
-            shutil.rmtree(old)
+            remove_tree(old)
 
 
 #: the sections ``--settings`` holds, and their classes

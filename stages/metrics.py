@@ -31,7 +31,7 @@ from .config.sections import MetricsSettings
 from .core.cli import stage_main
 from .core.errors import StageInputError
 from .core.provenance import ORIGIN_KEY, Timer, metadata, staged_outputs, write_json_atomic
-from .core.safefiles import read_json_record
+from .core.safefiles import read_json
 from .geometry.raycache import RayCache
 from .guidance.clip import load_clip
 from .guidance.objective import choose_guidance, render_target
@@ -142,7 +142,7 @@ def _noise_psnr(targets_path: Path) -> float | None:
     meta = Path(targets_path).parent / "meta.json"
     if not meta.is_file():
         return None
-    return read_json_record(meta)["views"]["metrics"]["noise_psnr_db"]
+    return read_json(meta)["views"]["metrics"]["noise_psnr_db"]
 
 
 @torch.no_grad()

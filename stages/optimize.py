@@ -26,7 +26,8 @@ from .core.cli import stage_main
 from .core.device import cpu_isa, resolve_device
 from .core.errors import StageInputError
 from .core.progress import Progress, job_label
-from .core.provenance import ORIGIN_KEY, Timer, atomic_path, metadata, staged_outputs, write_json_atomic
+from .core.provenance import ORIGIN_KEY, Timer, metadata, staged_outputs, write_json_atomic
+from .core.safefiles import atomic_stream, remove
 from .geometry.raycache import RayCache
 from .imaging.sheets import contact_sheet, save_png
 from .imaging.targets import TargetSet
@@ -130,7 +131,7 @@ def run(
             },
         )
         write_json_atomic(staging / "meta.json", meta)
-    ckpt.unlink(missing_ok=True)
+    remove(ckpt)
     return meta
 
 
@@ -198,15 +199,14 @@ def _write_outputs(run: Optimizer, eval_path: Path, out_dir: Path, settings: Opt
         light = trained.light()
         dirs = equirect_directions(128, 256).to(run.device)
         radiance = light.radiance(dirs.reshape(-1, 3)).reshape(128, 256, 3)
-    with atomic_path(out_dir / "light.npz") as tmp:
-        with open(tmp, "wb") as fh:
-            np.savez(
-                fh,
-                equirect=radiance.cpu().numpy().astype(np.float32),
-                axis=light.axis.cpu().numpy(),
-                sharpness=light.sharpness.cpu().numpy(),
-                amplitude=light.amplitude.cpu().numpy(),
-            )
+    with atomic_stream(out_dir / "light.npz") as fh:
+        np.savez(
+            fh,
+            equirect=radiance.cpu().numpy().astype(np.float32),
+            axis=light.axis.cpu().numpy(),
+            sharpness=light.sharpness.cpu().numpy(),
+            amplitude=light.amplitude.cpu().numpy(),
+        )
     preview = linear_to_srgb(radiance / radiance.max().clamp(min=1e-12))
     save_png(out_dir / "renders" / "light.png", (preview.cpu().numpy() * 255).round().astype(np.uint8))
     # the field and the loss curve

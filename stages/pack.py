@@ -21,7 +21,7 @@ from pathlib import Path
 from .core.cli import stage_main
 from .core.errors import StageInputError
 from .core.provenance import ORIGIN_KEY, atomic_path, read_origin, shareable_meta
-from .core.safefiles import reached_without_link, read_json_record
+from .core.safefiles import reached_without_link, read_json
 from .results.cells import parse_cells
 from .results.spreadsheet import spreadsheet_rows
 
@@ -101,7 +101,7 @@ def run(
         meta_path = asset / "meta.json"
         if not meta_path.is_file():
             raise StageInputError(meta_path, "file not found", "Run the export stage first.")
-        meta = read_json_record(meta_path)
+        meta = read_json(meta_path)
         origin = read_origin(meta_path)
         files = regular_files(asset)
         rel = [str(p.relative_to(asset)) for p in files]
@@ -113,7 +113,7 @@ def run(
             lod_meta = lod / "meta.json"
             if not lod_meta.is_file():
                 raise StageInputError(lod_meta, "file not found", "Run the lod stage first.")
-            rows_lod = read_json_record(lod_meta)["stats"]["levels"]
+            rows_lod = read_json(lod_meta)["stats"]["levels"]
             # the stage's own files and the folders of the levels it lists (nothing left by older runs)
             folders = {r["level"] for r in rows_lod}
             lod_files = [p for p in regular_files(lod) if p.parent == lod or p.relative_to(lod).parts[0] in folders]
@@ -152,7 +152,7 @@ def run(
             z.writestr("index.csv", buf.getvalue())
             for path, arc in entries:
                 if path.name == "meta.json":  # provenance without the host and the command line
-                    z.writestr(arc, json.dumps(shareable_meta(read_json_record(path)), indent=2))
+                    z.writestr(arc, json.dumps(shareable_meta(read_json(path)), indent=2))
                 else:
                     z.write(path, arc)
     with atomic_path(out_index) as tmp:

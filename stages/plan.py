@@ -27,6 +27,7 @@ import dataclasses
 import hashlib
 import json
 import logging
+import math
 import os
 import statistics
 import sys
@@ -38,6 +39,9 @@ from .config.sections import OptimizeSettings
 from .config.workflow import WorkflowConfig, experiment_name, load_config_files
 from .core.cli import stage_main
 from .core.device import precision_summary, resolve_device
+from .core.errors import StageInputError
+from .core.provenance import write_json_atomic
+from .core.safefiles import read_json, read_text
 from .reference.mitsuba import choose_variant
 from .reference.targets import probe, target_samples
 from .training.calibrate import seconds_per_step
@@ -109,12 +113,18 @@ def earlier_step_seconds(results: Path, digest: str, device: str) -> float | Non
     found = []
     for meta in Path(results).glob("*/*/*/*/optimize/meta.json"):
         try:
-            m = json.loads(meta.read_text())
-        except (OSError, json.JSONDecodeError):
+            m = read_json(meta)
+        except StageInputError as exc:  # a received folder's FIFO, link or bad record: not a figure
+            log.warning("an earlier run's record left out of the estimate: %s", exc)
             continue
-        s = m.get("settings") or {}
-        if m.get("seconds_per_iteration") and str(m.get("device", "")).split(":")[0] == device and _digest(s) == digest:
-            found.append(float(m["seconds_per_iteration"]))
+        if not isinstance(m, dict):
+            continue
+        s = m.get("settings") if isinstance(m.get("settings"), dict) else {}
+        seconds = m.get("seconds_per_iteration")
+        if not isinstance(seconds, int | float) or not math.isfinite(seconds) or seconds <= 0:
+            continue
+        if str(m.get("device", "")).split(":")[0] == device and _digest(s) == digest:
+            found.append(float(seconds))
     return statistics.median(found) if found else None
 
 
@@ -135,8 +145,8 @@ class LoadMeter:
     @staticmethod
     def _busy() -> float | None:
         try:
-            fields = [float(v) for v in Path("/proc/stat").read_text().splitlines()[0].split()[1:]]
-        except (OSError, ValueError, IndexError):
+            fields = [float(v) for v in read_text("/proc/stat").splitlines()[0].split()[1:]]
+        except (OSError, StageInputError, ValueError, IndexError):
             return None
         idle = fields[3] + (fields[4] if len(fields) > 4 else 0.0)  # idle and iowait
         return (sum(fields[:8]) - idle) / os.sysconf("SC_CLK_TCK")
@@ -171,10 +181,7 @@ def _cached_measure(cache: Path, key: str, name: str, measure, extra: dict) -> t
     with LoadMeter() as load:
         value = measure()
     if not load.note():
-        cache.mkdir(parents=True, exist_ok=True)
-        tmp = (cache / f"{key}.json").with_suffix(".tmp")
-        tmp.write_text(json.dumps({name: value, "others_share": load.others_share, **extra}))
-        tmp.replace(cache / f"{key}.json")
+        write_json_atomic(cache / f"{key}.json", {name: value, "others_share": load.others_share, **extra})
     return value, load.note()
 
 
@@ -186,8 +193,8 @@ def step_seconds(settings, raycache, device: str, results: Path, cache: Path, ca
         return earlier, "an earlier run of these settings"
     key = hashlib.sha256(f"{digest}|{_digest(dataclasses.asdict(raycache))}|{device}|{_machine()}".encode()).hexdigest()[:16]
     cached = cache / f"{key}.json"
-    if cached.is_file():
-        return float(json.loads(cached.read_text())["seconds_per_step"]), "a calibration of these settings (cached)"
+    if (seconds := _cached(cached, "seconds_per_step")) is not None:
+        return seconds, "a calibration of these settings (cached)"
     if not calibrate:
         return None, "not calibrated (--no-calibrate)"
     extra = {"settings": settings.to_dict(), "device": device}
@@ -205,8 +212,8 @@ def mitsuba_rate(target, cache: Path, calibrate: bool) -> tuple[float | None, st
     cached = cache / f"{key}.json"
     if key in _MEASURED:
         return _MEASURED[key]
-    if cached.is_file():
-        return float(json.loads(cached.read_text())["samples_per_second"]), f"a probe render in {variant} (cached)"
+    if (rate := _cached(cached, "samples_per_second")) is not None:
+        return rate, f"a probe render in {variant} (cached)"
     if not calibrate:
         return None, "not probed (--no-calibrate)"
     rate, note = _cached_measure(cache, key, "samples_per_second", lambda: probe(target).samples_per_second, {"variant": variant})
@@ -227,12 +234,26 @@ def _machine() -> str:
     return f"{platform.processor() or platform.machine()}|{os.cpu_count()}|{torch.__version__}|{torch.get_num_threads()}"
 
 
+def _cached(path: Path, name: str) -> float | None:
+    """The figure ``name`` of a cached measurement, or None where there is none (or it is not a
+    number: measured again)."""
+    if not path.exists() and not path.is_symlink():
+        return None
+    try:
+        value = read_json(path).get(name)
+        return float(value) if isinstance(value, int | float) and math.isfinite(value) and value > 0 else None
+    except (StageInputError, AttributeError) as exc:
+        log.warning("a cached measurement not used: %s", exc)
+        return None
+
+
 def benchmark_seconds(tsv: Path) -> float | None:
     """The wall seconds a Snakemake ``benchmark:`` file records (its first column), or None."""
-    lines = Path(tsv).read_text().splitlines()
     try:
+        lines = read_text(tsv).splitlines()
         return float(lines[1].split("\t")[0]) if len(lines) >= 2 else None
-    except ValueError:
+    except (StageInputError, ValueError) as exc:
+        log.warning("a benchmark file left out of the estimate: %s", exc)
         return None
 
 
@@ -247,7 +268,7 @@ def other_stage_seconds(results: Path) -> tuple[dict[str, float], str]:
             out[rule] = statistics.median(times)
     sources = [f"medians of earlier runs' benchmark files ({', '.join(out)})"] if out else []
     if STAGE_SECONDS.is_file():
-        table = json.loads(STAGE_SECONDS.read_text())
+        table = read_json(STAGE_SECONDS)
         rest = {r: s for r, s in table["seconds_per_job"].items() if r not in out}
         if rest:
             out.update(rest)
@@ -401,7 +422,7 @@ def target_estimate(cfg: WorkflowConfig, pending, todo: list, cache: Path, calib
 def faster_presets(groups, cfg, device, results, cache, calibrate) -> list[dict]:
     """The speed presets applied to the paper-setting cells: their time here and their measured
     quality cost against the paper's settings (``benchmarks/figures/preset_costs.json``)."""
-    costs = json.loads(PRESET_COSTS.read_text()) if PRESET_COSTS.is_file() else {}
+    costs = read_json(PRESET_COSTS) if PRESET_COSTS.is_file() else {}
     paper = [e for e in groups.values() if is_paper(e["settings"])]
     cells = sum(e["cells"] for e in paper)
     out = []

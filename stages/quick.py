@@ -109,11 +109,19 @@ def experiment_config(
     return config
 
 
-def write_config(config: dict, path: Path, command: str, force: bool = False) -> None:
-    """``config`` as YAML at ``path`` (atomically), headed by the command that made it. An
-    existing file with the same settings is left as it is (comments and all); one with other
-    settings (edited by hand, or another mesh or prompt under the same name) is kept unless
-    ``force``."""
+#: the config's first lines: fixed text only (a path or a prompt spliced into a comment could end
+#: the comment with a character YAML reads as a line break, U+2028 say, and become a key)
+HEADER = (
+    "# Written by python -m stages.quick (it prints the command that made this file).\n"
+    "# An ordinary experiment config: edit it, or run it with snakemake --configfile <this file>\n"
+)
+
+
+def write_config(config: dict, path: Path, force: bool = False) -> None:
+    """``config`` as YAML at ``path`` (atomically): :data:`HEADER`, then every value, path and
+    text as the YAML dumper writes it (quoted and escaped where YAML needs it). An existing file
+    with the same settings is left as it is (comments and all); one with other settings (edited
+    by hand, or another mesh or prompt under the same name) is kept unless ``force``."""
     if path.is_file():
         try:
             old = read_yaml(path)
@@ -127,11 +135,8 @@ def write_config(config: dict, path: Path, command: str, force: bool = False) ->
                 f"run it as it is with snakemake --configfile {shlex.quote(str(path))}, pick another --name, or pass --force "
                 "to replace it"
             )
-    run_it = f"snakemake --configfile {shlex.quote(str(path))}"
-    header = f"# Written by: {command}\n# An ordinary experiment config: edit it, or run it with {run_it}\n"
-    path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(path) as tmp:
-        tmp.write_text(header + yaml.safe_dump(config, sort_keys=False, allow_unicode=True))
+        tmp.write_text(HEADER + yaml.safe_dump(config, sort_keys=False, allow_unicode=True), encoding="utf-8")
 
 
 def check_name(name: str, path: Path, force: bool) -> None:
@@ -206,14 +211,13 @@ class Request:
 class Launch:
     """Where the config goes (``config_dir``, with ``overlays`` laid over it) and how the workflow
     runs: on ``cores`` cores, or only its plan (``dry_run``); ``force`` replaces a config of the same
-    name; ``command``: the command line, recorded in the config."""
+    name."""
 
     config_dir: Path = CONFIG_DIR
     overlays: tuple[Path, ...] = ()
     cores: int = 2
     dry_run: bool = False
     force: bool = False
-    command: str = "python -m stages.quick"
 
 
 def run(request: Request, launch: Launch = Launch()) -> int:
@@ -246,7 +250,7 @@ def run(request: Request, launch: Launch = Launch()) -> int:
     experiment = experiment_name(cfg.raw, configfiles)
     guidance = guidance_text(cfg, image_guided, request.test_clip)
     layout = layout_text(cfg, mesh)  # raises where bake.uv: keep cannot keep the layout
-    write_config(config, path, launch.command, launch.force)
+    write_config(config, path, launch.force)
     files = " ".join(shlex.quote(str(p)) for p in configfiles)
     lines = [
         f"mesh {mesh}: {len(checked.vertices):,} vertices, {len(checked.faces):,} faces",
@@ -291,8 +295,7 @@ def main(argv: list[str] | None = None) -> int:
 
     def body(args):
         request = Request(args.mesh, args.prompt, args.preset, args.image_guided, args.test_clip, args.name, args.uv)
-        command = shlex.join(["python", "-m", "stages.quick", *(argv if argv is not None else sys.argv[1:])])
-        launch = Launch(args.config_dir, tuple(args.overlay), args.cores, args.dry_run, args.force, command)
+        launch = Launch(args.config_dir, tuple(args.overlay), args.cores, args.dry_run, args.force)
         result["code"] = run(request, launch)
 
     status = stage_main("quick", __doc__, arguments, body, argv)

@@ -30,6 +30,7 @@ from .config.sections import RelightSettings
 from .core.cli import stage_main
 from .core.errors import StageInputError
 from .core.provenance import ORIGIN_KEY, Timer, metadata, staged_outputs, write_json_atomic
+from .core.safefiles import remove
 from .geometry.raycache import RayCache
 from .imaging.images import render_cached_view
 from .imaging.relit import comparison_rows, grade_relighting
@@ -156,7 +157,7 @@ def run(
             ),
         )
     if not graded:  # a comparison left by an earlier, graded run is not this run's (removed once this run's files are in)
-        (out_dir / "ground_truth.png").unlink(missing_ok=True)
+        remove(out_dir / "ground_truth.png")
     return stats
 
 

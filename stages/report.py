@@ -23,6 +23,7 @@ from PIL import Image
 from .config.sections import ReportSettings
 from .core.cli import stage_main
 from .core.provenance import atomic_path, write_json_atomic
+from .core.safefiles import clear
 from .results.cells import parse_cells
 from .results.compare import cell_settings, comparison_groups, trade_off
 from .results.figures import (
@@ -75,8 +76,7 @@ def run(
 
     figures_dir = out_dir / "figures"
     figures_dir.mkdir(parents=True, exist_ok=True)
-    for old in figures_dir.glob("*.png"):  # figures of an earlier, larger grid
-        old.unlink()
+    clear(figures_dir, "*.png")  # figures of an earlier, larger grid
     faces = {r["mesh"]: int(r["faces_after"]) for r in rows}
     quality = {(t["mesh"], t["prompt"], t["variant"]): quality_text(t["quality"], t["quality_name"]) for t in timed}
     relit = {(r["mesh"], r["prompt"], r["variant"]): relit_text(r) for r in rows}

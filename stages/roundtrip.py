@@ -26,7 +26,7 @@ from .config.sections import ExportSettings, RoundtripSettings
 from .core.cli import stage_main
 from .core.errors import StageInputError
 from .core.provenance import ORIGIN_KEY, Timer, metadata, read_origin, staged_outputs, write_json_atomic
-from .core.safefiles import read_json_record
+from .core.safefiles import read_json
 from .geometry.meshio import load_ply
 from .geometry.normalization import Similarity
 from .geometry.raycache import RayCache
@@ -58,12 +58,12 @@ def _scene(files: dict, settings: RoundtripSettings, device: str, timer: Timer, 
     """The cell's exported geometry (as the export stage wrote it: :func:`asset_geometry`), the
     evaluation views to render and our render of them."""
     export_dir, bake_dir = Path(files["export"]), Path(files["bake"])
-    export_meta = read_json_record(export_dir / "meta.json")
+    export_meta = read_json(export_dir / "meta.json")
     export_settings = ExportSettings.from_dict(export_meta["settings"])
     with timer("load"):
-        tf = Similarity.from_json(read_json_record(files["transform"]))
+        tf = Similarity.from_json(read_json(files["transform"]))
         atlas = read_atlas(bake_dir / "atlas.npz")
-        bake_stats = read_json_record(bake_dir / "meta.json").get("stats", {})
+        bake_stats = read_json(bake_dir / "meta.json").get("stats", {})
         kept = kept_source(bake_stats, atlas, files.get("source"), bake_dir)
         materials = None if kept is None else kept_materials(bake_stats, kept)
         asset = asset_geometry(load_ply(files["mesh"]), atlas, tf, export_settings, kept, materials)

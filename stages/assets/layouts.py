@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from ..core.errors import StageInputError
-from ..core.safefiles import read_json_record
+from ..core.safefiles import read_json
 from ..geometry.meshio import BUILTIN_PREFIX, TriMesh
 from ..geometry.normalization import Similarity
 from ..geometry.normals import unit_face_normals
@@ -48,7 +48,7 @@ class InputMesh:
     def transform(self) -> Similarity | None:
         if self.path is None or self.transform_path is None:
             return None
-        return Similarity.from_json(read_json_record(self.transform_path))
+        return Similarity.from_json(read_json(self.transform_path))
 
 
 @dataclass(frozen=True)

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -25,7 +24,7 @@ from PIL import Image
 from ..config.layout import LOD_FILES, TEXTURE_FILES
 from ..config.sections import BakeSettings, DecimateSettings, ExportSettings, LodSettings
 from ..core.provenance import ORIGIN_KEY, Timer, atomic_path, metadata, write_json_atomic
-from ..core.safefiles import require_plain_file
+from ..core.safefiles import IMAGE_LIMIT, atomic_stream, copy_file, open_read, remove
 from ..geometry.decimation import decimate_mesh
 from ..geometry.meshio import TriMesh, save_ply
 from ..geometry.normalization import Similarity
@@ -212,8 +211,7 @@ def make_lod0(source: LodSource, grader: LevelGrader, staging: Path) -> LevelRec
     """``lod0``: the full bake, as the export stage shipped it (its textures copied, graded); on
     the traced mesh's topology, in the input's own layout where the bake kept it."""
     for rel in TEXTURE_FILES.values():
-        with atomic_path(staging / "lod0" / rel) as tmp:
-            shutil.copyfile(source.bake_dir / rel, tmp)
+        copy_file(source.bake_dir / rel, staging / "lod0" / rel, remedy="Run the bake stage again.")
     from_bake = {key: _texture(source.bake_dir / rel) for key, rel in TEXTURE_FILES.items()}
     uv = source.atlas["uv"].astype(np.float64)
     kept = "source_face" in source.atlas  # the input's own layout: its textures repeat
@@ -315,12 +313,10 @@ def _write_level(source: LodSource, folder: Path, low: TriMesh, res):
     for key, rel in TEXTURE_FILES.items():
         save_png(folder / rel, res.textures[key])
     for fname in ("light.exr", "light.hdr"):
-        with atomic_path(folder / fname) as tmp:
-            shutil.copyfile(source.bake_dir / fname, tmp)
+        copy_file(source.bake_dir / fname, folder / fname, remedy="Run the bake stage again.")
     save_ply(folder / "mesh.ply", low)
-    with atomic_path(folder / "atlas.npz") as tmp:
-        with open(tmp, "wb") as fh:
-            np.savez(fh, uv=res.texels.atlas.uv.astype(np.float32), **res.frames.arrays())
+    with atomic_stream(folder / "atlas.npz") as fh:
+        np.savez(fh, uv=res.texels.atlas.uv.astype(np.float32), **res.frames.arrays())
     geom = export_mesh(low, {"uv": res.texels.atlas.uv, **res.frames.arrays()}, source.export_transform, source.export.weld)
     mpu, root, brdf = source.export.meters_per_unit, source.export.usdz_root, source.field.brdf
     checked = write_model_files(
@@ -342,11 +338,10 @@ def write_combined(source: LodSource, staging: Path, records: list[LevelRecord],
     ``coverage``), validated; returns the validators' reports per file."""
     export, brdf, ao = source.export, source.field.brdf, source.occlusion is not None
     levels = [r.asset for r in records]
-    with atomic_path(staging / "light.exr") as tmp:
-        shutil.copyfile(source.bake_dir / "light.exr", tmp)
+    copy_file(source.bake_dir / "light.exr", staging / "light.exr", remedy="Run the bake stage again.")
     switch = {"tango_stylize_lod": {"levels": [r.level for r in records], "msft_screencoverage": coverage}}
     with atomic_path(staging / "model_lods.usda") as tmp:
-        tmp.unlink()
+        remove(tmp)
         write_usd(tmp, levels, export.meters_per_unit, "light.exr", source.origin, switch, brdf=brdf, occlusion=ao)
     files = [f"{lv.textures}/{key}.png" for lv in levels for key in TEXTURE_FILES] + ["light.exr"]
     package_usdz(staging / "model_lods.usda", staging / "model_lods.usdz", files, export.usdz_root)
@@ -388,5 +383,5 @@ def _write_level_meta(
 
 def _texture(path: Path) -> np.ndarray:
     """A texture the bake wrote, as RGB (a plain file: a received results folder is data)."""
-    with Image.open(require_plain_file(path, remedy="Run the bake stage again.")) as img:
+    with open_read(path, IMAGE_LIMIT, remedy="Run the bake stage again.") as fh, Image.open(fh) as img:
         return np.asarray(img.convert("RGB"))

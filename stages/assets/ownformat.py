@@ -7,7 +7,10 @@ input's UV layout (``bake.uv``; :mod:`stages.assets.layouts`).
   texture set (primitives without a material get one, named ``default``); the textures and images
   no other material reads are dropped; the baked images and a repeating sampler are added. Nodes,
   names, meshes, skins, joints, weights, animations, morph targets, cameras, extras and other
-  primitives are untouched; the provenance joins ``asset.extras``.
+  primitives are untouched; the provenance joins ``asset.extras``. The file stands alone and names
+  nothing of the machine: an image the input keeps in a file beside it is embedded, one at a remote
+  or absolute URI (which a viewer would fetch) is dropped, and texts in ``extras`` that hold a local
+  file system path are removed; the log says what changed.
 * **OBJ input**: ``model.obj`` is the input's own lines (``v``, ``vt``, ``vn``, ``f``, groups,
   smoothing, ``usemtl``) with ``mtllib model.mtl`` in place of the input's material library, and
   ``model.mtl`` one material per input material name reading the texture set. MTL has no
@@ -20,14 +23,19 @@ input's UV layout (``bake.uv``; :mod:`stages.assets.layouts`).
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import logging
+import re
 from dataclasses import dataclass
 from pathlib import Path
+from urllib.parse import unquote, urlsplit
 
 import numpy as np
 from PIL import Image
 
 from ..core.provenance import ORIGIN_METADATA_KEY, atomic_path
+from ..core.safefiles import IMAGE_LIMIT, open_read, plain_file, read_bytes
 from ..geometry.normalization import Similarity
 from ..geometry.sourcemesh import ObjLines, SourceMesh, load_gltf_document
 from ..geometry.tangents import mikktspace
@@ -133,7 +141,7 @@ def write_obj(folder: Path, geom: ExportMesh, source: SourceMesh, transform: Sim
     for sub in sorted(set(geom.slot_textures) | {""}):
         textures = folder / "textures" / sub
         for key, channel in OBJ_CHANNELS.items():
-            with Image.open(textures / "metallic_roughness.png") as img:
+            with open_read(textures / "metallic_roughness.png", IMAGE_LIMIT) as fh, Image.open(fh) as img:
                 grey = np.asarray(img.convert("RGB"))[..., channel]
             with atomic_path(textures / f"{key}.png") as tmp:
                 Image.fromarray(grey).save(tmp, format="PNG")
@@ -201,10 +209,12 @@ def mtl_text(names: tuple[str, ...], folders: list[str], brdf: str) -> str:
 # ----------------------------------------------------------------------------------------- glTF
 def write_document_glb(
     path: Path, source: SourceMesh, textures_dir: Path, origin: dict, brdf: str, occlusion: bool, folders: tuple[str, ...] = ()
-) -> None:
+) -> list[str]:
     """``model.glb``: the input glTF document with its textured primitives' materials replaced by
     ones reading the baked texture sets (module docstring; ``folders``: each slot's set below
-    ``textures_dir``)."""
+    ``textures_dir``). The file needs nothing beside it and names nothing of this machine: images
+    are embedded or dropped (:func:`own_images`), local paths in ``extras`` removed
+    (:func:`drop_local_paths`); each change is logged and returned, one line each."""
     import pygltflib as g
 
     doc, blobs = load_gltf_document(source.path)
@@ -232,7 +242,11 @@ def write_document_glb(
                 replaced[old] = old
         doc.meshes[part["mesh"]].primitives[part["primitive"]].material = replaced[old]
     doc.images, doc.textures = buffer.images, buffer.textures
+    notes = own_images(doc, buffer, Path(source.path).parent)
     _drop_unread_textures(doc)
+    notes += drop_local_paths(doc)
+    for note in notes:
+        log.warning("%s: %s", Path(source.path).name, note)
     used = set(doc.extensionsUsed or [])
     if brdf != "gltf":
         used.add("KHR_materials_specular")
@@ -245,6 +259,7 @@ def write_document_glb(
     doc.set_binary_blob(blob)
     with atomic_path(path) as tmp:
         doc.save_binary(str(tmp))
+    return notes
 
 
 def _merge_buffers(doc, blobs: list[bytes], buffer: GlbBuffer) -> None:
@@ -298,3 +313,162 @@ def _texture_refs(node, visit) -> None:
             continue
         if isinstance(value, dict) or hasattr(value, "__dict__"):
             _texture_refs(value, visit)
+
+
+# ------------------------------------------------------------- what the input's document hands on
+#: a local file system path within a text: POSIX (``/a/b``), Windows (``C:\``, ``\\server``), home, ``file:``
+LOCAL_PATH = re.compile(r"""(?:^|[\s"'(<\[=,;:])(?:file:|~[\\/]|[A-Za-z]:[\\/]|\\\\[^\\\s]|/[^/\s]+/)""", re.IGNORECASE)
+#: the image types a GLB embeds, by their first bytes (WebP: ``RIFF....WEBP``)
+IMAGE_MAGIC = ((b"\x89PNG\r\n\x1a\n", "image/png"), (b"\xff\xd8\xff", "image/jpeg"), (b"\xabKTX 20\xbb\r\n\x1a\n", "image/ktx2"))
+
+
+def own_images(doc, buffer: GlbBuffer, folder: Path) -> list[str]:
+    """Keep the document's images inside ``model.glb``: an image whose ``uri`` is a relative path
+    to a plain file in the input's ``folder`` (no ``..``, no link on the way; a PNG, JPEG, WebP or
+    KTX2 image) is embedded in ``buffer``; any other ``uri`` but a ``data:`` URI (a remote or
+    absolute one, which a viewer would fetch) is dropped, with the material references to the
+    textures that show it (:func:`_drop_unread_textures` then removes them). Returns what was
+    done, one line per image, naming no path."""
+    notes, dropped = [], set()
+    for k, image in enumerate(doc.images or []):
+        uri = image.uri
+        if uri is None or (isinstance(uri, str) and uri.startswith("data:")):
+            continue
+        found = _local_image(uri, folder)
+        if isinstance(found, str):
+            dropped.add(k)
+            image.uri = None
+            notes.append(f"image {k} dropped: its uri is {found}")
+        else:
+            image.uri, image.mimeType = None, found[1]
+            image.bufferView = buffer.view(found[0])
+            notes.append(f"image {k} embedded from the input's folder")
+    if dropped:
+        gone = {t for t, texture in enumerate(doc.textures or []) if _image_refs(texture) & dropped}
+        for material in doc.materials or []:
+            _forget_textures(material, gone)
+    return notes
+
+
+def _local_image(uri, folder: Path) -> tuple[bytes, str] | str:
+    """The bytes and media type of the image a relative ``uri`` names in ``folder``, or why not."""
+    if not isinstance(uri, str):
+        return "not text"
+    try:
+        parts = urlsplit(uri)
+    except ValueError:
+        return "not a URI"
+    if len(parts.scheme) == 1 or uri.startswith(("/", "\\")):
+        return "an absolute path"
+    if parts.scheme:
+        return f"of the {parts.scheme.lower()[:20]}: scheme (a viewer would fetch it)"
+    if parts.netloc or parts.query or parts.fragment:
+        return "a URI with a host, query or fragment"
+    rel = unquote(parts.path).replace("\\", "/")
+    if ".." in rel.split("/") or any(ord(c) < 32 for c in rel):
+        return "a path that leaves the input's folder"
+    path = Path(folder) / rel
+    if not rel or not plain_file(path, folder):
+        return "not a plain file in the input's folder"
+    data = read_bytes(path, IMAGE_LIMIT, folder)
+    mime = next((m for magic, m in IMAGE_MAGIC if data.startswith(magic)), None)
+    if mime is None and data[:4] == b"RIFF" and data[8:12] == b"WEBP":
+        mime = "image/webp"
+    return (data, mime) if mime is not None else "not a PNG, JPEG, WebP or KTX2 image"
+
+
+def _image_refs(texture) -> set:
+    """The images a texture shows: its ``source`` and its extensions' (``EXT_texture_webp``, ...)."""
+    refs = {texture.source}
+    for ext in (texture.extensions or {}).values():
+        if isinstance(ext, dict):
+            refs.add(ext.get("source"))
+    return refs - {None}
+
+
+def _forget_textures(node, gone: set) -> None:
+    """Remove from a material every texture reference (under a key ending in ``Texture``) to a
+    texture in ``gone``."""
+    items = node.items() if isinstance(node, dict) else vars(node).items() if hasattr(node, "__dict__") else ()
+    for key, value in list(items):
+        if value is None:
+            continue
+        if str(key).endswith("Texture"):
+            index = value.get("index") if isinstance(value, dict) else getattr(value, "index", None)
+            if index in gone:
+                if isinstance(node, dict):
+                    del node[key]
+                else:
+                    setattr(node, key, None)
+            continue
+        if isinstance(value, dict) or hasattr(value, "__dict__"):
+            _forget_textures(value, gone)
+
+
+def drop_local_paths(doc) -> list[str]:
+    """Remove what would tell a reader of ``model.glb`` about the machine it was made on: every
+    text in an ``extras`` (at any depth, and every key) that holds a local file system path
+    (:data:`LOCAL_PATH`: ``/home/...``, ``C:\\...``, ``\\\\server``, ``~/``, ``file:``), and every
+    ``uri`` in an extension but a ``data:`` URI (a viewer would fetch it). Names stay as they are.
+    Returns one line per removal, a JSON pointer to where it was (naming no path)."""
+    notes = []
+    stack = [("", doc)]
+    while stack:
+        where, node = stack.pop()
+        for key, value in _fields(node):
+            here = f"{where}/{_pointer(key)}"
+            if key == "extras":
+                kept, removed = _without_local_paths(value, here)
+                notes += removed
+                if isinstance(node, dict):
+                    node[key] = kept
+                else:
+                    setattr(node, key, kept if kept is not None else {})
+            elif key == "uri" and isinstance(node, dict) and isinstance(value, str) and not value.startswith("data:"):
+                del node[key]
+                notes.append(f"{here}: a URI in an extension, removed")
+            elif isinstance(value, (dict, list)) or dataclasses.is_dataclass(value):
+                stack.append((here, value))
+    return notes
+
+
+def _fields(node) -> list:
+    """The (key, value) pairs of a JSON object, array (index, value) or pygltflib object."""
+    if isinstance(node, dict):
+        return list(node.items())
+    if isinstance(node, list):
+        return list(enumerate(node))
+    if dataclasses.is_dataclass(node) and not isinstance(node, type):
+        return [(k, v) for k, v in vars(node).items() if not k.startswith("_")]
+    return []
+
+
+def _pointer(key) -> str:
+    """A JSON pointer's step for ``key``, on one line."""
+    return json.dumps(str(key))[1:-1].replace("~", "~0").replace("/", "~1")
+
+
+def _without_local_paths(value, where: str):
+    """``value`` (an ``extras``) without the texts and keys that hold a local path, and a line for
+    each removed; a text that is one is removed whole (None)."""
+    if isinstance(value, str):
+        return (None, [f"{where}: a local file path, removed"]) if LOCAL_PATH.search(value) else (value, [])
+    removed = []
+    stack = [(value, where)]
+    while stack:
+        node, at = stack.pop()
+        if not isinstance(node, (dict, list)):
+            continue
+        drop = []
+        for key, item in _fields(node):
+            if isinstance(key, str) and LOCAL_PATH.search(key):
+                drop.append(key)
+                removed.append(f"{at}: a key that is a local file path, removed")
+            elif isinstance(item, str) and LOCAL_PATH.search(item):
+                drop.append(key)
+                removed.append(f"{at}/{_pointer(key)}: a local file path, removed")
+            else:
+                stack.append((item, f"{at}/{_pointer(key)}"))
+        for key in reversed(drop):
+            del node[key]
+    return value, removed

@@ -14,6 +14,9 @@ import logging
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from .errors import StageInputError
+from .safefiles import RECORD_LIMIT, atomic_path, read_bytes
+
 if TYPE_CHECKING:
     import torch
 
@@ -148,9 +151,9 @@ def _cpu_features_digest() -> str:
 
     flags = platform.processor()
     try:
-        with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as info:
-            flags = next((line for line in info if line.split(":")[0].strip() in ("flags", "Features")), flags)
-    except OSError:
+        info = read_bytes("/proc/cpuinfo", RECORD_LIMIT).decode("utf-8", "replace").splitlines()
+        flags = next((line for line in info if line.split(":")[0].strip() in ("flags", "Features")), flags)
+    except (OSError, StageInputError):
         pass
     return hashlib.sha256(flags.encode()).hexdigest()[:8]
 
@@ -224,7 +227,7 @@ def _renderer_sources_digest() -> str:
     digest = hashlib.sha256()
     for pattern in RENDERER_SOURCES:
         for source in sorted(package.glob(pattern)):
-            digest.update(source.read_bytes())
+            digest.update(read_bytes(source, RECORD_LIMIT))
     return digest.hexdigest()
 
 
@@ -261,11 +264,9 @@ def mark_compiled(kind: str, device: torch.device) -> None:
     at all; a cache that cannot be written only means the next run decides as if it were cold)."""
     try:
         marker = _compile_marker(kind, device)
-        marker.parent.mkdir(parents=True, exist_ok=True)
-        part = marker.with_suffix(".part")
-        part.write_text(f"{kind}\n")
-        part.replace(marker)
-    except OSError as exc:
+        with atomic_path(marker) as part:
+            part.write_text(f"{kind}\n")
+    except (OSError, StageInputError) as exc:
         log.debug("could not mark the compiled renderer in the inductor cache: %s", exc)
 
 

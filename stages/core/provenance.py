@@ -8,9 +8,7 @@ import hashlib
 import importlib.metadata
 import json
 import logging
-import os
 import platform
-import shutil
 import socket
 import sys
 import tempfile
@@ -20,7 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from .errors import StageInputError
-from .safefiles import check_output_path
+from .safefiles import DATA_LIMIT, atomic_path, check_output_path, open_read, read_json, remove_tree, replace
 
 log = logging.getLogger(__name__)
 
@@ -53,39 +51,10 @@ def package_versions(names: tuple[str, ...] = TRACKED_PACKAGES) -> dict[str, str
 
 def sha256_of(path: str | Path, chunk: int = 1 << 20) -> str:
     h = hashlib.sha256()
-    with open(path, "rb") as f:
+    with open_read(path, DATA_LIMIT) as f:
         while block := f.read(chunk):
             h.update(block)
     return h.hexdigest()
-
-
-@contextlib.contextmanager
-def atomic_path(path: str | Path) -> Iterator[Path]:
-    """Yield a temporary path in the target's directory; rename it onto ``path`` on success.
-
-    The temporary name keeps the target's suffix (so writers that infer a format from it work)
-    and starts with a dot, so a killed job leaves at most a hidden ``.name.tmp-*`` file and
-    never a file that looks finished. On error the temporary file is removed.
-    """
-    path = Path(path)
-    check_output_path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.tmp-", suffix=path.suffix, dir=path.parent)
-    os.close(fd)
-    tmp_path = Path(tmp)
-    try:
-        yield tmp_path
-        os.chmod(tmp_path, 0o666 & ~_umask())
-        os.replace(tmp_path, path)
-    except BaseException:
-        tmp_path.unlink(missing_ok=True)
-        raise
-
-
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
 
 
 def write_json_atomic(path: str | Path, data: Any) -> None:
@@ -217,7 +186,8 @@ def read_origin(meta_path: str | Path) -> dict[str, Any]:
     meta_path = Path(meta_path)
     if not meta_path.is_file():
         raise StageInputError(meta_path, "file not found", "Run the earlier stages first.")
-    return checked_origin(json.loads(meta_path.read_text()).get(ORIGIN_KEY), meta_path, "the stage that wrote it")
+    record = read_json(meta_path, "Run the earlier stages first.")
+    return checked_origin(record.get(ORIGIN_KEY) if isinstance(record, dict) else None, meta_path, "the stage that wrote it")
 
 
 def checked_origin(origin: Any, path: str | Path, writer: str) -> dict[str, Any]:
@@ -247,7 +217,7 @@ def staged_outputs(out_dir: str | Path, last: tuple[str, ...] = ("meta.json",)) 
     out_dir.mkdir(parents=True, exist_ok=True)
     for stale in out_dir.glob(".staging-*"):
         log.info("removing %s left by a killed run", stale)
-        shutil.rmtree(stale, ignore_errors=True)
+        remove_tree(stale)
     stage = Path(tempfile.mkdtemp(prefix=".staging-", dir=out_dir))
     try:
         yield stage
@@ -255,6 +225,6 @@ def staged_outputs(out_dir: str | Path, last: tuple[str, ...] = ("meta.json",)) 
         for path in files:
             target = out_dir / path.relative_to(stage)
             target.parent.mkdir(parents=True, exist_ok=True)
-            os.replace(path, target)
+            replace(path, target)
     finally:
-        shutil.rmtree(stage, ignore_errors=True)
+        remove_tree(stage)

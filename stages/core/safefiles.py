@@ -1,25 +1,53 @@
-"""What a results folder may hold for the stages to read or write: plain files and folders, reached
-without a symbolic link inside it. A results folder can come from someone else (a shared run, a
-downloaded report), and a link there can point anywhere: a report that followed it would copy
-``/etc/shadow`` into its page, a stage that wrote through it would write outside ``results/``. A
-FIFO or a device where a file should be would hang the reader or feed it without end.
+"""The gate: every file the stages read, write or delete goes through this module.
+
+A results folder can come from someone else (a shared run, a downloaded report), and a link there
+can point anywhere: a report that followed it would copy ``/etc/shadow`` into its page, a stage
+that wrote or cleared through it would write or delete outside ``results/``. A FIFO or a device
+where a file should be would hang the reader or feed it without end, and a file of gigabytes
+where a record of kilobytes belongs would fill the memory.
+
+So a read (:func:`open_read`, :func:`read_bytes`, :func:`read_text`, :func:`read_json`,
+:func:`copy_file`) opens only a regular file, reached without a symbolic link inside its results
+folder, opened without following a link and checked again on the open handle (a file swapped for
+a FIFO between the check and the open is refused too), no larger than the limit its caller names;
+a write (:func:`atomic_path`, :func:`replace`) and a delete (:func:`remove`, :func:`remove_tree`,
+:func:`clear`) happen only after the same checks on the folder they change. Each refusal is one
+:class:`~stages.core.errors.StageInputError` naming the file, what it is and what to do.
 
 The *results root* of a path is its nearest ancestor named ``results`` (the workflow's; the folder
 itself may be a link, to a larger disk, say); below it every folder and the file itself must be
-plain. A path with no such ancestor (a stage run by hand on files of one's own) is checked from
-its own folder only.
+plain. A path with no such ancestor (a stage run by hand on files of one's own, a package's data)
+is checked from its own folder only: the file itself must be a regular file, not a link.
+
+``tests/core/test_gate.py`` walks the code of ``stages/`` and fails on any read, delete or rename
+that does not come through here.
 """
 
 from __future__ import annotations
 
+import contextlib
+import json
 import os
+import shutil
 import stat
+import tempfile
+from collections.abc import Iterator
 from pathlib import Path
+from typing import Any, BinaryIO
 
 from .errors import StageInputError
 
 #: the name of the folder the workflow writes under (relative to its working directory)
 RESULTS_NAME = "results"
+
+MiB = 1 << 20
+#: the largest record read: JSON, CSV, TSV and text files (a meta.json with its loss history is
+#: about 0.5 MB; a summary of thousands of cells a few MB)
+RECORD_LIMIT = 64 * MiB
+#: the largest picture read (a 4096 x 4096 RGBA PNG is at most 64 MiB uncompressed)
+IMAGE_LIMIT = 512 * MiB
+#: the largest array, mesh, asset or weights file read (ray caches, targets, field.pt, model.glb)
+DATA_LIMIT = 16 * 1024 * MiB
 
 
 def results_root(path: str | Path) -> Path | None:
@@ -90,37 +118,192 @@ def require_plain_file(path: str | Path, root: str | Path | None = None, remedy:
     return Path(path)
 
 
+def user_file(path: str | Path) -> Path:
+    """A file the user names on purpose (a mesh, an environment map, a config): outside any
+    results folder a link is the user's own and is followed (the gate then checks what it points
+    to); inside one, ``path`` as it is, under the rules above."""
+    return Path(path) if results_root(path) is not None else Path(os.path.realpath(path))
+
+
 def inside(root: str | Path, name: str, remedy: str = "") -> Path:
     """The plain file ``root/name`` for a ``name`` read from a received file (a report's
     ``figures.json``): relative, no ``..``, reached without a link; else :class:`StageInputError`."""
+    if any(ord(c) < 32 or 127 <= ord(c) < 160 for c in str(name)):
+        raise StageInputError(root, f"names {str(name)!r}, which holds a control character: not a file name", remedy)
     rel = Path(str(name))
     if rel.is_absolute() or ".." in rel.parts or not rel.parts:
         raise StageInputError(Path(root) / str(name), f"names {str(name)!r}, which is not a path inside {root}", remedy)
     return require_plain_file(Path(root) / rel, root, remedy)
 
 
-def check_output_path(path: str | Path) -> None:
-    """Refuse to write ``path`` through a symbolic link inside its results root (a stage folder
-    that links elsewhere would land the stage's outputs outside ``results/``)."""
+def _check_folder(folder: str | Path, path: str | Path, action: str) -> None:
+    """Refuse to change ``folder`` (written into, cleared) when it is reached through a symbolic
+    link inside its results root (``path``: what is being changed, for the message)."""
     root = results_root(path)
     if root is None:
         return
-    link = link_on_the_way(Path(os.path.abspath(path)).parent, root)
+    link = link_on_the_way(folder, root)
     if link is not None:
         raise StageInputError(
             path,
-            f"would be written through {link}, a symbolic link inside {root}: outputs go to plain folders only",
+            f"would be {action} through {link}, a symbolic link inside {root}: outputs go to plain folders only",
             "Remove the link (the run makes the folder itself).",
         )
 
 
-def read_json_record(path: str | Path, remedy: str = "Rerun the stage that writes it."):
-    """A stage's JSON record read as data: a plain file (:func:`require_plain_file`) holding valid
-    JSON, else one :class:`StageInputError` naming it."""
-    import json
+def check_output_path(path: str | Path) -> None:
+    """Refuse to write ``path`` through a symbolic link inside its results root (a stage folder
+    that links elsewhere would land the stage's outputs outside ``results/``)."""
+    _check_folder(Path(os.path.abspath(path)).parent, path, "written")
 
-    path = require_plain_file(path, remedy=remedy)
+
+# ---------------------------------------------------------------------------------------- reads
+def open_read(path: str | Path, limit: int, root: str | Path | None = None, remedy: str = "") -> BinaryIO:
+    """``path`` opened for binary reading once it is a plain file (:func:`require_plain_file`) of at
+    most ``limit`` bytes: opened without following a link and without waiting on a FIFO, and checked
+    again on the handle. The caller closes it (``with open_read(...) as fh``)."""
+    path = require_plain_file(path, root, remedy)
+    flags = os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0)
     try:
-        return json.loads(path.read_text(encoding="utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        fd = os.open(path, flags)
+    except OSError as exc:
+        raise StageInputError(path, f"could not be opened ({exc.strerror or exc})", remedy) from None
+    try:
+        info = os.fstat(fd)
+        if not stat.S_ISREG(info.st_mode):
+            raise StageInputError(path, "changed into something other than a plain file while it was opened", remedy)
+        if info.st_size > limit:
+            raise StageInputError(path, f"is {info.st_size:,} bytes, more than the {limit:,} such a file may hold", remedy)
+        os.set_blocking(fd, True)
+        return os.fdopen(fd, "rb")
+    except BaseException:
+        os.close(fd)
+        raise
+
+
+def read_bytes(path: str | Path, limit: int, root: str | Path | None = None, remedy: str = "") -> bytes:
+    """The bytes of the plain file ``path`` (:func:`open_read`); a file that grew past ``limit``
+    while it was read is refused too."""
+    with open_read(path, limit, root, remedy) as fh:
+        data = fh.read(limit + 1)
+    if len(data) > limit:
+        raise StageInputError(path, f"holds more than the {limit:,} bytes such a file may hold", remedy)
+    return data
+
+
+def read_text(path: str | Path, limit: int = RECORD_LIMIT, root: str | Path | None = None, remedy: str = "") -> str:
+    """The UTF-8 text of the plain file ``path`` (:func:`read_bytes`); text that is not UTF-8 is
+    one :class:`StageInputError`."""
+    data = read_bytes(path, limit, root, remedy)
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise StageInputError(path, f"is not UTF-8 text (byte {exc.start})", remedy) from None
+
+
+def read_json(path: str | Path, remedy: str = "Rerun the stage that writes it.", limit: int = RECORD_LIMIT) -> Any:
+    """A JSON record read as data: a plain file (:func:`read_text`) holding valid JSON, nested at
+    most as deep as Python's parser goes; else one :class:`StageInputError` naming it."""
+    text = read_text(path, limit, remedy=remedy)
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as exc:
         raise StageInputError(path, f"is not valid JSON ({' '.join(str(exc).split())[:120]})", remedy) from None
+    except RecursionError:
+        raise StageInputError(path, "is nested too deeply to be a record", remedy) from None
+
+
+def copy_file(source: str | Path, target: str | Path, limit: int = DATA_LIMIT, remedy: str = "") -> None:
+    """Copy the plain file ``source`` (:func:`open_read`) onto ``target``, atomically
+    (:func:`atomic_stream`)."""
+    with open_read(source, limit, remedy=remedy) as src, atomic_stream(target) as dst:
+        shutil.copyfileobj(src, dst)
+
+
+# -------------------------------------------------------------------------- writes and deletes
+@contextlib.contextmanager
+def atomic_path(path: str | Path) -> Iterator[Path]:
+    """Yield a temporary path in the target's directory; rename it onto ``path`` on success.
+
+    The temporary name keeps the target's suffix (so writers that infer a format from it work)
+    and starts with a dot, so a killed job leaves at most a hidden ``.name.tmp-*`` file and
+    never a file that looks finished. On error the temporary file is removed. The folder is
+    checked (:func:`check_output_path`) before anything is made in it.
+    """
+    path = Path(path)
+    check_output_path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.tmp-", suffix=path.suffix, dir=path.parent)
+    os.close(fd)
+    tmp_path = Path(tmp)
+    try:
+        yield tmp_path
+        os.chmod(tmp_path, 0o666 & ~_umask())
+        os.replace(tmp_path, path)
+    except BaseException:
+        tmp_path.unlink(missing_ok=True)
+        raise
+
+
+@contextlib.contextmanager
+def atomic_stream(path: str | Path, mode: str = "wb", **kwargs) -> Iterator[Any]:
+    """A file opened for writing (``mode`` "wb" or "w", ``kwargs`` as ``open``'s) at a temporary
+    path of :func:`atomic_path`, renamed onto ``path`` when the block ends without an error."""
+    if mode not in ("wb", "w"):
+        raise ValueError(f"atomic_stream writes a new file, not {mode!r}")
+    with atomic_path(path) as tmp, open(tmp, mode, **kwargs) as fh:
+        yield fh
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def replace(source: str | Path, target: str | Path) -> None:
+    """Rename ``source`` onto ``target`` (one file system), both folders checked as outputs."""
+    check_output_path(source)
+    check_output_path(target)
+    os.replace(source, target)
+
+
+def remove(path: str | Path, missing_ok: bool = True) -> None:
+    """Delete the file (or link, FIFO: the entry, never what it points to) ``path``, once its
+    folder is reached without a link inside its results root; a folder is :func:`remove_tree`'s."""
+    _check_folder(Path(os.path.abspath(path)).parent, path, "deleted")
+    kind = file_kind(path)
+    if kind == "folder":
+        raise StageInputError(path, "is a folder where a file was to be deleted", "Move it away by hand.")
+    if kind == "missing":
+        if not missing_ok:
+            raise StageInputError(path, "file not found")
+        return
+    os.unlink(path)
+
+
+def remove_tree(path: str | Path) -> None:
+    """Delete the folder ``path`` and what it holds, once it is a plain folder reached without a
+    link inside its results root (a link inside it is removed, not followed); nothing when it is
+    missing."""
+    _check_folder(path, path, "deleted")
+    kind = file_kind(path)
+    if kind == "missing":
+        return
+    if kind != "folder":
+        raise StageInputError(path, f"is a {kind} where a folder was to be deleted", "Remove it by hand.")
+    shutil.rmtree(path)
+
+
+def clear(folder: str | Path, pattern: str) -> list[Path]:
+    """Delete the files of ``folder`` whose names match ``pattern`` (a glob, one level), once the
+    folder is a plain folder reached without a link inside its results root; returns them."""
+    _check_folder(folder, folder, "cleared")
+    if file_kind(folder) == "missing":
+        return []
+    if file_kind(folder) != "folder":
+        raise StageInputError(folder, f"is a {file_kind(folder)}, not a folder", "Remove it; the run makes the folder itself.")
+    gone = [p for p in sorted(Path(folder).glob(pattern)) if file_kind(p) != "folder"]
+    for old in gone:
+        os.unlink(old)
+    return gone

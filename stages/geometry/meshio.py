@@ -15,8 +15,10 @@ from pathlib import Path
 import numpy as np
 
 from ..core.errors import StageInputError
+from ..core.safefiles import DATA_LIMIT, atomic_stream, open_read, read_bytes, require_plain_file, user_file
 from .normals import unit_face_normals
 from .shapes import BUILTIN_NAMES, builtin_mesh
+from .sourcemesh import read_gltf_file
 
 log = logging.getLogger(__name__)
 
@@ -55,8 +57,9 @@ def load_mesh(source: str | Path, given_in: str = "the config") -> TriMesh:
     ``given_in``: where the user named it, for the errors' advice ("the config", "the command").
 
     Raises:
-        StageInputError: missing or unreadable file, unsupported format, no faces (empty mesh or
-            point cloud), faces indexing missing vertices, NaN/inf vertex coordinates, or only
+        StageInputError: missing or unreadable file, unsupported format, a GLB or glTF file that
+            fails :func:`~stages.geometry.sourcemesh.read_gltf_file`'s checks, no faces (empty mesh
+            or point cloud), faces indexing missing vertices, NaN/inf vertex coordinates, or only
             zero-area faces.
     """
     source_str = str(source)
@@ -85,6 +88,9 @@ def load_mesh(source: str | Path, given_in: str = "the config") -> TriMesh:
         )
     if path.stat().st_size == 0:
         raise StageInputError(path, "file is empty (0 bytes)", "Re-export or re-download the mesh.")
+    require_plain_file(user_file(path), remedy=f"Point {given_in} at the mesh file itself.")
+    if suffix in (".glb", ".gltf"):
+        read_gltf_file(path)  # the container, buffers and accessors checked before trimesh parses them
     trimesh = _trimesh()
     try:
         loaded = trimesh.load(path, process=False, force=None)
@@ -189,7 +195,7 @@ def save_ply(path: str | Path, mesh: TriMesh) -> None:
     face_rec = np.empty(len(f), dtype=[("n", "u1"), ("idx", "<i4", (3,))])
     face_rec["n"] = 3
     face_rec["idx"] = f
-    with open(path, "wb") as fh:
+    with atomic_stream(path) as fh:
         fh.write(header)
         fh.write(v.tobytes())
         fh.write(face_rec.tobytes())
@@ -198,16 +204,26 @@ def save_ply(path: str | Path, mesh: TriMesh) -> None:
 def load_ply(path: str | Path) -> TriMesh:
     """Read a PLY written by :func:`save_ply` (or any triangle PLY, through trimesh)."""
     path = Path(path)
-    with open(path, "rb") as fh:
+    with open_read(path, DATA_LIMIT, remedy="Run the stage that writes it again.") as fh:
         head = fh.read(512)
     marker = b"end_header\n"
     if head.startswith(b"ply\nformat binary_little_endian 1.0\ncomment tango-stylize\n") and marker in head:
-        lines = head[: head.index(marker)].decode("ascii").splitlines()
-        nv = int(next(ln for ln in lines if ln.startswith("element vertex")).split()[-1])
-        nf = int(next(ln for ln in lines if ln.startswith("element face")).split()[-1])
+        data = read_bytes(path, DATA_LIMIT, remedy="Run the stage that writes it again.")
+        try:
+            lines = head[: head.index(marker)].decode("ascii").splitlines()
+            nv = int(next(ln for ln in lines if ln.startswith("element vertex")).split()[-1])
+            nf = int(next(ln for ln in lines if ln.startswith("element face")).split()[-1])
+        except (UnicodeDecodeError, StopIteration, ValueError, IndexError):
+            raise StageInputError(path, "has a malformed PLY header", "Run the stage that writes it again.") from None
         offset = head.index(marker) + len(marker)
-        data = np.fromfile(path, dtype=np.uint8, offset=offset)
-        v = data[: nv * 24].view("<f8").reshape(nv, 3).astype(np.float64)
-        rec = data[nv * 24 : nv * 24 + nf * 13].view([("n", "u1"), ("idx", "<i4", (3,))])
+        if nv < 0 or nf < 0 or offset + nv * 24 + nf * 13 != len(data):
+            raise StageInputError(
+                path,
+                f"holds {len(data) - offset:,} bytes of data, not the {nv:,} vertices and {nf:,} faces its header says",
+                "Run the stage that writes it again.",
+            )
+        body = np.frombuffer(data, np.uint8, offset=offset)
+        v = body[: nv * 24].view("<f8").reshape(nv, 3).astype(np.float64)
+        rec = body[nv * 24 :].view([("n", "u1"), ("idx", "<i4", (3,))])
         return TriMesh(v, rec["idx"].astype(np.int64))
     return load_mesh(path)

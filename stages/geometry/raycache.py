@@ -40,8 +40,7 @@ import numpy as np
 
 from ..config.sections import RaycacheSettings
 from ..core.errors import StageInputError
-from ..core.provenance import atomic_path
-from ..core.safefiles import require_plain_file
+from ..core.safefiles import DATA_LIMIT, atomic_stream, open_read
 from .cameras import (
     camera_positions,
     camera_space_directions,
@@ -192,9 +191,9 @@ class RayCache:
         cache held in memory, ``path`` naming where it came from."""
         self.path = Path(path)
         if arrays is None:
-            if self.path.exists() or self.path.is_symlink():  # a link or a FIFO in a results folder: one line
-                require_plain_file(self.path, remedy="Run the raycache stage again.")
-            with np.load(self.path) as z:
+            if not self.path.exists() and not self.path.is_symlink():
+                raise StageInputError(self.path, "ray cache not found", "Run the raycache stage first (snakemake runs it).")
+            with open_read(self.path, DATA_LIMIT, remedy="Run the raycache stage again.") as fh, np.load(fh) as z:
                 arrays = {k: z[k] for k in z.files}
         self.arrays = arrays
         self.width = int(self.arrays["width"])
@@ -281,9 +280,8 @@ class RayCache:
 
 
 def save_cache(path: Path, arrays: dict[str, np.ndarray]) -> None:
-    with atomic_path(path) as tmp:
-        with open(tmp, "wb") as fh:
-            np.savez(fh, **arrays)
+    with atomic_stream(path) as fh:
+        np.savez(fh, **arrays)
 
 
 def trace_cache_visibility(arrays: dict[str, np.ndarray], tracer, directions: int) -> np.ndarray:

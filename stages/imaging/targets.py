@@ -33,8 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from ..core.errors import StageInputError
-from ..core.provenance import atomic_path
-from ..core.safefiles import require_plain_file
+from ..core.safefiles import DATA_LIMIT, atomic_stream, open_read
 from ..geometry.raycache import RayCache
 
 #: ground-truth arrays a target file may carry (metric views)
@@ -51,9 +50,8 @@ def save_targets(path: str | Path, arrays: dict[str, np.ndarray]) -> None:
     for key, value in arrays.items():
         value = np.asarray(value)
         out[key] = value.astype(np.float16) if key in ("radiance", "coverage", *TRUTH_KEYS, *GLTF_TRUTH_KEYS) else value
-    with atomic_path(path) as tmp:
-        with open(tmp, "wb") as fh:
-            np.savez(fh, **out)
+    with atomic_stream(path) as fh:
+        np.savez(fh, **out)
 
 
 def save_relit(path: str | Path, relit: dict, offsets: np.ndarray, description: str) -> None:
@@ -68,9 +66,8 @@ def save_relit(path: str | Path, relit: dict, offsets: np.ndarray, description: 
         out[f"coverage_{j}"] = np.asarray(t.coverage).astype(np.float16)
         out[f"env_energy_{j}"] = np.asarray(energy, np.float64)
         out[f"noise_psnr_db_{j}"] = np.array(t.noise_psnr_db)
-    with atomic_path(path) as tmp:
-        with open(tmp, "wb") as fh:
-            np.savez(fh, **out)
+    with atomic_stream(path) as fh:
+        np.savez(fh, **out)
 
 
 @dataclass(frozen=True)
@@ -89,7 +86,7 @@ def load_relit(path: str | Path, cache: RayCache) -> list[RelitTruth]:
     path = Path(path)
     if not path.exists() and not path.is_symlink():
         raise StageInputError(path, "relit ground truth not found", "Run the target stage first (snakemake runs it).")
-    with np.load(require_plain_file(path, remedy="Run the target stage again.")) as z:
+    with open_read(path, DATA_LIMIT, remedy="Run the target stage again.") as fh, np.load(fh) as z:
         arrays = {k: z[k] for k in z.files}
     if not np.array_equal(arrays.get("offsets"), cache.arrays["offsets"]):
         raise StageInputError(
@@ -115,8 +112,7 @@ class TargetSet:
         self.path = Path(path)
         if not self.path.exists() and not self.path.is_symlink():
             raise StageInputError(self.path, "target file not found", "Run the target stage first (snakemake runs it).")
-        require_plain_file(self.path, remedy="Run the target stage again.")
-        with np.load(self.path) as z:
+        with open_read(self.path, DATA_LIMIT, remedy="Run the target stage again.") as fh, np.load(fh) as z:
             self.arrays = {k: z[k] for k in z.files}
         offsets = cache.arrays["offsets"]
         if not np.array_equal(self.arrays.get("offsets"), offsets):

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import hashlib
 import math
-from pathlib import Path
 
 import numpy as np
 import torch
 
+from ..core.provenance import sha256_of
 from ..render.envmap import equirect_directions, load_env, radiant_energy
 from ..render.sg import sg_integral
 from ..render.shading import SGLight
@@ -116,5 +116,5 @@ def hold_environment(module: SGLightModule, spec: str, iterations: int = 400) ->
         p.requires_grad_(False)
     record = {"map": spec, "lobes": module.lobes, "sg_fit_relative_rms": rel}
     if not spec.startswith("builtin:"):  # a file: what it held (a resumed run checks it is the same)
-        record["sha256"] = hashlib.sha256(Path(spec).read_bytes()).hexdigest()
+        record["sha256"] = sha256_of(spec)
     return record

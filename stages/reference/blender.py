@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..core.safefiles import DATA_LIMIT, open_read, read_json
 from ..imaging.quality import psnr
 from ..imaging.targets import FULL_COVERAGE
 from ..render.color import srgb_encode
@@ -117,12 +118,14 @@ def run_job(job: dict, workdir: Path, timeout_s: float = 1800.0) -> JobResult:
     if proc.returncode != 0 or not (workdir / "report.json").is_file():
         tail = "\n".join((proc.stdout + proc.stderr).strip().splitlines()[-15:])
         raise RuntimeError(f"Blender job on {job['asset']} failed (exit {proc.returncode}):\n{tail}")
-    report = json.loads((workdir / "report.json").read_text())
-    corners = {}
+    report = read_json(workdir / "report.json", "Blender wrote no valid report: run the judge again.")
+    corners, renders = {}, None
     if (workdir / "mesh.npz").is_file():
-        with np.load(workdir / "mesh.npz") as z:
+        with open_read(workdir / "mesh.npz", DATA_LIMIT) as fh, np.load(fh) as z:
             corners = {k: z[k] for k in z.files}
-    renders = np.load(workdir / "render.npy") if (workdir / "render.npy").is_file() else None
+    if (workdir / "render.npy").is_file():
+        with open_read(workdir / "render.npy", DATA_LIMIT) as fh:
+            renders = np.load(fh)
     return JobResult(report, corners, renders, seconds)
 
 

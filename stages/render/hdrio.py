@@ -11,6 +11,7 @@ import numpy as np
 
 from ..core.errors import StageInputError
 from ..core.provenance import atomic_path
+from ..core.safefiles import read_bytes, require_plain_file, user_file
 
 
 def _to_rgbe(rgb: np.ndarray) -> np.ndarray:
@@ -36,6 +37,10 @@ def write_hdr(path: str | Path, rgb: np.ndarray) -> None:
 MAX_ENV_HEIGHT = 8192
 
 
+#: the largest .hdr file read: the largest map, flat, and its header
+MAX_HDR_BYTES = 4 * 2 * MAX_ENV_HEIGHT * MAX_ENV_HEIGHT + (1 << 16)
+
+
 def _check_size(path: Path, h: int, w: int) -> None:
     """Refuse, from the header alone, a map that is not 2:1 or is too large to hold."""
     if h < 1 or w != 2 * h:
@@ -53,7 +58,7 @@ def read_hdr(path: str | Path) -> np.ndarray:
     malformed file (signature, header, size, truncated or corrupt pixel data) is one
     :class:`StageInputError` naming it, and the size is checked before anything is allocated."""
     path = Path(path)
-    data = path.read_bytes()
+    data = read_bytes(path, MAX_HDR_BYTES, remedy="Give an equirectangular .hdr file.")
     if not data.startswith(b"#?"):
         raise StageInputError(path, "is not a Radiance HDR file (no #? signature)")
     end = data.find(b"\n\n")
@@ -68,9 +73,12 @@ def read_hdr(path: str | Path) -> np.ndarray:
         _decode_rgbe(buf, out)
     except (IndexError, ValueError) as exc:
         raise StageInputError(path, f"is truncated or corrupt ({exc})", "Export the map again.") from None
-    e = out[..., 3].astype(np.int32)
-    scale = np.where(e > 0, np.ldexp(1.0, e - 136), 0.0).astype(np.float32)
-    return out[..., :3].astype(np.float32) * scale[..., None]
+    return out[..., :3] * _RGBE_SCALE[out[..., 3]][..., None]
+
+
+#: what a mantissa byte is multiplied by for each exponent byte e: 2^(e - 136), 0 where e is 0
+#: (exact in float32: a lookup gives the same floats as computing them, in far less time and memory)
+_RGBE_SCALE = np.where(np.arange(256) > 0, np.ldexp(1.0, np.arange(256) - 136), 0.0).astype(np.float32)
 
 
 def _decode_rgbe(buf: np.ndarray, out: np.ndarray) -> None:
@@ -80,7 +88,13 @@ def _decode_rgbe(buf: np.ndarray, out: np.ndarray) -> None:
     h, w = out.shape[:2]
     i = 0
     for y in range(h):
-        if 8 <= w < 32768 and i + 4 <= len(buf) and buf[i] == 2 and buf[i + 1] == 2 and (buf[i + 2] << 8 | buf[i + 3]) == w:
+        if (
+            8 <= w < 32768
+            and i + 4 <= len(buf)
+            and buf[i] == 2
+            and buf[i + 1] == 2
+            and (int(buf[i + 2]) << 8 | int(buf[i + 3])) == w
+        ):
             i += 4
             for c in range(4):
                 x = 0
@@ -120,17 +134,54 @@ def write_exr(path: str | Path, rgb: np.ndarray) -> None:
             f.write(str(tmp))
 
 
-def read_exr(path: str | Path) -> np.ndarray:
-    """An OpenEXR file's RGB as ``(H, W, 3) float32``: its size checked from the header before the
-    pixels are read; a file OpenEXR cannot read, or without R, G and B, is one
-    :class:`StageInputError`."""
+#: the most channels an OpenEXR map may have: R, G, B and a few more (alpha, depth, ...). Its
+#: pixels are read channel by channel, each at the map's full size: 67 float channels of 4096x2048
+#: would be 2.2 GB from a file of a few megabytes
+MAX_EXR_CHANNELS = 16
+
+
+def _check_exr_header(path: Path, f) -> None:
+    """Refuse, from the header of ``f`` (an ``OpenEXR.File`` opened ``header_only``), every file
+    whose pixels would take more memory than its map: more than one part (every part is read),
+    deep data (its sample counts are in the pixel data), a size :func:`_check_size` refuses, more
+    than :data:`MAX_EXR_CHANNELS` channels, or tiles larger than the largest map (the library's
+    buffers grow with the tile size, not the image's); then one without R, G and B."""
     import OpenEXR
 
-    path = Path(path)
+    if len(f.parts) != 1:
+        raise StageInputError(path, f"has {len(f.parts)} parts, not one", "Save the map as a single-part image.")
+    header = f.header()
+    if header.get("type") in (OpenEXR.deepscanline, OpenEXR.deeptile):
+        raise StageInputError(path, "holds deep data, not a flat image", "Save the map as a flat (non-deep) image.")
+    lo, hi = (np.asarray(v, np.int64) for v in header["dataWindow"])
+    _check_size(path, int(hi[1] - lo[1] + 1), int(hi[0] - lo[0] + 1))
+    names = [c.name for c in header["channels"]]
+    if len(names) > MAX_EXR_CHANNELS:
+        raise StageInputError(
+            path, f"has {len(names)} channels, more than {MAX_EXR_CHANNELS}", "Save only its R, G and B channels."
+        )
+    tiles = header.get("tiles")
+    if tiles is not None and (tiles.xSize > 2 * MAX_ENV_HEIGHT or tiles.ySize > MAX_ENV_HEIGHT):
+        raise StageInputError(
+            path,
+            f"has {tiles.xSize}x{tiles.ySize} tiles, larger than the largest map ({2 * MAX_ENV_HEIGHT}x{MAX_ENV_HEIGHT})",
+            "Save it as a scanline image or with smaller tiles.",
+        )
+    if not {"R", "G", "B"} <= set(names):
+        raise StageInputError(path, f"has no R, G and B channels (it has {', '.join(sorted(names)) or 'none'})")
+
+
+def read_exr(path: str | Path) -> np.ndarray:
+    """An OpenEXR file's RGB as ``(H, W, 3) float32``. The header is checked before any pixel is
+    read (:func:`_check_exr_header`: one flat part, the size, at most :data:`MAX_EXR_CHANNELS`
+    channels, the tile size, R, G and B); a header that fails, a file OpenEXR cannot read, or one
+    whose R, G and B cannot be read as one image is one :class:`StageInputError`."""
+    import OpenEXR
+
+    path = require_plain_file(path, remedy="Give an equirectangular .exr file.")
     try:
         with OpenEXR.File(str(path), header_only=True) as f:
-            lo, hi = (np.asarray(v, np.int64) for v in f.header()["dataWindow"])
-        _check_size(path, int(hi[1] - lo[1] + 1), int(hi[0] - lo[0] + 1))
+            _check_exr_header(path, f)
         with OpenEXR.File(str(path)) as f:
             ch = f.channels()
             if "RGB" in ch:
@@ -146,8 +197,8 @@ def read_exr(path: str | Path) -> np.ndarray:
 
 def read_envmap(path: str | Path) -> np.ndarray:
     """An equirectangular environment map from ``.hdr`` or ``.exr``: ``(H, W, 3) float32``."""
-    path = Path(path)
-    if not path.is_file():
+    path = user_file(path)
+    if not path.exists():
         raise StageInputError(path, "file not found", "Give an equirectangular .hdr or .exr file.")
     if path.suffix.lower() == ".hdr":
         img = read_hdr(path)

@@ -34,6 +34,7 @@ import torch
 from torch import Tensor
 
 from ..config.sections import BRDFS
+from ..core.safefiles import DATA_LIMIT, atomic_stream, open_read
 
 log = logging.getLogger(__name__)
 
@@ -211,7 +212,7 @@ def _read_table(device: str, dtype: torch.dtype, brdf: str) -> dict[str, Tensor]
     rebuild = f"`python -m stages.render.specular_albedo --brdf {brdf}`"
     if not path.is_file():
         raise FileNotFoundError(f"{path}: the specular albedo table is missing; rebuild it with {rebuild}")
-    with np.load(path) as z:
+    with open_read(path, DATA_LIMIT) as fh, np.load(fh) as z:
         missing = [key for key in TABLE_COLUMNS if key not in z.files]
         if missing:
             raise ValueError(f"{path} lacks the columns {missing} (an older table); rebuild it with {rebuild}")
@@ -286,10 +287,8 @@ def main(argv: list[str] | None = None) -> int:
     args.out = args.out or TABLE_PATHS[args.brdf]
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     table = build_table(args.brdf)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = args.out.with_suffix(".part.npz")
-    np.savez_compressed(tmp, **table)
-    tmp.replace(args.out)
+    with atomic_stream(args.out) as fh:
+        np.savez_compressed(fh, **table)
     log.info("wrote %s (%d x %d)", args.out, NV_NODES, R_NODES)
     return 0
 

@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from ..config.sections import ABLATION_SWITCHES, BakeSettings, LodSettings, OptimizeSettings, RelightSettings
+from ..core.safefiles import read_json
 
 log = logging.getLogger(__name__)
 
@@ -44,8 +45,10 @@ def cell_settings(cell_dir: Path) -> dict[str, Any]:
     flat: dict[str, Any] = {}
     for stage in SETTINGS_STAGES:
         path = Path(cell_dir) / stage / "meta.json"
-        if path.is_file():
-            for key, value in (json.loads(path.read_text()).get("settings") or {}).items():
+        if path.exists() or path.is_symlink():
+            record = read_json(path)
+            settings = record.get("settings") if isinstance(record, dict) else None
+            for key, value in (settings if isinstance(settings, dict) else {}).items():
                 flat[f"{stage}.{key}"] = value
     return flat
 

@@ -18,6 +18,7 @@ import numpy as np
 
 from ..core.provenance import atomic_path
 from .compare import Group, trade_off
+from .spreadsheet import read_csv
 
 log = logging.getLogger(__name__)
 
@@ -220,9 +221,10 @@ def loss_figures(
     curves: dict[tuple[str, str, str], list[tuple[str, pd.DataFrame]]] = {}
     for mesh, prompt, variant in cells:
         f = Path(results) / mesh / prompt / variant / "optimize" / "loss.csv"
-        if f.is_file():
+        if f.exists() or f.is_symlink():
             key = (mesh, prompt, kinds.get((mesh, prompt, variant), ""))
-            curves.setdefault(key, []).append((variant, pd.read_csv(f)))
+            loss = read_csv(f, "Rerun the cell's optimisation.", usecols=["iteration", "loss"], dtype=float)
+            curves.setdefault(key, []).append((variant, loss))
     if not curves:
         return [{"title": title, "skipped": "no cell has a loss record (optimize/loss.csv)"}]
     entries = []

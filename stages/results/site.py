@@ -25,11 +25,11 @@ test-only random CLIP or fitted to image targets, a banner at the top says so fi
 from __future__ import annotations
 
 import base64
+import hashlib
 import json
 import logging
 import os
 import re
-import shutil
 from collections.abc import Callable
 from pathlib import Path
 
@@ -40,8 +40,19 @@ from markupsafe import Markup
 from ..config.layout import RENDER_KINDS
 from ..core.errors import StageInputError
 from ..core.provenance import atomic_path
-from ..core.safefiles import inside, plain_file, read_json_record
-from .spreadsheet import read_spreadsheet_csv
+from ..core.safefiles import (
+    DATA_LIMIT,
+    copy_file,
+    inside,
+    plain_file,
+    read_bytes,
+    read_json,
+    read_text,
+    remove_tree,
+    replace,
+    require_plain_file,
+)
+from .spreadsheet import read_csv, read_spreadsheet_csv
 from .summary import quality_of
 
 log = logging.getLogger(__name__)
@@ -84,15 +95,35 @@ MIME = {".png": "image/png", ".glb": "model/gltf-binary", ".hdr": "image/vnd.rad
 # ---- shared pieces ---------------------------------------------------------------------------
 def templates() -> Environment:
     """The report's templates, with every value escaped unless Python marked it safe (:class:`Markup`:
-    only the style sheet, our scripts and pandas' escaped tables)."""
-    return Environment(
+    only the style sheet, our scripts and pandas' escaped tables), and :func:`page_policy` for
+    each page's Content-Security-Policy."""
+    env = Environment(
         loader=FileSystemLoader(TEMPLATES), autoescape=True, undefined=StrictUndefined, keep_trailing_newline=False
+    )
+    env.globals["page_policy"] = page_policy
+    return env
+
+
+def page_policy(style: str, inline_scripts: list[str]) -> str:
+    """A page's Content-Security-Policy: it loads only its own files (``'self'``: the report's
+    folder), the style sheet and scripts it holds inline (by their SHA-256, so nothing else
+    inline runs), images and models from ``data:`` URIs (the one-file form) and ``blob:`` URLs
+    (the viewer's, for a model read from ``assets.js`` and for the textures inside a GLB); no
+    plug-ins, no ``<base>``, no form submits anywhere."""
+
+    def digest(text: str) -> str:
+        return "'sha256-" + base64.b64encode(hashlib.sha256(str(text).encode("utf-8")).digest()).decode("ascii") + "'"
+
+    scripts = " ".join(["'self'", *dict.fromkeys(digest(code) for code in inline_scripts)])
+    return (
+        f"default-src 'self'; script-src {scripts}; style-src 'self' {digest(style)}; img-src 'self' data: blob:; "
+        "connect-src 'self' data: blob:; object-src 'none'; base-uri 'none'; form-action 'none'"
     )
 
 
 def data_uri(path: Path, mime: str | None = None) -> str:
     mime = mime or MIME.get(Path(path).suffix.lower(), "application/octet-stream")
-    return f"data:{mime};base64," + base64.b64encode(Path(path).read_bytes()).decode("ascii")
+    return f"data:{mime};base64," + base64.b64encode(read_bytes(path, DATA_LIMIT)).decode("ascii")
 
 
 def table(frame: pd.DataFrame) -> Markup:
@@ -288,7 +319,7 @@ def _figures_record(report_dir: Path) -> dict:
     fj = Path(report_dir) / "figures.json"
     if not fj.exists() and not fj.is_symlink():
         return {}
-    data = read_json_record(fj, remedy="Rerun the report stage.")
+    data = read_json(fj, remedy="Rerun the report stage.")
     if not isinstance(data, dict) or not all(isinstance(data.get(k, []), list) for k in ("figures", "groups")):
         log.warning("%s: not the record the report stage writes; no figures shown", fj)
         return {}
@@ -311,10 +342,7 @@ def _figure_file(report_dir: Path, entry: dict) -> Path | None:
 def speed_accuracy_table(report_dir: Path) -> dict | None:
     """The speed/accuracy table (None where the report has none)."""
     sa = Path(report_dir) / "speed_accuracy.csv"
-    try:
-        frame = read_spreadsheet_csv(sa) if sa.is_file() else pd.DataFrame()
-    except pd.errors.EmptyDataError:
-        frame = pd.DataFrame()
+    frame = read_spreadsheet_csv(sa) if sa.exists() or sa.is_symlink() else pd.DataFrame()
     return {"rows": len(frame), "table": table(frame)} if len(frame) else None
 
 
@@ -431,7 +459,7 @@ def _page_frame(title: str, **scripts) -> dict:
     """The frame's context: the title, the style sheet (ours, inline) and the scripts."""
     return {
         "title": title,
-        "style": Markup((WEB / "report.css").read_text()),
+        "style": Markup(read_text(WEB / "report.css")),
         "script_files": scripts.get("files", []),
         "deferred_files": scripts.get("deferred", []),
         "inline_head": [Markup(code) for code in scripts.get("inline", [])],
@@ -439,12 +467,13 @@ def _page_frame(title: str, **scripts) -> dict:
 
 
 def _place(src: Path, dst: Path) -> None:
-    """Put ``src`` at ``dst``: a hard link where the file system allows (no copy), else a copy."""
+    """Put the plain file ``src`` at ``dst``: a hard link where the file system allows (no copy),
+    else a copy."""
     dst.parent.mkdir(parents=True, exist_ok=True)
     try:
-        os.link(src, dst)
+        os.link(require_plain_file(src), dst)
     except OSError:
-        shutil.copy2(src, dst)
+        copy_file(src, dst)
 
 
 def read_summary(report_dir: Path) -> pd.DataFrame:
@@ -452,7 +481,7 @@ def read_summary(report_dir: Path) -> pd.DataFrame:
     path = Path(report_dir) / "summary.csv"
     frame = read_spreadsheet_csv(path)
     ids = ["mesh", "prompt", "variant"]
-    frame[ids] = pd.read_csv(path, usecols=ids, dtype=str, keep_default_na=False)[ids]
+    frame[ids] = read_csv(path, usecols=ids, dtype=str, keep_default_na=False)[ids]
     return frame
 
 
@@ -477,11 +506,11 @@ def write_folder(
     groups = _groups(report_dir)
     staging = {name: report_dir / f".{name}.partial" for name in ("cells", "viewer")}
     for d in staging.values():
-        shutil.rmtree(d, ignore_errors=True)
+        remove_tree(d)
         d.mkdir(parents=True)
-    shutil.copyfile(WEB / "cell.js", staging["viewer"] / "cell.js")
+    copy_file(WEB / "cell.js", staging["viewer"] / "cell.js")
     if have_viewer:
-        shutil.copyfile(model_viewer, staging["viewer"] / "model-viewer.min.js")
+        copy_file(model_viewer, staging["viewer"] / "model-viewer.min.js")
     viewers = 0
     for cell in cells:
         folder = staging["cells"].joinpath(*cell)
@@ -492,9 +521,9 @@ def write_folder(
         thumbnail(cell).save(folder / "thumb.png", format="PNG")
         packed = None
         if have_viewer and "model.glb" in files:
-            assets = {"glb": base64.b64encode(files["model.glb"].read_bytes()).decode("ascii")}
+            assets = {"glb": base64.b64encode(read_bytes(files["model.glb"], DATA_LIMIT)).decode("ascii")}
             if "light.hdr" in files:
-                assets["hdr"] = base64.b64encode(files["light.hdr"].read_bytes()).decode("ascii")
+                assets["hdr"] = base64.b64encode(read_bytes(files["light.hdr"], DATA_LIMIT)).decode("ascii")
             (folder / "assets.js").write_text("window.TANGO_CELL_ASSETS = " + json.dumps(assets) + ";\n")
             packed = "assets.js"
             viewers += 1
@@ -513,9 +542,8 @@ def write_folder(
     # swap the finished folders in, then the index (written last: it is the rule's marker)
     for name, d in staging.items():
         final = report_dir / name
-        if final.exists():
-            shutil.rmtree(final)
-        d.rename(final)
+        remove_tree(final)
+        replace(d, final)
 
     def link(cell):
         return "cells/" + "/".join(cell) + "/index.html"
@@ -564,7 +592,7 @@ def _index_page(
         figures=figure_entries(report_dir, url),
         overview=url(overview) if plain_file(overview, report_dir) else None,
         cells=list(cells),
-        inline_end=[Markup(code) for code in (*end, (WEB / "index.js").read_text())],
+        inline_end=[Markup(code) for code in (*end, read_text(WEB / "index.js"))],
     )
 
 
@@ -576,7 +604,7 @@ def write_single_file(results: Path, report_dir: Path, cells: list[tuple[str, st
     for name in ("cells", "viewer"):  # pages of an earlier folder-form report would go stale beside it
         if (report_dir / name).is_dir() and Path(out).parent == report_dir:
             log.info("removing %s: this report is one file now", report_dir / name)
-            shutil.rmtree(report_dir / name)
+            remove_tree(report_dir / name)
     frame, env = read_summary(report_dir), templates()
     have_viewer = Path(model_viewer).is_file()
     groups = _groups(report_dir)
@@ -598,8 +626,8 @@ def write_single_file(results: Path, report_dir: Path, cells: list[tuple[str, st
         (lambda c: "#" + cell_anchor(c), lambda c: None, data_uri),
         have_viewer,
         cells=sections,
-        head=[Path(model_viewer).read_text()] if have_viewer else [],
-        end=[(WEB / "cell.js").read_text()],
+        head=[read_text(model_viewer, DATA_LIMIT)] if have_viewer else [],
+        end=[read_text(WEB / "cell.js")],
     )
     with atomic_path(Path(out)) as tmp:
         tmp.write_text(page)

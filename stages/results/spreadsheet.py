@@ -10,10 +10,14 @@ left alone (``-0.5`` stays a number); ``summary.json`` holds every value unchang
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 from typing import Any
 
 import pandas as pd
+
+from ..core.errors import StageInputError
+from ..core.safefiles import RECORD_LIMIT, read_text
 
 #: what makes a spreadsheet cell a formula (and the apostrophe, escaped so the mapping reverses)
 FORMULA_START = ("=", "+", "-", "@", "\t", "\r", "'")
@@ -43,9 +47,24 @@ def spreadsheet_rows(rows: list[dict]) -> list[dict]:
     return [{k: to_spreadsheet(v) for k, v in row.items()} for row in rows]
 
 
+def read_csv(path: Path, remedy: str = "Rerun the stage that writes it.", **kwargs) -> pd.DataFrame:
+    """A CSV (or, with ``sep="\t"``, TSV) record read through the gate (a plain file inside its
+    results folder, at most :data:`~stages.core.safefiles.RECORD_LIMIT`), ``kwargs`` to pandas; a
+    file pandas cannot parse, or without the columns asked for, is one :class:`StageInputError`."""
+    text = read_text(path, RECORD_LIMIT, remedy=remedy)
+    try:
+        return pd.read_csv(io.StringIO(text), **kwargs)
+    except pd.errors.EmptyDataError:
+        return pd.DataFrame()
+    except (pd.errors.ParserError, ValueError) as exc:
+        raise StageInputError(
+            path, f"is not a table of the columns expected ({' '.join(str(exc).split())[:120]})", remedy
+        ) from None
+
+
 def read_spreadsheet_csv(path: Path, **kwargs) -> pd.DataFrame:
     """A CSV written through :func:`spreadsheet_rows`, its texts restored (``kwargs`` to pandas)."""
-    frame = pd.read_csv(path, **kwargs)
+    frame = read_csv(path, **kwargs)
     for column in frame.columns:
         if not pd.api.types.is_numeric_dtype(frame[column]) and not pd.api.types.is_bool_dtype(frame[column]):
             frame[column] = frame[column].map(from_spreadsheet)

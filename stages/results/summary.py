@@ -4,7 +4,6 @@ front view of a cell."""
 
 from __future__ import annotations
 
-import json
 import logging
 from pathlib import Path
 
@@ -13,7 +12,8 @@ import numpy as np
 from ..config.records import CELL_RECORDS, MESH_RECORDS, OptimizeRecord, StageRecord
 from ..core.errors import StageInputError
 from ..core.provenance import ORIGIN_KEY, read_origin
-from ..core.safefiles import require_plain_file
+from ..core.safefiles import IMAGE_LIMIT, open_read, read_json, require_plain_file
+from .spreadsheet import read_csv
 
 log = logging.getLogger(__name__)
 
@@ -25,7 +25,7 @@ def _read(path: Path) -> dict | None:
     line (a received results folder is data)."""
     if not path.exists() and not path.is_symlink():
         return None
-    return json.loads(require_plain_file(path, remedy="Rerun the stage that writes it.").read_text())
+    return read_json(path, "Rerun the stage that writes it.")
 
 
 def _need(path: Path) -> dict:
@@ -166,11 +166,12 @@ def speed_accuracy(rows: list[dict], results: Path) -> list[dict]:
             continue
         bench = results / r["mesh"] / r["prompt"] / r["variant"] / "benchmarks" / "optimize.tsv"
         peak = None
-        if bench.is_file():
+        if bench.exists() or bench.is_symlink():
             import pandas as pd
 
             # Snakemake writes "-" where it measured nothing (a very short job)
-            value = pd.to_numeric(pd.read_csv(bench, sep="\t")["max_rss"], errors="coerce").iloc[0]
+            table = read_csv(bench, "Rerun the cell's optimisation.", sep="\t", usecols=["max_rss"])
+            value = pd.to_numeric(table["max_rss"], errors="coerce").iloc[0] if len(table) else float("nan")
             peak = None if pd.isna(value) else float(value)
         out.append(
             {
@@ -195,7 +196,7 @@ def front_tile(results: Path, cell: tuple[str, str, str], kind: str = "rgb", siz
     meta = results / mesh / prompt / variant / "optimize" / "meta.json"
     sh = _need(meta).get("sheet")
     path = require_plain_file(results / mesh / prompt / variant / "optimize" / "renders" / f"{kind}.png", results)
-    with Image.open(path) as img:
+    with open_read(path, IMAGE_LIMIT, results) as fh, Image.open(fh) as img:
         sheet = sh if isinstance(sh, dict) else {}
         columns, tile, front = sheet.get("columns"), sheet.get("tile"), sheet.get("front_view")
         if not all(isinstance(x, int) and not isinstance(x, bool) for x in (columns, tile, front)) or min(columns, tile) < 1:

@@ -21,6 +21,7 @@ from torch.nn.utils import get_total_norm
 from ..config.sections import OptimizeSettings
 from ..core.allocator import keep_freed_memory
 from ..core.provenance import Timer, atomic_path
+from ..core.safefiles import atomic_stream
 from ..geometry.raycache import RayCache
 from ..guidance.objective import ImageBatch, choose_guidance
 from ..imaging.images import ImageSpec, background, compose, gather_points, global_spec, sample_crops
@@ -320,11 +321,10 @@ def write_loss_csv(path: Path, history: list[dict]) -> None:
     """The loss history (every iteration up to :data:`HISTORY_ROWS` of them, then evenly thinned:
     :func:`keep_history`), atomically."""
     keys = sorted({k for row in history for k in row}, key=lambda k: (k != "iteration", k))
-    with atomic_path(path) as tmp:
-        with open(tmp, "w", newline="") as fh:
-            w = csv.DictWriter(fh, fieldnames=keys)
-            w.writeheader()
-            w.writerows(history)
+    with atomic_stream(path, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=keys)
+        w.writeheader()
+        w.writerows(history)
 
 
 #: the most characters of the prompt the loss plot shows as its title

@@ -137,14 +137,14 @@ def test_a_ray_cache_target_or_meta_that_is_a_link_or_a_fifo_is_one_line(tmp_pat
 
 
 def test_a_received_record_that_is_not_json_or_not_the_reports_is_one_line_or_ignored(tmp_path, caplog):
-    from stages.core.safefiles import read_json_record
+    from stages.core.safefiles import read_json
     from stages.results.site import figure_entries
 
     report = tmp_path / "results" / "exp" / "report"
     report.mkdir(parents=True)
     (report / "meta.json").write_text("{not json")
     with pytest.raises(StageInputError, match="is not valid JSON") as err:
-        read_json_record(report / "meta.json")
+        read_json(report / "meta.json")
     assert "\n" not in str(err.value)
     for junk in ("[1, 2]", '{"figures": "x"}', '{"figures": [1, {"file": 3}]}'):
         (report / "figures.json").write_text(junk)

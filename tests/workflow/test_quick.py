@@ -12,6 +12,8 @@ from pathlib import Path
 
 import pytest
 import yaml
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 from conftest import REPO, TINY, TINY_OPTIMIZE, shared_mesh, snakemake_env
 
 
@@ -160,7 +162,63 @@ def test_a_mesh_past_the_face_limit_a_reserved_name_and_a_folder_with_spaces(tmp
     assert q.main([str(mesh), "a pot", "--image-guided", "wood", "--config-dir", str(configs), "--dry-run"]) == 0
     out = capsys.readouterr().out
     assert f"--configfile '{configs}/pot-a-pot.yaml'" in out, out
-    assert f"snakemake --configfile '{configs}/pot-a-pot.yaml'" in (configs / "pot-a-pot.yaml").read_text()
+    assert (configs / "pot-a-pot.yaml").read_text().startswith(q.HEADER)
+
+
+#: what YAML reads as a line break or what makes a name look other than it is: C0 and C1 controls
+#: (U+0085 among them), line and paragraph separators, bidirectional overrides and isolates
+HOSTILE = [chr(c) for c in (*range(0, 32), 127, *range(128, 160), 0x2028, 0x2029, *range(0x202A, 0x202F), *range(0x2066, 0x206A))]
+
+
+def test_a_folder_name_cannot_write_config_keys(tmp_path, monkeypatch, capsys):
+    """A parent folder named with a character YAML reads as a line break, then a template key and
+    an expression: refused in one line naming the character, and no config is written (it used
+    to leave the header's comment and become top-level YAML that Snakemake evaluated)."""
+    from stages import quick as q
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("TANGO_PLAN_CALIBRATE", "0")
+    for sep in ("\u2028", "\u2029", "\x85"):
+        folder = tmp_path / f"x{sep}__use_yte__: true{sep}? open('/tmp/pwned', 'w') : 1{sep}"
+        folder.mkdir()
+        (folder / "pot.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 2 3\nf 1 3 4\nf 1 4 2\nf 2 4 3\n")
+        code = q.main([str(folder / "pot.obj"), "a pot", "--image-guided", "wood", "--dry-run"])
+        err = capsys.readouterr().err
+        assert code == 2 and f"U+{ord(sep):04X}" in err, err
+        assert len(err.strip().splitlines()) == 1 and not Path("config").exists()
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=list(HealthCheck))
+@given(st.sampled_from(HOSTILE), st.integers(0, 3), st.sampled_from(["folder", "stem", "prompt"]))
+def test_the_written_config_loads_to_exactly_its_keys(char, at, where):
+    """Property: whatever a path or a prompt holds, in whichever position, the written file loads
+    (by YAML and by the project's reader) to exactly the config written, and its comments hold no
+    text from the command line; the config check refuses such a path in one line naming it."""
+    import tempfile
+
+    from stages import quick as q
+    from stages.config.workflow import WorkflowConfig, read_yaml
+    from stages.core.errors import ConfigError
+
+    def put(text: str) -> str:
+        i = min(at, len(text))
+        return text[:i] + char + text[i:]
+
+    folder = put("meshes") if where == "folder" else "meshes"
+    stem = put("pot") if where == "stem" else "pot"
+    prompt = put("a pot of wood") if where == "prompt" else "a pot of wood"
+    mesh = f"/data/{folder}/{stem}.obj"
+    config = q.experiment_config(mesh, prompt, "e", "fast", None, True)
+    with tempfile.TemporaryDirectory() as d:
+        path = Path(d) / "e.yaml"
+        q.write_config(config, path)
+        text = path.read_text(encoding="utf-8")
+        assert yaml.safe_load(text) == config and read_yaml(path) == config
+        comments = [ln for ln in text.splitlines() if ln.startswith("#")]
+        assert "\n".join(comments) + "\n" == q.HEADER
+    with pytest.raises(ConfigError) as err:
+        WorkflowConfig(config)
+    assert "\n" not in str(err.value) and f"U+{ord(char):04X}" in str(err.value), str(err.value)
 
 
 def test_the_uv_layout_is_decided_and_said_before_anything_runs(tmp_path):
