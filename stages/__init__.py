@@ -28,11 +28,8 @@ def _version() -> str:
 
     pyproject = Path(__file__).resolve().parent.parent / "pyproject.toml"
     try:
-        from .core.errors import StageInputError
-        from .core.safefiles import read_text
-
-        project = tomllib.loads(read_text(pyproject))["project"]
-    except (OSError, StageInputError, KeyError, tomllib.TOMLDecodeError):
+        project = tomllib.loads(pyproject.read_text())["project"]
+    except (OSError, KeyError, tomllib.TOMLDecodeError):
         return "0+unknown"
     return str(project["version"]) if project.get("name") == DISTRIBUTION and "version" in project else "0+unknown"
 

@@ -1,15 +1,18 @@
 """doctor: check, in seconds, what a run of a config needs, and say how to fix each missing piece.
 
-    python -m stages.doctor [--configfile config/config.yaml [overlay.yaml ...]] [--json]
+    python -m stages.doctor [--configfile config/config.yaml [overlay.yaml ...]] [--json] [--offline]
 
 Checked: the torch build and the device the config's torch stages will use; the ray tracer
 (Embree through embreex), pymeshlab (decimation), xatlas (texture atlases), usd-core and
 pygltflib (the asset formats); the CLIP weights of the models the config needs (guidance and
-evaluation, one line each); Node.js with the bundled model-viewer (the report's 3D viewers) and
-the glTF validator; the independent judges, Mitsuba 3 (with libLLVM for its fast CPU variant)
-and Blender; Chromium (the browser tests); and the cluster pieces (Slurm's commands and the
-Snakemake executor plugin). A piece is *needed* when this config's run would fail without it, else
-*optional* (what it adds is said). Exit status 1 when a needed piece is missing, else 0.
+evaluation, one line each: a local file or the Hugging Face cache, else whether the model hub,
+huggingface.co, would give them: the doctor logs that it asks before it does, asks nothing with
+``--offline`` or ``HF_HUB_OFFLINE=1``, and never downloads); Node.js with the bundled
+model-viewer (the report's 3D viewers) and the glTF validator; the independent judges, Mitsuba 3
+(with libLLVM for its fast CPU variant) and Blender; Chromium (the browser tests); and the cluster
+pieces (Slurm's commands and the Snakemake executor plugin). A piece is *needed* when this config's
+run would fail without it, else *optional* (what it adds is said). Exit status 1 when a needed
+piece is missing, else 0.
 
 A piece is not called ok because it imports: each one the run uses does the smallest real job
 first (:mod:`stages.geometry.probes`, :mod:`stages.assets.probes`, a few-pixel Mitsuba render of
@@ -52,7 +55,7 @@ from .core.device import (
 )
 from .core.progress import duration
 from .geometry.probes import PROBE_GLB_FACES, PROBE_TIMEOUT_S, probe_embree, probe_pymeshlab, probe_xatlas, write_probe_glb
-from .guidance.clip import ClipWeightsUnavailable, resolve_weights
+from .guidance.clip import HUB_HOST, ClipWeightsUnavailable, hub_offline, resolve_weights
 from .reference import blender as blender_ref
 from .reference import targets as targets_ref
 from .reference.blender import INSTALL_HINT, BlenderUnavailable, find_blender
@@ -196,18 +199,25 @@ def check_module(name: str, module: str, dist: str, what: str, fix: str, needed:
     return tried(Check(name, True, needed, f"{dist} {version or '(version unknown)'}: {what}"), use, fix)
 
 
-def check_clip(cfg) -> list[Check]:
+def check_clip(cfg, online: bool = True) -> list[Check]:
+    """The weights of each real CLIP the config needs: a local file, the Hugging Face cache, or
+    (``online``, and ``HF_HUB_OFFLINE`` unset) whether the model hub would give them, which the log
+    says before the hub is asked; never downloaded. Offline, weights not here are missing, and the
+    line says the hub was not asked."""
     specs = cfg.clip_specs()
     if not specs:
         return [Check("CLIP weights", True, False, "this config needs no real CLIP weights (image guidance or the test CLIP)")]
     out = []
+    offline = "--offline" if not online else "HF_HUB_OFFLINE=1" if hub_offline() else None
     for spec in specs:
         role = "guidance" if spec.section == "optimize" else "evaluation"
         name = f"CLIP weights ({role})"
         try:
-            path, weights_id, _ = resolve_weights(spec, download=False)  # checked, never fetched here
+            path, weights_id, _ = resolve_weights(spec, download=False, online=online)  # checked, never fetched here
         except ClipWeightsUnavailable as exc:
             first, _, rest = str(exc).partition("\n")
+            if offline:
+                first += f" Not checked online ({offline})."
             out.append(Check(name, False, True, first, rest))
         else:
             where = path or "not cached here; the model hub answers, so the workflow downloads them when it starts"
@@ -361,9 +371,10 @@ def check_slurm() -> Check:
     return check
 
 
-def run(configfiles: list[Path]) -> list[Check]:
+def run(configfiles: list[Path], online: bool = True) -> list[Check]:
     """Every check, for the config made of ``configfiles`` (later files update earlier ones); the
-    smallest real uses run in parallel threads (most wait on a child process)."""
+    smallest real uses run in parallel threads (most wait on a child process). ``online=False``:
+    nothing asks the model hub (:func:`check_clip`)."""
     cfg = load_config_files(configfiles)
     cells = cfg.cells
     meshlab = any(cfg.decimated(m) for m in cfg.grid_meshes) or any(
@@ -430,7 +441,7 @@ def run(configfiles: list[Path]) -> list[Check]:
                     True,
                     lambda: probe_gltf(glb),
                 ),
-                check_clip(cfg),
+                check_clip(cfg, online),
             ]
             node, blender, chromium, slurm = (f.result() for f in children)
         # alone: its rate (samples per second) is what the run's target jobs will see
@@ -468,9 +479,14 @@ def main(argv: list[str] | None = None) -> int:
     def arguments(parser):
         parser.add_argument("--configfile", type=Path, nargs="+", default=[Path("config/config.yaml")])
         parser.add_argument("--json", action="store_true", help="print the checks as JSON")
+        parser.add_argument(
+            "--offline",
+            action="store_true",
+            help=f"contact nothing: CLIP weights are looked for here only, not on the model hub ({HUB_HOST[0]})",
+        )
 
     def body(args):
-        checks = run(args.configfile)
+        checks = run(args.configfile, online=not args.offline)
         if args.json:
             sys.stdout.write(json.dumps([{**asdict(c), "status": c.status} for c in checks], indent=1) + "\n")
         else:

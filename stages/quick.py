@@ -42,7 +42,15 @@ from .assets.layouts import choose_layout
 from .config.presets import PRESETS
 from .config.schema import schema
 from .config.sections import MATERIALS, UV_LAYOUTS
-from .config.workflow import EXPERIMENT_RE, WorkflowConfig, experiment_name, merge_config, read_yaml
+from .config.workflow import (
+    CONTROL,
+    EXPERIMENT_RE,
+    WorkflowConfig,
+    experiment_name,
+    merge_config,
+    path_problem,
+    read_yaml,
+)
 from .core.cli import stage_main
 from .core.errors import ConfigError
 from .core.provenance import atomic_path
@@ -117,6 +125,27 @@ HEADER = (
 )
 
 
+class _Dumper(yaml.SafeDumper):
+    """PyYAML's safe dumper, writing every text that holds a control character, a line or
+    paragraph separator or a bidirectional control in double quotes, where YAML escapes what it
+    reads as a line break (it would otherwise write U+0085 bare, and read it back as a space)."""
+
+    def choose_scalar_style(self):
+        if isinstance(self.event, yaml.ScalarEvent) and CONTROL.search(self.event.value or ""):
+            return '"'
+        return super().choose_scalar_style()
+
+
+def check_path_argument(what: str, text: str, mesh: bool = False) -> None:
+    """Refuse a path argument that holds, in any of its components (the working directory's
+    among them, where it is relative), a character that makes a name look other than it is, or
+    (``mesh``, whose path the config carries) a brace: one line naming the argument and the
+    character."""
+    absolute = os.path.abspath(text) if "\x00" not in text else text
+    if CONTROL.search(absolute) or (mesh and re.search(r"[{}]", absolute)):
+        raise ConfigError(f"{what} {ascii(absolute)[:200]} {path_problem(absolute)}")
+
+
 def write_config(config: dict, path: Path, force: bool = False) -> None:
     """``config`` as YAML at ``path`` (atomically): :data:`HEADER`, then every value, path and
     text as the YAML dumper writes it (quoted and escaped where YAML needs it). An existing file
@@ -136,7 +165,7 @@ def write_config(config: dict, path: Path, force: bool = False) -> None:
                 "to replace it"
             )
     with atomic_path(path) as tmp:
-        tmp.write_text(HEADER + yaml.safe_dump(config, sort_keys=False, allow_unicode=True), encoding="utf-8")
+        tmp.write_text(HEADER + yaml.dump(config, Dumper=_Dumper, sort_keys=False, allow_unicode=True), encoding="utf-8")
 
 
 def check_name(name: str, path: Path, force: bool) -> None:
@@ -226,6 +255,11 @@ def run(request: Request, launch: Launch = Launch()) -> int:
     Nothing is written when an argument or the mesh is bad."""
     mesh, prompt, preset, image_guided = request.mesh, request.prompt, request.preset, request.image_guided
     overlays, cores = launch.overlays, launch.cores
+    if not mesh.startswith("builtin:"):
+        check_path_argument("the mesh", mesh, mesh=True)
+    check_path_argument("--config-dir", str(launch.config_dir))
+    for overlay in overlays:
+        check_path_argument("--overlay", str(overlay))
     if preset not in PRESETS:
         raise ConfigError(f"unknown preset {preset!r}: use one of {', '.join(sorted(PRESETS))}")
     if request.uv is not None and request.uv not in UV_LAYOUTS:

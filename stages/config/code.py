@@ -18,6 +18,8 @@ import hashlib
 from functools import cache
 from pathlib import Path
 
+from ..core.safefiles import DATA_LIMIT, read_bytes, read_text
+
 PACKAGE = "stages"
 ROOT = Path(__file__).resolve().parents[1]  # the stages/ folder
 
@@ -40,7 +42,7 @@ def _tree(path: Path) -> ast.Module:
 @cache
 def _parse(path: Path, mtime_ns: int, size: int) -> ast.Module:
     """Parsed once per version of a file (the key has its modification time and size)."""
-    return ast.parse(path.read_text(), str(path))
+    return ast.parse(read_text(path), str(path))
 
 
 def _imported(path: Path, name: str, root: Path) -> frozenset[str]:
@@ -118,7 +120,7 @@ def code_digest(name: str, root: Path = ROOT) -> str:
 @cache
 def _file_digest(path: Path, mtime_ns: int, size: int) -> bytes:
     """A data file's SHA-256, computed once per version of the file."""
-    return hashlib.sha256(path.read_bytes()).digest()
+    return hashlib.sha256(read_bytes(path, DATA_LIMIT)).digest()
 
 
 @cache

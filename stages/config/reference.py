@@ -24,10 +24,11 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from ..core.safefiles import read_text
 from ..core.settings import kind_words
 from .presets import PRESETS
 from .schema import REPO_ROOT, SCHEMA_PATH, schema
-from .sections import SECTIONS
+from .sections import PATH_PATTERN, SECTIONS
 
 #: the page this module writes, relative to the repository root
 PAGE = Path("docs") / "reference" / "configuration.md"
@@ -120,7 +121,9 @@ def _allowed(node: dict) -> str:
         parts.append("not empty")
     elif "minLength" in node:
         parts.append(f"at least {node['minLength']} characters")
-    if "pattern" in node:
+    if node.get("pattern") == PATH_PATTERN:
+        parts.append("a path: no braces, control characters, line separators or bidirectional controls")
+    elif "pattern" in node:
         parts.append(f"pattern {_code(node['pattern'])}")
     lo_n, hi_n = node.get("minItems"), node.get("maxItems")
     if lo_n is not None and lo_n == hi_n:
@@ -312,7 +315,7 @@ def main(argv: list[str] | None = None) -> int:
         sys.stderr.write(f"wrote {PAGE.as_posix()}\n")
         return 0
     if args.check:
-        if not path.is_file() or path.read_text() != page:
+        if not path.is_file() or read_text(path) != page:
             sys.stderr.write(f"{PAGE.as_posix()} is out of date with the schema and the settings classes: run {WRITE_COMMAND}\n")
             return 1
         sys.stderr.write(f"{PAGE.as_posix()} is up to date\n")

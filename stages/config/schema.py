@@ -24,9 +24,10 @@ from typing import Any
 
 import yaml
 
+from ..core.safefiles import read_text
 from ..core.settings import Kind, Settings, Spec
 from .presets import PRESETS
-from .sections import SECTIONS
+from .sections import PATH_MAX, PATH_PATTERN, SECTIONS
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 SCHEMA_PATH = REPO_ROOT / "workflow" / "schemas" / "config.schema.yaml"
@@ -40,10 +41,12 @@ ID_MAX = 64
 #: an experiment's name: a folder under ``results/``
 EXPERIMENT_PATTERN = "^[A-Za-z0-9][A-Za-z0-9_.+-]*(?!\\n)$"
 EXPERIMENT_MAX = 128
-#: one line of text: no control characters, no line or paragraph separators
-ONE_LINE = "^[^\\x00-\\x1f\\x7f-\\x9f\\u2028\\u2029]*(?!\\n)$"
-#: a prompt's text: one line that is not blank
-PROMPT_PATTERN = "^(?=.*\\S)[^\\x00-\\x1f\\x7f-\\x9f\\u2028\\u2029]*(?!\\n)$"
+#: one line of text: no control characters, no line or paragraph separators, no bidirectional
+#: overrides or isolates (which show the text in another order than it is stored)
+ONE_LINE = "^[^\\x00-\\x1f\\x7f-\\x9f\\u2028\\u2029\\u202a-\\u202e\\u2066-\\u2069]*(?!\\n)$"
+#: a prompt's text: one line that is not blank (a text of invisible characters only is refused by
+#: the workflow's own check, :func:`stages.config.workflow.blank`, which no pattern can state)
+PROMPT_PATTERN = "^(?=.*\\S)[^\\x00-\\x1f\\x7f-\\x9f\\u2028\\u2029\\u202a-\\u202e\\u2066-\\u2069]*(?!\\n)$"
 #: the longest prompt text a config may give ({object} replaced)
 PROMPT_CHARS = 1000
 #: stages whose settings a mesh entry may override, and those a prompt or variant may
@@ -241,13 +244,14 @@ def _entry_defs() -> dict[str, Any]:
             "properties": {
                 "path": {
                     "description": (
-                        "mesh file (OBJ, PLY, STL, OFF, GLB, GLTF), relative to the working directory; no braces "
-                        "(Snakemake reads {...} as a wildcard) and no control characters"
+                        "mesh file (OBJ, PLY, STL, OFF, GLB, GLTF), relative to the working directory; like every "
+                        "path in a config, no braces (Snakemake reads {...} as a wildcard), control characters, line "
+                        "separators or bidirectional controls"
                     ),
                     "type": "string",
                     "minLength": 1,
-                    "maxLength": 4096,
-                    "pattern": "^[^{}\\x00-\\x1f\\x7f]*$",
+                    "maxLength": PATH_MAX,
+                    "pattern": PATH_PATTERN,
                 },
                 "builtin": {"description": "a mesh generated in code", "enum": list(BUILTIN_MESHES)},
                 "object": {
@@ -312,7 +316,7 @@ def main(argv: list[str] | None = None) -> int:
         sys.stderr.write(f"wrote {where}\n")
         return 0
     if args.check:
-        current = SCHEMA_PATH.read_text() if SCHEMA_PATH.is_file() else ""
+        current = read_text(SCHEMA_PATH) if SCHEMA_PATH.is_file() else ""
         if current != text:
             sys.stderr.write(f"{where} is out of date with the settings classes: run {WRITE_COMMAND}\n")
             return 1

@@ -13,12 +13,17 @@ builds its DAG from this module alone.
 from __future__ import annotations
 
 import hashlib
+import importlib.util
 import json
 import math
 from dataclasses import dataclass, fields
-from typing import ClassVar, Literal, get_args
+from functools import cache
+from pathlib import Path
+from typing import Any, ClassVar, Literal, get_args
 
-from ..core.settings import Settings, setting
+from ..core.errors import StageInputError
+from ..core.safefiles import read_json
+from ..core.settings import Settings, Spec, setting
 
 #: the input up axes the normalize stage can turn into +y
 UpAxis = Literal["+y", "-y", "+z", "-z", "+x", "-x"]
@@ -96,6 +101,52 @@ FOV = {"gt": 0, "lt": 180}
 DISTANCE = {"gt": 0, "le": 1000}
 PRIOR_WEIGHT = {"ge": 0, "le": 1e6}
 ENV_DOC = "builtin:sunset | overcast | night | sun_sky | studio, or an .hdr/.exr path"
+#: what a file path in a config may hold: no braces (Snakemake reads {...} in a file name as a
+#: wildcard and fills it in, while the stage is given the text as written), and none of the
+#: characters that make a name look other than it is, in any of its components: control
+#: characters (U+0085 among them), line and paragraph separators (U+2028, U+2029), bidirectional
+#: overrides and isolates (U+202A-U+202E, U+2066-U+2069). ``(?!\n)``: Python's ``$`` (the schema
+#: validator's) also matches before a trailing newline. A setting with this pattern is a path key.
+PATH_PATTERN = "^[^{}\\x00-\\x1f\\x7f-\\x9f\\u2028\\u2029\\u202a-\\u202e\\u2066-\\u2069]*(?!\\n)$"
+#: the longest path a config may give (Linux's PATH_MAX)
+PATH_MAX = 4096
+#: the tiny test CLIP's open_clip model name and its architecture file, which the settings read as a
+#: file for its input size (stages.guidance.clip registers it with open_clip)
+TINY_CLIP = "tango-tiny-test-clip"
+TINY_CLIP_CONFIG = Path(__file__).resolve().parents[1] / "guidance" / "data" / f"{TINY_CLIP}.json"
+
+
+def path_setting(default: Any, doc: str, **limits: Any) -> Any:
+    """A setting that holds a file path (an environment's may be ``builtin:<name>`` instead): a text
+    of 1 to :data:`PATH_MAX` characters matching :data:`PATH_PATTERN`, the mark of a path key
+    (:func:`is_path`); for a list, each of its texts."""
+    return setting(default, doc, min_length=1, max_length=PATH_MAX, pattern=PATH_PATTERN, **limits)
+
+
+def is_path(spec: Spec) -> bool:
+    """Whether a setting holds a file path (declared with :func:`path_setting`)."""
+    return spec.pattern == PATH_PATTERN
+
+
+@cache
+def clip_input_size(model: str, tiny_test: bool = False) -> int | None:
+    """The width (= height) of the images the CLIP ``model`` takes (the tiny test CLIP's when
+    ``tiny_test``), from its open_clip architecture file, read as JSON without importing open_clip or
+    torch; None when there is no such file here (a model open_clip would fetch from the model hub,
+    or open_clip not installed): then the optimisation says so when it loads the model."""
+    if tiny_test or model == TINY_CLIP:
+        path = TINY_CLIP_CONFIG
+    else:
+        found = importlib.util.find_spec("open_clip")
+        if found is None or found.origin is None:
+            return None
+        path = Path(found.origin).parent / "model_configs" / f"{model}.json"
+    try:
+        size = read_json(path)["vision_cfg"]["image_size"]
+    except (OSError, StageInputError, KeyError, TypeError):
+        return None
+    size = size[0] if isinstance(size, list) else size
+    return size if isinstance(size, int) else None
 
 
 def environment_problems(key: str, env: str) -> list[str]:
@@ -278,9 +329,7 @@ class TargetSettings(Settings):
     as a principled BSDF with textures and a normal map under an environment map (per mesh)."""
 
     section = "target"
-    environment: str = setting(
-        "builtin:sun_sky", f"the environment the targets are lit by: {ENV_DOC}", min_length=1, max_length=4096
-    )
+    environment: str = path_setting("builtin:sun_sky", f"the environment the targets are lit by: {ENV_DOC}")
     environment_height: int = setting(
         512, "rows of a procedural environment (files keep their size); columns = 2 x rows", ge=16, le=8192
     )
@@ -304,12 +353,11 @@ class TargetSettings(Settings):
     seed: int = setting(
         0, "seed of the path tracer's samples (each view's two halves use seeds derived from it)", ge=0, le=MAX_SEED
     )
-    relight_environments: tuple[str, ...] = setting(
+    relight_environments: tuple[str, ...] = path_setting(
         ("builtin:sunset",),
         "environments the held-out metric views are also rendered under (builtin:<name> or an .hdr/.exr path): "
         "Mitsuba's ground truth that the relight stage grades the recovered field's relighting against; empty: not graded",
         max_items=16,
-        max_length=4096,
     )
 
     def relations(self) -> list[str]:
@@ -485,7 +533,13 @@ class OptimizeSettings(ClipChoice, FieldSettings):
     views_per_step: int = setting(
         1, "views of the cached pool rendered per step, each as one global image and its crops", ge=1, le=64
     )
-    image_size: int = setting(224, "width = height in pixels of the images CLIP sees (ViT-B-32: 224)", ge=32, le=1024)
+    image_size: int | None = setting(
+        None,
+        "width = height in pixels of the images CLIP sees; it must be the size the guidance CLIP takes (ViT-B-32: 224); "
+        "null: that size (the tiny test CLIP's 64), or 224 where no CLIP guides",
+        ge=32,
+        le=1024,
+    )
     supersample: int = setting(1, "samples per pixel along each axis (s x s cached samples averaged per pixel)", ge=1, le=8)
     crops: int = setting(4, "local crops per view and step (TANGO's 2D augmentation; 0: the global image only)", ge=0, le=64)
     crop_scale: tuple[float, float] = setting((0.01, 0.2), "range of a crop's area as a fraction of the image", gt=0, le=1)
@@ -516,7 +570,7 @@ class OptimizeSettings(ClipChoice, FieldSettings):
         "(light_lobes lobes) and never moves, so no base colour can trade against the light's brightness or colour "
         "(the known-light mode: name the HDR the asset is to be lit by)",
     )
-    light_map: str | None = setting(None, f"the environment of light: fixed: {ENV_DOC}", min_length=1, max_length=4096)
+    light_map: str | None = path_setting(None, f"the environment of light: fixed: {ENV_DOC}")
     metallic_binary: float = setting(
         0.0,
         "weight of the prior that takes glTF's metallic to 0 or 1 (a surface is a metal or a dielectric; the glTF "
@@ -556,8 +610,8 @@ class OptimizeSettings(ClipChoice, FieldSettings):
         min_length=1,
     )
     clip_pretrained: str = setting("openai", "open_clip weights tag of the guidance CLIP", min_length=1)
-    clip_checkpoint: str | None = setting(
-        None, "a local open_clip checkpoint file for the guidance CLIP; takes precedence over clip_pretrained", min_length=1
+    clip_checkpoint: str | None = path_setting(
+        None, "a local open_clip checkpoint file for the guidance CLIP; takes precedence over clip_pretrained"
     )
     clip_tiny_test: bool = setting(False, "a tiny randomly initialised CLIP, for tests only: every output is marked TEST ONLY")
     bf16: Switch = setting(
@@ -647,6 +701,15 @@ class OptimizeSettings(ClipChoice, FieldSettings):
         "onednn_products",
     )
 
+    def __post_init__(self) -> None:
+        """``image_size: null`` becomes the guidance CLIP's input size (:func:`clip_input_size`), or 224
+        (the paper's, ViT-B-32's) where it is not known or no CLIP guides; then the checks."""
+        if self.image_size is None:
+            known = isinstance(self.clip_model, str) and isinstance(self.clip_tiny_test, bool) and self.guidance == "clip"
+            size = clip_input_size(self.clip_model, self.clip_tiny_test) if known else None
+            object.__setattr__(self, "image_size", size or 224)
+        super().__post_init__()
+
     def relations(self) -> list[str]:
         p = super().relations()
         lo, hi = self.crop_scale
@@ -668,6 +731,13 @@ class OptimizeSettings(ClipChoice, FieldSettings):
             p.append("optimize.light_prune_after prunes a learned light; a fixed light (light: fixed) keeps its fitted lobes")
         if self.light == "fixed" and not self.light_rgb:
             p.append("optimize: light: fixed needs light_rgb: true (the map's colour is part of the light)")
+        size = clip_input_size(self.clip_model, self.clip_tiny_test) if self.guidance == "clip" else None
+        if size is not None and size != self.image_size:
+            clip = "the tiny test CLIP" if self.clip_tiny_test else self.clip_model
+            p.append(
+                f"optimize.image_size is {self.image_size} but the guidance CLIP, {clip}, takes {size} x {size} images: "
+                f"set image_size: {size}"
+            )
         return p
 
     def digest(self) -> str:
@@ -761,7 +831,7 @@ class RelightSettings(Settings):
     """Relighting under a new environment and material editing (TANGO Fig. 6)."""
 
     section = "relight"
-    envmap: str = setting("builtin:sunset", f"environment map: {ENV_DOC}", min_length=1, max_length=4096)
+    envmap: str = path_setting("builtin:sunset", f"environment map: {ENV_DOC}")
     lobes: int = setting(64, "SG lobes fitted to the map", ge=1, le=1024)
     fit_iterations: int = setting(400, "iterations of the SG fit to the map", ge=1, le=100_000)
     roughness_scales: tuple[float, ...] = setting(
@@ -794,8 +864,8 @@ class MetricsSettings(ClipChoice, Settings):
     clip: bool = setting(True, "compute the CLIP-based metrics (needs weights, or clip_tiny_test)")
     clip_model: str = setting("ViT-B-16", "open_clip architecture of the independent evaluation CLIP", min_length=1)
     clip_pretrained: str = setting("openai", "open_clip weights tag of the evaluation CLIP", min_length=1)
-    clip_checkpoint: str | None = setting(
-        None, "a local open_clip checkpoint file for the evaluation CLIP; takes precedence over clip_pretrained", min_length=1
+    clip_checkpoint: str | None = path_setting(
+        None, "a local open_clip checkpoint file for the evaluation CLIP; takes precedence over clip_pretrained"
     )
     clip_tiny_test: bool = setting(False, "the tiny random test CLIP for evaluation: every output is marked TEST ONLY")
     background: Literal["white", "black"] = setting("white", "background of the metric views")

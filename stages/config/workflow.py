@@ -16,6 +16,8 @@ import logging
 import math
 import re
 import sys
+import unicodedata
+from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
@@ -25,8 +27,8 @@ from ..core.cli import stage_main
 from ..core.errors import ConfigError
 from .presets import PRESETS
 from .schema import PROMPT_CHARS, schema
-from .sections import FACE_BUDGET_FIELDS, SECTIONS, OptimizeSettings
-from .yamlio import read_yaml_file, refuse_templates
+from .sections import FACE_BUDGET_FIELDS, PATH_PATTERN, SECTIONS, OptimizeSettings
+from .yamlio import key_path, read_yaml_file, refuse_templates
 
 log = logging.getLogger(__name__)
 
@@ -68,13 +70,8 @@ def experiment_name(config: dict, configfiles: list[str | Path]) -> str:
     return str(name)
 
 
-def _where(path) -> str:
-    """A key path as the messages write it (``raycache -> views``); a key that is not a plain word
-    (a newline, a surrogate, a space in it) is written as its escaped repr, so the message stays one
-    printable line."""
-    if not path:
-        return "the top level"
-    return " -> ".join(str(p) if isinstance(p, int) or re.fullmatch(r"[A-Za-z0-9_.-]+", str(p)) else ascii(p) for p in path)
+#: a key path as the messages write it (``raycache -> views``)
+_where = key_path
 
 
 def _describe(error) -> str:
@@ -99,14 +96,12 @@ def _describe(error) -> str:
         return f"mesh {where} needs exactly one of 'path' or 'builtin'"
     if v == "oneOf" and list(error.absolute_path) == ["grid"]:
         return "grid must be 'all' or a list of {mesh: <id>, prompt: <id>} entries"
+    if v == "pattern" and error.validator_value == PATH_PATTERN and isinstance(error.instance, str):
+        noun = "mesh path" if list(error.absolute_path)[:1] == ["meshes"] else "path"
+        return f"invalid {noun} at {where}: {_short(error.instance)} {path_problem(error.instance)}"
     if v == "pattern" and isinstance(error.instance, str) and CONTROL.search(error.instance):
-        shown = _short(error.instance)
-        return f"invalid value at {where}: {shown} holds a control character (a newline or a tab): write it on one line"
-    if v == "pattern" and list(error.absolute_path)[-1:] == ["path"]:
-        return (
-            f"invalid mesh path at {where}: {_short(error.instance)} holds a brace or a control character; Snakemake "
-            "reads {...} in a file name as a wildcard: rename the file (or link it under a name without them)"
-        )
+        found = _short(error.instance)
+        return f"invalid value at {where}: {found} holds {odd_character(error.instance)}: write it on one line, without it"
     if v == "pattern" and v in error.schema:
         return (
             f"invalid id {error.instance!r} at {where}: ids name result folders, so use letters, "
@@ -117,7 +112,7 @@ def _describe(error) -> str:
         if isinstance(error.instance, dict):
             text = error.instance.get("text")
             inner = [e for e in error.context or [] if e.relative_path or e.validator in ("additionalProperties", "required")]
-            if inner and not (isinstance(text, str) and (len(text) > PROMPT_CHARS or CONTROL.search(text) or not text.strip())):
+            if inner and not (isinstance(text, str) and (len(text) > PROMPT_CHARS or CONTROL.search(text) or blank(text))):
                 return _describe(best_match(inner))  # a bad key or value inside the prompt's own overrides
         if isinstance(text, str) and len(text) > PROMPT_CHARS:
             return (
@@ -125,9 +120,9 @@ def _describe(error) -> str:
                 "300 characters): shorten it"
             )
         if isinstance(text, str) and CONTROL.search(text):
-            return f"prompt {error.absolute_path[1]!r} holds a control character (a newline or a tab): write it on one line"
-        if isinstance(text, str) and not text.strip():
-            return f"prompt {error.absolute_path[1]!r} is blank: write what the object should look like"
+            return f"prompt {error.absolute_path[1]!r} holds {odd_character(text)}: write it on one line, without it"
+        if isinstance(text, str) and blank(text):
+            return _blank_prompt(error.absolute_path[1])
         return f"prompt {error.absolute_path[1]!r} must be a text or {{text: ..., preset/optimize/bake/relight/lod: ...}}"
     bounds = {"maximum": "at most", "exclusiveMaximum": "below", "minimum": "at least", "exclusiveMinimum": "above"}
     if v in bounds and any("anchor" in str(p) for p in error.absolute_path):
@@ -149,16 +144,98 @@ def _describe(error) -> str:
         return f"invalid id {_short(error.instance)} at {where}: {count} characters, at most {error.validator_value}: shorten it"
     if v == "maxLength":
         return f"invalid value at {where}: {len(error.instance)} characters, at most {error.validator_value}: shorten it"
-    if v == "type" and error.validator_value == "integer" and isinstance(error.instance, float) and error.instance.is_integer():
-        return f"invalid value at {where}: {_short(error.instance)} is not an integer: write {int(error.instance)}"
     if v == "type":
-        return f"invalid value at {where}: {_short(error.instance)} is not of type {error.validator_value}"
+        types = [error.validator_value] if isinstance(error.validator_value, str) else list(error.validator_value)
+        found = _short(error.instance)
+        if "integer" in types and isinstance(error.instance, float) and error.instance.is_integer():
+            return f"invalid value at {where}: {found} is not an integer: write {int(error.instance)}"
+        number = _text_number(error.instance, types)
+        if number is not None:
+            kind = "a number" if "number" in types else "an integer"
+            return (
+                f"invalid value at {where}: {found} is a text to YAML 1.1, not {kind} (it reads decimal digits as a "
+                f"number, a float with a point and a signed exponent: 1.0e-3): write {number!r}"
+            )
+        return f"invalid value at {where}: {found} is not of type {' or '.join(types)}"
     message = error.message if len(error.message) <= 300 else error.message[:299] + "…"
     return f"invalid value at {where}: {message}"
 
 
-#: what a one-line text (a prompt, an object noun) may not hold: control characters, line separators
-CONTROL = re.compile(r"[\x00-\x1f\x7f-\x9f\u2028\u2029]")
+#: what a one-line text (a prompt, an object noun) and a path may not hold: control characters, line
+#: and paragraph separators, bidirectional overrides and isolates
+CONTROL = re.compile(r"[\x00-\x1f\x7f-\x9f\u2028\u2029\u202a-\u202e\u2066-\u2069]")
+#: names of the control characters a message names in words
+CONTROL_NAMES = {
+    "\n": "a newline",
+    "\t": "a tab",
+    "\r": "a carriage return",
+    "\x85": "a next-line character",
+    "\u2028": "a line separator",
+    "\u2029": "a paragraph separator",
+}
+#: the Unicode categories of characters that show nothing: format characters (zero-width spaces
+#: and joiners, U+2060, U+FEFF), spaces (U+00A0 among them), controls, line and paragraph separators
+INVISIBLE = frozenset({"Cf", "Zs", "Cc", "Zl", "Zp"})
+#: bidirectional overrides and isolates, which show text in another order than it is stored
+BIDI = re.compile(r"[\u202a-\u202e\u2066-\u2069]")
+
+
+def blank(text: str) -> bool:
+    """Whether ``text`` shows nothing: empty, or only characters of the :data:`INVISIBLE` categories
+    (a zero-width space is as blank as an empty prompt)."""
+    return all(unicodedata.category(c) in INVISIBLE for c in text)
+
+
+def _blank_prompt(prompt_id) -> str:
+    return (
+        f"prompt {prompt_id!r} is blank (nothing in it shows: spaces or invisible characters only): write what the "
+        "object should look like"
+    )
+
+
+def odd_character(text: str) -> str:
+    """The first character of :data:`CONTROL` in ``text``, in words with its code point:
+    ``a control character (U+2028, a line separator)``, ``a bidirectional control (U+202E)``."""
+    found = CONTROL.search(text)
+    if found is None:
+        return "a character it may not hold"
+    c = found.group()
+    if BIDI.fullmatch(c):
+        return f"a bidirectional control (U+{ord(c):04X})"
+    name = CONTROL_NAMES.get(c)
+    return f"a control character (U+{ord(c):04X}{f', {name}' if name else ''})"
+
+
+def path_problem(path: str) -> str:
+    """What a path that fails :data:`~stages.config.sections.PATH_PATTERN` holds, and what to do."""
+    if "{" in path or "}" in path:
+        return (
+            "holds a brace; Snakemake reads {...} in a file name as a wildcard and would fill it in: rename the file "
+            "(or link it under a name without braces)"
+        )
+    return (
+        f"holds {odd_character(path)}, which makes a file name look other than it is: rename the file (or link it "
+        "under a plain name)"
+    )
+
+
+def _text_number(value: Any, types: list[str]) -> int | float | None:
+    """The number that a text standing where the schema wants one of ``types`` stands for, when
+    YAML 1.1 left it a text: ``'0o20'`` (16), ``'1e-3'`` (0.001); None when it is no number, or not
+    an integer where one is wanted."""
+    if not isinstance(value, str) or not {"integer", "number"} & set(types):
+        return None
+    try:
+        return int(value, 0)
+    except ValueError:
+        pass
+    try:
+        number = float(value)
+    except ValueError:
+        return None
+    if "number" in types:
+        return number if math.isfinite(number) else None
+    return int(number) if math.isfinite(number) and number.is_integer() else None
 
 
 def _short(value: Any, chars: int = 80) -> str:
@@ -168,8 +245,10 @@ def _short(value: Any, chars: int = 80) -> str:
 
 
 def validate(config: dict, source: str = "config") -> None:
-    """Raise :class:`ConfigError` listing every schema violation of ``config``."""
+    """Raise :class:`ConfigError` listing every schema violation of ``config``, and every prompt or
+    ``object`` noun that shows nothing (:func:`blank`), which no schema pattern can state."""
     lines = _problems(schema(), config)
+    lines += [line for line in _blank_texts(config) if line not in lines]
     if lines:
         raise ConfigError(f"{source}: " + "; ".join(lines))
 
@@ -200,6 +279,25 @@ def _problems(schema: dict, data: Any) -> list[str]:
         if e.validator in ("required", "additionalProperties") or first[key(e.absolute_path, e.instance)] is e
     ]
     return list(dict.fromkeys(lines))
+
+
+def _blank_texts(config: Any) -> list[str]:
+    """One line per prompt text and per mesh's ``object`` noun that is a text showing nothing."""
+    lines = []
+    prompts = config.get("prompts") if isinstance(config, dict) else None
+    for prompt_id, entry in prompts.items() if isinstance(prompts, dict) else ():
+        text = entry.get("text") if isinstance(entry, dict) else entry
+        if isinstance(text, str) and blank(text):
+            lines.append(_blank_prompt(prompt_id))
+    meshes = config.get("meshes") if isinstance(config, dict) else None
+    for mesh_id, entry in meshes.items() if isinstance(meshes, dict) else ():
+        noun = entry.get("object") if isinstance(entry, dict) else None
+        if isinstance(noun, str) and blank(noun):
+            lines.append(
+                f"invalid value at {_where(['meshes', mesh_id, 'object'])}: {_short(noun)} is blank (nothing in it "
+                "shows): write the noun that replaces {object} in the prompts, or leave the key out (the mesh id)"
+            )
+    return lines
 
 
 #: UTF-16 surrogates: a YAML "\ud800" escape gives one alone, which no file name, log or UTF-8 text can hold
@@ -553,16 +651,20 @@ def parse_cell(text: str, cfg: WorkflowConfig) -> Cell:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m stages.config --configfile C --cell mesh/prompt/variant [--stage optimize]``:
+    """``python -m stages.config --configfile C [overlay ...] --cell mesh/prompt/variant [--stage optimize]``:
     print how one cell's settings were resolved, key by key, with where each value came from.
-    ``--check``: read the config as the workflow will (the bounded reader, templates refused, every
-    key against the schema) without Snakemake, and say so in one line: how to look at a config
-    received from someone else before running it.
+    ``--check``: read the config as the workflow will and refuse what its start refuses, by the same
+    code (:func:`workflow_config`: the bounded reader, templates refused, every key against the
+    schema and the settings, the experiment's name), without Snakemake, and say so in one line: how
+    to look at a config received from someone else before running it. Whether the CLIP weights and
+    the tools the run needs are here is the doctor's to say (``python -m stages.doctor``).
     ``--mesh-work``: print the folders of the mesh-level work the experiment uses, one per line
     (``results/meshes/<mesh>/<key>``; the folders of other keys serve other experiments or none)."""
 
     def arguments(parser):
-        parser.add_argument("--configfile", type=Path, default=Path("config/config.yaml"))
+        parser.add_argument(
+            "--configfile", type=Path, nargs="+", default=[Path("config/config.yaml")], help="as snakemake's (later files win)"
+        )
         parser.add_argument("--cell", help="mesh/prompt/variant")
         parser.add_argument("--stage", default="optimize", choices=("optimize", *CELL_STAGES, *MESH_STAGES))
         parser.add_argument("--json", action="store_true", help="print JSON instead of a table")
@@ -572,12 +674,15 @@ def main(argv: list[str] | None = None) -> int:
         )
 
     def body(args):
-        cfg = load_config_file(args.configfile)
-        if args.check:  # read by the bounded reader, templates refused, every key checked: it got here
+        cfg, experiment = workflow_config(args.configfile)
+        files = ", ".join(map(str, args.configfile))
+        if args.check:  # refused by now if the workflow's start would refuse it
             meshes, prompts = len(cfg.grid_meshes), len({c.prompt for c in cfg.cells})
+            doctor = "python -m stages.doctor --configfile " + " ".join(map(str, args.configfile))
             sys.stdout.write(
-                f"{args.configfile}: a valid config of {len(cfg.cells)} cells ({meshes} meshes x {prompts} prompts x "
-                f"{len(cfg.variants)} variants); no template, every key within its bounds\n"
+                f"{files}: a valid config of {len(cfg.cells)} cells ({meshes} meshes x {prompts} prompts x "
+                f"{len(cfg.variants)} variants); no template, every key within its bounds; experiment {experiment!r}. "
+                f"Whether its weights and tools are here: {doctor}\n"
             )
             return
         if args.mesh_work:
@@ -592,20 +697,42 @@ def main(argv: list[str] | None = None) -> int:
             return
         width = max(len(k) for k, _, _ in rows)
         vwidth = min(max(len(json.dumps(v)) for _, v, _ in rows), 40)
-        sys.stdout.write(f"{args.stage} settings of {args.cell} ({args.configfile}); later sources win:\n")
+        sys.stdout.write(f"{args.stage} settings of {args.cell} ({files}); later sources win:\n")
         for k, v, src in rows:
             sys.stdout.write(f"  {k:<{width}}  {json.dumps(v):<{vwidth}}  {src}\n")
 
     return stage_main("config", main.__doc__, arguments, body, argv)
 
 
+def workflow_config(configfiles: Sequence[str | Path], loaded: dict | None = None) -> tuple[WorkflowConfig, str]:
+    """The config the workflow builds its jobs from and the experiment's name, after every check of
+    the workflow's start, here and in ``workflow/rules/common.smk`` alike: each file read through the
+    bounded reader (:func:`read_yaml`: size, depth, aliases, numbers, duplicate keys, templates),
+    the config against the schema and every cell's settings (:class:`WorkflowConfig`), the
+    experiment's name (:func:`experiment_name`). ``loaded``: the config as Snakemake loaded and
+    merged the files (the workflow's); None: the files merged here as Snakemake merges them. One line
+    of :class:`ConfigError` for the first refusal."""
+    source = ", ".join(str(p) for p in configfiles)
+    merged: dict = {}
+    for path in configfiles:
+        merged = merge_config(merged, read_yaml(Path(path)))
+    config = merged if loaded is None else loaded
+    cfg = WorkflowConfig(config, source)
+    try:
+        experiment = experiment_name(config, list(configfiles))
+    except ConfigError as exc:
+        raise ConfigError(f"{source}: {exc}") from None
+    return cfg, experiment
+
+
 def load_config_file(path: str | Path) -> WorkflowConfig:
-    return WorkflowConfig(read_yaml(Path(path)), str(path))
+    """The config of one file, checked as the workflow checks it (:func:`workflow_config`)."""
+    return workflow_config([path])[0]
 
 
 def read_yaml(path: Path) -> dict:
     """A config file's mapping, read as bounded data (:mod:`stages.config.yamlio`: size, depth,
-    aliases, duplicate keys, templates), or a one-line error naming the file."""
+    aliases, numbers, duplicate keys, templates), or a one-line error naming the file."""
     data = read_yaml_file(Path(path))
     refuse_templates(data, str(path))
     if not isinstance(data, dict):
@@ -624,12 +751,8 @@ def merge_config(base: dict, update: dict) -> dict:
 
 def load_config_files(paths: list[str | Path]) -> WorkflowConfig:
     """The config made of several files, later ones updating earlier ones (as ``snakemake
-    --configfile a.yaml b.yaml``)."""
-    paths = [Path(p) for p in paths]
-    merged: dict = {}
-    for path in paths:
-        merged = merge_config(merged, read_yaml(path))
-    return WorkflowConfig(merged, ", ".join(str(p) for p in paths))
+    --configfile a.yaml b.yaml``), checked as the workflow checks it (:func:`workflow_config`)."""
+    return workflow_config(paths)[0]
 
 
 if __name__ == "__main__":

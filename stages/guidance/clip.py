@@ -2,14 +2,19 @@
 a tiny randomly initialised model that is for tests only), and image targets for verification.
 
 Loading never hangs on an unreachable model hub: cached or local weights load directly; weights
-that would have to be downloaded are only fetched when the hub answers a 3-second probe, and
-otherwise :class:`ClipWeightsUnavailable` explains how to supply a checkpoint.
+that would have to be downloaded are only fetched when the hub answers a 3-second probe (logged
+before it is sent; none with ``HF_HUB_OFFLINE=1``), and otherwise :class:`ClipWeightsUnavailable`
+explains how to supply a checkpoint. A local checkpoint is read by torch's restricted unpickler
+(open_clip's ``weights_only=True``): one that holds anything but tensors and plain containers is
+refused in one line naming the file.
 """
 
 from __future__ import annotations
 
 import logging
 import os
+import pickle
+import re
 import socket
 from collections.abc import Sequence
 from pathlib import Path
@@ -18,7 +23,7 @@ import torch
 from torch import Tensor
 from torch.nn import functional as F
 
-from ..config.sections import CLIP_ROLES, ClipSpec
+from ..config.sections import CLIP_ROLES, TINY_CLIP, ClipSpec
 from ..core.device import bf16_choice
 from ..core.errors import StageInputError
 from .compat import import_open_clip
@@ -51,9 +56,21 @@ def clip_normalize(images: Tensor, mean=CLIP_MEAN, std=CLIP_STD) -> Tensor:
     return (images - m) / s
 
 
+def hub_offline() -> bool:
+    """Whether ``HF_HUB_OFFLINE`` (Hugging Face's own switch) says not to contact the model hub."""
+    return os.environ.get("HF_HUB_OFFLINE", "") not in ("", "0")
+
+
 def _hub_reachable(timeout: float = 3.0) -> bool:
-    if os.environ.get("HF_HUB_OFFLINE", "") not in ("", "0"):
+    """Whether the model hub answers a connection within ``timeout`` seconds; said in the log before
+    it is asked, and never asked under ``HF_HUB_OFFLINE``."""
+    if hub_offline():
         return False
+    log.info(
+        "asking the model hub %s (port %d) whether it answers, for CLIP weights not cached here "
+        "(HF_HUB_OFFLINE=1 keeps this machine from asking)",
+        *HUB_HOST,
+    )
     try:
         with socket.create_connection(HUB_HOST, timeout=timeout):
             return True
@@ -122,12 +139,13 @@ def weights_help(
     return "\n".join(lines)
 
 
-def resolve_weights(spec: ClipSpec, *, download: bool = True) -> tuple[str, str, bool]:
+def resolve_weights(spec: ClipSpec, *, download: bool = True, online: bool = True) -> tuple[str, str, bool]:
     """Return ``(path, weights_id, quick_gelu)`` for ``spec``, downloading only when the hub
     answers. Raises :class:`ClipWeightsUnavailable` (fast) when the weights cannot be had, with
     :func:`weights_help`'s message. ``download=False`` (the doctor: a check, not a fetch of
     hundreds of megabytes): weights that are not cached but that the hub would give come back
-    with the path ``""``."""
+    with the path ``""``. ``online=False`` (the doctor's ``--offline``): the hub is not asked, and
+    weights that are not here are unavailable, as under ``HF_HUB_OFFLINE``."""
     open_clip = import_open_clip()
     cfg = open_clip.get_pretrained_cfg(spec.model, spec.pretrained) if spec.pretrained else {}
     quick_gelu = bool(cfg.get("quick_gelu", False))
@@ -148,10 +166,14 @@ def resolve_weights(spec: ClipSpec, *, download: bool = True) -> tuple[str, str,
         if cached:
             return cached, weights_id, quick_gelu
     looked = [f"the Hugging Face cache ({_hub_cache()}/models--{repo.replace('/', '--')})"] if repo else []
-    if not _hub_reachable():
-        offline = os.environ.get("HF_HUB_OFFLINE", "") not in ("", "0")
-        looked.append(f"the model hub {HUB_HOST[0]} ({'HF_HUB_OFFLINE is set' if offline else 'unreachable from here'})")
-        problem = "they are not cached on this machine and cannot be downloaded (offline)"
+    if not online or not _hub_reachable():
+        why = "not asked: offline" if not online else "HF_HUB_OFFLINE is set" if hub_offline() else "unreachable from here"
+        looked.append(f"the model hub {HUB_HOST[0]} ({why})")
+        problem = (
+            "they are not cached on this machine and cannot be downloaded (offline)"
+            if online
+            else "they are not cached on this machine (the model hub was not asked)"
+        )
         raise ClipWeightsUnavailable(weights_help(spec, problem, looked, quick_gelu, repo))
     if not download:
         return "", weights_id, quick_gelu
@@ -259,8 +281,8 @@ class ClipGuide:
         return [F.cosine_similarity(e.mean(0), text_embedding, dim=0) for e in embeddings]
 
 
-#: open_clip model name of the tiny test architecture (stages/data/tango-tiny-test-clip.json)
-TINY_MODEL = "tango-tiny-test-clip"
+#: open_clip model name of the tiny test architecture (stages/guidance/data/tango-tiny-test-clip.json)
+TINY_MODEL = TINY_CLIP
 
 
 def register_tiny_model() -> None:
@@ -287,6 +309,26 @@ def _image_size(model) -> int:
     return int(size[0] if isinstance(size, tuple | list) else size)
 
 
+def _unreadable_weights(spec: ClipSpec, err: pickle.UnpicklingError) -> tuple[str, str]:
+    """``(problem, remedy)`` of a weights file that torch's restricted unpickler refused (a pickle
+    that names a function or a class, which would run code if it were unpickled, or one it cannot
+    read), naming what it stopped at."""
+    text = " ".join(str(err).split())
+    name = re.search(r"GLOBAL (\S+?)\.?(?: |$)", text)
+    operand = re.search(r"Unsupported operand (\d+)", text)
+    if name:
+        what = f" (it names {name.group(1)}, which unpickling would call)"
+    elif operand:
+        what = f" (pickle operation {operand.group(1)}, which torch's weights-only reader does not take)"
+    else:
+        what = ""
+    key = f"{spec.section}.clip_checkpoint" if spec.checkpoint else f"{spec.section}.clip_pretrained"
+    return (
+        f"refused: not a weights-only file: it holds more than tensors and plain containers{what}, and is never unpickled",
+        f"Give {key} weights saved as tensors (a state dict, as open_clip's files are), from a source you trust.",
+    )
+
+
 def load_clip(spec: ClipSpec, device="cpu", bf16: str | bool = "off", tower: str = "batched") -> ClipGuide:
     """Load the CLIP of ``spec`` on ``device``; fails fast when weights are unavailable.
     ``bf16`` and ``tower``: see :class:`ClipGuide`."""
@@ -307,7 +349,10 @@ def load_clip(spec: ClipSpec, device="cpu", bf16: str | bool = "off", tower: str
     open_clip = import_open_clip()
     if spec.model == TINY_MODEL:
         register_tiny_model()
-    model = open_clip.create_model(spec.model, pretrained=path, force_quick_gelu=quick_gelu, device=device)
+    try:
+        model = open_clip.create_model(spec.model, pretrained=path, force_quick_gelu=quick_gelu, device=device)
+    except pickle.UnpicklingError as err:
+        raise StageInputError(path, *_unreadable_weights(spec, err)) from None
     size = _image_size(model)
     log.info("loaded CLIP %s from %s", weights_id, path)
     return ClipGuide(

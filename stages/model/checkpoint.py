@@ -13,7 +13,7 @@ import torch
 from ..config.sections import OptimizeSettings
 from ..core.errors import ConfigError, StageInputError
 from ..core.provenance import ORIGIN_KEY, atomic_path, checked_origin
-from ..core.safefiles import require_plain_file
+from ..core.safefiles import DATA_LIMIT, open_read, require_plain_file
 from ..render.sg import sg_integral
 from .field import StyleField
 
@@ -71,7 +71,8 @@ def read_torch_file(path: str | Path, device="cpu", *, remedy: str) -> dict:
     if Path(path).is_file():
         _check_archive(Path(path), remedy)
     try:
-        data = torch.load(path, map_location=device, weights_only=True)
+        with open_read(path, DATA_LIMIT, remedy=remedy) as fh:
+            data = torch.load(fh, map_location=device, weights_only=True)
     except pickle.UnpicklingError as err:
         lines = str(err).splitlines()
         detail = next((line.strip().rstrip(".") for line in lines if "unsupported global" in line.lower()), "")
@@ -86,7 +87,37 @@ def read_torch_file(path: str | Path, device="cpu", *, remedy: str) -> dict:
         raise StageInputError(path, f"not a readable torch file ({first})", remedy) from None
     if not isinstance(data, dict):
         raise StageInputError(path, f"holds a {type(data).__name__}, not the dict this tool writes", remedy)
+    if nesting(data) > MAX_NESTING:
+        raise StageInputError(
+            path, f"refused: its containers nest deeper than {MAX_NESTING} levels (this tool's files nest a few)", remedy
+        )
     return data
+
+
+#: the deepest nesting of containers read from a ``.pt`` file (a field nests 3 levels, a
+#: checkpoint's optimiser state 5): deeper settings would overflow the stack of the code that reads them
+MAX_NESTING = 64
+
+
+def nesting(data: Any, limit: int = MAX_NESTING) -> int:
+    """How deep the dicts, lists and tuples of ``data`` nest (a container holding itself counts as
+    endless), counted without recursion and stopping past ``limit``: ``limit + 1`` means deeper."""
+    stack = [(data, 1)]
+    reached: dict[int, int] = {}  # each container's deepest place so far: walked again only from deeper
+    deepest = 0
+    while stack:
+        item, depth = stack.pop()
+        if not isinstance(item, (dict, list, tuple)):
+            continue
+        if depth > limit:
+            return limit + 1
+        if reached.get(id(item), 0) >= depth:
+            continue
+        reached[id(item)] = depth
+        deepest = max(deepest, depth)
+        children = list(item.keys()) + list(item.values()) if isinstance(item, dict) else item
+        stack.extend((child, depth + 1) for child in children)
+    return deepest
 
 
 #: the largest ``.pt`` file read, written or expanded: a field at the config's largest networks

@@ -100,3 +100,104 @@ def test_the_doctor_checks_weights_the_hub_would_give_without_downloading_them(m
         assert "not cached here; the model hub answers, so the workflow downloads them when it starts" in check.detail
     with pytest.raises(AssertionError, match="downloaded"):  # the workflow's own start does fetch them
         missing_weights(config("missing", "off", tmp_path).clip_specs())
+
+
+class CallsOnLoad:
+    """Unpickling it calls ``os.mkdir(marker)`` (harmless here: a folder in the test's own)."""
+
+    def __init__(self, marker: str) -> None:
+        self.marker = marker
+
+    def __reduce__(self):
+        import os
+
+        return (os.mkdir, (self.marker,))
+
+
+@pytest.mark.parametrize("writer", ["pickle", "torch.save"])
+def test_a_clip_checkpoint_that_is_a_pickle_payload_is_refused_in_one_line(tmp_path, writer):
+    """A ``clip_checkpoint`` is read by torch's restricted unpickler (open_clip's ``weights_only``):
+    one that names a function is refused with the file's name, and the function never runs."""
+    import pickle
+
+    import torch
+
+    from stages.config.sections import ClipSpec
+    from stages.core.errors import StageInputError
+
+    path, marker = tmp_path / "open_clip_pytorch_model.bin", tmp_path / "ran"
+    with open(path, "wb") as fh:
+        if writer == "pickle":
+            pickle.dump(CallsOnLoad(str(marker)), fh, protocol=2)
+        else:
+            torch.save({"state_dict": {"payload": CallsOnLoad(str(marker))}}, fh)
+    spec = ClipSpec(model=guidance.TINY_MODEL, checkpoint=str(path), section="metrics")
+    with pytest.raises(StageInputError) as err:
+        guidance.load_clip(spec)
+    message = str(err.value)
+    assert message.startswith(f"{path}: refused: not a weights-only file") and "\n" not in message, message
+    assert "it names posix.mkdir" in message and "metrics.clip_checkpoint" in message
+    assert not marker.exists()
+
+
+def _doctor_without_its_other_checks(monkeypatch):
+    """The doctor with every check but the CLIP weights' replaced by an ok line (they start
+    Blender, Chromium, Mitsuba...; none asks the model hub)."""
+    from stages import doctor
+
+    def ok(*args, **kwargs):
+        return doctor.Check("other", True, False, "stubbed")
+
+    for name in ("check_torch", "check_module", "check_node", "check_blender", "check_chromium", "check_slurm", "check_mitsuba"):
+        monkeypatch.setattr(doctor, name, ok)
+    monkeypatch.setattr(doctor, "write_probe_glb", lambda path: None)
+    return doctor
+
+
+def _no_connections(monkeypatch) -> None:
+    import socket
+
+    def refuse(*args, **kwargs):
+        raise AssertionError(f"a connection was opened: {args[1:] or args}")
+
+    monkeypatch.setattr(socket.socket, "connect", refuse)
+    monkeypatch.setattr(socket.socket, "connect_ex", refuse)
+    monkeypatch.setattr(socket, "create_connection", refuse)
+
+
+@pytest.mark.parametrize("how", ["--offline", "HF_HUB_OFFLINE=1"])
+def test_the_doctor_offline_opens_no_connection(how, monkeypatch, tmp_path, capsys):
+    doctor = _doctor_without_its_other_checks(monkeypatch)
+    monkeypatch.setattr(guidance, "_cached_hub_file", lambda hub: None)  # an empty cache
+    monkeypatch.delenv("HF_HUB_OFFLINE", raising=False)
+    if how == "HF_HUB_OFFLINE=1":
+        monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+    path = tmp_path / "c.yaml"
+    path.write_text("meshes: {vase: {builtin: vase}}\nprompts: {wood: 'a {object} made of wood'}\n")
+    _no_connections(monkeypatch)
+    args = ["--configfile", str(path), *(["--offline"] if how == "--offline" else [])]
+    assert doctor.main(args) == 1  # the weights are not here: a needed piece missing
+    captured = capsys.readouterr()
+    assert captured.out.count(f"Not checked online ({how}).") == 2, captured.out
+    assert "asking the model hub" not in captured.err
+
+
+def test_the_doctor_says_it_asks_the_model_hub_before_it_does(monkeypatch, tmp_path, caplog):
+    import logging
+    import socket
+
+    monkeypatch.setattr(guidance, "_cached_hub_file", lambda hub: None)
+    monkeypatch.delenv("HF_HUB_OFFLINE", raising=False)
+    said_before: list[bool] = []
+
+    def connect(address, timeout=None):
+        said_before.append(any(f"asking the model hub {address[0]} (port {address[1]})" in r.message for r in caplog.records))
+        raise OSError("no route to the hub here")
+
+    monkeypatch.setattr(socket, "create_connection", connect)
+    from stages import doctor
+
+    with caplog.at_level(logging.INFO, logger="stages.guidance.clip"):
+        checks = doctor.check_clip(config("missing", "off", tmp_path))
+    assert said_before == [True] and "huggingface.co" in caplog.text
+    assert not checks[0].ok and "unreachable from here" in checks[0].fix

@@ -207,3 +207,69 @@ def test_a_field_that_is_a_link_or_a_fifo_inside_a_results_folder_is_one_line(tm
     os.mkfifo(cell / "field.pt")
     with pytest.raises(StageInputError, match="is a FIFO, not a plain file"):
         load_field(cell / "field.pt")
+
+
+def _deep(levels: int) -> dict:
+    value: dict = {}
+    for _ in range(levels):
+        value = {"a": value}
+    return value
+
+
+def _saved_deep(path, levels: int) -> None:
+    """``field.pt`` whose settings nest ``levels`` deep, saved by torch (its pickler recurses once
+    per level: here in a thread with a large stack and a raised recursion limit)."""
+    import sys
+    import threading
+
+    origin = origin_record(guidance="image", weights="image targets: a test", test_only=False, prompt="p")
+    data = {"format": 2, "settings": {"width": _deep(levels)}, "state_dict": {}, "origin": origin}
+    failed: list[BaseException] = []
+
+    def save() -> None:
+        try:
+            torch.save(data, path)
+        except BaseException as err:  # noqa: BLE001 - reported by the test
+            failed.append(err)
+
+    limit, stack = sys.getrecursionlimit(), threading.stack_size()
+    sys.setrecursionlimit(max(limit, 4 * levels))
+    threading.stack_size(1 << 30)
+    try:
+        worker = threading.Thread(target=save)
+        worker.start()
+        worker.join()
+    finally:
+        threading.stack_size(stack)
+        sys.setrecursionlimit(limit)
+    assert not failed, failed
+
+
+def test_a_field_whose_settings_nest_200000_deep_is_one_line(tmp_path):
+    """Nesting past any field's is refused as soon as the file is read (the settings' checks and
+    their messages walk what they are given, and would overflow Python's stack)."""
+    path = tmp_path / "field.pt"
+    _saved_deep(path, 200_000)
+    with pytest.raises(StageInputError) as err:
+        load_field(path)
+    message = str(err.value)
+    assert message.startswith(f"{path}: refused: its containers nest deeper than 64 levels") and "\n" not in message
+    assert "optimize stage again" in message
+
+
+def test_a_field_whose_settings_hold_themselves_is_one_line(tmp_path):
+    looped: dict = {}
+    looped["a"] = looped
+    _crafted(tmp_path / "field.pt", settings={"width": looped})
+    with pytest.raises(StageInputError, match="refused: its containers nest deeper than 64 levels") as err:
+        load_field(tmp_path / "field.pt")
+    assert "\n" not in str(err.value)
+
+
+def test_nesting_counts_shared_containers_at_their_deepest_place():
+    from stages.model.checkpoint import nesting
+
+    leaf: list = []
+    assert nesting({"w": torch.zeros(3), "s": {"x": [1, (2, 3)]}}) == 4
+    assert nesting({"a": leaf, "b": {"c": {"d": leaf}}}) == 4  # shared: counted where it is deepest
+    assert nesting(_deep(80)) == 65  # past the limit: stops there

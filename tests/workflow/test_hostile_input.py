@@ -435,6 +435,37 @@ PROBES = {
     "generated configs": [
         ("workflow/test_hostile_input.py", "test_a_generated_config_is_usable_or_refused_in_one_line_naming_the_key")
     ],
+    "a folder name holding U+2028, U+2029 or U+0085 and template keys, given to the quick command": [
+        ("workflow/test_quick.py", "test_a_folder_name_cannot_write_config_keys"),
+        ("workflow/test_quick.py", "test_the_written_config_loads_to_exactly_its_keys"),
+    ],
+    "a received summary.csv, speed_accuracy.csv or loss.csv that links outside": [
+        ("results/test_received_folder.py", "test_a_linked_csv_is_one_line_and_never_inlined"),
+        ("results/test_received_folder.py", "test_a_linked_or_malformed_loss_record_is_one_line"),
+    ],
+    "report/figures or report itself a link": [
+        ("results/test_received_folder.py", "test_a_linked_figures_folder_keeps_the_pictures_it_points_to"),
+        ("results/test_received_folder.py", "test_a_linked_report_folder_is_refused_before_anything_in_it_changes"),
+        ("core/test_gate.py", "test_deletes_refuse_a_linked_folder_and_delete_only_entries"),
+    ],
+    "a FIFO or /dev/zero at an earlier run's meta.json": [
+        ("results/test_received_folder.py", "test_a_fifo_or_endless_meta_json_does_not_stop_the_plan"),
+        ("core/test_gate.py", "test_open_read_refuses_a_link_a_link_on_the_way_a_fifo_a_device_and_a_large_file"),
+        ("core/test_gate.py", "test_open_read_checks_the_handle_it_opened"),
+    ],
+    "every file operation outside the gate": [
+        ("core/test_gate.py", "test_every_file_operation_in_stages_goes_through_the_gate"),
+        ("core/test_gate.py", "test_the_scanner_finds_each_kind_of_direct_file_operation"),
+    ],
+    "a figures.json entry with a NUL byte": [("core/test_gate.py", "test_a_name_with_a_nul_or_control_character_is_one_line")],
+    "an EXR of many channels, parts, deep data or huge tiles": [
+        ("render/test_envmaps.py", "test_an_exr_with_too_many_channels_is_refused_from_its_header"),
+        ("render/test_envmaps.py", "test_an_exr_of_parts_deep_data_or_huge_tiles_is_refused_from_its_header"),
+    ],
+    "a valid run-length-encoded .hdr 256 pixels wide or more": [
+        ("render/test_envmaps.py", "test_an_rle_hdr_reads_exactly_at_any_width"),
+        ("render/test_envmaps.py", "test_the_reference_rle_encoder_follows_the_format"),
+    ],
 }
 
 

@@ -9,7 +9,7 @@ from pathlib import Path
 from stages.config.code import code_digest
 from stages.config.layout import LOD_FILES, OPTIMIZE_FILES, TEXTURES
 from stages.config.sections import MATERIALS
-from stages.config.workflow import MESH_WORK, WorkflowConfig, experiment_name, read_yaml
+from stages.config.workflow import MESH_WORK, read_yaml, workflow_config
 from stages.core.errors import ConfigError
 
 DEFAULT_CONFIGFILE = "config/config.yaml"
@@ -17,20 +17,24 @@ DEFAULT_CONFIGFILE = "config/config.yaml"
 # A --configfile on the command line replaces the default experiment instead of being merged
 # into it (Snakemake's configfile directive would merge the two grids).
 if not workflow.overwrite_configfiles:
+    # the default file through the project's bounded reader before Snakemake's own reads it: a
+    # template is refused before Snakemake evaluates it, and a file nested too deep for Snakemake's
+    # reader is one line (a --configfile is read by Snakemake before this file runs)
+    try:
+        read_yaml(Path(DEFAULT_CONFIGFILE))
+    except ConfigError as exc:
+        raise WorkflowError(f"invalid configuration: {exc}") from None
 
     configfile: DEFAULT_CONFIGFILE
 
 
 _configfiles = list(map(str, workflow.overwrite_configfiles)) or [DEFAULT_CONFIGFILE]
-_source = ", ".join(_configfiles)
 try:
     # each file again through the project's bounded reader before anything walks the values
-    # Snakemake built: an alias bomb, a duplicate key, a YTE template (which Snakemake has already
-    # evaluated: refused unless TANGO_ALLOW_YTE=1) stop here with one line
-    for _path in _configfiles:
-        read_yaml(Path(_path))
-    CFG = WorkflowConfig(config, _source)
-    EXPERIMENT = experiment_name(config, _configfiles)
+    # Snakemake built (an alias bomb, a duplicate key, a YTE template, which Snakemake has already
+    # evaluated: refused unless TANGO_ALLOW_YTE=1 was set when the run started), then the checks
+    # `python -m stages.config --check` makes, by the same code
+    CFG, EXPERIMENT = workflow_config(_configfiles, loaded=config)
 except ConfigError as exc:
     raise WorkflowError(f"invalid configuration: {exc}") from None
 
