@@ -462,6 +462,31 @@ PROBES = {
         ("render/test_envmaps.py", "test_an_exr_with_too_many_channels_is_refused_from_its_header"),
         ("render/test_envmaps.py", "test_an_exr_of_parts_deep_data_or_huge_tiles_is_refused_from_its_header"),
     ],
+    "a YTE template that sets TANGO_ALLOW_YTE while Snakemake evaluates it": [
+        ("config/test_yamlio.py", "test_allow_yte_is_read_from_the_environment_the_process_started_with"),
+        ("config/test_yamlio.py", "test_a_template_that_sets_the_switch_does_not_let_the_workflow_go_on"),
+    ],
+    "braces and disguising characters in relight.envmap, optimize.light_map, target.environment": [
+        ("config/test_received_config.py", "test_every_path_key_refuses_braces_and_characters_that_disguise_a_name"),
+        ("config/test_received_config.py", "test_the_check_command_refuses_a_path_that_snakemake_would_expand"),
+    ],
+    "views: 0x10, views: 1:30 (YAML 1.1 numbers); aliases holding themselves": [
+        ("config/test_yamlio.py", "test_yaml_1_1_number_forms_are_refused_naming_the_key"),
+        ("config/test_yamlio.py", "test_aliases_that_hold_themselves_or_nest_deep_are_one_line"),
+    ],
+    "a field.pt whose settings nest 200,000 deep; a clip_checkpoint that is a pickle payload": [
+        ("model/test_untrusted_files.py", "test_a_field_whose_settings_nest_200000_deep_is_one_line"),
+        ("guidance/test_weights_messages.py", "test_a_clip_checkpoint_that_is_a_pickle_payload_is_refused_in_one_line"),
+    ],
+    "a zero-width blank prompt": [("config/test_received_config.py", "test_a_prompt_or_object_noun_that_shows_nothing_is_blank")],
+    "experiment: meshes and image_size 32 with the test CLIP under --check": [
+        ("config/test_received_config.py", "test_the_check_refuses_what_the_workflow_refuses"),
+        ("config/test_received_config.py", "test_image_size_is_the_guidance_clips_unless_given"),
+    ],
+    "the doctor asking the model hub without saying so": [
+        ("guidance/test_weights_messages.py", "test_the_doctor_offline_opens_no_connection"),
+        ("guidance/test_weights_messages.py", "test_the_doctor_says_it_asks_the_model_hub_before_it_does"),
+    ],
     "a valid run-length-encoded .hdr 256 pixels wide or more": [
         ("render/test_envmaps.py", "test_an_rle_hdr_reads_exactly_at_any_width"),
         ("render/test_envmaps.py", "test_the_reference_rle_encoder_follows_the_format"),
