@@ -71,11 +71,11 @@ def run(
             for fname in ("light.exr", "light.hdr"):
                 copy_file(bake_dir / fname, staging / fname, remedy="Rerun the bake stage.")
             copy_file(preview, staging / "preview.png", remedy="Rerun the bake stage.")
-        glb_writer = None
+        glb_writer, changed = None, []  # what of the input's document was not carried over, and why
         if kept is not None and kept.kind == "gltf":
 
             def glb_writer(path):
-                write_document_glb(path, kept, staging / "textures", origin, brdf, occlusion, geom.slot_textures)
+                changed.extend(write_document_glb(path, kept, staging / "textures", origin, brdf, occlusion, geom.slot_textures))
 
         if kept is not None and kept.kind == "obj":
             with timer("obj"):
@@ -91,6 +91,7 @@ def run(
             "vertices_exported": len(geom.positions),
             "topology": "the input's own (kept UV layout)" if kept is not None else "the traced mesh, welded",
             "extra_files": extra_files,
+            "input_document_changes": changed,
             # the files' frame: metres per unit, and whether positions are the input's own
             "meters_per_unit": asset.meters_per_unit,
             "own_frame": asset.own_frame,

@@ -52,7 +52,7 @@ import numpy as np
 from ..config.layout import TEXTURE_FILES
 from ..core.errors import StageInputError
 from ..core.provenance import ORIGIN_METADATA_KEY, atomic_path
-from ..core.safefiles import require_plain_file
+from ..core.safefiles import DATA_LIMIT, IMAGE_LIMIT, open_read, read_bytes, remove
 from ..geometry.meshio import TriMesh
 from ..geometry.normalization import Similarity
 
@@ -136,7 +136,7 @@ ATLAS_KEYS = ("uv", "normal", "tangent", "handedness", "face_normal")
 def read_atlas(path: Path) -> dict[str, np.ndarray]:
     """The bake's ``atlas.npz`` (:data:`ATLAS_KEYS`); an older bake's file (per-face tangents only)
     is refused with what to do."""
-    with np.load(require_plain_file(path, remedy="Run the bake stage again.")) as z:
+    with open_read(path, DATA_LIMIT, remedy="Run the bake stage again.") as fh, np.load(fh) as z:
         atlas = {k: z[k] for k in z.files}
     missing = [k for k in ATLAS_KEYS if k not in atlas]
     if missing or atlas["tangent"].ndim != 3:
@@ -377,7 +377,7 @@ def package_usdz(usda: Path, usdz: Path, files: list[str], root: str = "usdc") -
     from pxr import Sdf
 
     with atomic_path(usdz) as tmp, tempfile.TemporaryDirectory() as d:
-        tmp.unlink()
+        remove(tmp)
         crate = usda
         if root == "usdc":
             crate = Path(d) / f"{usda.stem}.usdc"
@@ -447,7 +447,7 @@ def write_model_files(
     folder = Path(folder)
     with part("usd"):
         with atomic_path(folder / "model.usda") as tmp:
-            tmp.unlink()
+            remove(tmp)
             write_usd(tmp, geom, meters_per_unit, "light.exr", origin, brdf=brdf, occlusion=occlusion)
         package_usdz(folder / "model.usda", folder / "model.usdz", [*geom.texture_files(), "light.exr"], usdz_root)
     with part("gltf"):
@@ -466,16 +466,34 @@ def write_model_files(
 
 def check_reports(reports: dict[str, dict], where: Path) -> None:
     """Log every validator message of ``reports`` (file -> :func:`validate_usd` or
-    :func:`validate_glb` report) and a warning for a glTF-Validator that did not run; raise when any
-    reports an error."""
-    lines = [f"{where.name}/{name}: {m}" for name, r in reports.items() for m in r.get("messages", [])]
+    :func:`validate_glb` report), one line each, and a warning for a glTF-Validator that did not
+    run.
+
+    Raises:
+        StageInputError: any report has an error (one line: the file, the count, the first message).
+    """
+    lines = [f"{where.name}/{name}: {one_line(m)}" for name, r in reports.items() for m in r.get("messages", [])]
     for line in lines:
         log.warning("validation: %s", line)
     for name, r in reports.items():
         if r.get("ran") is False:
             log.warning("the Khronos glTF-Validator did not run: %s; %s is unchecked", r["reason"], name)
-    if any(r.get("errors") for r in reports.values()):
-        raise RuntimeError("asset validation failed:\n" + "\n".join(lines))
+    failed = [(name, r) for name, r in reports.items() if r.get("errors")]
+    if failed:
+        name, r = failed[0]
+        first = f", the first: {one_line(r['messages'][0])}" if r.get("messages") else ""
+        raise StageInputError(
+            Path(where) / name,
+            f"failed validation with {r['errors']} error(s){first}",
+            f"Every message is in the log above ({sum(x['errors'] for _, x in failed)} error(s) in all).",
+        )
+
+
+def one_line(text, limit: int = 300) -> str:
+    """``text`` on one line (line breaks and other control characters as spaces), at most ``limit``
+    characters: a validator's message quotes the file it read, whatever that holds."""
+    flat = " ".join("".join(" " if ord(c) < 32 or 127 <= ord(c) < 160 else c for c in str(text)).split())
+    return flat if len(flat) <= limit else flat[: limit - 3] + "..."
 
 
 #: the Khronos glTF-Validator as the repository installs it (``npm ci``; see package.json)
@@ -489,7 +507,10 @@ def validate_glb(path: Path) -> dict:
     (``scripts/setup.sh`` runs ``npm ci``), else ``{"ran": False, "reason": ...}``.
 
     Returns ``{"ran": True, "validator" (name and version), "errors", "warnings", "infos",
-    "hints", "messages"}``.
+    "hints", "messages"}`` (the errors' and warnings' messages, errors first, each on one line).
+
+    Raises:
+        StageInputError: the validator failed on the file, or wrote no report (one line: why).
     """
     node = shutil.which("node")
     if node is None or not GLTF_VALIDATOR.is_dir():
@@ -497,25 +518,38 @@ def validate_glb(path: Path) -> dict:
         where = GLTF_VALIDATOR.relative_to(REPO_ROOT).as_posix()
         missing = "Node.js (node) is not on PATH" if node is None else f"the validator ({where}) is missing: run npm ci"
         return {"ran": False, "reason": missing}
-    proc = subprocess.run(
-        [node, str(REPO_ROOT / "scripts" / "validate_gltf.mjs"), str(path)],
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    remedy = "Check the validator with python -m stages.doctor (npm ci reinstalls it)."
+    try:
+        proc = subprocess.run(
+            [node, str(REPO_ROOT / "scripts" / "validate_gltf.mjs"), str(path)],
+            capture_output=True,
+            text=True,
+            errors="replace",
+            timeout=300,
+        )
+    except subprocess.TimeoutExpired:
+        raise StageInputError(path, "the Khronos glTF-Validator did not finish within 300 s", remedy) from None
     if proc.returncode != 0:
-        raise RuntimeError(f"the Khronos glTF-Validator could not run on {path}: {proc.stderr.strip()[-2000:]}")
-    report = json.loads(proc.stdout)
-    issues = report["issues"]
-    return {
-        "ran": True,
-        "validator": f"Khronos glTF-Validator {report.get('validatorVersion')}",
-        "errors": int(issues["numErrors"]),
-        "warnings": int(issues["numWarnings"]),
-        "infos": int(issues["numInfos"]),
-        "hints": int(issues["numHints"]),
-        "messages": [f"{m['code']} at {m.get('pointer', '')}: {m['message']}" for m in issues["messages"] if m["severity"] <= 1],
-    }
+        said = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+        why = next((ln for ln in said if "Error" in ln), said[-1] if said else f"exit status {proc.returncode}")
+        raise StageInputError(path, f"the Khronos glTF-Validator could not check it ({one_line(why, 200)})", remedy)
+    try:
+        report = json.loads(proc.stdout)
+        issues = report["issues"]
+        found = sorted((m for m in issues["messages"] if m["severity"] <= 1), key=lambda m: m["severity"])  # errors first
+        return {
+            "ran": True,
+            "validator": f"Khronos glTF-Validator {one_line(report.get('validatorVersion'), 40)}",
+            "errors": int(issues["numErrors"]),
+            "warnings": int(issues["numWarnings"]),
+            "infos": int(issues["numInfos"]),
+            "hints": int(issues["numHints"]),
+            "messages": [one_line(f"{m['code']} at {m.get('pointer', '')}: {m['message']}") for m in found],
+        }
+    except (ValueError, KeyError, TypeError) as exc:
+        raise StageInputError(
+            path, f"the Khronos glTF-Validator's report cannot be read ({type(exc).__name__})", remedy
+        ) from None
 
 
 # ----------------------------------------------------------------------------------------- glTF
@@ -605,7 +639,7 @@ class GlbBuffer:
         first = len(self.textures)
         keys = ("basecolor", "metallic_roughness", "normal") + (() if brdf == "gltf" else ("specular",))
         for key in keys:
-            view = self.view(require_plain_file(Path(folder) / f"{key}.png", remedy="Run the bake stage again.").read_bytes())
+            view = self.view(read_bytes(Path(folder) / f"{key}.png", IMAGE_LIMIT, remedy="Run the bake stage again."))
             self.images.append(g.Image(bufferView=view, mimeType="image/png", name=f"{tag}_{key}" if tag else key))
             self.textures.append(g.Texture(source=len(self.images) - 1, sampler=sampler))
         return first

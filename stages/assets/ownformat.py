@@ -365,7 +365,9 @@ def _local_image(uri, folder: Path) -> tuple[bytes, str] | str:
     if parts.netloc or parts.query or parts.fragment:
         return "a URI with a host, query or fragment"
     rel = unquote(parts.path).replace("\\", "/")
-    if ".." in rel.split("/") or any(ord(c) < 32 for c in rel):
+    if any(ord(c) < 32 for c in rel):
+        return "not a file name (it holds a control character)"
+    if ".." in rel.split("/"):
         return "a path that leaves the input's folder"
     path = Path(folder) / rel
     if not rel or not plain_file(path, folder):
@@ -420,7 +422,9 @@ def drop_local_paths(doc) -> list[str]:
             if key == "extras":
                 kept, removed = _without_local_paths(value, here)
                 notes += removed
-                if isinstance(node, dict):
+                if isinstance(node, dict) and kept is None:
+                    del node[key]
+                elif isinstance(node, dict):
                     node[key] = kept
                 else:
                     setattr(node, key, kept if kept is not None else {})

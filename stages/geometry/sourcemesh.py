@@ -19,17 +19,26 @@ Positions are in the file's units; a glTF node's transforms (matrix or TRS, down
 are applied, as the traced mesh's reader applies them (a skinned mesh is read in its node's frame,
 its bind pose). Only what the traced mesh holds is read: triangle primitives (mode 4); points,
 lines and strips are not surface.
+
+A glTF file is checked before any reader builds anything from it (:func:`read_gltf_file`, which
+the traced mesh's reader calls too, so both read one document): the GLB container (one JSON chunk,
+first; at most one binary chunk, second; every length within the file), every buffer view within
+its buffer and every accessor within its view, every index between the document's parts in range.
+A file that fails stops with one line saying what is wrong.
 """
 
 from __future__ import annotations
 
 import base64
+import json
+import struct
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from ..core.errors import StageInputError
+from ..core.safefiles import DATA_LIMIT, plain_file, read_bytes, user_file
 from .normals import unit_face_normals
 
 #: the formats whose UV layout can be kept (bake.uv)
@@ -131,7 +140,7 @@ class ObjLines:
 
     @classmethod
     def read(cls, path: Path) -> ObjLines:
-        text = path.read_text(encoding="utf-8", errors="replace")
+        text = read_bytes(user_file(path), DATA_LIMIT, remedy="Name the mesh file itself.").decode("utf-8", errors="replace")
         joined: list[str] = []
         pending = ""
         for raw in text.splitlines():
@@ -248,56 +257,438 @@ def _obj_corner(word: str, nv: int, nvt: int, nvn: int) -> tuple[int, int, int]:
 
 
 # ----------------------------------------------------------------------------------------- glTF
+#: the numbers an accessor's ``componentType`` names
 COMPONENTS = {5120: np.int8, 5121: np.uint8, 5122: np.int16, 5123: np.uint16, 5125: np.uint32, 5126: np.float32}
+#: components per element of each accessor ``type`` glTF has
+TYPES = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT2": 4, "MAT3": 9, "MAT4": 16}
+#: the accessor types the reader takes (vertex attributes and indices)
 WIDTHS = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT4": 16}
+#: the vertex attributes the reader takes, with the accessor type each must have
+ATTRIBUTE_TYPES = {"POSITION": "VEC3", "NORMAL": "VEC3", "TEXCOORD_0": "VEC2", "TANGENT": "VEC4"}
+#: index accessors: unsigned byte, short or int
+INDEX_COMPONENTS = (5121, 5123, 5125)
+#: the most elements an accessor without a buffer view (all zeros) may have: its array is made, not read
+MAX_UNBACKED_COUNT = 1 << 24
+#: the types of a GLB's chunks the format defines
+JSON_CHUNK, BIN_CHUNK = b"JSON", b"BIN\0"
+#: what to do about a glTF file the checks refuse
+REEXPORT = "Re-export the file (e.g. from Blender) and check it with the Khronos glTF-Validator."
+
+
+class _Refused(ValueError):
+    """One thing wrong with a glTF file, as a phrase (the caller names the file)."""
+
+
+@dataclass(frozen=True)
+class GltfFile:
+    """A GLB or glTF file as :func:`read_gltf_file` checked it: its JSON ``text``, the ``document``
+    parsed from it and its ``buffers`` as bytes, each exactly the length the document declares."""
+
+    path: Path
+    text: str
+    document: dict
+    buffers: tuple[bytes, ...]
+
+
+def read_gltf_file(path: str | Path) -> GltfFile:
+    """Read and check a GLB or glTF file before any parser builds anything from it, so that every
+    reader of the file (trimesh for the traced mesh, this module for the layout) reads the same
+    document and nothing outside its buffers: the GLB container (:func:`glb_chunks`), the JSON,
+    the buffers (the GLB's binary chunk, base64 ``data:`` URIs, or plain files beside the file,
+    never outside its folder) and every buffer view, accessor and reference between them
+    (:func:`check_gltf_document`).
+
+    Raises:
+        StageInputError: the first thing found wrong, in one line.
+    """
+    path = Path(path)
+    data = read_bytes(user_file(path), DATA_LIMIT, remedy="Name the mesh file itself.")
+    try:
+        if path.suffix.lower() == ".glb":
+            raw, binary = glb_chunks(data)
+        elif data[:4] == b"glTF":
+            raise _Refused("is a binary glTF (GLB) file with a .gltf name")
+        else:
+            raw, binary = data, None
+        try:
+            text = raw.rstrip(b"\0").decode("utf-8")
+            document = json.loads(text)
+        except (UnicodeDecodeError, ValueError, RecursionError) as exc:
+            raise _Refused(f"its JSON cannot be read ({_line(exc)})") from None
+        if not isinstance(document, dict):
+            raise _Refused("its JSON is not an object")
+        buffers = _buffers(path, document, binary)
+        check_gltf_document(document, buffers)
+    except _Refused as exc:
+        raise StageInputError(path, str(exc), REEXPORT) from None
+    return GltfFile(path, text, document, tuple(buffers))
+
+
+def glb_chunks(data: bytes) -> tuple[bytes, bytes | None]:
+    """The JSON chunk and the binary chunk (None: none) of a GLB file's bytes, after checking its
+    container: the ``glTF`` magic, version 2, the stated length the file's, each chunk's length a
+    multiple of 4 and within the file, the JSON chunk first and the only one, at most one binary
+    chunk and that one second (chunks of other types are ignored, as the format says).
+
+    Raises:
+        ValueError: the first thing wrong with the container, as a phrase (the file unnamed).
+    """
+    if len(data) < 12 or data[:4] != b"glTF":
+        raise _Refused("is not a GLB file (it does not start with the 'glTF' header)")
+    version, length = struct.unpack_from("<II", data, 4)
+    if version != 2:
+        raise _Refused(f"is GLB version {version}; the tool reads version 2")
+    if length != len(data):
+        raise _Refused(f"its header gives a length of {length:,} bytes, but the file has {len(data):,}")
+    chunks: list[tuple[bytes, bytes]] = []
+    at = 12
+    while at < len(data):
+        if at + 8 > len(data):
+            raise _Refused(f"ends inside the header of chunk {len(chunks)} (byte {at:,})")
+        size, kind = struct.unpack_from("<I4s", data, at)
+        name = _chunk_name(kind)
+        if size % 4:
+            raise _Refused(f"chunk {len(chunks)} ({name}) is {size:,} bytes long, not a multiple of 4")
+        if at + 8 + size > len(data):
+            raise _Refused(f"chunk {len(chunks)} ({name}) runs {at + 8 + size - len(data):,} bytes past the end of the file")
+        chunks.append((kind, data[at + 8 : at + 8 + size]))
+        at += 8 + size
+    kinds = [kind for kind, _ in chunks]
+    if not chunks or kinds[0] != JSON_CHUNK:
+        first = _chunk_name(kinds[0]) if chunks else "none"
+        raise _Refused(f"its first chunk is {first}, not the JSON chunk")
+    jsons, bins = kinds.count(JSON_CHUNK), kinds.count(BIN_CHUNK)
+    if jsons > 1:
+        raise _Refused(f"holds {jsons} JSON chunks; a GLB holds one (readers would differ on which is the document)")
+    if bins > 1:
+        raise _Refused(f"holds {bins} BIN chunks; a GLB holds at most one")
+    if bins and kinds.index(BIN_CHUNK) != 1:
+        raise _Refused(f"its BIN chunk is chunk {kinds.index(BIN_CHUNK)}; it must follow the JSON chunk")
+    return chunks[0][1], chunks[1][1] if bins else None
+
+
+def _chunk_name(kind: bytes) -> str:
+    return repr(kind.rstrip(b"\0").decode("latin-1"))
+
+
+def _line(exc: BaseException) -> str:
+    """An exception as one short line."""
+    return " ".join(f"{type(exc).__name__}: {exc}".split())[:200]
+
+
+def _shown(value) -> str:
+    """A value from the file, quoted and short, for a message of one line."""
+    text = repr(value)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+def _buffers(path: Path, doc: dict, binary: bytes | None) -> list[bytes]:
+    """Each buffer's bytes, cut to its ``byteLength``: the GLB's binary chunk (buffer 0 without a
+    ``uri``), a base64 ``data:`` URI, or a plain file in the file's folder (a relative ``uri``)."""
+    out = []
+    for i, buf in enumerate(_objects(doc, "buffers")):
+        length = _whole(buf.get("byteLength"), f"buffer {i}'s byteLength", 1)
+        uri = buf.get("uri")
+        if uri is None:
+            if i != 0:
+                raise _Refused(f"buffer {i} has no uri; only the first buffer may be a GLB's binary chunk")
+            if binary is None:
+                raise _Refused("buffer 0 has no uri, but the file has no GLB binary chunk")
+            blob = binary
+        elif not isinstance(uri, str):
+            raise _Refused(f"buffer {i}'s uri is {_shown(uri)}, not text")
+        elif uri.startswith("data:"):
+            head, _, payload = uri.partition(",")
+            if not head.endswith(";base64"):
+                raise _Refused(f"buffer {i} is a data: URI that is not base64")
+            try:
+                blob = base64.b64decode(payload, validate=True)
+            except ValueError:
+                raise _Refused(f"buffer {i}'s data: URI is not valid base64") from None
+        else:
+            file = path.parent / uri
+            if Path(uri).is_absolute() or ".." in Path(uri).parts or not plain_file(file, path.parent):
+                raise _Refused(
+                    f"buffer {i} names {_shown(uri)}, not a plain file beside it (keep the .bin beside it, or export a GLB)"
+                )
+            blob = read_bytes(file, DATA_LIMIT, path.parent)
+        if len(blob) < length:
+            raise _Refused(f"buffer {i} declares {length:,} bytes but holds {len(blob):,}")
+        out.append(blob[:length])
+    return out
+
+
+def _objects(doc: dict, key: str) -> list[dict]:
+    """``doc[key]``, a list of JSON objects (empty where absent)."""
+    return _listed(doc.get(key, []), f"its {key}")
+
+
+def _listed(items, what: str) -> list[dict]:
+    """``items``, a list of JSON objects."""
+    if not isinstance(items, list) or not all(isinstance(item, dict) for item in items):
+        raise _Refused(f"{what} is not a list of objects")
+    return items
+
+
+def _whole(value, what: str, low: int = 0) -> int:
+    """``value``, an integer of at least ``low`` (a JSON number with a fraction, or a boolean, is not)."""
+    if type(value) is not int or value < low:
+        raise _Refused(f"{what} is {_shown(value)}, not a whole number of at least {low}")
+    return value
+
+
+def _ref(value, items: list, what: str, kind: str) -> int | None:
+    """``value``, None or an index into ``items`` (the document's ``kind`` list)."""
+    if value is None:
+        return None
+    if type(value) is not int or not 0 <= value < len(items):
+        raise _Refused(f"{what} is {_shown(value)}, but the file has {len(items)} {kind}")
+    return value
+
+
+def element_bytes(component_type: int, kind: str) -> int:
+    """Bytes of one accessor element; a matrix's columns each start on a 4-byte boundary."""
+    size = np.dtype(COMPONENTS[component_type]).itemsize
+    if kind in ("MAT2", "MAT3"):
+        n = int(kind[3])
+        return n * (-(-n * size // 4) * 4)
+    return TYPES[kind] * size
+
+
+def check_gltf_document(doc: dict, buffers: list[bytes]) -> None:
+    """Check a glTF document against its ``buffers`` (each cut to its declared length): every
+    buffer view within its buffer (``byteOffset`` and ``byteLength`` whole numbers, ``byteStride``
+    4 to 252 and a multiple of 4); every accessor of a known ``componentType`` and ``type``, with a
+    whole ``count``, its stride at least its element's size and its last element within its view
+    (an accessor without a view: at most :data:`MAX_UNBACKED_COUNT` elements); sparse accessors'
+    indices and values within their views; every index into the document's lists in range; node
+    transforms of the right length and finite; nodes a forest (one parent each, no cycle).
+
+    Raises:
+        ValueError: the first thing wrong, as a phrase.
+    """
+    views = _objects(doc, "bufferViews")
+    for i, view in enumerate(views):
+        b = _ref(view.get("buffer"), buffers, f"buffer view {i}'s buffer", "buffers")
+        if b is None:
+            raise _Refused(f"buffer view {i} names no buffer")
+        offset = _whole(view.get("byteOffset", 0), f"buffer view {i}'s byteOffset")
+        length = _whole(view.get("byteLength"), f"buffer view {i}'s byteLength", 1)
+        if offset + length > len(buffers[b]):
+            raise _Refused(
+                f"buffer view {i} (bytes {offset:,} to {offset + length:,}) runs past the end of buffer {b} "
+                f"({len(buffers[b]):,} bytes)"
+            )
+        stride = view.get("byteStride")
+        if stride is not None and (type(stride) is not int or not 4 <= stride <= 252 or stride % 4):
+            raise _Refused(f"buffer view {i} has byteStride {_shown(stride)}; glTF allows 4 to 252, a multiple of 4")
+    accessors = _objects(doc, "accessors")
+    for i, acc in enumerate(accessors):
+        _check_accessor(i, acc, views)
+    _check_references(doc, accessors, views)
+
+
+def _check_accessor(i: int, acc: dict, views: list[dict]) -> None:
+    ctype, kind = acc.get("componentType"), acc.get("type")
+    if type(ctype) is not int or ctype not in COMPONENTS:
+        raise _Refused(f"accessor {i} has componentType {_shown(ctype)}; glTF's are {', '.join(map(str, COMPONENTS))}")
+    if not isinstance(kind, str) or kind not in TYPES:
+        raise _Refused(f"accessor {i} has type {_shown(kind)}; glTF's are {', '.join(TYPES)}")
+    count = _whole(acc.get("count"), f"accessor {i}'s count")
+    size = element_bytes(ctype, kind)
+    v = _ref(acc.get("bufferView"), views, f"accessor {i}'s bufferView", "buffer views")
+    if v is None:
+        if count > MAX_UNBACKED_COUNT:
+            raise _Refused(
+                f"accessor {i} has no buffer view and {count:,} elements; the tool takes at most {MAX_UNBACKED_COUNT:,}"
+            )
+    else:
+        offset = _whole(acc.get("byteOffset", 0), f"accessor {i}'s byteOffset")
+        stride = views[v].get("byteStride") or size
+        if stride < size:
+            raise _Refused(
+                f"accessor {i}'s elements ({kind}) take {size} bytes, more than buffer view {v}'s byteStride of {stride}"
+            )
+        end = offset + (count - 1) * stride + size if count else offset
+        if end > views[v]["byteLength"]:
+            raise _Refused(
+                f"accessor {i} ({count:,} elements of {size} bytes, {stride} apart, from byte {offset:,}) "
+                f"ends at byte {end:,} of buffer view {v}, which holds {views[v]['byteLength']:,}"
+            )
+    sparse = acc.get("sparse")
+    if sparse is None:
+        return
+    if not isinstance(sparse, dict):
+        raise _Refused(f"accessor {i}'s sparse is not an object")
+    n = _whole(sparse.get("count"), f"accessor {i}'s sparse count", 1)
+    if n > count:
+        raise _Refused(f"accessor {i} has {n:,} sparse elements but only {count:,} elements")
+    for part, width in (("indices", None), ("values", size)):
+        block = sparse.get(part)
+        if not isinstance(block, dict):
+            raise _Refused(f"the sparse {part} of accessor {i} are not an object")
+        if width is None:
+            itype = block.get("componentType")
+            if type(itype) is not int or itype not in INDEX_COMPONENTS:
+                raise _Refused(f"accessor {i}'s sparse indices have componentType {_shown(itype)}, not an unsigned integer")
+            width = np.dtype(COMPONENTS[itype]).itemsize
+        sv = _ref(block.get("bufferView"), views, f"accessor {i}'s sparse {part} bufferView", "buffer views")
+        if sv is None:
+            raise _Refused(f"the sparse {part} of accessor {i} name no buffer view")
+        end = _whole(block.get("byteOffset", 0), f"accessor {i}'s sparse {part} byteOffset") + n * width
+        if end > views[sv]["byteLength"]:
+            raise _Refused(
+                f"the sparse {part} of accessor {i} end at byte {end:,} of buffer view {sv}, "
+                f"which holds {views[sv]['byteLength']:,}"
+            )
+
+
+#: the lengths of a node's transform properties
+NODE_TRANSFORMS = {"matrix": 16, "translation": 3, "rotation": 4, "scale": 3}
+
+
+def _check_references(doc: dict, accessors: list[dict], views: list[dict]) -> None:
+    """Every index of one part of the document into another in range; node transforms of the
+    right length and finite; the nodes a forest."""
+    nodes, meshes, scenes = _objects(doc, "nodes"), _objects(doc, "meshes"), _objects(doc, "scenes")
+    materials, textures, images = _objects(doc, "materials"), _objects(doc, "textures"), _objects(doc, "images")
+    samplers, skins, cameras = _objects(doc, "samplers"), _objects(doc, "skins"), _objects(doc, "cameras")
+    for m, mesh in enumerate(meshes):
+        for p, prim in enumerate(_listed(mesh.get("primitives", []), f"mesh {m}'s primitives")):
+            where = f"mesh {m}, primitive {p}"
+            targets = prim.get("targets") or []
+            if not isinstance(targets, list):
+                raise _Refused(f"{where}: its targets are not a list")
+            for attrs in [prim.get("attributes", {}), *targets]:
+                if not isinstance(attrs, dict):
+                    raise _Refused(f"{where}: its attributes are not an object")
+                for name, index in attrs.items():
+                    _ref(index, accessors, f"{where}: attribute {_shown(name)}", "accessors")
+            _ref(prim.get("indices"), accessors, f"{where}: its indices", "accessors")
+            _ref(prim.get("material"), materials, f"{where}: its material", "materials")
+            mode = prim.get("mode", 4)
+            if type(mode) is not int or not 0 <= mode <= 6:
+                raise _Refused(f"{where}: its mode is {_shown(mode)}, not 0 to 6")
+    parent: dict[int, int] = {}
+    for n, node in enumerate(nodes):
+        _ref(node.get("mesh"), meshes, f"node {n}'s mesh", "meshes")
+        _ref(node.get("skin"), skins, f"node {n}'s skin", "skins")
+        _ref(node.get("camera"), cameras, f"node {n}'s camera", "cameras")
+        for key, length in NODE_TRANSFORMS.items():
+            value = node.get(key)
+            if value is not None and not _numbers(value, length):
+                raise _Refused(f"node {n}'s {key} is not {length} finite numbers")
+        children = node.get("children", [])
+        if not isinstance(children, list):
+            raise _Refused(f"node {n}'s children are not a list")
+        for c in children:
+            _ref(c, nodes, f"node {n}'s child", "nodes")
+            if c in parent:
+                raise _Refused(f"node {c} is a child of nodes {parent[c]} and {n}; a node has one parent")
+            parent[c] = n
+    for n in range(len(nodes)):  # up from each node to its root, in at most one step per node
+        at, steps = n, 0
+        while at in parent:
+            at, steps = parent[at], steps + 1
+            if steps > len(nodes):
+                raise _Refused(f"node {n}'s ancestors form a cycle")
+    _ref(doc.get("scene"), scenes, "the default scene", "scenes")
+    for s, scene in enumerate(scenes):
+        roots = scene.get("nodes", [])
+        if not isinstance(roots, list):
+            raise _Refused(f"scene {s}'s nodes are not a list")
+        for r in roots:
+            _ref(r, nodes, f"scene {s}'s node", "nodes")
+    for k, skin in enumerate(skins):
+        joints = skin.get("joints", [])
+        if not isinstance(joints, list):
+            raise _Refused(f"skin {k}'s joints are not a list")
+        for j in [*joints, skin.get("skeleton")]:
+            _ref(j, nodes, f"skin {k}'s joint", "nodes")
+        _ref(skin.get("inverseBindMatrices"), accessors, f"skin {k}'s inverseBindMatrices", "accessors")
+    for k, animation in enumerate(_objects(doc, "animations")):
+        anim_samplers = _listed(animation.get("samplers", []), f"animation {k}'s samplers")
+        for s in anim_samplers:
+            for key in ("input", "output"):
+                _ref(s.get(key), accessors, f"animation {k}'s sampler {key}", "accessors")
+        for c in _listed(animation.get("channels", []), f"animation {k}'s channels"):
+            target = c.get("target", {})
+            if not isinstance(target, dict):
+                raise _Refused(f"animation {k}'s channel target is not an object")
+            _ref(c.get("sampler"), anim_samplers, f"animation {k}'s channel sampler", "samplers")
+            _ref(target.get("node"), nodes, f"animation {k}'s channel node", "nodes")
+    for t, texture in enumerate(textures):
+        _ref(texture.get("source"), images, f"texture {t}'s source", "images")
+        _ref(texture.get("sampler"), samplers, f"texture {t}'s sampler", "samplers")
+    for k, image in enumerate(images):
+        _ref(image.get("bufferView"), views, f"image {k}'s bufferView", "buffer views")
+    for k, material in enumerate(materials):
+        for index in texture_indices(material):
+            _ref(index, textures, f"material {k}'s texture", "textures")
+
+
+def _numbers(value, length: int) -> bool:
+    return isinstance(value, list) and len(value) == length and all(type(x) in (int, float) and np.isfinite(x) for x in value)
+
+
+def texture_indices(material: dict) -> list:
+    """The ``index`` of every texture reference in a material's JSON (an object under a key
+    ending in ``Texture``, its extensions' included), at any depth."""
+    out, stack = [], [material]
+    while stack:
+        node = stack.pop()
+        items = node.items() if isinstance(node, dict) else enumerate(node) if isinstance(node, list) else ()
+        for key, value in items:
+            if isinstance(key, str) and key.endswith("Texture") and isinstance(value, dict):
+                out.append(value.get("index"))
+            if isinstance(value, (dict, list)):
+                stack.append(value)
+    return out
 
 
 def load_gltf_document(path: Path):
-    """The pygltflib document of a GLB or glTF file with every buffer as bytes (``buffers``): the
-    GLB's binary chunk, ``data:`` URIs, or files beside a glTF file (never outside its folder)."""
+    """The pygltflib document of a GLB or glTF file, parsed from the JSON that
+    :func:`read_gltf_file` checked, with every buffer as bytes (``buffers``).
+
+    Raises:
+        StageInputError: a file the checks refuse, or one pygltflib cannot take (naming why).
+    """
     import pygltflib
 
+    checked = read_gltf_file(path)
     try:
-        doc = pygltflib.GLTF2().load(str(path))
+        doc = pygltflib.GLTF2.gltf_from_json(checked.text)
     except Exception as exc:  # noqa: BLE001 - any parser failure is an unreadable file
-        raise StageInputError(path, f"could not be read as glTF ({type(exc).__name__}: {exc})") from exc
-    if doc is None:
-        raise StageInputError(path, "could not be read as glTF")
-    blobs = []
-    for i, buf in enumerate(doc.buffers):
-        if buf.uri is None:
-            blobs.append(doc.binary_blob() or b"")
-        elif buf.uri.startswith("data:"):
-            blobs.append(base64.b64decode(buf.uri.split(",", 1)[1]))
-        else:
-            file = (path.parent / buf.uri).resolve()
-            if path.parent.resolve() not in file.parents or not file.is_file():
-                raise StageInputError(
-                    path,
-                    f"buffer {i} names {buf.uri!r}, not a file beside it",
-                    "Keep the .bin beside the .gltf, or export a GLB.",
-                )
-            blobs.append(file.read_bytes())
-    return doc, blobs
+        raise StageInputError(path, f"could not be read as glTF ({_line(exc)})", REEXPORT) from exc
+    doc._path, doc._name = Path(path).parent, Path(path).name
+    return doc, list(checked.buffers)
 
 
 def accessor_array(doc, blobs: list[bytes], index: int) -> np.ndarray:
     """Accessor ``index`` as ``(count, width)`` float64 (normalised integers scaled, as the
-    specification says) or, for indices, int64 ``(count,)``."""
+    specification says) or, for indices, int64 ``(count,)``. Its elements are copied out of the
+    buffer's bytes, which :func:`read_gltf_file` checked hold them (checked again here)."""
     acc = doc.accessors[index]
-    dtype = np.dtype(COMPONENTS[acc.componentType]).newbyteorder("<")
-    width = WIDTHS[acc.type]
     if acc.sparse is not None:
         raise ValueError(f"accessor {index} is sparse")
+    if acc.type not in WIDTHS:
+        raise ValueError(f"accessor {index} is a {acc.type}")
+    dtype = np.dtype(COMPONENTS[acc.componentType]).newbyteorder("<")
+    width = WIDTHS[acc.type]
+    size = dtype.itemsize * width
+    count = acc.count
     if acc.bufferView is None:
-        out = np.zeros((acc.count, width), dtype)
+        out = np.zeros((count, width), dtype)
     else:
         view = doc.bufferViews[acc.bufferView]
+        stride = view.byteStride or size
         start = (view.byteOffset or 0) + (acc.byteOffset or 0)
-        stride = view.byteStride or dtype.itemsize * width
-        data = np.frombuffer(blobs[view.buffer], np.uint8, count=(acc.count - 1) * stride + dtype.itemsize * width, offset=start)
-        rows = np.lib.stride_tricks.as_strided(data, (acc.count, width * dtype.itemsize), (stride, 1))
-        out = np.ascontiguousarray(rows).view(dtype).reshape(acc.count, width)
+        end = start + (count - 1) * stride + size if count else start
+        if stride < size or end > (view.byteOffset or 0) + view.byteLength or end > len(blobs[view.buffer]):
+            raise ValueError(f"accessor {index} runs past its buffer view")
+        rows = np.zeros(count * stride, np.uint8)
+        rows[: end - start] = np.frombuffer(blobs[view.buffer], np.uint8, count=end - start, offset=start)
+        out = rows.reshape(count, stride)[:, :size].copy().view(dtype).reshape(count, width)
     if acc.type == "SCALAR" and np.issubdtype(dtype, np.integer) and not acc.normalized:
         return out.reshape(-1).astype(np.int64)
     out = out.astype(np.float64)
@@ -404,20 +795,36 @@ def _material_name(doc, index: int | None) -> str:
     return doc.materials[index].name or f"material_{index}"
 
 
+def _attribute(doc, blobs, attrs, name: str, count: int | None = None) -> np.ndarray | None:
+    """A vertex attribute's array (None: the primitive has none), of the accessor type the
+    specification gives it and, with ``count``, as many elements as the positions."""
+    index = getattr(attrs, name)
+    if index is None:
+        return None
+    acc = doc.accessors[index]
+    if acc.type != ATTRIBUTE_TYPES[name]:
+        raise ValueError(f"its {name} (accessor {index}) is a {acc.type}, not a {ATTRIBUTE_TYPES[name]}")
+    if count is not None and acc.count != count:
+        raise ValueError(f"its {name} (accessor {index}) has {acc.count:,} elements for {count:,} positions")
+    return accessor_array(doc, blobs, index)
+
+
 def _vertices(doc, blobs, attrs, world: np.ndarray) -> dict:
     """One primitive's vertex attributes in the world frame (normals by the inverse transpose)."""
-    pos = accessor_array(doc, blobs, attrs.POSITION)
+    pos = _attribute(doc, blobs, attrs, "POSITION")
+    if pos is None:
+        raise ValueError("it has no POSITION")
     n = len(pos)
     lin = world[:3, :3]
     normals = np.full((n, 3), np.nan)
     if attrs.NORMAL is not None:
-        normals = _unit(accessor_array(doc, blobs, attrs.NORMAL) @ np.linalg.inv(lin))
+        normals = _unit(_attribute(doc, blobs, attrs, "NORMAL", n) @ np.linalg.inv(lin))
     uv = np.full((n, 2), np.nan)
     if attrs.TEXCOORD_0 is not None:
-        uv = accessor_array(doc, blobs, attrs.TEXCOORD_0)
+        uv = _attribute(doc, blobs, attrs, "TEXCOORD_0", n)
     tangents = None
     if attrs.TANGENT is not None:
-        t = accessor_array(doc, blobs, attrs.TANGENT)
+        t = _attribute(doc, blobs, attrs, "TANGENT", n)
         # a mirroring node transform flips the handedness, as it flips the winding
         sign = 1.0 if np.linalg.det(lin) >= 0 else -1.0
         tangents = np.concatenate([_unit(t[:, :3] @ lin.T), sign * t[:, 3:4]], axis=1)
@@ -427,7 +834,13 @@ def _vertices(doc, blobs, attrs, world: np.ndarray) -> dict:
 def _triangles(doc, blobs, prim, count: int, world: np.ndarray) -> np.ndarray:
     """A triangle primitive's ``(T, 3)`` vertex indices (its index accessor, or 0, 1, 2, ...),
     their winding turned where the node transform mirrors (as viewers turn it)."""
-    tri = accessor_array(doc, blobs, prim.indices) if prim.indices is not None else np.arange(count)
+    if prim.indices is None:
+        tri = np.arange(count)
+    else:
+        acc = doc.accessors[prim.indices]
+        if acc.type != "SCALAR" or acc.componentType not in INDEX_COMPONENTS or acc.normalized:
+            raise ValueError(f"its indices (accessor {prim.indices}) are not unsigned integers")
+        tri = accessor_array(doc, blobs, prim.indices)
     if len(tri) % 3 or (len(tri) and (tri.min() < 0 or tri.max() >= count)):
         raise ValueError(f"{len(tri)} indices that are not whole triangles of its {count} vertices")
     tri = tri.reshape(-1, 3).astype(np.int64)

@@ -93,32 +93,48 @@ MIME = {".png": "image/png", ".glb": "model/gltf-binary", ".hdr": "image/vnd.rad
 
 
 # ---- shared pieces ---------------------------------------------------------------------------
-def templates() -> Environment:
+def templates(model_viewer: Path | None = None) -> Environment:
     """The report's templates, with every value escaped unless Python marked it safe (:class:`Markup`:
-    only the style sheet, our scripts and pandas' escaped tables), and :func:`page_policy` for
-    each page's Content-Security-Policy."""
-    env = Environment(
-        loader=FileSystemLoader(TEMPLATES), autoescape=True, undefined=StrictUndefined, keep_trailing_newline=False
-    )
-    env.globals["page_policy"] = page_policy
+    only the style sheet, our scripts and pandas' escaped tables), and ``page_policy(style,
+    inline_scripts)`` for each page's Content-Security-Policy (:func:`page_policy`, allowing the
+    style sheets of the ``model_viewer`` script the pages use)."""
+    env = Environment(loader=FileSystemLoader(TEMPLATES), autoescape=True, undefined=StrictUndefined, keep_trailing_newline=False)
+    styles = viewer_styles(model_viewer) if model_viewer is not None and plain_file(model_viewer) else []
+    env.globals["page_policy"] = lambda style, scripts: page_policy(style, scripts, styles)
     return env
 
 
-def page_policy(style: str, inline_scripts: list[str]) -> str:
+#: the one style attribute the pages hold: pandas' on a table's header row
+TABLE_HEADER_STYLE = "text-align: right;"
+
+
+def page_policy(style: str, inline_scripts: list[str], viewer_styles: list[str] = ()) -> str:
     """A page's Content-Security-Policy: it loads only its own files (``'self'``: the report's
-    folder), the style sheet and scripts it holds inline (by their SHA-256, so nothing else
-    inline runs), images and models from ``data:`` URIs (the one-file form) and ``blob:`` URLs
-    (the viewer's, for a model read from ``assets.js`` and for the textures inside a GLB); no
-    plug-ins, no ``<base>``, no form submits anywhere."""
+    folder) and runs only the style sheet and scripts it holds inline, each allowed by its SHA-256
+    (with the viewer's own style sheets, ``viewer_styles``, and pandas' table header style); the
+    viewer may compile its WebAssembly decoder (``'wasm-unsafe-eval'``, no JavaScript ``eval``) and
+    read images and models from ``data:`` URIs (the one-file form) and ``blob:`` URLs (a model
+    read from ``assets.js``, the textures inside a GLB). No plug-ins, no ``<base>``, no form
+    submits."""
 
     def digest(text: str) -> str:
         return "'sha256-" + base64.b64encode(hashlib.sha256(str(text).encode("utf-8")).digest()).decode("ascii") + "'"
 
-    scripts = " ".join(["'self'", *dict.fromkeys(digest(code) for code in inline_scripts)])
+    scripts = " ".join(dict.fromkeys(["'self'", "'wasm-unsafe-eval'", *(digest(code) for code in inline_scripts)]))
+    styles = " ".join(
+        dict.fromkeys(["'self'", digest(style), *map(digest, viewer_styles), "'unsafe-hashes'", digest(TABLE_HEADER_STYLE)])
+    )
     return (
-        f"default-src 'self'; script-src {scripts}; style-src 'self' {digest(style)}; img-src 'self' data: blob:; "
+        f"default-src 'self'; script-src {scripts}; style-src {styles}; img-src 'self' data: blob:; "
         "connect-src 'self' data: blob:; object-src 'none'; base-uri 'none'; form-action 'none'"
     )
+
+
+def viewer_styles(model_viewer: Path) -> list[str]:
+    """The style sheets model-viewer writes into its shadow DOM as ``<style>`` elements: the
+    constant ``<style>...</style>`` blocks of its script (no ``${...}`` in them)."""
+    text = read_text(model_viewer, DATA_LIMIT)
+    return [body for body in re.findall(r"<style>(.*?)</style>", text, re.S) if "${" not in body]
 
 
 def data_uri(path: Path, mime: str | None = None) -> str:
@@ -500,7 +516,7 @@ def write_folder(
 ) -> dict:
     """Write ``index.html``, ``cells/`` and ``viewer/`` under ``report_dir`` (the summary and
     figures already there). ``thumbnail(cell)``: a PIL image. Returns counts and sizes."""
-    report_dir, env = Path(report_dir), templates()
+    report_dir, env = Path(report_dir), templates(model_viewer)
     frame = read_summary(report_dir)
     have_viewer = Path(model_viewer).is_file()
     groups = _groups(report_dir)
@@ -605,7 +621,7 @@ def write_single_file(results: Path, report_dir: Path, cells: list[tuple[str, st
         if (report_dir / name).is_dir() and Path(out).parent == report_dir:
             log.info("removing %s: this report is one file now", report_dir / name)
             remove_tree(report_dir / name)
-    frame, env = read_summary(report_dir), templates()
+    frame, env = read_summary(report_dir), templates(model_viewer)
     have_viewer = Path(model_viewer).is_file()
     groups = _groups(report_dir)
     sections, viewers = [], 0
