@@ -481,7 +481,7 @@ def check_reports(reports: dict[str, dict], where: Path) -> None:
     failed = [(name, r) for name, r in reports.items() if r.get("errors")]
     if failed:
         name, r = failed[0]
-        first = f", the first: {one_line(r['messages'][0])}" if r.get("messages") else ""
+        first = f", the first: {one_line(r['messages'][0]).rstrip('.')}" if r.get("messages") else ""
         raise StageInputError(
             Path(where) / name,
             f"failed validation with {r['errors']} error(s){first}",

@@ -24,7 +24,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from ..core.safefiles import read_text
+from ..core.safefiles import atomic_path, read_text
 from ..core.settings import kind_words
 from .presets import PRESETS
 from .schema import REPO_ROOT, SCHEMA_PATH, schema
@@ -310,8 +310,8 @@ def main(argv: list[str] | None = None) -> int:
     page = markdown()
     path = REPO_ROOT / PAGE
     if args.write:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(page)
+        with atomic_path(path) as tmp:
+            tmp.write_text(page)
         sys.stderr.write(f"wrote {PAGE.as_posix()}\n")
         return 0
     if args.check:

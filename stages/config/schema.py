@@ -24,7 +24,7 @@ from typing import Any
 
 import yaml
 
-from ..core.safefiles import read_text
+from ..core.safefiles import atomic_path, read_text
 from ..core.settings import Kind, Settings, Spec
 from .presets import PRESETS
 from .sections import PATH_MAX, PATH_PATTERN, SECTIONS
@@ -312,7 +312,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     text, where = yaml_text(), SCHEMA_PATH.relative_to(REPO_ROOT).as_posix()
     if args.write:
-        SCHEMA_PATH.write_text(text)
+        with atomic_path(SCHEMA_PATH) as tmp:
+            tmp.write_text(text)
         sys.stderr.write(f"wrote {where}\n")
         return 0
     if args.check:

@@ -18,7 +18,6 @@ our cameras).
 from __future__ import annotations
 
 import importlib.util
-import json
 import logging
 import os
 import shutil
@@ -31,6 +30,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..core.provenance import write_json_atomic
 from ..core.safefiles import DATA_LIMIT, open_read, read_json
 from ..imaging.quality import psnr
 from ..imaging.targets import FULL_COVERAGE
@@ -107,7 +107,7 @@ def run_job(job: dict, workdir: Path, timeout_s: float = 1800.0) -> JobResult:
     workdir.mkdir(parents=True, exist_ok=True)
     job = {**job, "out": str(workdir)}
     job_file = workdir / "job.json"
-    job_file.write_text(json.dumps(job))
+    write_json_atomic(job_file, job)
     args = [*cmd, str(JOB_SCRIPT)] + (["--", str(job_file)] if len(cmd) > 1 else [str(job_file)])
     t0 = time.perf_counter()
     proc = subprocess.run(args, capture_output=True, text=True, timeout=timeout_s, cwd=workdir)

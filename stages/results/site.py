@@ -540,7 +540,8 @@ def write_folder(
             assets = {"glb": base64.b64encode(read_bytes(files["model.glb"], DATA_LIMIT)).decode("ascii")}
             if "light.hdr" in files:
                 assets["hdr"] = base64.b64encode(read_bytes(files["light.hdr"], DATA_LIMIT)).decode("ascii")
-            (folder / "assets.js").write_text("window.TANGO_CELL_ASSETS = " + json.dumps(assets) + ";\n")
+            with atomic_path(folder / "assets.js") as tmp:
+                tmp.write_text("window.TANGO_CELL_ASSETS = " + json.dumps(assets) + ";\n")
             packed = "assets.js"
             viewers += 1
         up = "../" * (len(cell) + 1)  # cells/<mesh>/<prompt>/<variant>/ back to the report folder
@@ -554,7 +555,8 @@ def write_folder(
             have_viewer=have_viewer,
             cell=cell_context(cell, row, files, lambda n: n, viewer, comparison_text(cell, groups)),
         )
-        (folder / "index.html").write_text(page)
+        with atomic_path(folder / "index.html") as tmp:
+            tmp.write_text(page)
     # swap the finished folders in, then the index (written last: it is the rule's marker)
     for name, d in staging.items():
         final = report_dir / name

@@ -24,6 +24,7 @@ from stages.config.sections import (
     RaycacheSettings,
     RelightSettings,
 )
+from stages.core.errors import StageInputError
 from stages.geometry.atlas import dilate, rasterize_atlas, unwrap
 from stages.geometry.normals import NormalSpec
 from stages.model.networks import Material, SGLightModule
@@ -287,7 +288,7 @@ def test_usd_validation_is_counted_not_asserted(trained, tmp_path):
 
 
 def test_export_fails_on_validation_errors(trained, tmp_path, monkeypatch):
-    """A validator error stops the export and leaves no finished-looking metadata behind."""
+    """A validator error stops the export in one line and leaves no finished-looking metadata behind."""
     real = formats.validate_usd
 
     def faulty(path):
@@ -296,7 +297,9 @@ def test_export_fails_on_validation_errors(trained, tmp_path, monkeypatch):
 
     monkeypatch.setattr(formats, "validate_usd", faulty)
     out = tmp_path / "export"
-    with pytest.raises(RuntimeError, match="MismatchedPropertyType"):
+    with pytest.raises(
+        StageInputError, match=r"model.usda: failed validation with \d+ error\(s\), the first: MismatchedPropertyType"
+    ) as err:
         export.run(
             trained / "mesh.ply",
             trained / "transform.json",
@@ -305,7 +308,7 @@ def test_export_fails_on_validation_errors(trained, tmp_path, monkeypatch):
             out,
             ExportSettings(),
         )
-    assert not (out / "meta.json").exists()
+    assert not (out / "meta.json").exists() and "\n" not in str(err.value) and ".." not in str(err.value)
 
 
 def test_glb_reloads_with_all_textures(trained):

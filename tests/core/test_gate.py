@@ -1,4 +1,4 @@
-"""The gate holds: every read, delete, copy and rename in ``stages/`` goes through
+"""The gate holds: every read, write, delete, copy and rename in ``stages/`` goes through
 ``stages/core/safefiles.py`` (plain files only, no link inside a results folder, no FIFO or device,
 a size limit), found by walking the code; and each of the gate's checks is needed (a test below
 fails when it is taken out)."""
@@ -50,6 +50,8 @@ FORBIDDEN_FUNCTIONS = {
 }
 #: methods of a path that read, delete or move a file
 FORBIDDEN_METHODS = {"read_text", "read_bytes", "unlink", "rmdir", "rename"}
+#: methods of a path that write it in place: only on the temporary path of ``atomic_path``
+WRITE_METHODS = {"write_text", "write_bytes"}
 #: the gate's readers: a forbidden reader handed what they opened or read is the gate's read
 GATE_READERS = {"open_read", "read_bytes", "read_text", "io.StringIO", "io.BytesIO", "StringIO", "BytesIO"}
 
@@ -66,6 +68,7 @@ ALLOWED = {
     ("reference/blender_job.py", "main", "read_text"): "runs inside Blender's Python, without this package, on the job "
     "file the judge wrote into its own temporary folder",
     ("reference/blender_job.py", "render", "unlink"): "runs inside Blender's Python, in the judge's own temporary folder",
+    ("reference/blender_job.py", "main", "write_text"): "runs inside Blender's Python, in the judge's own temporary folder",
 }
 
 
@@ -132,11 +135,16 @@ class Scanner(ast.NodeVisitor):
 
     def visit_With(self, node: ast.With):
         for item in node.items:
-            if _gate_call(item.context_expr) and isinstance(item.optional_vars, ast.Name):
+            atomic = isinstance(item.context_expr, ast.Call) and dotted(item.context_expr.func).endswith("atomic_path")
+            if (_gate_call(item.context_expr) or atomic) and isinstance(item.optional_vars, ast.Name):
                 self.gated[-1].add(item.optional_vars.id)
         self.generic_visit(node)
 
     def visit_Call(self, node: ast.Call):
+        func = node.func
+        if isinstance(func, ast.Attribute) and func.attr in WRITE_METHODS:
+            if not (isinstance(func.value, ast.Name) and func.value.id in self.gated[-1]):
+                self.findings.append(Finding(self.module, ".".join(self.stack) or "<module>", func.attr, node.lineno))
         name = forbidden_call(node)
         if name is not None:
             first = node.args[0] if node.args else None
@@ -192,6 +200,8 @@ def test_every_allowed_entry_is_used():
         "tmp.replace(target)",
         "p.rename(q)",
         "with open_read(p, 9) as fh:\n    pass\nnp.load(other)",
+        "p.write_text('x')",
+        "with atomic_path(p) as tmp:\n    other.write_bytes(b'x')",
     ],
 )
 def test_the_scanner_finds_each_kind_of_direct_file_operation(source):
@@ -208,6 +218,7 @@ def test_the_scanner_finds_each_kind_of_direct_file_operation(source):
         "with open_read(p, 9) as fh, np.load(fh) as z:\n    pass",
         "pd.read_csv(io.StringIO(read_text(p)))",
         "Image.open(io.BytesIO(read_bytes(p, 9)))",
+        "with atomic_path(p) as tmp:\n    tmp.write_text('x')",
     ],
 )
 def test_the_scanner_passes_the_gates_own_forms(source):

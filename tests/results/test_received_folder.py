@@ -28,7 +28,17 @@ def made(tmp_path_factory):
     """A one-mesh, one-prompt synthetic tree with its report written (the folder form)."""
     results = tmp_path_factory.mktemp("made") / "results"
     proc = subprocess.run(
-        [sys.executable, str(REPO / "scripts" / "synthetic_results.py"), str(results), "--meshes", "1", "--prompts", "1", "--decimated", "0"],
+        [
+            sys.executable,
+            str(REPO / "scripts" / "synthetic_results.py"),
+            str(results),
+            "--meshes",
+            "1",
+            "--prompts",
+            "1",
+            "--decimated",
+            "0",
+        ],
         capture_output=True,
         text=True,
         check=True,
@@ -119,6 +129,7 @@ def test_a_fifo_or_endless_meta_json_does_not_stop_the_plan(received, kind, capl
         os.mkfifo(meta)
     else:
         meta.symlink_to("/dev/zero")
+
     def hung(*_):
         raise TimeoutError("the plan hung on the record")
 
