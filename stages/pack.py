@@ -15,13 +15,15 @@ import io
 import json
 import logging
 import os
+import shutil
+import time
 import zipfile
 from pathlib import Path
 
 from .core.cli import stage_main
 from .core.errors import StageInputError
 from .core.provenance import ORIGIN_KEY, atomic_path, read_origin, shareable_meta
-from .core.safefiles import reached_without_link, read_json
+from .core.safefiles import DATA_LIMIT, open_read, reached_without_link, read_json
 from .results.cells import parse_cells
 from .results.spreadsheet import spreadsheet_rows
 
@@ -153,8 +155,13 @@ def run(
             for path, arc in entries:
                 if path.name == "meta.json":  # provenance without the host and the command line
                     z.writestr(arc, json.dumps(shareable_meta(read_json(path)), indent=2))
-                else:
-                    z.write(path, arc)
+                else:  # streamed from the handle the gate opened (a file swapped for a link is not followed)
+                    with open_read(path, DATA_LIMIT) as src:
+                        stamp = time.localtime(os.fstat(src.fileno()).st_mtime)[:6]
+                        with z.open(
+                            zipfile.ZipInfo(arc, date_time=max(stamp, (1980, 1, 1, 0, 0, 0))), "w", force_zip64=True
+                        ) as dst:
+                            shutil.copyfileobj(src, dst)
     with atomic_path(out_index) as tmp:
         tmp.write_text(buf.getvalue())
     log.info("packed %d cells (%d files) into %s", len(rows), len(entries), out_zip)

@@ -120,11 +120,11 @@ def earlier_step_seconds(results: Path, digest: str, device: str) -> float | Non
         if not isinstance(m, dict):
             continue
         s = m.get("settings") if isinstance(m.get("settings"), dict) else {}
-        seconds = m.get("seconds_per_iteration")
-        if not isinstance(seconds, int | float) or not math.isfinite(seconds) or seconds <= 0:
+        seconds = positive_figure(m.get("seconds_per_iteration"))
+        if seconds is None:
             continue
         if str(m.get("device", "")).split(":")[0] == device and _digest(s) == digest:
-            found.append(float(seconds))
+            found.append(seconds)
     return statistics.median(found) if found else None
 
 
@@ -234,14 +234,25 @@ def _machine() -> str:
     return f"{platform.processor() or platform.machine()}|{os.cpu_count()}|{torch.__version__}|{torch.get_num_threads()}"
 
 
+def positive_figure(value) -> float | None:
+    """``value`` as a positive finite float, or None where a received record holds something
+    else there (a text, a bool, NaN, an integer past float's range)."""
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return None
+    try:
+        value = float(value)
+    except OverflowError:
+        return None
+    return value if math.isfinite(value) and value > 0 else None
+
+
 def _cached(path: Path, name: str) -> float | None:
     """The figure ``name`` of a cached measurement, or None where there is none (or it is not a
     number: measured again)."""
     if not path.exists() and not path.is_symlink():
         return None
     try:
-        value = read_json(path).get(name)
-        return float(value) if isinstance(value, int | float) and math.isfinite(value) and value > 0 else None
+        return positive_figure(read_json(path).get(name))
     except (StageInputError, AttributeError) as exc:
         log.warning("a cached measurement not used: %s", exc)
         return None

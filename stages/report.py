@@ -75,8 +75,8 @@ def run(
         pd.DataFrame(spreadsheet_rows(trade)).to_csv(tmp, index=False)
 
     figures_dir = out_dir / "figures"
+    clear(figures_dir, "*.png")  # figures of an earlier, larger grid (refused where the folder is a link)
     figures_dir.mkdir(parents=True, exist_ok=True)
-    clear(figures_dir, "*.png")  # figures of an earlier, larger grid
     faces = {r["mesh"]: int(r["faces_after"]) for r in rows}
     quality = {(t["mesh"], t["prompt"], t["variant"]): quality_text(t["quality"], t["quality_name"]) for t in timed}
     relit = {(r["mesh"], r["prompt"], r["variant"]): relit_text(r) for r in rows}

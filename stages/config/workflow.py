@@ -47,6 +47,9 @@ EXPERIMENT_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.+-]{0,127}")
 ID_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")
 #: mesh ids taken by the experiment's own folders (``results/<experiment>/<id>/``), and why
 RESERVED_MESH_IDS = {"report": "results/<experiment>/report/ holds the experiment's report, its tables and its pack"}
+#: the name no id and no experiment may take: a folder of that name inside results/ would be taken
+#: for the results folder itself, which alone may be a link (stages.core.safefiles)
+RESERVED_NAME = "results"
 
 
 def settings_digest(obj: Any) -> str:
@@ -60,11 +63,12 @@ def experiment_name(config: dict, configfiles: list[str | Path]) -> str:
     (the stems joined by ``+`` when several files make up the config). Its outputs live in
     ``results/<name>/``."""
     name = config.get("experiment") or "+".join(Path(f).stem for f in configfiles) or "config"
-    if not EXPERIMENT_RE.fullmatch(str(name)) or name == MESH_WORK:
+    if not EXPERIMENT_RE.fullmatch(str(name)) or name == MESH_WORK or str(name).lower() == RESERVED_NAME:
         raise ConfigError(
             f"experiment name {name!r} (from {'the key `experiment`' if config.get('experiment') else 'the config file name'}) "
-            f"must be letters, digits, '_', '.', '+' or '-', starting with a letter or digit, and not "
-            f"{MESH_WORK!r} (results/{MESH_WORK}/ holds the mesh-level work all experiments share): "
+            f"must be letters, digits, '_', '.', '+' or '-', starting with a letter or digit, and neither "
+            f"{MESH_WORK!r} (results/{MESH_WORK}/ holds the mesh-level work all experiments share) nor "
+            f"{RESERVED_NAME!r} (the results folder's own name): "
             "set `experiment: <name>` in the config"
         )
     return str(name)
@@ -350,6 +354,13 @@ class WorkflowConfig:
 
     def __init__(self, config: dict, source: str = "config") -> None:
         validate(config, source)
+        for section in ("meshes", "prompts", "variants"):
+            for key in config.get(section) or {}:
+                if str(key).lower() == RESERVED_NAME:
+                    raise ConfigError(
+                        f"{source}: {section} -> {key}: the id {key!r} is reserved (the results folder's own name, "
+                        "which no folder inside it may take): rename it"
+                    )
         for mesh_id in config["meshes"]:
             if mesh_id.lower() in RESERVED_MESH_IDS:  # (a file system may ignore case)
                 raise ConfigError(

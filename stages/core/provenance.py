@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from .errors import StageInputError
-from .safefiles import DATA_LIMIT, atomic_path, check_output_path, open_read, read_json, remove_tree, replace
+from .safefiles import DATA_LIMIT, atomic_path, check_output_path, open_read, read_json, remove_tree, replace, user_file
 
 log = logging.getLogger(__name__)
 
@@ -50,8 +50,10 @@ def package_versions(names: tuple[str, ...] = TRACKED_PACKAGES) -> dict[str, str
 
 
 def sha256_of(path: str | Path, chunk: int = 1 << 20) -> str:
+    """The SHA-256 of a file: one of a results folder, or one the user named (a link of theirs
+    outside any results folder followed, :func:`~stages.core.safefiles.user_file`)."""
     h = hashlib.sha256()
-    with open_read(path, DATA_LIMIT) as f:
+    with open_read(user_file(path), DATA_LIMIT) as f:
         while block := f.read(chunk):
             h.update(block)
     return h.hexdigest()

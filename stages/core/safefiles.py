@@ -48,12 +48,15 @@ RECORD_LIMIT = 64 * MiB
 IMAGE_LIMIT = 512 * MiB
 #: the largest array, mesh, asset or weights file read (ray caches, targets, field.pt, model.glb)
 DATA_LIMIT = 16 * 1024 * MiB
+#: the size of one read of :func:`read_bytes`
+CHUNK = 16 * MiB
 
 
 def results_root(path: str | Path) -> Path | None:
-    """The nearest ancestor of ``path`` (made absolute, links not followed) named ``results``."""
+    """The outermost ancestor of ``path`` (made absolute, links not followed) named ``results``: a
+    folder of that name further down (which no id may be) is one more folder whose links count."""
     absolute = Path(os.path.abspath(path))
-    return next((p for p in absolute.parents if p.name == RESULTS_NAME), None)
+    return next((p for p in reversed(absolute.parents) if p.name == RESULTS_NAME), None)
 
 
 def link_on_the_way(path: str | Path, root: str | Path) -> Path | None:
@@ -163,9 +166,10 @@ def open_read(path: str | Path, limit: int, root: str | Path | None = None, reme
     most ``limit`` bytes: opened without following a link and without waiting on a FIFO, and checked
     again on the handle. The caller closes it (``with open_read(...) as fh``)."""
     path = require_plain_file(path, root, remedy)
-    flags = os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0)
+    nonblocking = getattr(os, "O_NONBLOCK", 0)
+    flags = os.O_RDONLY | nonblocking | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0) | getattr(os, "O_BINARY", 0)
     try:
-        fd = os.open(path, flags)
+        fd = os.open(os.path.abspath(path), flags)  # the path checked (a ``..`` resolved by name, not through a link)
     except OSError as exc:
         raise StageInputError(path, f"could not be opened ({exc.strerror or exc})", remedy) from None
     try:
@@ -174,7 +178,8 @@ def open_read(path: str | Path, limit: int, root: str | Path | None = None, reme
             raise StageInputError(path, "changed into something other than a plain file while it was opened", remedy)
         if info.st_size > limit:
             raise StageInputError(path, f"is {info.st_size:,} bytes, more than the {limit:,} such a file may hold", remedy)
-        os.set_blocking(fd, True)
+        if nonblocking:
+            os.set_blocking(fd, True)
         return os.fdopen(fd, "rb")
     except BaseException:
         os.close(fd)
@@ -184,8 +189,12 @@ def open_read(path: str | Path, limit: int, root: str | Path | None = None, reme
 def read_bytes(path: str | Path, limit: int, root: str | Path | None = None, remedy: str = "") -> bytes:
     """The bytes of the plain file ``path`` (:func:`open_read`); a file that grew past ``limit``
     while it was read is refused too."""
-    with open_read(path, limit, root, remedy) as fh:
-        data = fh.read(limit + 1)
+    chunks, size = [], 0
+    with open_read(path, limit, root, remedy) as fh:  # in chunks: read(limit) would reserve the whole limit first
+        while size <= limit and (chunk := fh.read(min(CHUNK, limit + 1 - size))):
+            chunks.append(chunk)
+            size += len(chunk)
+    data = b"".join(chunks)
     if len(data) > limit:
         raise StageInputError(path, f"holds more than the {limit:,} bytes such a file may hold", remedy)
     return data
@@ -211,6 +220,8 @@ def read_json(path: str | Path, remedy: str = "Rerun the stage that writes it.",
         raise StageInputError(path, f"is not valid JSON ({' '.join(str(exc).split())[:120]})", remedy) from None
     except RecursionError:
         raise StageInputError(path, "is nested too deeply to be a record", remedy) from None
+    except ValueError as exc:  # a number past Python's digit limit, say
+        raise StageInputError(path, f"is not a record of plain values ({' '.join(str(exc).split())[:120]})", remedy) from None
 
 
 def copy_file(source: str | Path, target: str | Path, limit: int = DATA_LIMIT, remedy: str = "") -> None:
@@ -218,6 +229,22 @@ def copy_file(source: str | Path, target: str | Path, limit: int = DATA_LIMIT, r
     (:func:`atomic_stream`)."""
     with open_read(source, limit, remedy=remedy) as src, atomic_stream(target) as dst:
         shutil.copyfileobj(src, dst)
+
+
+def place(source: str | Path, target: str | Path, limit: int = DATA_LIMIT, remedy: str = "") -> None:
+    """Put the plain file ``source`` at ``target``: a hard link where the file system allows (no
+    copy; the entry checked is linked, a link never followed, and a link found there is undone),
+    else a copy (:func:`copy_file`)."""
+    source = require_plain_file(source, remedy=remedy)
+    check_output_path(target)
+    try:
+        os.link(source, target, follow_symlinks=False)
+    except OSError:
+        copy_file(source, target, limit, remedy)
+        return
+    if file_kind(target) != "file":  # the source was swapped for a link between the check and the link
+        os.unlink(target)
+        raise StageInputError(source, "changed into something other than a plain file while it was linked", remedy)
 
 
 # -------------------------------------------------------------------------- writes and deletes

@@ -586,12 +586,17 @@ def _check_references(doc: dict, accessors: list[dict], views: list[dict]) -> No
             if c in parent:
                 raise _Refused(f"node {c} is a child of nodes {parent[c]} and {n}; a node has one parent")
             parent[c] = n
-    for n in range(len(nodes)):  # up from each node to its root, in at most one step per node
-        at, steps = n, 0
-        while at in parent:
-            at, steps = parent[at], steps + 1
-            if steps > len(nodes):
+    rooted: set[int] = set()  # nodes known to reach a root: each node is walked up once in all
+    for n in range(len(nodes)):
+        path, seen, at = [], set(), n
+        while at in parent and at not in rooted:
+            if at in seen:
                 raise _Refused(f"node {n}'s ancestors form a cycle")
+            seen.add(at)
+            path.append(at)
+            at = parent[at]
+        rooted.update(path)
+        rooted.add(at)
     _ref(doc.get("scene"), scenes, "the default scene", "scenes")
     for s, scene in enumerate(scenes):
         roots = scene.get("nodes", [])
@@ -633,12 +638,15 @@ def _numbers(value, length: int) -> bool:
 
 def texture_indices(material: dict) -> list:
     """The ``index`` of every texture reference in a material's JSON (an object under a key
-    ending in ``Texture``, its extensions' included), at any depth."""
+    ending in ``Texture``, its extensions' included), at any depth; ``extras`` (an application's
+    own values, which may name textures of its own) are not looked into."""
     out, stack = [], [material]
     while stack:
         node = stack.pop()
         items = node.items() if isinstance(node, dict) else enumerate(node) if isinstance(node, list) else ()
         for key, value in items:
+            if key == "extras":
+                continue
             if isinstance(key, str) and key.endswith("Texture") and isinstance(value, dict):
                 out.append(value.get("index"))
             if isinstance(value, (dict, list)):

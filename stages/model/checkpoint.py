@@ -13,7 +13,7 @@ import torch
 from ..config.sections import OptimizeSettings
 from ..core.errors import ConfigError, StageInputError
 from ..core.provenance import ORIGIN_KEY, atomic_path, checked_origin
-from ..core.safefiles import DATA_LIMIT, open_read, require_plain_file
+from ..core.safefiles import DATA_LIMIT, open_read
 from ..render.sg import sg_integral
 from .field import StyleField
 
@@ -64,14 +64,17 @@ def read_torch_file(path: str | Path, device="cpu", *, remedy: str) -> dict:
     someone else's results folder can never run code when it is read. Anything else (a pickle
     that names a class or a function, a truncated or foreign file) is a
     :class:`~stages.core.errors.StageInputError` naming the file, what is wrong and ``remedy``."""
-    if Path(path).exists() or Path(path).is_symlink():  # a link, FIFO or device there: one line, not a hang
-        require_plain_file(path, remedy=remedy)
-    if Path(path).is_file() and not zipfile.is_zipfile(path):  # torch writes zip archives; older pickles are refused too
-        raise StageInputError(path, "not a readable torch file (not the zip archive torch writes)", remedy)
-    if Path(path).is_file():
-        _check_archive(Path(path), remedy)
     try:
-        with open_read(path, DATA_LIMIT, remedy=remedy) as fh:
+        with open_read(path, DATA_LIMIT, remedy=remedy) as fh:  # a link, FIFO or device there: one line, not a hang
+            if not zipfile.is_zipfile(fh):  # torch writes zip archives; older pickles are refused too
+                raise StageInputError(path, "not a readable torch file (not the zip archive torch writes)", remedy)
+            try:
+                with zipfile.ZipFile(fh) as z:
+                    entries = z.infolist()
+            except (zipfile.BadZipFile, OSError) as err:
+                raise StageInputError(path, f"not a readable torch file ({err})", remedy) from None
+            _check_archive(entries, Path(path), remedy)
+            fh.seek(0)
             data = torch.load(fh, map_location=device, weights_only=True)
     except pickle.UnpicklingError as err:
         lines = str(err).splitlines()
@@ -125,14 +128,10 @@ def nesting(data: Any, limit: int = MAX_NESTING) -> int:
 MAX_TORCH_BYTES = 4 * 2**30
 
 
-def _check_archive(path: Path, remedy: str) -> None:
-    """Refuse, from the zip directory alone, what torch never writes: compressed entries (a small
-    file that expands to gigabytes) and archives larger than :data:`MAX_TORCH_BYTES`."""
-    try:
-        with zipfile.ZipFile(path) as z:
-            entries = z.infolist()
-    except (zipfile.BadZipFile, OSError) as err:
-        raise StageInputError(path, f"not a readable torch file ({err})", remedy) from None
+def _check_archive(entries: list[zipfile.ZipInfo], path: Path, remedy: str) -> None:
+    """Refuse, from the zip directory's ``entries`` alone, what torch never writes: compressed
+    entries (a small file that expands to gigabytes) and archives larger than
+    :data:`MAX_TORCH_BYTES`."""
     packed = [e.filename for e in entries if e.compress_type != zipfile.ZIP_STORED]
     if packed:
         raise StageInputError(path, f"refused: {len(packed)} compressed entries ({packed[0]}), which torch never writes", remedy)

@@ -37,8 +37,9 @@ def write_hdr(path: str | Path, rgb: np.ndarray) -> None:
 MAX_ENV_HEIGHT = 8192
 
 
-#: the largest .hdr file read: the largest map, flat, and its header
-MAX_HDR_BYTES = 4 * 2 * MAX_ENV_HEIGHT * MAX_ENV_HEIGHT + (1 << 16)
+#: the largest .hdr file read: the largest map run-length encoded at its worst (a literal run of
+#: 128 values costs 129 bytes, and each scanline starts with 4), and its header
+MAX_HDR_BYTES = 4 * 2 * MAX_ENV_HEIGHT * MAX_ENV_HEIGHT * 129 // 128 + 4 * MAX_ENV_HEIGHT + (1 << 16)
 
 
 def _check_size(path: Path, h: int, w: int) -> None:
@@ -58,7 +59,7 @@ def read_hdr(path: str | Path) -> np.ndarray:
     malformed file (signature, header, size, truncated or corrupt pixel data) is one
     :class:`StageInputError` naming it, and the size is checked before anything is allocated."""
     path = Path(path)
-    data = read_bytes(path, MAX_HDR_BYTES, remedy="Give an equirectangular .hdr file.")
+    data = read_bytes(user_file(path), MAX_HDR_BYTES, remedy="Give an equirectangular .hdr file.")
     if not data.startswith(b"#?"):
         raise StageInputError(path, "is not a Radiance HDR file (no #? signature)")
     end = data.find(b"\n\n")
@@ -178,11 +179,12 @@ def read_exr(path: str | Path) -> np.ndarray:
     whose R, G and B cannot be read as one image is one :class:`StageInputError`."""
     import OpenEXR
 
-    path = require_plain_file(path, remedy="Give an equirectangular .exr file.")
+    path = Path(path)
+    opened = str(require_plain_file(user_file(path), remedy="Give an equirectangular .exr file."))
     try:
-        with OpenEXR.File(str(path), header_only=True) as f:
+        with OpenEXR.File(opened, header_only=True) as f:
             _check_exr_header(path, f)
-        with OpenEXR.File(str(path)) as f:
+        with OpenEXR.File(opened) as f:
             ch = f.channels()
             if "RGB" in ch:
                 return np.asarray(ch["RGB"].pixels, np.float32)
@@ -196,8 +198,10 @@ def read_exr(path: str | Path) -> np.ndarray:
 
 
 def read_envmap(path: str | Path) -> np.ndarray:
-    """An equirectangular environment map from ``.hdr`` or ``.exr``: ``(H, W, 3) float32``."""
-    path = user_file(path)
+    """An equirectangular environment map from ``.hdr`` or ``.exr``: ``(H, W, 3) float32``; the
+    format is the name's as given (a link to a file of another name, as content-addressed caches
+    keep them, reads as the name says)."""
+    path = Path(path)
     if not path.exists():
         raise StageInputError(path, "file not found", "Give an equirectangular .hdr or .exr file.")
     if path.suffix.lower() == ".hdr":

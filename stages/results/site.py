@@ -28,7 +28,6 @@ import base64
 import hashlib
 import json
 import logging
-import os
 import re
 from collections.abc import Callable
 from pathlib import Path
@@ -44,13 +43,13 @@ from ..core.safefiles import (
     DATA_LIMIT,
     copy_file,
     inside,
+    place,
     plain_file,
     read_bytes,
     read_json,
     read_text,
     remove_tree,
     replace,
-    require_plain_file,
 )
 from .spreadsheet import read_csv, read_spreadsheet_csv
 from .summary import quality_of
@@ -486,10 +485,7 @@ def _place(src: Path, dst: Path) -> None:
     """Put the plain file ``src`` at ``dst``: a hard link where the file system allows (no copy),
     else a copy."""
     dst.parent.mkdir(parents=True, exist_ok=True)
-    try:
-        os.link(require_plain_file(src), dst)
-    except OSError:
-        copy_file(src, dst)
+    place(src, dst)
 
 
 def read_summary(report_dir: Path) -> pd.DataFrame:
@@ -534,7 +530,8 @@ def write_folder(
         files = cell_files(results, cell)
         for name, src in files.items():
             _place(src, folder / name)
-        thumbnail(cell).save(folder / "thumb.png", format="PNG")
+        with atomic_path(folder / "thumb.png") as tmp:
+            thumbnail(cell).save(tmp, format="PNG")
         packed = None
         if have_viewer and "model.glb" in files:
             assets = {"glb": base64.b64encode(read_bytes(files["model.glb"], DATA_LIMIT)).decode("ascii")}

@@ -215,3 +215,21 @@ def test_the_workflow_refuses_them_with_the_same_words(tmp_path):
         path, needle = write_refused(case, tmp_path)
         proc = subprocess.run([*cmd, "--configfile", str(path)], capture_output=True, text=True, timeout=120)
         assert proc.returncode != 0 and needle in proc.stdout + proc.stderr, (case, (proc.stdout + proc.stderr)[-2000:])
+
+
+@pytest.mark.parametrize("section", ["meshes", "prompts", "variants", "experiment"])
+def test_no_id_and_no_experiment_may_be_named_results(section):
+    """A folder named ``results`` inside the results folder would be taken for a second root
+    (which alone may be a link): no mesh, prompt, variant or experiment takes that name."""
+    from stages.config.workflow import WorkflowConfig, experiment_name
+    from stages.core.errors import ConfigError
+
+    config = {"meshes": {"v": {"builtin": "vase"}}, "prompts": {"p": "a vase"}}
+    if section == "experiment":
+        with pytest.raises(ConfigError, match="nor 'results'"):
+            experiment_name({**config, "experiment": "results"}, [])
+        return
+    config[section] = {"Results": {"builtin": "vase"} if section == "meshes" else "a vase" if section == "prompts" else {}}
+    with pytest.raises(ConfigError, match=f"{section} -> Results: the id 'Results' is reserved") as err:
+        WorkflowConfig(config)
+    assert "\n" not in str(err.value)

@@ -19,41 +19,49 @@ from stages.core.errors import StageInputError
 STAGES = Path(__file__).resolve().parents[2] / "stages"
 GATE = STAGES / "core" / "safefiles.py"
 
-#: calls by their dotted name that read, delete, copy or move a file by its path
+#: calls by their full dotted name (import aliases resolved) that open, read, delete, copy, link or
+#: move a file by its path
 FORBIDDEN_FUNCTIONS = {
     "open",
+    "builtins.open",
     "io.open",
+    "io.FileIO",
+    "os.open",
     "json.load",
     "pickle.load",
-    "pd.read_csv",
     "pandas.read_csv",
-    "np.load",
     "numpy.load",
-    "np.fromfile",
-    "np.loadtxt",
-    "Image.open",
+    "numpy.fromfile",
+    "numpy.loadtxt",
     "PIL.Image.open",
     "torch.load",
     "trimesh.load",
+    "zipfile.ZipFile",
+    "zipfile.is_zipfile",
+    "OpenEXR.File",
     "os.remove",
     "os.unlink",
     "os.rename",
     "os.replace",
     "os.rmdir",
+    "os.truncate",
+    "os.link",
+    "os.symlink",
     "shutil.rmtree",
     "shutil.copy",
     "shutil.copy2",
     "shutil.copyfile",
     "shutil.copytree",
     "shutil.move",
-    "OpenEXR.File",
 }
-#: methods of a path that read, delete or move a file
-FORBIDDEN_METHODS = {"read_text", "read_bytes", "unlink", "rmdir", "rename"}
-#: methods of a path that write it in place: only on the temporary path of ``atomic_path``
-WRITE_METHODS = {"write_text", "write_bytes"}
-#: the gate's readers: a forbidden reader handed what they opened or read is the gate's read
-GATE_READERS = {"open_read", "read_bytes", "read_text", "io.StringIO", "io.BytesIO", "StringIO", "BytesIO"}
+#: methods of a path that read, delete, link or move a file
+FORBIDDEN_METHODS = {"read_text", "read_bytes", "unlink", "rmdir", "rename", "touch", "symlink_to", "hardlink_to"}
+#: what writes a file in place, and which argument is the file: only onto a name the gate gave
+#: (``with atomic_path(...) as tmp``, ``with atomic_stream(...) as fh``)
+WRITERS = {"numpy.save": 0, "numpy.savez": 0, "numpy.savez_compressed": 0, "torch.save": 1}
+WRITE_METHODS = {"write_text": None, "write_bytes": None, "save": 0, "to_csv": 0}
+#: the gate's readers and writers: what they opened is the gate's
+GATE_CALLS = {"open_read", "read_bytes", "read_text", "atomic_path", "atomic_stream", "StringIO", "BytesIO"}
 
 #: where a library must open a file itself, or the file is not a results folder's: (module,
 #: function, call) -> why. Each entry is needed (a test fails on an entry no call uses).
@@ -69,6 +77,8 @@ ALLOWED = {
     "file the judge wrote into its own temporary folder",
     ("reference/blender_job.py", "render", "unlink"): "runs inside Blender's Python, in the judge's own temporary folder",
     ("reference/blender_job.py", "main", "write_text"): "runs inside Blender's Python, in the judge's own temporary folder",
+    ("reference/blender_job.py", "inspect", "numpy.savez"): "runs inside Blender's Python, in the judge's own temporary folder",
+    ("reference/blender_job.py", "render", "numpy.save"): "runs inside Blender's Python, in the judge's own temporary folder",
 }
 
 
@@ -93,36 +103,44 @@ def dotted(node: ast.AST) -> str:
     return ""
 
 
-def _gate_call(node: ast.AST) -> bool:
-    return isinstance(node, ast.Call) and dotted(node.func).split(".")[-1] in {g.split(".")[-1] for g in GATE_READERS}
-
-
-def forbidden_call(call: ast.Call) -> str | None:
-    """The name of what ``call`` does to a file by path, or None."""
-    name = dotted(call.func)
-    if name in FORBIDDEN_FUNCTIONS:
-        return name
-    if isinstance(call.func, ast.Attribute):
-        method = call.func.attr
-        if method in FORBIDDEN_METHODS:
-            return method
-        # Path.replace(target) takes one argument; str.replace two, dataclasses.replace keywords
-        if method == "replace" and len(call.args) == 1 and not call.keywords and dotted(call.func.value) != "dataclasses":
-            if not isinstance(call.func.value, ast.Constant):
-                return method
-    return None
+def aliases(tree: ast.AST) -> dict[str, str]:
+    """Every name an import binds in a module, to what it stands for (``np`` -> ``numpy``,
+    ``rmtree`` -> ``shutil.rmtree``, ``Image`` -> ``PIL.Image``); relative imports left out."""
+    out = {}
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            for a in node.names:
+                out[a.asname or a.name.split(".")[0]] = a.name if a.asname else a.name.split(".")[0]
+        elif isinstance(node, ast.ImportFrom) and node.module and not node.level:
+            for a in node.names:
+                out[a.asname or a.name] = f"{node.module}.{a.name}"
+    return out
 
 
 class Scanner(ast.NodeVisitor):
-    """Every forbidden call of one module, with its enclosing function; a forbidden reader whose
-    first argument the gate opened (``np.load(open_read(...))``, or a name bound by ``with
-    open_read(...) as fh``) is the gate's."""
+    """Every forbidden call of one module, with its enclosing function; a reader handed what the
+    gate opened (``np.load(open_read(...))``, or a name bound by ``with open_read(...) as fh``)
+    and a writer onto a name the gate gave are the gate's."""
 
-    def __init__(self, module: str):
+    def __init__(self, module: str, names: dict[str, str]):
         self.module = module
+        self.names = names
         self.stack: list[str] = []
         self.gated: list[set[str]] = [set()]
         self.findings: list[Finding] = []
+
+    def full(self, node: ast.AST) -> str:
+        """The dotted name of ``node`` with its first part's import resolved."""
+        name = dotted(node)
+        head, _, rest = name.partition(".")
+        return ".".join(x for x in (self.names.get(head, head), rest) if x)
+
+    def gate_call(self, node: ast.AST) -> bool:
+        return isinstance(node, ast.Call) and dotted(node.func).split(".")[-1] in GATE_CALLS
+
+    def given(self, node: ast.AST | None) -> bool:
+        """``node`` is what the gate opened or gave."""
+        return node is not None and (self.gate_call(node) or (isinstance(node, ast.Name) and node.id in self.gated[-1]))
 
     def _function(self, node):
         self.stack.append(node.name)
@@ -135,28 +153,42 @@ class Scanner(ast.NodeVisitor):
 
     def visit_With(self, node: ast.With):
         for item in node.items:
-            atomic = isinstance(item.context_expr, ast.Call) and dotted(item.context_expr.func).endswith("atomic_path")
-            if (_gate_call(item.context_expr) or atomic) and isinstance(item.optional_vars, ast.Name):
+            if self.gate_call(item.context_expr) and isinstance(item.optional_vars, ast.Name):
                 self.gated[-1].add(item.optional_vars.id)
         self.generic_visit(node)
 
+    def _find(self, node: ast.Call, what: str) -> None:
+        self.findings.append(Finding(self.module, ".".join(self.stack) or "<module>", what, node.lineno))
+
     def visit_Call(self, node: ast.Call):
-        func = node.func
-        if isinstance(func, ast.Attribute) and func.attr in WRITE_METHODS:
-            if not (isinstance(func.value, ast.Name) and func.value.id in self.gated[-1]):
-                self.findings.append(Finding(self.module, ".".join(self.stack) or "<module>", func.attr, node.lineno))
-        name = forbidden_call(node)
-        if name is not None:
-            first = node.args[0] if node.args else None
-            gated = first is not None and (_gate_call(first) or (isinstance(first, ast.Name) and first.id in self.gated[-1]))
-            if not gated:
-                self.findings.append(Finding(self.module, ".".join(self.stack) or "<module>", name, node.lineno))
+        name, func = self.full(node.func), node.func
+        first = node.args[0] if node.args else None
+        if name in FORBIDDEN_FUNCTIONS and not self.given(first):
+            self._find(node, name)
+        elif name in WRITERS:
+            at = WRITERS[name]
+            if not self.given(node.args[at] if len(node.args) > at else None):
+                self._find(node, name)
+        elif isinstance(func, ast.Attribute) and name not in WRITERS:
+            method = func.attr
+            if method in FORBIDDEN_METHODS:
+                self._find(node, method)
+            elif method in WRITE_METHODS:
+                at = WRITE_METHODS[method]
+                target = func.value if at is None else (node.args[at] if len(node.args) > at else None)
+                if not self.given(target):
+                    self._find(node, method)
+            # Path.replace(target) takes one argument; str.replace two, dataclasses.replace keywords
+            elif method == "replace" and len(node.args) == 1 and not node.keywords:
+                if name != "dataclasses.replace" and not isinstance(func.value, ast.Constant):
+                    self._find(node, method)
         self.generic_visit(node)
 
 
 def scan(source: str, module: str = "x.py") -> list[Finding]:
-    scanner = Scanner(module)
-    scanner.visit(ast.parse(source))
+    tree = ast.parse(source)
+    scanner = Scanner(module, aliases(tree))
+    scanner.visit(tree)
     return scanner.findings
 
 
@@ -182,6 +214,10 @@ def test_every_allowed_entry_is_used():
     assert not set(ALLOWED) - used, set(ALLOWED) - used
 
 
+#: the imports the scanner's examples use
+PRELUDE = "import io, json, os, shutil, zipfile\nimport numpy as np\nimport pandas as pd\nimport torch\nfrom PIL import Image\n"
+
+
 @pytest.mark.parametrize(
     "source",
     [
@@ -202,11 +238,25 @@ def test_every_allowed_entry_is_used():
         "with open_read(p, 9) as fh:\n    pass\nnp.load(other)",
         "p.write_text('x')",
         "with atomic_path(p) as tmp:\n    other.write_bytes(b'x')",
+        "from shutil import rmtree\nrmtree(d)",
+        "import os as o\no.remove(p)",
+        "os.open(p, os.O_RDONLY)",
+        "io.FileIO(p)",
+        "zipfile.ZipFile(p)",
+        "zipfile.is_zipfile(p)",
+        "os.link(a, b)",
+        "p.touch()",
+        "p.symlink_to(q)",
+        "np.save(p, a)",
+        "np.savez(p, a=a)",
+        "torch.save(obj, p)",
+        "img.save(folder / 'thumb.png')",
+        "frame.to_csv(p)",
     ],
 )
 def test_the_scanner_finds_each_kind_of_direct_file_operation(source):
     """Mutation check of the walk: each forbidden form, written directly, is found."""
-    assert len(scan(source)) == 1, scan(source)
+    assert len(scan(PRELUDE + source)) == 1, scan(PRELUDE + source)
 
 
 @pytest.mark.parametrize(
@@ -219,10 +269,15 @@ def test_the_scanner_finds_each_kind_of_direct_file_operation(source):
         "pd.read_csv(io.StringIO(read_text(p)))",
         "Image.open(io.BytesIO(read_bytes(p, 9)))",
         "with atomic_path(p) as tmp:\n    tmp.write_text('x')",
+        "with atomic_stream(p) as fh:\n    np.savez(fh, a=a)",
+        "with atomic_path(p) as tmp:\n    img.save(tmp, format='PNG')",
+        "with atomic_path(p) as tmp:\n    torch.save(obj, tmp)",
+        "with atomic_path(p) as tmp:\n    frame.to_csv(tmp, index=False)",
+        "with open_read(p, 9) as fh, zipfile.ZipFile(fh) as z:\n    pass",
     ],
 )
 def test_the_scanner_passes_the_gates_own_forms(source):
-    assert scan(source) == []
+    assert scan(PRELUDE + source) == []
 
 
 # ----------------------------------------------------------------- each check of the gate needed
@@ -331,3 +386,77 @@ def test_a_name_with_a_nul_or_control_character_is_one_line(results):
     for name in ("a\x00.png", "a\n.png", "a\x85.png"):
         with pytest.raises(StageInputError, match="holds a control character"):
             safefiles.inside(results, name)
+
+
+def test_a_read_takes_memory_for_what_the_file_holds_not_for_its_limit(tmp_path):
+    """Under an address-space limit of 2 GiB (a login node's ``ulimit -v``), a small file reads
+    with the 16 GiB limit of arrays: the limit bounds the read, it is not reserved."""
+    import subprocess
+    import sys
+
+    small = tmp_path / "mesh.obj"
+    small.write_text("v 0 0 0\n")
+    code = (
+        "import resource, sys; resource.setrlimit(resource.RLIMIT_AS, (2 << 30, 2 << 30)); "
+        "from stages.core.safefiles import DATA_LIMIT, read_bytes; "
+        "sys.stdout.write(read_bytes(sys.argv[1], DATA_LIMIT).decode())"
+    )
+    proc = subprocess.run([sys.executable, "-c", code, str(small)], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0 and proc.stdout == "v 0 0 0\n", proc.stderr[-2000:]
+
+
+def test_a_folder_named_results_inside_the_results_folder_is_no_second_root(results, tmp_path):
+    """The outermost folder named ``results`` is the root: a link named ``results`` further down
+    (where no id may be ``results``) is one more link on the way, not a root that may be one."""
+    secret = tmp_path / "secret"
+    secret.mkdir()
+    (secret / "summary.csv").write_text("TOP SECRET")
+    (results / "exp" / "bunny").mkdir()
+    (results / "exp" / "bunny" / "results").symlink_to(secret, target_is_directory=True)
+    assert safefiles.results_root(results / "exp" / "bunny" / "results" / "summary.csv") == results
+    with pytest.raises(StageInputError, match="reached through .*bunny/results, which is a symbolic link"):
+        safefiles.read_text(results / "exp" / "bunny" / "results" / "summary.csv")
+
+
+def test_a_dotdot_is_resolved_by_name_as_it_was_checked(results, tmp_path):
+    """``exp/link/../summary.csv`` is checked as ``exp/summary.csv`` and opened as that, never
+    through the link."""
+    outside = tmp_path / "outside"
+    (outside / "deeper").mkdir(parents=True)
+    (outside / "summary.csv").write_text("outside")
+    (results / "exp" / "summary.csv").write_text("inside")
+    (results / "exp" / "link").symlink_to(outside / "deeper", target_is_directory=True)
+    assert safefiles.read_text(f"{results}/exp/link/../summary.csv") == "inside"
+
+
+def test_a_record_with_a_number_past_pythons_digit_limit_is_one_line(results):
+    record = results / "exp" / "meta.json"
+    record.write_text('{"seconds_per_iteration": ' + "9" * 5000 + "}")
+    with pytest.raises(StageInputError, match="is not a record of plain values"):
+        safefiles.read_json(record)
+
+
+def test_a_users_own_linked_file_outside_results_is_followed(tmp_path):
+    """A mesh or a light map the user links from a store of their own (outside any results
+    folder) is theirs: read and hashed through the link, as the stages' metadata hash inputs."""
+    from stages.core.provenance import sha256_of
+
+    (tmp_path / "store").mkdir()
+    (tmp_path / "store" / "real.obj").write_text("v 0 0 0\n")
+    (tmp_path / "data").mkdir()
+    (tmp_path / "data" / "bunny.obj").symlink_to(tmp_path / "store" / "real.obj")
+    import hashlib
+
+    assert sha256_of(tmp_path / "data" / "bunny.obj") == hashlib.sha256(b"v 0 0 0\n").hexdigest()
+    assert safefiles.read_text(safefiles.user_file(tmp_path / "data" / "bunny.obj")) == "v 0 0 0\n"
+
+
+def test_place_links_the_entry_checked_or_copies(results, tmp_path):
+    src = results / "exp" / "model.glb"
+    src.write_bytes(b"glb")
+    safefiles.place(src, results / "exp" / "report" / "model.glb")
+    assert (results / "exp" / "report" / "model.glb").read_bytes() == b"glb"
+    (results / "exp" / "linked.glb").symlink_to(tmp_path)
+    with pytest.raises(StageInputError, match="it is a symbolic link inside"):
+        safefiles.place(results / "exp" / "linked.glb", results / "exp" / "report" / "linked.glb")
+    assert not (results / "exp" / "report" / "linked.glb").exists()

@@ -248,3 +248,25 @@ def test_an_interleaved_view_reads_each_attribute_at_its_stride(tmp_path):
     src = read_source(path)
     assert np.array_equal(src.positions, POSITIONS) and np.array_equal(src.uv, UVS)
     assert src.triangles.tolist() == INDICES.reshape(-1, 3).tolist()
+
+
+def test_an_applications_own_texture_in_a_materials_extras_is_not_checked(tmp_path):
+    """``extras`` are an application's own values: a ``bakedTexture`` there naming a texture of
+    its own is not a glTF texture reference, and the file reads."""
+    doc = changed(materials=[{"name": "m", "extras": {"bakedTexture": {"index": 3}}}])
+    doc["meshes"][0]["primitives"][0]["material"] = 0
+    path = tmp_path / "extras.glb"
+    path.write_bytes(single(doc))
+    assert np.array_equal(read_source(path).positions, POSITIONS)
+
+
+def test_a_long_chain_of_nodes_passes_and_a_cycle_of_single_parents_is_refused():
+    """A 100,000-node chain (each node's parent the one before) is a forest; three nodes each the
+    child of the next are a cycle, though each has one parent."""
+    from stages.geometry.sourcemesh import _check_references
+
+    n = 100_000
+    _check_references({"asset": {"version": "2.0"}, "nodes": [{"children": [i + 1]} for i in range(n - 1)] + [{}]}, [], [])
+    cycle = {"asset": {"version": "2.0"}, "nodes": [{"children": [1]}, {"children": [2]}, {"children": [0]}, {}]}
+    with pytest.raises(Exception, match="node 0's ancestors form a cycle"):
+        _check_references(cycle, [], [])

@@ -286,3 +286,17 @@ def test_an_exr_of_parts_deep_data_or_huge_tiles_is_refused_from_its_header(tmp_
     _refused(tmp_path, "parts.exr", (tmp_path / "two.exr").read_bytes(), "has 2 parts, not one")
     _refused(tmp_path, "deep2.exr", (tmp_path / "deep.exr").read_bytes(), "holds deep data, not a flat image")
     _refused(tmp_path, "tiles.exr", big_tiles, "has 32x8 tiles, larger than the largest map (16x8)")
+
+
+def test_a_map_linked_from_a_content_addressed_store_reads_as_its_name_says(tmp_path):
+    """A map whose name is a link to a blob without a suffix (a model hub's cache, DVC,
+    git-annex) reads by the name given; the format comes from that name."""
+    from stages.render.hdrio import read_envmap, write_hdr
+
+    blobs = tmp_path / "blobs"
+    blobs.mkdir()
+    rgb = np.full((8, 16, 3), 0.5, np.float32)
+    write_hdr(blobs / "map.hdr", rgb)
+    (blobs / "map.hdr").rename(blobs / "9f86d081884c7d65")
+    (tmp_path / "sky.hdr").symlink_to(blobs / "9f86d081884c7d65")
+    assert np.allclose(read_envmap(tmp_path / "sky.hdr"), 0.5, rtol=1 / 128)

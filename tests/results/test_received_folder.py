@@ -141,3 +141,15 @@ def test_a_fifo_or_endless_meta_json_does_not_stop_the_plan(received, kind, capl
         signal.alarm(0)
         signal.signal(signal.SIGALRM, previous)
     assert "meta.json" in caplog.text and "left out of the estimate" in caplog.text
+
+
+def test_a_record_of_odd_figures_is_left_out_of_the_plan(received):
+    """Figures the plan reads from earlier runs that are no figures (a text, a bool, an integer
+    past float's range, NaN) leave the record out, in no traceback."""
+    from stages.plan import earlier_step_seconds, positive_figure
+
+    assert [positive_figure(v) for v in ("2", True, 10**400, float("nan"), -1.0, 0.5)] == [None] * 5 + [0.5]
+    results, cells, _ = received
+    meta = results.joinpath(*cells[0]) / "optimize" / "meta.json"
+    meta.write_text('{"seconds_per_iteration": 1' + "0" * 400 + ', "device": "cpu", "settings": {}}')
+    assert earlier_step_seconds(results.parent, "any", "cpu") is None
