@@ -334,7 +334,7 @@ def glb_chunks(data: bytes) -> tuple[bytes, bytes | None]:
         ValueError: the first thing wrong with the container, as a phrase (the file unnamed).
     """
     if len(data) < 12 or data[:4] != b"glTF":
-        raise _Refused("is not a GLB file (it does not start with the 'glTF' header)")
+        raise _Refused("could not be read as GLB (it does not start with the 'glTF' header)")
     version, length = struct.unpack_from("<II", data, 4)
     if version != 2:
         raise _Refused(f"is GLB version {version}; the tool reads version 2")
