@@ -487,6 +487,25 @@ PROBES = {
         ("guidance/test_weights_messages.py", "test_the_doctor_offline_opens_no_connection"),
         ("guidance/test_weights_messages.py", "test_the_doctor_says_it_asks_the_model_hub_before_it_does"),
     ],
+    "a GLB with two JSON chunks or a negative byteStride; accessors and views past their buffers": [
+        ("geometry/test_gltf_checks.py", "test_a_malformed_glb_is_refused_in_one_line_by_both_readers"),
+        ("geometry/test_gltf_checks.py", "test_the_reader_copies_no_bytes_outside_a_view_even_unchecked"),
+        ("geometry/test_gltf_checks.py", "test_quick_refuses_a_glb_with_two_json_chunks_before_writing_anything"),
+    ],
+    "a kept GLB with <script> names, local paths in extras and a remote image URI; the validator's failure": [
+        ("assets/test_input_document.py", "test_a_kept_glb_embeds_or_drops_every_image_uri_and_says_so"),
+        ("assets/test_input_document.py", "test_a_kept_glb_keeps_names_and_extras_but_no_local_path"),
+        ("assets/test_input_document.py", "test_a_validator_that_fails_says_so_in_one_line"),
+        ("results/test_report_policy.py", "test_every_page_states_its_policy_first"),
+        ("results/test_report_policy.py", "test_chromium_refuses_what_is_not_the_pages_own"),
+    ],
+    "a folder named results, a .., a read's memory, a number past Python's digit limit": [
+        ("core/test_gate.py", "test_a_folder_named_results_inside_the_results_folder_is_no_second_root"),
+        ("core/test_gate.py", "test_a_dotdot_is_resolved_by_name_as_it_was_checked"),
+        ("core/test_gate.py", "test_a_read_takes_memory_for_what_the_file_holds_not_for_its_limit"),
+        ("core/test_gate.py", "test_a_record_with_a_number_past_pythons_digit_limit_is_one_line"),
+        ("config/test_received_config.py", "test_no_id_and_no_experiment_may_be_named_results"),
+    ],
     "a valid run-length-encoded .hdr 256 pixels wide or more": [
         ("render/test_envmaps.py", "test_an_rle_hdr_reads_exactly_at_any_width"),
         ("render/test_envmaps.py", "test_the_reference_rle_encoder_follows_the_format"),
