@@ -460,3 +460,18 @@ def test_place_links_the_entry_checked_or_copies(results, tmp_path):
     with pytest.raises(StageInputError, match="it is a symbolic link inside"):
         safefiles.place(results / "exp" / "linked.glb", results / "exp" / "report" / "linked.glb")
     assert not (results / "exp" / "report" / "linked.glb").exists()
+
+
+def test_place_undoes_a_link_swapped_in_after_the_check(results, tmp_path, monkeypatch):
+    """A file swapped for a link between the check and the hard link (the name check is made to
+    pass here, as a race would): the link made is undone and refused, nothing of the target is
+    placed."""
+    secret = tmp_path / "id_rsa"
+    secret.write_text("KEY")
+    swapped = results / "exp" / "model.glb"
+    swapped.symlink_to(secret)
+    monkeypatch.setattr(safefiles, "require_plain_file", lambda path, root=None, remedy="": Path(path))
+    target = results / "exp" / "report" / "model.glb"
+    with pytest.raises(StageInputError, match="changed into something other than a plain file while it was linked"):
+        safefiles.place(swapped, target)
+    assert not target.exists() and not target.is_symlink()
