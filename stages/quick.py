@@ -141,7 +141,7 @@ def check_path_argument(what: str, text: str, mesh: bool = False) -> None:
     among them, where it is relative), a character that makes a name look other than it is, or
     (``mesh``, whose path the config carries) a brace: one line naming the argument and the
     character."""
-    absolute = os.path.abspath(text) if "\x00" not in text else text
+    absolute = os.path.abspath(text)
     if CONTROL.search(absolute) or (mesh and re.search(r"[{}]", absolute)):
         raise ConfigError(f"{what} {ascii(absolute)[:200]} {path_problem(absolute)}")
 

@@ -289,6 +289,20 @@ def mesh_work_dir(workdir: Path, mesh: str, stage: str) -> Path:
     return found[0] if found else workdir / "results" / "meshes" / mesh / "absent" / stage
 
 
+def synthetic_results(results: Path, meshes: int, prompts: int, decimated: int = 0) -> list[tuple[str, str, str]]:
+    """A synthetic results tree at ``results`` (``scripts/synthetic_results.py``: real GLBs and
+    records, no optimisation, every output marked TEST ONLY); its cells."""
+    proc = subprocess.run(
+        [sys.executable, str(REPO / "scripts" / "synthetic_results.py"), str(results)]
+        + ["--meshes", str(meshes), "--prompts", str(prompts), "--decimated", str(decimated)],
+        capture_output=True,
+        text=True,
+        check=True,
+        timeout=600,
+    )
+    return [tuple(line.split("/")) for line in proc.stdout.split()]
+
+
 def run_snakemake(workdir: Path, *args: str, timeout: int = 600) -> subprocess.CompletedProcess:
     """Run the workflow in ``workdir`` (see :func:`snakemake_command`, :func:`snakemake_env`)."""
     return subprocess.run(

@@ -166,8 +166,7 @@ def open_read(path: str | Path, limit: int, root: str | Path | None = None, reme
     most ``limit`` bytes: opened without following a link and without waiting on a FIFO, and checked
     again on the handle. The caller closes it (``with open_read(...) as fh``)."""
     path = require_plain_file(path, root, remedy)
-    nonblocking = getattr(os, "O_NONBLOCK", 0)
-    flags = os.O_RDONLY | nonblocking | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0) | getattr(os, "O_BINARY", 0)
+    flags = os.O_RDONLY | os.O_NONBLOCK | os.O_NOFOLLOW | os.O_CLOEXEC  # POSIX (Linux, macOS)
     try:
         fd = os.open(os.path.abspath(path), flags)  # the path checked (a ``..`` resolved by name, not through a link)
     except OSError as exc:
@@ -178,8 +177,7 @@ def open_read(path: str | Path, limit: int, root: str | Path | None = None, reme
             raise StageInputError(path, "changed into something other than a plain file while it was opened", remedy)
         if info.st_size > limit:
             raise StageInputError(path, f"is {info.st_size:,} bytes, more than the {limit:,} such a file may hold", remedy)
-        if nonblocking:
-            os.set_blocking(fd, True)
+        os.set_blocking(fd, True)
         return os.fdopen(fd, "rb")
     except BaseException:
         os.close(fd)

@@ -8,11 +8,11 @@ from __future__ import annotations
 import json
 import logging
 import shutil
-import struct
 from pathlib import Path
 
 import numpy as np
 import pytest
+from gltf_quad import buffers, glb_bytes
 from PIL import Image
 
 from stages.assets import formats
@@ -20,10 +20,6 @@ from stages.assets.ownformat import write_document_glb
 from stages.core.errors import StageInputError
 from stages.geometry.sourcemesh import glb_chunks, read_source
 
-POSITIONS = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]], np.float32)
-UVS = np.array([[0, 0], [1, 0], [0, 1], [1, 1]], np.float32)
-INDICES = np.array([0, 1, 2, 2, 1, 3], np.uint16)
-BINARY = POSITIONS.tobytes() + UVS.tobytes() + INDICES.tobytes()
 #: image URIs of the input, and what becomes of each
 URIS = {
     "https://evil.example/p.png?victim=1": "dropped: its uri is of the https: scheme (a viewer would fetch it)",
@@ -40,14 +36,6 @@ EXTRAS = {
     "deep": {"list": ["kept", "C:\\Users\\bob\\scene.blend", {"u": "file:///etc/passwd"}]},
     "/home/alice/as-a-key": 1,
 }
-
-
-def glb_bytes(doc: dict, binary: bytes) -> bytes:
-    text = json.dumps(doc).encode()
-    text += b" " * (-len(text) % 4)
-    binary += b"\0" * (-len(binary) % 4)
-    body = struct.pack("<I4s", len(text), b"JSON") + text + struct.pack("<I4s", len(binary), b"BIN\0") + binary
-    return struct.pack("<4sII", b"glTF", 2, 12 + len(body)) + body
 
 
 def input_glb(folder: Path) -> Path:
@@ -67,20 +55,10 @@ def input_glb(folder: Path) -> Path:
         + [{"name": f"spare{k}", "pbrMetallicRoughness": {"baseColorTexture": {"index": k}}} for k in range(len(URIS))],
         "textures": [{"source": k} for k in range(len(URIS))],
         "images": [{"uri": uri} for uri in URIS],
-        "buffers": [{"byteLength": len(BINARY)}],
-        "bufferViews": [
-            {"buffer": 0, "byteOffset": 0, "byteLength": 48},
-            {"buffer": 0, "byteOffset": 48, "byteLength": 32},
-            {"buffer": 0, "byteOffset": 80, "byteLength": 12},
-        ],
-        "accessors": [
-            {"bufferView": 0, "componentType": 5126, "count": 4, "type": "VEC3", "min": [0, 0, 0], "max": [1, 1, 0]},
-            {"bufferView": 1, "componentType": 5126, "count": 4, "type": "VEC2"},
-            {"bufferView": 2, "componentType": 5123, "count": 6, "type": "SCALAR"},
-        ],
+        **buffers(),
     }
     path = folder / "asset.glb"
-    path.write_bytes(glb_bytes(doc, BINARY))
+    path.write_bytes(glb_bytes(doc))
     return path
 
 

@@ -16,46 +16,18 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from gltf_quad import BINARY, INDICES, POSITIONS, UVS, buffers, chunk, glb, json_chunk
 
 from stages.geometry.sourcemesh import read_source
 
-POSITIONS = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]], np.float32)
-UVS = np.array([[0, 0], [1, 0], [0, 1], [1, 1]], np.float32)
-INDICES = np.array([0, 1, 2, 2, 1, 3], np.uint16)
-#: positions (48 bytes), texture coordinates (32) and indices (12), padded to 4 bytes
-BINARY = POSITIONS.tobytes() + UVS.tobytes() + INDICES.tobytes()
 DOCUMENT = {
     "asset": {"version": "2.0"},
     "scene": 0,
     "scenes": [{"nodes": [0]}],
     "nodes": [{"mesh": 0}],
     "meshes": [{"primitives": [{"attributes": {"POSITION": 0, "TEXCOORD_0": 1}, "indices": 2}]}],
-    "buffers": [{"byteLength": len(BINARY)}],
-    "bufferViews": [
-        {"buffer": 0, "byteOffset": 0, "byteLength": 48},
-        {"buffer": 0, "byteOffset": 48, "byteLength": 32},
-        {"buffer": 0, "byteOffset": 80, "byteLength": 12},
-    ],
-    "accessors": [
-        {"bufferView": 0, "componentType": 5126, "count": 4, "type": "VEC3", "min": [0, 0, 0], "max": [1, 1, 0]},
-        {"bufferView": 1, "componentType": 5126, "count": 4, "type": "VEC2"},
-        {"bufferView": 2, "componentType": 5123, "count": 6, "type": "SCALAR"},
-    ],
+    **buffers(),
 }
-
-
-def chunk(kind: bytes, data: bytes) -> bytes:
-    data += (b" " if kind == b"JSON" else b"\0") * (-len(data) % 4)
-    return struct.pack("<I4s", len(data), kind) + data
-
-
-def json_chunk(doc: dict) -> bytes:
-    return chunk(b"JSON", json.dumps(doc).encode())
-
-
-def glb(*chunks: bytes, length: int | None = None) -> bytes:
-    body = b"".join(chunks)
-    return struct.pack("<4sII", b"glTF", 2, 12 + len(body) if length is None else length) + body
 
 
 def changed(**edits) -> dict:

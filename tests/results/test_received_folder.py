@@ -9,12 +9,10 @@ import json
 import os
 import shutil
 import signal
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
-from conftest import REPO
+from conftest import synthetic_results
 
 from stages import html_report, report
 from stages.config.sections import ReportSettings
@@ -27,24 +25,7 @@ SECRET = "the-password-is-swordfish"
 def made(tmp_path_factory):
     """A one-mesh, one-prompt synthetic tree with its report written (the folder form)."""
     results = tmp_path_factory.mktemp("made") / "results"
-    proc = subprocess.run(
-        [
-            sys.executable,
-            str(REPO / "scripts" / "synthetic_results.py"),
-            str(results),
-            "--meshes",
-            "1",
-            "--prompts",
-            "1",
-            "--decimated",
-            "0",
-        ],
-        capture_output=True,
-        text=True,
-        check=True,
-        timeout=300,
-    )
-    cells = [tuple(line.split("/")) for line in proc.stdout.split()]
+    cells = synthetic_results(results, meshes=1, prompts=1)
     report.run(results, cells, results / "report", json.loads((results / "decimated.json").read_text()))
     html_report.run(results, results / "report", cells)
     return results, cells

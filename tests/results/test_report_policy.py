@@ -8,13 +8,11 @@ from __future__ import annotations
 import base64
 import hashlib
 import json
-import subprocess
-import sys
 from html.parser import HTMLParser
 from pathlib import Path
 
 import pytest
-from conftest import REPO, browser_check
+from conftest import browser_check, synthetic_results
 
 from stages import html_report, report
 from stages.config.sections import ReportSettings
@@ -24,14 +22,7 @@ from stages.config.sections import ReportSettings
 def pages(tmp_path_factory) -> dict:
     """A ten-cell synthetic report in both forms."""
     results = tmp_path_factory.mktemp("policy") / "results"
-    proc = subprocess.run(
-        [sys.executable, str(REPO / "scripts" / "synthetic_results.py"), str(results), "--meshes", "2", "--prompts", "1"]
-        + ["--decimated", "0"],
-        capture_output=True,
-        text=True,
-        check=True,
-    )
-    cells = [tuple(line.split("/")) for line in proc.stdout.split()]
+    cells = synthetic_results(results, meshes=2, prompts=1)
     report.run(results, cells, results / "report", json.loads((results / "decimated.json").read_text()))
     html_report.run(results, results / "report", cells)
     single = results.parent / "single"

@@ -11,8 +11,6 @@ import base64
 import functools
 import http.server
 import json
-import subprocess
-import sys
 import threading
 import time
 import zipfile
@@ -22,7 +20,7 @@ from urllib.parse import unquote, urlparse
 import numpy as np
 import pandas as pd
 import pytest
-from conftest import REPO, assert_not_blank, browser_check, page_references
+from conftest import assert_not_blank, browser_check, page_references, synthetic_results
 
 from stages import html_report, report
 from stages.config.sections import ReportSettings
@@ -35,13 +33,7 @@ INTERACTIVE_MS = 1000
 @pytest.fixture(scope="module")
 def site(tmp_path_factory):
     results = tmp_path_factory.mktemp("synthetic") / "results"
-    proc = subprocess.run(
-        [sys.executable, str(REPO / "scripts" / "synthetic_results.py"), str(results), "--meshes", "10", "--prompts", "3"],
-        capture_output=True,
-        text=True,
-        check=True,
-    )
-    cells = [tuple(line.split("/")) for line in proc.stdout.split()]
+    cells = synthetic_results(results, meshes=10, prompts=3, decimated=2)
     assert len(cells) == 150
     t0 = time.perf_counter()
     report.run(results, cells, results / "report", json.loads((results / "decimated.json").read_text()))

@@ -7,13 +7,11 @@ import json
 import re
 import shlex
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 import yaml
-from conftest import REPO, run_snakemake
+from conftest import run_snakemake, synthetic_results
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from markupsafe import escape
@@ -227,14 +225,7 @@ def hostile_report(tmp_path_factory):
     from stages import html_report, report
 
     results = tmp_path_factory.mktemp("hostile") / "results"
-    proc = subprocess.run(
-        [sys.executable, str(REPO / "scripts" / "synthetic_results.py"), str(results), "--meshes", "2", "--prompts", "1"]
-        + ["--decimated", "0"],
-        capture_output=True,
-        text=True,
-        check=True,
-    )
-    cells = [tuple(line.split("/")) for line in proc.stdout.split()][:2]
+    cells = synthetic_results(results, meshes=2, prompts=1)[:2]
     for cell, prompt in zip(cells, (FORMULA, MARKUP), strict=True):
         meta_path = results.joinpath(*cell, "optimize", "meta.json")
         meta = json.loads(meta_path.read_text())
