@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Fetch the UV-mapped meshes that benchmarks/kept_layout.py measures besides ../shared/meshes/spot.obj,
+# Fetch the UV-mapped meshes that benchmarks.assets.kept_layout measures besides ../shared/meshes/spot.obj,
 # from Debian's assimp-testmodels package (assimp 5.2.5), converted to GLB with Debian's own assimp
 # command-line tool; nothing is installed (the packages are unpacked into the target folder).
 # Licences: benchmarks/SOURCES.md.

@@ -31,10 +31,11 @@ from PIL import Image, ImageDraw
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from stages.assets.formats import ExportMesh, write_glb  # noqa: E402
+from stages.assets.formats import ExportMesh  # noqa: E402
+from stages.assets.formats.gltf import write_glb  # noqa: E402
+from stages.config.guidance_modes import guidance_mode  # noqa: E402
 from stages.config.layout import RENDER_KINDS, TEXTURES  # noqa: E402
 from stages.config.sections import OptimizeSettings  # noqa: E402
-from stages.core.provenance import origin_record  # noqa: E402
 from stages.render.hdrio import write_hdr  # noqa: E402
 
 PROMPTS = ("wood", "metal", "plaster", "marble", "brick", "wicker", "gold", "jade")
@@ -120,7 +121,7 @@ def make(out: Path, meshes: int = 10, prompts: int = 3, decimated: int = 2, seed
     pairs = {f"{full[i]}_5k": full[i] for i in range(decimated)}
     mesh_ids = full + list(pairs)
     prompt_ids = PROMPTS[:prompts]
-    origin = origin_record(guidance="image", weights="synthetic report data", test_only=True, prompt=None)
+    origin = guidance_mode("image").origin_record("synthetic report data", test_only=True)
     geom = sphere()
     faces = {m: int(rng.integers(8_000, 60_000)) for m in full}
     faces.update({d: 5_000 for d in pairs})

@@ -111,7 +111,7 @@ def run(
             # how evenly the layout spends them: per face, at percentiles of the surface area
             "texels_per_area_percentiles": density_percentiles(mesh.vertices, mesh.faces, res.atlas.uv, res.atlas.size),
             # the BRDF the textures hold (optimize.brdf): the exporters map them accordingly
-            "brdf": field.brdf,
+            "brdf": field.brdf.name,
             # the ambient occlusion map in metallic_roughness.png's red channel (bake.occlusion)
             "occlusion": {**occlusion, **(ao.summary() if ao is not None else {})},
             "bake_psnr_pixels": "object pixels of the evaluation views, sRGB, baked textures vs neural field",

@@ -38,7 +38,6 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-from .assets.formats import GLTF_VALIDATOR, MODEL_VIEWER
 from .assets.probes import probe_gltf, probe_node_validator, probe_usd
 from .config.workflow import load_config_files
 from .core.allocator import allocator_plan
@@ -46,16 +45,15 @@ from .core.cli import stage_main
 from .core.device import (
     bf16_choice,
     bf16_support,
-    compile_plan,
     cpu_isa,
-    networks_kind,
     precision_summary,
-    renderer_kind,
     resolve_device,
 )
 from .core.progress import duration
+from .core.tools import GLTF_VALIDATOR, MODEL_VIEWER
 from .geometry.probes import PROBE_GLB_FACES, PROBE_TIMEOUT_S, probe_embree, probe_pymeshlab, probe_xatlas, write_probe_glb
 from .guidance.clip import HUB_HOST, ClipWeightsUnavailable, hub_offline, resolve_weights
+from .model.compiled import planned_path
 from .reference import blender as blender_ref
 from .reference import targets as targets_ref
 from .reference.blender import INSTALL_HINT, BlenderUnavailable, find_blender
@@ -132,18 +130,10 @@ def _products_plan(settings: list, device) -> str:
     (:func:`~stages.render.products.run_choice`; ``auto`` times both kernels here, 0.05 s)."""
     plans = []
     for s in settings:
-        clip = (bf16_choice(s.bf16, device, "bf16")[0], s.clip_tower) if s.guidance == "clip" else None
+        clip = (bf16_choice(s.bf16, device, "bf16")[0], s.clip_tower) if s.guidance_mode().uses_clip else None
         networks_bf16 = bf16_choice(s.bf16_networks, device, "bf16_networks")[0]
         plans.append(run_choice(s.onednn_products, device, networks_bf16, clip)[1])
     return "; ".join(dict.fromkeys(plans))
-
-
-def _compiled_path(s, device, shadowed: bool | None) -> str:
-    """What an optimisation of settings ``s`` on ``device`` would compile (the field's own plan)."""
-    kind = renderer_kind(s, shadowed)
-    bf16 = bf16_choice(s.bf16_networks, device, "bf16_networks")[0]
-    kinds = (kind, f"{kind}, {networks_kind(s.field_settings(), bf16)}")
-    return compile_plan((s.compile_shading, s.compile_networks, s.compile_static), device, s.iterations, kinds, bf16)[3]
 
 
 def check_torch(cfg) -> Check:
@@ -158,7 +148,7 @@ def check_torch(cfg) -> Check:
     # a mesh whose ray cache traces no visibility is shaded without shadows whatever optimize asks
     # (auto decides per mesh when its cache is made: taken here as optimize asks)
     shadowed = [False if cfg.stage_settings(c.mesh, "raycache").visibility == "off" else None for c in cfg.cells]
-    renderers = sorted({_compiled_path(s, device, shade) for s, shade in zip(settings, shadowed, strict=True)})
+    renderers = sorted({planned_path(s, device, shade) for s, shade in zip(settings, shadowed, strict=True)})
     detail = (
         f"torch {torch.__version__} ({build}, {gpu}); this config's torch stages run on {device.type} "
         f"(device: {cfg.device}); {torch.get_num_threads()} CPU threads ({cpu_isa()}); bfloat16: {why}; training runs "

@@ -1,5 +1,7 @@
-"""export: turn a bake into an asset pack: USD (``model.usda`` + packaged ``model.usdz``), glTF 2.0
-(``model.glb``), textures, the learned light and a preview image, each file validated.
+"""export: turn a bake into an asset pack: the asset in every export format (the table
+:data:`stages.config.layout.EXPORT_FORMATS`, the writers :mod:`stages.assets.formats`: glTF 2.0,
+``model.glb``; USD, ``model.usda`` + packaged ``model.usdz``), textures, the learned light and a
+preview image, each file validated.
 
 Where the bake kept the input's UV layout (``bake.uv``), the asset is the input's own topology
 (:mod:`stages.assets.ownformat`): a glTF input's own document with new materials, an OBJ input's
@@ -7,7 +9,7 @@ own lines with a new material library (``model.obj``, ``model.mtl``) beside the 
 
 Geometry is returned to the input's units through the normalisation's inverse transform (or left
 normalised, ``units: normalized``); the material mapping and what each format loses are in
-:mod:`stages.assets.formats`.
+its module of :mod:`stages.assets.formats`.
 """
 
 from __future__ import annotations
@@ -17,10 +19,12 @@ from pathlib import Path
 
 from PIL import Image
 
-from .assets.formats import read_atlas, write_model_files
+from .assets import formats
+from .assets.formats import AssetInfo, read_atlas, write_asset_files
 from .assets.layouts import kept_materials, kept_source
-from .assets.ownformat import asset_geometry, write_document_glb, write_obj
-from .config.layout import TEXTURE_FILES
+from .assets.ownformat import asset_geometry, own_document, write_obj
+from .config.brdfs import brdf_spec
+from .config.layout import TEXTURE_FILES, export_files
 from .config.records import ExportRecord
 from .config.sections import ExportSettings
 from .core.cli import stage_main
@@ -29,6 +33,7 @@ from .core.provenance import ORIGIN_KEY, Timer, metadata, read_origin, staged_ou
 from .core.safefiles import IMAGE_LIMIT, copy_file, open_read, read_json
 from .geometry.meshio import load_ply
 from .geometry.normalization import Similarity
+from .geometry.sourcemesh import GLTF_SOURCE, OBJ_SOURCE
 
 log = logging.getLogger(__name__)
 
@@ -57,7 +62,7 @@ def run(
     atlas = read_atlas(bake_dir / "atlas.npz")
     tf = Similarity.from_json(read_json(transform_path))
     bake_stats = read_json(bake_dir / "meta.json").get("stats", {})
-    brdf = bake_stats.get("brdf", "tango")
+    brdf = brdf_spec(bake_stats.get("brdf", "tango"))  # the BRDF the bake's textures hold
     occlusion = bool(bake_stats.get("occlusion", {}).get("baked", False))
     kept = kept_source(bake_stats, atlas, source, bake_dir)
     materials = None if kept is None else kept_materials(bake_stats, kept)
@@ -71,19 +76,15 @@ def run(
             for fname in ("light.exr", "light.hdr"):
                 copy_file(bake_dir / fname, staging / fname, remedy="Rerun the bake stage.")
             copy_file(preview, staging / "preview.png", remedy="Rerun the bake stage.")
-        glb_writer, changed = None, []  # what of the input's document was not carried over, and why
-        if kept is not None and kept.kind == "gltf":
-
-            def glb_writer(path):
-                changed.extend(write_document_glb(path, kept, staging / "textures", origin, brdf, occlusion, geom.slot_textures))
-
-        if kept is not None and kept.kind == "obj":
+        instead, changed = {}, []  # a glTF input's own document; what of it was not carried over, and why
+        if kept is not None and kept.kind == GLTF_SOURCE:
+            instead = own_document(kept, origin, brdf, occlusion, geom.slot_textures, changed)
+        if kept is not None and kept.kind == OBJ_SOURCE:
             with timer("obj"):
                 extra_files = write_obj(staging, geom, kept, None if settings.units == "original" else tf, brdf)
-        checked = write_model_files(
-            staging, geom, asset.meters_per_unit, settings.usdz_root, name, origin, timer, brdf, occlusion, glb_writer
-        )
-        usd, gltf = checked["usd"], checked["gltf"]
+        info = AssetInfo(asset.meters_per_unit, name, origin, brdf, occlusion, settings)
+        reports = write_asset_files(staging, geom, info, timer, instead)
+        files = export_files()
         with open_read(staging / TEXTURE_FILES["basecolor"], IMAGE_LIMIT) as fh, Image.open(fh) as img:
             texture_size = int(img.size[0])
         stats = {
@@ -96,19 +97,12 @@ def run(
             "meters_per_unit": asset.meters_per_unit,
             "own_frame": asset.own_frame,
             "corners": 3 * len(geom.indices),
-            "file_bytes": {f: (staging / f).stat().st_size for f in ("model.glb", "model.usdz", "model.usda")},
+            "file_bytes": {f: (staging / f).stat().st_size for f in files.values()},
             "texture_size": texture_size,
-            "brdf": brdf,
+            "brdf": brdf.name,
             "occlusion": occlusion,
-            "usd_validation": usd,
-            "gltf_validation": gltf,
-            **ExportRecord(
-                usd_validators=usd[0]["validators"],
-                usd_validation_errors=sum(r["errors"] for r in usd),
-                usd_validation_warnings=sum(r["warnings"] for r in usd),
-                gltf_validation_errors=gltf.get("errors"),
-                gltf_validation_warnings=gltf.get("warnings"),
-            ).stats(),
+            "validation": reports,
+            **ExportRecord(**{k: v for e in formats.exporters() for k, v in e.record(reports).items()}).stats(),
             "bounds": [geom.positions.min(0).tolist(), geom.positions.max(0).tolist()],
         }
         write_json_atomic(
@@ -117,7 +111,7 @@ def run(
                 stage="export",
                 settings=settings.to_dict(),
                 inputs={"mesh": mesh_path, "transform": transform_path, "bake": bake_dir},
-                outputs={k: out_dir / k for k in ("model.usda", "model.usdz", "model.glb", *extra_files)},
+                outputs={k: out_dir / k for k in (*files.values(), *extra_files)},
                 timings={**timer.seconds, "total": timer.total()},
                 extra={"stats": stats, ORIGIN_KEY: origin},
             ),

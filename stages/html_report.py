@@ -16,9 +16,9 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
-from .assets.formats import MODEL_VIEWER
 from .config.sections import ReportSettings
 from .core.cli import stage_main
+from .core.tools import MODEL_VIEWER
 from .results.cells import parse_cells
 from .results.site import write_folder, write_single_file
 from .results.summary import front_tile

@@ -1,8 +1,8 @@
 """lod: levels of detail. The field trained on the traced mesh is baked onto decimated versions of
-that mesh (``lod.levels``, face fractions), each level is exported on its own (``lodK/model.glb``,
-``.usda``, ``.usdz``) and all of them, with the full bake as ``lod0``, in one USD whose ``/Asset``
-has a variant set ``LOD`` (``model_lods.usda``/``.usdz``) and one GLB with ``MSFT_lod``
-(``model_lods.glb``).
+that mesh (``lod.levels``, face fractions), each level is exported on its own in every export
+format (``lodK/model.glb``, ``.usda``, ``.usdz``) and all of them, with the full bake as ``lod0``,
+in one file of each format that holds levels (``model_lods.*``: one USD whose ``/Asset`` has a
+variant set ``LOD``, one GLB with ``MSFT_lod``).
 
 The high-to-low bake (:func:`stages.assets.baking.bake_level`): every texel of a level looks along
 the level's shading normal, forwards and backwards within ``lod.cage`` Hausdorff distances, for the
@@ -22,12 +22,12 @@ from pathlib import Path
 from .assets.baking import occlusion_samples
 from .assets.formats import check_reports, read_atlas
 from .assets.levels import (
-    COMBINED,
     VALIDATION_KEYS,
     LevelGrader,
     LevelPlan,
     LevelRecord,
     LodSource,
+    combined_files,
     make_level,
     make_lod0,
     write_combined,
@@ -121,7 +121,7 @@ def _stats(records: list[LevelRecord], coverage: list[float], checked: dict, sta
     return {
         **LodRecord(levels=rows).stats(),
         "screen_coverage": coverage,
-        "combined_file_bytes": {f: (staging / f).stat().st_size for f in COMBINED},
+        "combined_file_bytes": {f: (staging / f).stat().st_size for f in combined_files()},
         "validation": {
             **{f"{r['level']}/{f}": v for r in rows[1:] for f, v in r["validation"].items()},
             **{rel: {k: r[k] for k in VALIDATION_KEYS if k in r} for rel, r in checked.items()},
@@ -179,7 +179,7 @@ def run(
                     "bake": files.bake_dir,
                     "export": files.export_meta,
                 },
-                outputs={f: out_dir / f for f in COMBINED},
+                outputs={f: out_dir / f for f in combined_files()},
                 timings={**timer.seconds, "total": timer.total()},
                 extra={"stats": stats, ORIGIN_KEY: source.origin},
             ),

@@ -2,8 +2,8 @@
 azimuths x elevations -30/0/30 degrees, radius 2.5, 45-degree field of view, 224 x 224, white
 background; see the raycache stage's ``metrics_*`` settings).
 
-* ``guidance``: cosine similarity of the prompt with the renders under the guidance model (the
-  CLIP the optimisation used), averaged over views;
+* ``guidance`` (CLIP-guided runs): cosine similarity of the prompt with the renders under the
+  guidance model (the CLIP the optimisation used), averaged over views;
 * ``evaluation``: the CLIP score (100 x mean cosine similarity) under an *independent* evaluation
   model (``metrics.clip_model`` / ``clip_pretrained`` / ``clip_checkpoint``) and R-precision over
   the grid's prompts (the fraction of views whose render ranks its own prompt first among the
@@ -14,8 +14,10 @@ background; see the raycache stage's ``metrics_*`` settings).
   truth at every fully covered hit of those views (albedo, specular colour, roughness, shading
   normal) and the recovered light's energy against the environment's.
 
-Every number sits under the id of the weights that produced it, with ``test_only: true`` for the
-tiny random test CLIP; the report never mixes those with real ones in a table.
+The first and the last are the guidance's own figures (:meth:`~stages.guidance.objective.Guidance.held_out`,
+of the class of the run's guidance mode). Every number sits under the id of the weights that
+produced it, with ``test_only: true`` for the tiny random test CLIP; the report never mixes those
+with real ones in a table.
 """
 
 from __future__ import annotations
@@ -34,9 +36,9 @@ from .core.provenance import ORIGIN_KEY, Timer, metadata, staged_outputs, write_
 from .core.safefiles import read_json
 from .geometry.raycache import RayCache
 from .guidance.clip import load_clip
-from .guidance.objective import choose_guidance, render_target
+from .guidance.objective import guidance_class
 from .guidance.scores import clip_metrics
-from .imaging.quality import highlights, material_errors, psnr, ssim
+from .imaging.quality import material_errors
 from .imaging.sheets import contact_sheet, save_png
 from .imaging.targets import FULL_COVERAGE, TargetSet
 from .imaging.views import ViewStore, render_views
@@ -64,7 +66,7 @@ def run(
     dev = torch.device(device)
     field, opt_settings = load_field(field_path, dev)
     cache = RayCache(metrics_cache)
-    mitsuba = opt_settings.guidance == "image" and opt_settings.target_renderer == "mitsuba"
+    mitsuba = opt_settings.mitsuba_targets()
     if mitsuba and targets_path is None:
         raise StageInputError(
             field_path, "was trained on Mitsuba targets but no --targets file was given", "Pass the target stage's metrics.npz."
@@ -84,43 +86,21 @@ def run(
             "radius": float(store.cache.arrays["radius"][0]),
             "background": settings.background,
         }
-        if opt_settings.guidance == "clip":
-            with timer("guidance"):
-                g = load_clip(opt_settings.clip_spec(), device=dev)
-                m = clip_metrics(g, imgs, prompt, candidates)
-                result["guidance"] = {
-                    "weights": m["weights"],
-                    "test_only": m["test_only"],
-                    "similarity": m["similarity_mean_embedding"],
-                }
+        kind = guidance_class(opt_settings)  # its figures: under "guidance" (CLIP) or "image_target"
+        with timer(kind.held_out_key):
+            guidance = kind.for_metrics(opt_settings, prompt, dev, targets.description if targets else None)
+            held = guidance.held_out(imgs, store, candidates, 1.0 if settings.background == "white" else 0.0)
+            if targets is not None:  # Mitsuba's targets: their noise, and the material against its truth
+                held.figures["target_noise_psnr_db"] = _noise_psnr(targets_path)
+                if targets.has_truth:
+                    held.figures["material"] = _material_errors(field, store, targets)
+        result[kind.held_out_key] = held.figures
+        if held.targets is not None:
+            save_png(staging / "targets.png", contact_sheet(list(held.targets), len(store.azimuths())))
         if settings.clip:
             with timer("evaluation"):
                 e = load_clip(settings.clip_spec(), device=dev)
                 result["evaluation"] = clip_metrics(e, imgs, prompt, candidates)
-        if opt_settings.guidance == "image":
-            with timer("image_target"):
-                obj = choose_guidance(opt_settings, prompt, dev, targets=targets.description if targets else None)
-                bg = 1.0 if settings.background == "white" else 0.0
-                pairs = [render_target(obj, store[i], store.width, store.width, bg) for i in range(len(store))]
-                t = torch.stack([img for img, _ in pairs])
-                mask = torch.stack([m for _, m in pairs])
-                px = mask.expand_as(t)
-                result["image_target"] = {
-                    "weights": obj.weights_id,
-                    "psnr_db": psnr(imgs[px], t[px]),
-                    "ssim": ssim(imgs, t, mask),
-                    "highlights": highlights(imgs, t, mask),
-                    "pixels": "object pixels of the held-out metric views (SSIM: windows centred on them)",
-                    "target_renderer": opt_settings.target_renderer,
-                    "target_material": opt_settings.target_material,
-                }
-                if targets is not None:
-                    result["image_target"]["target_noise_psnr_db"] = _noise_psnr(targets_path)
-                    if targets.has_truth:
-                        result["image_target"]["material"] = _material_errors(field, store, targets)
-                else:
-                    result["image_target"]["target_light"] = opt_settings.target_light
-                save_png(staging / "targets.png", contact_sheet(list(t), len(store.azimuths())))
         record = MetricsRecord(result.get("guidance"), result.get("evaluation"), result.get("image_target"))
         write_json_atomic(staging / "metrics.json", {**result, **record.stats()})
         write_json_atomic(

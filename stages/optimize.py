@@ -34,7 +34,6 @@ from .imaging.targets import TargetSet
 from .imaging.views import ViewStore, render_view
 from .model.checkpoint import read_torch_file, save_field
 from .render.color import linear_to_srgb
-from .render.envmap import equirect_directions
 from .training.optimizer import Optimizer, plot_loss, save_checkpoint, write_loss_csv
 
 log = logging.getLogger(__name__)
@@ -61,7 +60,7 @@ def run(
     for p in (train_path, eval_path):
         if not Path(p).is_file():
             raise StageInputError(p, "file not found", "Run the raycache stage first.")
-    mitsuba_targets = settings.guidance == "image" and settings.target_renderer == "mitsuba"
+    mitsuba_targets = settings.mitsuba_targets()
     if mitsuba_targets and targets_path is None:
         raise StageInputError(
             train_path, "target_renderer is mitsuba but no --targets file was given", "Pass the target stage's train.npz."
@@ -125,6 +124,7 @@ def run(
                 "parameters": sum(p.numel() for p in run.field.parameters()),
                 "light_energy": run.field.light.energy().tolist(),
                 "light_lobes": run.field.light.lobes,
+                "light_components": run.field.light.describe(),
                 "light_pruned": run.light_pruned,
                 "light": run.light_record,
                 **result,
@@ -194,19 +194,13 @@ def _write_outputs(run: Optimizer, eval_path: Path, out_dir: Path, settings: Opt
     }
     if score.targets:
         save_png(out_dir / "renders" / "target.png", contact_sheet(score.targets, columns))
-    # the light: equirectangular radiance (linear, float32) and a tone-mapped preview
+    # the light: equirectangular radiance (linear, float32), each component's arrays, and a
+    # tone-mapped preview
     with torch.no_grad():
         light = trained.light()
-        dirs = equirect_directions(128, 256).to(run.device)
-        radiance = light.radiance(dirs.reshape(-1, 3)).reshape(128, 256, 3)
+        radiance = light.equirect(128, 256)
     with atomic_stream(out_dir / "light.npz") as fh:
-        np.savez(
-            fh,
-            equirect=radiance.cpu().numpy().astype(np.float32),
-            axis=light.axis.cpu().numpy(),
-            sharpness=light.sharpness.cpu().numpy(),
-            amplitude=light.amplitude.cpu().numpy(),
-        )
+        np.savez(fh, equirect=radiance.cpu().numpy().astype(np.float32), **light.arrays())
     preview = linear_to_srgb(radiance / radiance.max().clamp(min=1e-12))
     save_png(out_dir / "renders" / "light.png", (preview.cpu().numpy() * 255).round().astype(np.uint8))
     # the field and the loss curve

@@ -1,16 +1,19 @@
 """pack: zip every grid cell's asset folder into one asset pack with an index.
 
-``asset_pack.zip`` holds ``<mesh>/<prompt>/<variant>/{model.usdz, model.usda, model.glb,
-textures/*.png, light.exr, light.hdr, preview.png, meta.json}``, ``index.csv`` and a short
+``asset_pack.zip`` holds ``<mesh>/<prompt>/<variant>/{model.glb, model.usda, model.usdz (the
+export formats' files: :data:`stages.config.layout.EXPORT_FILES`), textures/*.png, light.exr,
+light.hdr, preview.png, meta.json}``, ``index.csv`` and a short
 ``README.txt`` that says, per cell, which guidance and weights made it (and, first of all, when
 any asset was made with the test-only random CLIP or fitted to image targets). The same index is
 written beside the zip as ``asset_index.csv`` (columns: mesh, prompt, variant, guidance, weights,
-test_only, image_guided, origin, files, texture_size, faces, validation counts).
+test_only, image_guided, origin, files, texture_size, faces, the validation counts of the export's
+record, :class:`~stages.config.records.ExportRecord`, and the levels of detail).
 """
 
 from __future__ import annotations
 
 import csv
+import dataclasses
 import io
 import json
 import logging
@@ -20,6 +23,8 @@ import time
 import zipfile
 from pathlib import Path
 
+from .config.layout import EXPORT_FORMATS, LEVELS_STEM, export_files
+from .config.records import ExportRecord
 from .core.cli import stage_main
 from .core.errors import StageInputError
 from .core.provenance import ORIGIN_KEY, atomic_path, read_origin, shareable_meta
@@ -48,11 +53,13 @@ def pack_readme(rows: list[dict]) -> str:
             "target materials (a verification run without CLIP), not stylised from their prompts.",
             "",
         ]
+    files, suffixes = export_files(), ",".join(export_files())
     lines += [
-        "Each folder <mesh>/<prompt>/<variant>/ holds model.usdz, model.usda, model.glb, textures/,",
-        "light.exr/.hdr (the learned environment light), preview.png and meta.json (full provenance);",
-        "where levels of detail were made, lod/ holds lodK/model.{glb,usdz,usda} per level and",
-        "model_lods.usdz (USD variant set LOD) and model_lods.glb (MSFT_lod) with all of them.",
+        f"Each folder <mesh>/<prompt>/<variant>/ holds {', '.join(files.values())}, textures/,",
+        "light.exr/.hdr (the learned environment light), preview.png and meta.json (full provenance).",
+        *(f"  {', '.join(f.files().values())}: {f.description}" for f in EXPORT_FORMATS.values()),
+        f"Where levels of detail were made, lod/ holds lodK/model.{{{suffixes}}} per level and",
+        f"{', '.join(export_files(LEVELS_STEM, levels=True).values())} with all of them.",
         "The origin is also inside each model: glTF asset.extras.tango_stylize, USD customLayerData.",
         "",
         "Assets and what made them:",
@@ -136,11 +143,8 @@ def run(
                 "files": ";".join(rel),
                 "texture_size": meta["stats"]["texture_size"],
                 "faces": meta["stats"]["faces"],
-                "usd_validators": meta["stats"]["usd_validators"],
-                "usd_validation_errors": meta["stats"]["usd_validation_errors"],
-                "usd_validation_warnings": meta["stats"]["usd_validation_warnings"],
-                "gltf_validation_errors": meta["stats"]["gltf_validation_errors"],
-                "gltf_validation_warnings": meta["stats"]["gltf_validation_warnings"],
+                # the export's record: each format's validation counts (config/records.py)
+                **{f.name: meta["stats"][f.name] for f in dataclasses.fields(ExportRecord)},
                 "lod_levels": levels,
             }
         )

@@ -69,7 +69,7 @@ BENCHMARK_GLOBS = {
     **{rule: f"*/report/benchmarks/{rule}.tsv" for rule in PER_EXPERIMENT},
 }
 #: seconds per job of each of those rules in a reference run, with its conditions
-#: (benchmarks/stage_seconds.py writes it from a results folder)
+#: (benchmarks/workflow/stage_seconds.py writes it from a results folder)
 STAGE_SECONDS = REPO / "benchmarks" / "figures" / "stage_seconds.json"
 #: a calibration during which other processes used more than this share of the CPU is said to be
 #: taken under load and not kept (``TANGO_PLAN_BUSY_SHARE`` overrides it; 1: never)
@@ -291,13 +291,6 @@ def other_stage_seconds(results: Path) -> tuple[dict[str, float], str]:
     return out, "; ".join(sources) or "no earlier runs"
 
 
-def guidance_label(settings) -> str:
-    """What guides an optimisation, as the plan names it."""
-    if settings.guidance != "clip":
-        return "image targets"
-    return "the tiny test CLIP" if settings.clip_tiny_test else settings.clip_model
-
-
 def is_paper(settings) -> bool:
     """The paper's cost: its schedule, views, crops and width (preset ``paper``) at CLIP's full
     image size (whatever the material presets change besides)."""
@@ -344,7 +337,7 @@ def make_plan(
             "seconds_per_step": sec,
             "source": source,
             "paper": is_paper(s),
-            "clip_model": guidance_label(s),
+            "clip_model": s.guidance_mode().plan_label(s),  # what guides it
             "precision": precision_summary(s.bf16, s.bf16_networks, resolve_device(device)),
         }
         if sec is not None:

@@ -2,11 +2,11 @@
 
 The environment map (an equirectangular ``.hdr`` or ``.exr``, or ``builtin:<name>`` for a
 procedural one, see :mod:`stages.render.envmap`) is fitted by SG lobes (least squares over the
-sphere, :mod:`stages.model.lightfit`), so the field's own forward pass renders it (a light
-override). Outputs: ``relit.png`` (the evaluation views under the new light), ``material_edit.png``
-(TANGO's material-editing figure: the front view, rows = roughness scales, columns = specular
-scales, under the new light), ``light_fit.png`` (the map and its SG fit) and ``meta.json`` (fit
-error, mean brightness of each image); for a graded cell also ``ground_truth.png`` (per judge
+sphere, :func:`stages.model.lights.sg.fit_sg_light`), so the field's own forward pass renders it (a
+light override, a light of those lobes alone). Outputs: ``relit.png`` (the evaluation views under
+the new light), ``material_edit.png`` (TANGO's material-editing figure: the front view, rows =
+roughness scales, columns = specular scales, under the new light), ``light_fit.png`` (the map and
+its SG fit) and ``meta.json`` (fit error, mean brightness of each image); for a graded cell also ``ground_truth.png`` (per judge
 environment: the field relit, Mitsuba's truth and 4 x their difference on the metric views).
 
 For an image-guided cell with Mitsuba targets the relighting is also *graded*: the target stage
@@ -39,9 +39,10 @@ from .imaging.targets import TargetSet, load_relit
 from .imaging.views import ViewStore
 from .model.checkpoint import load_field
 from .model.field import MaterialEdit
-from .model.lightfit import fit_sg_light
+from .model.lights.sg import fit_sg_light
 from .render.color import linear_to_srgb, srgb_encode, to_u8
-from .render.envmap import equirect_directions, load_env
+from .render.envmap import load_env
+from .render.light import Light
 
 log = logging.getLogger(__name__)
 
@@ -94,7 +95,7 @@ def run(
         env = load_env(settings.envmap)
         light, rel_err = fit_sg_light(env, settings.lobes, settings.fit_iterations)
     dev = torch.device(device)
-    light = type(light)(light.axis.to(dev), light.sharpness.to(dev), light.amplitude.to(dev))
+    light = Light.of(light.to(dev))
     field, _ = load_field(field_path, dev)
     store = ViewStore(RayCache(eval_path), dev, field.normals, shadows=field.shadows)
     out_dir = Path(out_dir)
@@ -110,7 +111,7 @@ def run(
             ]
             save_png(staging / "material_edit.png", contact_sheet(grid, len(settings.specular_scales)))
             h, w = env.shape[:2]
-            fit = light.radiance(equirect_directions(h, w).to(dev).reshape(-1, 3)).reshape(h, w, 3).cpu().numpy()
+            fit = light.equirect(h, w).cpu().numpy()
             top = max(float(env.max()), 1e-12)
             both = np.concatenate([env, fit], axis=0) / top
             save_png(staging / "light_fit.png", to_u8(srgb_encode(both)))

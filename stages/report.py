@@ -20,6 +20,7 @@ from pathlib import Path
 import pandas as pd
 from PIL import Image
 
+from .config.records import text_row
 from .config.sections import ReportSettings
 from .core.cli import stage_main
 from .core.provenance import atomic_path, write_json_atomic
@@ -60,11 +61,11 @@ def run(
     results = Path(results)
     rows = summary_rows(results, cells, lod_cells, mesh_dirs)
     out_dir = Path(out_dir)
-    with atomic_path(out_dir / "summary.csv") as tmp:  # text a spreadsheet would evaluate is quoted
-        pd.DataFrame(spreadsheet_rows(rows)).to_csv(tmp, index=False)
+    with atomic_path(out_dir / "summary.csv") as tmp:  # lists as one text; text a spreadsheet would evaluate is quoted
+        pd.DataFrame(spreadsheet_rows([text_row(r) for r in rows])).to_csv(tmp, index=False)
     with atomic_path(out_dir / "overview.png") as tmp:
         Image.fromarray(overview_image(results, cells)).save(tmp, format="PNG")
-    write_json_atomic(out_dir / "summary.json", rows)
+    write_json_atomic(out_dir / "summary.json", rows)  # every value as the records give it, lists as lists
 
     timed = speed_accuracy(rows, results)
     variants = list(dict.fromkeys(c[2] for c in cells))

@@ -1,9 +1,11 @@
-"""roundtrip: the exported assets through the artist's tool. Each exported file (``model.glb``,
-``model.usdz``) is imported into Blender (``bpy``, the ``blender`` extra), checked (one mesh with
-every face, positions in metres and Z-up, UVs, Blender's own tangents against the frame the normal
-map was baked in, the Principled BSDF's wiring), and rendered with Cycles from evaluation views
-under the learned light (``light.hdr`` as the world for the GLB; the USD brings its DomeLight),
-then compared with our render of the trained field over fully covered object pixels (PSNR, sRGB).
+"""roundtrip: the exported assets through the artist's tool. Each exported file that
+``roundtrip.formats`` names by suffix (``model.glb``, ``model.usdz``; the export formats' rows say
+which files Blender imports, :data:`stages.config.layout.EXPORT_FORMATS`) is imported into
+Blender (``bpy``, the ``blender`` extra), checked (one mesh with every face, positions in metres
+and Z-up, UVs, Blender's own tangents against the frame the normal map was baked in, the
+Principled BSDF's wiring), and rendered with Cycles from evaluation views under the learned light
+(``light.hdr`` as the world for the GLB; the USD brings its DomeLight), then compared with our
+render of the trained field over fully covered object pixels (PSNR, sRGB).
 
 Light transport ``direct_unshadowed`` (default) matches what our closed-form renderer models
 (light straight from the environment, no self-shadowing), so the figure measures the asset and
@@ -12,6 +14,7 @@ the BRDF models; ``full`` path-traces shadows and bounces as an artist's render 
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import tempfile
 from pathlib import Path
@@ -21,6 +24,7 @@ import numpy as np
 from .assets.formats import read_atlas
 from .assets.layouts import kept_materials, kept_source
 from .assets.ownformat import asset_geometry, kept_corner_tangents
+from .config.layout import EXPORT_FILES, export_format_of
 from .config.records import RoundtripRecord
 from .config.sections import ExportSettings, RoundtripSettings
 from .core.cli import stage_main
@@ -30,6 +34,7 @@ from .core.safefiles import read_json
 from .geometry.meshio import load_ply
 from .geometry.normalization import Similarity
 from .geometry.raycache import RayCache
+from .geometry.sourcemesh import GLTF_SOURCE
 from .imaging.sheets import save_png
 from .model.checkpoint import load_field
 from .reference.blender import blender_cameras, pick_views
@@ -90,7 +95,7 @@ def _scene(files: dict, settings: RoundtripSettings, device: str, timer: Timer, 
         work,
         tangents,
         None if kept is None else kept.path,
-        kept is not None and kept.kind == "gltf",
+        kept is not None and kept.kind == GLTF_SOURCE,
     )
 
 
@@ -113,7 +118,7 @@ def run(
     timer = Timer()
     export_dir, bake_dir = Path(export_dir), Path(bake_dir)
     needed = [mesh_path, transform_path, field_path, eval_path, bake_dir / "atlas.npz", export_dir / "meta.json"]
-    _check_inputs(needed + [export_dir / f"model.{fmt}" for fmt in settings.formats] + [export_dir / "light.hdr"])
+    _check_inputs(needed + [export_dir / EXPORT_FILES[fmt] for fmt in settings.formats] + [export_dir / "light.hdr"])
     origin = read_origin(export_dir / "meta.json")
     files = {
         "mesh": mesh_path,
@@ -124,12 +129,15 @@ def run(
         "export": export_dir,
         "source": source,
     }
-    results, images, lobes = {}, {}, {}
+    results, images, lobes, split_fmt = {}, {}, {}, None
     with tempfile.TemporaryDirectory(prefix="roundtrip-") as work:
         scene = _scene(files, settings, device, timer, Path(work))
         for fmt in settings.formats:
-            # the GLB's lobes are also rendered alone, to split the gap between the BRDF models
-            passes = PASSES if fmt == "glb" and settings.split_lobes else {"full": PASSES["full"]}
+            # the lobes of the format that splits them (the GLB's) are also rendered alone, to
+            # split the gap between the BRDF models
+            splits = export_format_of(fmt).lobe_split and settings.split_lobes
+            split_fmt = fmt if splits else split_fmt
+            passes = PASSES if splits else {"full": PASSES["full"]}
             for name, overrides in passes.items():
                 res = blender_pass(scene, fmt, name, overrides, timer)
                 if name == "full":
@@ -137,10 +145,10 @@ def run(
                 else:
                     lobes[name] = res.renders
         own = own_format_check(scene, timer) if scene.source is not None else None
-    split = lobe_split(scene, lobes) if lobes else {}
+    split = lobe_split(scene, lobes, split_fmt) if lobes else {}
     if split:
-        results["glb"]["split"] = split
-    stats = _stats(scene, results, split, own)
+        results[split_fmt]["split"] = split
+    stats = _stats(scene, results, split, split_fmt, own)
     front = scene.cache.front_view()
     k = min(range(len(scene.views)), key=lambda j: abs(scene.views[j] - front))
     sheet = comparison_sheet(images[settings.formats[0]].ours[k], {f: c.theirs[k] for f, c in images.items()})
@@ -160,23 +168,25 @@ def run(
     return {"stats": stats, "formats": results}
 
 
-def _stats(scene: RoundtripScene, results: dict, split: dict, own: dict | None = None) -> dict:
-    """The stage's statistics: the views, each format's figure, the GLB's lobes, the record (its
-    problems counting the own-format check's, where there is one)."""
+def _stats(scene: RoundtripScene, results: dict, split: dict, split_fmt: str | None, own: dict | None = None) -> dict:
+    """The stage's statistics: the views, each file's figure (``<suffix>_psnr_db``), the lobes of
+    the file that split them (``<suffix>_diffuse_psnr_db``, ...), the record (those figures it has
+    a column for; its problems counting the own-format check's, where there is one)."""
     s = scene.settings
+    figures = {
+        **{f"{fmt}_psnr_db": r["psnr_db"] for fmt, r in results.items()},
+        **{f"{split_fmt}_{k}": v for k, v in split.items()},
+    }
+    columns = {f.name for f in dataclasses.fields(RoundtripRecord)}
     return {
         "views": scene.views,
         "width": scene.cache.width,
         "spp": s.spp,
-        **{f"{fmt}_psnr_db": r["psnr_db"] for fmt, r in results.items()},
-        **{f"glb_{k}": v for k, v in split.items()},
+        **figures,
         **RoundtripRecord(
             problems=sum(len(r["import"]["problems"]) for r in results.values()) + len((own or {}).get("problems", [])),
             transport=s.transport,
-            glb_psnr_db=results["glb"]["psnr_db"] if "glb" in results else None,
-            usdz_psnr_db=results["usdz"]["psnr_db"] if "usdz" in results else None,
-            glb_diffuse_psnr_db=split.get("diffuse_psnr_db"),
-            glb_lobes_summed_psnr_db=split.get("lobes_summed_psnr_db"),
+            **{k: v for k, v in figures.items() if k in columns},
         ).stats(),
         "pixels": "fully covered object pixels of the evaluation views, sRGB; Cycles render of the imported asset "
         "vs our render of the trained field",

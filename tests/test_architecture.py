@@ -17,7 +17,20 @@ STAGES = REPO / "stages"
 #: the modules at the top of stages/ that are commands, not rules (ARCHITECTURE.md)
 COMMANDS = ("doctor", "plan", "quick")
 #: the library's layers, top to bottom (as in pyproject.toml's import contract)
-LAYERS = ("training", "assets", "results", "reference", "guidance", "imaging", "model", "render", "geometry", "config", "core")
+LAYERS = (
+    "testing",
+    "training",
+    "assets",
+    "results",
+    "reference",
+    "guidance",
+    "imaging",
+    "model",
+    "render",
+    "geometry",
+    "config",
+    "core",
+)
 
 
 def rules() -> dict[str, str]:
@@ -121,6 +134,16 @@ def test_importing_the_settings_loads_no_torch():
     assert proc.stdout.strip() == "False", proc.stderr
 
 
+@pytest.mark.parametrize("stage", ["html_report", "report", "pack", "export"])
+def test_stages_that_need_no_torch_start_without_it(stage):
+    """The stages whose work needs no torch start without importing it (about 1.2 s a job): the
+    report's viewer path is in ``core.tools``, the BRDFs' asset facts in the torch-free
+    ``config.brdfs`` rows. (``plan`` calibrates with torch and imported it already at dbef3c0.)"""
+    code = f"import sys, stages.{stage}; print('torch' in sys.modules)"
+    proc = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert proc.stdout.strip() == "False", proc.stderr
+
+
 @pytest.mark.parametrize(
     "helper",
     ["psnr", "ssim", "linear_to_srgb", "srgb_encode", "stage_main", "resolve_device", "contact_sheet", "save_png", "clip_spec"],
@@ -149,3 +172,32 @@ def test_no_function_is_longer_or_takes_more_parameters_than_one_reads_at_once()
     assert len(sizes) > 900  # every function of stages/ was read (979 when this was written)
     over = {name: (lines, params) for name, lines, params in sizes if lines > MAX_FUNCTION_LINES or params > MAX_PARAMETERS}
     assert not over, f"past {MAX_FUNCTION_LINES} lines or {MAX_PARAMETERS} parameters (lines, parameters): {over}"
+
+
+def _edits_sys_path(node: ast.AST) -> bool:
+    """Whether ``node`` (a statement) reads or changes ``sys.path``."""
+    return any(
+        isinstance(n, ast.Attribute) and n.attr == "path" and isinstance(n.value, ast.Name) and n.value.id == "sys"
+        for n in ast.walk(node)
+    )
+
+
+def test_benchmarks_are_modules_of_one_package_that_no_test_imports():
+    """The benchmarks run as ``python -m benchmarks.<topic>.<name>``: none edits ``sys.path`` (the
+    import contracts in pyproject.toml keep each to ``stages`` and ``benchmarks.common``); no test
+    imports a benchmark or puts benchmarks/ on its path (what a test needs of one lives in
+    ``stages``, as the recovery protocol and the precision judge in ``stages.testing`` do)."""
+    offenders = []
+    for path in sorted((REPO / "benchmarks").rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.stmt) and not isinstance(node, ast.FunctionDef | ast.ClassDef) and _edits_sys_path(node):
+                offenders.append(f"{path.relative_to(REPO)}:{node.lineno} uses sys.path")
+    for path in sorted((REPO / "tests").rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = [a.name for a in node.names] if isinstance(node, ast.Import) else []
+            names += [node.module or ""] if isinstance(node, ast.ImportFrom) else []
+            if any(n == "benchmarks" or n.startswith("benchmarks.") for n in names):
+                offenders.append(f"{path.relative_to(REPO)}:{node.lineno} imports a benchmark")
+            if isinstance(node, ast.Expr | ast.Assign) and _edits_sys_path(node) and "benchmarks" in ast.unparse(node):
+                offenders.append(f"{path.relative_to(REPO)}:{node.lineno} puts benchmarks/ on the path")
+    assert not offenders, offenders

@@ -42,6 +42,8 @@ from ..geometry.uvlayout import face_tiles, wrapped_copies
 from ..geometry.visibility import OcclusionSamples, fibonacci_directions
 from ..model.field import shade_material
 from ..model.networks import Material
+from ..render import brdf as brdfs
+from ..render.brdf import Brdf
 from ..render.color import srgb_decode, srgb_encode, to_u8
 from ..render.envmap import equirect_directions
 from ..render.shading import face_viewer
@@ -111,25 +113,27 @@ def locate_texels(mesh: TriMesh, atlas: Atlas, face: np.ndarray, bary: np.ndarra
 
 
 @torch.no_grad()
-def evaluate_surface(field, points: np.ndarray, normals: np.ndarray, device="cpu", chunk: int = 65536) -> dict[str, np.ndarray]:
+def evaluate_surface(
+    field, points: np.ndarray, normals: np.ndarray, device="cpu", chunk: int = 65536
+) -> tuple[dict[str, np.ndarray], Brdf | None]:
     """The field's material and predicted world normal at ``points (M, 3)`` with shading
-    ``normals (M, 3)`` (float64 arrays): ``albedo, specular (M, 3)``, ``roughness (M, 1)`` (the
-    last two absent for a diffuse-only field), ``normal (M, 3)`` and, for a field of glTF's BRDF,
-    ``base (M, 3)`` and ``metallic (M, 1)``."""
-    out: dict[str, list] = {"albedo": [], "specular": [], "roughness": [], "normal": [], "base": [], "metallic": []}
+    ``normals (M, 3)`` (float64 arrays), and the material's BRDF (None for no points): each
+    channel the material has (:class:`~stages.model.networks.Material`'s fields: ``albedo,
+    specular (M, 3)``, ``roughness (M, 1)``, the last two absent for a diffuse-only field, and for
+    a field of glTF's BRDF what it was made of, ``base (M, 3)`` and ``metallic (M, 1)``: what was
+    trained, baked as it is) and ``normal (M, 3)``."""
+    out: dict[str, list] = {}
+    brdf = None
     p_t = torch.from_numpy(points.astype(np.float32)).to(device)
     n_t = torch.from_numpy(normals.astype(np.float32)).to(device)
     for lo in range(0, len(p_t), chunk):
         mat, normal = field.surface(p_t[lo : lo + chunk], n_t[lo : lo + chunk])
-        out["albedo"].append(mat.albedo)
-        if mat.specular is not None:
-            out["specular"].append(mat.specular)
-            out["roughness"].append(mat.roughness)
-        if mat.metallic is not None:  # glTF's BRDF: what was trained, baked as it is
-            out["base"].append(mat.base)
-            out["metallic"].append(mat.metallic)
-        out["normal"].append(normal)
-    return {k: torch.cat(v).cpu().double().numpy() for k, v in out.items() if v}
+        brdf = mat.brdf
+        for f in dataclasses.fields(mat):
+            if getattr(mat, f.name) is not None:
+                out.setdefault(f.name, []).append(getattr(mat, f.name))
+        out.setdefault("normal", []).append(normal)
+    return {k: torch.cat(v).cpu().double().numpy() for k, v in out.items()}, brdf
 
 
 def texture_images(
@@ -137,18 +141,22 @@ def texture_images(
     surface: dict[str, np.ndarray],
     tangent_normal: np.ndarray,
     dilation: int,
+    brdf: Brdf,
     occlusion: np.ndarray | None = None,
 ) -> dict:
     """The four 8-bit texture images (see the module docstring) from the per-texel ``surface``
-    (:func:`evaluate_surface`) and the normal in tangent space, with empty texels dilated. Base
-    colour: TANGO's diffuse albedo, or glTF's base colour; the metallic-roughness texture's blue
-    channel: 0, or glTF's metallic; its red channel: the per-texel ambient ``occlusion (M,)``
-    (glTF's occlusion-roughness-metallic packing), or 1 without one; ``specular``: the F0 either
-    way (for glTF's BRDF a preview of ``lerp(0.04, base, metallic)``; its assets do not read it)."""
+    (:func:`evaluate_surface`) of the BRDF ``brdf`` and the normal in tangent space, with empty
+    texels dilated. Each of the BRDF's parameters goes to its texture (``brdf.texture_of``): the
+    base colour, TANGO's diffuse albedo or glTF's base colour; the metallic-roughness texture's
+    blue channel, glTF's metallic (0 for a BRDF without one); its red channel: the per-texel ambient
+    ``occlusion (M,)`` (glTF's occlusion-roughness-metallic packing), or 1 without one;
+    ``specular``: the F0 either way (for glTF's BRDF a preview of ``lerp(0.04, base, metallic)``;
+    its assets do not read it)."""
     s = texels.atlas.size
     filled = texels.filled
+    baked = {texture: name for name, texture in brdf.texture_of.items()}  # texture -> the parameter in it
     base = np.zeros((s, s, 3))
-    base[filled] = surface["base"] if "base" in surface else surface["albedo"]
+    base[filled] = surface[baked["albedo"]]
     spc = np.zeros((s, s, 3))
     rgh = np.ones((s, s, 1))
     metal = np.zeros((s, s, 1))
@@ -158,8 +166,8 @@ def texture_images(
     if "specular" in surface:
         spc[filled] = surface["specular"]
         rgh[filled] = surface["roughness"]
-    if "metallic" in surface:
-        metal[filled] = surface["metallic"]
+    if "metallic" in baked:
+        metal[filled] = surface[baked["metallic"]]
     nrm = np.zeros((s, s, 3))
     nrm[..., 2] = 1.0
     nrm[filled] = tangent_normal
@@ -260,9 +268,9 @@ def bake_texels(
         normals = shading_normals(mesh, field.normals, texels.face, texels.bary)
     else:  # the frame's normals are the field's own
         normals = n / np.linalg.norm(n, axis=1, keepdims=True)
-    surface = evaluate_surface(field, texels.points, normals, device)
+    surface, brdf = evaluate_surface(field, texels.points, normals, device)
     ao = None if occlusion is None else occlusion.at(texels.points, mesh.face_normals[texels.face])
-    return texture_images(texels, surface, to_tangent_space(surface["normal"], t, b, n), settings.dilation, ao)
+    return texture_images(texels, surface, to_tangent_space(surface["normal"], t, b, n), settings.dilation, brdf, ao)
 
 
 def texel_density(result: BakeResult, mesh: TriMesh) -> float:
@@ -367,9 +375,9 @@ def bake_level(
     t, b, n = frames.at(texels.face, texels.bary)
     unit = n / np.linalg.norm(n, axis=1, keepdims=True)
     proj = project_to_surface(fine, texels.points, unit, search, field.normals)
-    surface = evaluate_surface(field, proj.points, proj.normals, device)
+    surface, brdf = evaluate_surface(field, proj.points, proj.normals, device)
     ao = None if occlusion is None else occlusion.at(proj.points, proj.normals)
-    textures = texture_images(texels, surface, to_tangent_space(surface["normal"], t, b, n), settings.dilation, ao)
+    textures = texture_images(texels, surface, to_tangent_space(surface["normal"], t, b, n), settings.dilation, brdf, ao)
     return LevelBake(texels, frames, textures, proj)
 
 
@@ -396,12 +404,13 @@ def render_baked(
     light,
     device="cpu",
     lobe: str = "isotropic",
-    brdf: str = "tango",
+    brdf: Brdf | str = "tango",
     wrap: bool = False,
 ):
     """Shade cached hits (a :class:`BakedHits`) from the decoded textures read through the bake's
-    ``frames``, with the specular model ``lobe`` and the BRDF ``brdf`` (the field's: TANGO's sum of
-    the albedo, specular and roughness textures, or glTF's of base colour, metallic and roughness);
+    ``frames``, with the specular model ``lobe`` and the BRDF ``brdf`` (the field's, its object or
+    name: its parameters read from their textures, ``brdf.texture_of``: TANGO's albedo, specular
+    and roughness textures, or glTF's base colour, metallic and roughness);
     ``wrap``: the textures repeat (a kept UV layout) rather than clamp (an atlas). Returns ``(N, 3)``
     linear radiance."""
     f = hits.face
@@ -425,12 +434,9 @@ def render_baked(
 
     nn_ = face_viewer(tt(world), tt(view))
     rough = tt(np.clip(sample("roughness"), 0.01, 1.0))
-    base = tt(sample("albedo"))
-    if brdf == "gltf":
-        material = Material.gltf(base, tt(sample("metallic")), rough)
-    else:
-        material = Material(base, tt(sample("specular")), rough)
-    return shade_material(nn_, tt(view), material, light, lobe).rgb
+    brdf = brdfs.get(brdf)
+    colour, specular = (tt(sample(brdf.texture_of[name])) for name in brdf.parameters[:2])
+    return shade_material(nn_, tt(view), Material.of(brdf, colour, specular, rough), light, lobe).rgb
 
 
 def render_baked_views(
@@ -441,7 +447,7 @@ def render_baked_views(
     light,
     device="cpu",
     lobe: str = "isotropic",
-    brdf: str = "tango",
+    brdf: Brdf | str = "tango",
     wrap: bool = False,
 ) -> list:
     """:func:`render_baked` for every view of the ray ``cache`` traced on the baked mesh: per view
@@ -463,7 +469,7 @@ def render_texture_sets(
     light,
     device="cpu",
     lobe="isotropic",
-    brdf="tango",
+    brdf: Brdf | str = "tango",
 ) -> list:
     """:func:`render_baked_views` of a kept layout (repeating textures) with one decoded texture
     set per group of faces: each hit reads the set of its face (``face_set (F,)``, index into

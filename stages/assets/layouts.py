@@ -30,7 +30,7 @@ from ..core.safefiles import read_json
 from ..geometry.meshio import BUILTIN_PREFIX, TriMesh
 from ..geometry.normalization import Similarity
 from ..geometry.normals import unit_face_normals
-from ..geometry.sourcemesh import LAYOUT_SUFFIXES, SourceMesh, read_source
+from ..geometry.sourcemesh import LAYOUT_SUFFIXES, OBJ_SOURCE, SourceMesh, read_source
 from ..geometry.tangents import CornerFrames, mikktspace
 from ..geometry.uvlayout import LayoutCheck, check_layout, face_tiles, match_faces, udim
 
@@ -165,7 +165,7 @@ def _texture_sets(layout: KeptLayout, size: int, max_overlap: float):
     for several slots each usable alone, one set per slot; else the whole layout's problems. Each
     set is then split by UDIM tile (:func:`_by_tile`)."""
     src = layout.source
-    udim_ok = src.kind == "obj"
+    udim_ok = src.kind == OBJ_SOURCE
     slots = tuple(range(len(src.slot_names)))
     problems = layout.check.problems(max_overlap, udim_ok)
     if not problems:

@@ -1,7 +1,9 @@
 """Levels of detail of a trained cell's asset: each level decimated from the traced mesh, baked from
 the trained field through the traced surface (high-to-low, :func:`~stages.assets.baking.bake_level`),
-exported, graded against the trained field, and recorded as one :class:`LevelRecord`; then all of
-them in one USD with a ``LOD`` variant set and one GLB with ``MSFT_lod``.
+exported in every export format (:func:`~stages.assets.formats.write_asset_files`), graded against
+the trained field, and recorded as one :class:`LevelRecord`; then all of them in one file of each
+format that holds levels (:meth:`~stages.assets.formats.base.Exporter.write_levels`: one USD with a
+``LOD`` variant set, one GLB with ``MSFT_lod``).
 
 Fidelity of each level against the full-resolution neural render (:class:`LevelGrader`): the
 level's textures read through its exported frame, rendered by our renderer from the evaluation
@@ -21,10 +23,10 @@ import numpy as np
 import torch
 from PIL import Image
 
-from ..config.layout import LOD_FILES, TEXTURE_FILES
+from ..config.layout import LEVELS_STEM, TEXTURE_FILES, export_files
 from ..config.sections import BakeSettings, DecimateSettings, ExportSettings, LodSettings
-from ..core.provenance import ORIGIN_KEY, Timer, atomic_path, metadata, write_json_atomic
-from ..core.safefiles import IMAGE_LIMIT, atomic_stream, copy_file, open_read, remove
+from ..core.provenance import ORIGIN_KEY, Timer, metadata, write_json_atomic
+from ..core.safefiles import IMAGE_LIMIT, atomic_stream, copy_file, open_read
 from ..geometry.decimation import decimate_mesh
 from ..geometry.meshio import TriMesh, save_ply
 from ..geometry.normalization import Similarity
@@ -35,17 +37,22 @@ from ..imaging.quality import psnr
 from ..imaging.sheets import save_png
 from ..imaging.views import ViewStore, radiance_at_hits
 from ..render.color import linear_to_srgb
+from . import formats
 from .baking import bake_level, decode_textures, render_baked_views
-from .formats import Level, export_mesh, package_usdz, validate_glb, validate_usd, write_glb, write_model_files, write_usd
+from .formats import AssetInfo, Level, export_mesh, write_asset_files
 
 log = logging.getLogger(__name__)
 
-#: files of the combined asset, in the stage's folder
-COMBINED = tuple(LOD_FILES[k] for k in ("usda", "usdz", "glb"))
 #: what the metadata keeps of each validator's report
 VALIDATION_KEYS = ("ran", "reason", "validators", "validator", "errors", "warnings", "infos", "messages")
-#: the files each decimated level's folder holds besides its textures
-LEVEL_FILES = ("model.glb", "model.usdz", "model.usda", "mesh.ply", "atlas.npz")
+#: the files each decimated level's folder holds besides its textures and its exported files
+LEVEL_FILES = ("mesh.ply", "atlas.npz")
+
+
+def combined_files() -> tuple[str, ...]:
+    """The files of the combined asset, in the stage's folder: one of each suffix of every export
+    format that holds every level in one file (``model_lods.<suffix>``)."""
+    return tuple(export_files(LEVELS_STEM, levels=True).values())
 
 
 @dataclass(frozen=True)
@@ -81,6 +88,11 @@ class LodSource:
     def export_transform(self) -> Similarity | None:
         """The transform the exported geometry takes (None: the normalised frame)."""
         return self.transform if self.export.units == "original" else None
+
+    def asset_info(self) -> AssetInfo:
+        """What every level's files (and the combined ones) write beside their geometry."""
+        brdf, occlusion = self.field.brdf.spec, self.occlusion is not None
+        return AssetInfo(self.export.meters_per_unit, self.name, self.origin, brdf, occlusion, self.export)
 
 
 class LevelGrader:
@@ -226,8 +238,8 @@ def make_lod0(source: LodSource, grader: LevelGrader, staging: Path) -> LevelRec
         vertices_exported=len(geom.positions),
         texture_size=source.full_size,
         bake_seconds=float(source.bake_meta["timings_s"]["bake"]),
-        file_bytes={k: source.export_stats["file_bytes"][k] for k in ("model.glb", "model.usdz")},
-        files="export/model.glb, export/model.usdz (the export stage's)",
+        file_bytes=dict(source.export_stats["file_bytes"]),
+        files=", ".join(f"export/{f}" for f in source.export_stats["file_bytes"]) + " (the export stage's)",
         fidelity=fidelity,
         asset=Level("lod0", geom, "lod0/textures"),
         image=image,
@@ -286,8 +298,8 @@ def make_level(
         texel_coverage=float(res.texels.filled.mean()),
         decimate_seconds=timer.seconds["decimate"],
         bake_seconds=timer.seconds["bake"],
-        file_bytes={f: (staging / tag / f).stat().st_size for f in ("model.glb", "model.usdz")},
-        files=f"lod/{tag}/model.glb, lod/{tag}/model.usdz, lod/{tag}/model.usda",
+        file_bytes={f: (staging / tag / f).stat().st_size for f in export_files().values()},
+        files=", ".join(f"lod/{tag}/{f}" for f in export_files().values()),
         validation=_validation_record(checked),
         fidelity=fidelity,
         asset=Level(tag, geom, f"{tag}/textures"),
@@ -295,13 +307,13 @@ def make_level(
     )
     _write_level_meta(source, record, timer.seconds, settings, staging, out_dir)
     log.info(
-        "%s: %d faces (%.0f%%), %.1f dB against the full neural render (silhouette IoU %.3f), %d bytes GLB",
+        "%s: %d faces (%.0f%%), %.1f dB against the full neural render (silhouette IoU %.3f); %s",
         tag,
         record.faces,
         100 * plan.fraction,
         fidelity["fidelity_psnr_db"],
         fidelity["silhouette_iou"],
-        record.file_bytes["model.glb"],
+        ", ".join(f"{f} {n} bytes" for f, n in record.file_bytes.items()),
     )
     return record
 
@@ -318,49 +330,24 @@ def _write_level(source: LodSource, folder: Path, low: TriMesh, res):
     with atomic_stream(folder / "atlas.npz") as fh:
         np.savez(fh, uv=res.texels.atlas.uv.astype(np.float32), **res.frames.arrays())
     geom = export_mesh(low, {"uv": res.texels.atlas.uv, **res.frames.arrays()}, source.export_transform, source.export.weld)
-    mpu, root, brdf = source.export.meters_per_unit, source.export.usdz_root, source.field.brdf
-    checked = write_model_files(
-        folder, geom, mpu, root, source.name, source.origin, brdf=brdf, occlusion=source.occlusion is not None
-    )
-    return geom, checked
+    return geom, write_asset_files(folder, geom, source.asset_info())
 
 
-def _validation_record(checked: dict) -> dict:
+def _validation_record(reports: dict[str, dict]) -> dict:
     """What the metadata keeps of a level's validator reports, per file."""
-    return {
-        **{r["file"]: {k: r[k] for k in VALIDATION_KEYS if k in r} for r in checked["usd"]},
-        "model.glb": {k: checked["gltf"][k] for k in VALIDATION_KEYS if k in checked["gltf"]},
-    }
+    return {name: {k: r[k] for k in VALIDATION_KEYS if k in r} for name, r in reports.items()}
 
 
 def write_combined(source: LodSource, staging: Path, records: list[LevelRecord], coverage: list[float]) -> dict:
-    """All levels in one USD (variant set ``LOD``) and one GLB (``MSFT_lod``, switching at
-    ``coverage``), validated; returns the validators' reports per file."""
-    export, brdf, ao = source.export, source.field.brdf, source.occlusion is not None
-    levels = [r.asset for r in records]
-    copy_file(source.bake_dir / "light.exr", staging / "light.exr", remedy="Run the bake stage again.")
-    switch = {"tango_stylize_lod": {"levels": [r.level for r in records], "msft_screencoverage": coverage}}
-    with atomic_path(staging / "model_lods.usda") as tmp:
-        remove(tmp)
-        write_usd(tmp, levels, export.meters_per_unit, "light.exr", source.origin, switch, brdf=brdf, occlusion=ao)
-    files = [f"{lv.textures}/{key}.png" for lv in levels for key in TEXTURE_FILES] + ["light.exr"]
-    package_usdz(staging / "model_lods.usda", staging / "model_lods.usdz", files, export.usdz_root)
-    lods = [(lv.geom, staging / lv.textures) for lv in levels[1:]]
-    write_glb(
-        staging / "model_lods.glb",
-        levels[0].geom,
-        staging / "lod0" / "textures",
-        export.meters_per_unit,
-        source.name,
-        source.origin,
-        lods=lods,
-        screen_coverage=coverage,
-        brdf=brdf,
-        occlusion=ao,
-    )
-    checked = {rel: validate_usd(staging / rel) for rel in ("model_lods.usda", "model_lods.usdz")}
-    checked["model_lods.glb"] = validate_glb(staging / "model_lods.glb")
-    return checked
+    """All levels in one file of each format that holds levels (one USD with a variant set
+    ``LOD``, one GLB with ``MSFT_lod``, switching at ``coverage``), validated; returns the
+    validators' reports per file."""
+    levels, info = [r.asset for r in records], source.asset_info()
+    copy_file(source.bake_dir / "light.exr", staging / info.light, remedy="Run the bake stage again.")
+    holding = [e for e in formats.exporters() if e.spec.levels_in_one_file]
+    for exporter in holding:
+        exporter.write_levels(staging, levels, info, coverage)
+    return {name: r for exporter in holding for name, r in exporter.validate(staging, LEVELS_STEM).items()}
 
 
 def _write_level_meta(
@@ -374,7 +361,7 @@ def _write_level_meta(
             stage="lod",
             settings=source.export.to_dict(),
             inputs=source.inputs,
-            outputs={f: out_dir / tag / f for f in LEVEL_FILES},
+            outputs={f: out_dir / tag / f for f in (*export_files().values(), *LEVEL_FILES)},
             timings=timings,
             extra={"stats": record.row(), "lod_settings": settings.to_dict(), ORIGIN_KEY: source.origin},
         ),

@@ -27,6 +27,7 @@ import dataclasses
 import json
 import logging
 import re
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from urllib.parse import unquote, urlsplit
@@ -34,12 +35,15 @@ from urllib.parse import unquote, urlsplit
 import numpy as np
 from PIL import Image
 
+from ..config.brdfs import BrdfSpec, brdf_spec
+from ..config.layout import EXPORT_FILES, export_format_of
 from ..core.provenance import ORIGIN_METADATA_KEY, atomic_path
 from ..core.safefiles import IMAGE_LIMIT, open_read, plain_file, read_bytes
 from ..geometry.normalization import Similarity
-from ..geometry.sourcemesh import ObjLines, SourceMesh, load_gltf_document
+from ..geometry.sourcemesh import GLTF_SOURCE, ObjLines, SourceMesh, load_gltf_document
 from ..geometry.tangents import mikktspace
-from .formats import ExportMesh, GlbBuffer, export_mesh, glb_material, glb_sampler
+from .formats.gltf import GlbBuffer, glb_material, glb_sampler
+from .formats.mesh import ExportMesh, export_mesh
 
 log = logging.getLogger(__name__)
 
@@ -93,7 +97,7 @@ class AssetGeometry:
     surface where the bake kept its layout (``kept``), the metres per unit the files state, and
     ``own_frame``: positions are the input's own (``x_original``; a glTF input's document always,
     an OBJ's with ``export.units: original``) rather than the export space of a new atlas
-    (``R x_original``, +Y up: :mod:`stages.assets.formats`) or the normalised frame."""
+    (``R x_original``, +Y up: :mod:`stages.assets.formats.mesh`) or the normalised frame."""
 
     geom: ExportMesh
     kept: SourceMesh | None
@@ -112,7 +116,7 @@ def asset_geometry(mesh, atlas: dict, transform: Similarity, settings, kept: Sou
     if kept is None:
         geom = export_mesh(mesh, atlas, transform if original else None, settings.weld)
         return AssetGeometry(geom, None, settings.meters_per_unit, False)
-    if kept.kind == "gltf":
+    if kept.kind == GLTF_SOURCE:
         return AssetGeometry(kept_geometry(kept, None, materials), kept, 1.0, True)
     geom = kept_geometry(kept, None if original else transform, materials)
     return AssetGeometry(geom, kept, settings.meters_per_unit, original)
@@ -132,7 +136,9 @@ def kept_corner_tangents(atlas: dict, transform: Similarity | None = None) -> np
 
 
 # ------------------------------------------------------------------------------------------ OBJ
-def write_obj(folder: Path, geom: ExportMesh, source: SourceMesh, transform: Similarity | None, brdf: str) -> list[str]:
+def write_obj(
+    folder: Path, geom: ExportMesh, source: SourceMesh, transform: Similarity | None, brdf: BrdfSpec | str
+) -> list[str]:
     """``model.obj`` and ``model.mtl`` in ``folder`` (which holds ``textures/``), and the grey
     channel images the MTL reads (module docstring), for ``geom`` (:func:`kept_geometry` of
     ``source``: its slots and texture sets); returns the files written (relative)."""
@@ -190,25 +196,51 @@ def obj_lines(source: SourceMesh, transform: Similarity | None, geom: ExportMesh
     return out
 
 
-def mtl_text(names: tuple[str, ...], folders: list[str], brdf: str) -> str:
+def mtl_text(names: tuple[str, ...], folders: list[str], brdf: BrdfSpec | str) -> str:
     """One material per name reading its texture set (in ``textures/<folder>``): base colour,
-    roughness, normal map, and TANGO's specular colour or glTF's metallic."""
+    roughness, normal map, and the BRDF's specular parameter (``brdf.mtl_lines``: TANGO's specular
+    colour or glTF's metallic)."""
+    brdf = brdf_spec(brdf)
     blocks = []
     for name, sub in zip(names, folders, strict=True):
         t = "/".join(p for p in ("textures", sub) if p)
         lines = [f"newmtl {name}", "Kd 1 1 1", "Pr 1", f"map_Kd {t}/basecolor.png", f"map_Pr {t}/roughness.png"]
-        if brdf == "gltf":
-            lines += ["Pm 1", "Ks 0 0 0", f"map_Pm {t}/metallic.png"]
-        else:
-            lines += ["Pm 0", "Ks 1 1 1", f"map_Ks {t}/specular.png"]
+        lines += brdf.mtl_lines(t)
         lines += [f"map_Bump -bm 1 {t}/normal.png", f"norm {t}/normal.png"]
         blocks.append("\n".join(lines))
     return "# tango-stylize: the baked texture sets, one material per input material\n" + "\n\n".join(blocks) + "\n"
 
 
 # ----------------------------------------------------------------------------------------- glTF
+#: the file a glTF input's own document is written as, and the export format whose writer it
+#: stands in for (:func:`own_document`)
+DOCUMENT_FILE = EXPORT_FILES["glb"]
+DOCUMENT_FORMAT = export_format_of("glb").name
+
+
+def own_document(
+    source: SourceMesh, origin: dict, brdf: BrdfSpec | str, occlusion: bool, folders: tuple[str, ...], changed: list[str]
+) -> dict[str, Callable[[Path], None]]:
+    """The writer of a glTF input's own document (:func:`write_document_glb` into a folder's
+    :data:`DOCUMENT_FILE`, reading the folder's ``textures/``) in place of its format's writer, as
+    :func:`stages.assets.formats.write_asset_files` takes it (``instead``); each change to the
+    document is appended to ``changed``."""
+
+    def write(folder: Path) -> None:
+        folder = Path(folder)
+        changed.extend(write_document_glb(folder / DOCUMENT_FILE, source, folder / "textures", origin, brdf, occlusion, folders))
+
+    return {DOCUMENT_FORMAT: write}
+
+
 def write_document_glb(
-    path: Path, source: SourceMesh, textures_dir: Path, origin: dict, brdf: str, occlusion: bool, folders: tuple[str, ...] = ()
+    path: Path,
+    source: SourceMesh,
+    textures_dir: Path,
+    origin: dict,
+    brdf: BrdfSpec | str,
+    occlusion: bool,
+    folders: tuple[str, ...] = (),
 ) -> list[str]:
     """``model.glb``: the input glTF document with its textured primitives' materials replaced by
     ones reading the baked texture sets (module docstring; ``folders``: each slot's set below
@@ -217,6 +249,7 @@ def write_document_glb(
     (:func:`drop_local_paths`); each change is logged and returned, one line each."""
     import pygltflib as g
 
+    brdf = brdf_spec(brdf)
     doc, blobs = load_gltf_document(source.path)
     buffer = GlbBuffer(g)
     _merge_buffers(doc, blobs, buffer)
@@ -247,10 +280,7 @@ def write_document_glb(
     notes += drop_local_paths(doc)
     for note in notes:
         log.warning("%s: %s", Path(source.path).name, note)
-    used = set(doc.extensionsUsed or [])
-    if brdf != "gltf":
-        used.add("KHR_materials_specular")
-    doc.extensionsUsed = sorted(used)
+    doc.extensionsUsed = sorted(set(doc.extensionsUsed or []) | set(brdf.gltf_extensions))
     extras = doc.asset.extras if isinstance(doc.asset.extras, dict) else {}
     doc.asset.extras = {**extras, ORIGIN_METADATA_KEY: origin}
     blob = b"".join(buffer.blobs)

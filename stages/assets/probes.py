@@ -7,7 +7,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..geometry.probes import PROBE_GLB_FACES
-from .formats import validate_glb, validate_usd
+from .formats.gltf import validate_glb
+from .formats.usd import validate_usd
 
 
 def probe_usd(folder: Path) -> str:

@@ -31,7 +31,7 @@ renders, because no CLIP weights reach our machines), so:
 
 On Mitsuba's ground truth the sweep's one mesh cannot choose between them (seeds spread by up to
 2 dB there, and the built-in vase is the one mesh where ``balanced`` loses);
-``benchmarks/recovery.py`` measures both on the built-in and the shared meshes (``balanced``
+``benchmarks/quality/recovery.py`` measures both on the built-in and the shared meshes (``balanced``
 ahead by 1.8-3.6 dB on ten of eleven for 2.6x the time, 2026-11-22; docs/measurements/recovery.md).
 
 The demo scripts also move the camera closer for metals (radius 1.5); the camera radius is a

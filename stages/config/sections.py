@@ -19,11 +19,15 @@ import math
 from dataclasses import dataclass, fields
 from functools import cache
 from pathlib import Path
-from typing import Any, ClassVar, Literal, get_args
+from typing import Annotated, Any, ClassVar, Literal, get_args
 
 from ..core.errors import StageInputError
 from ..core.safefiles import read_json
 from ..core.settings import Settings, Spec, setting
+from .brdfs import BRDFS as BRDF_SPECS
+from .brdfs import stray_settings
+from .guidance_modes import GUIDANCE_DOC, GUIDANCE_MODES, GuidanceMode, GuidanceName, guidance_mode
+from .layout import BLENDER_IMPORTS
 
 #: the input up axes the normalize stage can turn into +y
 UpAxis = Literal["+y", "-y", "+z", "-z", "+x", "-x"]
@@ -33,16 +37,15 @@ Material = Literal["wood", "metal", "chrome", "plaster"]
 MATERIALS = get_args(Material)
 TargetLight = Literal["studio", "sky"]
 LIGHTS = get_args(TargetLight)
-#: how the learned light's lobes start (:func:`stages.model.networks.initial_sharpness`)
+#: how the learned light's lobes start (:func:`stages.model.lights.sg.initial_sharpness`)
 LightInit = Literal["broad", "tango", "spread"]
 LIGHT_INITS = get_args(LightInit)
 #: the optimisation's light: learned with the material, or the SG fit of a known environment
 LightMode = Literal["learn", "fixed"]
 LIGHT_MODES = get_args(LightMode)
-#: the BRDF models (:mod:`stages.render.shading`)
-Brdf = Literal["tango", "gltf"]
-BRDFS = get_args(Brdf)
-#: the specular models of :func:`stages.render.shading.shade`
+#: the BRDF models, one row each in :mod:`stages.config.brdfs` (their objects: :mod:`stages.render.brdf`)
+Brdf = Annotated[str, BRDF_SPECS]  # the table's names, in its order, when a value is checked
+#: the specular models (:meth:`stages.render.brdf.Brdf.shade`; each BRDF's own: ``BrdfSpec.lobes``)
 SpecularLobe = Literal["isotropic", "split_sum", "fitted"]
 SPECULAR_LOBES = get_args(SpecularLobe)
 #: off / auto / on switches (YAML's bare on/off, booleans, mean the same)
@@ -68,8 +71,9 @@ DECIMATE_MODES = get_args(DecimateMode)
 #: Mitsuba variants the target stage may use ("auto": LLVM when a usable libLLVM is found)
 MitsubaVariant = Literal["auto", "scalar_rgb", "llvm_ad_rgb"]
 MITSUBA_VARIANTS = get_args(MitsubaVariant)
-#: asset formats the Blender round trip imports, and the light transport of its Cycles renders
-RoundtripFormat = Literal["glb", "usdz"]
+#: the exported files the Blender round trip may import, by suffix (the export formats' table,
+#: :data:`stages.config.layout.EXPORT_FORMATS`), and the light transport of its Cycles renders
+RoundtripFormat = Literal[BLENDER_IMPORTS]
 ROUNDTRIP_FORMATS = get_args(RoundtripFormat)
 Transport = Literal["direct_unshadowed", "full"]
 ROUNDTRIP_TRANSPORTS = get_args(Transport)
@@ -371,6 +375,13 @@ class TargetSettings(Settings):
         return problems
 
 
+#: the mark of a field setting that changes the compiled renderer's graph (its BRDF, lobe model,
+#: inputs needing gradients...): the model layer's kind of a compiled renderer, by which a
+#: compilation made before on a machine is found, is read from the settings so marked
+#: (:func:`stages.model.compiled.renderer_kind`)
+COMPILED_RENDERER = "compiled renderer"
+
+
 @dataclass(frozen=True, kw_only=True)
 class FieldSettings(Settings):
     """The settings the stylisation field (:class:`~stages.model.field.StyleField`) is built from:
@@ -411,7 +422,9 @@ class FieldSettings(Settings):
     )
     min_roughness: float = setting(0.01, "lower end of the roughness range [min_roughness, 1]", gt=0, lt=1)
     normal_network: bool = setting(
-        True, "learn the normal-offset network (false: shade with the mesh's normals, the paper's ablation)"
+        True,
+        "learn the normal-offset network (false: shade with the mesh's normals, the paper's ablation)",
+        marks=(COMPILED_RENDERER,),
     )
     normal_encoding: Encoding = setting("nerf", "positional encoding of the normal network (as material_encoding)")
     normal_frequencies: int = setting(10, "nerf encoding of the normal network: frequencies 2^k pi for k below this", ge=0, le=24)
@@ -437,7 +450,7 @@ class FieldSettings(Settings):
         20.0, "hash grid: the table's optimiser step as a multiple of the networks'", gt=0, le=10000
     )
     light_lobes: int = setting(32, "SG lobes of the learned environment light (TANGO: 32 or 64)", ge=1, le=1024)
-    light_rgb: bool = setting(True, "an RGB amplitude per lobe (false: monochrome light)")
+    light_rgb: bool = setting(True, "an RGB amplitude per lobe (false: monochrome light)", marks=(COMPILED_RENDERER,))
     light_energy: float = setting(
         6.25, "the light's total energy at the start, the sum of its lobes' sphere integrals (TANGO: 6.25)", gt=0, le=1e6
     )
@@ -459,11 +472,13 @@ class FieldSettings(Settings):
         "or gltf (glTF 2.0's metallic-roughness BRDF: base colour, metallic, roughness; needs specular_lobe fitted "
         "or split_sum); bake and export write what was trained; tango for TANGO's model "
         "and a diffuse-only field (specular: false)",
+        marks=(COMPILED_RENDERER,),
     )
     specular_lobe: SpecularLobe = setting(
         "fitted",
         "specular model: isotropic (TANGO's closed form), split_sum (exact energy, tabulated directional albedo) or "
         "fitted (exact energy, a lobe fitted to the BRDF's moments, corrected by the BRDF at each light lobe)",
+        marks=(COMPILED_RENDERER,),
     )
     shading_normals: ShadingNormals = setting(
         "smooth",
@@ -474,6 +489,7 @@ class FieldSettings(Settings):
         True,
         "cast shadows where the ray cache holds visibility (raycache.visibility): each light lobe scaled by its "
         "visible share; false: TANGO's unshadowed shading (an ablation switch)",
+        marks=(COMPILED_RENDERER,),
     )
     crease_angle_deg: float = setting(
         60.0, "smooth normals: an edge whose faces' normals differ by more than this angle (degrees) stays sharp", ge=0, le=180
@@ -492,24 +508,31 @@ class FieldSettings(Settings):
             )
         if self.hashgrid_min_resolution > self.hashgrid_max_resolution:
             p.append("optimize.hashgrid_min_resolution must not exceed hashgrid_max_resolution")
-        if self.brdf == "gltf" and self.specular_lobe == "isotropic":
+        return p + self.brdf_relations()
+
+    def brdf_relations(self) -> list[str]:
+        """The problems of the settings against the BRDF's row (:mod:`stages.config.brdfs`): a
+        specular model it does not have, no specular heads where it needs them, and a setting that
+        only another BRDF reads (of this class's fields, and of a subclass's)."""
+        spec, lobe = BRDF_SPECS[self.brdf], self.specular_lobe
+        defaults = {f.name: f.default for f in fields(self)}
+        named = f"brdf {self.brdf}" + (" (the default)" if self.brdf == defaults["brdf"] else "")
+        p = []
+        if lobe not in spec.lobes:
+            others = [s.name for s in BRDF_SPECS.values() if lobe in s.lobes]
             p.append(
-                "optimize: brdf gltf (the default) has no isotropic specular model (TANGO's closed form); "
-                "use specular_lobe fitted or split_sum, or set brdf: tango"
+                f"optimize: {named} has no {lobe} specular model; use specular_lobe {' or '.join(spec.lobes)}, "
+                f"or set brdf: {' or '.join(others)}"
             )
-        elif self.brdf == "gltf" and not self.specular:
+        elif not self.specular and not spec.diffuse_only:
+            heads = " and ".join(spec.parameters[1:])
+            others = [s.name for s in BRDF_SPECS.values() if s.diffuse_only]
             p.append(
-                "optimize: brdf gltf (the default) needs its metallic and roughness heads: set "
-                "specular: true, or brdf: tango for a diffuse-only field"
+                f"optimize: {named} needs its {heads} heads: set specular: true, or brdf: {' or '.join(others)} "
+                "for a diffuse-only field"
             )
-        elif self.brdf == "gltf" and self.init_specular is not None:
-            p.append(
-                "optimize.init_specular is TANGO's specular colour, which brdf gltf (the "
-                "default) does not have: remove it, or set brdf: tango"
-            )
-        if self.init_metallic is not None and self.brdf != "gltf":
-            p.append("optimize.init_metallic is glTF's metallic, which brdf tango does not have: remove it, or set brdf: gltf")
-        return p
+        values = {f.name: getattr(self, f.name) for f in fields(self)}
+        return p + stray_settings(self.brdf, values, defaults, named)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -601,9 +624,7 @@ class OptimizeSettings(ClipChoice, FieldSettings):
         "each step's hits; 0 switches it off (nothing to act on without normal_network)",
         **PRIOR_WEIGHT,
     )
-    guidance: Literal["clip", "image"] = setting(
-        "clip", "clip (CLIP similarity with the prompt) or image (squared error against image targets of target_material)"
-    )
+    guidance: GuidanceName = setting("clip", GUIDANCE_DOC)
     clip_model: str = setting(
         "ViT-B-32",
         "open_clip architecture of the guidance CLIP (ViT-B-32-quickgelu for the OpenAI weights from a local file)",
@@ -705,7 +726,7 @@ class OptimizeSettings(ClipChoice, FieldSettings):
         """``image_size: null`` becomes the guidance CLIP's input size (:func:`clip_input_size`), or 224
         (the paper's, ViT-B-32's) where it is not known or no CLIP guides; then the checks."""
         if self.image_size is None:
-            known = isinstance(self.clip_model, str) and isinstance(self.clip_tiny_test, bool) and self.guidance == "clip"
+            known = isinstance(self.clip_model, str) and isinstance(self.clip_tiny_test, bool) and self._clip_guided()
             size = clip_input_size(self.clip_model, self.clip_tiny_test) if known else None
             object.__setattr__(self, "image_size", size or 224)
         super().__post_init__()
@@ -723,15 +744,13 @@ class OptimizeSettings(ClipChoice, FieldSettings):
             )
         if self.light_map is not None:
             p += environment_problems("optimize.light_map", self.light_map)
-        if self.metallic_binary > 0 and self.brdf != "gltf":
-            p.append("optimize.metallic_binary is a prior on glTF's metallic: set brdf: gltf, or metallic_binary: 0")
         if self.light == "fixed" and self.light_neutral > 0:
             p.append("optimize.light_neutral is a prior on a learned light; a fixed light (light: fixed) does not move")
         if self.light == "fixed" and self.light_prune_after is not None:
             p.append("optimize.light_prune_after prunes a learned light; a fixed light (light: fixed) keeps its fitted lobes")
         if self.light == "fixed" and not self.light_rgb:
             p.append("optimize: light: fixed needs light_rgb: true (the map's colour is part of the light)")
-        size = clip_input_size(self.clip_model, self.clip_tiny_test) if self.guidance == "clip" else None
+        size = clip_input_size(self.clip_model, self.clip_tiny_test) if self.guidance_mode().uses_clip else None
         if size is not None and size != self.image_size:
             clip = "the tiny test CLIP" if self.clip_tiny_test else self.clip_model
             p.append(
@@ -739,6 +758,18 @@ class OptimizeSettings(ClipChoice, FieldSettings):
                 f"set image_size: {size}"
             )
         return p
+
+    def guidance_mode(self) -> GuidanceMode:
+        """The guidance mode of ``guidance`` (:mod:`stages.config.guidance_modes`)."""
+        return guidance_mode(self.guidance)
+
+    def _clip_guided(self) -> bool:
+        """Whether a CLIP guides (False for a guidance that is not a mode: the checks name it)."""
+        return self.guidance in GUIDANCE_MODES and GUIDANCE_MODES[self.guidance].uses_clip
+
+    def mitsuba_targets(self) -> bool:
+        """Whether the optimisation trains on Mitsuba's image targets (the target stage's)."""
+        return self.guidance_mode().mitsuba_targets(self.target_renderer)
 
     def digest(self) -> str:
         """Hash of the settings that shape training (a checkpoint resumes only under the same)."""

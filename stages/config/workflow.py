@@ -570,7 +570,7 @@ class WorkflowConfig:
         specs = set()
         for c in self.cells:
             s = self.optimize_settings(c.prompt, c.variant)
-            if s.guidance == "clip" and not s.clip_tiny_test:
+            if s.guidance_mode().uses_clip and not s.clip_tiny_test:
                 specs.add(s.clip_spec())
             m = self.cell_stage_settings("metrics", c.prompt, c.variant)
             if m.clip and not m.clip_tiny_test:
@@ -581,9 +581,7 @@ class WorkflowConfig:
         """The procedural material whose Mitsuba targets a cell trains on, or None when the cell
         needs none (CLIP guidance, or image targets rendered by our own SG renderer)."""
         s = self.optimize_settings(prompt_id, variant_id)
-        if s.guidance == "image" and s.target_renderer == "mitsuba":
-            return s.target_material
-        return None
+        return s.target_material if s.mitsuba_targets() else None
 
     def target_jobs(self, meshes: set[str] | None = None) -> list[tuple[str, str]]:
         """The Mitsuba target jobs of this config, one per ``(mesh, material)`` that some cell

@@ -52,7 +52,7 @@ def bf16_support(device: torch.device) -> tuple[bool, str]:
     """Whether bfloat16 autocast runs natively on ``device``, and why: on a GPU that has it (Ampere
     and later; emulated bfloat16 on older GPUs is slower than float32); on a CPU when
     oneDNN has bfloat16 kernels for it (AVX-512 BF16 or AMX, as on this project's machines), where
-    bfloat16 matrix products run several times faster than float32 ones (benchmarks/optimize.py);
+    bfloat16 matrix products run several times faster than float32 ones (benchmarks/training/optimize.py);
     elsewhere emulated bfloat16 would be slower than float32, so it is not used."""
     import torch
 
@@ -96,14 +96,14 @@ def bf16_choice(setting: str | bool, device: torch.device, what: str) -> tuple[b
 #: machine where it has not been compiled before: the first compilation took 75-85 s on this
 #: project's 2-core CPU (an empty inductor cache) and saves 0.045 s per step at the ``fast``
 #: preset's 17,000 points and 16 lobes, 0.14 s at the paper's 25,000 points and 32 lobes
-#: (docs/measurements/speed.md, ``benchmarks/fast_step.py``): it pays from about 1,000 steps
+#: (docs/measurements/speed.md, ``benchmarks/training/fast_step.py``): it pays from about 1,000 steps
 COMPILE_MIN_ITERATIONS = 1000
 #: ... and for runs of at least this many where the same renderer has been compiled before on this
 #: machine (inductor's and AOTAutograd's caches warm: 3 s, repaid after about 70 ``fast`` steps)
 COMPILE_MIN_ITERATIONS_WARM = 100
 #: ... and on CUDA (Triton), warm or not, for runs of at least this many: on an H200 the paper step's
 #: first compilation took 82 s and the compiled renderer's step 0.065 s against the eager one's 0.127 s
-#: (``benchmarks/gpu.py --levers "float32,compiled renderer"``, docs/measurements/speed.md): repaid
+#: (``python -m benchmarks.training.gpu --levers "float32,compiled renderer"``, docs/measurements/speed.md): repaid
 #: after 82 / 0.062 = about 1,310 steps, rounded up to 1,400 for one run's spread (the paper's 1,500
 #: compile); a compilation read from a warm cache has not been timed on CUDA, so it counts as cold
 COMPILE_MIN_ITERATIONS_CUDA = 1400
@@ -194,46 +194,10 @@ def use_inductor_cache() -> None:
     os.environ["TORCHINDUCTOR_CACHE_DIR"] = str(folder / f"{CPU_FOLDER_PREFIX}{cpu_isa()}")
 
 
-def renderer_kind(settings, shadowed: bool | None = None, light_learns: bool | None = None) -> str:
-    """What the compiled renderer's graph depends on beyond its code, from a field's settings
-    (``brdf``, ``specular_lobe``, ``shadows``, ``light_rgb``, ``normal_network``): the BRDF, the
-    lobe model, whether it is given shadows (``shadowed``; None: as the settings ask, which a ray
-    cache without visibility overrides), the light's channels and whether the shading normal takes
-    a gradient (a normal network predicts it: its backward differs; without it in the kind, the
-    ``fast`` preset, which has none, was marked warm by the paper's compilation and compiled for
-    67 s), and whether the light learns (``light_learns``; None: as the settings' ``light`` says
-    where they have it, the optimisation's, else learned): a fixed light takes no gradient. The
-    numbers of points and lobes are free in it."""
-    shadows = "shadows" if (settings.shadows if shadowed is None else shadowed) else "no shadows"
-    light = "RGB" if settings.light_rgb else "monochrome"
-    normals = "learned normals" if settings.normal_network else "fixed normals"
-    learns = getattr(settings, "light", "learn") == "learn" if light_learns is None else light_learns
-    light += " learned" if learns else " fixed"
-    return f"{settings.brdf} BRDF, {settings.specular_lobe} lobe, {shadows}, {light} light, {normals}"
-
-
-#: the compiled renderer's code and data, relative to the ``stages`` package: a change to any of
-#: them makes its compilation new
-RENDERER_SOURCES = ("render/*.py", "render/data/*.npz", "model/field.py", "model/networks.py")
-
-
-@functools.cache
-def _renderer_sources_digest() -> str:
-    """sha256 of :data:`RENDERER_SOURCES`' contents (read once per process: the doctor asks for
-    every cell of a grid)."""
-    import hashlib
-
-    package = Path(__file__).resolve().parents[1]
-    digest = hashlib.sha256()
-    for pattern in RENDERER_SOURCES:
-        for source in sorted(package.glob(pattern)):
-            digest.update(read_bytes(source, RECORD_LIMIT))
-    return digest.hexdigest()
-
-
-def _compile_marker(kind: str, device: torch.device) -> Path:
-    """The file that says the renderer of ``kind`` (this code and tables, this torch and Python)
-    has been compiled into this machine's inductor cache (:func:`use_inductor_cache`)."""
+def _compile_marker(kind: str, device: torch.device, sources: str) -> Path:
+    """The file that says a program of ``kind`` built from ``sources`` (a digest of its code and
+    data, the caller's), with this torch and Python, has been compiled into this machine's
+    inductor cache (:func:`use_inductor_cache`)."""
     import hashlib
     import sys
 
@@ -241,29 +205,31 @@ def _compile_marker(kind: str, device: torch.device) -> Path:
     from torch._inductor.runtime.cache_dir_utils import cache_dir
 
     use_inductor_cache()
-    parts = (torch.__version__, sys.version, device.type, kind, _renderer_sources_digest())
+    parts = (torch.__version__, sys.version, device.type, kind, sources)
     digest = hashlib.sha256("\0".join(parts).encode())
     return Path(cache_dir()) / "stages-renderer" / digest.hexdigest()[:24]
 
 
-def compiled_before(kind: str, device: torch.device) -> bool:
-    """Whether the renderer of ``kind`` has been compiled on this machine before, by this code:
-    its compilation is then read from inductor's and AOTAutograd's caches (3 s against 75-86 s).
-    The caches may have been emptied since; the next compilation then pays in full, once."""
+def compiled_before(kind: str, device: torch.device, sources: str) -> bool:
+    """Whether a program of ``kind`` (what its graph depends on beyond its code, in the caller's
+    words) built from ``sources`` (a digest of that code, the caller's) has been compiled on this
+    machine before: its compilation is then read
+    from inductor's and AOTAutograd's caches (3 s against 75-86 s for the renderer). The caches
+    may have been emptied since; the next compilation then pays in full, once."""
     import torch
 
     try:
-        return _compile_marker(kind, torch.device(device)).is_file()
+        return _compile_marker(kind, torch.device(device), sources).is_file()
     except OSError as exc:  # a cache folder that cannot be made: as if never compiled
         log.debug("no inductor cache to look in: %s", exc)
         return False
 
 
-def mark_compiled(kind: str, device: torch.device) -> None:
+def mark_compiled(kind: str, device: torch.device, sources: str) -> None:
     """Leave :func:`compiled_before`'s mark after a successful compilation (written whole or not
     at all; a cache that cannot be written only means the next run decides as if it were cold)."""
     try:
-        marker = _compile_marker(kind, device)
+        marker = _compile_marker(kind, device, sources)
         with atomic_path(marker) as part:
             part.write_text(f"{kind}\n")
     except (OSError, StageInputError) as exc:
@@ -274,9 +240,8 @@ def compile_support(device: torch.device) -> tuple[bool, str]:
     """Whether torch.compile can build the renderer for ``device``, and why: on a CPU it needs a
     C++ compiler (:func:`cpp_compiler`) and the Python headers (:func:`python_headers`); on a GPU,
     Triton; on either, a platform and Python that torch.compile supports (dynamo's own check:
-    it has refused Windows and new Pythons in some releases). (What can still fail,
-    :meth:`~stages.model.field.StyleField.use_compiled_shading` finds by compiling once, and then
-    runs eager.)"""
+    it has refused Windows and new Pythons in some releases). (What can still fail, the caller
+    finds by compiling once, and then runs eager.)"""
     import torch._dynamo
 
     if not torch._dynamo.is_dynamo_supported():
@@ -352,13 +317,6 @@ def compile_networks_choice(setting: str | bool, device: torch.device, renderer:
     return False, f"compile_networks auto: on a CPU one graph was measured no faster ({precision} networks here)"
 
 
-def static_kind(points: int, lobes: int) -> str:
-    """What the one graph's kind (:func:`networks_kind`) adds when it has static shapes, compiled
-    for ``points`` points and ``lobes`` light lobes: each size is another compilation
-    (:func:`compile_plan`, :meth:`~stages.model.field.StyleField.use_compiled_shading`)."""
-    return f", static shapes of {points} points and {lobes} lobes"
-
-
 def compile_static_choice(setting: str | bool, device: torch.device, whole: bool) -> tuple[bool, str]:
     """Whether the one graph (networks and renderer, :func:`compile_networks_choice`) is compiled for
     a fixed number of points (``optimize.compile_static``: one of :data:`BF16_CHOICES`; booleans
@@ -388,17 +346,16 @@ def compile_plan(
     settings: tuple[str | bool, ...],
     device: torch.device,
     iterations: int,
-    kinds: tuple[str, str],
+    kinds: tuple[str, str, str],
     bf16_networks: bool,
-    static_shape: tuple[int, int] = (0, 0),
+    sources: str,
 ) -> tuple[bool, bool, bool, str]:
     """What training compiles, as planned before any compilation: ``settings`` are
     ``(compile_shading, compile_networks[, compile_static])`` (``compile_static`` off where left
-    out), ``kinds`` the renderer's (:func:`renderer_kind`) and the whole graph's (the same plus
-    :func:`networks_kind`), whose marks say whether the compilation would be read from the caches
-    (the whole graph's where the networks would be in it; with static shapes, of ``static_shape``'s
-    points and lobes, :func:`static_kind`: sizes unknown, as the doctor's before any ray cache
-    exists, count as not compiled before). Returns whether the renderer is
+    out), ``kinds`` those of the renderer alone, of the one graph of the networks and the renderer
+    with free shapes and of that graph with static shapes (the caller's words), whose marks
+    (:func:`compiled_before`, with the digest of their ``sources``) say whether the compilation would be read from the caches (the
+    one graph's where the networks would be in it). Returns whether the renderer is
     compiled, whether the networks are in its graph, whether that graph has static shapes (CUDA
     graphs on CUDA), and what runs, for the metadata, the plan and the doctor
     (:func:`compile_choice`'s words, or ``"torch.compile, networks and renderer in one graph
@@ -406,8 +363,8 @@ def compile_plan(
     shading, networks, static_setting = (*settings, "off")[:3]
     wanted = compile_networks_choice(networks, device, True, bf16_networks)[0]
     static_wanted = compile_static_choice(static_setting, device, True)[0]
-    whole_kind = kinds[1] + (static_kind(*static_shape) if static_wanted else "")
-    renderer, path = compile_choice(shading, device, iterations, compiled_before(whole_kind if wanted else kinds[0], device))
+    kind = (kinds[2] if static_wanted else kinds[1]) if wanted else kinds[0]
+    renderer, path = compile_choice(shading, device, iterations, compiled_before(kind, device, sources))
     whole, why = compile_networks_choice(networks, device, renderer, bf16_networks)
     static, static_why = compile_static_choice(static_setting, device, whole)
     if whole:
@@ -416,18 +373,6 @@ def compile_plan(
         graph = " as CUDA graphs" if static and device.type == "cuda" else ", static shapes" if static else ""
         path = f"torch.compile, networks and renderer in one graph{graph} ({reasons})"
     return renderer, whole, static, path
-
-
-def networks_kind(field_settings, bf16: bool) -> str:
-    """What the networks compiled into the renderer's graph depend on (to add to
-    :func:`renderer_kind`): their settings (encodings, widths, heads, normal network; every field
-    setting but the seed, which changes only the starting values) and their precision."""
-    import dataclasses
-    import hashlib
-
-    fields = {k: v for k, v in dataclasses.asdict(field_settings).items() if k != "seed"}
-    digest = hashlib.sha256(repr(sorted(fields.items())).encode()).hexdigest()[:12]
-    return f"networks {digest} in the graph, {'bfloat16' if bf16 else 'float32'}"
 
 
 def precision_summary(bf16: str | bool, bf16_networks: str | bool, device: torch.device, reason: bool = True) -> str:

@@ -157,27 +157,36 @@ ORIGIN_KEY = "origin"
 ORIGIN_METADATA_KEY = "tango_stylize"
 
 
-def origin_record(*, guidance: str, weights: str, test_only: bool, prompt: str | None = None) -> dict[str, Any]:
+def origin_record(
+    *,
+    guidance: str,
+    weights: str,
+    test_only: bool,
+    image_guided: bool = False,
+    label: str | None = None,
+    prompt: str | None = None,
+) -> dict[str, Any]:
     """What made a trained field, in the form every downstream output repeats.
 
-    ``guidance``: ``"clip"`` or ``"image"``; ``weights``: the id of the CLIP weights or of the
-    image targets; ``test_only``: made with the tiny random test CLIP. ``label`` is the one line a
-    person reads (in file metadata, the asset index, the pack's README and the report); it starts
-    with ``TEST ONLY`` or ``IMAGE-GUIDED`` whenever the result is not a real CLIP stylisation.
+    ``guidance``: the guidance mode's name; ``weights``: the id of the CLIP weights or of the
+    image targets; ``test_only``: made with the tiny random test CLIP; ``image_guided`` and
+    ``label``: what the mode says of a result it made (its row in
+    :mod:`stages.config.guidance_modes` gives them: :meth:`GuidanceMode.origin_record`). ``label``
+    is the one line a person reads (in file metadata, the asset index, the pack's README and the
+    report); a test-only result's says ``TEST ONLY`` whatever the mode, and any other needs its
+    mode's, which starts with an upper-case warning whenever the result is not a real stylisation.
     """
-    if guidance not in ("clip", "image"):
-        raise ValueError(f"guidance must be 'clip' or 'image', got {guidance!r}")
+    if not isinstance(guidance, str) or not guidance:
+        raise ValueError(f"guidance must be a guidance mode's name, got {guidance!r}")
     if test_only:
         label = f"TEST ONLY: made with random test weights, not a real stylisation ({weights})"
-    elif guidance == "image":
-        label = f"IMAGE-GUIDED: fitted to image targets, not text-guided ({weights})"
-    else:
-        label = f"CLIP-guided ({weights})"
+    elif not label:
+        raise ValueError(f"an origin of guidance {guidance!r} needs its mode's label (GuidanceMode.origin_record)")
     return {
         "guidance": guidance,
         "weights": weights,
         "test_only": bool(test_only),
-        "image_guided": guidance == "image",
+        "image_guided": bool(image_guided),
         "prompt": prompt,
         "label": label,
     }

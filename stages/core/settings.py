@@ -31,6 +31,7 @@ from functools import cache
 from typing import Any, Literal, Self
 
 from .errors import ConfigError
+from .registry import Registry
 
 
 @dataclasses.dataclass(frozen=True)
@@ -42,7 +43,8 @@ class Spec:
     ``min_items``/``max_items``: a list's length; ``min_length``/``max_length``/``pattern``: a text's
     (of each text of a list; ``pattern`` is a regular expression the whole text must match).
     ``keyed``: whether the setting is part of its stage's work key (False: it only accepts or refuses
-    input, and changing it recomputes nothing)."""
+    input, and changing it recomputes nothing). ``marks``: names by which a layer above finds the
+    settings that matter to it (:meth:`Settings.marked`), each declared where the setting is."""
 
     doc: str
     ge: float | None = None
@@ -56,6 +58,7 @@ class Spec:
     max_length: int | None = None
     pattern: str | None = None
     keyed: bool = True
+    marks: tuple[str, ...] = ()
 
 
 def setting(default: Any, doc: str, **limits: Any) -> Any:
@@ -99,6 +102,8 @@ def kind_of(hint: Any) -> Kind:
         return dataclasses.replace(kind_of(args[0]), nullable=True)
     if typing.get_origin(hint) is Literal:
         return Kind(choices=typing.get_args(hint))
+    if typing.get_origin(hint) is typing.Annotated and isinstance(hint.__metadata__[0], Registry):
+        return Kind(choices=hint.__metadata__[0])  # the registry's names when a value is checked
     if typing.get_origin(hint) is tuple:
         args = typing.get_args(hint)
         if len(args) == 2 and args[1] is Ellipsis:
@@ -214,13 +219,18 @@ class Settings:
     @cache
     def kinds(cls) -> dict[str, Kind]:
         """Each field's :class:`Kind`, from its annotation."""
-        hints = typing.get_type_hints(cls)
+        hints = typing.get_type_hints(cls, include_extras=True)
         return {f.name: kind_of(hints[f.name]) for f in dataclasses.fields(cls)}
 
     @classmethod
     def specs(cls) -> dict[str, Spec]:
         """Each field's :class:`Spec`, in declaration order."""
         return {f.name: spec_of(f) for f in dataclasses.fields(cls)}
+
+    @classmethod
+    def marked(cls, mark: str) -> tuple[str, ...]:
+        """The names of the fields whose :class:`Spec` carries ``mark``, in declaration order."""
+        return tuple(name for name, spec in cls.specs().items() if mark in spec.marks)
 
     def __post_init__(self) -> None:
         kinds = self.kinds()

@@ -33,7 +33,7 @@ def unwrap(mesh: TriMesh, size: int, padding: int, max_chart_share: float | None
     """xatlas parametrisation packed for a ``size x size`` texture. ``max_chart_share`` bounds
     each chart's area to that share of the surface (xatlas's ``max_chart_area``); ``None``:
     xatlas's unbounded charts. Bounded charts are far cheaper to parametrise and pack on
-    large smooth meshes, at the price of more seams (measured in ``benchmarks/bake_charts.py``)."""
+    large smooth meshes, at the price of more seams (measured in ``benchmarks/assets/bake_charts.py``)."""
     try:
         import xatlas
     except ImportError as exc:  # pragma: no cover

@@ -43,6 +43,8 @@ from .normals import unit_face_normals
 
 #: the formats whose UV layout can be kept (bake.uv)
 LAYOUT_SUFFIXES = (".obj", ".glb", ".gltf")
+#: the kinds of input a :class:`SourceMesh` keeps (its ``kind``): an OBJ file's, a glTF document's
+OBJ_SOURCE, GLTF_SOURCE = "obj", "gltf"
 
 
 @dataclass(frozen=True)
@@ -51,7 +53,8 @@ class SourceMesh:
     NaN where the file gives none), ``normals (V, 3)`` (NaN where none) and ``tangents (V, 4)`` or
     None (glTF ``TANGENT``); per triangle ``triangles (T, 3)`` (file order), ``slot (T,)`` (index
     into ``slot_names``, the input's materials in first-use order) and ``part (T,)`` (the OBJ
-    polygon, or the glTF primitive instance of ``parts``); ``kind`` is ``obj`` or ``gltf``."""
+    polygon, or the glTF primitive instance of ``parts``); ``kind`` is :data:`OBJ_SOURCE` or
+    :data:`GLTF_SOURCE`."""
 
     path: Path
     kind: str
@@ -83,7 +86,7 @@ class SourceMesh:
         missing = ~np.isfinite(given).all(-1)
         if not missing.any():
             return _unit(given)
-        if self.kind == "gltf":
+        if self.kind == GLTF_SOURCE:
             fill = np.broadcast_to(faces[:, None, :], given.shape)
         else:
             fill = self.vertex_normals()[self.triangles]
@@ -217,7 +220,7 @@ def read_obj(path: Path) -> SourceMesh:
     names = tuple(name or "default" for name in slots)
     return SourceMesh(
         path,
-        "obj",
+        OBJ_SOURCE,
         pos,
         uv,
         _gather(vn, keys[:, 2], 3),
@@ -784,7 +787,7 @@ def read_gltf(path: Path) -> SourceMesh:
         )
     return SourceMesh(
         path,
-        "gltf",
+        GLTF_SOURCE,
         np.concatenate([q["positions"] for q in pieces]),
         np.concatenate([q["uv"] for q in pieces]),
         np.concatenate([q["normals"] for q in pieces]),

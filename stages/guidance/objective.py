@@ -1,5 +1,6 @@
 """The guidance of an optimisation, one class per mode behind one interface (:class:`Guidance`),
-chosen once by :func:`choose_guidance` from ``optimize.guidance`` and ``optimize.target_renderer``:
+registered under its mode's name (:func:`register`) and chosen once by :func:`choose_guidance`
+from ``optimize.guidance`` and, for a mode that fits image targets, ``optimize.target_renderer``:
 
 * :class:`ClipGuidance` (``guidance: clip``, TANGO): CLIP similarity of the renders with the prompt;
 * :class:`ImageGuidance` (``guidance: image``, ``target_renderer: mitsuba``): the squared error
@@ -10,30 +11,36 @@ chosen once by :func:`choose_guidance` from ``optimize.guidance`` and ``optimize
   itself).
 
 Image guidance verifies the whole optimisation without CLIP weights. Each records its ``origin``
-(which guidance and weights made a result), which every downstream file carries.
+(which guidance and weights made a result), which every downstream file carries, and scores the
+held-out metric views its own way (:meth:`Guidance.held_out`, the metrics stage's). What the
+rest of the workflow knows of a mode without torch (labels, what it needs, how the plan times it)
+is its row in :mod:`stages.config.guidance_modes`, which each class carries as ``mode``: a new
+mode is one row there and one class here.
 """
 
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import numpy as np
 import torch
 from torch.nn import functional as F
 
+from ..config.guidance_modes import GuidanceMode, guidance_mode
 from ..config.sections import OptimizeSettings
 from ..core.errors import ConfigError
-from ..core.provenance import origin_record
 from ..imaging.images import global_spec, render_cached_view
-from ..imaging.quality import psnr
+from ..imaging.quality import highlights, psnr, ssim
 from ..imaging.targets import FULL_COVERAGE
-from ..imaging.views import CachedView
+from ..imaging.views import CachedView, ViewStore
 from ..model.procedural import procedural_light, procedural_material
 from ..render.color import linear_to_srgb
-from ..render.shading import face_viewer, shade
+from ..render.shading import face_viewer
 from .clip import ClipGuide, load_clip
+from .scores import clip_metrics
 
 
 @dataclass
@@ -58,9 +65,25 @@ class EvalScore:
     targets: list[torch.Tensor] = field(default_factory=list)
 
 
-class Guidance(ABC):
-    """What an optimisation minimises, and how its result is scored on the evaluation views."""
+@dataclass
+class HeldOut:
+    """What a guidance measures on the held-out metric views (the metrics stage): ``figures`` for
+    ``metrics.json`` (under the class's :attr:`Guidance.held_out_key`) and, where the guidance has
+    them, the ``targets`` it compared with (sRGB ``(V, 3, H, W)``)."""
 
+    figures: dict
+    targets: torch.Tensor | None = None
+
+
+class Guidance(ABC):
+    """What an optimisation minimises, how its result is scored on the evaluation views and on the
+    held-out metric views. A subclass is registered under its mode (:func:`register`), which sets
+    :attr:`mode`."""
+
+    #: the mode's row (:mod:`stages.config.guidance_modes`), set by :func:`register`
+    mode: ClassVar[GuidanceMode]
+    #: where ``metrics.json`` records the figures of :meth:`held_out` (a field of ``MetricsRecord``)
+    held_out_key: ClassVar[str]
     #: the id of the weights or targets that guide (for every output's origin record)
     weights_id: str
     #: whether that guidance is for tests only (the tiny random CLIP)
@@ -73,11 +96,21 @@ class Guidance(ABC):
         self.settings = settings
         self.prompt = prompt
 
+    @classmethod
+    @abstractmethod
+    def build(cls, settings: OptimizeSettings, prompt: str, device, guide: ClipGuide | None, targets: str | None) -> Guidance:
+        """The guidance of an optimisation (:func:`choose_guidance`): ``guide``, an already loaded
+        CLIP; ``targets``, the description of the Mitsuba targets attached to the views."""
+
+    @classmethod
+    def for_metrics(cls, settings: OptimizeSettings, prompt: str, device, targets: str | None) -> Guidance:
+        """The guidance that scores the held-out metric views (the metrics stage's)."""
+        return cls.build(settings, prompt, device, None, targets)
+
     @property
     def origin(self) -> dict:
-        """The record of the guidance and weights that made a result (:func:`origin_record`)."""
-        s = self.settings
-        return origin_record(guidance=s.guidance, weights=self.weights_id, test_only=self.test_only, prompt=self.prompt)
+        """The record of the guidance and weights that made a result (:meth:`GuidanceMode.origin_record`)."""
+        return self.mode.origin_record(self.weights_id, self.test_only, self.prompt)
 
     def target_colors(self, v: CachedView, sel: torch.Tensor) -> torch.Tensor | None:
         """Linear radiance ``(M, 3)`` of the image target at the hits ``sel`` of view ``v``; None
@@ -94,9 +127,43 @@ class Guidance(ABC):
         """The trained field's score on the evaluation views: ``renders[i]`` is view ``views[i]``
         rendered at ``out_width`` from a cache of ``width``."""
 
+    @abstractmethod
+    def held_out(self, renders: torch.Tensor, store: ViewStore, candidates: list[str], background: float) -> HeldOut:
+        """The trained field's figures on the held-out metric views: ``renders (V, 3, H, W)`` (sRGB)
+        of the views of ``store``, at its width, on ``background``; ``candidates``: the grid's
+        prompts (the prompt among them)."""
 
+
+#: the class of each guidance mode by (mode, target renderer): the renderer None for a mode
+#: without image targets (:attr:`GuidanceMode.image_targets`)
+GUIDANCE_CLASSES: dict[tuple[str, str | None], type[Guidance]] = {}
+
+
+def register(name: str, target_renderer: str | None = None) -> Callable[[type[Guidance]], type[Guidance]]:
+    """Register a :class:`Guidance` class as mode ``name`` (a row of
+    :data:`~stages.config.guidance_modes.GUIDANCE_MODES`), for ``target_renderer`` where the mode
+    fits image targets; sets the class's :attr:`~Guidance.mode`."""
+    mode = guidance_mode(name)
+    if (target_renderer is None) == mode.image_targets:
+        need = "names its target renderer" if mode.image_targets else "has no target renderer"
+        raise TypeError(f"guidance mode {name!r} {need}: register({name!r}{', <renderer>' if mode.image_targets else ''})")
+
+    def add(cls: type[Guidance]) -> type[Guidance]:
+        key = (name, target_renderer)
+        if key in GUIDANCE_CLASSES:
+            raise TypeError(f"{key} is already registered as {GUIDANCE_CLASSES[key].__name__}")
+        cls.mode = mode
+        GUIDANCE_CLASSES[key] = cls
+        return cls
+
+    return add
+
+
+@register("clip")
 class ClipGuidance(Guidance):
     """TANGO's guidance: the CLIP similarity of each global image and each crop with the prompt."""
+
+    held_out_key = "guidance"
 
     def __init__(self, settings: OptimizeSettings, prompt: str, device, guide: ClipGuide | None = None) -> None:
         super().__init__(settings, prompt)
@@ -111,6 +178,15 @@ class ClipGuidance(Guidance):
         self.test_only = self.guide.test_only
         self.clip_precision = self.guide.precision
         self.clip_tower = self.guide.tower
+
+    @classmethod
+    def build(cls, settings, prompt, device, guide, targets) -> ClipGuidance:
+        return cls(settings, prompt, device, guide)
+
+    @classmethod
+    def for_metrics(cls, settings, prompt, device, targets) -> ClipGuidance:
+        """The guidance CLIP in float32, its batched tower (the held-out figures of every run alike)."""
+        return cls(settings, prompt, device, load_clip(settings.clip_spec(), device=device))
 
     def loss(self, rendered: ImageBatch, target: ImageBatch | None) -> tuple[torch.Tensor, dict]:
         groups = [torch.stack(rendered.globals)] + ([torch.stack(rendered.crops)] if rendered.crops else [])
@@ -128,9 +204,17 @@ class ClipGuidance(Guidance):
         sims = [float(s) for s in self.guide.similarities(images, self.text)]  # each view's, in one batch
         return EvalScore({"final_similarity": float(np.mean(sims)), "final_similarity_per_view": sims})
 
+    @torch.no_grad()
+    def held_out(self, renders, store, candidates, background) -> HeldOut:
+        """The guidance CLIP's cosine similarity of the prompt with the views' mean embedding."""
+        m = clip_metrics(self.guide, renders, self.prompt, candidates)
+        return HeldOut({"weights": m["weights"], "test_only": m["test_only"], "similarity": m["similarity_mean_embedding"]})
+
 
 class _TargetGuidance(Guidance):
     """Image guidance: the squared error against image targets of a known material and light."""
+
+    held_out_key = "image_target"
 
     def loss(self, rendered: ImageBatch, target: ImageBatch | None) -> tuple[torch.Tensor, dict]:
         if target is None:
@@ -143,7 +227,27 @@ class _TargetGuidance(Guidance):
     @abstractmethod
     def target_colors(self, v: CachedView, sel: torch.Tensor) -> torch.Tensor: ...
 
+    @torch.no_grad()
+    def held_out(self, renders, store, candidates, background) -> HeldOut:
+        """PSNR, SSIM and the highlights of the renders against the targets, over object pixels
+        (:func:`render_target`), with the renderer and material of the targets."""
+        pairs = [render_target(self, store[i], store.width, store.width, background) for i in range(len(store))]
+        t = torch.stack([img for img, _ in pairs])
+        mask = torch.stack([m for _, m in pairs])
+        px = mask.expand_as(t)
+        figures = {
+            "weights": self.weights_id,
+            "psnr_db": psnr(renders[px], t[px]),
+            "ssim": ssim(renders, t, mask),
+            "highlights": highlights(renders, t, mask),
+            "pixels": "object pixels of the held-out metric views (SSIM: windows centred on them)",
+            "target_renderer": self.settings.target_renderer,
+            "target_material": self.settings.target_material,
+        }
+        return HeldOut(figures, t)
 
+
+@register("image", "mitsuba")
 class ImageGuidance(_TargetGuidance):
     """Image targets path-traced by Mitsuba 3 (the target stage), attached to the cached views;
     ``targets``: their description, which becomes the result's weights id. The evaluation views
@@ -158,6 +262,10 @@ class ImageGuidance(_TargetGuidance):
             )
         self.weights_id = f"image targets: {targets}"
 
+    @classmethod
+    def build(cls, settings, prompt, device, guide, targets) -> ImageGuidance:
+        return cls(settings, prompt, targets)
+
     def target_colors(self, v: CachedView, sel: torch.Tensor) -> torch.Tensor:
         if v.target is None:
             raise ConfigError("this view has no Mitsuba targets attached (target_renderer: mitsuba)")
@@ -167,6 +275,7 @@ class ImageGuidance(_TargetGuidance):
         return EvalScore({})
 
 
+@register("image", "sg")
 class SGTargetGuidance(_TargetGuidance):
     """A procedural material (``target_material``) rendered by our own SG renderer under a
     procedural SG light (``target_light``), with the specular model and shadows the field uses, so
@@ -180,6 +289,10 @@ class SGTargetGuidance(_TargetGuidance):
             "(rendered by our own SG renderer)"
         )
 
+    @classmethod
+    def build(cls, settings, prompt, device, guide, targets) -> SGTargetGuidance:
+        return cls(settings, prompt, device)
+
     def target_colors(self, v: CachedView, sel: torch.Tensor) -> torch.Tensor:
         visibility = None if v.shadows is None else v.shadows.shares(self.target_light, sel)
         return self.procedural_colors(v.points[sel], v.normals[sel], v.view[sel], visibility)
@@ -191,7 +304,7 @@ class SGTargetGuidance(_TargetGuidance):
         n = face_viewer(torch.where(flip, -normals, normals), view)
         m = procedural_material(self.settings.target_material, points)
         lobe = self.settings.specular_lobe
-        return shade(n, view, m.albedo, self.target_light, m.specular, m.roughness, lobe, visibility=visibility).rgb
+        return m.brdf.shade(n, view, m, self.target_light, lobe, visibility).rgb
 
     def eval_score(self, renders, views, width, out_width) -> EvalScore:
         pairs = [render_target(self, v, width, out_width) for v in views]
@@ -201,17 +314,29 @@ class SGTargetGuidance(_TargetGuidance):
         figures = {"eval_psnr_db": psnr(pred[px], tgt[px]), "eval_psnr_pixels": "object pixels of the evaluation views, sRGB"}
         return EvalScore(figures, [t for t, _ in pairs])
 
+    def held_out(self, renders, store, candidates, background) -> HeldOut:
+        held = super().held_out(renders, store, candidates, background)
+        held.figures["target_light"] = self.settings.target_light
+        return held
+
+
+def guidance_class(settings: OptimizeSettings) -> type[Guidance]:
+    """The class registered for the guidance mode of ``settings`` (and its target renderer, for a
+    mode that fits image targets); a mode without one is a :class:`ConfigError`."""
+    mode = settings.guidance_mode()
+    key = (mode.name, settings.target_renderer if mode.image_targets else None)
+    if key not in GUIDANCE_CLASSES:
+        renderer = f" with target_renderer {key[1]}" if key[1] else ""
+        raise ConfigError(f"guidance {mode.name!r}{renderer} has no class (stages.guidance.objective.register)")
+    return GUIDANCE_CLASSES[key]
+
 
 def choose_guidance(
     settings: OptimizeSettings, prompt: str, device, guide: ClipGuide | None = None, targets: str | None = None
 ) -> Guidance:
     """The guidance ``settings`` name: ``guide``, an already loaded CLIP (else loaded from the
     settings); ``targets``, the description of the Mitsuba targets attached to the views."""
-    if settings.guidance == "clip":
-        return ClipGuidance(settings, prompt, device, guide)
-    if settings.target_renderer == "mitsuba":
-        return ImageGuidance(settings, prompt, targets)
-    return SGTargetGuidance(settings, prompt, device)
+    return guidance_class(settings).build(settings, prompt, device, guide, targets)
 
 
 @torch.no_grad()

@@ -4,7 +4,7 @@ open_clip's vision transformer keeps its tokens batch-first ``(N, L, E)`` and ca
 ``torch.nn.MultiheadAttention(batch_first=True)``, which transposes them to ``(L, N, E)`` and runs
 every projection on the strided view. On a CPU the backward of those projections goes through
 ``matmul``'s broadcast path (one copy of the weight per image, then ``bmm``): measured with
-``python benchmarks/optimize.py --clip-only`` on this project's 2-core CPU, that made ViT-B-32's
+``python -m benchmarks.training.optimize --clip-only`` on this project's 2-core CPU, that made ViT-B-32's
 forward+backward for 5 images about 1.5 times slower than needed in float32, and three times
 slower in bfloat16 than in float32 (65% of it in ``aten::copy_``). Two more costs show under
 bfloat16 autocast: the patch embedding's convolution backward (oneDNN's bfloat16 path, about 0.1 s
@@ -46,7 +46,7 @@ def fused_attention(device: torch.device) -> bool:
     """Whether :func:`self_attention` runs torch's fused kernel (``scaled_dot_product_attention``)
     on ``device``: on a GPU, where a step is bound by kernel launches and the fused kernel is one
     launch each way where the plain products take about six forward and eight backward per block
-    (``python benchmarks/launches.py --part CLIP``); not on a CPU, where it measured 2.2 times
+    (``python -m benchmarks.training.launches --part CLIP``); not on a CPU, where it measured 2.2 times
     slower under bfloat16 autocast (8.5 ms against 3.9 ms for one ViT-B-32 block's forward and
     backward on 5 images) and about as fast in float32 (13.8 against 13.3 ms)."""
     return device.type == "cuda"

@@ -150,7 +150,7 @@ def compose(colors: Tensor, lookup: np.ndarray, spec: ImageSpec, bg: Tensor) -> 
     """Scatter per-point ``colors (M, 3)`` into one image ``(3, out, out)`` over ``bg`` (moved to
     the colours' device). The pixels gather their points with ``index_select``, whose backward is
     an ``index_add``: advanced indexing's backward (a sorting ``index_put``) took 48% of a CUDA
-    training step's GPU time (benchmarks/gpu.py's profile, H100)."""
+    training step's GPU time (benchmarks/training/gpu.py's profile, H100)."""
     idx = torch.as_tensor(lookup, device=colors.device)
     h, w = idx.shape
     hit = idx >= 0

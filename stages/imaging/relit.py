@@ -4,7 +4,7 @@ render of the *true* material under that light, on the held-out metric views.
 A light that is blurred, or shadows painted into the albedo, still fit the training light; under
 another light they show. For each environment of the relit ground truth
 (:func:`~stages.imaging.targets.load_relit`) the environment is brought into the renderer as the
-relight stage brings any map (an SG fit, :func:`~stages.model.lightfit.fit_sg_light`), the field's
+relight stage brings any map (an SG fit, :func:`~stages.model.lights.sg.fit_sg_light`), the field's
 forward pass shades every hit of the metric views under it, and the PSNR is taken over the fully
 covered object pixels in sRGB, as the metrics stage grades the training light. Beside it, the
 *ceiling*: our renderer given the true material and normals under the same fitted light, with the
@@ -22,19 +22,22 @@ import numpy as np
 import torch
 
 from ..model.field import shade_material
-from ..model.lightfit import fit_sg_light
+from ..model.lights.sg import fit_sg_light
 from ..model.networks import Material
+from ..render import brdf as brdfs
+from ..render.brdf import Brdf
 from ..render.color import linear_to_srgb
 from ..render.envmap import load_env
-from ..render.shading import SGLight, face_viewer
+from ..render.light import Light, Visibility, cat_visibility, map_visibility
+from ..render.shading import face_viewer
 from .images import render_cached_view
 from .quality import psnr
-from .targets import FULL_COVERAGE, GLTF_TRUTH_KEYS, RelitTruth, TargetSet
+from .targets import FULL_COVERAGE, RelitTruth, TargetSet
 from .views import ViewStore
 
 
 @torch.no_grad()
-def _field_radiance(field, store: ViewStore, light: SGLight) -> torch.Tensor:
+def _field_radiance(field, store: ViewStore, light: Light) -> torch.Tensor:
     """Linear radiance ``(N, 3)`` of every hit of ``store``'s views (cache order) under ``light``."""
     parts = []
     for i in range(len(store)):
@@ -43,18 +46,20 @@ def _field_radiance(field, store: ViewStore, light: SGLight) -> torch.Tensor:
     return torch.cat(parts)
 
 
-#: the parts of a surface a relighting budget swaps for their truth, in its cumulative order, per
-#: BRDF (:func:`relight_budget`; under the training light the learned light comes first)
-BUDGET_COMPONENTS = {"gltf": ("base", "metallic", "roughness", "normal"), "tango": ("albedo", "specular", "roughness", "normal")}
+def budget_components(brdf: Brdf | str) -> tuple[str, ...]:
+    """The parts of a surface a relighting budget swaps for their truth, in its cumulative order
+    (:func:`relight_budget`; under the training light the learned light comes first): the BRDF's
+    parameters (``brdf.parameters``), then the shading normal."""
+    return (*brdfs.get(brdf).parameters, "normal")
 
 
-def true_surface(truth: TargetSet, store: ViewStore, brdf: str = "tango") -> dict[str, torch.Tensor]:
+def true_surface(truth: TargetSet, store: ViewStore, brdf: Brdf | str = "tango") -> dict[str, torch.Tensor]:
     """The true surface at every hit of ``store``'s views (cache order) in the terms of ``brdf``
-    (:data:`BUDGET_COMPONENTS`): the material's parts, roughness clamped to ``[0.01, 1]`` as the
+    (:func:`budget_components`): the material's parts, roughness clamped to ``[0.01, 1]`` as the
     field's, and the unit shading normal turned to the viewer."""
     dev = store.device
     view = torch.cat([store[i].view for i in range(len(store))])
-    names = BUDGET_COMPONENTS[brdf]
+    names = budget_components(brdf)
     a = {k: torch.from_numpy(truth.arrays[k].astype(np.float32)).to(dev) for k in names}
     a["normal"] = face_viewer(torch.nn.functional.normalize(a["normal"], dim=-1), view)
     a["roughness"] = a["roughness"].clamp(0.01, 1.0)
@@ -64,16 +69,12 @@ def true_surface(truth: TargetSet, store: ViewStore, brdf: str = "tango") -> dic
 @torch.no_grad()
 def recovered_surface(field, store: ViewStore) -> dict[str, torch.Tensor]:
     """The field's surface at every hit of ``store``'s views (cache order), as its forward pass
-    makes it (:meth:`~stages.model.field.StyleField.surface`), in :data:`BUDGET_COMPONENTS` terms."""
+    makes it (:meth:`~stages.model.field.StyleField.surface`), in :func:`budget_components` terms."""
     parts: dict[str, list] = {}
     for i in range(len(store)):
         v = store[i]
         material, normal = field.surface(v.points, v.normals, v.view)
-        got = {"normal": normal, "roughness": material.roughness}
-        if material.metallic is not None:
-            got.update(base=material.base, metallic=material.metallic)
-        else:
-            got.update(albedo=material.albedo, specular=material.specular)
+        got = {"normal": normal, **material.parameters()}
         for k, x in got.items():
             if x is None:
                 raise ValueError("a relighting budget needs a field with specular heads (optimize.specular: true)")
@@ -86,34 +87,40 @@ def recovered_surface(field, store: ViewStore) -> dict[str, torch.Tensor]:
 SHADE_CHUNK = 16384
 
 
-def shade_surface(surface: dict[str, torch.Tensor], view: torch.Tensor, light: SGLight, lobe: str, visibility=None):
-    """Linear radiance ``(N, 3)`` of ``surface`` (:func:`true_surface`'s terms) seen along ``view``
-    under ``light`` with each lobe's visible share ``visibility (N, K)`` (or none), shaded
-    :data:`SHADE_CHUNK` points at a time."""
+def shade_surface(
+    surface: dict[str, torch.Tensor],
+    brdf: Brdf | str,
+    view: torch.Tensor,
+    light: Light,
+    lobe: str,
+    visibility: Visibility | None = None,
+):
+    """Linear radiance ``(N, 3)`` of ``surface`` (:func:`true_surface`'s terms of the BRDF
+    ``brdf``) seen along ``view`` under ``light`` with its visibility inputs ``visibility`` (each
+    SG lobe's visible share; or none), shaded :data:`SHADE_CHUNK` points at a time."""
+    brdf = brdfs.get(brdf)
     out = []
     for lo in range(0, len(view), SHADE_CHUNK):
         part = {k: x[lo : lo + SHADE_CHUNK] for k, x in surface.items()}
-        if "base" in part:
-            material = Material.gltf(part["base"], part["metallic"], part["roughness"])
-        else:
-            material = Material(part["albedo"], part["specular"], part["roughness"])
-        vis = None if visibility is None else visibility[lo : lo + SHADE_CHUNK]
+        material = Material.of(brdf, *(part[name] for name in brdf.parameters))
+        vis = map_visibility(lambda v, lo=lo: v[lo : lo + SHADE_CHUNK], visibility)
         out.append(shade_material(part["normal"], view[lo : lo + SHADE_CHUNK], material, light, lobe, vis).rgb)
     return torch.cat(out) if out else torch.zeros(0, 3, device=view.device)
 
 
-def _shares(store: ViewStore, light: SGLight) -> torch.Tensor | None:
-    """Each lobe's visible share at every hit of ``store``'s views, or None without shadows."""
+def _shares(store: ViewStore, light: Light) -> Visibility | None:
+    """``light``'s visibility inputs (each SG lobe's visible share) at every hit of ``store``'s
+    views, or None without shadows."""
     shadows = [store[i].shadows for i in range(len(store))]
-    return None if any(s is None for s in shadows) else torch.cat([s.shares(light) for s in shadows])
+    return None if any(s is None for s in shadows) else cat_visibility([light.shadowed_by(s) for s in shadows])
 
 
 @torch.no_grad()
-def _truth_radiance(truth: TargetSet, store: ViewStore, light: SGLight, lobe: str, brdf: str = "tango") -> torch.Tensor:
+def _truth_radiance(truth: TargetSet, store: ViewStore, light: Light, lobe: str, brdf: Brdf | str = "tango") -> torch.Tensor:
     """Linear radiance ``(N, 3)`` of our renderer (the BRDF ``brdf``) given the true material and
     shading normals, with the shadows of ``store``'s views when they carry them (as the field's)."""
     view = torch.cat([store[i].view for i in range(len(store))])
-    return shade_surface(true_surface(truth, store, brdf), view, light, lobe, _shares(store, light))
+    return shade_surface(true_surface(truth, store, brdf), brdf, view, light, lobe, _shares(store, light))
 
 
 #: the search of :func:`channel_scale`: a factor this many times either side of its first guess,
@@ -183,7 +190,7 @@ def grade_relighting(
     dev = next(field.parameters()).device
     for r in relit:
         fitted, rel = fit_sg_light(load_env(r.environment), lobes, iterations)
-        light = SGLight(fitted.axis.to(dev), fitted.sharpness.to(dev), fitted.amplitude.to(dev))
+        light = Light.of(fitted.to(dev))
         full = torch.from_numpy(r.coverage >= FULL_COVERAGE).to(dev)
         truth_linear = torch.from_numpy(r.radiance).to(dev)[full]
         goal = linear_to_srgb(truth_linear)
@@ -197,8 +204,8 @@ def grade_relighting(
             "noise_psnr_db": r.noise_psnr_db,
             "sg_fit_relative_rms": rel,
         }
-        brdf = getattr(field, "brdf", "tango")
-        if truth is not None and truth.has_truth and (brdf == "tango" or all(k in truth.arrays for k in GLTF_TRUTH_KEYS)):
+        brdf = brdfs.get(getattr(field, "brdf", "tango"))
+        if truth is not None and truth.has_truth and all(k in truth.arrays for k in brdf.parameters):
             ceiling = _truth_radiance(truth, store, light, field.specular_lobe, brdf)[full]
             row["ceiling_psnr_db"] = psnr(linear_to_srgb(ceiling), goal)
             row["ceiling_psnr_scaled_db"] = psnr(linear_to_srgb(ceiling * channel_scale(ceiling, truth_linear)), goal)
@@ -238,17 +245,17 @@ def relight_budget(field, store: ViewStore, truth: TargetSet, cases: list[Budget
     """The relighting error budget of ``field`` on ``store``'s views (the held-out metric views of
     ``truth``, which carries the true material): per case (:class:`BudgetCase`), the field's render
     against Mitsuba's truth over the fully covered hits, then with recovered components replaced by
-    their truth, each alone (``alone``) and cumulatively in the order of :data:`BUDGET_COMPONENTS`
+    their truth, each alone (``alone``) and cumulatively in the order of :func:`budget_components`
     (``cumulative``; under the training light the learned light, replaced by the environment's SG
     fit, comes first). With every component replaced the render is the ceiling, our renderer given
     the true material (:func:`grade_relighting`'s ``ceiling_psnr_db``). Each figure
     (:func:`_figures`): ``psnr_db``, ``psnr_scaled_db``, ``scale``; each swap also carries its
     gain in dB over the recovered render (``alone``) and over the previous step (``cumulative``),
     raw and scaled, so the cumulative gains add up to the gap between the recovered render and the
-    ceiling. The SG fits are :func:`~stages.model.lightfit.fit_sg_light`'s (``lobes``,
+    ceiling. The SG fits are :func:`~stages.model.lights.sg.fit_sg_light`'s (``lobes``,
     ``iterations``), as the relight stage's."""
-    brdf = getattr(field, "brdf", "tango")
-    names = BUDGET_COMPONENTS[brdf]
+    brdf = brdfs.get(getattr(field, "brdf", "tango"))
+    names = budget_components(brdf)
     recovered = recovered_surface(field, store)
     true = true_surface(truth, store, brdf)
     view = torch.cat([store[i].view for i in range(len(store))])
@@ -257,7 +264,7 @@ def relight_budget(field, store: ViewStore, truth: TargetSet, cases: list[Budget
     out = []
     for case in cases:
         fitted, rel = fit_sg_light(load_env(case.environment), lobes, iterations)
-        fitted = SGLight(fitted.axis.to(dev), fitted.sharpness.to(dev), fitted.amplitude.to(dev))
+        fitted = Light.of(fitted.to(dev))
         full = torch.from_numpy(case.coverage >= FULL_COVERAGE).to(dev)
         goal = torch.from_numpy(np.asarray(case.radiance, np.float32)).to(dev)[full]
         shares = {"learned": _shares(store, learned) if case.role == "training" else None, "fitted": _shares(store, fitted)}
@@ -267,9 +274,9 @@ def relight_budget(field, store: ViewStore, truth: TargetSet, cases: list[Budget
             surface = {k: (true[k] if k in swapped else recovered[k]) for k in names}
             which = "fitted" if role == "relit" or "light" in swapped else "learned"
             light = fitted if which == "fitted" else learned
-            visibility = None if shares[which] is None else shares[which][full]
+            visibility = map_visibility(lambda v, full=full: v[full], shares[which])
             sel = {k: x[full] for k, x in surface.items()}
-            return _figures(shade_surface(sel, view[full], light, field.specular_lobe, visibility), goal)
+            return _figures(shade_surface(sel, brdf, view[full], light, field.specular_lobe, visibility), goal)
 
         base = render(())
         swaps, previous = [], base

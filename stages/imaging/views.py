@@ -14,6 +14,7 @@ from ..geometry.normals import NormalSpec
 from ..geometry.raycache import RayCache
 from ..geometry.tracing import EmbreeTracer
 from ..geometry.visibility import viewer_side_normals
+from ..model.compiled import CompiledField
 from ..model.field import FieldOutput, StyleField
 from ..model.shadows import ShadowCache
 from ..render.color import linear_to_srgb
@@ -46,14 +47,15 @@ class CachedView:
         crops, once (training's views), not by stages that draw none."""
         return summed_area(self.index >= 0)
 
-    def shade(self, field: StyleField, sel: torch.Tensor | None = None, light=None, edit=None) -> FieldOutput:
-        """The field's forward pass at the hits ``sel`` (all when None), with this view's shadows."""
+    def shade(self, field: StyleField | CompiledField, sel: torch.Tensor | None = None, light=None, edit=None) -> FieldOutput:
+        """The field's forward pass at the hits ``sel`` (all when None), with this view's shadows
+        (training's through its :class:`~stages.model.compiled.CompiledField`)."""
         if sel is None:
             pts, nrm, view = self.points, self.normals, self.view
         else:
             pts, nrm, view = self.points[sel], self.normals[sel], self.view[sel]
         shadows = self.shadows
-        visibility = None if shadows is None else (lambda lt: shadows.shares(lt, sel))
+        visibility = None if shadows is None else (lambda lt: lt.shadowed_by(shadows, sel))
         return field(pts, nrm, view, light, edit, visibility=visibility)
 
 

@@ -17,8 +17,10 @@ from ..core.safefiles import DATA_LIMIT, open_read
 from ..render.sg import sg_integral
 from .field import StyleField
 
-#: version of the ``field.pt`` layout (2: the light's sharpness and energy as logarithms)
-FIELD_FORMAT = 2
+#: version of the ``field.pt`` layout (2: the light's sharpness and energy as logarithms; 3: the
+#: light a sum of components, the SG lobes' parameters under ``light.sg.``, which a format-2 state
+#: moves there when loaded, :meth:`~stages.model.lights.sg.SGLightModule.match_state`)
+FIELD_FORMAT = 3
 #: settings a ``field.pt`` written before they existed was trained with (their defaults changed
 #: when they came: it must be rebuilt as it was trained, not with today's defaults)
 SETTINGS_BEFORE_THEY_EXISTED = {

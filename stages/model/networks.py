@@ -1,4 +1,5 @@
-"""TANGO's learnable parts: positional encodings, the SVBRDF and normal MLPs, and the SG light.
+"""TANGO's learnable parts: positional encodings and the SVBRDF and normal MLPs (the light's
+are its components' modules, :mod:`stages.model.lights`).
 
 Constraints live in the parametrisation, so the renderer always receives valid inputs: albedo
 and specular colour in [0, 1] (sigmoid), roughness in [min_roughness, 1], unit normals tilted by a
@@ -11,15 +12,15 @@ they cost nothing at run time.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from typing import ClassVar
 
 import torch
 from torch import Tensor, nn
 
-from ..config.sections import BRDFS, LIGHT_INITS
+from ..render import brdf as brdfs
+from ..render.brdf import Brdf
 from ..render.products import Linear
-from ..render.sg import one_minus_exp_neg2x_over_x, sg_integral
-from ..render.shading import SGLight, gltf_f0
 
 
 # ------------------------------------------------------------------------------------ encodings
@@ -215,11 +216,14 @@ class Material:
     [0, 1] and ``roughness (N, 1)`` in [min_roughness, 1] (TANGO's terms: diffuse albedo,
     specular colour F0).
 
-    A material of glTF's BRDF (``optimize.brdf: gltf``) also carries what it was made of:
-    ``base (N, 3)`` colour and ``metallic (N, 1)``; its ``albedo`` and ``specular`` are then their
-    TANGO equivalents, ``base (1 - metallic)`` and ``lerp(0.04, base, metallic)``, so that figures
-    and material errors read both models alike, while shading, baking and export use ``base`` and
-    ``metallic``."""
+    A material carries its BRDF (:attr:`brdf`, an object of :mod:`stages.render.brdf`, by its
+    class: this one TANGO's, :class:`GltfMaterial` glTF's), which shades it and names the
+    parameters it was made of (``brdf.parameters``). A material of glTF's BRDF (``optimize.brdf:
+    gltf``) also carries those: ``base (N, 3)`` colour and ``metallic (N, 1)``; its ``albedo`` and
+    ``specular`` are then their TANGO equivalents, ``base (1 - metallic)`` and ``lerp(0.04, base,
+    metallic)``, so that figures and material errors read both models alike, while shading,
+    baking and export use ``base`` and ``metallic``. Build one from its BRDF's parameters with
+    :meth:`of`."""
 
     albedo: Tensor
     specular: Tensor | None
@@ -227,14 +231,52 @@ class Material:
     base: Tensor | None = None
     metallic: Tensor | None = None
 
-    @property
-    def brdf(self) -> str:
-        return "gltf" if self.metallic is not None else "tango"
+    #: the BRDF whose parameters these are
+    brdf: ClassVar[Brdf] = brdfs.TANGO
+
+    @staticmethod
+    def of(brdf: Brdf | str, colour: Tensor, specular: Tensor | None = None, roughness: Tensor | None = None) -> Material:
+        """A material of ``brdf`` (its object or name) from its parameters in head order
+        (``brdf.parameters``: the colour, the specular parameter, the roughness), with the
+        channels its BRDF makes of them (``brdf.channels``)."""
+        brdf = brdfs.get(brdf)
+        return material_type(brdf)(**brdf.channels(colour, specular, roughness))
 
     @staticmethod
     def gltf(base: Tensor, metallic: Tensor, roughness: Tensor) -> Material:
         """A glTF material with its TANGO equivalents filled in."""
-        return Material(base * (1.0 - metallic), gltf_f0(base, metallic), roughness, base, metallic)
+        return Material.of(brdfs.GLTF, base, metallic, roughness)
+
+    def parameters(self) -> dict[str, Tensor | None]:
+        """What it was made of, by name: its BRDF's parameters (``brdf.parameters``)."""
+        return {name: getattr(self, name) for name in self.brdf.parameters}
+
+
+@dataclass(frozen=True)
+class GltfMaterial(Material):
+    """A :class:`Material` of glTF's BRDF (:meth:`Material.of` makes it)."""
+
+    brdf: ClassVar[Brdf] = brdfs.GLTF
+
+
+#: the material class of each BRDF, by name (one per name of :mod:`stages.render.brdf`)
+MATERIAL_TYPES: dict[str, type[Material]] = {kind.brdf.name: kind for kind in (Material, GltfMaterial)}
+
+
+def material_type(brdf: Brdf) -> type[Material]:
+    """The :class:`Material` class of ``brdf``: its own where it has one (:data:`MATERIAL_TYPES`),
+    else one made for it once (a frozen subclass whose class attribute ``brdf`` is the model)."""
+    kind = MATERIAL_TYPES.get(brdf.name)
+    if kind is not None and kind.brdf is brdf:
+        return kind
+    if brdf not in _MADE_TYPES:
+        attributes = {"brdf": brdf, "__doc__": f"A material of {brdf!r}."}
+        _MADE_TYPES[brdf] = dataclass(frozen=True)(type(f"{type(brdf).__name__}Material", (Material,), attributes))
+    return _MADE_TYPES[brdf]
+
+
+#: the material classes made for BRDFs without their own (:func:`material_type`)
+_MADE_TYPES: dict[Brdf, type[Material]] = {}
 
 
 def cat_materials(materials: list[Material]) -> Material:
@@ -244,29 +286,22 @@ def cat_materials(materials: list[Material]) -> Material:
     def cat(name: str) -> Tensor | None:
         return None if getattr(first, name) is None else torch.cat([getattr(m, name) for m in materials])
 
-    return Material(cat("albedo"), cat("specular"), cat("roughness"), cat("base"), cat("metallic"))
+    return replace(first, **{name: cat(name) for name in ("albedo", "specular", "roughness", "base", "metallic")})
 
 
 def material_variation(a: Material, b: Material) -> Tensor:
     """The mean absolute change of a material between two sets of points ``a``, ``b`` (the same
-    number ``N`` of points, pairwise): nvdiffrec's smoothness regulariser (Munkberg et al. 2022,
-    "Extracting Triangular 3D Models, Materials, and Lighting From Images", Sec. 4: the mean of
-    ``|k(x) - k(x + eps)|`` for a small random ``eps``, for the diffuse and the specular
-    parameters). Here: the mean over points and channels of the colour's change (glTF's base
-    colour, or TANGO's diffuse albedo) plus that of the other parameters (metallic and roughness,
-    or TANGO's specular colour and roughness; none for a diffuse-only material). Each term is in
-    [0, 1]; zero exactly where the material is the same at both; subgradient 0 at equality."""
-    colour = (a.base if a.base is not None else a.albedo, b.base if b.base is not None else b.albedo)
-    total = (colour[0] - colour[1]).abs().mean()
-    others = (
-        [(a.metallic, b.metallic), (a.roughness, b.roughness)]
-        if a.metallic is not None
-        else [
-            (a.specular, b.specular),
-            (a.roughness, b.roughness),
-        ]
-    )
-    rest = [(x - y).abs() for x, y in others if x is not None]
+    number ``N`` of points, pairwise, of one BRDF): nvdiffrec's smoothness regulariser (Munkberg et
+    al. 2022, "Extracting Triangular 3D Models, Materials, and Lighting From Images", Sec. 4: the
+    mean of ``|k(x) - k(x + eps)|`` for a small random ``eps``, for the diffuse and the specular
+    parameters). Here, in the BRDF's own parameters (``brdf.parameters``): the mean over points
+    and channels of the colour's change (glTF's base colour, or TANGO's diffuse albedo) plus that
+    of the other parameters (metallic and roughness, or TANGO's specular colour and roughness;
+    none for a diffuse-only material). Each term is in [0, 1]; zero exactly where the material is
+    the same at both; subgradient 0 at equality."""
+    colour, *others = a.brdf.parameters
+    total = (getattr(a, colour) - getattr(b, colour)).abs().mean()
+    rest = [(getattr(a, name) - getattr(b, name)).abs() for name in others if getattr(a, name) is not None]
     if rest:
         total = total + torch.cat(rest, dim=-1).mean()
     return total
@@ -283,10 +318,13 @@ def normal_tilt(predicted: Tensor, geometric: Tensor) -> Tensor:
 
 class SVBRDFNet(nn.Module):
     """TANGO's SVBRDF MLP: a shared trunk (two layers) and three heads of three layers each for
-    diffuse albedo (3), specular colour (3) and roughness (1), all bounded by sigmoids.
-    ``specular=False`` builds the diffuse head only (the paper's "-spec, rough" ablation).
-    ``brdf="gltf"``: the same trunk and heads predict glTF's base colour (3), metallic (1) and
-    roughness (1) instead (:meth:`Material.gltf`)."""
+    the BRDF's parameters (``brdf.parameters``, widths ``brdf.widths``), all bounded by sigmoids:
+    TANGO's diffuse albedo (3), specular colour (3) and roughness (1), or glTF's base colour (3),
+    metallic (1) and roughness (1) (:meth:`Material.of` makes the material of them).
+    ``specular=False`` builds the colour head only (the paper's "-spec, rough" ablation), for a
+    BRDF that allows it (``brdf.spec.diffuse_only``). ``init_specular`` / ``init_metallic``: the
+    specular head starts near that value everywhere, the one the BRDF reads
+    (``brdf.spec.start_setting``)."""
 
     def __init__(
         self,
@@ -298,13 +336,13 @@ class SVBRDFNet(nn.Module):
         init_roughness: float | None = None,
         init_metallic: float | None = None,
         min_roughness: float = 0.01,
-        brdf: str = "tango",
+        brdf: Brdf | str = brdfs.TANGO,
     ) -> None:
         super().__init__()
-        if brdf not in BRDFS:
-            raise ValueError(f"unknown BRDF {brdf!r}; choose one of {', '.join(BRDFS)}")
-        if brdf == "gltf" and not specular:
-            raise ValueError("the glTF BRDF needs its metallic and roughness heads (specular: true)")
+        brdf = brdfs.get(brdf)
+        if not specular and not brdf.spec.diffuse_only:
+            heads = " and ".join(brdf.parameters[1:])
+            raise ValueError(f"the {brdf.name} BRDF needs its {heads} heads (specular: true)")
         self.encoding = encoding
         self.min_roughness = min_roughness
         self.brdf = brdf
@@ -314,29 +352,27 @@ class SVBRDFNet(nn.Module):
             Linear(width, width),
             nn.ReLU(inplace=True),
         )
-        self.diffuse = _mlp(width, width, 3, 3)
-        self.specular = _mlp(width, width, 3, 1 if brdf == "gltf" else 3) if specular else None
-        self.roughness = _mlp(width, width, 3, 1) if specular else None
-        if specular and init_specular is not None and brdf == "tango":
-            _init_constant(self.specular, torch.full((3,), float(init_specular)))
+        colour, second, rough = brdf.widths
+        self.diffuse = _mlp(width, width, 3, colour)
+        self.specular = _mlp(width, width, 3, second) if specular else None
+        self.roughness = _mlp(width, width, 3, rough) if specular else None
+        start = {"init_specular": init_specular, "init_metallic": init_metallic}[brdf.spec.start_setting]
+        if specular and start is not None:
+            _init_constant(self.specular, brdf.head_start(start))
         if specular and init_roughness is not None:
             u = (float(init_roughness) - min_roughness) / (1.0 - min_roughness)
             _init_constant(self.roughness, torch.tensor([u]))
-        if brdf == "gltf" and init_metallic is not None:  # (a sigmoid reaches 0 and 1 only in the limit)
-            _init_constant(self.specular, torch.tensor([float(init_metallic)]).clamp(1e-3, 1 - 1e-3))
 
     def forward(self, points: Tensor) -> Material:
         """``points (N, 3)`` (already symmetrised if the prior is on) -> :class:`Material`."""
         h = self.trunk(self.encoding(points))
         # heads' outputs back to float32 (a no-op unless the products ran under bfloat16 autocast)
-        albedo = torch.sigmoid(self.diffuse(h).float())
+        colour = torch.sigmoid(self.diffuse(h).float())
         if self.specular is None:
-            return Material(albedo, None, None)
+            return Material.of(self.brdf, colour)
         spec = torch.sigmoid(self.specular(h).float())
         rough = self.min_roughness + (1.0 - self.min_roughness) * torch.sigmoid(self.roughness(h).float())
-        if self.brdf == "gltf":
-            return Material.gltf(albedo, spec, rough)
-        return Material(albedo, spec, rough)
+        return Material.of(self.brdf, colour, spec, rough)
 
 
 # --------------------------------------------------------------------------------------- normals
@@ -379,159 +415,3 @@ class NormalNet(nn.Module):
         t, b = tangent_frame(normals)
         out = normals + d[:, :1] * t + d[:, 1:] * b
         return out / torch.linalg.vector_norm(out, dim=-1, keepdim=True)
-
-
-# ----------------------------------------------------------------------------------------- light
-def fibonacci_sphere(k: int) -> Tensor:
-    """``k`` nearly uniform unit directions ``(k, 3)`` on a Fibonacci spiral (y up)."""
-    i = torch.arange(k, dtype=torch.float64) + 0.5
-    polar = torch.acos(1.0 - 2.0 * i / k)
-    azim = math.pi * (1.0 + 5.0**0.5) * i
-    return torch.stack([torch.cos(azim) * torch.sin(polar), torch.cos(polar), torch.sin(azim) * torch.sin(polar)], dim=-1).float()
-
-
-#: the range a lobe's sharpness is kept in: from nearly constant to a sun of 0.5 degrees radius
-#: (the L2-best SG of a disc of radius r has sharpness 1.2564 / (1 - cos r), about 33,000 there)
-SHARPNESS_RANGE = (1e-4, 1e5)
-#: a lobe's energy is kept below exp(this) (a bound that no scene reaches, far from float32's overflow)
-LOG_ENERGY_MAX = 30.0
-
-
-def broad_sharpness(lobes: int) -> float:
-    """The sharpness at which neighbouring lobes of a ``lobes``-point Fibonacci sphere (spacing
-    ``sqrt(4 pi / lobes)``) overlap at half maximum: ``ln 2 / (1 - cos spacing)`` (1.9 for 16 lobes)."""
-    spacing = math.sqrt(4.0 * math.pi / lobes)
-    return math.log(2.0) / (1.0 - math.cos(spacing))
-
-
-def initial_sharpness(lobes: int, init: str = "broad", sharpness: float | None = None, max_sharpness: float = 1000.0) -> Tensor:
-    """Each lobe's starting sharpness ``(lobes, 1)`` for the initialisation ``init`` (LIGHT_INITS).
-
-    ``broad``: ``sharpness``, or :func:`broad_sharpness`; ``tango``: ``20 + |z| 100`` with ``z`` drawn
-    from the global RNG (the caller seeds it); ``spread``: ``lo (max_sharpness / lo)^t_k`` with
-    ``lo`` the broad sharpness and ``t_k = frac(k phi)`` (``phi`` the golden ratio), so that the
-    sharpnesses cover ``[lo, max_sharpness]`` evenly in the log and neighbours on the Fibonacci
-    sphere (consecutive indices) differ."""
-    lo = float(sharpness) if sharpness is not None else broad_sharpness(lobes)
-    if init == "broad":
-        return torch.full((lobes, 1), lo)
-    if init == "tango":
-        return 20.0 + torch.randn(lobes, 1).abs() * 100.0
-    if init == "spread":
-        t = torch.remainder(torch.arange(lobes, dtype=torch.float64) * (math.sqrt(5.0) - 1.0) / 2.0, 1.0)
-        hi = max(float(max_sharpness), lo)
-        return (lo * (hi / lo) ** t)[:, None].float()
-    raise ValueError(f"unknown light initialisation {init!r}; choose one of {', '.join(LIGHT_INITS)}")
-
-
-#: the light module's parameters, in the order :meth:`SGLightModule.keep` returns them
-LIGHT_PARAMETERS = ("axis_raw", "log_sharpness", "log_energy")
-
-
-def colour_spread(log_energy: Tensor) -> Tensor:
-    """How far a light is from white: per lobe the variance over the channels of its log energy
-    ``log_energy (K, C)``, weighted by the lobe's share of the light's energy (the weights held
-    constant), -> ``()``. Zero for a light whose every lobe is grey whatever its brightness; 2/3 of
-    ``(ln r)^2`` for a light whose lobes are all ``(r, 1, 1/r)``-coloured. The prior of
-    ``optimize.light_neutral`` (nvdiffrec holds its light towards white per texel, in linear
-    radiance; in log energy a lobe's colour is held at any brightness). Finite for any energy the
-    parametrisation reaches (``log_energy`` is clamped there)."""
-    centred = log_energy - log_energy.mean(-1, keepdim=True)
-    with torch.no_grad():
-        e = torch.exp(log_energy - log_energy.max()).sum(-1)
-        w = e / e.sum().clamp(min=torch.finfo(e.dtype).tiny)
-    return (w * centred.pow(2).mean(-1)).sum()
-
-
-class SGLightModule(nn.Module):
-    """``K`` learnable SG lobes on a Fibonacci sphere, with sharpnesses from :func:`initial_sharpness`
-    and equal energies summing to ``total_energy`` (``E = sum_k int G_k``, the true SG integral;
-    TANGO's eq. 7 divides by ``1 - exp(-2 lam)`` where the integral multiplies, which we do not
-    follow). ``rgb=False`` learns one energy per lobe (monochrome light).
-
-    Parametrisation (multiplicative, so that an Adam step, about the learning rate in each raw
-    parameter, changes sharpness and energy by a *factor*: 400 steps at 0.02 can sharpen a lobe
-    from 2 to about 6000, where an additive softplus moved it by at most 8): unit axes
-    ``u / |u|``; sharpness ``exp(s)`` with ``s`` clamped to ``log SHARPNESS_RANGE``; per channel the
-    lobe's energy ``exp(e)`` (``e <= LOG_ENERGY_MAX``), from which the amplitude follows,
-    ``mu = E / (2 pi (1 - exp(-2 lam)) / lam)`` (:func:`~stages.render.sg.sg_integral` inverted,
-    stable for every sharpness). Parametrising energy rather than amplitude keeps a lobe's
-    brightness when it sharpens, so the gradient in ``s`` sees the lobe's shape alone.
-
-    With ``E = 2 pi`` (TANGO initialises 6.25), a uniform environment has radiance 0.5, so a white
-    diffuse surface renders at 0.5.
-    """
-
-    def __init__(
-        self,
-        lobes: int = 32,
-        *,
-        rgb: bool = True,
-        total_energy: float = 6.25,
-        init: str = "broad",
-        init_sharpness: float | None = None,
-        max_init_sharpness: float = 1000.0,
-    ) -> None:
-        super().__init__()
-        channels = 3 if rgb else 1
-        lam = initial_sharpness(lobes, init, init_sharpness, max_init_sharpness).clamp(*SHARPNESS_RANGE)
-        self.axis_raw = nn.Parameter(fibonacci_sphere(lobes))
-        self.log_sharpness = nn.Parameter(torch.log(lam))
-        self.log_energy = nn.Parameter(torch.full((lobes, channels), math.log(total_energy / lobes)))
-
-    def forward(self) -> SGLight:
-        axis = self.axis_raw / torch.linalg.vector_norm(self.axis_raw, dim=-1, keepdim=True)
-        lo, hi = (math.log(x) for x in SHARPNESS_RANGE)
-        lam = torch.exp(self.log_sharpness.clamp(lo, hi))
-        energy = torch.exp(self.log_energy.clamp(max=LOG_ENERGY_MAX))
-        amp = energy / (2.0 * math.pi * one_minus_exp_neg2x_over_x(lam))
-        if amp.shape[-1] == 1:
-            amp = amp.expand(-1, 3)
-        return SGLight(axis, lam, amp)
-
-    @torch.no_grad()
-    def set_lobes(self, index: Tensor, axis: Tensor, sharpness: Tensor, energy: Tensor | None = None) -> None:
-        """Put lobes ``index`` at unit ``axis (n, 3)`` with ``sharpness (n, 1)`` (and per-channel
-        ``energy (n, C)`` when given) in the parametrisation's terms."""
-        self.axis_raw[index] = axis.to(self.axis_raw)
-        lo, hi = SHARPNESS_RANGE
-        self.log_sharpness[index] = torch.log(sharpness.to(self.log_sharpness).clamp(lo, hi))
-        if energy is not None:
-            self.log_energy[index] = torch.log(energy.to(self.log_energy).clamp(min=1e-30))
-
-    def colour_spread(self) -> Tensor:
-        """The light's departure from white (:func:`colour_spread`), differentiable in its energies."""
-        return colour_spread(self.log_energy.clamp(max=LOG_ENERGY_MAX))
-
-    def energy(self) -> Tensor:
-        """Total energy per channel ``(3,)``: the sum of the lobes' sphere integrals."""
-        return self.lobe_energy().sum(0)
-
-    def lobe_energy(self) -> Tensor:
-        """Each lobe's energy per channel ``(K, 3)``: its sphere integral (:func:`sg_integral`)."""
-        light = self()
-        return sg_integral(light.sharpness, light.amplitude)
-
-    def negligible(self, share: float) -> Tensor:
-        """``(K,)`` bool: lobes whose energy is below ``share`` of the light's total in every
-        channel (never all of them: the brightest lobe always stays)."""
-        with torch.no_grad():
-            e = self.lobe_energy()
-            small = (e < share * e.sum(0, keepdim=True)).all(-1)
-            small[e.sum(-1).argmax()] = False
-        return small
-
-    def keep(self, index: Tensor) -> list[tuple[nn.Parameter, nn.Parameter]]:
-        """Keep only the lobes ``index`` (indices into the current ``K``), as new parameters;
-        returns the ``(old, new)`` parameter pairs so that an optimiser can follow them."""
-        pairs = []
-        for name in LIGHT_PARAMETERS:
-            old = getattr(self, name)
-            new = nn.Parameter(old.detach()[index.to(old.device)].clone())
-            setattr(self, name, new)
-            pairs.append((old, new))
-        return pairs
-
-    @property
-    def lobes(self) -> int:
-        return int(self.axis_raw.shape[0])

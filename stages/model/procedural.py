@@ -21,7 +21,8 @@ from torch import Tensor
 
 from ..config.sections import LIGHTS, MATERIALS
 from ..render.shading import SGLight
-from .networks import Material, fibonacci_sphere
+from .lights.sg import fibonacci_sphere
+from .networks import Material
 
 
 def _mix(a, b, t: Tensor) -> Tensor:

@@ -34,6 +34,8 @@ from ..core.provenance import write_json_atomic
 from ..core.safefiles import DATA_LIMIT, open_read, read_json
 from ..imaging.quality import psnr
 from ..imaging.targets import FULL_COVERAGE
+from ..render import brdf as brdfs
+from ..render.brdf import Brdf
 from ..render.color import srgb_encode
 
 log = logging.getLogger(__name__)
@@ -226,7 +228,7 @@ def _angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def check_import(
-    result: JobResult, geom, meters_per_unit: float, brdf: str = "tango", occlusion: bool = False, tangents=None
+    result: JobResult, geom, meters_per_unit: float, brdf: Brdf | str = "tango", occlusion: bool = False, tangents=None
 ) -> dict:
     """Compare what Blender imported with what we exported (``geom``: the
     :class:`~stages.assets.formats.ExportMesh` in export space, compared per face corner). Returns the measured
@@ -234,8 +236,8 @@ def check_import(
     corner, positions where they belong in metres and Z-up (units, up axis), UVs (Blender's
     ``v`` is ``1 - v`` of glTF), the shading normals, Blender's own MikkTSpace tangents and bitangents
     against the frame the normal map was baked in (handedness), and the Principled BSDF's wiring
-    (TANGO's BRDF: the specular texture as the specular tint; glTF's: metallic from the blue
-    channel of the metallic-roughness texture; with ``occlusion``, the occlusion from its red
+    (the BRDF's ``blender_wiring``: for TANGO's, the specular texture as the specular tint; for
+    glTF's, metallic from the blue channel of the metallic-roughness texture; with ``occlusion``, the occlusion from its red
     channel, which Blender's glTF importer keeps in its "glTF Material Output" group: pass it for
     a glTF asset only, as Blender's USD importer does not read UsdPreviewSurface's ``occlusion``).
     ``tangents (3F, 4)``: the baked frame's tangents per corner, where the geometry holds none
@@ -262,7 +264,7 @@ def check_import(
     else:
         out["corners_compared"] = f"by the own-format check ({len(meshes)} mesh objects)"
         problems = []
-    problems += _wiring_checks(out, report, brdf, occlusion)
+    problems += _wiring_checks(out, report, brdfs.get(brdf), occlusion)
     return {**out, "problems": problems}
 
 
@@ -304,7 +306,7 @@ def _corner_checks(out: dict, c: dict, geom, meters_per_unit: float, tangents) -
     return problems
 
 
-def _wiring_checks(out: dict, report: dict, brdf: str, occlusion: bool) -> list[str]:
+def _wiring_checks(out: dict, report: dict, brdf: Brdf, occlusion: bool) -> list[str]:
     """:func:`check_import`'s check of the Principled BSDF's inputs (its figures go into ``out``)."""
     problems = []
     wiring = material_wiring(report)
@@ -313,11 +315,7 @@ def _wiring_checks(out: dict, report: dict, brdf: str, occlusion: bool) -> list[
         "Base Color": ("basecolor", "sRGB", None),
         "Roughness": ("metallic_roughness", "Non-Color", "Green"),
         "Normal": ("normal", "Non-Color", None),
-        **(
-            {"Metallic": ("metallic_roughness", "Non-Color", "Blue")}
-            if brdf == "gltf"
-            else {"Specular Tint": ("specular", "sRGB", None)}
-        ),
+        **brdf.blender_wiring,
         **({"group:Occlusion": ("metallic_roughness", "Non-Color", "Red")} if occlusion else {}),
     }
     if not wiring:

@@ -15,7 +15,7 @@ accounts for:
    fitted to the target's pixels through that renderer (:func:`fit_light_to_image`): what a
    perfect optimisation of TANGO's model could reach; the step from rung 2 is the BRDF model,
    the SG light and the closed-form shading together (the last alone is measured by
-   ``benchmarks/shading_vs_mitsuba.py``).
+   ``benchmarks/render/shading_vs_mitsuba.py``).
 """
 
 from __future__ import annotations
@@ -34,9 +34,13 @@ from ..geometry.visibility import self_occlusion, viewer_side_normals
 from ..imaging.quality import psnr
 from ..imaging.targets import FULL_COVERAGE
 from ..model.field import shade_material
-from ..model.networks import Material, SGLightModule
+from ..model.lights.sg import SGLightModule
+from ..model.networks import Material
 from ..model.shadows import ShadowCache
+from ..render import brdf as brdfs
+from ..render.brdf import Brdf
 from ..render.color import linear_to_srgb, srgb_encode
+from ..render.light import Light
 from ..render.shading import face_viewer
 from .targets import TargetRenderer
 
@@ -105,15 +109,16 @@ class TruthAtHits:
             f.name: None if getattr(self.material, f.name) is None else getattr(self.material, f.name)[index]
             for f in fields(Material)
         }
-        return TruthAtHits(self.normal[index], self.view[index], Material(**picked), self.shadows)
+        return TruthAtHits(self.normal[index], self.view[index], dataclasses.replace(self.material, **picked), self.shadows)
 
-    def radiance(self, light, index: torch.Tensor | None = None, shadowed: bool = True) -> torch.Tensor:
-        """Linear radiance ``(N, 3)`` of the hits (``index``: of those hits) under ``light``: glTF's
-        BRDF through the fitted lobe, TANGO's sum through its closed form; shadowed by the hits'
+    def radiance(self, light: Light, index: torch.Tensor | None = None, shadowed: bool = True) -> torch.Tensor:
+        """Linear radiance ``(N, 3)`` of the hits (``index``: of those hits) under ``light``, by the
+        specular model that stands for the material's BRDF (``brdf.model_lobe``: glTF's BRDF
+        through the fitted lobe, TANGO's sum through its closed form); shadowed by the hits'
         shadows unless ``shadowed`` is false."""
         part = self if index is None else self.at(index)
-        visibility = None if not shadowed or self.shadows is None else self.shadows.shares(light, index)
-        lobe = "fitted" if self.material.brdf == "gltf" else "isotropic"
+        visibility = None if not shadowed or self.shadows is None else light.shadowed_by(self.shadows, index)
+        lobe = self.material.brdf.model_lobe
         return shade_material(part.normal, part.view, part.material, light, lobe, visibility).rgb
 
 
@@ -136,13 +141,13 @@ def fit_light_to_image(
     n = len(truth.normal)
     for _ in range(iterations):
         b = torch.randint(n, (min(FIT_BATCH, n),), generator=gen)
-        loss = torch.nn.functional.mse_loss(linear_to_srgb(truth.radiance(module(), b)), target[b])
+        loss = torch.nn.functional.mse_loss(linear_to_srgb(truth.radiance(Light.of(module()), b)), target[b])
         adam.zero_grad()
         loss.backward()
         adam.step()
     with torch.no_grad():
         light = module()
-    return type(light)(light.axis.detach(), light.sharpness.detach(), light.amplitude.detach()), time.perf_counter() - t0
+    return light.detach(), time.perf_counter() - t0
 
 
 def _per_hit(img: np.ndarray, cache: RayCache, i: int) -> tuple[np.ndarray, np.ndarray]:
@@ -157,7 +162,7 @@ def measure_limits(
     spp: int,
     lobes: tuple[int, ...] = (16, 32),
     seed: int = 0,
-    brdf: str = "tango",
+    brdf: Brdf | str = "tango",
     visibility: bool = False,
     directions: int = 1024,
     shadow_samples: int = 64,
@@ -225,13 +230,13 @@ def measure_limits(
     if shadows is not None:
         out["visibility"] = {"directions": directions, "samples": shadows.samples, "seconds": shadows.seconds}
         out["self_occlusion"] = self_occlusion(shadows.blocked_share())
-    surface = _truth_surface(cache, truth, full, brdf, shadows)
+    surface = _truth_surface(cache, truth, full, brdfs.get(brdf), shadows)
     for k in lobes:
         out[f"lobes_{k}"] = _lobe_budget(surface, srgb, k, renderer.env_energy, noise, seed)
     return out
 
 
-def _truth_surface(cache: RayCache, truth: dict, full: np.ndarray, brdf: str, shadows: ShadowCache | None) -> TruthAtHits:
+def _truth_surface(cache: RayCache, truth: dict, full: np.ndarray, brdf: Brdf, shadows: ShadowCache | None) -> TruthAtHits:
     """The true surface at the fully covered hits, in the model's BRDF (TANGO's, or glTF's from
     the truth's base colour and metallic)."""
     direction = np.concatenate([cache.view(i).direction for i in range(len(cache))])
@@ -242,9 +247,8 @@ def _truth_surface(cache: RayCache, truth: dict, full: np.ndarray, brdf: str, sh
         return torch.from_numpy(truth[key][full]).float()
 
     rough = at("roughness").clamp(0.01, 1.0)
-    material = (
-        Material.gltf(at("base"), at("metallic"), rough) if brdf == "gltf" else Material(at("albedo"), at("specular"), rough)
-    )
+    colour, specular = (at(name) for name in brdf.parameters[:2])
+    material = Material.of(brdf, colour, specular, rough)
     return TruthAtHits(normal.float(), view.float(), material, shadows)
 
 
@@ -257,7 +261,7 @@ def _lobe_budget(surface: TruthAtHits, srgb: dict, lobes: int, energy, noise: fl
         truth = surface if rung != "unshadowed" else dataclasses.replace(surface, shadows=None)
         light, sec = fit_light_to_image(truth, goal, lobes, energy, seed)
         with torch.no_grad():
-            ours = linear_to_srgb(truth.radiance(light))
+            ours = linear_to_srgb(truth.radiance(Light.of(light)))
         # each Mitsuba image carries its noise; ours is noise-free
         errors[rung] = max(float(((ours - goal) ** 2).mean()) - noise, 0.0)
         psnrs[rung] = psnr(ours, goal)

@@ -1,7 +1,10 @@
 """The Blender round trip's work: the cell's exported files imported into Blender, checked and
 rendered with Cycles from evaluation views (:mod:`.blender`), against our render of the trained field
-at the same hits; the GLB's lobes alone, which split the gap between the BRDF models; and the
-comparison sheet."""
+at the same hits; the lobes alone of the format whose row says ``lobe_split`` (the GLB's), which
+split the gap between the BRDF models; and the comparison sheet. What the round trip knows of each
+imported file (its light, its occlusion, its faces' order) is its export format's row,
+:data:`stages.config.layout.EXPORT_FORMATS`; ``fmt`` below is the file's suffix
+(``roundtrip.formats``)."""
 
 from __future__ import annotations
 
@@ -12,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..config.layout import EXPORT_FILES, export_format_of
 from ..config.sections import RoundtripSettings
 from ..core.errors import StageInputError
 from ..core.provenance import Timer
@@ -23,8 +27,8 @@ from .blender import BlenderUnavailable, check_import, compare_renders, render_j
 log = logging.getLogger(__name__)
 
 
-#: Cycles passes of the GLB: the material as imported, its diffuse lobe alone (no specular
-#: reflection) and its specular lobe alone (black base colour)
+#: Cycles passes of the file whose format splits its lobes (the GLB): the material as imported,
+#: its diffuse lobe alone (no specular reflection) and its specular lobe alone (black base colour)
 PASSES = {
     "full": {},
     "diffuse": {"Specular IOR Level": 0.0},
@@ -92,20 +96,21 @@ class RoundtripScene:
     tangents: np.ndarray | None = None
     #: the input file where the asset is its own topology (a kept layout), for :func:`own_format_check`
     source: Path | None = None
-    #: whether ``model.glb`` is the input's own document (faces in the input's order)
+    #: whether the GLB is the input's own document (faces in the input's order)
     document: bool = False
 
 
 def blender_pass(scene: RoundtripScene, fmt: str, name: str, overrides: dict, timer: Timer):
-    """One Blender job: import ``model.<fmt>`` and render it (the ``name`` pass: the material as
-    imported, or with its ``overrides``); the inspection and the renders."""
+    """One Blender job: import the exported file of suffix ``fmt`` and render it (the ``name``
+    pass: the material as imported, or with its ``overrides``), lit by ``light.hdr`` as the world
+    unless the file carries its light (the USD's DomeLight); the inspection and the renders."""
     s = scene.settings
-    env = (scene.export_dir / "light.hdr").resolve() if fmt == "glb" else None  # the USD carries its DomeLight
+    env = None if export_format_of(fmt).carries_light else (scene.export_dir / "light.hdr").resolve()
     render = render_job(
         scene.cameras, scene.cache.fov_deg, scene.cache.width, spp=s.spp, seed=s.seed, transport=s.transport, environment=env
     )
     job = {
-        "asset": str((scene.export_dir / f"model.{fmt}").resolve()),
+        "asset": str((scene.export_dir / EXPORT_FILES[fmt]).resolve()),
         "inspect": name == "full",
         "render": {**render, "principled_overrides": overrides},
     }
@@ -118,11 +123,13 @@ def blender_pass(scene: RoundtripScene, fmt: str, name: str, overrides: dict, ti
 
 def graded_import(scene: RoundtripScene, fmt: str, res) -> tuple[dict, object]:
     """A format's imported asset checked and its render graded against ours: its result record
-    and the comparison (images per view)."""
-    exported = scene.export_meta.get("stats", {})
-    occlusion = bool(exported.get("occlusion", False)) and fmt == "glb"  # Blender's USD importer drops it
+    and the comparison (images per view). The occlusion map is checked where Blender's importer
+    keeps it (not the USD's), the faces in slot order where the format writes them so (our GLB:
+    one primitive per material slot; a glTF input's own document keeps the input's order)."""
+    exported, spec = scene.export_meta.get("stats", {}), export_format_of(fmt)
+    occlusion = bool(exported.get("occlusion", False)) and spec.blender_keeps_occlusion
     geom, tangents = scene.geom, scene.tangents
-    if fmt == "glb" and not scene.document:  # our GLB writes one primitive per material slot
+    if spec.faces_by_slot and not scene.document:
         order = geom.glb_face_order()
         geom = geom.reordered(order)
         tangents = None if tangents is None else tangents.reshape(-1, 3, 4)[order].reshape(-1, 4)
@@ -131,11 +138,11 @@ def graded_import(scene: RoundtripScene, fmt: str, res) -> tuple[dict, object]:
     if "TEX_ENVIRONMENT" not in world:
         checks["problems"].append("the world has no environment texture (the learned light did not arrive)")
     for problem in checks["problems"]:
-        log.warning("Blender import of model.%s: %s", fmt, problem)
+        log.warning("Blender import of %s: %s", EXPORT_FILES[fmt], problem)
     cmp = compare_renders(scene.hits, res.renders, [r.rgb for r in scene.reference])
     log.info(
-        "model.%s in Blender %s: %.2f dB against our render over %d object pixels (Cycles noise %.1f dB), %d problem(s)",
-        fmt,
+        "%s in Blender %s: %.2f dB against our render over %d object pixels (Cycles noise %.1f dB), %d problem(s)",
+        EXPORT_FILES[fmt],
         res.report.get("blender"),
         cmp.psnr_db,
         cmp.pixels,
@@ -156,11 +163,11 @@ def graded_import(scene: RoundtripScene, fmt: str, res) -> tuple[dict, object]:
 
 
 def own_format_check(scene: RoundtripScene, timer: Timer) -> dict:
-    """The asset in the input's own format (``model.glb`` of a glTF input, ``model.obj`` of an
-    OBJ's) imported into Blender beside the input itself: the same mesh objects with the same
-    vertex, face and corner counts, and the same UVs per corner. Returns the counts of both, the
-    largest UV difference and ``problems``."""
-    own = scene.export_dir / ("model.glb" if scene.document else "model.obj")
+    """The asset in the input's own format (the GLB of a glTF input, ``model.obj`` of an OBJ's)
+    imported into Blender beside the input itself: the same mesh objects with the same vertex,
+    face and corner counts, and the same UVs per corner. Returns the counts of both, the largest
+    UV difference and ``problems``."""
+    own = scene.export_dir / (EXPORT_FILES["glb"] if scene.document else "model.obj")
     got = {}
     for key, path in (("input", scene.source), ("output", own)):
         with timer(f"blender_{key}_import"):
@@ -191,9 +198,10 @@ def own_format_check(scene: RoundtripScene, timer: Timer) -> dict:
     return {**strip, "uv_error": uv_error, "problems": problems}
 
 
-def lobe_split(scene: RoundtripScene, lobes: dict) -> dict:
-    """Each of the GLB's lobes alone against ours, Blender's two lobes simply added (TANGO's sum,
-    no layering), and the specular lobe's share of our radiance."""
+def lobe_split(scene: RoundtripScene, lobes: dict, fmt: str) -> dict:
+    """Each lobe alone of the file of suffix ``fmt`` (the format that splits its lobes) against
+    ours, Blender's two lobes simply added (TANGO's sum, no layering), and the specular lobe's
+    share of our radiance."""
     hits, reference = scene.hits, scene.reference
     split = {
         "diffuse_psnr_db": compare_renders(hits, lobes["diffuse"], [r.diffuse for r in reference]).psnr_db,
@@ -206,8 +214,9 @@ def lobe_split(scene: RoundtripScene, lobes: dict) -> dict:
     ours_all = float(np.concatenate([r.rgb for r in reference]).mean())
     split["specular_share"] = ours_spec / max(ours_all, 1e-12)
     log.info(
-        "model.glb lobes: diffuse alone %.2f dB, specular alone %.2f dB, Blender's lobes added %.2f dB "
+        "%s lobes: diffuse alone %.2f dB, specular alone %.2f dB, Blender's lobes added %.2f dB "
         "(specular is %.0f%% of our radiance)",
+        EXPORT_FILES[fmt],
         split["diffuse_psnr_db"],
         split["specular_psnr_db"],
         split["lobes_summed_psnr_db"],

@@ -3,7 +3,7 @@
 torch computes a float32 ``linear`` on a CPU with ATen's matrix product, which calls MKL's
 ``sgemm``. MKL picks its code by CPU vendor as well as by instruction set: on an AMD CPU it runs
 its AVX2 code even where the CPU has AVX-512, and oneDNN (which torch also carries, and uses for
-bfloat16) does not. Measured on a 2-core AMD EPYC with AVX-512 (``python benchmarks/optimize.py``,
+bfloat16) does not. Measured on a 2-core AMD EPYC with AVX-512 (``python -m benchmarks.training.optimize``,
 docs/measurements/speed.md): the products of CLIP's image tower (250 x 768 by 768 x 3,072 and
 the like) ran at 163-182 GFLOP/s by MKL and 417-431 by oneDNN; held to AVX2, 203-205 against 231-233.
 
@@ -24,6 +24,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import logging
+import math
 import time
 from collections.abc import Iterator
 from contextvars import ContextVar
@@ -139,6 +140,20 @@ def route_linear_modules(module: nn.Module) -> int:
             m.__class__ = Linear
             count += 1
     return count
+
+
+def onednn_linear_flops(x_shape, w_shape, *args, out_shape=None, **kwargs) -> int:
+    """FLOPs of oneDNN's linear layer (``mkldnn._linear_pointwise``, :func:`linear`'s routed
+    forward) counted as torch's ``FlopCounterMode`` counts ATen's ``addmm``: 2 per multiply-add of
+    ``x W^T`` (``x (..., in)``, ``W (out, in)``), the bias not counted."""
+    return 2 * math.prod(x_shape[:-1]) * w_shape[0] * w_shape[1]
+
+
+def flop_formulas() -> dict:
+    """The products this module runs that ``FlopCounterMode`` does not know, with their formulas
+    (its ``custom_mapping``), so that a count is the same whichever kernels ran; empty where this
+    torch has no oneDNN."""
+    return {torch.ops.mkldnn._linear_pointwise: onednn_linear_flops} if onednn_available() else {}
 
 
 @contextlib.contextmanager

@@ -1,9 +1,10 @@
-"""Directional albedo of TANGO's microfacet specular BRDF, tabulated: the "split-sum" factor
+"""Directional albedo of a BRDF's microfacet specular lobe, tabulated: the "split-sum" factor
 [Karis13] that makes a specular lobe's energy exact whatever shape approximates it.
 
-For the BRDF of :mod:`stages.render.shading` (SG normal distribution ``D`` with ``alpha = r^2``,
-Schlick's Fresnel, Smith-Schlick shadowing with ``k = (r + 1)^2 / 8``), the reflected energy under
-a uniform white light is linear in ``F0`` because Schlick's Fresnel is:
+For a BRDF of :mod:`stages.render.brdf` (TANGO's: SG normal distribution ``D`` with ``alpha =
+r^2``, Schlick's Fresnel, Smith-Schlick shadowing with ``k = (r + 1)^2 / 8``; glTF's: GGX and the
+separable Smith-GGX), the reflected energy under a uniform white light is linear in ``F0`` because
+Schlick's Fresnel is:
 
     E(n.v, r, F0) = int f_r(l, v) (n . l) dl = F0 * A(n.v, r) + B(n.v, r),
 
@@ -11,9 +12,11 @@ a uniform white light is linear in ``F0`` because Schlick's Fresnel is:
 
 over half vectors ``h`` whose reflection ``l = 2 (v.h) h - v`` is above the surface (the
 change of variables ``dl = 4 (v.h) dh`` cancels the BRDF's ``4 (n.l)(n.v)`` but for ``n.v``).
-:func:`build_table` integrates ``A`` and ``B`` by quadrature on a grid of ``n.v`` and ``r``;
-:func:`directional_albedo` interpolates the shipped table (``data/specular_albedo.npz``, written by
-``python -m stages.render.specular_albedo``) bilinearly, differentiably in ``n.v`` and ``r``.
+:func:`build_table` integrates ``A`` and ``B`` by quadrature on a grid of ``n.v`` and ``r``, over
+the BRDF's own normal distribution and shadowing (its object's ``ndf_quadrature`` and
+``shadowing``); :func:`directional_albedo` interpolates the BRDF's shipped table (its
+``table_path``: ``data/specular_albedo.npz`` for TANGO's, written by ``python -m
+stages.render.brdf.table``) bilinearly, differentiably in ``n.v`` and ``r``.
 Accuracy: the quadrature is within 0.3% of a Monte Carlo estimate written from the textbook
 formula, and the interpolation within 1% of the quadrature between grid nodes (both tested).
 
@@ -24,26 +27,21 @@ References:
 
 from __future__ import annotations
 
-import argparse
-import logging
 import math
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from ..config.sections import BRDFS
-from ..core.safefiles import DATA_LIMIT, atomic_stream, open_read
+from ..core.safefiles import DATA_LIMIT, open_read
 
-log = logging.getLogger(__name__)
+if TYPE_CHECKING:  # (the BRDFs' package imports this module)
+    from .brdf.base import Brdf
 
-#: the shipped tables, one per BRDF model (``optimize.brdf``)
-TABLE_PATHS = {
-    "tango": Path(__file__).with_name("data") / "specular_albedo.npz",
-    "gltf": Path(__file__).with_name("data") / "specular_albedo_gltf.npz",
-}
-TABLE_PATH = TABLE_PATHS["tango"]
+#: the folder of the shipped tables, one per BRDF model (each BRDF's ``table_path``)
+DATA_DIR = Path(__file__).with_name("data")
 #: the table's grid: n.v from NV_MIN (the shading keeps n.v >= 5e-4, see ``face_viewer``) to 1,
 #: uniform in log(n.v), and the table holds log A and log B: near grazing a sharp lobe's albedo
 #: follows a power of n.v that changes where the horizon starts to cut the lobe, which a lookup
@@ -55,11 +53,10 @@ NV_NODES = 96
 R_NODES = 64
 #: values below this are looked up as this (B at normal incidence on the sharpest lobes is ~0)
 LOG_FLOOR = 1e-30
-#: quadrature of one table entry: Gauss-Legendre nodes in u = lam (1 - cos theta_h) and in phi_h
+#: quadrature of one table entry: Gauss-Legendre nodes in the BRDF's own variable of the half
+#: vector's polar angle (its ``ndf_quadrature``) and in phi_h
 U_NODES = 192
 PHI_NODES = 256
-#: the NDF's exponent beyond which exp(-u) is below 1e-26: the u range is [0, min(2 lam, U_MAX)]
-U_MAX = 60.0
 
 
 def nv_grid() -> np.ndarray:
@@ -88,58 +85,24 @@ def concentration_of(mean_length: np.ndarray) -> np.ndarray:
     return np.where(near_one, 1.0 / (1.0 - rbar), k)
 
 
-def _half_vector_nodes(roughness: float, brdf: str) -> tuple[np.ndarray, ...]:
+def _half_vector_nodes(roughness: float, brdf: Brdf) -> tuple[np.ndarray, ...]:
     """Quadrature of ``int g(h) D(h) dh`` over half vectors: ``(cos_t, sin_t, phi, weight)`` with
-    ``weight = D(h) dh`` at Gauss-Legendre nodes ``(U_NODES, PHI_NODES)``.
-
-    ``tango`` (SG NDF, ``lam = 2 / r^4``, amplitude ``lam / (2 pi)``): ``u = lam (1 - cos theta_h)``
-    turns ``D(h) dh`` into ``exp(-u) / (2 pi) du dphi`` exactly, which resolves the sharpest lobes as
-    well as the broadest. ``gltf`` (GGX with ``alpha = r^2``): ``u = tan^2 / (alpha^2 + tan^2)`` in
-    [0, 1) is the GGX distribution's own cumulative of ``D cos``, so ``D(h) dh = du dphi / (2 pi
-    cos theta_h)`` with ``cos^2 = (1 - u) / (1 + (alpha^2 - 1) u)``: uniform in ``u``, every part of
-    the long tail weighted as it counts."""
+    ``weight = D(h) dh`` at Gauss-Legendre nodes ``(U_NODES, PHI_NODES)``: in the polar angle, the
+    BRDF's own change of variables (:meth:`~stages.render.brdf.Brdf.ndf_quadrature`, which
+    resolves its sharpest lobes as well as its broadest), uniform in the azimuth."""
     xu, wu = np.polynomial.legendre.leggauss(U_NODES)
     xp, wp = np.polynomial.legendre.leggauss(PHI_NODES)
     phi = math.pi * (xp + 1.0)
     wp = math.pi * wp
-    if brdf == "tango":
-        lam = 2.0 / roughness**4
-        top = min(2.0 * lam, U_MAX)
-        u = 0.5 * top * (xu + 1.0)
-        wu = 0.5 * top * wu
-        cos_t = 1.0 - u / lam
-        # sin from 1 - cos = u / lam without cancellation: sin^2 = (u / lam)(2 - u / lam)
-        sin_t = np.sqrt(np.clip(u / lam * (2.0 - u / lam), 0.0, None))
-        dens = np.exp(-u) * wu
-    elif brdf == "gltf":
-        a2 = roughness**4
-        u = 0.5 * (xu + 1.0)
-        wu = 0.5 * wu
-        cos2 = (1.0 - u) / (1.0 + (a2 - 1.0) * u)
-        cos_t = np.sqrt(cos2)
-        sin_t = np.sqrt(np.clip(a2 * u / (1.0 + (a2 - 1.0) * u), 0.0, None))  # 1 - cos^2 without cancellation
-        dens = wu / cos_t
-    else:
-        raise ValueError(f"unknown BRDF {brdf!r}; choose one of {', '.join(BRDFS)}")
+    cos_t, sin_t, dens = brdf.ndf_quadrature(xu, wu, roughness)
     weight = dens[:, None] * wp[None, :] / (2.0 * math.pi)  # D(h) dh
     return cos_t, sin_t, phi, weight
 
 
-def _shadowing(nl: np.ndarray, c: float, roughness: float, brdf: str) -> np.ndarray:
-    """``G(l, v) / (n . v)`` for ``n.l`` values ``nl`` (> 0) and ``n.v = c``: TANGO's Smith-Schlick
-    ``G1(x) = x / (x (1 - k) + k)``, ``k = (r + 1)^2 / 8``, or glTF's separable Smith-GGX
-    ``G1(x) = 2 x / (x + sqrt(alpha^2 + (1 - alpha^2) x^2))`` (glTF 2.0, Appendix B)."""
-    if brdf == "tango":
-        k = (roughness + 1.0) ** 2 / 8.0
-        return nl / (nl * (1.0 - k) + k) / (c * (1.0 - k) + k)
-    a2 = roughness**4
-    g1_l = 2.0 * nl / (nl + np.sqrt(a2 + (1.0 - a2) * nl * nl))
-    return g1_l * 2.0 / (c + math.sqrt(a2 + (1.0 - a2) * c * c))
-
-
-def _entry_terms(nv: np.ndarray, roughness: float, brdf: str = "tango") -> dict[str, np.ndarray]:
-    """``A`` and ``B`` for every ``nv (M,)`` at one roughness of the BRDF ``brdf`` (``tango`` or
-    ``gltf``), by quadrature over ``h`` (:func:`_half_vector_nodes`), with the moments of each
+def _entry_terms(nv: np.ndarray, roughness: float, brdf: Brdf) -> dict[str, np.ndarray]:
+    """``A`` and ``B`` for every ``nv (M,)`` at one roughness of the BRDF ``brdf`` (its object,
+    :mod:`stages.render.brdf`), by quadrature over ``h`` (:func:`_half_vector_nodes`), with the
+    moments of each
     part's lobe ``f_r (n.l)`` over reflected directions ``l``: the angle ``theta`` of its mean
     direction from ``n`` (towards the mirror side) and the concentration ``kappa`` of the vMF with
     the same mean resultant length (:func:`concentration_of`)."""
@@ -153,7 +116,7 @@ def _entry_terms(nv: np.ndarray, roughness: float, brdf: str = "tango") -> dict[
         nl = 2.0 * vh * hz - c  # l = 2 (v.h) h - v, n = z
         lx = 2.0 * vh * hx - s  # the y part of l averages to 0 by symmetry
         ok = (vh > 0.0) & (nl > 0.0)
-        shadow = _shadowing(np.where(ok, nl, 1.0), c, roughness, brdf)
+        shadow = brdf.shadowing(np.where(ok, nl, 1.0), c, roughness)
         common = np.where(ok, weight * shadow * vh, 0.0)  # D G (v.h) / (n.v) dh
         fres = np.clip(1.0 - vh, 0.0, 1.0) ** 5
         for part, w in (("a", common * (1.0 - fres)), ("b", common * fres)):
@@ -168,7 +131,7 @@ def _entry_terms(nv: np.ndarray, roughness: float, brdf: str = "tango") -> dict[
     return out
 
 
-def build_table(brdf: str = "tango") -> dict[str, np.ndarray]:
+def build_table(brdf: Brdf) -> dict[str, np.ndarray]:
     """``{"nv", "roughness", "a", "b", "theta_a", "kappa_a", "theta_b", "kappa_b"}``: the grids and
     each column ``(NV_NODES, R_NODES)`` by quadrature (:func:`_entry_terms`) for ``brdf``."""
     nv, rough = nv_grid(), roughness_grid()
@@ -184,32 +147,30 @@ def build_table(brdf: str = "tango") -> dict[str, np.ndarray]:
 TABLE_COLUMNS = ("a", "b", "theta_a", "kappa_a", "theta_b", "kappa_b")
 
 
-#: the tables read so far, by (device, dtype, BRDF); a plain dict, not ``functools.cache``:
+#: the tables read so far, by (device, dtype, BRDF name); a plain dict, not ``functools.cache``:
 #: torch.compile traces a cached function's body (and breaks its graph at the file read), while a
 #: lookup in a dict that already holds the table is a constant to it
 _TABLES: dict[tuple[str, torch.dtype, str], dict[str, Tensor]] = {}
 
 
-def _table(device: str, dtype: torch.dtype, brdf: str = "tango") -> dict[str, Tensor]:
+def _table(device: str, dtype: torch.dtype, brdf: Brdf) -> dict[str, Tensor]:
     """The table of ``brdf`` as tensors on ``device`` in ``dtype`` (read once per process)."""
-    key = (device, dtype, brdf)
+    key = (device, dtype, brdf.name)
     table = _TABLES.get(key)
     if table is None:
         table = _TABLES[key] = _read_table(device, dtype, brdf)
     return table
 
 
-def preload_table(device: torch.device | str, brdf: str = "tango") -> None:
+def preload_table(device: torch.device | str, brdf: Brdf) -> None:
     """Read ``brdf``'s table for ``device`` now (as a lookup on that device would: float32, the
     device's full name), so that a compiled renderer finds it in memory."""
     _table(str(torch.empty(0, device=device).device), torch.float32, brdf)
 
 
-def _read_table(device: str, dtype: torch.dtype, brdf: str) -> dict[str, Tensor]:
-    if brdf not in TABLE_PATHS:
-        raise ValueError(f"unknown BRDF {brdf!r}; choose one of {', '.join(BRDFS)}")
-    path = TABLE_PATHS[brdf]
-    rebuild = f"`python -m stages.render.specular_albedo --brdf {brdf}`"
+def _read_table(device: str, dtype: torch.dtype, brdf: Brdf) -> dict[str, Tensor]:
+    path = brdf.table_path
+    rebuild = f"`python -m stages.render.brdf.table --brdf {brdf.name}`"
     if not path.is_file():
         raise FileNotFoundError(f"{path}: the specular albedo table is missing; rebuild it with {rebuild}")
     with open_read(path, DATA_LIMIT) as fh, np.load(fh) as z:
@@ -240,7 +201,7 @@ def _bilinear(grid: Tensor, x: Tensor, y: Tensor) -> Tensor:
     return (g00 * (1 - fy) + g01 * fy) * (1 - fx) + (g10 * (1 - fy) + g11 * fy) * fx
 
 
-def _lookup(cos_nv: Tensor, roughness: Tensor, keys: tuple[str, ...], brdf: str = "tango") -> list[Tensor]:
+def _lookup(cos_nv: Tensor, roughness: Tensor, keys: tuple[str, ...], brdf: Brdf) -> list[Tensor]:
     """The table's columns ``keys`` at ``cos_nv`` and ``roughness`` (any matching shapes): bilinear in
     ``log(n . v)`` and ``log(r)``, computed in float32 at least, returned in the input's dtype."""
     work = torch.float32 if cos_nv.dtype in (torch.float16, torch.bfloat16) else cos_nv.dtype
@@ -254,16 +215,16 @@ def _lookup(cos_nv: Tensor, roughness: Tensor, keys: tuple[str, ...], brdf: str 
     return out
 
 
-def directional_albedo(cos_nv: Tensor, roughness: Tensor, brdf: str = "tango") -> tuple[Tensor, Tensor]:
-    """``A, B`` at ``cos_nv (...)`` in ``[5e-4, 1]`` and ``roughness (...)`` in ``[0.01, 1]``
-    (clamped to the table) -> two tensors of the same shape; the specular albedo is
+def directional_albedo(cos_nv: Tensor, roughness: Tensor, brdf: Brdf) -> tuple[Tensor, Tensor]:
+    """``A, B`` of ``brdf``'s table at ``cos_nv (...)`` in ``[5e-4, 1]`` and ``roughness (...)`` in
+    ``[0.01, 1]`` (clamped to the table) -> two tensors of the same shape; the specular albedo is
     ``F0 A + B``. Bilinear in ``log(n . v)`` and ``log(r)`` on ``log A`` and ``log B``; gradients flow
     to both."""
     a, b = _lookup(cos_nv, roughness, ("a", "b"), brdf)
     return a, b
 
 
-def lobe_moments(cos_nv: Tensor, roughness: Tensor, brdf: str = "tango") -> tuple[Tensor, Tensor, Tensor, Tensor]:
+def lobe_moments(cos_nv: Tensor, roughness: Tensor, brdf: Brdf) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """``tilt_a, kappa_a, tilt_b, kappa_b`` at ``cos_nv`` and ``roughness`` (as
     :func:`directional_albedo`): for the ``A`` part (weighted by ``1 - (1 - v.h)^5``) and the ``B``
     part (by ``(1 - v.h)^5``) of the BRDF's lobe ``f_r (n . l)``, the angle from the mirror
@@ -277,21 +238,3 @@ def lobe_moments(cos_nv: Tensor, roughness: Tensor, brdf: str = "tango") -> tupl
     float32 the fitted lobe's gradient erred by 1.4% at n.v 0.01, roughness 0.05)."""
     tilt_a, kappa_a, tilt_b, kappa_b = _lookup(cos_nv, roughness, ("tilt_a", "kappa_a", "tilt_b", "kappa_b"), brdf)
     return tilt_a, kappa_a, tilt_b, kappa_b
-
-
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description="Rebuild the specular albedo table of a BRDF by quadrature.")
-    parser.add_argument("--brdf", choices=BRDFS, default="tango")
-    parser.add_argument("--out", type=Path, default=None, help="default: the shipped table of --brdf")
-    args = parser.parse_args(argv)
-    args.out = args.out or TABLE_PATHS[args.brdf]
-    logging.basicConfig(level=logging.INFO, format="%(message)s")
-    table = build_table(args.brdf)
-    with atomic_stream(args.out) as fh:
-        np.savez_compressed(fh, **table)
-    log.info("wrote %s (%d x %d)", args.out, NV_NODES, R_NODES)
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -96,7 +96,7 @@ class _VisibleSums(torch.autograd.Function):
     denominator: products, never differences. (Through autograd's ``1 / S - (lit + e) / S^2``
     the two terms cancel where a point's share is near 1, and their float32 rounding, times a
     sun's sharpness, made its axis's gradient 1e4 times too large at an open point; found by
-    ``benchmarks/precision.py``.) Each block's two matrices are stacked, ``[c * v; c * (1 - v)]
+    ``benchmarks/render/precision.py``.) Each block's two matrices are stacked, ``[c * v; c * (1 - v)]
     (2 n, D)``, so that each block is one product each way; ``products``: the dtype they are built
     and multiplied in (the share is returned in ``w``'s)."""
 
@@ -149,7 +149,7 @@ def _split(x: Tensor, dtype: torch.dtype) -> Tensor:
     side (their sum holds ``x`` to about twice ``dtype``'s mantissa), or ``(n, K)`` of ``x`` alone
     when ``dtype`` is ``x``'s. Rounded once, the backward's coefficients left the gradients of very
     broad lobes (sharpness 1e-3, whose shares barely move) up to 1.9 times their norm off float32's,
-    against 0.5 in two parts (``benchmarks/precision.py``'s bfloat16 column; 4% of the norm when the
+    against 0.5 in two parts (``benchmarks/render/precision.py``'s bfloat16 column; 4% of the norm when the
     backward summed the lit and the whole sums' cancelling terms)."""
     if dtype == x.dtype:
         return x

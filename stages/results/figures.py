@@ -331,11 +331,11 @@ def relit_text(row: dict) -> str | None:
     """The first relighting environment's scaled figure and ceiling of a summary row, as a short
     label (``relit 24.37 | ceiling 25.26 dB``), or None where the cell was not relit."""
     scaled, ceiling = row.get("relit_psnr_scaled_db"), row.get("relit_ceiling_psnr_db")
-    if not scaled or not isinstance(scaled, str):
+    if not scaled or not isinstance(scaled, list):
         return None
-    text = f"relit {scaled.split('/')[0]}"
-    if ceiling and isinstance(ceiling, str):
-        text += f" | ceiling {ceiling.split('/')[0]}"
+    text = f"relit {scaled[0]:.2f}"
+    if ceiling and isinstance(ceiling, list):
+        text += f" | ceiling {ceiling[0]:.2f}"
     return text + " dB"
 
 

@@ -36,7 +36,9 @@ import pandas as pd
 from jinja2 import Environment, FileSystemLoader, StrictUndefined
 from markupsafe import Markup
 
-from ..config.layout import RENDER_KINDS
+from ..config.guidance_modes import GUIDANCE_MODES
+from ..config.layout import RENDER_KINDS, VIEWER_FILE
+from ..config.records import Column
 from ..core.errors import StageInputError
 from ..core.provenance import atomic_path
 from ..core.safefiles import (
@@ -51,28 +53,29 @@ from ..core.safefiles import (
     remove_tree,
     replace,
 )
-from .spreadsheet import read_csv, read_spreadsheet_csv
-from .summary import quality_of
+from .spreadsheet import read_spreadsheet_csv
+from .summary import quality_of, summary_columns
 
 log = logging.getLogger(__name__)
 
-#: the summary columns the index table shows (all of them are in summary.csv)
+#: the summary columns the index table shows (:func:`~stages.results.summary.summary_columns`,
+#: headed by their headings), with ``quality``, the cell's quality figure (:func:`quality_of`)
 INDEX_COLUMNS = (
-    ("prompt_text", "prompt"),
-    ("quality", "quality"),
-    ("seconds_optimize", "optimise (s)"),
-    ("iterations", "iterations"),
-    ("faces_after", "faces"),
-    ("bake_psnr_db", "bake (dB)"),
-    ("uv_layout", "UV layout"),
-    ("relit_psnr_db", "relit (dB)"),
-    ("weights", "weights"),
+    "prompt_text",
+    "quality",
+    "seconds_optimize",
+    "iterations",
+    "faces_after",
+    "bake_psnr_db",
+    "uv_layout",
+    "relit_psnr_db",
+    "weights",
 )
 #: a cell's files the pages show: (folder, file, name in the cell's page folder)
 CELL_FILES = (
     *(("optimize/renders", f"{kind}.png", f"render_{kind}.png") for kind in (*RENDER_KINDS, "target", "light")),
     ("optimize", "loss.png", "loss.png"),
-    ("export", "model.glb", "model.glb"),
+    ("export", VIEWER_FILE, VIEWER_FILE),  # the export format the viewer reads (config.layout)
     ("export", "light.hdr", "light.hdr"),
     ("export", "preview.png", "preview.png"),
     ("relight", "relit.png", "relit.png"),
@@ -146,40 +149,44 @@ def table(frame: pd.DataFrame) -> Markup:
     return Markup(frame.to_html(index=False, float_format=lambda x: f"{x:.4g}", na_rep="", border=0, escape=True))
 
 
+def _flag(frame: pd.DataFrame, column: str) -> pd.Series:
+    """A yes/no column of the summary (missing or empty: no)."""
+    if column not in frame:
+        return pd.Series(False, index=frame.index)
+    return frame[column].apply(lambda x: bool(x) if x is not None and x == x else False)
+
+
 def group_rows(frame: pd.DataFrame) -> list[tuple[str, pd.DataFrame]]:
-    """Split rows so that real, test-only and image-guided numbers never share a table."""
-
-    def flag(column: str) -> pd.Series:
-        if column not in frame:
-            return pd.Series(False, index=frame.index)
-        return frame[column].apply(lambda x: bool(x) if x is not None and x == x else False)
-
-    test = flag("test_only_weights") | flag("eval_test_only")
-    image = frame["guidance"].astype(str).str.startswith("image")
-    groups = [
-        ("CLIP-guided with real weights", frame[~test & ~image]),
-        ("Image-guided (procedural targets; verification, no CLIP)", frame[image & ~test]),
+    """Split rows so that each guidance mode's (real weights), and test-only numbers, never share
+    a table (a guidance no mode of this version labels, from an older tree: a table of its own)."""
+    test = _flag(frame, "test_only_weights") | _flag(frame, "eval_test_only")
+    guidance = frame["guidance"].astype(str) if "guidance" in frame else pd.Series("", index=frame.index)
+    groups = [(mode.table, frame[(guidance == mode.label) & ~test]) for mode in GUIDANCE_MODES.values()]
+    known = guidance.isin([mode.label for mode in GUIDANCE_MODES.values()])
+    groups += [
+        ("Other guidance (not a mode of this version)", frame[~known & ~test]),
         ("TEST ONLY: tiny random CLIP (not real stylisations; never compare with the above)", frame[test]),
     ]
     return [(t, f) for t, f in groups if len(f)]
 
 
 def origin_banner(frame: pd.DataFrame) -> list[str]:
-    """A page's first lines when any of its cells is not a real CLIP stylisation."""
+    """A page's first lines when any of its cells is not a real CLIP stylisation (test-only
+    weights, or a guidance mode with a :attr:`~stages.config.guidance_modes.GuidanceMode.banner`)."""
     out = []
     n = len(frame)
-    test = int(frame["test_only_weights"].astype(bool).sum()) if "test_only_weights" in frame else 0
-    image = int((frame["image_guided"].astype(bool) & ~frame["test_only_weights"].astype(bool)).sum()) if n else 0
+    test_only = _flag(frame, "test_only_weights")
+    test = int(test_only.sum())
     if test:
         out.append(
             f"TEST ONLY: {test} of {n} cells were made with a tiny CLIP with random weights "
             "(a test model). Their renders and assets are not real stylisations of their prompts."
         )
-    if image:
-        out.append(
-            f"IMAGE-GUIDED: {image} of {n} cells were fitted to renders of procedural target "
-            "materials (a verification run without CLIP), not stylised from their prompts."
-        )
+    guidance = frame["guidance"].astype(str) if "guidance" in frame else pd.Series("", index=frame.index)
+    for mode in GUIDANCE_MODES.values():
+        count = int(((guidance == mode.label) & ~test_only).sum())
+        if mode.banner and count:
+            out.append(mode.banner.format(n=count, total=n))
     if "decimation_target_reached" in frame:
         short = frame[frame["decimation_target_reached"].astype(str).str.lower() == "false"].drop_duplicates("mesh")
         for _, r in short.iterrows():
@@ -192,9 +199,21 @@ def origin_banner(frame: pd.DataFrame) -> list[str]:
 
 
 def _figure(row, column: str) -> float | None:
-    if column not in row or not len(row) or pd.isna(row[column].iloc[0]):
+    if column not in row or not len(row) or _missing(row[column].iloc[0]):
         return None
     return float(row[column].iloc[0])
+
+
+def _missing(value) -> bool:
+    return value is None or (isinstance(value, float) and value != value)
+
+
+def _entries(row, column: str) -> list | None:
+    """A summary column that lists one entry per environment or level (None where it has none)."""
+    if column not in row or not len(row):
+        return None
+    value = row[column].iloc[0]
+    return list(value) if isinstance(value, list) and value else None
 
 
 def fidelity_lines(row) -> list[str]:
@@ -216,20 +235,21 @@ def fidelity_lines(row) -> list[str]:
         if rough is not None:
             text += f", roughness MAE {rough:.3f}"
         lines.append(text)
-    if "relit_psnr_db" in row and isinstance(row["relit_psnr_db"].iloc[0], str):
-        envs = str(row["relit_environments"].iloc[0]).split(" | ")
-        ours = str(row["relit_psnr_db"].iloc[0]).split("/")
-        ceiling = row["relit_ceiling_psnr_db"].iloc[0] if "relit_ceiling_psnr_db" in row else None
-        ceilings = str(ceiling).split("/") if isinstance(ceiling, str) else [None] * len(ours)
-        scaled = row["relit_psnr_scaled_db"].iloc[0] if "relit_psnr_scaled_db" in row else None
-        scaled = str(scaled).split("/") if isinstance(scaled, str) else [None] * len(ours)
-        factors = row["relit_scale"].iloc[0] if "relit_scale" in row else None
-        factors = str(factors).split("/") if isinstance(factors, str) else [None] * len(ours)
+    ours = _entries(row, "relit_psnr_db")
+    if ours is not None:
+
+        def per_environment(column: str, missing=None) -> list:
+            entries = _entries(row, column)  # (a figure not every environment has cannot be told apart)
+            return entries if entries is not None and len(entries) == len(ours) else [missing] * len(ours)
+
+        envs = per_environment("relit_environments", "?")
+        ceilings, scaled = per_environment("relit_ceiling_psnr_db"), per_environment("relit_psnr_scaled_db")
+        factors = per_environment("relit_scale")
         parts = [
-            f"{env}: {q} dB"
-            + (f", {a} dB after a scale per channel" if a is not None else "")
-            + (f" (x {f.replace(',', ', ')})" if f is not None else "")
-            + (f" (true material {c} dB)" if c is not None else "")
+            f"{env}: {q:.2f} dB"
+            + (f", {a:.2f} dB after a scale per channel" if a is not None else "")
+            + (f" (x {', '.join(f'{x:.2f}' for x in f)})" if f is not None else "")
+            + (f" (true material {c:.2f} dB)" if c is not None else "")
             for env, q, a, f, c in zip(envs, ours, scaled, factors, ceilings, strict=True)
         ]
         lines.append("relit, against Mitsuba's truth (held-out views, object pixels): " + "; ".join(parts))
@@ -243,14 +263,10 @@ def fidelity_lines(row) -> list[str]:
         if problems:
             text += f"; {int(problems)} import problem(s), see roundtrip/meta.json"
         lines.append(text)
-    if "lod_faces" in row and isinstance(row["lod_faces"].iloc[0], str):
-        levels = zip(
-            row["lod_faces"].iloc[0].split("/"),
-            str(row["lod_glb_bytes"].iloc[0]).split("/"),
-            str(row["lod_fidelity_psnr_db"].iloc[0]).split("/"),
-            strict=True,
-        )
-        parts = [f"lod{k} {int(f):,} faces, {int(b) / 1e6:.2f} MB GLB, {q} dB" for k, (f, b, q) in enumerate(levels)]
+    faces = _entries(row, "lod_faces")
+    if faces is not None:
+        levels = zip(faces, _entries(row, "lod_glb_bytes"), _entries(row, "lod_fidelity_psnr_db"), strict=True)
+        parts = [f"lod{k} {int(f):,} faces, {int(b) / 1e6:.2f} MB GLB, {q:.2f} dB" for k, (f, b, q) in enumerate(levels)]
         lines.append("levels of detail (baked render vs the full neural render, object pixels): " + "; ".join(parts))
     return lines
 
@@ -272,23 +288,42 @@ def cell_files(results: Path, cell: tuple[str, str, str]) -> dict[str, Path]:
     return found
 
 
-def _cell_value(row: pd.Series, column: str) -> dict:
-    """One index cell: the text shown (and a ``small`` note after it), its sort value, and whether
-    it is text (left-aligned)."""
-    text = column in ("prompt_text", "weights")
-    if column == "quality":
-        q, name = quality_of(row)
+def _shown(value, column: Column | None) -> str:
+    """A summary value as a page shows it: a float to 4 significant digits, a list as the
+    summary's CSV writes it (its column's :meth:`~stages.config.records.Column.text`)."""
+    if isinstance(value, list):
+        return str(column.text(value) if column is not None else "/".join(map(str, value)))
+    return f"{value:.4g}" if isinstance(value, float) else str(value)
+
+
+def _cell_value(row: pd.Series, name: str) -> dict:
+    """One index cell: the text shown (and a ``small`` note after it), its sort value (a list's:
+    its first entry's), and whether it is text (left-aligned)."""
+    text = name in ("prompt_text", "weights")
+    if name == "quality":
+        q, quality = quality_of(row)
         return (
             {"shown": "", "small": "", "sort": "", "text": text}
             if q is None
-            else {"shown": f"{q:.4g}", "small": name, "sort": f"{q:.9g}", "text": text}
+            else {"shown": f"{q:.4g}", "small": quality, "sort": f"{q:.9g}", "text": text}
         )
-    value = row.get(column)
-    if value is None or (isinstance(value, float) and value != value):
+    value = row.get(name)
+    if _missing(value) or (isinstance(value, list) and not value):
         return {"shown": "", "small": "", "sort": "", "text": text}
-    if isinstance(value, float):
-        return {"shown": f"{value:.4g}", "small": "", "sort": f"{value:.9g}", "text": text}
-    return {"shown": str(value), "small": "", "sort": str(value), "text": text}
+    first = value[0] if isinstance(value, list) else value
+    sort = f"{first:.9g}" if isinstance(first, float) else str(first)
+    return {"shown": _shown(value, _columns().get(name)), "small": "", "sort": sort, "text": text}
+
+
+def _columns() -> dict[str, Column]:
+    """The summary's columns by name (:func:`~stages.results.summary.summary_columns`)."""
+    return {c.name: c for c in summary_columns()}
+
+
+def index_headings() -> list[str]:
+    """The index table's headings: each of :data:`INDEX_COLUMNS`' own, with its unit."""
+    found = _columns()
+    return [found[name].title() if name in found else name for name in INDEX_COLUMNS]
 
 
 def index_tables(frame: pd.DataFrame, link: Callable[[tuple], str], thumb: Callable[[tuple], str | None]) -> list[dict]:
@@ -299,7 +334,7 @@ def index_tables(frame: pd.DataFrame, link: Callable[[tuple], str], thumb: Calla
         for _, r in sub.iterrows():
             cell = (str(r["mesh"]), str(r["prompt"]), str(r["variant"]))
             text = " ".join([*cell, str(r.get("prompt_text", "")), str(r.get("origin", ""))]).lower()
-            values = [_cell_value(r, column) for column, _ in INDEX_COLUMNS]
+            values = [_cell_value(r, name) for name in INDEX_COLUMNS]
             rows.append(
                 {"cell": cell, "key": cell_key(cell), "text": text, "link": link(cell), "thumb": thumb(cell), "shown": values}
             )
@@ -436,7 +471,7 @@ def cell_context(
         "row": r is not None,
         "prompt_text": "" if r is None else str(r.get("prompt_text", "")),
         "origin": origin,
-        "origin_is_note": origin.startswith(("TEST ONLY", "IMAGE-GUIDED")),
+        "origin_is_note": r is not None and any(_flag(row, k).iloc[0] for k in ("test_only_weights", "image_guided")),
         "comparison": comparison,
         "viewer": viewer,
         "fidelity": fidelity_lines(row) if r is not None else [],
@@ -448,19 +483,23 @@ def cell_context(
     }
 
 
-def _fields(r: pd.Series) -> list[tuple[str, str]]:
-    """Every summary field of a cell that has a value, as text."""
-    return [
-        (str(k), f"{v:.6g}" if isinstance(v, float) else str(v))
-        for k, v in r.items()
-        if not (v is None or (isinstance(v, float) and v != v))
-    ]
+def _fields(r: pd.Series) -> list[dict]:
+    """Every summary column of a cell that has a value (:func:`~stages.results.summary.summary_columns`,
+    in order): its name, what it means and its value as text, with its unit."""
+    out = []
+    for c in summary_columns():
+        value = r.get(c.name)
+        if _missing(value) or (isinstance(value, list) and not value):
+            continue
+        shown = f"{value:.6g}" if isinstance(value, float) else _shown(value, c)
+        out.append({"name": c.name, "description": c.description, "value": shown + (f" {c.unit}" if c.unit else "")})
+    return out
 
 
 def viewer_context(files: dict[str, Path], url: Callable[[str], str], have_viewer: bool, packed: str | None, label: str) -> dict:
     """A cell's 3D viewer (model-viewer, started when it scrolls into view) with its light toggle;
     without model-viewer or a model (``model`` None), the static preview and why."""
-    model = url("model.glb") if have_viewer and "model.glb" in files else None
+    model = url(VIEWER_FILE) if have_viewer and VIEWER_FILE in files else None
     return {
         "model": model,
         "hdr": url("light.hdr") if model and "light.hdr" in files else "",
@@ -489,12 +528,14 @@ def _place(src: Path, dst: Path) -> None:
 
 
 def read_summary(report_dir: Path) -> pd.DataFrame:
-    """summary.csv with its id columns as text (an id like ``01`` or ``NA`` stays what it is)."""
-    path = Path(report_dir) / "summary.csv"
-    frame = read_spreadsheet_csv(path)
-    ids = ["mesh", "prompt", "variant"]
-    frame[ids] = read_csv(path, usecols=ids, dtype=str, keep_default_na=False)[ids]
-    return frame
+    """The summary's rows (``summary.json``: every value as the records give it, lists as lists,
+    ids as text); a file that is not a list of rows with their ids is one :class:`StageInputError`."""
+    path = Path(report_dir) / "summary.json"
+    rows = read_json(path, "Rerun the report stage.")
+    ids = ("mesh", "prompt", "variant")
+    if not isinstance(rows, list) or not all(isinstance(r, dict) and all(isinstance(r.get(k), str) for k in ids) for r in rows):
+        raise StageInputError(path, "is not the list of rows the report stage writes", "Rerun the report stage.")
+    return pd.DataFrame(rows, columns=list(dict.fromkeys(k for r in rows for k in r)) or list(ids))
 
 
 def _row(frame: pd.DataFrame, cell: tuple[str, str, str]) -> pd.DataFrame:
@@ -533,8 +574,8 @@ def write_folder(
         with atomic_path(folder / "thumb.png") as tmp:
             thumbnail(cell).save(tmp, format="PNG")
         packed = None
-        if have_viewer and "model.glb" in files:
-            assets = {"glb": base64.b64encode(read_bytes(files["model.glb"], DATA_LIMIT)).decode("ascii")}
+        if have_viewer and VIEWER_FILE in files:
+            assets = {"glb": base64.b64encode(read_bytes(files[VIEWER_FILE], DATA_LIMIT)).decode("ascii")}
             if "light.hdr" in files:
                 assets["hdr"] = base64.b64encode(read_bytes(files["light.hdr"], DATA_LIMIT)).decode("ascii")
             with atomic_path(folder / "assets.js") as tmp:
@@ -591,7 +632,7 @@ def _index_page(
     the report folder; ``cells``: the cells' sections (the one-file form); ``head`` and ``end``:
     scripts to inline in the head and at the end."""
     link, thumb, url = links
-    csvs = [n for n in ("summary.csv", "speed_accuracy.csv") if (Path(report_dir) / n).is_file()]
+    csvs = [n for n in ("summary.csv", "speed_accuracy.csv") if plain_file(Path(report_dir) / n, report_dir)]
     overview = Path(report_dir) / "overview.png"
     return env.get_template("index.html").render(
         **_page_frame("tango-stylize report", inline=list(head)),
@@ -601,7 +642,7 @@ def _index_page(
         csvs=csvs if not cells else [],
         filters=filter_options(frame),
         n_rows=len(frame),
-        columns=[label for _, label in INDEX_COLUMNS],
+        columns=index_headings(),
         tables=index_tables(frame, link, thumb),
         speed_accuracy=speed_accuracy_table(report_dir),
         figures=figure_entries(report_dir, url),

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config.records import CELL_RECORDS, MESH_RECORDS, OptimizeRecord, StageRecord
+from ..config.records import CELL_RECORDS, MESH_RECORDS, Column, OptimizeRecord, StageRecord, column
 from ..core.errors import StageInputError
 from ..core.provenance import ORIGIN_KEY, read_origin
 from ..core.safefiles import IMAGE_LIMIT, open_read, read_json, require_plain_file
@@ -101,6 +101,28 @@ def summary_rows(
             row.update(faces_after=row["faces_before"], decimated=False)
         rows.append(row)
     return rows
+
+
+#: the summary's columns before the records': the cell and its origin
+CELL_COLUMNS = (
+    column("mesh", "the mesh's id"),
+    column("prompt", "the prompt's id"),
+    column("variant", "the variant's id"),
+    column("test_only_weights", "made with the tiny random test CLIP: not a real stylisation"),
+    column("image_guided", "fitted to image targets: not stylised from its prompt"),
+    column(ORIGIN_KEY, "what made the cell (guidance and weights), as each of its outputs says"),
+)
+
+
+def summary_columns() -> list[Column]:
+    """Every column of a summary row, in order (:func:`summary_rows`): the cell's, then each
+    record's columns and its stage's wall time (``seconds_<stage>``)."""
+    out = list(CELL_COLUMNS)
+    for record in (*MESH_RECORDS, *CELL_RECORDS):
+        out += record.columns()
+        heading = "optimise" if record.stage == "optimize" else record.stage
+        out.append(column(f"seconds_{record.stage}", f"wall time of the {record.stage} stage", "s", heading=heading))
+    return out
 
 
 #: the records a cell cannot do without (the others belong to stages a run may leave out)

@@ -2,9 +2,10 @@
 
 A short real run of the optimiser: the built-in vase, a training pool of a few views traced at
 the cell's ray-cache settings (a step renders ``views_per_step`` views of the pool, so its cost
-does not depend on the pool's size), the settings' CLIP architecture with random weights (the
-same arithmetic as the real weights; none need be downloaded) or, under image guidance, targets
-from our own renderer; one warm-up step, then ``steps`` timed steps.
+does not depend on the pool's size), with what its guidance mode's ``calibration`` names
+(:data:`CALIBRATIONS`): the settings' CLIP architecture with random weights (the same arithmetic
+as the real weights; none need be downloaded) or targets from our own renderer; one warm-up step,
+then ``steps`` timed steps.
 """
 
 from __future__ import annotations
@@ -12,9 +13,11 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
+from collections.abc import Callable
 from functools import cache
 
 from ..config.sections import NormalizeSettings, OptimizeSettings, RaycacheSettings
+from ..core.errors import ConfigError
 from ..core.provenance import Timer
 from ..geometry.normalization import normalize_mesh
 from ..geometry.raycache import RayCache, trace_views, training_views
@@ -58,17 +61,44 @@ def _pool(raycache: RaycacheSettings) -> RayCache:
     return RayCache("calibration: built-in vase", arrays)
 
 
+def _clip_calibration(settings: OptimizeSettings, device) -> tuple[OptimizeSettings, ClipGuide | None]:
+    """The guidance CLIP's architecture with random weights (the tiny test CLIP itself)."""
+    if settings.clip_tiny_test:
+        return settings, load_clip(settings.clip_spec(), device, settings.bf16, settings.clip_tower)
+    return settings, random_guide(settings.clip_model, settings.bf16, settings.clip_tower, str(device))
+
+
+def _own_targets_calibration(settings: OptimizeSettings, device) -> tuple[OptimizeSettings, ClipGuide | None]:
+    """Image targets from our own renderer: Mitsuba's are rendered once per mesh by the target
+    stage (the plan counts those apart), and a step costs the same with either."""
+    return dataclasses.replace(settings, target_renderer="sg"), None
+
+
+#: how a step of each guidance mode is timed (its row's ``calibration``): the settings to time
+#: and the CLIP to time them with (None: the guidance loads none)
+CALIBRATIONS: dict[str, Callable[[OptimizeSettings, object], tuple[OptimizeSettings, ClipGuide | None]]] = {
+    "clip": _clip_calibration,
+    "own_targets": _own_targets_calibration,
+}
+
+
+def calibration(settings: OptimizeSettings, device) -> tuple[OptimizeSettings, ClipGuide | None]:
+    """The settings and the CLIP that time a step of ``settings``' guidance mode; a mode whose
+    calibration this module does not know is a :class:`ConfigError`, never another mode's timing."""
+    mode = settings.guidance_mode()
+    if mode.calibration not in CALIBRATIONS:
+        raise ConfigError(
+            f"guidance {mode.name!r} is timed by calibration {mode.calibration!r}, which stages.training.calibrate "
+            f"does not know (it knows {', '.join(CALIBRATIONS)}): add it to CALIBRATIONS"
+        )
+    return CALIBRATIONS[mode.calibration](settings, device)
+
+
 def seconds_per_step(settings: OptimizeSettings, raycache: RaycacheSettings, device, steps: int = 2) -> float:
     """Wall seconds of one optimisation step of ``settings`` on ``device`` (mean of ``steps``
     steps after one warm-up step)."""
     train = _pool(dataclasses.replace(raycache, views=max(2, settings.views_per_step)))
-    guide = None
-    if settings.guidance == "clip" and settings.clip_tiny_test:
-        guide = load_clip(settings.clip_spec(), device, settings.bf16, settings.clip_tower)
-    elif settings.guidance == "clip":
-        guide = random_guide(settings.clip_model, settings.bf16, settings.clip_tower, str(device))
-    else:  # image targets from our renderer: Mitsuba's are rendered once per mesh by the target stage
-        settings = dataclasses.replace(settings, target_renderer="sg")
+    settings, guide = calibration(settings, device)
     # the eager renderer: a compiled one (compile_shading) would spend its compilation, 13 s to
     # 94 s, inside the plan; the estimate of a compiled run is then on the slow side. The levers
     # that ride on it off too: asked for without it, they would only warn that they cannot run.

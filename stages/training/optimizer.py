@@ -27,8 +27,8 @@ from ..guidance.objective import ImageBatch, choose_guidance
 from ..imaging.images import ImageSpec, background, compose, gather_points, global_spec, sample_crops
 from ..imaging.targets import TargetSet
 from ..imaging.views import CachedView, ViewStore
+from ..model.compiled import CompiledField
 from ..model.field import StyleField
-from ..model.lightfit import hold_environment
 from ..model.networks import cat_materials, material_variation, normal_tilt
 from ..render.color import linear_to_srgb
 from ..render.products import onednn_products, run_choice
@@ -71,16 +71,18 @@ class Optimizer:
         self.settings = settings
         self.device = torch.device(device)
         self.field = StyleField(settings.field_settings()).to(self.device)
+        #: the field as a step runs it: compiled, padded and in bfloat16 where the levers say
+        self.compiled = CompiledField(self.field)
         #: the light's mode for the metadata: learned, or the fixed fit of a known map (``light: fixed``)
         self.light_record: dict = {"mode": settings.light}
         if settings.light == "fixed":
-            self.light_record.update(hold_environment(self.field.light, settings.light_map))
+            self.light_record.update(self.field.light.hold(settings.light_map))
         #: what the C allocator does with the memory a step frees, for the metadata
         self.allocator = keep_freed_memory(settings.keep_freed_memory)[1]
         #: what the networks' products ran in during training, for the metadata
-        self.network_precision = self.field.use_bf16(settings.bf16_networks, self.device)
+        self.network_precision = self.compiled.use_bf16(settings.bf16_networks, self.device)
         self.views = ViewStore(train, self.device, self.field.normals, targets, shadows=self.field.shadows)
-        self.field.use_compiled_shading(
+        self.compiled.use_compiled_shading(
             settings.compile_shading,
             self.device,
             settings.iterations,
@@ -122,7 +124,7 @@ class Optimizer:
     @property
     def shading_path(self) -> str:
         """What shades while training, and why (the field's decision), for the metadata."""
-        return self.field.shading_path
+        return self.compiled.shading_path
 
     def param_groups(self) -> list[dict]:
         """The optimiser's two groups: the networks at ``lr`` (with ``weight_decay``), then the
@@ -154,7 +156,7 @@ class Optimizer:
         self.field.load_state_dict(state["field"])
         if self.field.light.lobes != lobes:  # pruned before the checkpoint: the light's parameters are new
             self.adamw.param_groups[1]["params"] = list(self.field.light.parameters())
-            self.field.lobes_changed()
+            self.compiled.lobes_changed()
         # a checkpoint written before the optimiser was fused says so in its groups, which loading
         # would take over: the same update, so it resumes fused (its steps moved to the device)
         saved = state["optimizer"]
@@ -169,25 +171,24 @@ class Optimizer:
 
     # -- the scene's needs
     def prune_light(self) -> int:
-        """Drop the light's negligible lobes (:meth:`~stages.model.networks.SGLightModule.negligible`
-        at ``light_prune_share``), carrying the optimiser's moments of the kept ones; returns how
-        many were dropped."""
-        small = self.field.light.negligible(self.settings.light_prune_share)
-        index = torch.nonzero(~small).flatten()
-        dropped = int(small.sum())
-        if dropped:
-            group = self.adamw.param_groups[1]["params"]
-            for old, new in self.field.light.keep(index):
+        """Drop the light's negligible parts (:meth:`~stages.model.lights.base.LightModule.prune` at
+        ``light_prune_share``: the SG lobes', :meth:`~stages.model.lights.sg.SGLightModule.negligible`),
+        carrying the optimiser's moments of the kept ones; returns how many were dropped."""
+        parts = self.field.light.prune(self.settings.light_prune_share)
+        group = self.adamw.param_groups[1]["params"]
+        for part in parts:
+            for old, new in part.pairs:
                 moments = self.adamw.state.pop(old, None)
                 if moments is not None:
                     self.adamw.state[new] = {
-                        k: v[index] if torch.is_tensor(v) and v.dim() > 0 and v.shape[0] == old.shape[0] else v
+                        k: v[part.index] if torch.is_tensor(v) and v.dim() > 0 and v.shape[0] == old.shape[0] else v
                         for k, v in moments.items()
                     }
                 group[next(i for i, p in enumerate(group) if p is old)] = new
-        self.light_pruned = {"iteration": self.iteration, "kept": len(index), "dropped": dropped}
+        dropped = sum(part.dropped for part in parts)
+        self.light_pruned = {"iteration": self.iteration, "kept": sum(part.kept for part in parts), "dropped": dropped}
         if dropped:
-            self.field.lobes_changed()
+            self.compiled.lobes_changed()
         return dropped
 
     # -- one step
@@ -210,7 +211,7 @@ class Optimizer:
 
     def priors(self, materials: list, stats: dict, points: list | None = None, normals: list | None = None) -> torch.Tensor:
         """The weighted priors of this step (each recorded in ``stats`` when on): the learned
-        light's colour spread (``light_neutral``, :meth:`~stages.model.networks.SGLightModule.colour_spread`),
+        light's colour spread (``light_neutral``, :meth:`~stages.model.lights.base.LightModule.colour_spread`),
         glTF's metallic away from 0 and 1 (``metallic_binary``: the mean of ``m (1 - m)`` over
         the step's shaded points ``materials``), the material's change over a small jitter of the
         step's hit ``points`` (``material_smooth``, :func:`material_variation`) and the predicted
@@ -263,7 +264,7 @@ class Optimizer:
 
     def _step(self, timer: Timer) -> dict:
         settings = self.settings
-        self.field.begin_step()
+        self.compiled.begin_step()
         with timer("gather"):
             ids = self.np_rng.choice(
                 len(self.views), size=settings.views_per_step, replace=len(self.views) < settings.views_per_step
@@ -282,7 +283,7 @@ class Optimizer:
             materials, points, normals = [], [], []
             for v, sel, specs, lookups, bgs in batches:
                 npts += len(sel)
-                out = v.shade(self.field, sel)
+                out = v.shade(self.compiled, sel)
                 materials.append(out.material)
                 if settings.material_smooth > 0:  # (the gathers only where a prior reads them)
                     points.append(v.points[sel])

@@ -14,8 +14,8 @@ import torch
 from conftest import REPO, assert_not_blank, browser_check, icosphere, page_references, require_tool
 
 from stages import export, optimize, pack, relight, report
-from stages.assets import formats
 from stages.assets.baking import bake_field, decode_textures
+from stages.assets.formats import usd
 from stages.config.sections import (
     BakeSettings,
     ExportSettings,
@@ -27,7 +27,9 @@ from stages.config.sections import (
 from stages.core.errors import StageInputError
 from stages.geometry.atlas import dilate, rasterize_atlas, unwrap
 from stages.geometry.normals import NormalSpec
-from stages.model.networks import Material, SGLightModule
+from stages.model.lights import LightModule
+from stages.model.lights.sg import SGLightModule
+from stages.model.networks import Material
 from stages.raycache import run as raycache_run
 from stages.render.hdrio import read_exr, read_hdr, write_exr, write_hdr
 from stages.results import summary
@@ -42,7 +44,7 @@ class AnalyticField(torch.nn.Module):
 
     def __init__(self, tilt: float = 0.2, normals: NormalSpec | None = None):
         super().__init__()
-        self.light = SGLightModule(8)
+        self.light = LightModule([SGLightModule(8)])
         self.tilt = tilt
         self.normals = normals or NormalSpec()
 
@@ -247,7 +249,7 @@ def test_usd_reopens_with_material_and_textures(trained):
                     files.append(a.Get())
         assert len(files) == 5  # four textures and the dome light's image
         assert all(f.resolvedPath for f in files), files
-        checked = formats.validate_usd(trained / "export" / name)
+        checked = usd.validate_usd(trained / "export" / name)
         assert checked["errors"] == 0 and checked["validators"] >= 20, checked["messages"]
         # geometry is back in the input's units: the candle stands at y ~ 20..33 cm
         pts = np.asarray(mesh.GetPointsAttr().Get())
@@ -276,26 +278,27 @@ def test_usd_validation_is_counted_not_asserted(trained, tmp_path):
 
     registered = sorted(v.GetMetadata().name for v in UsdValidation.ValidationRegistry().GetOrLoadAllValidators())
     meta = json.loads((trained / "export" / "meta.json").read_text())["stats"]
-    assert [r["file"] for r in meta["usd_validation"]] == ["model.usda", "model.usdz"]
-    for r in meta["usd_validation"]:
+    reports = [meta["validation"][name] for name in ("model.usda", "model.usdz")]
+    assert [r["file"] for r in reports] == ["model.usda", "model.usdz"]
+    for r in reports:
         assert r["validators"] == len(registered) and r["validator_names"] == registered
     assert meta["usd_validators"] == len(registered)
-    assert meta["usd_validation_errors"] == sum(r["errors"] for r in meta["usd_validation"]) == 0
+    assert meta["usd_validation_errors"] == sum(r["errors"] for r in reports) == 0
     _broken_usda(tmp_path / "broken.usda")
-    broken = formats.validate_usd(tmp_path / "broken.usda")
+    broken = usd.validate_usd(tmp_path / "broken.usda")
     assert broken["errors"] == 4 and broken["validators"] == len(registered)
     assert any(m.startswith("MismatchedPropertyType") for m in broken["messages"])
 
 
 def test_export_fails_on_validation_errors(trained, tmp_path, monkeypatch):
     """A validator error stops the export in one line and leaves no finished-looking metadata behind."""
-    real = formats.validate_usd
+    real = usd.validate_usd
 
     def faulty(path):
         _broken_usda(tmp_path / "broken.usda")
         return {**real(tmp_path / "broken.usda"), "file": Path(path).name}
 
-    monkeypatch.setattr(formats, "validate_usd", faulty)
+    monkeypatch.setattr(usd, "validate_usd", faulty)
     out = tmp_path / "export"
     with pytest.raises(
         StageInputError, match=r"model.usda: failed validation with \d+ error\(s\), the first: MismatchedPropertyType"
@@ -387,7 +390,7 @@ def test_khronos_gltf_validator(trained):
     assert report_["issues"]["numErrors"] == 0, report_["issues"]["messages"]
     assert report_["issues"]["numWarnings"] == 0, report_["issues"]["messages"]
     # the export ran the same validator and recorded its counts
-    recorded = json.loads((trained / "export" / "meta.json").read_text())["stats"]["gltf_validation"]
+    recorded = json.loads((trained / "export" / "meta.json").read_text())["stats"]["validation"]["model.glb"]
     assert recorded["ran"] and recorded["validator"] == f"Khronos glTF-Validator {report_['validatorVersion']}"
     assert (recorded["errors"], recorded["warnings"]) == (0, 0)
 
@@ -651,9 +654,9 @@ def test_report_fidelity_lines_per_cell():
     assert fidelity_lines(atlas) == ["UV layout: a new atlas (auto: the input has no texture coordinates)"]
     lod = pd.DataFrame(
         {
-            "lod_faces": ["20352/10176/407"],
-            "lod_glb_bytes": ["2670000/1400000/310000"],
-            "lod_fidelity_psnr_db": ["48.90/41.20/30.05"],
+            "lod_faces": [[20352, 10176, 407]],
+            "lod_glb_bytes": [[2670000, 1400000, 310000]],
+            "lod_fidelity_psnr_db": [[48.90, 41.20, 30.05]],
         }
     )
     expected = "lod0 20,352 faces, 2.67 MB GLB, 48.90 dB; lod1 10,176 faces, 1.40 MB GLB, 41.20 dB; lod2 407 faces"

@@ -3,7 +3,7 @@ meta.json is shared), naming no path of this machine."""
 
 from __future__ import annotations
 
-from stages.assets import formats
+from stages.assets.formats import gltf as formats
 
 
 def test_a_missing_validator_is_named_without_a_local_path(monkeypatch, tmp_path):

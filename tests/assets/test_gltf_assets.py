@@ -14,6 +14,7 @@ from stages import bake, export, optimize
 from stages.config.sections import BakeSettings, ExportSettings, OptimizeSettings
 from stages.core.errors import ConfigError
 from stages.model.field import MaterialEdit, StyleField
+from stages.render.brdf import GLTF
 
 
 def test_gltf_field_predicts_base_metallic_and_roughness():
@@ -22,13 +23,13 @@ def test_gltf_field_predicts_base_metallic_and_roughness():
     nrm = torch.nn.functional.normalize(torch.randn(50, 3), dim=-1)
     out = f(pts, nrm, nrm)
     m = out.material
-    assert m.brdf == "gltf" and m.base.shape == (50, 3) and m.metallic.shape == (50, 1)
+    assert m.brdf is GLTF and m.base.shape == (50, 3) and m.metallic.shape == (50, 1)
     # the TANGO equivalents the figures and material errors read
     torch.testing.assert_close(m.albedo, m.base * (1 - m.metallic))
     torch.testing.assert_close(m.specular, 0.04 * (1 - m.metallic) + m.base * m.metallic)
     assert torch.isfinite(out.shading.rgb).all()
     edited = MaterialEdit(2.0, 0.0).apply(m, 0.01)
-    assert float(edited.metallic.detach().abs().max()) == 0.0 and edited.brdf == "gltf"
+    assert float(edited.metallic.detach().abs().max()) == 0.0 and edited.brdf is GLTF
 
 
 def test_gltf_needs_a_specular_model_of_its_own():

@@ -16,6 +16,8 @@ from gltf_quad import buffers, glb_bytes
 from PIL import Image
 
 from stages.assets import formats
+from stages.assets.formats import gltf
+from stages.assets.formats.gltf import validate_glb
 from stages.assets.ownformat import write_document_glb
 from stages.core.errors import StageInputError
 from stages.geometry.sourcemesh import glb_chunks, read_source
@@ -125,7 +127,7 @@ def test_a_kept_glb_keeps_names_and_extras_but_no_local_path(exported):
 
 
 def test_a_kept_glb_passes_the_khronos_validator(exported):
-    report = formats.validate_glb(exported["out"])
+    report = validate_glb(exported["out"])
     if not report["ran"]:
         pytest.skip(report["reason"])
     assert report["errors"] == 0, report["messages"]
@@ -161,10 +163,10 @@ def test_a_validator_that_fails_says_so_in_one_line(monkeypatch, tmp_path, scrip
         pytest.skip("Node.js (node) is not on PATH")
     (tmp_path / "scripts").mkdir()
     (tmp_path / "scripts" / "validate_gltf.mjs").write_text(script)
-    monkeypatch.setattr(formats, "REPO_ROOT", tmp_path)
-    monkeypatch.setattr(formats, "GLTF_VALIDATOR", tmp_path)
+    monkeypatch.setattr(gltf, "REPO_ROOT", tmp_path)
+    monkeypatch.setattr(gltf, "GLTF_VALIDATOR", tmp_path)
     with pytest.raises(StageInputError) as info:
-        formats.validate_glb(tmp_path / "model.glb")
+        validate_glb(tmp_path / "model.glb")
     assert (
         str(info.value)
         == f"{tmp_path / 'model.glb'}: {said}. Check the validator with python -m stages.doctor (npm ci reinstalls it)."

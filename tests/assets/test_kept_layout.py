@@ -18,7 +18,7 @@ from conftest import REPO, require_blender, require_tool
 
 from stages import bake, export, optimize, roundtrip
 from stages.assets.baking import kept_texels
-from stages.assets.formats import validate_glb
+from stages.assets.formats.gltf import validate_glb
 from stages.assets.layouts import InputMesh, choose_layout
 from stages.config.sections import (
     BakeSettings,
@@ -291,7 +291,7 @@ def test_blender_imports_the_own_format_as_it_imports_the_input(cells, name):
 
 
 def test_the_measured_meshes_fetch_and_read_with_their_layouts(tmp_path):
-    """scripts/fetch_uv_meshes.sh (benchmarks/kept_layout.py's artist-made meshes) fetches Debian's
+    """scripts/fetch_uv_meshes.sh (benchmarks/assets/kept_layout.py's artist-made meshes) fetches Debian's
     assimp test models and converts them; each reads back with texture coordinates on every face."""
     import shutil
     import subprocess

@@ -11,14 +11,16 @@ import pytest
 import torch
 from conftest import icosphere, require_tool, run_lod
 
-from stages.assets import formats
 from stages.assets.baking import bake_level, decode_textures, project_to_surface
+from stages.assets.formats.gltf import validate_glb
 from stages.config.sections import BakeSettings, LodSettings
 from stages.core.errors import ConfigError, StageInputError
 from stages.geometry.atlas import rasterize_atlas
 from stages.geometry.meshio import TriMesh, load_ply
 from stages.geometry.normals import NormalSpec
-from stages.model.networks import Material, SGLightModule
+from stages.model.lights import LightModule
+from stages.model.lights.sg import SGLightModule
+from stages.model.networks import Material
 
 
 def _scaled(mesh: TriMesh, s: float) -> TriMesh:
@@ -108,7 +110,7 @@ class _PositionField(torch.nn.Module):
 
     def __init__(self, normals: str = "smooth"):
         super().__init__()
-        self.light = SGLightModule(4)
+        self.light = LightModule([SGLightModule(4)])
         self.normals = NormalSpec(normals)
 
     @staticmethod
@@ -239,7 +241,7 @@ def test_lod_validators_ran(lod_cell):
     nodes as infos only); usd-core's validators pass the variant set."""
     validation = json.loads((lod_cell / "lod" / "meta.json").read_text())["stats"]["validation"]
     require_tool(validation["model_lods.glb"]["ran"], "the Khronos glTF-Validator needs Node.js and npm ci")
-    glb = formats.validate_glb(lod_cell / "lod" / "model_lods.glb")
+    glb = validate_glb(lod_cell / "lod" / "model_lods.glb")
     assert glb["errors"] == 0 and glb["warnings"] == 0 and glb["infos"] >= 1
     assert validation["model_lods.usdz"]["validators"] > 0 and validation["model_lods.usdz"]["errors"] == 0
 

@@ -168,7 +168,7 @@ def test_bake_writes_occlusion_and_the_assets_read_it(trained_cell, tmp_path):
     usda = (tmp_path / "on" / "export" / "model.usda").read_text()
     assert "inputs:occlusion.connect = </Asset/Looks/TangoMaterial/RoughnessTexture.outputs:r>" in usda
     assert exported["usd_validation_errors"] == 0
-    if exported["gltf_validation"].get("ran"):
+    if exported["validation"]["model.glb"].get("ran"):
         assert exported["gltf_validation_errors"] == 0
 
 

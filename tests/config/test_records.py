@@ -1,5 +1,7 @@
-"""The figures each stage records for the summary: every record gives exactly its columns, reads
-back what it wrote, and reads the layout the stages wrote before the records existed."""
+"""The figures each stage records for the summary: every record gives exactly its columns, each
+declared once on its field with what it means, reads back what it wrote, and reads the layout the
+stages wrote before the records existed; lists stay lists, and the summary's CSV writes them as the
+texts it always did."""
 
 from __future__ import annotations
 
@@ -38,7 +40,8 @@ def test_every_stage_of_the_summary_has_one_record():
 @pytest.mark.parametrize("cls", list(EXAMPLES), ids=lambda c: c.__name__)
 def test_a_record_gives_its_columns_and_reads_back_what_it_wrote(cls):
     record = EXAMPLES[cls]
-    assert tuple(record.row()) == cls.COLUMNS and tuple(cls.empty_row()) == cls.COLUMNS
+    names = tuple(c.name for c in cls.columns())
+    assert tuple(record.row()) == names and tuple(cls.empty_row()) == names
     assert all(v is None for v in cls.empty_row().values())
     written = record.stats()
     assert all(k not in written for k in cls.OPTIONAL if getattr(record, k) is None)  # left out, not null
@@ -64,6 +67,13 @@ def test_rows_read_the_figures_the_stages_wrote_before():
         }
     ).row()
     assert relit == {
+        "relit_environments": ["builtin:sunset", "envs/a/b.hdr"],
+        "relit_psnr_db": [24.126, 20.0],
+        "relit_psnr_scaled_db": [27.0],
+        "relit_ceiling_psnr_db": None,
+        "relit_scale": [[1.0, 0.5, 0.25]],
+    }
+    assert r.text_row(relit) == {  # the summary's CSV, as before the lists
         "relit_environments": "builtin:sunset | envs/a/b.hdr",
         "relit_psnr_db": "24.13/20.00",
         "relit_psnr_scaled_db": "27.00",
@@ -90,7 +100,8 @@ def test_rows_read_the_figures_the_stages_wrote_before():
             }
         }
     ).row()
-    assert lod == {"lod_faces": "100/50", "lod_glb_bytes": "10/7", "lod_fidelity_psnr_db": "30.00/25.55"}
+    assert lod == {"lod_faces": [100, 50], "lod_glb_bytes": [10, 7], "lod_fidelity_psnr_db": [30.0, 25.555]}
+    assert r.text_row(lod) == {"lod_faces": "100/50", "lod_glb_bytes": "10/7", "lod_fidelity_psnr_db": "30.00/25.55"}
     # a figure the stage did not have is None in the row, not an error
     want = {"bake_psnr_db": None, "texture_size": None, "uv_layout": None, "uv_why": None}
     assert r.BakeRecord.from_meta({"stats": {}}).row() == want
@@ -106,3 +117,20 @@ def test_records_are_frozen_dataclasses_with_their_stage_and_place():
     for cls in EXAMPLES:
         assert dataclasses.is_dataclass(cls) and cls.__dataclass_params__.frozen
         assert cls.place in ("stats", "top") and cls.file in ("meta.json", "metrics.json")
+
+
+def test_each_column_is_declared_once_with_what_it_means():
+    every = [c for cls in EXAMPLES for c in cls.columns()]
+    assert len({c.name for c in every}) == len(every)  # no two records give the same column
+    for c in every:
+        assert c.description and not c.description.endswith("."), c.name
+        assert c.field in {f.name for f in dataclasses.fields(next(cls for cls in EXAMPLES if c in cls.columns()))}
+    # the columns of a record follow its fields' order, whatever the constructor's order of arguments
+    assert [c.name for c in r.RoundtripRecord.columns()][-2:] == ["roundtrip_problems", "roundtrip_transport"]
+    assert r.BakeRecord.columns()[0].title() == "bake (dB)"
+
+
+def test_the_text_form_is_decided_once_and_leaves_other_values_alone():
+    row = {"mesh": "m", "relit_psnr_db": [24.126], "lod_faces": None, "faces_before": 12, "usd_validators": 3}
+    assert r.text_row(row) == {"mesh": "m", "relit_psnr_db": "24.13", "lod_faces": None, "faces_before": 12, "usd_validators": 3}
+    assert r.text_row({"relit_psnr_db": []})["relit_psnr_db"] is None

@@ -1,7 +1,8 @@
 """The compiled renderer decided at run time (``optimize.compile_shading``: auto, on, off): auto
 compiles on a CPU with a C++ compiler, and on CUDA with Triton, for runs long enough to repay the
 compilation and stays eager elsewhere; on without a compiler warns and runs eager; what ran reaches the metadata. The
-machine without a C++ compiler is taken for real (an empty PATH), not only simulated."""
+machine without a C++ compiler is taken for real (an empty PATH), not only simulated. (The compiled
+field's kinds and fallbacks: ``tests/model/test_compiled.py``.)"""
 
 from __future__ import annotations
 
@@ -13,12 +14,13 @@ import sys
 
 import pytest
 import torch
-from conftest import REPO, TINY_OPTIMIZE, require_tool
+from conftest import REPO, TINY_OPTIMIZE
 
 from stages import optimize
 from stages.config.sections import OptimizeSettings
 from stages.core import device as policy
 from stages.core.errors import ConfigError
+from stages.model.compiled import renderer_kind, renderer_sources_digest
 
 CPU, CUDA = torch.device("cpu"), torch.device("cuda")
 GXX = (True, "C++ compiler /usr/bin/g++ (simulated)")
@@ -29,6 +31,11 @@ GPU_LONG = policy.COMPILE_MIN_ITERATIONS_CUDA
 TRITON = (True, "Triton for CUDA (simulated)")
 NO_TRITON = (False, "no Triton for inductor on CUDA (simulated)")
 COLD_NOTE, WARM_NOTE = "not compiled on this machine before", "compiled before on this machine"
+#: the sources a compiled program is built from, as a caller digests them (the core takes them as given)
+SOURCES = "sources-digest"
+#: the kinds compile_plan looks up, in a caller's words: the renderer's, the one graph's, and that
+#: graph's with static shapes
+KINDS = ("renderer", "renderer, networks", "renderer, networks, static shapes of 35440 points")
 
 
 @pytest.mark.parametrize(
@@ -170,7 +177,7 @@ def test_the_doctor_knows_a_mesh_without_visibility_is_shaded_without_shadows(mo
 
     monkeypatch.setattr(policy, "compile_support", lambda d: GXX)
     monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", str(tmp_path / "inductor"))
-    policy.mark_compiled(policy.renderer_kind(OptimizeSettings(), shadowed=False), CPU)
+    policy.mark_compiled(renderer_kind(OptimizeSettings(), shadowed=False), CPU, renderer_sources_digest())
     raw = {
         "device": "cpu",
         "meshes": {"vase": {"builtin": "vase"}},
@@ -188,129 +195,22 @@ def test_missing_python_headers_are_named(monkeypatch):
     assert policy.compile_support(CPU) == (False, "no Python headers (Python.h; Debian: python3-dev) for inductor")
 
 
-@pytest.mark.slow(minutes=0.5)
-def test_a_compiler_that_cannot_build_costs_a_warning_not_the_run(tmp_path):
-    """A compiler that is there but cannot build (``CXX=false``: it exits 1), with an empty
-    inductor cache so that inductor must call it: the field compiles its renderer once when asked,
-    the failure is logged, and it shades eager and says why; taken for real, in a process of its
-    own (the failed compilation must not touch this one's torch.compile state)."""
-    script = (
-        "import torch\n"
-        "from stages.config.sections import OptimizeSettings\n"
-        "from stages.model.field import StyleField\n"
-        "f = StyleField(OptimizeSettings(width=16, light_lobes=4).field_settings())\n"
-        "print(f.use_compiled_shading('on', torch.device('cpu'), 1))\n"
-        "print(f.compiled_shade is None)\n"
-        "print(f.use_compiled_shading('on', torch.device('cpu'), 1, networks='on'))\n"
-        "print(f.compiled_shade is None and f.compiled_field is None)\n"
-    )
-    env = dict(os.environ, CXX="false", TORCHINDUCTOR_CACHE_DIR=str(tmp_path / "inductor"))
-    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=REPO, env=env, timeout=600)
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    path, eager, path_both, eager_both = proc.stdout.strip().splitlines()[-4:]
-    assert path.startswith("eager (the compilation failed: ") and eager == "True", proc.stdout
-    assert path_both.startswith("eager (the compilation failed: ") and eager_both == "True", proc.stdout
-    assert "compile_shading: the renderer's compilation failed" in proc.stderr
-    assert "compile_shading: the networks' and renderer's compilation failed" in proc.stderr
-
-
-def test_a_renderer_dynamo_gave_up_on_runs_eager_and_says_so():
-    """Once a compiled function has run under a dispatch mode (a FLOP counter's, as a benchmark
-    counts a step), dynamo skips its code for good (torch 2.13): a renderer compiled again in the
-    same process would run eager while the metadata said compiled. Compiled as one graph or an
-    error (``fullgraph``), the field's first pass fails instead: it shades eager and says so, the
-    renderer alone and in one graph with the networks. In a process of its own (the skip is
-    process-wide); it needs the C++ compiler that the compilation would use."""
-    require_tool(policy.compile_support(CPU)[0], "no C++ compiler for inductor")
-    script = (
-        "import torch\n"
-        "from torch.utils.flop_counter import FlopCounterMode\n"
-        "from stages.config.sections import OptimizeSettings\n"
-        "from stages.model.field import StyleField\n"
-        "settings = OptimizeSettings(width=16, light_lobes=4).field_settings()\n"
-        "f = StyleField(settings)\n"
-        "with FlopCounterMode(display=False):\n"
-        "    print(f.use_compiled_shading('on', torch.device('cpu'), 1))\n"
-        "    print(f.use_compiled_shading('on', torch.device('cpu'), 1, networks='on'))\n"
-        "g = StyleField(settings)\n"
-        "print(g.use_compiled_shading('on', torch.device('cpu'), 1))\n"
-        "print(g.compiled_shade is None)\n"
-        "print(g.use_compiled_shading('on', torch.device('cpu'), 1, networks='on'))\n"
-        "print(g.compiled_shade is None and g.compiled_field is None)\n"
-    )
-    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=REPO, timeout=600)
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    path, eager, path_both, eager_both = proc.stdout.strip().splitlines()[-4:]
-    assert path.startswith("eager (the compilation failed: ") and "no compiled frames" in path and eager == "True", path
-    assert path_both.startswith("eager (the compilation failed: ") and eager_both == "True", path_both
-    assert "compile_shading: the renderer's compilation failed" in proc.stderr
-
-
-def _doubled_sine(x):
-    return 2.0 * torch.sin(x)
-
-
-def test_a_graph_dynamo_refuses_during_training_runs_eager_from_there_and_says_so(caplog):
-    """A compiled graph whose later call dynamo refuses (here: its code skipped once a call ran
-    under a dispatch mode; in training, a recompilation past dynamo's limit or with a graph break)
-    runs that call and the rest eager, warned once, and the field's ``shading_path`` says so; a
-    first call's refusal is raised (the field then falls back before training and says why)."""
-    from torch.utils.flop_counter import FlopCounterMode
-
-    from stages.model.field import StyleField, compiled
-
-    x = torch.linspace(-1.0, 1.0, 7)
-    graph = compiled(_doubled_sine, "gltf", CPU)
-    assert torch.allclose(graph(x), 2.0 * torch.sin(x)) and graph.ran and graph.gave_up is None
-    with caplog.at_level(logging.WARNING, logger="stages.model.field"), FlopCounterMode(display=False):
-        assert torch.allclose(graph(x + 1.0), 2.0 * torch.sin(x + 1.0))
-    assert graph.gave_up is not None and "no compiled frames" in graph.gave_up
-    assert torch.allclose(graph(x), 2.0 * torch.sin(x))
-    assert sum("gave up on _doubled_sine" in r.getMessage() for r in caplog.records) == 1
-    f = StyleField(OptimizeSettings(width=16, light_lobes=4).field_settings())
-    f._shading_path, f.compiled_shade = "torch.compile (on)", graph
-    assert f.shading_path.startswith("torch.compile (on); eager since torch.compile gave up (RuntimeError: ")
-    fresh = compiled(lambda v: 3.0 * torch.cos(v), "gltf", CPU)
-    with FlopCounterMode(display=False), pytest.raises(RuntimeError, match="no compiled frames"):
-        fresh(x)
-
-
-def test_a_renderer_compiled_before_is_known_by_its_kind_code_and_torch(monkeypatch, tmp_path):
-    """The mark a successful compilation leaves in the inductor cache: found for the same kind of
-    renderer, not for another kind, another torch or another cache (a machine that never compiled)."""
+def test_a_program_compiled_before_is_known_by_its_kind_sources_and_torch(monkeypatch, tmp_path):
+    """The mark a successful compilation leaves in the inductor cache: found for the same kind and
+    sources, not for another kind, other sources (the code changed), another torch or another
+    cache (a machine that never compiled)."""
     monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", str(tmp_path / "one"))
-    kind = policy.renderer_kind(OptimizeSettings().field_settings())
-    other = policy.renderer_kind(OptimizeSettings(brdf="tango").field_settings())
-    assert kind != other and "gltf BRDF, fitted lobe" in kind
-    # the fast preset has no normal network: its normal takes no gradient, another backward (a
-    # cold compilation of 67 s where the paper's renderer was marked)
-    fixed = policy.renderer_kind(OptimizeSettings(normal_network=False).field_settings())
-    assert fixed != kind and fixed.endswith("fixed normals") and kind.endswith("learned normals")
-    assert not policy.compiled_before(kind, CPU)
-    policy.mark_compiled(kind, CPU)
-    assert policy.compiled_before(kind, CPU) and not policy.compiled_before(other, CPU)
+    kind, other = KINDS[0], KINDS[1]
+    assert not policy.compiled_before(kind, CPU, SOURCES)
+    policy.mark_compiled(kind, CPU, SOURCES)
+    assert policy.compiled_before(kind, CPU, SOURCES) and not policy.compiled_before(other, CPU, SOURCES)
+    assert not policy.compiled_before(kind, CPU, "other-sources")
     assert list((tmp_path / "one" / f"cpu-{policy.cpu_isa()}" / "stages-renderer").iterdir())  # this CPU's folder
     monkeypatch.setattr(torch, "__version__", "0.0.0")
-    assert not policy.compiled_before(kind, CPU)
+    assert not policy.compiled_before(kind, CPU, SOURCES)
     monkeypatch.undo()
     monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", str(tmp_path / "two"))
-    assert not policy.compiled_before(kind, CPU)
-
-
-def test_a_platform_torch_compile_does_not_support_runs_eager(monkeypatch):
-    """dynamo's own check says no (Windows and new Pythons in some releases): the renderer runs
-    eager under on and auto, and the field says why, without trying to compile."""
-    import torch._dynamo
-
-    from stages.model.field import StyleField
-
-    monkeypatch.setattr(torch._dynamo, "is_dynamo_supported", lambda: False)
-    assert policy.compile_support(CPU) == (False, "torch.compile does not support this platform or Python")
-    f = StyleField(OptimizeSettings(width=16, light_lobes=4).field_settings())
-    monkeypatch.setattr(torch, "compile", lambda *a, **k: pytest.fail("compiled where torch.compile is not supported"))
-    assert f.use_compiled_shading("on", CPU, 1) == "eager (torch.compile does not support this platform or Python)"
-    assert f.use_compiled_shading("auto", CPU, 10_000) == "eager (auto: torch.compile does not support this platform or Python)"
-    assert f.compiled_shade is None
+    assert not policy.compiled_before(kind, CPU, SOURCES)
 
 
 def test_a_cache_that_cannot_be_written_only_means_the_next_run_decides_as_if_cold(monkeypatch, tmp_path):
@@ -319,9 +219,8 @@ def test_a_cache_that_cannot_be_written_only_means_the_next_run_decides_as_if_co
     blocked = tmp_path / "cache-is-a-file"
     blocked.write_text("")
     monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", str(blocked))
-    kind = policy.renderer_kind(OptimizeSettings().field_settings())
-    policy.mark_compiled(kind, CPU)
-    assert not policy.compiled_before(kind, CPU)
+    policy.mark_compiled(KINDS[0], CPU, SOURCES)
+    assert not policy.compiled_before(KINDS[0], CPU, SOURCES)
 
 
 #: compiled in a process of its own under an instruction set: a reduction, a matrix product and
@@ -432,22 +331,18 @@ def test_the_plan_looks_for_the_whole_graphs_mark_where_the_networks_join(monkey
     looks for the mark of what it would compile, and names it."""
     monkeypatch.setattr(policy, "compile_support", lambda d: GXX)
     monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", str(tmp_path / "inductor"))
-    s = OptimizeSettings()
-    kind = policy.renderer_kind(s.field_settings())
-    whole = f"{kind}, {policy.networks_kind(s.field_settings(), True)}"
-    assert whole != f"{kind}, {policy.networks_kind(s.field_settings(), False)}"
-    assert whole != f"{kind}, {policy.networks_kind(OptimizeSettings(width=128).field_settings(), True)}"
-    assert whole == f"{kind}, {policy.networks_kind(OptimizeSettings(seed=5).field_settings(), True)}"
-    policy.mark_compiled(kind, CPU)
-    plan = policy.compile_plan(("auto", "on"), CPU, WARM, (kind, whole), True)
+    kind, whole = KINDS[:2]
+    policy.mark_compiled(kind, CPU, SOURCES)
+    plan = policy.compile_plan(("auto", "on"), CPU, WARM, KINDS, True, SOURCES)
     assert plan == (
         False,
         False,
         False,
         f"eager (auto: {WARM} iterations, fewer than the {LONG} that repay a compilation; {COLD_NOTE})",
     )
-    policy.mark_compiled(whole, CPU)
-    assert policy.compile_plan(("auto", "on"), CPU, WARM, (kind, whole), True) == (
+    policy.mark_compiled(whole, CPU, SOURCES)
+    assert policy.compile_plan(("auto", "on"), CPU, WARM, KINDS, True, "other-sources")[0] is False  # the code changed
+    assert policy.compile_plan(("auto", "on"), CPU, WARM, KINDS, True, SOURCES) == (
         True,
         True,
         False,
@@ -455,8 +350,8 @@ def test_the_plan_looks_for_the_whole_graphs_mark_where_the_networks_join(monkey
         "compile_networks: on)",
     )
     # auto: the renderer alone, whose own mark says its compilation is warm
-    assert policy.compile_plan(("auto", "auto"), CPU, WARM, (kind, whole), True)[:2] == (True, False)
-    assert policy.compile_plan(("auto", "off"), CPU, WARM, (kind, whole), True)[:2] == (True, False)
+    assert policy.compile_plan(("auto", "auto"), CPU, WARM, KINDS, True, SOURCES)[:2] == (True, False)
+    assert policy.compile_plan(("auto", "off"), CPU, WARM, KINDS, True, SOURCES)[:2] == (True, False)
 
 
 @pytest.mark.parametrize(
@@ -495,79 +390,32 @@ def test_the_plan_of_a_graph_with_static_shapes(monkeypatch, tmp_path):
     compilation has its own mark: a warm one graph of free shapes does not make it warm."""
     monkeypatch.setattr(policy, "compile_support", lambda d: GXX)
     monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", str(tmp_path / "inductor"))
-    s = OptimizeSettings()
-    kind = policy.renderer_kind(s.field_settings())
-    whole = f"{kind}, {policy.networks_kind(s.field_settings(), True)}"
-    policy.mark_compiled(whole, CPU)
-    shape = (35440, 32)
-    assert policy.compile_plan(("auto", "on", "off"), CPU, WARM, (kind, whole), True, shape)[:3] == (True, True, False)
-    assert policy.compile_plan(("auto", "on", "on"), CPU, WARM, (kind, whole), True, shape)[:3] == (False, False, False)
-    policy.mark_compiled(whole + policy.static_kind(*shape), CPU)
-    # another size is another compilation: cold (and the doctor's, of sizes not yet known)
-    for other in ((35441, 32), (35440, 31), (0, 0)):
-        assert policy.compile_plan(("auto", "on", "on"), CPU, WARM, (kind, whole), True, other)[:3] == (False, False, False)
-    assert policy.compile_plan(("auto", "on", "on"), CPU, WARM, (kind, whole), True, shape) == (
+    policy.mark_compiled(KINDS[1], CPU, SOURCES)
+    assert policy.compile_plan(("auto", "on", "off"), CPU, WARM, KINDS, True, SOURCES)[:3] == (True, True, False)
+    assert policy.compile_plan(("auto", "on", "on"), CPU, WARM, KINDS, True, SOURCES)[:3] == (False, False, False)
+    policy.mark_compiled(KINDS[2], CPU, SOURCES)
+    # (another size is another kind: tests/model/test_compiled.py)
+    assert policy.compile_plan(("auto", "on", "on"), CPU, WARM, KINDS, True, SOURCES) == (
         True,
         True,
         True,
         f"torch.compile, networks and renderer in one graph, static shapes (auto: {WARM} iterations; {WARM_NOTE}; "
         f"{GXX[1]}; compile_networks: on; compile_static: on, static shapes)",
     )
-    assert policy.compile_plan(("on", "on", "on"), CUDA, 1, (kind, whole), True) == (
+    assert policy.compile_plan(("on", "on", "on"), CUDA, 1, KINDS, True, SOURCES) == (
         True,
         True,
         True,
         f"torch.compile, networks and renderer in one graph as CUDA graphs ({GXX[1]}; compile_networks: on; "
         "compile_static: on, CUDA graphs)",
     )
-    assert policy.compile_plan(("on", "on", "auto"), CUDA, 1, (kind, whole), True) == (
+    assert policy.compile_plan(("on", "on", "auto"), CUDA, 1, KINDS, True, SOURCES) == (
         True,
         True,
         False,
         f"torch.compile, networks and renderer in one graph ({GXX[1]}; compile_networks: on; "
         "compile_static auto: CUDA graphs have not been measured on cuda)",
     )
-
-
-def test_a_pool_without_points_compiles_free_shapes(monkeypatch, caplog, tmp_path):
-    """``compile_static: on`` with nothing to pad to (a training pool without hits) warns and
-    compiles the one graph with free shapes, and the metadata's words do not say static."""
-    from stages.model.field import StyleField
-
-    sizes = []
-    monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", str(tmp_path / "inductor"))  # (its mark goes there)
-    monkeypatch.setattr(policy, "compile_support", lambda d: GXX)
-
-    def one_graph(self, device, shadowed, size):  # built (no compilation needed to see the size asked for)
-        sizes.append(size)
-        self.compiled_field = lambda *args: None
-
-    monkeypatch.setattr(StyleField, "_compile_one_graph", one_graph)
-    f = StyleField(OptimizeSettings(width=16, light_lobes=4).field_settings())
-    with caplog.at_level(logging.WARNING, logger="stages.model.field"):
-        path = f.use_compiled_shading("on", CPU, 1, networks="on", static="on", points=0)
-    assert sizes == [0] and "static" not in path and path.startswith("torch.compile, networks and renderer in one graph (")
-    assert any("no points to pad to: free shapes" in r.getMessage() for r in caplog.records)
-
-
-@pytest.mark.slow(minutes=0.5)
-def test_a_graph_of_the_networks_that_fails_leaves_the_renderer_compiled(monkeypatch, caplog):
-    """Where the networks' and renderer's graph cannot be built, the renderer is compiled alone,
-    with a warning, and the metadata's words say so."""
-    from stages.model.field import StyleField
-
-    def fails(*args):
-        raise RuntimeError("simulated")
-
-    monkeypatch.setattr(StyleField, "_first_field_pass", fails)
-    f = StyleField(OptimizeSettings(width=16, light_lobes=4).field_settings())
-    with caplog.at_level(logging.WARNING, logger="stages.model.field"):
-        path = f.use_compiled_shading("on", CPU, 1, networks="on")
-    assert f.compiled_field is None and f.compiled_shade is not None
-    assert path.startswith("torch.compile (C++ compiler ") and path.endswith(
-        "; the networks' graph failed: RuntimeError: simulated)"
-    )
-    assert any("the networks' and renderer's compilation failed" in r.getMessage() for r in caplog.records)
 
 
 def test_the_settings_description_quotes_the_thresholds_auto_uses():

@@ -3,7 +3,7 @@
 Every shell command of README.md, docs/**/*.md, config/**/*.md and of the comments of the YAML
 files in config/ and profiles/ is collected (fenced ``bash``/``sh``/``console`` blocks, ``$ ``
 lines of other fenced blocks, indented code lines, and inline code that starts like a command:
-``python -m stages.``, ``python benchmarks/``, ``python scripts/``, ``snakemake``,
+``python -m stages.``, ``python -m benchmarks.``, ``python scripts/``, ``snakemake``,
 ``bash scripts/``), split at ``&&``, ``;`` and pipes, with continuation lines joined, trailing
 comments, ``source .venv/bin/activate`` and the ``.venv/bin/`` prefix dropped, and placeholders
 (``path/to/chair.obj``, ``config/<name>.yaml``) replaced by real files. Each is then checked
@@ -15,7 +15,7 @@ cheaply, one test per command, named by page, line and command:
 - ``python -m stages.quick ...``: its own ``--dry-run``, the config written to a scratch folder;
 - ``python -m stages.config ...``: run (it only reads and prints); output lines that a ``$ ``
   block shows must be what it prints, in order;
-- any other ``python -m stages.X``, ``python benchmarks/X.py``, ``python scripts/X.py``: the
+- any other ``python -m stages.X``, ``python -m benchmarks.X.Y``, ``python scripts/X.py``: the
   documented arguments parsed by the module's own parser (captured when its ``main`` calls
   ``parse_args``, which then stops before any work): an unknown flag, a missing required
   argument or a bad choice fails;
@@ -88,6 +88,7 @@ PLACEHOLDERS: list[tuple[str, str]] = [
     (r"(?<![\w/])(config/)?(OTHER|X)\.yaml", "config/tiny.yaml"),
     (r"results/<experiment>", "results/demo-offline"),
     (r"stages\.<\w+>", "stages.normalize"),  # any stage
+    (r"benchmarks\.<topic>\.<name>", "benchmarks.workflow.gate"),  # any benchmark
     (r"--configfile C\b", "--configfile config/tiny.yaml"),
     (r"\bmesh/prompt/variant\b", "vase/wood/full"),
     (r"\bOVERLAY\b", "config/overlays/offline.yaml"),  # an overlay of the page's own: any overlay
@@ -117,7 +118,8 @@ REPO_ENTRIES = {"config", "profiles", "benchmarks", "scripts", "stages", "workfl
 INPUT_SUFFIXES = (".yaml", ".yml", ".obj", ".ply", ".stl", ".off", ".glb", ".gltf", ".hdr", ".exr", ".py", ".sh", ".json")
 
 COMMAND_START = re.compile(
-    r"^(?:python -m stages\b|python (?:benchmarks|scripts)/|snakemake(?:\s|$)|bash scripts/|python -m http\.server|mkdocs\s)"
+    r"^(?:python -m (?:stages|benchmarks)\b|python (?:benchmarks|scripts)/|snakemake(?:\s|$)|bash scripts/|python -m http\.server"
+    r"|mkdocs\s)"
 )
 #: what may come before a command: a subshell, the environment's activation, ``time``, ``.venv/bin/``
 COMMAND_PREFIX = re.compile(r"^(?:\(\s*|source \.venv/bin/activate\s*&&\s*|time\s+|\.venv/bin/)+")
@@ -246,7 +248,8 @@ def yaml_commands(path: Path) -> list[Shown]:
             code = " ".join(m.group(1).split())
             if COMMAND_START.match(COMMAND_PREFIX.sub("", code)):
                 found.append(Shown(f"{rel}:{block[0][0] + _line_of(text, m.start()) - 1}", code))
-        starts = re.finditer(r"(?:python -m stages\.|python (?:benchmarks|scripts)/|snakemake |bash scripts/)", text)
+        command = r"(?:python -m (?:stages|benchmarks)\.|python (?:benchmarks|scripts)/|snakemake |bash scripts/)"
+        starts = re.finditer(command, text)
         for m in starts:
             if any(a <= m.start() < b for a, b in spans):
                 continue
@@ -355,7 +358,7 @@ def collect() -> list[Case]:
 
 
 def program_words(argv: tuple[str, ...] | list[str]) -> tuple[str, ...]:
-    """The words that name the program: ``python -m stages.x``, ``python benchmarks/x.py``, ``snakemake``."""
+    """The words that name the program: ``python -m stages.x``, ``python scripts/x.py``, ``snakemake``."""
     if tuple(argv[:2]) == ("python", "-m"):
         return tuple(argv[:3])
     if argv and argv[0] == "python":
@@ -384,12 +387,12 @@ class _Captured(BaseException):
 
 
 def target_of(argv: tuple[str, ...]) -> str:
-    """``stages.x`` (a module), ``benchmarks/x.py`` (a script) or ``snakemake``."""
+    """``stages.x`` or ``benchmarks.x.y`` (a module), ``scripts/x.py`` (a script) or ``snakemake``."""
     if argv[0] == "snakemake":
         return "snakemake"
     assert argv[0] == "python" and len(argv) > 1, f"not a command this test knows how to check: {shlex.join(argv)}"
     if argv[1] == "-m":
-        assert argv[2].startswith("stages"), f"python -m {argv[2]} is not one of the project's modules"
+        assert argv[2].startswith(("stages", "benchmarks")), f"python -m {argv[2]} is not one of the project's modules"
         return argv[2]
     return argv[1]
 
@@ -449,7 +452,7 @@ def parser_of(target: str) -> argparse.ArgumentParser | None:
         return captured.parser
     finally:
         sys.path[:], sys.argv = saved_path, saved_argv
-        for name in set(sys.modules) - saved_modules:  # the scripts' own modules (benchmarks/x.py as x)
+        for name in set(sys.modules) - saved_modules:  # the benchmarks' and scripts' own modules
             file = getattr(sys.modules[name], "__file__", None) or ""
             if file.startswith((str(REPO / "benchmarks"), str(REPO / "scripts"), str(REPO / "tests"))):
                 del sys.modules[name]
@@ -732,7 +735,8 @@ def test_the_collector_reads_blocks_continuations_chains_and_comments(tmp_path, 
         ("python -m stages.render.envmap --name studio", "--out"),  # a required option missing
         ("python -m stages.plan --configfile config/tiny.yaml --jsn", "unrecognized arguments"),
         ("python -m stages.plan --configfile config/nonexistent.yaml", "do not exist"),
-        ("python benchmarks/fast_job.py --mesh vase --levers defaults --no-such-flag", "unrecognized arguments"),
+        ("python -m benchmarks.training.fast_job --mesh vase --levers defaults --no-such-flag", "unrecognized arguments"),
+        ("python benchmarks/fast_job.py --mesh vase", "do not exist"),  # the scripts before the package
         ("python -m stages.quick MESH [--image-guided wood|metal|plaster]", "the real ones are"),
         ("python -m stages.doctor [--json FILE]", "takes no value"),
         ("python -m stages.quick ... --imaged-guided", "unknown option"),

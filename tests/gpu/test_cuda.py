@@ -21,9 +21,12 @@ from conftest import REPO, dispatched_ops, run_snakemake
 from stages.config.sections import ClipSpec, OptimizeSettings
 from stages.geometry.raycache import RayCache
 from stages.guidance.clip import TINY_MODEL, load_clip
+from stages.model.compiled import CompiledField
 from stages.model.field import StyleField
-from stages.model.networks import SGLightModule
-from stages.render.shading import face_viewer, shade
+from stages.model.lights.sg import SGLightModule
+from stages.model.networks import Material
+from stages.render.brdf import TANGO
+from stages.render.shading import face_viewer
 from stages.training.optimizer import Optimizer
 
 NEEDS_CUDA = [pytest.mark.gpu, pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")]
@@ -95,7 +98,7 @@ def test_renderer_in_float32_matches_float64(lobe, dev):
         lm.load_state_dict({k: v.to(device, dtype) for k, v in light.state_dict().items()})
         # copies: the float64 pass must not make the reference inputs themselves leaves with grads
         x = {k: v.to(device, dtype, copy=True).requires_grad_() for k, v in x64.items()}
-        out = shade(x["normal"], x["view"], x["albedo"], lm(), x["specular"], x["roughness"], lobe)
+        out = TANGO.shade(x["normal"], x["view"], Material(x["albedo"], x["specular"], x["roughness"]), lm(), lobe)
         rgb = out.diffuse + out.specular
         weights = torch.linspace(0.5, 1.5, rgb.numel(), device=device, dtype=dtype).view_as(rgb)
         (rgb * weights).sum().backward()
@@ -137,7 +140,7 @@ def test_field_forward_backward_in_float32_matches_float64(dev):
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="takes the path of a machine without CUDA")
 def test_the_gpu_checks_stop_with_a_message_without_cuda(tmp_path):
-    """``benchmarks/gpu_checks.sh`` (and ``benchmarks/gpu.py`` under it) on a machine without CUDA:
+    """``benchmarks/gpu_checks.sh`` (and ``benchmarks.training.gpu`` under it) on a machine without CUDA:
     one line saying so and what to run instead, exit status 2, no logs that look like results."""
     import os
     import subprocess
@@ -147,7 +150,7 @@ def test_the_gpu_checks_stop_with_a_message_without_cuda(tmp_path):
     script = [str(REPO / "benchmarks" / "gpu_checks.sh"), str(tmp_path / "out")]
     done = subprocess.run(["bash", *script], capture_output=True, text=True, timeout=120, env=env)
     assert done.returncode == 2, done.stdout + done.stderr
-    assert "torch sees no CUDA device; on a CPU use benchmarks/optimize.py" in done.stderr
+    assert "torch sees no CUDA device; on a CPU use python -m benchmarks.training.optimize" in done.stderr
     assert not any((tmp_path / "out").iterdir())
 
 
@@ -184,20 +187,20 @@ def test_compiled_renderer_on_cuda_equals_eager():
 
     s = OptimizeSettings(width=16, light_lobes=8)
     eager = StyleField(s.field_settings()).cuda()
-    compiled = copy.deepcopy(eager)
+    compiled = CompiledField(copy.deepcopy(eager))
     path = compiled.use_compiled_shading("on", torch.device("cuda"), 1, shadowed=False)
     if not path.startswith("torch.compile"):
-        assert path.startswith("eager (") and compiled.compiled_shade is None, path
+        assert path.startswith("eager (") and compiled.shade_graph is None, path
         return
     g = torch.Generator().manual_seed(3)
     pts = (torch.rand(4096, 3, generator=g) * 2 - 1).cuda()
     nrm = torch.nn.functional.normalize(torch.randn(4096, 3, generator=g), dim=-1).cuda()
     view = torch.nn.functional.normalize(nrm + 0.5 * torch.randn(4096, 3, generator=g).cuda(), dim=-1)
     outs = []
-    for f in (eager, compiled):
+    for f, module in ((eager, eager), (compiled, compiled.field)):
         rgb = f(pts, nrm, view).shading.rgb
         (rgb * torch.linspace(0, 1, rgb.numel(), device="cuda").view_as(rgb)).sum().backward()
-        outs.append((rgb.detach(), [p.grad for p in f.parameters()]))
+        outs.append((rgb.detach(), [p.grad for p in module.parameters()]))
     torch.testing.assert_close(outs[1][0], outs[0][0], rtol=1e-4, atol=1e-5)
     for a, b in zip(outs[1][1], outs[0][1], strict=True):
         assert float((a - b).norm() / b.norm().clamp(min=1e-12)) < 3e-3
@@ -223,8 +226,8 @@ def test_one_graph_captured_as_cuda_graphs_trains_as_eager(cache):
     eager = Optimizer(OptimizeSettings(**s), RayCache(cache / "train.npz"), "", "cuda")
     on = {"compile_shading": "on", "compile_networks": "on", "compile_static": "on"}
     graphs = Optimizer(OptimizeSettings(**s, **on), RayCache(cache / "train.npz"), "", "cuda")
-    assert "one graph as CUDA graphs (" in graphs.shading_path and graphs.field.cuda_graphs, graphs.shading_path
-    assert graphs.field.static_points == graphs.views.largest
+    assert "one graph as CUDA graphs (" in graphs.shading_path and graphs.compiled.cuda_graphs, graphs.shading_path
+    assert graphs.compiled.static_points == graphs.views.largest
     compiled = counters["stats"]["unique_graphs"]
     for _ in range(3):
         a, b = eager.step(_timer()), graphs.step(_timer())
@@ -239,7 +242,7 @@ def test_bf16_finite_at_the_extremes_on_cuda():
     both poles and a grazing normal, and for black and white images."""
     s = OptimizeSettings(width=64)
     f = StyleField(s.field_settings()).to(CUDA)
-    if not f.use_bf16(True, CUDA).startswith("bfloat16 autocast"):
+    if not CompiledField(f).use_bf16(True, CUDA).startswith("bfloat16 autocast"):
         pytest.skip("this GPU has no native bfloat16")
     corners = torch.cartesian_prod(*[torch.tensor([-1.0, 1.0])] * 3)
     pts = torch.cat([corners, torch.zeros(1, 3), torch.full((1, 3), 1e-7)]).to(CUDA)

@@ -114,3 +114,29 @@ def test_each_guidance_scores_the_evaluation_views_its_own_way(cache):
     assert mitsuba.eval_score(renders, views, store.width, 32).figures == {}
     with pytest.raises(ConfigError, match="no Mitsuba targets attached"):
         mitsuba.target_colors(v, sel)
+
+
+def test_each_guidance_scores_the_held_out_views_its_own_way(cache):
+    """The metrics stage's figures come from the run's guidance class: the CLIP's similarity under
+    ``guidance``, the image targets' PSNR, SSIM and highlights under ``image_target``."""
+    from stages.guidance.objective import guidance_class
+
+    field = StyleField(OptimizeSettings(width=16, light_lobes=4).field_settings())
+    store = ViewStore(RayCache(cache / "eval.npz"), torch.device("cpu"), field.normals)
+    renders = torch.stack([render_view(field, store[i], store.width, store.width)["rgb"] for i in range(len(store))])
+    sg_settings = OptimizeSettings(**SG)
+    kind = guidance_class(sg_settings)
+    assert kind is SGTargetGuidance and kind.held_out_key == "image_target"
+    held = kind.for_metrics(sg_settings, "p", "cpu", None).held_out(renders, store, ["p"], 0.0)
+    assert held.targets.shape == renders.shape and 0 < held.figures["psnr_db"] < 60
+    assert {"ssim", "highlights", "pixels", "weights"} <= set(held.figures)
+    assert (held.figures["target_renderer"], held.figures["target_light"]) == ("sg", "studio")
+    perfect = kind.for_metrics(sg_settings, "p", "cpu", None).held_out(held.targets, store, ["p"], 0.0)
+    assert perfect.figures["psnr_db"] > held.figures["psnr_db"] + 20
+    clip_settings = OptimizeSettings(**CLIP)
+    kind = guidance_class(clip_settings)
+    assert kind is ClipGuidance and kind.held_out_key == "guidance"
+    clip = kind.for_metrics(clip_settings, "p", "cpu", None)
+    assert clip.clip_precision == "float32"  # the held-out figures of every run alike, whatever it trained in
+    held = clip.held_out(renders, store, ["p", "q"], 1.0)
+    assert held.targets is None and held.figures["test_only"] and -1 <= held.figures["similarity"] <= 1

@@ -18,10 +18,10 @@ from stages.geometry.normals import NormalSpec
 from stages.geometry.raycache import RayCache, metric_views, trace_views
 from stages.geometry.shapes import builtin_mesh
 from stages.geometry.tracing import EmbreeTracer
-from stages.imaging.relit import BUDGET_COMPONENTS, BudgetCase, channel_scale, relight_budget, shade_surface, true_surface
+from stages.imaging.relit import BudgetCase, budget_components, channel_scale, relight_budget, shade_surface, true_surface
 from stages.imaging.targets import TargetSet
 from stages.imaging.views import ViewStore
-from stages.model.lightfit import fit_sg_light
+from stages.model.lights.sg import fit_sg_light
 from stages.model.networks import Material
 from stages.render.envmap import load_env
 from stages.render.shading import SGLight
@@ -125,7 +125,7 @@ def _perturbed(surface: dict, component: str) -> dict:
     return out
 
 
-@pytest.mark.parametrize("wrong", ["light", *BUDGET_COMPONENTS["gltf"]])
+@pytest.mark.parametrize("wrong", ["light", *budget_components("gltf")])
 def test_the_budget_puts_a_gap_on_the_component_that_causes_it(scene, wrong):
     """A field that holds the truth but for one component (or, under the training light, the
     learned light): replacing that component alone reaches the ceiling, replacing any other alone
@@ -139,7 +139,7 @@ def test_the_budget_puts_a_gap_on_the_component_that_causes_it(scene, wrong):
     truth_rgb = {}
     sunset, _ = fit_sg_light(load_env("builtin:sunset"), LOBES, ITERATIONS)
     for name, light in (("builtin:sun_sky", train), ("builtin:sunset", sunset)):
-        clean = shade_surface(true, view, light, "fitted").numpy()
+        clean = shade_surface(true, "gltf", view, light, "fitted").numpy()
         truth_rgb[name] = clean * (1 + 0.02 * rng.standard_normal(clean.shape)).astype(np.float32)
     coverage = np.ones(n, np.float32)
     coverage[::7] = 0.5  # partly covered hits never count
@@ -153,7 +153,7 @@ def test_the_budget_puts_a_gap_on_the_component_that_causes_it(scene, wrong):
     for case in budget:
         assert case["pixels"] == int((coverage >= 0.999).sum())
         names = [sw["component"] for sw in case["swaps"]]
-        assert names == (["light"] if case["role"] == "training" else []) + list(BUDGET_COMPONENTS["gltf"])
+        assert names == (["light"] if case["role"] == "training" else []) + list(budget_components("gltf"))
         ceiling, base = case["ceiling"], case["recovered"]
         if wrong not in names:  # a relit render takes the environment's fit: the learned light is not in it
             assert base["psnr_db"] == pytest.approx(ceiling["psnr_db"], abs=1e-9)

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from stages.model import lightfit
+from stages.model.lights import sg as lightfit
 from stages.render.envmap import load_env
 
 
@@ -49,7 +49,7 @@ def test_the_cache_keeps_a_bounded_number_of_fits(monkeypatch):
 _FIT_SCRIPT = """
 import hashlib, sys, torch
 torch.set_num_threads(int(sys.argv[1]))
-from stages.model.lightfit import fit_sg_light
+from stages.model.lights.sg import fit_sg_light
 from stages.render.envmap import load_env
 with torch.no_grad():  # a caller under no_grad (the relighting budget) still fits
     light, rel = fit_sg_light(load_env(sys.argv[2]), 16, 60)

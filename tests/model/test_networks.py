@@ -7,14 +7,13 @@ import math
 import pytest
 import torch
 
+from stages.model.lights.sg import SGLightModule, fibonacci_sphere
 from stages.model.networks import (
     FourierFeatures,
     IdentityEncoding,
     NerfEncoding,
     NormalNet,
-    SGLightModule,
     SVBRDFNet,
-    fibonacci_sphere,
     symmetric,
     tangent_frame,
 )
@@ -162,23 +161,46 @@ def test_field_of_format_1_loads_with_the_same_light(tmp_path):
     """A ``field.pt`` of format 1 (the light as ``0.01 + softplus`` sharpness and softplus
     amplitude) loads into today's logarithmic light with the same lobes: written here from format
     1's definitions, not through the conversion."""
+    from stages.config.guidance_modes import guidance_mode
     from stages.config.sections import OptimizeSettings
-    from stages.core.provenance import ORIGIN_KEY, origin_record
+    from stages.core.provenance import ORIGIN_KEY
     from stages.model.checkpoint import load_field
     from stages.model.field import StyleField
 
     s = OptimizeSettings(width=16, light_lobes=4, light_init="broad")
     field = StyleField(s.field_settings())
-    state = field.state_dict()
+    state = {k.replace("light.sg.", "light."): v for k, v in field.state_dict().items()}  # (formats 1, 2: at the top)
     gen = torch.Generator().manual_seed(3)
     sharp_raw = torch.randn(4, 1, generator=gen) * 3.0
     amp_raw = torch.randn(4, 3, generator=gen)
     del state["light.log_sharpness"], state["light.log_energy"]
     state["light.sharpness_raw"], state["light.amplitude_raw"] = sharp_raw, amp_raw
-    origin = origin_record(guidance="image", weights="image targets: a test", test_only=False, prompt="p")
+    origin = guidance_mode("image").origin_record("image targets: a test", test_only=False, prompt="p")
     torch.save({"format": 1, "settings": s.to_dict(), "prompt": "p", ORIGIN_KEY: origin, "state_dict": state}, tmp_path / "f.pt")
     loaded, _ = load_field(tmp_path / "f.pt")
-    light = loaded.light()
+    light = loaded.light.sg()
     lam = 0.01 + torch.log1p(torch.exp(sharp_raw))
     torch.testing.assert_close(light.sharpness, lam, rtol=1e-5, atol=0)
     torch.testing.assert_close(light.amplitude, torch.log1p(torch.exp(amp_raw)), rtol=1e-4, atol=1e-7)
+
+
+def test_field_of_format_2_loads_its_lobes_into_the_sum(tmp_path):
+    """A ``field.pt`` of format 2 (the SG lobes' parameters at the light's top, ``light.axis_raw``,
+    before lights were sums of components) loads with the same lobes under ``light.sg.``."""
+    from stages.config.guidance_modes import guidance_mode
+    from stages.config.sections import OptimizeSettings
+    from stages.core.provenance import ORIGIN_KEY
+    from stages.model.checkpoint import load_field
+    from stages.model.field import StyleField
+
+    s = OptimizeSettings(width=16, light_lobes=4, light_init="tango", seed=5)
+    field = StyleField(s.field_settings())
+    with torch.no_grad():
+        field.light.sg.log_energy.add_(torch.randn(4, 3, generator=torch.Generator().manual_seed(1)))
+    state = {k.replace("light.sg.", "light."): v for k, v in field.state_dict().items()}
+    assert "light.axis_raw" in state
+    origin = guidance_mode("image").origin_record("image targets: a test", test_only=False, prompt="p")
+    torch.save({"format": 2, "settings": s.to_dict(), "prompt": "p", ORIGIN_KEY: origin, "state_dict": state}, tmp_path / "f.pt")
+    loaded, _ = load_field(tmp_path / "f.pt")
+    for name, p in field.light.sg.named_parameters():
+        assert torch.equal(getattr(loaded.light.sg, name), p), name

@@ -13,8 +13,9 @@ from torch._dynamo.utils import counters
 
 from stages.config.sections import OptimizeSettings
 from stages.core import device as policy
-from stages.core.device import bf16_support, compiled_before, renderer_kind
-from stages.model.field import INDUCTOR_SUM_CHUNK, StyleField
+from stages.core.device import bf16_support, compiled_before
+from stages.model.compiled import INDUCTOR_SUM_CHUNK, CompiledField, renderer_kind, renderer_sources_digest
+from stages.model.field import StyleField
 from stages.model.networks import FourierFeatures
 
 CPU = torch.device("cpu")
@@ -47,7 +48,7 @@ def _compilations() -> int:
     return counters["stats"]["unique_graphs"]
 
 
-def _more_points_than_the_chunk(compiled: StyleField, eager: StyleField, shadowed: bool = False) -> None:
+def _more_points_than_the_chunk(compiled: CompiledField, eager: StyleField, shadowed: bool = False) -> None:
     """A training call of more points than inductor's sum chunk runs the graph the first pass
     built (the extreme inputs, fewer, were padded to that side): no compilation, the eager
     field's colours, every gradient within 1e-2 of its norm of float64's (the precision
@@ -62,16 +63,17 @@ def _more_points_than_the_chunk(compiled: StyleField, eager: StyleField, shadowe
     view = torch.nn.functional.normalize(nrm + 0.3 * torch.randn(n, 3, generator=g, dtype=torch.float64), dim=-1)
     reference = copy.deepcopy(eager).double()
 
-    def visibility(light):
-        return (0.5 + 0.5 * (nrm.to(light.axis.dtype) @ light.axis.T)).clamp(0.0, 1.0)
+    def visibility(light):  # the SG lobes' shares (the light's one component)
+        (sg,) = light.components
+        return ((0.5 + 0.5 * (nrm.to(sg.axis.dtype) @ sg.axis.T)).clamp(0.0, 1.0),)
 
     before, outs = _compilations(), []
-    for f in (reference, eager, compiled):
-        f.zero_grad(set_to_none=True)
-        dtype = next(f.parameters()).dtype
+    for f, module in ((reference, reference), (eager, eager), (compiled, compiled.field)):
+        module.zero_grad(set_to_none=True)
+        dtype = next(module.parameters()).dtype
         rgb = f(pts.to(dtype), nrm.to(dtype), view.to(dtype), visibility=visibility if shadowed else None).shading.rgb
         (rgb * torch.linspace(0, 1, rgb.numel(), dtype=dtype).view_as(rgb)).sum().backward()
-        outs.append((rgb.detach(), [(name, p.grad.double()) for name, p in f.named_parameters() if p.requires_grad]))
+        outs.append((rgb.detach(), [(name, p.grad.double()) for name, p in module.named_parameters() if p.requires_grad]))
     assert _compilations() == before
     torch.testing.assert_close(outs[2][0], outs[1][0], rtol=1e-5, atol=1e-6)
     for (name, want), (_, got) in zip(outs[0][1], outs[2][1], strict=True):
@@ -86,7 +88,8 @@ def test_bf16_networks_close_to_float32_and_finite(encoding):
     s = OptimizeSettings(material_encoding=encoding, normal_encoding=encoding, width=64)
     fp32 = StyleField(s.field_settings())
     bf16 = copy.deepcopy(fp32)
-    assert bf16.use_bf16(True, CPU).startswith("bfloat16 autocast") and fp32.use_bf16(False, CPU) == "float32"
+    assert CompiledField(bf16).use_bf16(True, CPU).startswith("bfloat16 autocast")
+    assert CompiledField(fp32).use_bf16(False, CPU) == "float32"
     # a trained-looking field: heads away from their constant initialisation
     with torch.no_grad():
         for a, b in zip(fp32.parameters(), bf16.parameters(), strict=True):
@@ -129,7 +132,7 @@ def test_fourier_phases_stay_float32_under_autocast():
 def test_bf16_networks_not_silently_ignored(monkeypatch):
     monkeypatch.setattr(policy, "bf16_support", lambda device: (False, "no native bfloat16 in this test"))
     f = StyleField(OptimizeSettings(width=16).field_settings())
-    assert f.use_bf16(True, CPU) == "float32 (no native bfloat16 in this test)" and not f.bf16
+    assert CompiledField(f).use_bf16(True, CPU) == "float32 (no native bfloat16 in this test)" and not f.bf16
 
 
 def test_shadow_shares_follow_the_networks_lever_in_training_only(monkeypatch):
@@ -152,24 +155,25 @@ def test_shadow_shares_follow_the_networks_lever_in_training_only(monkeypatch):
     bits = torch.full((len(pts), 8), 0b10110011, dtype=torch.uint8)
 
     def shares(light):
-        return visibility.lobe_visibility_bits(n.detach(), bits, dirs, light.axis, light.sharpness)
+        (sg,) = light.components
+        return (visibility.lobe_visibility_bits(n.detach(), bits, dirs, sg.axis, sg.sharpness),)
 
     for setting, training, want in ((True, True, torch.bfloat16), (False, True, torch.float32), (True, False, torch.float32)):
-        f.use_bf16(setting, CPU)
+        CompiledField(f).use_bf16(setting, CPU)
         f.train(training)
         out = f.shade(mat, n, nrm, visibility=shares)
         assert seen[-1] == want and torch.isfinite(out.rgb).all()
 
 
-def _evaluation_stays_eager(compiled: StyleField, eager: StyleField, graph: str, pts, nrm, view) -> None:
-    """Outside training ``compiled`` never runs its compiled ``graph`` (an attribute of the field)
-    and shades as ``eager`` does."""
+def _evaluation_stays_eager(compiled: CompiledField, eager: StyleField, graph: str, pts, nrm, view) -> None:
+    """Outside training ``compiled`` never runs its compiled ``graph`` (an attribute of it) and
+    shades as ``eager`` does."""
 
     def not_in_evaluation(*args, **kwargs):
         raise AssertionError(f"the {graph} ran outside training")
 
     setattr(compiled, graph, not_in_evaluation)
-    compiled.eval()
+    compiled.field.eval()
     with torch.no_grad():
         torch.testing.assert_close(compiled(pts, nrm, view).shading.rgb, eager.eval()(pts, nrm, view).shading.rgb)
 
@@ -190,22 +194,23 @@ def test_compiled_shading_equals_eager_in_training_only(init, tolerance, normal_
         width=16, light_lobes=4, specular_lobe="isotropic", brdf="tango", light_init=init, normal_network=normal_network
     )
     eager = StyleField(s.field_settings())
-    if fixed_light:  # as light: fixed holds it (lightfit.hold_environment): no gradient, another backward
+    if fixed_light:  # as light: fixed holds it (LightModule.hold): no gradient, another backward
         eager.light.requires_grad_(False)
-    compiled = copy.deepcopy(eager)
+    compiled = CompiledField(copy.deepcopy(eager))
     # no visibility passed below: compiled for a renderer without shadows
     assert compiled.use_compiled_shading("on", CPU, 1, shadowed=False, typical=MANY).startswith("torch.compile (C++ compiler ")
     kind = renderer_kind(s.field_settings(), False, not fixed_light)
-    assert compiled_before(kind, CPU)  # the next run's auto knows its caches are warm
-    assert eager.use_compiled_shading("off", CPU, 1) == "eager" and eager.compiled_shade is None
+    assert compiled_before(kind, CPU, renderer_sources_digest())  # the next run's auto knows its caches are warm
+    off = CompiledField(eager)
+    assert off.use_compiled_shading("off", CPU, 1) == "eager" and off.shade_graph is None
     pts, nrm = _extreme_inputs()
     view = torch.nn.functional.normalize(nrm + 0.3 * torch.randn(nrm.shape, generator=torch.Generator().manual_seed(1)), dim=-1)
     outs = []
     compilations = _compilations()
-    for f in (eager, compiled):
+    for f, module in ((eager, eager), (compiled, compiled.field)):
         rgb = f(pts, nrm, view).shading.rgb
         (rgb * torch.linspace(0, 1, rgb.numel()).view_as(rgb)).sum().backward()
-        outs.append((rgb.detach(), [p.grad for p in f.parameters() if p.requires_grad]))
+        outs.append((rgb.detach(), [p.grad for p in module.parameters() if p.requires_grad]))
     # the first compiled pass built what the step runs: no second compilation (a normal or a fixed
     # light needing a gradient only there, or its points as many as the lobes, made one at the
     # first step: 58 s; so did a step's points on the other side of inductor's sum chunk: 70 s)
@@ -215,36 +220,37 @@ def test_compiled_shading_equals_eager_in_training_only(init, tolerance, normal_
         assert float((a - b).norm() / b.norm()) < tolerance
     assert len(pts) <= INDUCTOR_SUM_CHUNK == compiled.least_points - 1  # the extreme inputs were padded
     _more_points_than_the_chunk(compiled, eager)
-    _evaluation_stays_eager(compiled, eager, "compiled_shade", pts, nrm, view)
+    _evaluation_stays_eager(compiled, eager, "shade_graph", pts, nrm, view)
 
 
 @pytest.mark.slow(minutes=1.5)
 def test_networks_compiled_with_the_renderer_equal_eager_in_training_only():
     """``compile_networks``: the SVBRDF and normal networks compiled into the renderer's graph
-    (one graph, :meth:`StyleField.surface_and_shade`) give the colours, materials, normals and
+    (one graph, :meth:`StyleField.surface_and_shade` compiled by :class:`CompiledField`) give the colours, materials, normals and
     every parameter's gradient of the eager field, with shadows' shares passed, compiled once: the
     first pass leaves no gradient behind and builds what the step runs; evaluation stays eager."""
     s = OptimizeSettings(width=16, light_lobes=4, normal_network=True, light_init="broad")
     eager = StyleField(s.field_settings())
-    compiled = copy.deepcopy(eager)
+    compiled = CompiledField(copy.deepcopy(eager))
     path = compiled.use_compiled_shading("on", CPU, 1, shadowed=True, networks="on", typical=MANY)
     assert path.startswith("torch.compile, networks and renderer in one graph (C++ compiler ") and path.endswith(
         "; compile_networks: on)"
     )
-    assert compiled.compiled_field is not None and compiled.compiled_shade is None
-    assert all(p.grad is None for p in compiled.parameters())  # the first pass's gradients dropped
+    assert compiled.field_graph is not None and compiled.shade_graph is None
+    assert all(p.grad is None for p in compiled.field.parameters())  # the first pass's gradients dropped
     pts, nrm = _extreme_inputs()
     view = torch.nn.functional.normalize(nrm + 0.3 * torch.randn(nrm.shape, generator=torch.Generator().manual_seed(1)), dim=-1)
 
     def visibility(light):  # a differentiable share per lobe, as the shadows' are
-        return (0.5 + 0.5 * (nrm @ light.axis.T)).clamp(0.0, 1.0)
+        (sg,) = light.components
+        return ((0.5 + 0.5 * (nrm @ sg.axis.T)).clamp(0.0, 1.0),)
 
     outs, compilations = [], _compilations()
-    for f in (eager, compiled):
+    for f, module in ((eager, eager), (compiled, compiled.field)):
         out = f(pts, nrm, view, visibility=visibility)
         weights = torch.linspace(0, 1, out.shading.rgb.numel()).view_as(out.shading.rgb)
         ((out.shading.rgb * weights).sum() + out.material.roughness.sum() + out.normal[:, 0].sum()).backward()
-        outs.append((out, [p.grad for p in f.parameters() if p.requires_grad]))
+        outs.append((out, [p.grad for p in module.parameters() if p.requires_grad]))
     assert _compilations() == compilations  # no second compilation at the first step
     (a, grads_a), (b, grads_b) = outs
     torch.testing.assert_close(b.shading.rgb, a.shading.rgb, rtol=1e-5, atol=1e-6)
@@ -253,7 +259,7 @@ def test_networks_compiled_with_the_renderer_equal_eager_in_training_only():
     for ga, gb in zip(grads_a, grads_b, strict=True):
         assert float((gb - ga).norm() / ga.norm()) < 3e-4
     _more_points_than_the_chunk(compiled, eager, shadowed=True)
-    _evaluation_stays_eager(compiled, eager, "compiled_field", pts, nrm, view)
+    _evaluation_stays_eager(compiled, eager, "field_graph", pts, nrm, view)
 
 
 @pytest.mark.slow(minutes=2.5)
@@ -285,12 +291,12 @@ def test_a_graph_of_static_shapes_pads_each_step_and_trains_as_eager(cache, capl
         return Optimizer(s, RayCache(cache / "train.npz"), "a vase", "cpu")
 
     eager = run(compile_shading="off")
-    assert eager.field.typical_points == eager.views.global_points(64) > 0  # what a first pass of free shapes takes
+    assert eager.compiled.typical_points == eager.views.global_points(64) > 0  # what a first pass of free shapes takes
     compilations = counters["stats"]["unique_graphs"]
     static = run(compile_shading="on", compile_networks="on", compile_static="on")
     assert "one graph, static shapes (" in static.shading_path, static.shading_path
     assert counters["stats"]["unique_graphs"] > compilations  # (graphs compiled: fullgraph counts no frames)
-    assert static.field.static_points == static.views.largest > 0 and not static.field.cuda_graphs
+    assert static.compiled.static_points == static.views.largest > 0 and not static.compiled.cuda_graphs
     rows = []
     for i in range(3):
         compilations = counters["stats"]["unique_graphs"]
@@ -298,15 +304,15 @@ def test_a_graph_of_static_shapes_pads_each_step_and_trains_as_eager(cache, capl
         if i != 1:  # padded: the graph of the first pass (or of the pruning), never another in a step
             assert counters["stats"]["unique_graphs"] == compilations, i
     assert static.light_pruned["dropped"] > 0 and static.field.light.lobes == eager.field.light.lobes < 4
-    assert static.field.compiled_field is not None and static.field.static_points == static.views.largest
+    assert static.compiled.field_graph is not None and static.compiled.static_points == static.views.largest
     points = [a["points"] for a, _ in rows]
-    assert len(set(points)) > 1 and min(points) < max(points) <= static.field.static_points, points  # some padded
+    assert len(set(points)) > 1 and min(points) < max(points) <= static.compiled.static_points, points  # some padded
     for a, b in rows:
         assert a["points"] == b["points"] and abs(a["loss"] - b["loss"]) <= 1e-5 * abs(a["loss"]) + 1e-7, (a, b)
     for (name, pa), pb in zip(eager.field.named_parameters(), static.field.parameters(), strict=True):
         assert float((pb - pa).norm() / pa.norm().clamp(min=1e-12)) < 1e-4, name
-    static.field.static_points = 10  # a step of more points than the graph's: eager
-    with caplog.at_level(logging.WARNING, logger="stages.model.field"):
+    static.compiled.static_points = 10  # a step of more points than the graph's: eager
+    with caplog.at_level(logging.WARNING, logger="stages.model.compiled"):
         a, b = eager.step(Timer()), static.step(Timer())
     assert abs(a["loss"] - b["loss"]) <= 1e-5 * abs(a["loss"]) + 1e-7
     assert any("more than the" in r.getMessage() and "they run eager" in r.getMessage() for r in caplog.records)
@@ -321,16 +327,16 @@ def test_each_pass_of_a_captured_graph_starts_from_no_gradients(monkeypatch):
     seen = []
 
     def a_pass(self, graph, device, shadowed, n):
-        seen.append((n, all(p.grad is None for p in self.parameters())))
-        for p in self.parameters():  # as a backward leaves them
+        seen.append((n, all(p.grad is None for p in self.field.parameters())))
+        for p in self.field.parameters():  # as a backward leaves them
             p.grad = torch.ones_like(p)
 
-    monkeypatch.setattr(StyleField, "_field_pass", a_pass)
+    monkeypatch.setattr(CompiledField, "_field_pass", a_pass)
     monkeypatch.setattr(torch.compiler, "cudagraph_mark_step_begin", lambda: seen.append("step"))
-    f._first_field_pass(None, torch.device("cuda"), False, 123)
+    CompiledField(f)._first_field_pass(None, torch.device("cuda"), False, 123)
     assert seen == ["step", (123, True)] * 3 and all(p.grad is None for p in f.parameters())
     seen.clear()
-    f._first_field_pass(None, CPU, False, 123)
+    CompiledField(f)._first_field_pass(None, CPU, False, 123)
     assert seen == [(123, True)] and all(p.grad is None for p in f.parameters())
 
 
@@ -338,7 +344,7 @@ def test_a_compiled_graphs_first_pass_takes_the_steps_side_of_inductors_sum_chun
     """The first pass of a graph of free shapes runs on a step's typical points where they are
     more than inductor's sum chunk, then on a CPU the calls of fewer are padded past it; fewer (or
     unknown), on the caller's number, and no padding (a run of small steps pays none)."""
-    from stages.model.field import first_pass_points, padded_points
+    from stages.model.compiled import first_pass_points, padded_points
 
     cuda = torch.device("cuda")  # (a device object: nothing runs on it)
     chunk = INDUCTOR_SUM_CHUNK

@@ -12,9 +12,9 @@ import pytest
 import torch
 
 from stages import optimize
+from stages.config.guidance_modes import guidance_mode
 from stages.config.sections import OptimizeSettings
 from stages.core.errors import StageInputError
-from stages.core.provenance import origin_record
 from stages.model.checkpoint import load_field, read_torch_file, save_field
 from stages.model.field import StyleField
 
@@ -38,7 +38,7 @@ def hostile(path, marker) -> None:
 
 def written_field(path) -> None:
     s = OptimizeSettings(**SMALL)
-    origin = origin_record(guidance="image", weights="image targets: a test", test_only=False, prompt="p")
+    origin = guidance_mode("image").origin_record("image targets: a test", test_only=False, prompt="p")
     save_field(path, StyleField(s.field_settings()), s, "p", origin)
 
 
@@ -107,7 +107,7 @@ def test_a_field_the_tool_wrote_loads_through_the_restricted_reader(tmp_path):
 def test_a_field_asking_for_networks_past_the_limits_is_refused_before_they_are_built(tmp_path):
     """The stored settings are held to the config's limits: a foreign field.pt asking for a
     width of a billion is one clear error, not an out-of-memory kill."""
-    origin = origin_record(guidance="image", weights="image targets: a test", test_only=False, prompt="p")
+    origin = guidance_mode("image").origin_record("image targets: a test", test_only=False, prompt="p")
     torch.save({"settings": {"width": 10**9}, "state_dict": {}, "origin": origin}, tmp_path / "field.pt")
     with pytest.raises(
         StageInputError, match=r"its stored settings are not valid .*optimize.width must be in \[1, 4096\], got 1000000000"
@@ -222,7 +222,7 @@ def _saved_deep(path, levels: int) -> None:
     import sys
     import threading
 
-    origin = origin_record(guidance="image", weights="image targets: a test", test_only=False, prompt="p")
+    origin = guidance_mode("image").origin_record("image targets: a test", test_only=False, prompt="p")
     data = {"format": 2, "settings": {"width": _deep(levels)}, "state_dict": {}, "origin": origin}
     failed: list[BaseException] = []
 

@@ -16,17 +16,19 @@ from PIL import Image
 
 from stages import roundtrip
 from stages.assets.baking import BakedHits, cached_barycentrics, decode_textures, render_baked
-from stages.assets.formats import export_mesh, read_atlas, write_glb
+from stages.assets.formats import export_mesh, read_atlas
+from stages.assets.formats.gltf import write_glb
 from stages.config.sections import RoundtripSettings
 from stages.geometry.cameras import camera_positions, camera_space_directions, look_at
 from stages.geometry.meshio import load_ply
 from stages.geometry.normalization import Similarity
 from stages.geometry.raycache import RayCache
 from stages.geometry.tangents import CornerFrames
-from stages.model.lightfit import fit_sg_light
+from stages.model.lights.sg import fit_sg_light
 from stages.reference import blender, roundtrip_job
 from stages.render.envmap import equirect_directions, load_env
 from stages.render.hdrio import write_exr, write_hdr
+from stages.render.light import Light
 from stages.results import summary
 
 
@@ -180,7 +182,7 @@ def test_normal_map_handedness_under_cycles(ready, trained_cell, tmp_path):
         decoded = decode_textures(textures)
         decoded["normal"] = decoded["normal"] * np.array(flip)
         return [
-            render_baked(BakedHits(h, cached_barycentrics(cache, i)), atlas["uv"], decoded, frames, light).numpy()
+            render_baked(BakedHits(h, cached_barycentrics(cache, i)), atlas["uv"], decoded, frames, Light.of(light)).numpy()
             for h, i in zip(hits, views, strict=True)
         ]
 

@@ -443,7 +443,9 @@ class _TruthField(torch.nn.Module):
     def forward(self, points, normals, view, light=None, edit=None, visibility=None):
         from types import SimpleNamespace
 
-        from stages.render.shading import face_viewer, shade
+        from stages.model.networks import Material
+        from stages.render.brdf import TANGO
+        from stages.render.shading import face_viewer
 
         n = len(points)
         sl = slice(self.at, self.at + n)
@@ -453,7 +455,7 @@ class _TruthField(torch.nn.Module):
         lit = self.baked if self.baked is not None else light
         vis = None if visibility is None else visibility(lit)
         rough = t["roughness"][sl].clamp(0.01, 1.0)
-        rgb = shade(nrm, view, t["albedo"][sl], lit, t["specular"][sl], rough, "fitted", visibility=vis).rgb
+        rgb = lit.shade(TANGO, nrm, view, Material(t["albedo"][sl], t["specular"][sl], rough), "fitted", vis).rgb
         return SimpleNamespace(shading=SimpleNamespace(rgb=rgb * self.gain))
 
 
@@ -466,7 +468,8 @@ def _grading_tells_a_disentangled_field_from_a_baked_one(metrics_cache, target_d
     from stages.geometry.normals import NormalSpec
     from stages.imaging.relit import grade_relighting
     from stages.imaging.views import ViewStore
-    from stages.model.lightfit import fit_sg_light
+    from stages.model.lights.sg import fit_sg_light
+    from stages.render.light import Light
 
     cache = RayCache(metrics_cache)
     targets = TargetSet(target_dir / "metrics.npz", cache)
@@ -476,7 +479,8 @@ def _grading_tells_a_disentangled_field_from_a_baked_one(metrics_cache, target_d
     for g in good:
         assert g["psnr_db"] == pytest.approx(g["ceiling_psnr_db"], abs=1e-6) and g["pixels"] > 0
         assert g["ceiling_psnr_db"] > 15.0 and np.isfinite(g["sg_fit_relative_rms"])
-    training, _ = fit_sg_light(procedural_envmap("sun_sky", 128), 16, 100)
+    fitted, _ = fit_sg_light(procedural_envmap("sun_sky", 128), 16, 100)
+    training = Light.of(fitted)
     bad = grade_relighting(_TruthField(truth, baked=training), store, relit, targets, 16, 100)
     for g, b in zip(good, bad, strict=True):
         assert b["psnr_db"] < g["psnr_db"] - 3.0, (g, b)

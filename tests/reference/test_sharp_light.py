@@ -13,7 +13,8 @@ from conftest import icosphere, require_tool
 from stages.config.sections import OptimizeSettings, RaycacheSettings, TargetSettings
 from stages.geometry.meshio import save_ply
 from stages.geometry.raycache import RayCache
-from stages.model.networks import Material, SGLightModule, broad_sharpness, initial_sharpness
+from stages.model.lights.sg import SGLightModule, broad_sharpness, initial_sharpness
+from stages.model.networks import Material
 from stages.raycache import run as raycache_run
 from stages.reference import mitsuba as mref
 from stages.reference.limits import TruthAtHits, fit_light_to_image

@@ -1,5 +1,5 @@
 """glTF 2.0's metallic-roughness BRDF as a model (``optimize.brdf: gltf``): its table of energies
-against Monte Carlo, and its closed-form SG shading (:func:`stages.render.shading.shade_gltf`)
+against Monte Carlo, and its closed-form SG shading (its object's ``shade``, :mod:`stages.render.brdf.gltf`)
 against Monte Carlo of the BRDF written here from the specification's formulas (glTF 2.0,
 Appendix B: GGX, the separable Smith-GGX visibility, the dielectric's ``fresnel_mix`` with F0 0.04
 and the metal's ``conductor_fresnel``), under broad lights and a sun, with mutation checks."""
@@ -15,11 +15,21 @@ from test_sg import F64, unit
 from test_sg import lobe_pdf as sg_pdf
 from test_sg import sample_lobe as sample_sg
 
+from stages.model.networks import Material
+from stages.render import fitted_lobe as fitted_module
 from stages.render import shading as shading_module
 from stages.render import specular_albedo as sa
-from stages.render.shading import SGLight, shade_gltf
+from stages.render import split_sum as split_sum_module
+from stages.render.brdf import GLTF, TANGO, get
+from stages.render.brdf import gltf as gltf_module
+from stages.render.shading import SGLight
 
 N_MC = 600_000
+
+
+def shade_gltf(normal, view, base, metallic, roughness, light, lobe="fitted", visibility=None):
+    """glTF's BRDF under ``light`` (its object's ``shade``) from base colour, metallic and roughness."""
+    return GLTF.shade(normal, view, Material.gltf(base, metallic, roughness), light, lobe, visibility)
 
 
 def ggx_d(nh: torch.Tensor, alpha: float) -> torch.Tensor:
@@ -146,7 +156,7 @@ def test_table_matches_monte_carlo_of_ggx():
     """The glTF table's ``F0 A + B`` against Monte Carlo of ``int V D F (n.l) dl`` written from the
     specification (uniform light, no diffuse: a metal of colour F0)."""
     for nv, r in ((1.0, 0.1), (0.5, 0.4), (0.2, 0.8), (0.05, 1.0)):
-        terms = sa._entry_terms(np.array([nv]), r, "gltf")
+        terms = sa._entry_terms(np.array([nv]), r, GLTF)
         uniform = SGLight(N[None], torch.tensor([[1e-6]], dtype=F64), torch.ones(1, 3, dtype=F64))
         for f0 in (0.04, 1.0):
             base = torch.full((3,), f0, dtype=F64)
@@ -157,9 +167,9 @@ def test_table_matches_monte_carlo_of_ggx():
 
 
 def test_shipped_gltf_table_is_what_the_code_builds():
-    with np.load(sa.TABLE_PATHS["gltf"]) as z:
+    with np.load(GLTF.table_path) as z:
         for j in (0, sa.R_NODES // 2, sa.R_NODES - 1):
-            built = sa._entry_terms(sa.nv_grid(), float(sa.roughness_grid()[j]), "gltf")
+            built = sa._entry_terms(sa.nv_grid(), float(sa.roughness_grid()[j]), GLTF)
             for key in sa.TABLE_COLUMNS:
                 cond = 16 * np.finfo(float).eps * z[key][:, j] ** 2 if key.startswith("kappa") else 0.0
                 err = np.abs(z[key][:, j] - built[key])
@@ -168,8 +178,8 @@ def test_shipped_gltf_table_is_what_the_code_builds():
 
 def test_metal_has_no_diffuse_and_f0_is_the_specifications():
     base = torch.rand(5, 3, dtype=F64)
-    torch.testing.assert_close(shading_module.gltf_f0(base, torch.zeros(5, 1, dtype=F64)), torch.full_like(base, 0.04))
-    torch.testing.assert_close(shading_module.gltf_f0(base, torch.ones(5, 1, dtype=F64)), base)
+    torch.testing.assert_close(gltf_module.gltf_f0(base, torch.zeros(5, 1, dtype=F64)), torch.full_like(base, 0.04))
+    torch.testing.assert_close(gltf_module.gltf_f0(base, torch.ones(5, 1, dtype=F64)), base)
     n = N.expand(5, 3)
     out = shade_gltf(n, n, base, torch.ones(5, 1, dtype=F64), torch.full((5, 1), 0.5, dtype=F64), broad_light())
     assert float(out.diffuse.abs().max()) == 0.0
@@ -185,13 +195,13 @@ def test_mutations_fail_the_monte_carlo_check(monkeypatch, mutation):
     to: the diffuse layer without ``1 - F``, TANGO's table in place of glTF's, TANGO's NDF and
     shadowing in the fitted lobe's correction."""
     if mutation == "no_fresnel_weight":
-        monkeypatch.setattr(shading_module, "GLTF_DIELECTRIC_F0", -0.25)  # weight (1.25)(1 - schlick): off
+        monkeypatch.setattr(gltf_module, "GLTF_DIELECTRIC_F0", -0.25)  # weight (1.25)(1 - schlick): off
     elif mutation == "tango_table":
-        original = shading_module.directional_albedo
-        monkeypatch.setattr(shading_module, "directional_albedo", lambda c, r, brdf="tango": original(c, r, "tango"))
+        original = sa.directional_albedo
+        for module in (fitted_module, split_sum_module):
+            monkeypatch.setattr(module, "directional_albedo", lambda c, r, brdf: original(c, r, TANGO))
     else:
-        original = shading_module._log_ndf_times_visibility
-        monkeypatch.setattr(shading_module, "_log_ndf_times_visibility", lambda a, b, c, d, brdf: original(a, b, c, d, "tango"))
+        monkeypatch.setattr(GLTF, "log_ndf_times_visibility", TANGO.log_ndf_times_visibility)
     errors = relative_errors(sun_and_sky())
     assert max(errors.values()) > 1.0, errors
 
@@ -214,7 +224,7 @@ def test_finite_gradients_under_a_training_sized_upstream_gradient(brdf):
     axes = unit(torch.randn(8, 3, generator=g)).requires_grad_()
     lam = torch.tensor([1e2, 1e3, 3e3, 1e4] * 2)[:, None].requires_grad_()
     light = SGLight(axes / torch.linalg.vector_norm(axes, dim=-1, keepdim=True), lam, torch.ones(8, 3))
-    out = shading_module.specular_radiance_fitted(n, v, f0, rough, light, brdf)
+    out = fitted_module.specular_radiance_fitted(n, v, f0, rough, light, get(brdf))
     assert torch.isfinite(out).all()
     (out.sum() * 1e5).backward()
     for x in (rough, axes, lam):
@@ -276,8 +286,8 @@ def test_view_tangent_across_the_normal_in_float32_near_a_normal_view(angle):
     for dtype in (F64, torch.float32):
         light = SGLight(axis.to(dtype), torch.full((1, 1), 1e5, dtype=dtype), torch.ones(1, 3, dtype=dtype))
         rough = torch.ones(64, 1, dtype=dtype)
-        out[dtype] = shading_module.specular_radiance_fitted(
-            n.to(dtype), v.to(dtype), torch.ones(64, 3, dtype=dtype), rough, light, "gltf"
+        out[dtype] = fitted_module.specular_radiance_fitted(
+            n.to(dtype), v.to(dtype), torch.ones(64, 3, dtype=dtype), rough, light, GLTF
         )
     assert torch.allclose(out[torch.float32].double(), out[F64], rtol=1e-3, atol=0)
 
@@ -293,7 +303,7 @@ def test_fitted_lobe_gradient_to_the_view_at_a_normal_view(brdf):
     axis = torch.nn.functional.normalize(torch.randn(4, 3, generator=g, dtype=F64), dim=-1)
     light = SGLight(axis, torch.tensor([[10.0], [30.0], [3.0], [100.0]], dtype=F64), torch.rand(4, 3, generator=g, dtype=F64))
     rough, white = torch.full((1, 1), 0.6, dtype=F64), torch.ones(1, 3, dtype=F64)
-    f = lambda v: shading_module.specular_radiance_fitted(n, v, white, rough, light, brdf).sum()  # noqa: E731
+    f = lambda v: fitted_module.specular_radiance_fitted(n, v, white, rough, light, get(brdf)).sum()  # noqa: E731
     v = n.clone().requires_grad_()
     f(v).backward()
     t1 = torch.nn.functional.normalize(torch.linalg.cross(n, torch.tensor([[1.0, 0.0, 0.0]], dtype=F64), dim=-1), dim=-1)
@@ -317,7 +327,7 @@ def test_diffuse_fresnel_weight_in_float32_where_the_product_axis_is_opposite_th
     for dtype in (F64, torch.float32):
         nn_ = n.float().to(dtype).requires_grad_()
         light = SGLight(axis.float().to(dtype), torch.full((4, 1), 0.1, dtype=dtype), torch.ones(4, 3, dtype=dtype))
-        out = shading_module.diffuse_radiance_gltf(nn_, nn_.detach(), torch.full((32, 3), 0.5, dtype=dtype), light)
+        out = gltf_module.diffuse_radiance_gltf(nn_, nn_.detach(), torch.full((32, 3), 0.5, dtype=dtype), light)
         out.sum().backward()
         results[dtype] = (out.double(), nn_.grad.double())
     (v64, g64), (v32, g32) = results[F64], results[torch.float32]
@@ -341,8 +351,8 @@ def test_split_sum_on_the_horizon_agrees_in_float32():
         light = SGLight(axis.float().to(dtype), torch.full((4, 1), 1e3, dtype=dtype), torch.ones(4, 3, dtype=dtype))
         rough = torch.full((16, 1), 0.3, dtype=dtype)
         spec = torch.ones(16, 3, dtype=dtype)
-        out[dtype] = shading_module.specular_radiance_split_sum(
-            n.float().to(dtype), v.float().to(dtype), spec, rough, light, "gltf"
+        out[dtype] = split_sum_module.specular_radiance_split_sum(
+            n.float().to(dtype), v.float().to(dtype), spec, rough, light, GLTF
         )
     assert torch.allclose(out[torch.float32].double(), out[F64], rtol=1e-3, atol=1e-6)
 
@@ -352,7 +362,7 @@ def test_fitted_lobe_with_the_light_opposite_the_lobe_in_float32(brdf):
     """Light lobes straight under the horizon (opposite the normal) and views within 1e-5 to 1e-2
     radians of the normal: the fitted lobe's mean and the light's axis are opposite, where
     ``kappa + nu c + lam_p`` cancels to 0; float32 held it at 1e-12 and the radiance came out 2e25
-    instead of 6e-28 (found by ``benchmarks/precision.py``'s bfloat16 column, whose rounded normals
+    instead of 6e-28 (found by ``benchmarks/render/precision.py``'s bfloat16 column, whose rounded normals
     land there). Float32 as dark as float64 on the same inputs, its gradients as small."""
     g = torch.Generator().manual_seed(15)
     n = torch.nn.functional.normalize(torch.randn(1, 3, generator=g, dtype=F64), dim=-1).expand(64, 3)
@@ -365,8 +375,8 @@ def test_fitted_lobe_with_the_light_opposite_the_lobe_in_float32(brdf):
         nn_ = n.float().to(dtype, copy=True).requires_grad_()
         light = SGLight(axis.float().to(dtype), torch.full((4, 1), 10.0, dtype=dtype), torch.ones(4, 3, dtype=dtype))
         rough = torch.full((64, 1), 0.6, dtype=dtype)
-        out = shading_module.specular_radiance_fitted(
-            nn_, v.float().to(dtype), torch.ones(64, 3, dtype=dtype), rough, light, brdf
+        out = fitted_module.specular_radiance_fitted(
+            nn_, v.float().to(dtype), torch.ones(64, 3, dtype=dtype), rough, light, get(brdf)
         )
         out.sum().backward()
         results[dtype] = (out.double(), nn_.grad.double())
@@ -394,7 +404,7 @@ def test_the_renderer_keeps_its_precision_inside_an_autocast(brdf):
     def run(lobe: str) -> torch.Tensor:
         if brdf == "gltf":
             return shade_gltf(n, v, colour, rough, rough, light, lobe).rgb
-        return shading_module.shade(n, v, colour, light, colour, rough, lobe).rgb
+        return TANGO.shade(n, v, Material(colour, colour, rough), light, lobe).rgb
 
     for lobe in ("fitted", "split_sum"):
         plain = run(lobe)

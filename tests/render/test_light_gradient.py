@@ -1,7 +1,7 @@
 """The light's gradient summed over many points, in float32, against float64's.
 
 A step's gradient to the light is one sum over every point it shades. Under the light's
-parametrisation (a lobe's energy held, :class:`~stages.model.networks.SGLightModule`) the terms of
+parametrisation (a lobe's energy held, :class:`~stages.model.lights.sg.SGLightModule`) the terms of
 that sum cancel: over normals spread on the sphere a lobe's irradiance depends on neither its
 shape nor its direction. A float32 rounding that leans one way in every term then adds up over the
 points while the terms themselves cancel: the amplitudes' and axes' gradients, sums over the points
@@ -17,8 +17,12 @@ import copy
 import pytest
 import torch
 
-from stages.model.networks import SGLightModule
+from stages.model.lights.sg import SGLightModule
 from stages.render import shading as sh
+from stages.render.brdf import GLTF
+from stages.render.brdf.gltf import diffuse_radiance_gltf, gltf_f0
+from stages.render.fitted_lobe import specular_radiance_fitted
+from stages.render.isotropic_lobe import specular_radiance
 
 F64 = torch.float64
 POINTS = 100_000
@@ -29,13 +33,13 @@ BOUNDS = {"axis_raw": 1e-4, "log_sharpness": 2e-4, "log_energy": 1e-5}
 
 TERMS = {
     "diffuse (TANGO)": lambda p, light: sh.diffuse_radiance(p["normal"], p["albedo"], light, p["shares"]),
-    "diffuse (glTF)": lambda p, light: sh.diffuse_radiance_gltf(
+    "diffuse (glTF)": lambda p, light: diffuse_radiance_gltf(
         p["normal"], p["view"], p["albedo"] * (1 - p["metallic"]), light, p["shares"]
     ),
-    "specular fitted (glTF)": lambda p, light: sh.specular_radiance_fitted(
-        p["normal"], p["view"], sh.gltf_f0(p["albedo"], p["metallic"]), p["roughness"], light, "gltf", p["shares"]
+    "specular fitted (glTF)": lambda p, light: specular_radiance_fitted(
+        p["normal"], p["view"], gltf_f0(p["albedo"], p["metallic"]), p["roughness"], light, GLTF, p["shares"]
     ),
-    "specular isotropic (TANGO)": lambda p, light: sh.specular_radiance(
+    "specular isotropic (TANGO)": lambda p, light: specular_radiance(
         p["normal"], p["view"], p["albedo"], p["roughness"], light, p["shares"]
     ),
 }

@@ -11,20 +11,15 @@ import pytest
 import torch
 
 from stages.geometry.visibility import fibonacci_directions
+from stages.model.networks import Material
 from stages.render import visibility as visibility_module
+from stages.render.brdf import GLTF, TANGO
+from stages.render.brdf.gltf import diffuse_radiance_gltf
+from stages.render.fitted_lobe import specular_radiance_fitted
+from stages.render.isotropic_lobe import specular_radiance, specular_radiance_reference
 from stages.render.sg import COS_LAMBDA, COS_MU, COS_OFFSET
-from stages.render.shading import (
-    SGLight,
-    diffuse_radiance,
-    diffuse_radiance_gltf,
-    diffuse_radiance_reference,
-    shade,
-    shade_gltf,
-    specular_radiance,
-    specular_radiance_fitted,
-    specular_radiance_reference,
-    specular_radiance_split_sum,
-)
+from stages.render.shading import SGLight, diffuse_radiance, diffuse_radiance_reference
+from stages.render.split_sum import specular_radiance_split_sum
 from stages.render.visibility import (
     VISIBILITY_BLOCK,
     blend_traced,
@@ -209,7 +204,7 @@ def test_the_fused_blocks_gradient_in_float32_where_a_share_is_nearly_1():
     blocked, that neighbour's weight e^-15 of the nearest's: the share is 1 - 3e-7 and its
     gradient small but real. The backward summed the lit and the whole sums' gradients over the
     points apart, terms that cancel per point, and float32's rounding of each, times the
-    sharpness, swamped it (found by ``benchmarks/precision.py``: a sun's axis gradient 1e4 times
+    sharpness, swamped it (found by ``benchmarks/render/precision.py``: a sun's axis gradient 1e4 times
     too large). Against the same function in float64, each lobe's within 1e-3 of its norm."""
     g = torch.Generator().manual_seed(12)
     count = 512
@@ -320,8 +315,8 @@ def test_each_term_scales_each_lobe_by_its_share(term):
         "isotropic_reference": lambda lt, v: specular_radiance_reference(normal, view, colour, rough, lt, v),
         # the split sum's average is clamped to the light's brightest sum, which dimming changes:
         # keep it from binding with a tiny share offset in neither case
-        "split_sum": lambda lt, v: specular_radiance_split_sum(normal, view, colour, rough, lt, "gltf", v),
-        "fitted": lambda lt, v: specular_radiance_fitted(normal, view, colour, rough, lt, "gltf", v),
+        "split_sum": lambda lt, v: specular_radiance_split_sum(normal, view, colour, rough, lt, GLTF, v),
+        "fitted": lambda lt, v: specular_radiance_fitted(normal, view, colour, rough, lt, GLTF, v),
     }
     fn = fns[term]
     torch.testing.assert_close(fn(light, per_point), fn(dimmed, None), rtol=1e-9, atol=1e-12)
@@ -337,16 +332,17 @@ def test_shade_passes_the_shares_to_both_terms(seed):
     share = torch.rand(normal.shape[0], light.axis.shape[0], dtype=torch.float64, generator=torch.Generator().manual_seed(seed))
     dip = -(COS_MU * math.exp(-COS_LAMBDA) - COS_OFFSET)
     brighter = colour / math.pi * (dip * 2 * math.pi / light.sharpness * light.amplitude).sum(0)
+    tango = Material(colour, colour, rough)
     for lobe in ("isotropic", "split_sum", "fitted"):
-        s = shade(normal, view, colour, light, colour, rough, lobe, visibility=share)
-        u = shade(normal, view, colour, light, colour, rough, lobe)
+        s = TANGO.shade(normal, view, tango, light, lobe, visibility=share)
+        u = TANGO.shade(normal, view, tango, light, lobe)
         assert (s.diffuse < u.diffuse + brighter + 1e-12).all() and (s.specular < u.specular + 1e-12).all()
         assert (s.diffuse < u.diffuse - 1e-6).any() and (s.specular < u.specular - 1e-6).any()
-    metallic = torch.full_like(rough, 0.5)
-    s = shade_gltf(normal, view, colour, metallic, rough, light, "fitted", visibility=share)
-    u = shade_gltf(normal, view, colour, metallic, rough, light, "fitted")
+    gltf = Material.gltf(colour, torch.full_like(rough, 0.5), rough)
+    s = GLTF.shade(normal, view, gltf, light, "fitted", visibility=share)
+    u = GLTF.shade(normal, view, gltf, light, "fitted")
     assert (s.diffuse < u.diffuse - 1e-6).any() and (s.specular < u.specular - 1e-6).any()
-    blocked = shade_gltf(normal, view, colour, metallic, rough, light, "fitted", visibility=torch.zeros_like(share))
+    blocked = GLTF.shade(normal, view, gltf, light, "fitted", visibility=torch.zeros_like(share))
     assert float(blocked.rgb.abs().max()) == 0.0
 
 

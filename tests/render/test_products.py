@@ -212,23 +212,20 @@ def test_the_doctor_names_who_runs_the_float32_linear_layers_of_each_run(monkeyp
     assert f"float32 linear layers: {plans}" in detail, detail
 
 
-def test_the_benchmarks_count_the_same_flops_whichever_kernels_run():
-    """``benchmarks/optimize.py`` counts oneDNN's linear layers (which ``FlopCounterMode`` does not
-    know) as ATen's: forward, input and weight gradients, 2 per multiply-add, the bias not counted."""
-    import importlib
-    import sys
+def test_flops_are_counted_the_same_whichever_kernels_run():
+    """``FlopCounterMode`` with :func:`~stages.render.products.flop_formulas` (what the benchmarks'
+    floors count with) counts oneDNN's linear layers, which it does not know, as ATen's: forward,
+    input and weight gradients, 2 per multiply-add, the bias not counted."""
+    from torch.utils.flop_counter import FlopCounterMode
 
-    from conftest import REPO
-
-    sys.path.insert(0, str(REPO / "benchmarks"))
-    counted = importlib.import_module("optimize").counted
     x, w, b = _operands((5, 7), inner=24, out=40)
 
-    def run(routed: bool) -> None:
-        with onednn_products(routed):
+    def counted(routed: bool) -> int:
+        with FlopCounterMode(display=False, custom_mapping=products.flop_formulas()) as mode, onednn_products(routed):
             linear(x, w, b).sum().backward()
+        return mode.get_total_flops()
 
-    assert counted(lambda: run(True))[0] == counted(lambda: run(False))[0] == 3 * 2 * 35 * 24 * 40
+    assert counted(True) == counted(False) == 3 * 2 * 35 * 24 * 40
 
 
 def test_nothing_is_timed_or_routed_where_every_linear_layer_runs_bfloat16(cache, monkeypatch):

@@ -32,8 +32,15 @@ import torch
 from scipy import integrate
 from test_specular_albedo import monte_carlo_albedo
 
+from stages.model.networks import Material
+from stages.render import fitted_lobe as fitted_module
+from stages.render import isotropic_lobe as isotropic_module
 from stages.render import sg as sg_module
 from stages.render import shading as shading_module
+from stages.render import split_sum as split_sum_module
+from stages.render.brdf import TANGO
+from stages.render.brdf import tango as tango_module
+from stages.render.isotropic_lobe import ndf_sg, specular_radiance, specular_radiance_reference
 from stages.render.sg import (
     one_minus_exp_neg2x_over_x,
     sg_eval,
@@ -43,16 +50,7 @@ from stages.render.sg import (
     sg_product,
     warp_ndf_to_light,
 )
-from stages.render.shading import (
-    SGLight,
-    diffuse_radiance,
-    diffuse_radiance_reference,
-    face_viewer,
-    ndf_sg,
-    shade,
-    specular_radiance,
-    specular_radiance_reference,
-)
+from stages.render.shading import SGLight, diffuse_radiance, diffuse_radiance_reference, face_viewer
 
 F64 = torch.float64
 N_MC = 1 << 18
@@ -61,6 +59,21 @@ N_MC = 1 << 18
 Z_TOL = 5.0
 # the relative rounding allowance of the checks of exact float64 formulas
 EXACT = 1e-12
+
+
+def shade(normal, view, albedo, light, specular=None, roughness=None):
+    """TANGO's BRDF under ``light`` by its closed form (its ``shade``), from the material's terms."""
+    return TANGO.shade(normal, view, Material(albedo, specular, roughness), light, "isotropic")
+
+
+def split_sum(normal, view, specular, roughness, light):
+    """The split-sum specular of TANGO's BRDF."""
+    return split_sum_module.specular_radiance_split_sum(normal, view, specular, roughness, light, TANGO)
+
+
+def fitted(normal, view, specular, roughness, light):
+    """The fitted specular lobe of TANGO's BRDF."""
+    return fitted_module.specular_radiance_fitted(normal, view, specular, roughness, light, TANGO)
 
 
 def unit(x: torch.Tensor) -> torch.Tensor:
@@ -238,7 +251,7 @@ def test_fused_product_of_opposite_lobes_survives_cosines_past_minus_one():
     lam = torch.tensor([5.0], dtype=torch.float32)
     for c in (-1.0 - 1e-6, -1.0 - 1e-3, 1.0 + 1e-6):
         cos = torch.tensor([c], dtype=torch.float32)
-        pl, log_amp = shading_module._product_terms(lam, lam, cos)
+        pl, log_amp = shading_module.product_terms(lam, lam, cos)
         clamped = max(-1.0, min(1.0, c))
         assert torch.isfinite(pl).all() and torch.isfinite(log_amp).all(), c
         assert pl.item() == pytest.approx(math.sqrt(2 * 25.0 * (1.0 + clamped)), abs=1e-6)
@@ -406,7 +419,7 @@ def test_hemisphere_integral_gradient_on_the_horizon(lam):
     """A lobe exactly on the horizon (``c = 0``: an axis-aligned normal and a light lobe on the
     equator) has the derivative of the smooth function there, the central difference's: the two
     branches' clamps once both passed the gradient at 0 and doubled the step's part (found by
-    ``benchmarks/precision.py``: the diffuse term's gradient to the normal 290 times too large at
+    ``benchmarks/render/precision.py``: the diffuse term's gradient to the normal 290 times too large at
     sharpness 100)."""
     lt = torch.tensor([[lam]], dtype=F64)
     c = torch.zeros(1, 1, dtype=F64, requires_grad=True)
@@ -454,7 +467,7 @@ def check_ndf(impl: Callable | None = None) -> float:
     ``int = 2 pi / (pi alpha^2) int_0^1 exp(lam (c - 1)) c dc = 1 - (1 - exp(-lam)) / lam``. Adaptive
     quadrature of the implementation's lobe against that value, in units of 1e-9 (the quadrature's
     tolerance)."""
-    impl = impl or shading_module.ndf_sg
+    impl = impl or isotropic_module.ndf_sg
     worst = 0.0
     for r in NDF_ROUGHNESS:
         lam, mu = (x.item() for x in impl(torch.tensor([[r]], dtype=F64)))
@@ -473,7 +486,7 @@ def test_ndf_is_normalised():
 
 def check_fresnel(impl: Callable | None = None) -> float:
     """Schlick's Fresnel (exact) against the textbook formula, in units of ``EXACT``."""
-    impl = impl or shading_module.fresnel_schlick
+    impl = impl or isotropic_module.fresnel_schlick
     f0 = torch.linspace(0, 1, 11, dtype=F64)[:, None].expand(-1, 3).repeat(101, 1)
     cos = torch.linspace(0, 1, 101, dtype=F64).repeat_interleave(11)[:, None]
     return exact_score(impl(f0, cos), schlick(f0, cos))
@@ -485,7 +498,7 @@ def test_fresnel_is_schlick():
 
 def check_smith(impl: Callable | None = None) -> float:
     """``G1(n.l) G1(n.v) / (4 (n.l) (n.v))`` (exact) against the textbook formula, in units of ``EXACT``."""
-    impl = impl or shading_module.smith_schlick_over_cosines
+    impl = impl or isotropic_module.smith_schlick_over_cosines
     c = torch.linspace(0.01, 1, 34, dtype=F64)
     cl, cv = (x.reshape(-1, 1) for x in torch.meshgrid(c, c, indexing="ij"))
     worst = 0.0
@@ -531,7 +544,7 @@ def check_warp(impl: Callable | None = None) -> float:
     """The warped lobe against the NDF seen from the light: its axis is the mirror direction
     (exact) and its integral matches ``int D(h(l)) dl`` to within ``r^4 = 2 / lam``
     (warp_ndf_to_light's docstring). Worst error in units of those tolerances."""
-    impl = impl or shading_module.warp_ndf_to_light
+    impl = impl or isotropic_module.warp_ndf_to_light
     worst = 0.0
     n = torch.tensor([[0.0, 0.0, 1.0]], dtype=F64)
     for r, cos_nv in WARP_CASES:
@@ -643,7 +656,7 @@ def specular_mc(r: float, cos_nv: float) -> dict[str, tuple[torch.Tensor, torch.
 
 def specular_scores(kind: str, impl: Callable | None = None) -> dict[tuple[float, float], float]:
     """Per case, the error of the specular radiance against ``specular_mc(...)[kind]`` in units of its tolerance."""
-    impl = impl or shading_module.specular_radiance
+    impl = impl or isotropic_module.specular_radiance
     bound = {"model": specular_model_bound, "brdf": specular_brdf_bound}[kind]
     light = make_light(32, 5.0)
     out = {}
@@ -693,7 +706,7 @@ def test_split_sum_specular_against_monte_carlo_of_the_microfacet_brdf():
     """The split-sum specular (exact energy, the isotropic lobe's shape) against the BRDF itself,
     roughness 0.05 to 1 and n.v down to 0.05, F0 0.04 / 0.3 / 0.9: within 3% for n.v >= 0.3 and 17%
     below (measured 2026-11-22: 1.9% and 15.8%; the isotropic closed form errs by up to 91% there)."""
-    scores = brdf_scores(shading_module.specular_radiance_split_sum, lambda cos_nv: 0.03 if cos_nv >= 0.3 else 0.17)
+    scores = brdf_scores(split_sum, lambda cos_nv: 0.03 if cos_nv >= 0.3 else 0.17)
     assert max(scores.values()) <= 1, scores
 
 
@@ -701,7 +714,7 @@ def test_fitted_specular_against_monte_carlo_of_the_microfacet_brdf():
     """The fitted lobe (exact energy, a vMF with the BRDF lobe's first moment, corrected by the BRDF
     at each light lobe) against the BRDF itself, roughness 0.05 to 1 and n.v down to 0.05, F0 0.04 /
     0.3 / 0.9: within 5% everywhere (the issue's target; measured 2026-11-22 against quadrature: 4.9%)."""
-    scores = brdf_scores(shading_module.specular_radiance_fitted, lambda cos_nv: 0.05)
+    scores = brdf_scores(fitted, lambda cos_nv: 0.05)
     assert max(scores.values()) <= 1, scores
 
 
@@ -730,20 +743,18 @@ def test_fitted_specular_limits(r, cos_nv):
     for xi in (unit(torch.tensor([-0.4, 0.2, 0.8], dtype=F64)), unit(torch.tensor([0.3, -0.6, 0.5], dtype=F64))):
         nu = 1e6
         sharp = SGLight(xi[None], torch.tensor([[nu]], dtype=F64), torch.ones(1, 3, dtype=F64))
-        got = shading_module.specular_radiance_fitted(n[None], v[None], f0[None], torch.tensor([[r]], dtype=F64), sharp)[0]
+        got = fitted(n[None], v[None], f0[None], torch.tensor([[r]], dtype=F64), sharp)[0]
         want = textbook_brdf_times_cosine(n, v, xi, f0, r) * 2 * math.pi / nu
         torch.testing.assert_close(got, want, rtol=1e-3, atol=0)
     uniform = SGLight(n[None], torch.tensor([[1e-6]], dtype=F64), torch.ones(1, 3, dtype=F64))
-    got = shading_module.specular_radiance_fitted(n[None], v[None], f0[None], torch.tensor([[r]], dtype=F64), uniform)[0]
+    got = fitted(n[None], v[None], f0[None], torch.tensor([[r]], dtype=F64), uniform)[0]
     for c, value in enumerate(f0.tolist()):
         mc, se = monte_carlo_albedo(cos_nv, r, value, n=400_000)
         assert abs(float(got[c]) - mc) <= 0.01 * mc + 5 * se, (c, float(got[c]), mc, se)
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
-@pytest.mark.parametrize(
-    "impl", [shading_module.specular_radiance_split_sum, shading_module.specular_radiance_fitted], ids=["split_sum", "fitted"]
-)
+@pytest.mark.parametrize("impl", [split_sum, fitted], ids=["split_sum", "fitted"])
 def test_exact_energy_specular_finite_at_the_extremes(dtype, impl):
     """n.v from 5e-4 (face_viewer's floor) to 1, roughness 0.01 and 1, light sharpness 1e-4 to 1e4:
     finite, non-negative values and finite gradients for every input."""
@@ -953,9 +964,14 @@ MUTATIONS = {
 }
 
 
+#: the stages.render modules of the SG algebra, TANGO's BRDF and its shading
+RENDER_MODULES = (sg_module, shading_module, isotropic_module, split_sum_module, fitted_module, tango_module)
+
+
 def patch_everywhere(monkeypatch: pytest.MonkeyPatch, name: str, value) -> None:
-    """Patch ``name`` in every stages.render module that holds it (shading imports sg's constants)."""
-    modules = [m for m in (sg_module, shading_module) if hasattr(m, name)]
+    """Patch ``name`` in every stages.render module that holds it (the shading modules import sg's
+    constants, the split sum and the BRDF the isotropic lobe's NDF)."""
+    modules = [m for m in RENDER_MODULES if hasattr(m, name)]
     assert modules, name
     for module in modules:
         monkeypatch.setattr(module, name, value)
@@ -972,7 +988,7 @@ def test_smith_k_convention_swap_fails_every_case_it_changes(monkeypatch):
     """k = alpha / 2 = r^2 / 2 instead of (r + 1)^2 / 8: the two agree at r = 1, and the renderer
     evaluates shadowing at the mirror direction, where G1(n . v = 1) = 1 for any k; every one of the
     other 12 of the 20 specular cases must fail (they did: 2 of 12 under the former 20% tolerance)."""
-    monkeypatch.setattr(shading_module, "smith_k", lambda r: r**2 / 2)
+    patch_everywhere(monkeypatch, "smith_k", lambda r: r**2 / 2)
     changed = {(r, c) for r, c in SPEC_CASES if r < 1 and c < 1}
     model = specular_scores("model")
     assert {case for case in SPEC_CASES if model[case] > 1} == changed
@@ -1015,7 +1031,7 @@ def test_cosine_weighted_hemisphere_without_its_cancellation():
     lt, ct = (x.reshape(-1, 1) for x in torch.meshgrid(lam, cos, indexing="ij"))
     zero = torch.zeros_like(lt)
     plain = shading_module.cosine_weighted_hemisphere_reference(lt, ct, zero)
-    fused = shading_module._cosine_weighted_hemisphere(lt, ct, zero)
+    fused = shading_module.cosine_weighted_hemisphere(lt, ct, zero)
     # to the plain form's own rounding, that of the terms it subtracts
     terms = sg_module.COS_OFFSET * sg_hemisphere_integral(lt, ct)
     assert ((fused - plain).abs() <= 1e-12 * terms + 1e-290).all()
@@ -1023,7 +1039,7 @@ def test_cosine_weighted_hemisphere_without_its_cancellation():
     near = (lt >= 10) & (ct.abs() <= 1e-2)
     lam32, cos32 = lt[near].float()[:, None], ct[near].float()[:, None]
     errors = {}
-    forms = {"plain": shading_module.cosine_weighted_hemisphere_reference, "fused": shading_module._cosine_weighted_hemisphere}
+    forms = {"plain": shading_module.cosine_weighted_hemisphere_reference, "fused": shading_module.cosine_weighted_hemisphere}
     for name, fn in forms.items():
         out = {}
         for dtype in (F64, torch.float32):
@@ -1051,7 +1067,7 @@ def test_cosine_weighted_hemisphere_of_a_sharp_lobe_at_the_horizon_in_float32():
     out = {}
     for dtype in (F64, torch.float32):
         lam, c = lam0.to(dtype).requires_grad_(), c0.to(dtype).requires_grad_()
-        value = shading_module._cosine_weighted_hemisphere(lam, c, torch.zeros_like(lam))
+        value = shading_module.cosine_weighted_hemisphere(lam, c, torch.zeros_like(lam))
         out[dtype] = torch.cat([value, *torch.autograd.grad(value.sum(), (lam, c))], dim=1).double()
     rel = ((out[torch.float32] - out[F64]).abs() / out[F64].abs()).max()
     assert rel <= 1e-5, float(rel)

@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from stages.render import specular_albedo as sa
+from stages.render.brdf import TANGO
 
 
 def monte_carlo_albedo(nv: float, r: float, f0: float, n: int = 1_000_000, seed: int = 0) -> tuple[float, float]:
@@ -51,7 +52,7 @@ def monte_carlo_albedo(nv: float, r: float, f0: float, n: int = 1_000_000, seed:
 @pytest.mark.parametrize("nv", [0.05, 0.3, 1.0])
 @pytest.mark.parametrize("r", [0.05, 0.3, 1.0])
 def test_quadrature_matches_monte_carlo(nv, r):
-    terms = sa._entry_terms(np.array([nv]), r)
+    terms = sa._entry_terms(np.array([nv]), r, TANGO)
     a, b = terms["a"], terms["b"]
     for f0 in (0.04, 1.0):
         mc, se = monte_carlo_albedo(nv, r, f0)
@@ -60,7 +61,7 @@ def test_quadrature_matches_monte_carlo(nv, r):
 
 
 def test_shipped_table_is_what_the_code_builds():
-    with np.load(sa.TABLE_PATH) as z:
+    with np.load(TANGO.table_path) as z:
         # to the last bits, not bitwise: numpy's exp takes an AVX-512 path on the machine that built
         # the table and another on AVX2-only CPUs, an ulp apart (seen on an AMD EPYC, 2026-11-24)
         np.testing.assert_allclose(z["nv"], sa.nv_grid(), rtol=4 * np.finfo(float).eps, atol=0)
@@ -68,7 +69,7 @@ def test_shipped_table_is_what_the_code_builds():
         for key in sa.TABLE_COLUMNS:
             assert z[key].shape == (sa.NV_NODES, sa.R_NODES), key
         for j in (0, sa.R_NODES // 2, sa.R_NODES - 1):
-            built = sa._entry_terms(sa.nv_grid(), float(sa.roughness_grid()[j]))
+            built = sa._entry_terms(sa.nv_grid(), float(sa.roughness_grid()[j]), TANGO)
             for key in sa.TABLE_COLUMNS:
                 # Rebuilt on another CPU (numpy's sums and exp take AVX-512 or AVX2 paths, an ulp apart)
                 # the table agrees to its conditioning: at n.v = 1 the tilt theta is 0 exactly and the
@@ -117,7 +118,7 @@ def test_lobe_moments_match_monte_carlo(nv, r):
     ``acos(n.v) - tilt``) and vMF concentration of each part's lobe, looked up at (n.v, r), against
     the mean of l by Monte Carlo; the concentration against the mean resultant length
     ``coth(kappa) - 1/kappa`` of a vMF, written out here."""
-    got = sa.lobe_moments(torch.tensor([nv], dtype=torch.float64), torch.tensor([r], dtype=torch.float64))
+    got = sa.lobe_moments(torch.tensor([nv], dtype=torch.float64), torch.tensor([r], dtype=torch.float64), TANGO)
     for part, tilt, kappa in (("a", got[0], got[1]), ("b", got[2], got[3])):
         theta = math.acos(nv) - float(tilt)
         mx, mz, se = monte_carlo_mean_direction(nv, r, part)
@@ -138,9 +139,9 @@ def test_interpolation_between_nodes():
     nodes = sa.roughness_grid()
     worst = 0.0
     for r in np.sqrt(nodes[:-1] * nodes[1:])[[0, 8, 21, 34, 47, 62]]:
-        terms = sa._entry_terms(nv, float(r))
+        terms = sa._entry_terms(nv, float(r), TANGO)
         a, b = terms["a"], terms["b"]
-        ta, tb = sa.directional_albedo(torch.tensor(nv), torch.full((len(nv),), float(r), dtype=torch.float64))
+        ta, tb = sa.directional_albedo(torch.tensor(nv), torch.full((len(nv),), float(r), dtype=torch.float64), TANGO)
         for f0 in (0.04, 1.0):
             exact = f0 * a + b
             got = f0 * ta.numpy() + tb.numpy()
@@ -152,15 +153,15 @@ def test_interpolation_between_nodes():
 def test_finite_values_and_gradients_at_the_extremes(dtype):
     nv = torch.tensor([5e-4, 1e-3, 0.05, 0.5, 1.0, 0.0, 1.2], dtype=dtype, requires_grad=True)
     r = torch.tensor([0.01, 1.0, 0.05, 0.5, 0.01, 1.0, 0.3], dtype=dtype, requires_grad=True)
-    a, b = sa.directional_albedo(nv, r)
-    moments = sa.lobe_moments(nv, r)
+    a, b = sa.directional_albedo(nv, r, TANGO)
+    moments = sa.lobe_moments(nv, r, TANGO)
     assert all(m.dtype == dtype and torch.isfinite(m).all() for m in moments)
     view_angle = torch.acos(nv.detach().double().clamp(sa.NV_MIN, 1.0))
     assert all((m > 0).all() for m in moments[1::2])
     for tilt in moments[::2]:  # the mean's angle from the normal in [0, pi/2]
         assert (view_angle - tilt.double() >= -1e-2).all() and (view_angle - tilt.double() <= math.pi / 2 + 1e-2).all()
     sum(m.float().sum() for m in moments).backward(retain_graph=True)
-    a, b = sa.directional_albedo(nv, r)
+    a, b = sa.directional_albedo(nv, r, TANGO)
     assert a.dtype == dtype and torch.isfinite(a).all() and torch.isfinite(b).all()
     assert (a >= 0).all() and (b >= 0).all() and (a + b <= 1.0 + 1e-2).all()  # energy never created
     (a.float().sum() + b.float().sum()).backward()

@@ -274,7 +274,7 @@ def test_robustness_figure_puts_every_level_beside_its_original(tmp_path):
     def tile(cell, size):
         return Image.new("RGB", (size, size), colours[cell[0]])
 
-    rows = {c: {"relit_psnr_scaled_db": "24.37/22.10", "relit_ceiling_psnr_db": "25.26/23.00"} for c in cells}
+    rows = {c: {"relit_psnr_scaled_db": [24.371, 22.1], "relit_ceiling_psnr_db": [25.26, 23.0]} for c in cells}
     rows[("lamp_2k", "wood", "base")] = {"relit_psnr_scaled_db": None}
     relit = {c: relit_text(r) for c, r in rows.items()}
     assert relit[("lamp", "wood", "base")] == "relit 24.37 | ceiling 25.26 dB" and relit[("lamp_2k", "wood", "base")] is None

@@ -46,9 +46,9 @@ def _written(folder: Path) -> str:
     return "".join(p.read_text(errors="replace") for p in folder.rglob("*") if p.is_file() and p.suffix in (".html", ".js"))
 
 
-@pytest.mark.parametrize("name", ["speed_accuracy.csv", "summary.csv"])
+@pytest.mark.parametrize("name", ["speed_accuracy.csv", "summary.json"])
 @pytest.mark.parametrize("single_file", [False, True])
-def test_a_linked_csv_is_one_line_and_never_inlined(received, name, single_file):
+def test_a_linked_record_is_one_line_and_never_inlined(received, name, single_file):
     results, cells, secret = received
     (results / "report" / name).unlink()
     (results / "report" / name).symlink_to(secret)
@@ -56,6 +56,25 @@ def test_a_linked_csv_is_one_line_and_never_inlined(received, name, single_file)
         html_report.run(results, results / "report", cells, ReportSettings(single_file=single_file))
     assert "\n" not in str(err.value)
     assert SECRET not in _written(results / "report")
+
+
+def test_a_linked_summary_csv_is_neither_read_nor_offered(received):
+    """The pages read summary.json; the summary.csv they offer for download must be the plain
+    file the report wrote, never a link to something else."""
+    results, cells, secret = received
+    (results / "report" / "summary.csv").unlink()
+    (results / "report" / "summary.csv").symlink_to(secret)
+    html_report.run(results, results / "report", cells)
+    index = (results / "report" / "index.html").read_text()
+    assert "href='summary.csv'" not in index and "speed_accuracy.csv" in index
+    assert SECRET not in _written(results / "report")
+
+
+def test_a_summary_that_is_not_its_rows_is_one_line(received):
+    results, cells, _ = received
+    (results / "report" / "summary.json").write_text(json.dumps([{"mesh": 1, "prompt": "p", "variant": "v"}]))
+    with pytest.raises(StageInputError, match="summary.json: is not the list of rows the report stage writes"):
+        html_report.run(results, results / "report", cells)
 
 
 def test_a_linked_or_malformed_loss_record_is_one_line(received):

@@ -231,12 +231,12 @@ def test_relit_figures_on_the_cell_line():
 
     row = pd.DataFrame(
         [
-            {
-                "relit_environments": "builtin:sunset | config/envmaps/studio.hdr",
-                "relit_psnr_db": "21.50/19.25",
-                "relit_psnr_scaled_db": "23.00/20.00",
-                "relit_ceiling_psnr_db": "27.00/25.10",
-                "relit_scale": "1.72,1.46,1.12/1.00,1.01,0.99",
+            {  # as summary.json holds them: one entry per environment
+                "relit_environments": ["builtin:sunset", "config/envmaps/studio.hdr"],
+                "relit_psnr_db": [21.5, 19.25],
+                "relit_psnr_scaled_db": [23.0, 20.0],
+                "relit_ceiling_psnr_db": [27.0, 25.1],
+                "relit_scale": [[1.72, 1.46, 1.12], [1.0, 1.01, 0.99]],
             }
         ]
     )

@@ -17,7 +17,7 @@ from stages.config.sections import OptimizeSettings
 from stages.core.provenance import Timer
 from stages.geometry.raycache import RayCache
 from stages.model.checkpoint import load_field
-from stages.model.networks import LIGHT_PARAMETERS, SGLightModule
+from stages.model.lights.sg import LIGHT_PARAMETERS, SGLightModule
 from stages.render.sg import sg_integral
 from stages.render.shading import SGLight, diffuse_radiance
 from stages.training.optimizer import Optimizer
@@ -63,7 +63,7 @@ def test_pruning_carries_the_optimiser_moments(cache):
     opt = Optimizer(s, RayCache(cache / "train.npz"), "a vase made of wood", "cpu")
     for _ in range(2):
         opt.step(Timer())
-    light = opt.field.light
+    light = opt.field.light.sg
     with torch.no_grad():
         light.log_energy[[1, 4, 6]] += math.log(1e-4)
     before = {name: {k: v.clone() for k, v in opt.adamw.state[getattr(light, name)].items()} for name in LIGHT_PARAMETERS}

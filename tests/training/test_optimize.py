@@ -6,12 +6,11 @@ from __future__ import annotations
 import copy
 import json
 import math
-import sys
 
 import numpy as np
 import pytest
 import torch
-from conftest import REPO, THREADS
+from conftest import THREADS
 
 from stages import optimize
 from stages.config.layout import OPTIMIZE_FILES
@@ -21,10 +20,8 @@ from stages.core.provenance import Timer
 from stages.geometry.raycache import RayCache
 from stages.model.checkpoint import load_field
 from stages.model.field import StyleField
+from stages.testing.recovery import MITSUBA_TARGET, fit_mitsuba, mitsuba_scene, recover_mitsuba, recover_sg
 from stages.training.optimizer import Optimizer
-
-sys.path.insert(0, str(REPO / "benchmarks"))
-from protocols import MITSUBA_TARGET, fit_mitsuba, mitsuba_scene, recover_mitsuba, recover_sg  # noqa: E402
 
 TINY = dict(
     clip_tiny_test=True,
@@ -63,8 +60,8 @@ def test_a_non_finite_gradient_stops_the_step_before_it_reaches_the_parameters(c
     opt = Optimizer(OptimizeSettings(iterations=3, **TINY), RayCache(cache / "train.npz"), "a vase", "cpu")
     opt.step(Timer())
     before, state = params(opt.field), json.dumps(str(opt.adamw.state_dict()["state"]))
-    hook = opt.field.light.log_sharpness.register_hook(lambda g: g.index_fill(0, torch.tensor([0]), bad))
-    with pytest.raises(FloatingPointError, match=r"step 2: the gradient of light\.log_sharpness is not finite"):
+    hook = opt.field.light.sg.log_sharpness.register_hook(lambda g: g.index_fill(0, torch.tensor([0]), bad))
+    with pytest.raises(FloatingPointError, match=r"step 2: the gradient of light\.sg\.log_sharpness is not finite"):
         opt.step(Timer())
     hook.remove()
     after = params(opt.field)
@@ -181,7 +178,7 @@ def test_specular_lobe_reaches_every_render_of_the_field():
     """``specular_lobe`` is a setting of the field: its forward pass (training, metrics, relighting,
     the bake's reference) shades with that model; an unknown name fails in the settings."""
     from stages.core.errors import ConfigError
-    from stages.render.shading import shade
+    from stages.render.brdf import TANGO
 
     g = torch.Generator().manual_seed(3)
     points = torch.rand(64, 3, generator=g) - 0.5
@@ -192,9 +189,7 @@ def test_specular_lobe_reaches_every_render_of_the_field():
         field = StyleField(OptimizeSettings(width=16, specular_lobe=lobe, brdf="tango").field_settings())
         with torch.no_grad():
             out = field(points, normals, view)
-            want = shade(
-                out.normal, view, out.material.albedo, field.light(), out.material.specular, out.material.roughness, lobe
-            )
+            want = TANGO.shade(out.normal, view, out.material, field.light.sg(), lobe)
         torch.testing.assert_close(out.shading.specular, want.specular, rtol=0, atol=0)
         specular[lobe] = out.shading.specular
     for lobe in SPECULAR_LOBES[1:]:  # the same weights, different models

@@ -14,7 +14,7 @@ from stages.config.sections import OptimizeSettings
 from stages.core.provenance import Timer
 from stages.geometry.raycache import RayCache
 from stages.render.sg import COS_LAMBDA, sg_hemisphere_integral
-from stages.render.shading import _product_terms
+from stages.render.shading import product_terms
 from stages.training.optimizer import Optimizer
 
 
@@ -64,7 +64,7 @@ def test_lobes_of_equal_sharpness_and_opposite_axes_have_finite_gradients():
     integral is then 2 pi (a lobe that is 1 everywhere), with finite gradients."""
     lam = torch.tensor([[COS_LAMBDA]], requires_grad=True)
     cos = torch.tensor([[-1.0]], requires_grad=True)
-    lam_q, log_q = _product_terms(lam, torch.tensor(COS_LAMBDA), cos)
+    lam_q, log_q = product_terms(lam, torch.tensor(COS_LAMBDA), cos)
     value = sg_hemisphere_integral(lam_q, torch.ones_like(lam_q))
     assert float(value) == pytest.approx(2 * math.pi, rel=1e-6)
     (value + log_q).sum().backward()
@@ -109,7 +109,7 @@ def test_half_vector_terms_finite_where_the_product_axis_is_opposite_the_view(dt
     exactly opposite the view (``xi' + v = 0``, the half vector undefined) and where the half vector
     lies below the horizon, values and gradients stay finite. ``|xi' + v|`` as a bare square root
     had an infinite derivative at 0: a 3,560-step run's loss was non-finite at step 1,499."""
-    from stages.render.shading import LightCosines, LobeMean, _half_vector_terms
+    from stages.render.fitted_lobe import LightCosines, LobeMean, _half_vector_terms
 
     nv = torch.tensor([[0.6], [0.6], [0.2]], dtype=dtype)
     sin_nv = torch.sqrt(1 - nv**2)

@@ -20,8 +20,7 @@ from stages.core.errors import ConfigError
 from stages.core.provenance import Timer
 from stages.geometry.raycache import RayCache
 from stages.model.checkpoint import load_field
-from stages.model.lightfit import fit_sg_light
-from stages.model.networks import SGLightModule, colour_spread
+from stages.model.lights.sg import SGLightModule, colour_spread, fit_sg_light
 from stages.render.envmap import load_env
 from stages.training.optimizer import Optimizer
 
@@ -52,7 +51,7 @@ def test_the_prior_pulls_a_coloured_light_towards_white(cache):
         s = OptimizeSettings(iterations=6, light_neutral=weight, light_lr=0.1, **TINY)
         opt = Optimizer(s, RayCache(cache / "train.npz"), "a vase made of wood", "cpu")
         with torch.no_grad():
-            opt.field.light.log_energy[:, 0] += 1.0  # a red light to start from
+            opt.field.light.sg.log_energy[:, 0] += 1.0  # a red light to start from
         for _ in range(6):
             row = opt.step(Timer())
         assert ("light_colour_spread" in row) == (weight > 0)
@@ -70,7 +69,7 @@ def test_a_fixed_light_is_the_maps_fit_and_never_moves(cache, tmp_path):
     assert meta["light"]["lobes"] == TINY["light_lobes"] and 0 < meta["light"]["sg_fit_relative_rms"] < 1
     field, _ = load_field(tmp_path / "field.pt")
     fitted, _ = fit_sg_light(load_env("builtin:sunset"), TINY["light_lobes"], 400)
-    light = field.light()
+    light = field.light.sg()
     torch.testing.assert_close(light.axis, fitted.axis, rtol=0, atol=1e-6)
     torch.testing.assert_close(light.sharpness, fitted.sharpness, rtol=1e-5, atol=0)
     torch.testing.assert_close(light.amplitude, fitted.amplitude, rtol=1e-4, atol=0)
@@ -252,6 +251,6 @@ def test_a_killed_run_resumes_only_under_the_same_light_file(cache, tmp_path):
     edited = optimize.run(*args, out, s, "cpu")
     assert edited["resumed_from_iteration"] is None and edited["light"]["sha256"] != same["light"]["sha256"]
     fitted, _ = fit_sg_light(load_env(str(hdr)), TINY["light_lobes"], 400)
-    torch.testing.assert_close(load_field(out / "field.pt")[0].light().amplitude, fitted.amplitude, rtol=1e-4, atol=0)
+    torch.testing.assert_close(load_field(out / "field.pt")[0].light.sg().amplitude, fitted.amplitude, rtol=1e-4, atol=0)
     with pytest.raises(ConfigError, match="would be ignored"):
         OptimizeSettings(light_map="builtin:sunset")

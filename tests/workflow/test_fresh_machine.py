@@ -182,7 +182,7 @@ def test_own_mesh_image_guided_runs_end_to_end_on_a_bare_machine(machine, tmp_pa
     optimize = json.loads((cell / "optimize" / "meta.json").read_text())
     assert optimize["settings"]["guidance"] == "image" and optimize["settings"]["iterations"] == 3
     export = json.loads((cell / "export" / "meta.json").read_text())
-    assert export["stats"]["gltf_validation"] == {"ran": False, "reason": "Node.js (node) is not on PATH"}
+    assert export["stats"]["validation"]["model.glb"] == {"ran": False, "reason": "Node.js (node) is not on PATH"}
     lod = json.loads((cell / "lod" / "meta.json").read_text())
     assert lod["stats"]["validation"]["model_lods.glb"] == {"ran": False, "reason": "Node.js (node) is not on PATH"}
     # the relighting was graded against Mitsuba's relit truth (target.relight_environments)

@@ -430,8 +430,9 @@ PROBES = {
         ("workflow/test_quick.py", "test_a_folder_name_cannot_write_config_keys"),
         ("workflow/test_quick.py", "test_the_written_config_loads_to_exactly_its_keys"),
     ],
-    "a received summary.csv, speed_accuracy.csv or loss.csv that links outside": [
-        ("results/test_received_folder.py", "test_a_linked_csv_is_one_line_and_never_inlined"),
+    "a received summary.json, summary.csv, speed_accuracy.csv or loss.csv that links outside": [
+        ("results/test_received_folder.py", "test_a_linked_record_is_one_line_and_never_inlined"),
+        ("results/test_received_folder.py", "test_a_linked_summary_csv_is_neither_read_nor_offered"),
         ("results/test_received_folder.py", "test_a_linked_or_malformed_loss_record_is_one_line"),
     ],
     "report/figures or report itself a link": [

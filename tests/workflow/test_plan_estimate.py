@@ -4,7 +4,7 @@ by the samples they render (the training views, the metric views and the relit t
 per job; and a calibration taken while other processes use the CPU says so and is not kept.
 
 (How close the estimate comes to a real run is measured, not asserted here: the suite's parallel
-workers share the CPU with any run a test would time; ``benchmarks/plan_accuracy.py``.)"""
+workers share the CPU with any run a test would time; ``benchmarks/workflow/plan_accuracy.py``.)"""
 
 from __future__ import annotations
 

@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 
 from stages.config.code import code_digest
-from stages.config.layout import LOD_FILES, OPTIMIZE_FILES, TEXTURES
+from stages.config.layout import EXPORT_FILES, LOD_FILES, OPTIMIZE_FILES, TEXTURES
 from stages.config.sections import MATERIALS
 from stages.config.workflow import MESH_WORK, read_yaml, workflow_config
 from stages.core.errors import ConfigError
@@ -339,10 +339,10 @@ def export_inputs(wildcards):
 
 
 def export_outputs():
+    # every export format's files (stages.config.layout.EXPORT_FORMATS): model_glb, model_usda, ...
     outs = {
-        "model_usda": f"{CELL}/export/model.usda",
-        "model_usdz": f"{CELL}/export/model.usdz",
-        "model_glb": f"{CELL}/export/model.glb",
+        f"model_{suffix}": f"{CELL}/export/{name}"
+        for suffix, name in EXPORT_FILES.items()
     }
     outs.update({f"tex_{k}": f"{CELL}/export/textures/{k}.png" for k in TEXTURES})
     outs.update(

@@ -73,7 +73,7 @@ rule pack:
 
 rule html_report:
     input:
-        summary=f"{RESULTS}/report/summary.csv",
+        summary=f"{RESULTS}/report/summary.json",
         figures=f"{RESULTS}/report/figures.json",
         plots=f"{RESULTS}/report/figures",
         assets=cell_metas("export/meta.json"),

@@ -1,0 +1,2 @@
+"""Baking and exporting: cost against mesh and texture size, xatlas's charts, kept UV layouts,
+welded exports and levels of detail."""

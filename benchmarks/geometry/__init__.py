@@ -1,0 +1,1 @@
+"""Ray-cache throughput and shadow rays; the up-axis guess."""

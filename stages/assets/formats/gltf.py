@@ -1,0 +1,281 @@
+"""glTF: ``model.glb``, a self-contained binary glTF 2.0 file, and the Khronos glTF-Validator.
+
+Metallic-roughness in the mapping of the asset's BRDF (its row's ``exported_textures``,
+``gltf_extensions`` and ``gltf_material_extensions``, :mod:`stages.config.brdfs`). TANGO's BRDF:
+``metallic = 0``, ``baseColor`` = albedo, roughness in the green channel of
+``metallicRoughnessTexture`` (and, where the bake wrote one, the ambient occlusion in its red
+channel as the ``occlusionTexture``), ``normalTexture`` with explicit ``TANGENT`` vectors (the
+bake's frame), and ``KHR_materials_specular`` for the coloured F0: glTF's dielectric F0 is
+``0.04 * specularColorFactor * specularColorTexture`` (IOR 1.5), so the factor is 25 and the
+texture holds TANGO's F0 (clamped to 1 by glTF). What is lost: glTF makes the diffuse lobe give
+way to the specular one (energy conservation, ``(1 - F)`` weighting) where TANGO simply adds them,
+so a glTF viewer renders slightly darker diffuse at grazing angles; glTF's Fresnel uses the half
+vector per light sample where TANGO evaluates it once at the mirror direction; and the
+environment light is not part of glTF core (it ships beside the model as ``light.exr``/``.hdr``).
+A field trained with glTF's own BRDF (``optimize.brdf: gltf``) is written as it was trained, with
+nothing lost: the baked base colour, roughness (green) and metallic (blue), no extension. The
+levels of detail go into one file with ``MSFT_lod`` (:meth:`GltfFormat.write_levels`).
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+from pathlib import Path
+
+import numpy as np
+
+from ...config.brdfs import BrdfSpec, brdf_spec
+from ...config.layout import EXPORT_FORMATS, LEVELS_STEM
+from ...core.errors import StageInputError
+from ...core.provenance import ORIGIN_METADATA_KEY, atomic_path
+from ...core.safefiles import IMAGE_LIMIT, read_bytes
+from ...core.tools import GLTF_VALIDATOR, REPO_ROOT
+from .base import AssetInfo, Exporter, one_line
+from .mesh import ExportMesh, Level
+
+
+class GltfFormat(Exporter):
+    """glTF: ``model.glb`` with its textures inside, judged by the Khronos glTF-Validator (where
+    Node.js and the validator are installed)."""
+
+    def write(self, folder: Path, geom: ExportMesh, asset: AssetInfo) -> None:
+        (glb,) = (Path(folder) / name for name in self.files().values())
+        mpu, textures = asset.meters_per_unit, Path(folder) / "textures"
+        write_glb(glb, geom, textures, mpu, asset.name, asset.origin, brdf=asset.brdf, occlusion=asset.occlusion)
+
+    def write_levels(self, folder: Path, levels: list[Level], asset: AssetInfo, coverage: list[float]) -> None:
+        """The finest level in the scene, the coarser ones as its ``MSFT_lod`` alternatives."""
+        (glb,) = (Path(folder) / name for name in self.files(LEVELS_STEM).values())
+        write_glb(
+            glb,
+            levels[0].geom,
+            Path(folder) / levels[0].textures,
+            asset.meters_per_unit,
+            asset.name,
+            asset.origin,
+            lods=[(lv.geom, Path(folder) / lv.textures) for lv in levels[1:]],
+            screen_coverage=coverage,
+            brdf=asset.brdf,
+            occlusion=asset.occlusion,
+        )
+
+    def validate(self, folder: Path, stem: str = "model") -> dict[str, dict]:
+        return {name: validate_glb(Path(folder) / name) for name in self.files(stem).values()}
+
+    def record(self, reports: dict[str, dict]) -> dict:
+        """The validator's errors and warnings (None where it did not run)."""
+        (report,) = (reports[name] for name in self.files().values())
+        return {"gltf_validation_errors": report.get("errors"), "gltf_validation_warnings": report.get("warnings")}
+
+
+def validate_glb(path: Path) -> dict:
+    """The Khronos glTF-Validator's counts for ``path`` when Node.js and the validator are installed
+    (``scripts/setup.sh`` runs ``npm ci``), else ``{"ran": False, "reason": ...}``.
+
+    Returns ``{"ran": True, "validator" (name and version), "errors", "warnings", "infos",
+    "hints", "messages"}`` (the errors' and warnings' messages, errors first, each on one line).
+
+    Raises:
+        StageInputError: the validator failed on the file, or wrote no report (one line: why).
+    """
+    node = shutil.which("node")
+    if node is None or not GLTF_VALIDATOR.is_dir():
+        # the folder relative to the checkout: a record that travels in a pack names no local path
+        where = GLTF_VALIDATOR.relative_to(REPO_ROOT).as_posix()
+        missing = "Node.js (node) is not on PATH" if node is None else f"the validator ({where}) is missing: run npm ci"
+        return {"ran": False, "reason": missing}
+    remedy = "Check the validator with python -m stages.doctor (npm ci reinstalls it)."
+    try:
+        proc = subprocess.run(
+            [node, str(REPO_ROOT / "scripts" / "validate_gltf.mjs"), str(path)],
+            capture_output=True,
+            text=True,
+            errors="replace",
+            timeout=300,
+        )
+    except subprocess.TimeoutExpired:
+        raise StageInputError(path, "the Khronos glTF-Validator did not finish within 300 s", remedy) from None
+    if proc.returncode != 0:
+        said = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+        why = next((ln for ln in said if "Error" in ln), said[-1] if said else f"exit status {proc.returncode}")
+        raise StageInputError(path, f"the Khronos glTF-Validator could not check it ({one_line(why, 200)})", remedy)
+    try:
+        report = json.loads(proc.stdout)
+        issues = report["issues"]
+        found = sorted((m for m in issues["messages"] if m["severity"] <= 1), key=lambda m: m["severity"])  # errors first
+        return {
+            "ran": True,
+            "validator": f"Khronos glTF-Validator {one_line(report.get('validatorVersion'), 40)}",
+            "errors": int(issues["numErrors"]),
+            "warnings": int(issues["numWarnings"]),
+            "infos": int(issues["numInfos"]),
+            "hints": int(issues["numHints"]),
+            "messages": [one_line(f"{m['code']} at {m.get('pointer', '')}: {m['message']}") for m in found],
+        }
+    except (ValueError, KeyError, TypeError) as exc:
+        raise StageInputError(
+            path, f"the Khronos glTF-Validator's report cannot be read ({type(exc).__name__})", remedy
+        ) from None
+
+
+def write_glb(
+    path: Path,
+    geom: ExportMesh,
+    textures_dir: Path,
+    meters_per_unit: float,
+    name: str,
+    origin: dict,
+    lods: list[tuple[ExportMesh, Path]] = (),
+    screen_coverage: list[float] | None = None,
+    brdf: BrdfSpec | str = "tango",
+    occlusion: bool = False,
+) -> None:
+    """Write a self-contained binary glTF 2.0 file (see the module docstring for the mapping);
+    ``origin`` goes into ``asset.extras.tango_stylize``. With ``occlusion`` the material's
+    ``occlusionTexture`` is the metallic-roughness texture (its red channel, glTF's packing).
+
+    ``lods`` (coarser levels, each geometry with its textures' folder) makes the file an
+    ``MSFT_lod`` asset: the scene's node holds the finest level and lists one node per coarser
+    level (outside the scene) in ``extensions.MSFT_lod.ids``, each with its own mesh and material,
+    and ``extras.MSFT_screencoverage`` (one threshold per level, finest first) says when to switch.
+    A viewer without the extension shows the finest level."""
+    import pygltflib as g
+
+    brdf = brdf_spec(brdf)
+    buffer = GlbBuffer(g)
+    materials, meshes, nodes = [], [], []
+    for k, (level, tex_dir) in enumerate([(geom, textures_dir), *lods]):
+        tag = "" if not lods else f"lod{k}"
+        attrs, parts = buffer.geometry(level, meters_per_unit)
+        firsts: dict[str, int] = {}
+        primitives = []
+        for slot, indices in parts:
+            folder = level.texture_folder(slot)
+            if folder not in firsts:  # one texture set per folder, shared by the slots that read it
+                firsts[folder] = buffer.texture_set(Path(tex_dir) / folder, brdf, tag)
+            primitives.append(g.Primitive(attributes=attrs, indices=indices, material=len(materials)))
+            material = slot or (f"TangoMaterial_{tag}" if tag else "TangoMaterial")
+            materials.append(glb_material(g, material, firsts[folder], brdf, occlusion))
+        label = f"{name}_{tag}" if tag else name
+        meshes.append(g.Mesh(name=label, primitives=primitives))
+        nodes.append(g.Node(mesh=k, name=label))
+    used = list(brdf.gltf_extensions)
+    if lods:
+        if screen_coverage is None or len(screen_coverage) != len(lods) + 1:
+            raise ValueError(f"MSFT_lod needs one screen coverage per level ({len(lods) + 1}), got {screen_coverage}")
+        nodes[0].extensions = {"MSFT_lod": {"ids": list(range(1, len(nodes)))}}
+        nodes[0].extras = {"MSFT_screencoverage": [float(c) for c in screen_coverage]}
+        used.append("MSFT_lod")
+    gltf = g.GLTF2(
+        asset=g.Asset(version="2.0", generator="tango-stylize", extras={ORIGIN_METADATA_KEY: origin}),
+        scene=0,
+        scenes=[g.Scene(nodes=[0])],
+        nodes=nodes,
+        meshes=meshes,
+        materials=materials,
+        textures=buffer.textures,
+        images=buffer.images,
+        samplers=[glb_sampler(g, geom.repeat)],
+        accessors=buffer.accessors,
+        bufferViews=buffer.views,
+        buffers=[g.Buffer(byteLength=sum(len(b) for b in buffer.blobs))],
+        extensionsUsed=used,
+    )
+    gltf.set_binary_blob(b"".join(buffer.blobs))
+    with atomic_path(path) as tmp:
+        gltf.save_binary(str(tmp))
+
+
+class GlbBuffer:
+    """The binary buffer of a GLB: its byte blobs (each padded to 4 bytes), buffer views and
+    accessors, as ``write_glb`` adds them (``g``: the pygltflib module)."""
+
+    def __init__(self, g) -> None:
+        self.g = g
+        self.blobs: list[bytes] = []
+        self.views: list = []
+        self.accessors: list = []
+        self.images: list = []
+        self.textures: list = []
+
+    def texture_set(self, folder: Path, brdf: BrdfSpec, tag: str = "", sampler: int = 0) -> int:
+        """Add the bake's textures in ``folder`` that ``brdf``'s assets reference
+        (``brdf.exported_textures``: base colour, metallic-roughness, normal, and for TANGO's BRDF
+        the specular colour) as images and textures; returns the first's index."""
+        g = self.g
+        first = len(self.textures)
+        for key in brdf.exported_textures:
+            view = self.view(read_bytes(Path(folder) / f"{key}.png", IMAGE_LIMIT, remedy="Run the bake stage again."))
+            self.images.append(g.Image(bufferView=view, mimeType="image/png", name=f"{tag}_{key}" if tag else key))
+            self.textures.append(g.Texture(source=len(self.images) - 1, sampler=sampler))
+        return first
+
+    def view(self, data: bytes, target=None) -> int:
+        offset = sum(len(b) for b in self.blobs)
+        self.blobs.append(data + b"\x00" * ((-len(data)) % 4))
+        self.views.append(self.g.BufferView(buffer=0, byteOffset=offset, byteLength=len(data), target=target))
+        return len(self.views) - 1
+
+    def accessor(self, arr: np.ndarray, kind: str, target=None, minmax: bool = False) -> int:
+        g = self.g
+        view = self.view(np.ascontiguousarray(arr).tobytes(), g.ARRAY_BUFFER if target is None else target)
+        ctype = {np.dtype(np.float32): g.FLOAT, np.dtype(np.uint32): g.UNSIGNED_INT, np.dtype(np.uint16): g.UNSIGNED_SHORT}[
+            arr.dtype
+        ]
+        acc = g.Accessor(bufferView=view, componentType=ctype, count=len(arr), type=kind)
+        if minmax:
+            acc.min = arr.min(0).astype(float).tolist()
+            acc.max = arr.max(0).astype(float).tolist()
+        self.accessors.append(acc)
+        return len(self.accessors) - 1
+
+    def geometry(self, level: ExportMesh, meters_per_unit: float):
+        """A level's vertex attributes (positions in metres; tangents where it has them) and, per
+        material slot (:meth:`ExportMesh.slot_faces`), its name and index accessor."""
+        g = self.g
+        pos = level.positions * np.float32(meters_per_unit)
+        attrs = g.Attributes(
+            POSITION=self.accessor(pos, g.VEC3, minmax=True),
+            NORMAL=self.accessor(level.normals, g.VEC3),
+            TANGENT=None if level.tangents is None else self.accessor(level.tangents, g.VEC4),
+            TEXCOORD_0=self.accessor(level.uv, g.VEC2),
+        )
+        # 16-bit indices where they suffice (glTF allows both; the 65535th index is reserved for restarts)
+        index_type = np.uint16 if len(pos) < 65535 else np.uint32
+        parts = []
+        for slot, faces in level.slot_faces():
+            tri = level.indices[faces].reshape(-1).astype(index_type)
+            parts.append((slot, self.accessor(tri, g.SCALAR, target=g.ELEMENT_ARRAY_BUFFER)))
+        return attrs, parts
+
+
+def glb_sampler(g, repeat: bool):
+    """Trilinear filtering; textures repeat (a kept layout, glTF's default) or clamp (an atlas)."""
+    wrap = g.REPEAT if repeat else g.CLAMP_TO_EDGE
+    return g.Sampler(magFilter=g.LINEAR, minFilter=g.LINEAR_MIPMAP_LINEAR, wrapS=wrap, wrapT=wrap)
+
+
+def glb_material(g, name: str, first: int, brdf: BrdfSpec, occlusion: bool):
+    """A level's material: its textures from index ``first`` (base colour, metallic-roughness,
+    normal, and TANGO's specular colour through ``KHR_materials_specular``: ``brdf``'s
+    ``gltf_material_extensions``), the occlusion in the metallic-roughness texture's red channel
+    when baked."""
+    return g.Material(
+        name=name,
+        pbrMetallicRoughness=g.PbrMetallicRoughness(
+            baseColorTexture=g.TextureInfo(index=first),
+            metallicRoughnessTexture=g.TextureInfo(index=first + 1),
+            metallicFactor=1.0,  # the texture's blue channel is the metalness (0 for TANGO's BRDF)
+            roughnessFactor=1.0,
+        ),
+        normalTexture=g.NormalMaterialTexture(index=first + 2),
+        occlusionTexture=g.OcclusionTextureInfo(index=first + 1) if occlusion else None,
+        doubleSided=True,
+        extensions=brdf.gltf_material_extensions(first),
+    )
+
+
+#: glTF's format object (its row: ``EXPORT_FORMATS["gltf"]``)
+GLTF = GltfFormat(EXPORT_FORMATS["gltf"])
