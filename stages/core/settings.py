@@ -7,7 +7,8 @@ Every stage declares its settings as a subclass of :class:`Settings`, each field
     iterations: int = setting(1500, "optimisation steps (TANGO: 1500)", ge=1, le=1_000_000)
     background: Literal["black", "white", "noise"] = setting("black", "background of the training images")
 
-The annotation gives the type (``int``, ``float``, ``bool``, ``str``, a ``Literal`` of choices,
+The annotation gives the type (``int``, ``float``, ``bool``, ``str``, a ``Literal`` of choices or
+``Annotated[str, registry]`` for the names of a :class:`~stages.core.registry.Registry`,
 ``tuple[X, ...]`` or ``tuple[X, X]`` for a list, ``X | None`` for a value that may be null); the
 field's :class:`Spec` the description and the limits. From these alone :meth:`Settings.problems`
 checks an instance (one line per problem, naming ``section.key``, the limit and the value), the

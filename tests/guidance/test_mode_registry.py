@@ -5,6 +5,7 @@ calibration, and a new mode needs nothing else."""
 from __future__ import annotations
 
 import ast
+import contextlib
 import dataclasses
 import sys
 import typing
@@ -139,11 +140,12 @@ def test_each_mode_has_its_classes_and_each_class_its_mode():
 
 
 def test_the_setting_takes_the_table_s_names_and_its_wording():
-    assert typing.get_args(guidance_modes.GuidanceName) == tuple(GUIDANCE_MODES)
+    assert typing.get_args(guidance_modes.GuidanceName)[1] is GUIDANCE_MODES  # the names when a value is checked
+    assert OptimizeSettings.kinds()["guidance"].choices is GUIDANCE_MODES
     assert OptimizeSettings.specs()["guidance"].doc == guidance_modes.GUIDANCE_DOC
     with pytest.raises(ConfigError, match="optimize.guidance"):
         OptimizeSettings(guidance="sds")
-    with pytest.raises(ConfigError, match="unknown guidance mode 'sds': one of clip, image"):
+    with pytest.raises(ConfigError, match="unknown guidance mode 'sds'; choose one of clip, image"):
         guidance_mode("sds")
 
 
@@ -154,10 +156,12 @@ def test_every_mode_s_calibration_is_known_and_a_missing_one_fails_loudly(monkey
     assert timed.target_renderer == "sg" and guide is None
     mitsuba = OptimizeSettings(guidance="image", target_renderer="mitsuba")
     assert calibrate.calibration(mitsuba, "cpu")[0].target_renderer == "sg"  # Mitsuba's are the target stage's
-    odd = dataclasses.replace(GUIDANCE_MODES["image"], calibration="diffusion")
-    monkeypatch.setitem(GUIDANCE_MODES, "image", odd)
-    with pytest.raises(ConfigError, match="calibration 'diffusion', which stages.training.calibrate does not know"):
-        calibrate.calibration(sg, "cpu")
+    odd = dataclasses.replace(GUIDANCE_MODES["image"], name="odd", calibration="diffusion")
+    with GUIDANCE_MODES.temporarily("odd", odd):
+        settings = OptimizeSettings(guidance="odd", target_renderer="sg")
+        with pytest.raises(ConfigError, match="calibration 'diffusion', which stages.training.calibrate does not know"):
+            calibrate.calibration(settings, "cpu")
+    assert "odd" not in GUIDANCE_MODES
 
 
 def test_what_the_callers_read_from_a_mode():
@@ -194,13 +198,17 @@ def test_a_new_mode_is_one_row_and_one_class(monkeypatch):
         image_targets=False,
         image_guided=True,
     )
-    monkeypatch.setitem(GUIDANCE_MODES, "flat", row)
-    monkeypatch.setitem(GUIDANCE_MODES, "lonely", dataclasses.replace(row, name="lonely"))  # a row without a class
+    stack = contextlib.ExitStack()
     monkeypatch.setattr(objective, "GUIDANCE_CLASSES", dict(GUIDANCE_CLASSES))
-    # the setting's choices as the table's names make them when the module is read (GuidanceName)
-    kinds = dict(OptimizeSettings.kinds())
-    kinds["guidance"] = dataclasses.replace(kinds["guidance"], choices=tuple(GUIDANCE_MODES))
-    monkeypatch.setattr(OptimizeSettings, "kinds", classmethod(lambda cls: kinds))
+    with stack:  # the setting takes the rows' names at once (the registry's choices are read when checked)
+        stack.enter_context(GUIDANCE_MODES.temporarily("flat", row))
+        stack.enter_context(GUIDANCE_MODES.temporarily("lonely", dataclasses.replace(row, name="lonely")))  # no class
+        _new_mode_runs(row)
+    assert "flat" not in GUIDANCE_MODES and "lonely" not in GUIDANCE_MODES
+
+
+def _new_mode_runs(row: GuidanceMode) -> None:
+    """:func:`test_a_new_mode_is_one_row_and_one_class` with its rows registered."""
 
     @register("flat")
     class FlatGuidance(Guidance):
