@@ -173,14 +173,10 @@ class Gltf(Brdf):
             return Shading(diffuse, specular_radiance_split_sum(normal, view, f0, roughness, light, self, visibility))
         raise self.refused(lobe)
 
-    def log_ndf_times_visibility(self, one_minus_nh: Tensor, nl: Tensor, nv: Tensor, roughness: Tensor) -> Tensor:
-        return log_ndf_times_visibility(one_minus_nh, nl, nv, roughness)
-
-    def ndf_quadrature(self, x: np.ndarray, w: np.ndarray, roughness: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        return ndf_quadrature(x, w, roughness)
-
-    def shadowing(self, nl: np.ndarray, c: float, roughness: float) -> np.ndarray:
-        return shadowing(nl, c, roughness)
+    # the module's own functions above, as the base class asks for them
+    log_ndf_times_visibility = staticmethod(log_ndf_times_visibility)
+    ndf_quadrature = staticmethod(ndf_quadrature)
+    shadowing = staticmethod(shadowing)
 
 
 #: glTF 2.0's metallic-roughness BRDF
