@@ -667,8 +667,9 @@ class OptimizeSettings(ClipChoice, FieldSettings):
         "auto",
         "compile the SVBRDF and normal networks into the compiled renderer's graph while training (one graph: "
         "inductor fuses the networks' pointwise operations with the renderer's; fewer kernel launches); only where "
-        "compile_shading compiles the renderer. auto leaves them out: on a CPU one graph was measured no faster, and "
-        "on a GPU it has not been measured; on puts them in; the metadata's shading_path says what ran",
+        "compile_shading compiles the renderer. auto puts them in on CUDA (a paper step measured 0.040 s against the "
+        "compiled renderer's 0.051 on an H200, for the same compilation time) and leaves them out on a CPU (measured "
+        "no faster there); on puts them in; the metadata's shading_path says what ran",
     )
     compile_static: Switch = setting(
         "auto",
