@@ -173,6 +173,11 @@ class Gltf(Brdf):
             return Shading(diffuse, specular_radiance_split_sum(normal, view, f0, roughness, light, self, visibility))
         raise self.refused(lobe)
 
+    def diffuse_layer(self, vh: Tensor) -> Tensor:
+        """``1 - F(v . h)`` with the dielectric's ``F = 0.04 + 0.96 (1 - v.h)^5`` (glTF 2.0,
+        Appendix B ``fresnel_mix``), as :func:`diffuse_radiance_gltf` weights its lobes."""
+        return (1.0 - GLTF_DIELECTRIC_F0) * _one_minus_schlick(vh)
+
     # the module's own functions above, as the base class asks for them
     log_ndf_times_visibility = staticmethod(log_ndf_times_visibility)
     ndf_quadrature = staticmethod(ndf_quadrature)
