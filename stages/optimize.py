@@ -71,6 +71,7 @@ def run(
         train = RayCache(train_path)
         targets = TargetSet(targets_path, train) if mitsuba_targets else None
         run = Optimizer(settings, train, prompt, dev, targets=targets)
+    settings = run.settings  # as the run resolved them (optimize.suns: auto, a count)
     resumed_from = _resume(run, ckpt, settings, dev) if ckpt.is_file() else None
     progress = Progress(job_label("optimize", out_dir), settings.iterations, initial=run.iteration)
     done_here = 0
@@ -127,6 +128,7 @@ def run(
                 "light_components": run.field.light.describe(),
                 "light_pruned": run.light_pruned,
                 "light": run.light_record,
+                "suns": run.suns_record,
                 **result,
             },
         )

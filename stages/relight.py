@@ -2,7 +2,8 @@
 
 The environment map (an equirectangular ``.hdr`` or ``.exr``, or ``builtin:<name>`` for a
 procedural one, see :mod:`stages.render.envmap`) is fitted by SG lobes (least squares over the
-sphere, :func:`stages.model.lights.sg.fit_sg_light`), so the field's own forward pass renders it (a
+sphere, :func:`stages.model.lights.sg.fit_sg_light`, and suns where the field has them and the map
+holds any: :func:`stages.model.lights.fit_environment_like`), so the field's own forward pass renders it (a
 light override, a light of those lobes alone). Outputs: ``relit.png`` (the evaluation views under
 the new light), ``material_edit.png`` (TANGO's material-editing figure: the front view, rows =
 roughness scales, columns = specular scales, under the new light), ``light_fit.png`` (the map and
@@ -39,10 +40,9 @@ from .imaging.targets import TargetSet, load_relit
 from .imaging.views import ViewStore
 from .model.checkpoint import load_field
 from .model.field import MaterialEdit
-from .model.lights.sg import fit_sg_light
+from .model.lights import fit_environment_like
 from .render.color import linear_to_srgb, srgb_encode, to_u8
 from .render.envmap import load_env
-from .render.light import Light
 
 log = logging.getLogger(__name__)
 
@@ -91,13 +91,15 @@ def run(
     for p in (field_path, eval_path, *((truth_path, targets_path, metrics_cache) if graded else ())):
         if not Path(p).is_file():
             raise StageInputError(p, "file not found", "Run the optimize stage first.")
-    with timer("fit"):
-        env = load_env(settings.envmap)
-        light, rel_err = fit_sg_light(env, settings.lobes, settings.fit_iterations)
     dev = torch.device(device)
-    light = Light.of(light.to(dev))
     field, _ = load_field(field_path, dev)
     store = ViewStore(RayCache(eval_path), dev, field.normals, shadows=field.shadows)
+    with timer("fit"):  # the field's transport: suns where it has them and the map holds any
+        env = load_env(settings.envmap)
+        fitted, fit_record = fit_environment_like(
+            field.light, settings.envmap, settings.lobes, settings.fit_iterations, store.cache.visibility_directions
+        )
+    light = fitted.to(dev)
     out_dir = Path(out_dir)
     with staged_outputs(out_dir) as staging:
         with timer("render"):
@@ -134,7 +136,7 @@ def run(
         stats = {
             **RelightRecord(ground_truth=ground_truth).stats(),
             "envmap": settings.envmap,
-            "sg_fit_relative_rms": rel_err,
+            **fit_record,
             "mean_relit": float(torch.stack(views).mean()),
             "mean_material_edit": [float(g.mean()) for g in grid],
             "front_view": front,

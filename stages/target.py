@@ -111,7 +111,11 @@ def run(
 
 def _write_targets(staging: Path, targets: MeshTargets, train: RayCache, metric: RayCache) -> None:
     """The targets per cached hit: the training views', the metric views' with the truth, the relit."""
-    common = {"description": np.array(targets.text), "env_energy": targets.renderer.env_energy}
+    common = {
+        "description": np.array(targets.text),
+        "env_energy": targets.renderer.env_energy,
+        "environment": np.array(targets.renderer.environment),
+    }
     tt, tm = targets.train, targets.metrics
     save_targets(
         staging / "train.npz", {"radiance": tt.radiance, "coverage": tt.coverage, "offsets": train.arrays["offsets"], **common}

@@ -111,6 +111,8 @@ def _allowed(node: dict) -> str:
         return ", ".join(_code(_json(v) if not isinstance(v, str) else v) for v in node["enum"])
     if "const" in node:
         return _code(str(node["const"]))
+    if "anyOf" in node:  # a number or words (a count, or auto)
+        return " or ".join(part for alt in node["anyOf"] if alt.get("type") != "null" and (part := _allowed(alt)))
     parts = []
     low = node.get("exclusiveMinimum", node.get("minimum"))
     high = node.get("exclusiveMaximum", node.get("maximum"))

@@ -89,6 +89,8 @@ def _plain(value: Any) -> Any:
 def _scalar(kind: Kind, spec: Spec) -> dict[str, Any]:
     if kind.choices is not None:
         return {"enum": [*kind.choices, *((True, False) if kind.switch else ())]}
+    if kind.words:  # a number or a word (a count, or auto)
+        return {"anyOf": [{"enum": list(kind.words)}, {"type": _TYPES[kind.base], **_limits(spec)}]}
     return {"type": _TYPES[kind.base], **_limits(spec)}
 
 
@@ -102,7 +104,9 @@ def setting_node(kind: Kind, spec: Spec, default: Any) -> dict[str, Any]:
         lo = kind.length if kind.length is not None else spec.min_items
         hi = kind.length if kind.length is not None else spec.max_items
         body.update({k: v for k, v in (("minItems", lo), ("maxItems", hi)) if v is not None})
-    if kind.nullable:
+    if kind.nullable and "anyOf" in body:
+        body["anyOf"].append({"type": "null"})
+    elif kind.nullable:
         body["type"] = [body["type"], "null"]
     node.update(body)
     node["default"] = list(default) if isinstance(default, tuple) else default

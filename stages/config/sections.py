@@ -466,6 +466,32 @@ class FieldSettings(Settings):
         le=1e5,
     )
     light_init_max_sharpness: float = setting(1000.0, "the sharpest starting lobe of light_init spread", ge=1e-4, le=1e5)
+    suns: int | Literal["auto"] = setting(
+        0,
+        "sharp lights beside the SG lobes (discs of the sky: a direction, an RGB irradiance and an angular radius, "
+        "shaded by the BRDF at directions inside the disc, each with its own shadow ray): a count, or auto: as many "
+        "as the known environment (light_map, or the image targets' environment) has regions holding suns_share of "
+        "its energy within a radius the cached visibility cannot resolve (found one after another, at most 4); "
+        "none where no environment is known",
+        ge=0,
+        le=8,
+        marks=(COMPILED_RENDERER,),
+    )
+    suns_share: float = setting(
+        0.2,
+        "suns auto: the share of the environment's energy a compact region must hold to be a sun (builtin:sun_sky's "
+        "sun holds 63%; the brightest regions of sunset and studio, a glow and a strip light, 8% and 11%)",
+        gt=0,
+        le=1,
+    )
+    sun_samples: int = setting(
+        8,
+        "directions of each sun's disc the BRDF is evaluated at (each with its shadow ray); a mirror sees the disc "
+        "resolved to that many cells",
+        ge=1,
+        le=256,
+        marks=(COMPILED_RENDERER,),
+    )
     brdf: Brdf = setting(
         "gltf",
         "the BRDF model: tango (TANGO's diffuse albedo + specular colour, a sum of a diffuse and a microfacet term) "

@@ -86,6 +86,8 @@ class Kind:
     nullable: bool = False
     item: Kind | None = None
     length: int | None = None
+    #: words a number setting also takes (``int | Literal["auto"]``: a count, or auto)
+    words: tuple[str, ...] = ()
 
     @property
     def switch(self) -> bool:
@@ -98,8 +100,13 @@ def kind_of(hint: Any) -> Kind:
     """The :class:`Kind` of a type annotation (a plain type, ``Literal``, ``tuple``, ``X | None``)."""
     if isinstance(hint, types.UnionType) or typing.get_origin(hint) is typing.Union:
         args = [a for a in typing.get_args(hint) if a is not type(None)]
+        nullable = len(args) < len(typing.get_args(hint))
+        words = [a for a in args if typing.get_origin(a) is Literal]
+        numbers = [a for a in args if a in (int, float)]
+        if len(args) == 2 and len(words) == 1 and len(numbers) == 1:  # a number or a word: int | Literal["auto"]
+            return Kind(base=numbers[0], words=typing.get_args(words[0]), nullable=nullable)
         if len(args) != 1:
-            raise TypeError(f"a setting is one type or None, got {hint}")
+            raise TypeError(f"a setting is one type or None (or a number or words), got {hint}")
         return dataclasses.replace(kind_of(args[0]), nullable=True)
     if typing.get_origin(hint) is Literal:
         return Kind(choices=typing.get_args(hint))
@@ -126,7 +133,7 @@ def kind_words(kind: Kind) -> str:
         inner = kind_words(dataclasses.replace(kind.item, nullable=False))
         text = f"list of {kind.length} {inner}s" if kind.length else f"list of {inner}s"
     else:
-        text = names[kind.base]
+        text = names[kind.base] + "".join(f" or {w}" for w in kind.words)
     return text + (" or null" if kind.nullable else "")
 
 
@@ -153,6 +160,9 @@ def _scalar_problem(kind: Kind, spec: Spec, value: Any) -> str | None:
         return None if kind.nullable else "must be given (not null)"
     if kind.choices is not None:
         return None if value in kind.choices and isinstance(value, str) else f"must be one of {', '.join(map(str, kind.choices))}"
+    if kind.words and isinstance(value, str):
+        number = "an integer" if kind.base is int else "a number"
+        return None if value in kind.words else f"must be {' or '.join(kind.words)} or {number}"
     if kind.base is bool:
         return None if isinstance(value, bool) else "must be true or false"
     if kind.base is str:
@@ -166,7 +176,8 @@ def _scalar_problem(kind: Kind, spec: Spec, value: Any) -> str | None:
             return f"must match {spec.pattern}"
         return None
     if isinstance(value, bool) or not isinstance(value, int if kind.base is int else (int, float)):
-        return "must be an integer" if kind.base is int else "must be a number"
+        number = "an integer" if kind.base is int else "a number"
+        return f"must be {' or '.join(kind.words)} or {number}" if kind.words else f"must be {number}"
     if not math.isfinite(value):
         return "must be a finite number"
     outside = (

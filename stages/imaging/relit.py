@@ -22,12 +22,11 @@ import numpy as np
 import torch
 
 from ..model.field import shade_material
-from ..model.lights.sg import fit_sg_light
+from ..model.lights import fit_environment_like
 from ..model.networks import Material
 from ..render import brdf as brdfs
 from ..render.brdf import Brdf
 from ..render.color import linear_to_srgb
-from ..render.envmap import load_env
 from ..render.light import Light, Visibility, cat_visibility, map_visibility
 from ..render.shading import face_viewer
 from .images import render_cached_view
@@ -116,7 +115,7 @@ def _shares(store: ViewStore, light: Light) -> Visibility | None:
 
 
 @torch.no_grad()
-def _truth_radiance(truth: TargetSet, store: ViewStore, light: Light, lobe: str, brdf: Brdf | str = "tango") -> torch.Tensor:
+def truth_radiance(truth: TargetSet, store: ViewStore, light: Light, lobe: str, brdf: Brdf | str = "tango") -> torch.Tensor:
     """Linear radiance ``(N, 3)`` of our renderer (the BRDF ``brdf``) given the true material and
     shading normals, with the shadows of ``store``'s views when they carry them (as the field's)."""
     view = torch.cat([store[i].view for i in range(len(store))])
@@ -189,8 +188,8 @@ def grade_relighting(
     out = []
     dev = next(field.parameters()).device
     for r in relit:
-        fitted, rel = fit_sg_light(load_env(r.environment), lobes, iterations)
-        light = Light.of(fitted.to(dev))
+        fitted, record = fit_environment_like(field.light, r.environment, lobes, iterations, store.cache.visibility_directions)
+        light = fitted.to(dev)
         full = torch.from_numpy(r.coverage >= FULL_COVERAGE).to(dev)
         truth_linear = torch.from_numpy(r.radiance).to(dev)[full]
         goal = linear_to_srgb(truth_linear)
@@ -199,14 +198,14 @@ def grade_relighting(
             renders[r.environment] = ours_all
         row = {
             "environment": r.environment,
-            **_figures(ours_all[full], truth_linear),
+            **graded_figures(ours_all[full], truth_linear),
             "pixels": int(full.sum()),
             "noise_psnr_db": r.noise_psnr_db,
-            "sg_fit_relative_rms": rel,
+            **record,
         }
         brdf = brdfs.get(getattr(field, "brdf", "tango"))
         if truth is not None and truth.has_truth and all(k in truth.arrays for k in brdf.parameters):
-            ceiling = _truth_radiance(truth, store, light, field.specular_lobe, brdf)[full]
+            ceiling = truth_radiance(truth, store, light, field.specular_lobe, brdf)[full]
             row["ceiling_psnr_db"] = psnr(linear_to_srgb(ceiling), goal)
             row["ceiling_psnr_scaled_db"] = psnr(linear_to_srgb(ceiling * channel_scale(ceiling, truth_linear)), goal)
         out.append(row)
@@ -228,7 +227,7 @@ class BudgetCase:
     noise_psnr_db: float | None = None
 
 
-def _figures(pred: torch.Tensor, goal: torch.Tensor) -> dict:
+def graded_figures(pred: torch.Tensor, goal: torch.Tensor) -> dict:
     """PSNR of linear ``pred (N, 3)`` against linear ``goal`` in sRGB, raw and after one scale per
     channel (:func:`channel_scale`), and the scale."""
     scale = channel_scale(pred, goal)
@@ -249,7 +248,7 @@ def relight_budget(field, store: ViewStore, truth: TargetSet, cases: list[Budget
     (``cumulative``; under the training light the learned light, replaced by the environment's SG
     fit, comes first). With every component replaced the render is the ceiling, our renderer given
     the true material (:func:`grade_relighting`'s ``ceiling_psnr_db``). Each figure
-    (:func:`_figures`): ``psnr_db``, ``psnr_scaled_db``, ``scale``; each swap also carries its
+    (:func:`graded_figures`): ``psnr_db``, ``psnr_scaled_db``, ``scale``; each swap also carries its
     gain in dB over the recovered render (``alone``) and over the previous step (``cumulative``),
     raw and scaled, so the cumulative gains add up to the gap between the recovered render and the
     ceiling. The SG fits are :func:`~stages.model.lights.sg.fit_sg_light`'s (``lobes``,
@@ -263,8 +262,8 @@ def relight_budget(field, store: ViewStore, truth: TargetSet, cases: list[Budget
     learned = field.light()
     out = []
     for case in cases:
-        fitted, rel = fit_sg_light(load_env(case.environment), lobes, iterations)
-        fitted = Light.of(fitted.to(dev))
+        fitted, record = fit_environment_like(field.light, case.environment, lobes, iterations, store.cache.visibility_directions)
+        fitted = fitted.to(dev)
         full = torch.from_numpy(case.coverage >= FULL_COVERAGE).to(dev)
         goal = torch.from_numpy(np.asarray(case.radiance, np.float32)).to(dev)[full]
         shares = {"learned": _shares(store, learned) if case.role == "training" else None, "fitted": _shares(store, fitted)}
@@ -276,7 +275,7 @@ def relight_budget(field, store: ViewStore, truth: TargetSet, cases: list[Budget
             light = fitted if which == "fitted" else learned
             visibility = map_visibility(lambda v, full=full: v[full], shares[which])
             sel = {k: x[full] for k, x in surface.items()}
-            return _figures(shade_surface(sel, brdf, view[full], light, field.specular_lobe, visibility), goal)
+            return graded_figures(shade_surface(sel, brdf, view[full], light, field.specular_lobe, visibility), goal)
 
         base = render(())
         swaps, previous = [], base
@@ -294,7 +293,7 @@ def relight_budget(field, store: ViewStore, truth: TargetSet, cases: list[Budget
                 "role": case.role,
                 "pixels": int(full.sum()),
                 "noise_psnr_db": case.noise_psnr_db,
-                "sg_fit_relative_rms": rel,
+                **record,
                 "recovered": base,
                 "swaps": swaps,
                 "ceiling": previous,

@@ -15,6 +15,8 @@ array                     dtype        meaning
 ``metallic (N, 1)``                    metallic
 ``env_energy (3,)``       float64      optional: the light's radiant energy ``int L dw``
 ``description ()``        str          what rendered the targets (the result's weights id)
+``environment ()``        str          optional: the environment they are lit by
+                                       (``target.environment``; suns start at its suns)
 ========================  ===========  ========================================================
 
 The relit ground truth (``relit.npz``, :func:`save_relit`) holds the metric views rendered under each
@@ -134,6 +136,12 @@ class TargetSet:
     @property
     def description(self) -> str:
         return str(self.arrays.get("description", f"targets of {self.path}"))
+
+    @property
+    def environment(self) -> str | None:
+        """The environment the targets are lit by (``target.environment``: ``builtin:<name>`` or a
+        map's path), None for a file written without it."""
+        return str(self.arrays["environment"]) if "environment" in self.arrays else None
 
     @property
     def has_truth(self) -> bool:

@@ -26,7 +26,9 @@ from ..geometry.visibility import (
     surface_offset,
     trace_lobe_visibility,
     trace_visibility,
+    unpack_visibility,
 )
+from ..render.light.sun import SunLight, solid_angle
 from ..render.shading import SGLight
 from ..render.visibility import blend_traced, lobe_visibility_bits, resolvable_sharpness
 
@@ -47,6 +49,23 @@ class _TracedLobe:
             return True
         angle = math.acos(float(np.clip(axis @ self.axis, -1.0, 1.0)))
         return angle > tolerance / math.sqrt(sharpness) or abs(math.log2(sharpness / self.sharpness)) > tolerance
+
+
+class _TracedSun:
+    """The suns' directions' visibility at every point (one shadow ray each), valid where traced
+    since the directions last moved by more than the tolerance."""
+
+    def __init__(self, count: int, rays: int) -> None:
+        self.directions = np.zeros((rays, 3))
+        self.values = np.ones((count, rays), np.float32)
+        self.valid = np.zeros(count, bool)
+        self.traces = 0
+
+    def stale(self, directions: np.ndarray, allowed: float) -> bool:
+        if directions.shape != self.directions.shape or not self.directions.any():
+            return True
+        cos = np.clip((directions * self.directions).sum(-1), -1.0, 1.0)
+        return float(np.arccos(cos).max()) > allowed
 
 
 class ShadowCache:
@@ -84,6 +103,7 @@ class ShadowCache:
         self.samples, self.seed, self.tolerance = samples, seed, tolerance
         self.resolvable = resolvable_sharpness(directions)
         self._lobes: dict[int, _TracedLobe] = {}
+        self._sun: _TracedSun | None = None
         self._dirs = torch.from_numpy(self.directions).float()
         self._normals = torch.from_numpy(self.normals).float()
         self._bits = torch.from_numpy(self.bits)
@@ -129,6 +149,29 @@ class ShadowCache:
         if self.samples == 0 or not bool((light.sharpness > self.resolvable).any()):
             return quad
         return blend_traced(quad, self.traced(light, index), light.sharpness, self.resolvable)
+
+    def sun_shares(self, sun: SunLight, index: Tensor | None = None) -> Tensor:
+        """Each sun direction's visibility at the points ``index`` (all when None) -> ``(n, S M)``
+        in {0, 1} (no gradient: a shadow's edge moves no parameter): one shadow ray per point per
+        direction of :meth:`~stages.render.light.sun.SunLight.directions`, traced lazily for the
+        points asked for and traced again once a direction has moved by more than ``tolerance``
+        of its cell's radius (``sqrt(Omega / (pi M))``, or 1e-3 radians where the disc is smaller),
+        so that a sun that stays put (a known light) is traced once per point."""
+        idx = np.arange(len(self)) if index is None else index.cpu().numpy()
+        directions = sun.directions().detach().double().cpu().numpy().reshape(-1, 3)
+        cell = float(solid_angle(sun.radius.detach().double()).max()) / (math.pi * sun.samples)
+        allowed = self.tolerance * max(math.sqrt(cell), 1e-3)
+        if self._sun is None or self._sun.stale(directions, allowed):
+            self._sun = _TracedSun(len(self), len(directions))
+            self._sun.directions = directions
+        traced = self._sun
+        todo = idx[~traced.valid[idx]]
+        if len(todo):
+            bits = trace_visibility(self.tracer, self.points[todo], self.normals[todo], traced.directions, self.offset)
+            traced.values[todo] = unpack_visibility(bits, len(directions))
+            traced.valid[todo] = True
+            traced.traces += len(todo)
+        return torch.from_numpy(traced.values[idx]).to(sun.direction.device)
 
     def blocked_share(self) -> np.ndarray:
         """Per point, the share of its hemisphere the mesh blocks (uniform over directions)."""

@@ -138,6 +138,19 @@ def solid_angles(height: int, width: int) -> np.ndarray:
     return (2.0 * np.pi / width * (np.cos(theta[:-1]) - np.cos(theta[1:])))[:, None]
 
 
+def downsample(env: np.ndarray, factor: int) -> np.ndarray:
+    """An equirectangular ``env (H, W, 3)`` at ``1 / factor`` of its rows and columns (both
+    divisible by ``factor``): each pixel the solid-angle-weighted mean of its block, so that the
+    map keeps its radiant energy (:func:`radiant_energy`) exactly."""
+    h, w, c = env.shape
+    if h % factor or w % factor:
+        raise ValueError(f"a map of {h} x {w} pixels cannot be brought down by {factor}")
+    weight = np.broadcast_to(solid_angles(h, w).reshape(h, -1)[..., None], (h, w, 1)).astype(np.float64)
+    blocks = (env.astype(np.float64) * weight).reshape(h // factor, factor, w // factor, factor, c).sum((1, 3))
+    area = weight.reshape(h // factor, factor, w // factor, factor, 1).sum((1, 3))
+    return (blocks / area).astype(np.float32)
+
+
 def radiant_energy(env: np.ndarray) -> np.ndarray:
     """``int L(w) dw`` over the sphere, per channel ``(3,)``, of an equirectangular ``env (H, W, 3)``
     (exact for a map constant over each pixel)."""

@@ -11,6 +11,7 @@ scheduler, RNG states, loss history) round-trips through :meth:`Optimizer.state`
 from __future__ import annotations
 
 import csv
+import dataclasses
 import io
 from pathlib import Path
 
@@ -29,6 +30,7 @@ from ..imaging.targets import TargetSet
 from ..imaging.views import CachedView, ViewStore
 from ..model.compiled import CompiledField
 from ..model.field import StyleField
+from ..model.lights.sun import resolve_suns
 from ..model.networks import cat_materials, material_variation, normal_tilt
 from ..render.color import linear_to_srgb
 from ..render.products import onednn_products, run_choice
@@ -67,10 +69,19 @@ class Optimizer:
     def __init__(
         self, settings: OptimizeSettings, train: RayCache, prompt: str, device, guide=None, targets: TargetSet | None = None
     ) -> None:
-        """``targets``: the Mitsuba image targets of ``train`` (``target_renderer: mitsuba``)."""
+        """``targets``: the Mitsuba image targets of ``train`` (``target_renderer: mitsuba``).
+        ``optimize.suns: auto`` is decided here (:func:`~stages.model.lights.sun.resolve_suns`, on
+        the fixed light's map or the targets' environment) and :attr:`settings` hold the count."""
+        environment = settings.light_map if settings.light == "fixed" else (targets.environment if targets else None)
+        suns, self.suns_record = resolve_suns(
+            settings.suns, environment, train.visibility_directions if settings.shadows else 0, settings.suns_share
+        )
+        settings = dataclasses.replace(settings, suns=suns)
         self.settings = settings
         self.device = torch.device(device)
         self.field = StyleField(settings.field_settings()).to(self.device)
+        if suns and settings.light == "learn" and environment is not None:  # the suns start where the targets' are
+            self.suns_record["start"] = self.field.light.sun.start_at(environment)
         #: the field as a step runs it: compiled, padded and in bfloat16 where the levers say
         self.compiled = CompiledField(self.field)
         #: the light's mode for the metadata: learned, or the fixed fit of a known map (``light: fixed``)

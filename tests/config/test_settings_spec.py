@@ -9,6 +9,7 @@ import json
 import math
 import re
 from pathlib import Path
+from typing import Literal
 
 import jsonschema
 import pytest
@@ -215,3 +216,34 @@ def test_the_field_settings_are_the_optimize_sections_own():
     # the field's relations hold on their own (a stored field built without the optimize section)
     with pytest.raises(ConfigError, match="no isotropic specular model"):
         FieldSettings(specular_lobe="isotropic")
+
+
+def test_a_count_or_a_word_takes_either_and_says_so():
+    """``int | Literal["auto"]`` (``optimize.suns``): a count in its range or the word; the
+    schema takes the same values (jsonschema against the generated node), and the reference
+    says both."""
+    from stages.config.schema import setting_node
+    from stages.core.settings import kind_words
+
+    kind = kind_of(int | Literal["auto"])
+    assert kind.base is int and kind.words == ("auto",) and not kind.nullable
+    assert kind_words(kind) == "integer or auto"
+    assert kind_words(kind_of(int | Literal["auto"] | None)) == "integer or auto or null"
+
+    @dataclasses.dataclass(frozen=True, kw_only=True)
+    class Counted(Settings):
+        section = "counted"
+        n: int | Literal["auto"] = setting(0, "a count or auto", ge=0, le=8)
+
+    node = setting_node(Counted.kinds()["n"], Counted.specs()["n"], 0)
+    for good in ("auto", 0, 8):
+        assert Counted(n=good).n == good
+        jsonschema.validate(good, node)
+    wrong = "must be auto or an integer"
+    for bad, why in (("many", wrong), (9, r"must be in \[0, 8\]"), (1.5, wrong), (True, wrong)):
+        with pytest.raises(ConfigError, match=rf"counted\.n {why}"):
+            Counted(n=bad)
+        with pytest.raises(jsonschema.ValidationError):
+            jsonschema.validate(bad, node)
+    with pytest.raises(TypeError, match="one type"):
+        kind_of(int | str | None)

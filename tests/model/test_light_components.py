@@ -113,7 +113,7 @@ def _hits(n: int = 200, seed: int = 0):
 
 
 def test_the_registry_holds_a_kind_for_the_block_only(with_constant):
-    assert lights.names() == ("sg", "constant") and lights.get("constant") is ConstantLightModule
+    assert lights.names() == ("sg", "sun", "constant") and lights.get("constant") is ConstantLightModule
     field = StyleField(OptimizeSettings(width=16, light_lobes=4).field_settings())
     assert [c.kind for c in field.light.components] == ["sg", "constant"]
     assert field.light.lobes == 4  # the SG lobes alone
@@ -129,10 +129,10 @@ def test_the_registry_holds_a_kind_for_the_block_only(with_constant):
 def test_outside_the_block_a_field_has_its_sg_lobes_only():
     with lights.registered(ConstantLightModule):
         pass
-    assert lights.names() == ("sg",)
+    assert lights.names() == ("sg", "sun")
     field = StyleField(OptimizeSettings(width=16, light_lobes=4).field_settings())
-    assert [c.kind for c in field.light.components] == ["sg"]
-    with pytest.raises(ValueError, match="unknown light component 'constant'; the kinds are sg"):
+    assert [c.kind for c in field.light.components] == ["sg"]  # no suns unless optimize.suns asks
+    with pytest.raises(ValueError, match="unknown light component 'constant'; the kinds are sg, sun"):
         lights.get("constant")
 
 

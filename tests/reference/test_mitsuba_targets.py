@@ -496,10 +496,10 @@ def _grading_tells_a_disentangled_field_from_a_baked_one(metrics_cache, target_d
     for sh in grade_relighting(_TruthField(truth), shadowed, relit, targets, 16, 100):
         assert sh["psnr_db"] == pytest.approx(sh["ceiling_psnr_db"], abs=1e-6)
     _budget_ends_at_the_grades_ceiling(cache, targets, relit)
-    from stages.imaging.relit import _truth_radiance
+    from stages.imaging.relit import truth_radiance
 
-    lit = _truth_radiance(targets, store, training, "fitted")
-    dimmed = _truth_radiance(targets, shadowed, training, "fitted")
+    lit = truth_radiance(targets, store, training, "fitted")
+    dimmed = truth_radiance(targets, shadowed, training, "fitted")
     # the vase from its side (elevation 0) sees few shadowed hits: its lip shades a few of its neck
     # (with the fit carrying the map's energy, one hit by 0.05 and four more by 3e-4 to 5e-4)
     assert (dimmed <= lit + 2e-4).all() and ((lit - dimmed).amax(1) > 3e-4).sum() >= 3

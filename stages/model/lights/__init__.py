@@ -3,7 +3,8 @@
 light the sum of those its settings ask for (:func:`build_light`, a
 :class:`~stages.model.lights.base.LightModule`).
 
-The kinds: ``sg`` (:mod:`stages.model.lights.sg`, the SG lobes every field has). To add a light,
+The kinds: ``sg`` (:mod:`stages.model.lights.sg`, the SG lobes every field has) and ``sun``
+(:mod:`stages.model.lights.sun`, sharp lights where ``optimize.suns`` asks for them). To add a light,
 write its module (its renderer component, :class:`~stages.render.light.LightComponent`, and its
 component module: ``build`` from the field settings, ``forward``, ``fit``, and what only it does
 behind the methods every kind has) and list its class in :data:`_KINDS`;
@@ -16,14 +17,31 @@ from __future__ import annotations
 from collections.abc import Iterator
 from contextlib import contextmanager
 
+import torch
+
 from ...config.sections import FieldSettings
+from ...render.envmap import load_env
+from ...render.light import Light
 from .base import LightComponentModule, LightModule, Pruned
-from .sg import SGLightModule
+from .sg import SGLightModule, fit_sg_light
+from .sun import SunLightModule, sun_criterion
 
 #: each kind's component module by name, in the order a light holds them
-_KINDS: dict[str, type[LightComponentModule]] = {kind.kind: kind for kind in (SGLightModule,)}
+_KINDS: dict[str, type[LightComponentModule]] = {kind.kind: kind for kind in (SGLightModule, SunLightModule)}
 
-__all__ = ["LightComponentModule", "LightModule", "Pruned", "SGLightModule", "build_light", "get", "names", "registered"]
+__all__ = [
+    "LightComponentModule",
+    "LightModule",
+    "Pruned",
+    "SGLightModule",
+    "SunLightModule",
+    "build_light",
+    "fit_environment",
+    "fit_environment_like",
+    "get",
+    "names",
+    "registered",
+]
 
 
 def names() -> tuple[str, ...]:
@@ -51,6 +69,37 @@ def registered(*kinds: type[LightComponentModule]) -> Iterator[None]:
     finally:
         for k in kinds:
             _KINDS.pop(k.kind, None)
+
+
+def fit_environment(spec: str, lobes: int, iterations: int, suns: int = 0, samples: int = 8) -> tuple[Light, dict]:
+    """The light that brings the environment ``spec`` (``builtin:<name>`` or a map's path) into the
+    renderer: ``lobes`` SG lobes fitted to it (:func:`~stages.model.lights.sg.fit_sg_light`, in
+    ``iterations`` steps) or, with ``suns``, that many suns found in it
+    (:func:`~stages.model.lights.sun.find_suns`, ``samples`` directions each) and the lobes fitted
+    to what they leave (:meth:`LightModule.hold`). Returns the light and the fit's record
+    (``sg_fit_relative_rms``, and the suns found)."""
+    if suns == 0:
+        fitted, rel = fit_sg_light(load_env(spec), lobes, iterations)
+        return Light.of(fitted), {"sg_fit_relative_rms": rel}
+    module = LightModule([SGLightModule(lobes), SunLightModule(suns, samples=samples)])
+    record = module.hold(spec, iterations)
+    with torch.no_grad():
+        light = module()
+    return light.detach(), {k: v for k, v in record.items() if k not in ("map", "lobes", "sha256")}
+
+
+def fit_environment_like(light: LightModule, spec: str, lobes: int, iterations: int, directions: int) -> tuple[Light, dict]:
+    """:func:`fit_environment` with the transport of a trained ``light``: suns where it has them
+    and the environment ``spec`` holds any by the criterion it was trained with
+    (:func:`~stages.model.lights.sun.sun_criterion`, with the cached visibility's ``directions``:
+    a sunset relit without a sun, a sunny sky with one), else its SG lobes alone. The relight
+    stage's and the relighting budget's light for each environment (and its ceiling's)."""
+    sun = dict(light.named_children()).get(SunLightModule.kind)
+    if sun is None:
+        return fit_environment(spec, lobes, iterations)
+    count, decided = sun_criterion(load_env(spec, SunLightModule.fit_height), directions, sun.share, sun.suns)
+    fitted, record = fit_environment(spec, lobes, iterations, count, sun.samples)
+    return fitted, {**record, "suns": decided}
 
 
 def build_light(settings: FieldSettings) -> LightModule:

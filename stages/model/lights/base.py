@@ -23,7 +23,7 @@ from torch import Tensor, nn
 
 from ...config.sections import FieldSettings
 from ...core.provenance import sha256_of
-from ...render.envmap import load_env
+from ...render.envmap import downsample, load_env
 from ...render.light import Light, LightComponent, summed
 
 
@@ -47,6 +47,11 @@ class LightComponentModule(nn.Module, ABC):
     kind: ClassVar[str]
     #: its SG lobes (what a compiled graph's shapes and the records count): none for other kinds
     lobes: int = 0
+    #: where it is fitted among a light's components (:meth:`LightModule.hold`: lowest first, each
+    #: taking what those before it left of the map)
+    fit_order: ClassVar[int] = 0
+    #: the rows of a procedural map its fit reads (:func:`~stages.render.envmap.load_env`)
+    fit_height: ClassVar[int] = 128
 
     @classmethod
     @abstractmethod
@@ -63,6 +68,13 @@ class LightComponentModule(nn.Module, ABC):
         """Put its parameters at its fit of the equirectangular radiance ``env (H, W, 3)`` (the
         known-light mode, :meth:`LightModule.hold`), in ``iterations`` steps where it fits
         iteratively; what the metadata records of the fit."""
+
+    def left_of(self, env: np.ndarray) -> np.ndarray:
+        """What is left of the equirectangular ``env (H, W, 3)`` once its fit is taken out, for the
+        components fitted after it: the map less its radiance, held at zero."""
+        with torch.no_grad():
+            carried = Light.of(self()).equirect(*env.shape[:2]).cpu().numpy()
+        return np.clip(env - carried, 0.0, None).astype(np.float32)
 
     def energy(self) -> Tensor:
         """Its radiant energy per channel ``(3,)``."""
@@ -145,17 +157,20 @@ class LightModule(nn.Module):
     def hold(self, spec: str, iterations: int = 400) -> dict:
         """The known-light mode (``optimize.light: fixed``): put the components at their fit of the
         environment ``spec`` (``builtin:<name>`` or an .hdr/.exr path), each fitting what those
-        before it left of the map, and stop them learning (``requires_grad`` off). Returns what the
-        metadata records: the map, each component's record of its fit and, for a file, its sha256."""
-        env = load_env(spec)
+        fitted before it left of the map (:attr:`LightComponentModule.fit_order`; a procedural map
+        drawn at the first's :attr:`~LightComponentModule.fit_height`, and brought down to a later
+        one's by :func:`~stages.render.envmap.downsample`), and stop them learning
+        (``requires_grad`` off). Returns what the metadata records: the map, each component's
+        record of its fit and, for a file, its sha256."""
+        components = sorted(self.components, key=lambda c: c.fit_order)
+        env = load_env(spec, components[0].fit_height)
         record: dict = {"map": spec}
-        components = self.components
         for i, component in enumerate(components):
+            if i and env.shape[0] > component.fit_height and env.shape[0] % component.fit_height == 0:
+                env = downsample(env, env.shape[0] // component.fit_height)
             record.update(component.fit(env, iterations))
             if i + 1 < len(components):
-                with torch.no_grad():
-                    carried = Light.of(component()).equirect(*env.shape[:2]).cpu().numpy()
-                env = np.clip(env - carried, 0.0, None).astype(np.float32)
+                env = component.left_of(env)
         for p in self.parameters():
             p.requires_grad_(False)
         if not spec.startswith("builtin:"):  # a file: what it held (a resumed run checks it is the same)

@@ -1,0 +1,113 @@
+"""Each target's ceiling under each transport: the true material in our renderer, under the light
+that brings the environment into it, against Mitsuba's truth on the held-out metric views.
+
+For every target stage of a results folder (``meshes/<mesh>/<key>/target/<material>/``, with its
+metric views' ray cache) and every environment it was rendered under (the training environment
+and each of ``target.relight_environments``): our renderer given the true material and shading
+normals (the BRDF ``--brdf``, its model lobe), shadowed by the cache's stored visibility, under
+the environment's fit with ``--suns`` suns each (``0``: SG lobes alone; ``auto``: as many as the
+environment holds by ``optimize.suns: auto``'s criterion; a count), against the truth over the
+fully covered object pixels, raw and after one scale per channel. What a perfect recovery of the
+material could reach with that transport.
+
+    python -m benchmarks.quality.ceilings results/demo-offline
+    python -m benchmarks.quality.ceilings results/demo-offline --suns 0,auto --lobes 32 --brdf gltf
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+
+def target_dirs(results: Path, only: list[str] | None) -> list[Path]:
+    """Every finished target stage under ``results`` (a ``meta.json`` beside its files)."""
+    found = []
+    for meta in sorted(results.rglob("target/*/meta.json")):
+        d = meta.parent
+        name = f"{d.parents[2].name}/{d.name}"
+        if (d / "metrics.npz").is_file() and (not only or name in only):
+            found.append(d)
+    return found
+
+
+def ceilings(target: Path, suns: list[str], lobes: int, iterations: int, brdf: str, samples: int) -> list[dict]:
+    """The ceilings of one target stage's metric views, per environment and transport."""
+    import torch
+
+    from stages.config.sections import OptimizeSettings
+    from stages.geometry.normals import NormalSpec
+    from stages.geometry.raycache import RayCache
+    from stages.imaging.relit import graded_figures, truth_radiance
+    from stages.imaging.targets import FULL_COVERAGE, TargetSet, load_relit
+    from stages.imaging.views import ViewStore
+    from stages.model.lights import fit_environment
+    from stages.model.lights.sun import resolve_suns
+    from stages.render import brdf as brdfs
+
+    meta = json.loads((target / "meta.json").read_text())
+    cache_path = target.parents[1] / "raycache" / "metrics.npz"
+    cache = RayCache(cache_path)
+    truth = TargetSet(target / "metrics.npz", cache)
+    store = ViewStore(cache, torch.device("cpu"), NormalSpec("smooth"), shadows=True)
+    cases = [(meta["settings"]["environment"], truth.arrays["radiance"], truth.arrays["coverage"])]
+    if (target / "relit.npz").is_file():
+        cases += [(r.environment, r.radiance, r.coverage) for r in load_relit(target / "relit.npz", cache)]
+    share = OptimizeSettings().suns_share
+    model = brdfs.get(brdf)
+    rows = []
+    for environment, radiance, coverage in cases:
+        full = torch.from_numpy(coverage.astype("float32") >= FULL_COVERAGE)
+        goal = torch.from_numpy(radiance.astype("float32"))[full]
+        for setting in suns:
+            count, _ = resolve_suns(
+                setting if setting == "auto" else int(setting), environment, cache.visibility_directions, share
+            )
+            t0 = time.perf_counter()
+            light, record = fit_environment(environment, lobes, iterations, count, samples)
+            with torch.no_grad():
+                ours = truth_radiance(truth, store, light, model.model_lobe, model)[full]
+            rows.append(
+                {
+                    "target": f"{target.parents[2].name}/{target.name}",
+                    "environment": environment,
+                    "suns": setting,
+                    "count": count,
+                    **graded_figures(ours, goal),
+                    "seconds": time.perf_counter() - t0,
+                    "fit": record,
+                }
+            )
+    return rows
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("results", type=Path)
+    parser.add_argument("--targets", nargs="*", help="mesh/material names (all when left out)")
+    parser.add_argument("--suns", default="0,auto", help="transports: comma-separated 0, auto or counts")
+    parser.add_argument("--lobes", type=int, default=32)
+    parser.add_argument("--iterations", type=int, default=400)
+    parser.add_argument("--brdf", default="gltf")
+    parser.add_argument("--samples", type=int, default=8, help="directions per sun")
+    parser.add_argument("--out", type=Path, help="write the rows as JSON here")
+    args = parser.parse_args()
+    rows = []
+    print(f"{'target':<22} {'environment':<18} {'suns':>5} {'raw dB':>8} {'scaled dB':>10} {'s':>6}", flush=True)
+    for d in target_dirs(args.results, args.targets):
+        for row in ceilings(d, [s for s in args.suns.split(",") if s], args.lobes, args.iterations, args.brdf, args.samples):
+            rows.append(row)
+            suns = f"{row['suns']}:{row['count']}" if row["suns"] == "auto" else row["suns"]
+            print(
+                f"{row['target']:<22} {row['environment']:<18} {suns:>5} {row['psnr_db']:8.2f} {row['psnr_scaled_db']:10.2f} "
+                f"{row['seconds']:6.1f}",
+                flush=True,
+            )
+    if args.out:
+        args.out.write_text(json.dumps(rows, indent=1))
+
+
+if __name__ == "__main__":
+    main()
