@@ -52,6 +52,7 @@ from ..render.brdf import GLTF, TANGO, Brdf
 from ..render.brdf.gltf import diffuse_radiance_gltf
 from ..render.fitted_lobe import specular_radiance_fitted
 from ..render.isotropic_lobe import specular_radiance
+from ..render.light.sun import SunLight
 from ..render.sg import sg_hemisphere_integral
 from ..render.split_sum import specular_radiance_split_sum
 from ..render.visibility import lobe_visibility_bits
@@ -188,6 +189,38 @@ def _specular(model: Callable, *brdf: Brdf) -> tuple[tuple[str, ...], Callable]:
     return reads, lambda p, lt, f: model(*(p[k] for k in reads), _light(lt), *brdf)
 
 
+def _sun(lt: dict[str, Tensor]) -> SunLight:
+    """The case's lobes as suns: each axis a sun's direction, its amplitude the irradiance, its
+    width ``1 / sqrt(lam)`` the disc's radius (at most 0.35 radians): a sharpness of 1e4 is a
+    0.6-degree sun."""
+    radius = torch.clamp(torch.rsqrt(lt["sharpness"]), max=0.35)
+    return SunLight(lt["axis"], lt["amplitude"], radius, 8)
+
+
+def _sun_shading(brdf: Brdf) -> tuple[tuple[str, ...], Callable]:
+    """A BRDF's shading under the case's suns (:func:`_sun`), unshadowed: TANGO's from the
+    points' albedo, specular colour and roughness, glTF's with ``albedo`` its base colour."""
+    if brdf is TANGO:
+        reads = ("normal", "view", "albedo", "specular", "roughness")
+        return (
+            reads,
+            lambda p, lt, f: (
+                _sun(lt)
+                .shade(TANGO, p["normal"], p["view"], Material.of(TANGO, p["albedo"], p["specular"], p["roughness"]), None, None)
+                .rgb
+            ),
+        )
+    reads = ("normal", "view", "albedo", "metallic", "roughness")
+    return (
+        reads,
+        lambda p, lt, f: (
+            _sun(lt)
+            .shade(GLTF, p["normal"], p["view"], Material.gltf(p["albedo"], p["metallic"], p["roughness"]), None, None)
+            .rgb
+        ),
+    )
+
+
 #: term -> (the point inputs it reads, its function of (points, light, fixed) -> (N, C))
 TERMS: dict[str, tuple[tuple[str, ...], Callable]] = {
     "light radiance L(d)": (("direction",), lambda p, lt, f: _light(lt).radiance(p["direction"])),
@@ -206,6 +239,8 @@ TERMS: dict[str, tuple[tuple[str, ...], Callable]] = {
         ("normal", "view", "albedo", "metallic", "roughness"),
         lambda p, lt, f: _gltf_shading(p, _light(lt), _shares(lt, f)),
     ),
+    "sun (TANGO)": _sun_shading(TANGO),
+    "sun (glTF)": _sun_shading(GLTF),
 }
 
 
