@@ -340,6 +340,8 @@ def make_plan(
             "clip_model": s.guidance_mode().plan_label(s),  # what guides it
             "precision": precision_summary(s.bf16, s.bf16_networks, resolve_device(device)),
         }
+        if s.suns != 0:  # how many suns, decided as the run will decide it (on the known environment)
+            row["suns"] = planned_suns(cfg, entry["mesh"], s)
         if sec is not None:
             row["seconds"] = sec * s.iterations * entry["cells"]
             total += row["seconds"]
@@ -377,6 +379,33 @@ def make_plan(
     if device == "cpu" and any(e["paper"] for e in estimates):
         plan["paper_on_cpu"] = faster_presets(groups, cfg, device, results, cache, calibrate)
     return plan
+
+
+def planned_suns(cfg: WorkflowConfig, mesh: str, s) -> dict:
+    """``optimize.suns`` as the run will resolve it (:func:`~stages.model.lights.sun.resolve_suns`):
+    on the fixed light's map, or the image targets' environment (``target.environment``), with
+    the mesh's stored visibility directions."""
+    from .model.lights.sun import resolve_suns
+
+    environment = s.light_map if s.light == "fixed" else None
+    if environment is None and s.mitsuba_targets():
+        environment = cfg.stage_settings(mesh, "target").environment
+    raycache = cfg.stage_settings(mesh, "raycache")
+    directions = raycache.visibility_directions if raycache.visibility != "off" and s.shadows else 0
+    return resolve_suns(s.suns, environment, directions, s.suns_share)[1]
+
+
+def suns_text(record: dict) -> str:
+    """The plan's line of a group's suns (:func:`planned_suns`)."""
+    if record["setting"] != "auto":
+        return f"suns: {record['suns']}"
+    if "why" in record:
+        return f"suns: auto -> 0 ({record['why']})"
+    found = record["candidates"][: record["suns"]]
+    figures = "; ".join(f"{c['share']:.0%} of its energy within {c['radius_deg']:.2f} degrees" for c in found)
+    return f"suns: auto -> {record['suns']} on {record['environment']}" + (
+        f" ({figures})" if figures else " (no region held enough)"
+    )
 
 
 def remaining_jobs(cfg: WorkflowConfig, todo: list) -> dict[str, int]:
@@ -504,6 +533,8 @@ def plan_text(plan: dict) -> str:
             f"-> {duration(e.get('seconds'))}"
         )
         lines.append(f"    precision: {e['precision']}")
+        if "suns" in e:
+            lines.append(f"    {suns_text(e['suns'])}")
     if not plan["optimisation"]:
         lines.append("No optimisation to run.")
         return "\n".join(lines) + "\n"

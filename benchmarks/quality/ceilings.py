@@ -27,7 +27,7 @@ def target_dirs(results: Path, only: list[str] | None) -> list[Path]:
     found = []
     for meta in sorted(results.rglob("target/*/meta.json")):
         d = meta.parent
-        name = f"{d.parents[2].name}/{d.name}"
+        name = f"{d.parents[2].name}/{d.name}"  # meshes/<mesh>/<key>/target/<material>
         if (d / "metrics.npz").is_file() and (not only or name in only):
             found.append(d)
     return found
@@ -48,8 +48,7 @@ def ceilings(target: Path, suns: list[str], lobes: int, iterations: int, brdf: s
     from stages.render import brdf as brdfs
 
     meta = json.loads((target / "meta.json").read_text())
-    cache_path = target.parents[1] / "raycache" / "metrics.npz"
-    cache = RayCache(cache_path)
+    cache = RayCache(Path(meta["inputs"]["metrics"]["path"]))  # the metric views' cache it was rendered for
     truth = TargetSet(target / "metrics.npz", cache)
     store = ViewStore(cache, torch.device("cpu"), NormalSpec("smooth"), shadows=True)
     cases = [(meta["settings"]["environment"], truth.arrays["radiance"], truth.arrays["coverage"])]

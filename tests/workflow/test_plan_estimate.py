@@ -89,3 +89,25 @@ def test_the_load_meter_counts_other_processes():
     if other.others_share is None:
         pytest.skip("no /proc/stat here")
     assert other.others_share * (os.cpu_count() or 1) > 0.3, other.others_share
+
+
+def test_the_plan_says_how_many_suns_each_optimisation_gets(tmp_path):
+    """``optimize.suns: auto`` on the first demo (image targets under ``builtin:sun_sky``): the plan
+    decides as the run will, on the targets' environment, and says the sun's share and size; under
+    ``target.environment: builtin:sunset`` it finds none; a count is said as it is. No calibration
+    (the step's time is not what this checks)."""
+    import yaml
+
+    base = yaml.safe_load(DEMO.read_text())
+    for environment, needle in (
+        ("builtin:sun_sky", "suns: auto -> 1 on builtin:sun_sky (63% of its energy within 1.56 degrees)"),
+        ("builtin:sunset", "suns: auto -> 0 on builtin:sunset (no region held enough)"),
+        (None, "suns: 2"),
+    ):
+        cfg_dict = dict(base, optimize={**base["optimize"], "suns": "auto" if environment else 2})
+        if environment:
+            cfg_dict["target"] = {**base["target"], "environment": environment}
+        path = tmp_path / "suns.yaml"
+        path.write_text(yaml.safe_dump(cfg_dict))
+        p = plan_mod.make_plan(load_config_files([path]), "suns", tmp_path / "results", False, tmp_path / "cache")
+        assert needle in plan_mod.plan_text(p), plan_mod.plan_text(p)
