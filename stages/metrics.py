@@ -39,12 +39,17 @@ from .guidance.clip import load_clip
 from .guidance.objective import guidance_class
 from .guidance.scores import clip_metrics
 from .imaging.quality import material_errors
+from .imaging.relit import training_ceiling
 from .imaging.sheets import contact_sheet, save_png
 from .imaging.targets import FULL_COVERAGE, TargetSet
 from .imaging.views import ViewStore, render_views
 from .model.checkpoint import load_field
 
 log = logging.getLogger(__name__)
+
+
+#: the steps of the SG fit of the training environment for the ceiling (the relight stage's default)
+CEILING_FIT_ITERATIONS = 400
 
 
 def run(
@@ -94,6 +99,10 @@ def run(
                 held.figures["target_noise_psnr_db"] = _noise_psnr(targets_path)
                 if targets.has_truth:
                     held.figures["material"] = _material_errors(field, store, targets)
+                    if targets.environment is not None and all(k in targets.arrays for k in field.brdf.parameters):
+                        held.figures["ceiling"] = training_ceiling(
+                            field, store, targets, targets.environment, field.light.lobes, CEILING_FIT_ITERATIONS
+                        )
         result[kind.held_out_key] = held.figures
         if held.targets is not None:
             save_png(staging / "targets.png", contact_sheet(list(held.targets), len(store.azimuths())))

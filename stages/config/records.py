@@ -274,6 +274,19 @@ class MetricsRecord(StageRecord):
     image_target: dict | None = columns(
         column("target_psnr_db", "PSNR against the image targets (held-out views, object pixels)", "dB", key=("psnr_db",)),
         column("target_ssim", "SSIM against the image targets (held-out views)", key=("ssim",)),
+        column(
+            "target_ceiling_psnr_db",
+            "the training light's ceiling: the true material in our renderer with the run's transport under the "
+            "environment's fit (fully covered hits of the held-out views)",
+            "dB",
+            key=("ceiling", "ceiling_psnr_db"),
+        ),
+        column(
+            "target_recovered_hits_psnr_db",
+            "the recovered field under its learned light on the ceiling's pixels (fully covered hits)",
+            "dB",
+            key=("ceiling", "recovered_psnr_db"),
+        ),
         column("target_renderer", "who rendered the image targets (optimize.target_renderer)", key=("target_renderer",)),
         column("target_albedo_rmse", "RMSE of the recovered albedo against the truth", key=("material", "albedo_rmse")),
         column(

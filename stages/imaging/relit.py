@@ -212,6 +212,34 @@ def grade_relighting(
     return out
 
 
+@torch.no_grad()
+def training_ceiling(field, store: ViewStore, truth: TargetSet, environment: str, lobes: int, iterations: int) -> dict:
+    """The training light's ceiling beside the recovered figure, on ``store``'s views (the
+    held-out metric views of ``truth``, which carries the true material and Mitsuba's render
+    under ``environment``, the targets' own light): our renderer given the true material under
+    the environment's fit with the field's transport (:func:`~stages.model.lights.fit_environment_like`:
+    SG lobes, and suns where the field has them) and the field under its learned light, both
+    against the truth over the fully covered hits (:func:`graded_figures`: raw and scaled).
+    A recovered figure above the ceiling absorbed the renderer's error into the material."""
+    dev = store.device
+    light, record = fit_environment_like(field.light, environment, lobes, iterations, store.cache.visibility_directions)
+    full = torch.from_numpy(truth.arrays["coverage"].astype(np.float32) >= FULL_COVERAGE).to(dev)
+    goal = torch.from_numpy(truth.arrays["radiance"].astype(np.float32)).to(dev)[full]
+    brdf = brdfs.get(getattr(field, "brdf", "tango"))
+    ceiling = graded_figures(truth_radiance(truth, store, light.to(dev), field.specular_lobe, brdf)[full], goal)
+    recovered = graded_figures(_field_radiance(field, store, field.light())[full], goal)
+    return {
+        "environment": environment,
+        "ceiling_psnr_db": ceiling["psnr_db"],
+        "ceiling_psnr_scaled_db": ceiling["psnr_scaled_db"],
+        "recovered_psnr_db": recovered["psnr_db"],
+        "recovered_psnr_scaled_db": recovered["psnr_scaled_db"],
+        "pixels": int(full.sum()),
+        "pixels_are": "fully covered hits of the held-out metric views (the relighting's protocol)",
+        **record,
+    }
+
+
 @dataclass(frozen=True)
 class BudgetCase:
     """A light a relighting budget grades under: the environment's name (``builtin:<name>`` or a

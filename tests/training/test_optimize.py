@@ -327,6 +327,10 @@ def test_image_target_recovery_on_mitsuba_ground_truth(tmp_path):
         assert mat["roughness_mae"] < RECOVERY_MITSUBA_ROUGHNESS_MAE
         assert all(0.3 < r_ < 3.0 for r_ in mat["light_energy_ratio"])
         assert "eval_psnr_db" not in r["optimize"]  # Mitsuba targets exist for training and metric views only
+        # the training light's ceiling beside the figure, on the same pixels (the targets' own environment)
+        ceiling = it["ceiling"]
+        assert ceiling["environment"] == "builtin:sun_sky" and ceiling["pixels"] > 1000
+        assert 15.0 < ceiling["ceiling_psnr_db"] < 60.0 and 15.0 < ceiling["recovered_psnr_db"] < 60.0
     psnr = {k: r["metrics"]["psnr_db"] for k, r in runs.items()}
     assert max(psnr.values()) - min(psnr.values()) <= 0.3, psnr
 

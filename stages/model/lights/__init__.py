@@ -89,12 +89,13 @@ def fit_environment(spec: str, lobes: int, iterations: int, suns: int = 0, sampl
 
 
 def fit_environment_like(light: LightModule, spec: str, lobes: int, iterations: int, directions: int) -> tuple[Light, dict]:
-    """:func:`fit_environment` with the transport of a trained ``light``: suns where it has them
+    """:func:`fit_environment` with the transport of a trained ``light`` (a :class:`LightModule`;
+    anything else counts as SG lobes alone): suns where it has them
     and the environment ``spec`` holds any by the criterion it was trained with
     (:func:`~stages.model.lights.sun.sun_criterion`, with the cached visibility's ``directions``:
     a sunset relit without a sun, a sunny sky with one), else its SG lobes alone. The relight
     stage's and the relighting budget's light for each environment (and its ceiling's)."""
-    sun = dict(light.named_children()).get(SunLightModule.kind)
+    sun = dict(light.named_children()).get(SunLightModule.kind) if isinstance(light, torch.nn.Module) else None
     if sun is None:
         return fit_environment(spec, lobes, iterations)
     count, decided = sun_criterion(load_env(spec, SunLightModule.fit_height), directions, sun.share, sun.suns)
