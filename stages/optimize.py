@@ -103,6 +103,7 @@ def run(
             settings=settings.to_dict(),
             final_similarity=result.get("final_similarity"),
             eval_psnr_db=result.get("eval_psnr_db"),
+            light_components=run.field.light.describe(),
         )
         meta = metadata(
             stage="optimize",
@@ -125,7 +126,6 @@ def run(
                 "parameters": sum(p.numel() for p in run.field.parameters()),
                 "light_energy": run.field.light.energy().tolist(),
                 "light_lobes": run.field.light.lobes,
-                "light_components": run.field.light.describe(),
                 "light_pruned": run.light_pruned,
                 "light": run.light_record,
                 "suns": run.suns_record,

@@ -15,6 +15,7 @@ that read them; no torch, no numpy.
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cache
@@ -193,6 +194,18 @@ def _weights_label(record: OptimizeRecord) -> str:
     return record.weights_label()
 
 
+def _suns_label(record) -> list[str] | None:
+    """Each learned sun of an optimisation's light in words (None where it has none)."""
+    suns = [sun for c in record.light_components or () if c.get("kind") == "sun" for sun in c.get("suns", ())]
+    if not suns:
+        return None
+    return [
+        f"elevation {s['elevation_deg']:.1f} deg, azimuth {math.degrees(s['azimuth_rad']):.1f} deg, "
+        f"radius {s['radius_deg']:.2f} deg, irradiance {', '.join(f'{x:.3g}' for x in s['irradiance'])}"
+        for s in suns
+    ]
+
+
 @dataclass(frozen=True)
 class OptimizeRecord(StageRecord):
     """The optimisation: its prompt, guidance and weights, and its figures on the evaluation views
@@ -212,6 +225,16 @@ class OptimizeRecord(StageRecord):
     )
     eval_psnr_db: float | None = columns(
         column("", "PSNR against the SG targets on the evaluation views (object pixels)", "dB"), default=None
+    )
+    #: each component of the learned light, as the optimisation describes it (``meta.json``)
+    light_components: list | None = columns(
+        column(
+            "learned_suns",
+            "each learned sun (optimize.suns): its elevation and azimuth, angular radius and irradiance per channel",
+            derive=_suns_label,
+            sep=" | ",
+        ),
+        default=None,
     )
 
     def stats(self) -> dict[str, Any]:

@@ -22,6 +22,13 @@ EXAMPLES = {
         weights="w",
         test_only_weights=False,
         settings={"iterations": 9, "target_material": "wood"},
+        light_components=[
+            {"kind": "sg", "lobes": 4},
+            {
+                "kind": "sun",
+                "suns": [{"elevation_deg": 35.0, "azimuth_rad": 2.2, "radius_deg": 1.5, "irradiance": [2.8, 2.6, 2.4]}],
+            },
+        ],
     ),
     r.BakeRecord: r.BakeRecord(texture_size=512, bake_psnr_db=31.5),
     r.ExportRecord: r.ExportRecord(["usdchecker"], 0, 1, 0, 2),
@@ -134,3 +141,12 @@ def test_the_text_form_is_decided_once_and_leaves_other_values_alone():
     row = {"mesh": "m", "relit_psnr_db": [24.126], "lod_faces": None, "faces_before": 12, "usd_validators": 3}
     assert r.text_row(row) == {"mesh": "m", "relit_psnr_db": "24.13", "lod_faces": None, "faces_before": 12, "usd_validators": 3}
     assert r.text_row({"relit_psnr_db": []})["relit_psnr_db"] is None
+
+
+def test_the_learned_suns_are_said_in_words():
+    """The optimisation's light components (``meta.json``) give the summary's ``learned_suns``: one
+    text per sun, its elevation, azimuth, radius and irradiance; none for a light of SG lobes alone."""
+    row = EXAMPLES[r.OptimizeRecord].row()
+    assert row["learned_suns"] == ["elevation 35.0 deg, azimuth 126.1 deg, radius 1.50 deg, irradiance 2.8, 2.6, 2.4"]
+    plain = dataclasses.replace(EXAMPLES[r.OptimizeRecord], light_components=[{"kind": "sg", "lobes": 4}])
+    assert plain.row()["learned_suns"] is None
