@@ -42,6 +42,7 @@ from .core.device import precision_summary, resolve_device
 from .core.errors import StageInputError
 from .core.provenance import write_json_atomic
 from .core.safefiles import read_json, read_text
+from .model.lights.sun import resolve_suns
 from .reference.mitsuba import choose_variant
 from .reference.targets import probe, target_samples
 from .training.calibrate import seconds_per_step
@@ -385,8 +386,6 @@ def planned_suns(cfg: WorkflowConfig, mesh: str, s) -> dict:
     """``optimize.suns`` as the run will resolve it (:func:`~stages.model.lights.sun.resolve_suns`):
     on the fixed light's map, or the image targets' environment (``target.environment``), with
     the mesh's stored visibility directions."""
-    from .model.lights.sun import resolve_suns
-
     environment = s.light_map if s.light == "fixed" else None
     if environment is None and s.mitsuba_targets():
         environment = cfg.stage_settings(mesh, "target").environment
