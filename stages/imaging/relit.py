@@ -188,7 +188,8 @@ def grade_relighting(
     out = []
     dev = next(field.parameters()).device
     for r in relit:
-        fitted, record = fit_environment_like(field.light, r.environment, lobes, iterations, store.cache.visibility_directions)
+        directions = store.cache.visibility_directions
+        fitted, record = fit_environment_like(getattr(field, "light", None), r.environment, lobes, iterations, directions)
         light = fitted.to(dev)
         full = torch.from_numpy(r.coverage >= FULL_COVERAGE).to(dev)
         truth_linear = torch.from_numpy(r.radiance).to(dev)[full]
@@ -222,7 +223,8 @@ def training_ceiling(field, store: ViewStore, truth: TargetSet, environment: str
     against the truth over the fully covered hits (:func:`graded_figures`: raw and scaled).
     A recovered figure above the ceiling absorbed the renderer's error into the material."""
     dev = store.device
-    light, record = fit_environment_like(field.light, environment, lobes, iterations, store.cache.visibility_directions)
+    directions = store.cache.visibility_directions
+    light, record = fit_environment_like(getattr(field, "light", None), environment, lobes, iterations, directions)
     full = torch.from_numpy(truth.arrays["coverage"].astype(np.float32) >= FULL_COVERAGE).to(dev)
     goal = torch.from_numpy(truth.arrays["radiance"].astype(np.float32)).to(dev)[full]
     brdf = brdfs.get(getattr(field, "brdf", "tango"))
@@ -290,7 +292,8 @@ def relight_budget(field, store: ViewStore, truth: TargetSet, cases: list[Budget
     learned = field.light()
     out = []
     for case in cases:
-        fitted, record = fit_environment_like(field.light, case.environment, lobes, iterations, store.cache.visibility_directions)
+        directions = store.cache.visibility_directions
+        fitted, record = fit_environment_like(getattr(field, "light", None), case.environment, lobes, iterations, directions)
         fitted = fitted.to(dev)
         full = torch.from_numpy(case.coverage >= FULL_COVERAGE).to(dev)
         goal = torch.from_numpy(np.asarray(case.radiance, np.float32)).to(dev)[full]
