@@ -21,6 +21,7 @@ from torch import Tensor, nn
 from ..render import brdf as brdfs
 from ..render.brdf import Brdf
 from ..render.products import Linear
+from ..render.shading import tangent_frame
 
 
 # ------------------------------------------------------------------------------------ encodings
@@ -376,18 +377,6 @@ class SVBRDFNet(nn.Module):
 
 
 # --------------------------------------------------------------------------------------- normals
-def tangent_frame(n: Tensor) -> tuple[Tensor, Tensor]:
-    """An orthonormal tangent frame ``t, b (N, 3)`` for unit normals ``n (N, 3)``, defined and
-    smooth everywhere except across the plane ``n_z = 0`` where its sign convention flips
-    (Duff et al. 2017, "Building an orthonormal basis, revisited", JCGT 6(1)). Exact; valid at
-    both poles (``n = +-z``), unlike spherical angles, whose azimuth is undefined there."""
-    x, y, z = n.unbind(-1)
-    sign = torch.where(z >= 0, torch.ones_like(z), -torch.ones_like(z))
-    a = -1.0 / (sign + z)
-    b = x * y * a
-    t = torch.stack([1.0 + sign * x * x * a, sign * b, -sign * x], dim=-1)
-    bt = torch.stack([b, sign + y * y * a, -y], dim=-1)
-    return t, bt
 
 
 class NormalNet(nn.Module):

@@ -349,6 +349,21 @@ def view_frame(normal: Tensor, view: Tensor, cos_nv: Tensor) -> tuple[Tensor, Te
     return tangent, across, (view * tangent).sum(-1, keepdim=True), (view * across).sum(-1, keepdim=True)
 
 
+def tangent_frame(n: Tensor) -> tuple[Tensor, Tensor]:
+    """An orthonormal tangent frame ``t, b (N, 3)`` for unit normals ``n (N, 3)``, defined and
+    smooth everywhere except across the plane ``n_z = 0`` where its sign convention flips
+    (Duff et al. 2017, "Building an orthonormal basis, revisited", JCGT 6(1)); also the frame of a
+    sun's disc (:mod:`stages.render.light.sun`). Exact; valid at
+    both poles (``n = +-z``), unlike spherical angles, whose azimuth is undefined there."""
+    x, y, z = n.unbind(-1)
+    sign = torch.where(z >= 0, torch.ones_like(z), -torch.ones_like(z))
+    a = -1.0 / (sign + z)
+    b = x * y * a
+    t = torch.stack([1.0 + sign * x * x * a, sign * b, -sign * x], dim=-1)
+    bt = torch.stack([b, sign + y * y * a, -y], dim=-1)
+    return t, bt
+
+
 def in_own_precision(render: Callable[..., Shading], normal: Tensor, *args) -> Shading:
     """``render(normal, *args)`` with any enclosing autocast switched off: the renderer's cosines
     come from matrix products, which an autocast would round to bfloat16 (8 bits of mantissa: a lobe

@@ -36,7 +36,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..shading import Shading
+from ..shading import Shading, tangent_frame
 
 #: the golden angle, the azimuth step of :func:`cap_offsets`' spiral
 GOLDEN_ANGLE = math.pi * (3.0 - math.sqrt(5.0))
@@ -62,26 +62,12 @@ def solid_angle(radius: Tensor) -> Tensor:
     return 2.0 * math.pi * cap_height(radius)
 
 
-def orthonormal_frame(axis: Tensor) -> tuple[Tensor, Tensor]:
-    """Two unit vectors ``t, b (..., 3)`` completing unit ``axis (..., 3)`` to a right-handed
-    frame, continuous everywhere but where ``z = -1`` crosses (Duff et al. 2017, "Building an
-    Orthonormal Basis, Revisited", JCGT 6(1): the sign-branched form, no division by a small
-    number)."""
-    x, y, z = axis.unbind(-1)
-    sign = torch.where(z >= 0, torch.ones_like(z), -torch.ones_like(z))
-    a = -1.0 / (sign + z)
-    b = x * y * a
-    t = torch.stack([1.0 + sign * x * x * a, sign * b, -sign * x], dim=-1)
-    s = torch.stack([b, sign + y * y * a, -y], dim=-1)
-    return t, s
-
-
 def disc_directions(axis: Tensor, radius: Tensor, u: Tensor, phi: Tensor) -> Tensor:
     """The quadrature's directions ``(S, M, 3)`` inside the discs of unit ``axis (S, 3)`` and
     angular ``radius (S, 1)`` (:func:`cap_offsets`' ``u`` and ``phi (M,)``): ``cos theta = 1 - u
     h``, ``sin theta = sqrt(u h (2 - u h))`` with ``h = 1 - cos rho`` (:func:`cap_height`), so
     that a disc of radius 1e-6 keeps its directions apart and differentiable in ``rho``."""
-    t, s = orthonormal_frame(axis)
+    t, s = tangent_frame(axis)
     depth = u[None, :] * cap_height(radius)  # (S, M): 1 - cos theta
     sin = torch.sqrt(torch.clamp(depth * (2.0 - depth), min=0.0))
     across = torch.cos(phi)[None, :, None] * t[:, None, :] + torch.sin(phi)[None, :, None] * s[:, None, :]
