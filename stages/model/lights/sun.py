@@ -203,8 +203,9 @@ class SunLightModule(LightComponentModule):
     def fit(self, env: np.ndarray, iterations: int) -> dict:
         """Its suns at the map's brightest compact regions (:func:`find_suns`); what the map keeps
         once they are taken out is :meth:`left_of`'s."""
-        found, _ = find_suns(env, self.suns)
+        found, left = find_suns(env, self.suns)
         self.set_suns(found)
+        self._left = (env, left)  # what left_of gives for this map, without searching it again
         return {"suns_found": [s.record() for s in found]}
 
     def start_at(self, environment: str) -> dict:
@@ -217,7 +218,10 @@ class SunLightModule(LightComponentModule):
 
     def left_of(self, env: np.ndarray) -> np.ndarray:
         """The map with its suns' regions at their background: what the components fitted after
-        it take."""
+        it take (the fit's own, where it was just fitted to ``env``)."""
+        fitted, self._left = getattr(self, "_left", None), None  # (not kept: a map is megabytes)
+        if fitted is not None and fitted[0] is env:
+            return fitted[1]
         return find_suns(env, self.suns)[1]
 
     @torch.no_grad()
