@@ -6,8 +6,9 @@ The layout is ``bake.uv``'s (:mod:`stages.assets.layouts`): the input's own wher
 The field is evaluated at every covered texel centre (base colour, roughness, specular colour and
 the predicted normal in tangent space), the ambient occlusion is written into the
 metallic-roughness texture's red channel where the field was trained with shadows
-(``bake.occlusion``; :func:`~stages.assets.baking.occlusion_decision`), the learned SG light is
-written as an equirectangular image (``light.exr`` and ``light.hdr``), and the baked asset is
+(``bake.occlusion``; :func:`~stages.assets.baking.occlusion_decision`), the learned light's
+environment (its SG lobes) is written as an equirectangular image (``light.exr`` and ``light.hdr``)
+and its suns as distant lights (``meta.json``'s ``distant_lights``), and the baked asset is
 rendered back from the evaluation views and compared with the field's own renders (PSNR over object
 pixels). Conventions (texel centres,
 ``st``, the tangent frame) are in :mod:`stages.assets.baking`.
@@ -112,6 +113,8 @@ def run(
             "texels_per_area_percentiles": density_percentiles(mesh.vertices, mesh.faces, res.atlas.uv, res.atlas.size),
             # the BRDF the textures hold (optimize.brdf): the exporters map them accordingly
             "brdf": field.brdf.name,
+            # the learned suns, which light.exr leaves out: the assets carry them as lights
+            "distant_lights": [d.record() for d in res.distant],
             # the ambient occlusion map in metallic_roughness.png's red channel (bake.occlusion)
             "occlusion": {**occlusion, **(ao.summary() if ao is not None else {})},
             "bake_psnr_pixels": "object pixels of the evaluation views, sRGB, baked textures vs neural field",

@@ -1,7 +1,9 @@
 """export: turn a bake into an asset pack: the asset in every export format (the table
 :data:`stages.config.layout.EXPORT_FORMATS`, the writers :mod:`stages.assets.formats`: glTF 2.0,
 ``model.glb``; USD, ``model.usda`` + packaged ``model.usdz``), textures, the learned light and a
-preview image, each file validated.
+preview image, each file validated. The learned light's environment ships as ``light.exr`` (the
+USD's DomeLight) and its suns as lights in the files (glTF ``KHR_lights_punctual`` directional
+lights, USD ``DistantLight`` s).
 
 Where the bake kept the input's UV layout (``bake.uv``), the asset is the input's own topology
 (:mod:`stages.assets.ownformat`): a glTF input's own document with new materials, an OBJ input's
@@ -20,7 +22,7 @@ from pathlib import Path
 from PIL import Image
 
 from .assets import formats
-from .assets.formats import AssetInfo, read_atlas, write_asset_files
+from .assets.formats import AssetInfo, read_atlas, recorded_lights, write_asset_files
 from .assets.layouts import kept_materials, kept_source
 from .assets.ownformat import asset_geometry, own_document, write_obj
 from .config.brdfs import brdf_spec
@@ -68,6 +70,8 @@ def run(
     materials = None if kept is None else kept_materials(bake_stats, kept)
     asset = asset_geometry(mesh, atlas, tf, settings, kept, materials)
     geom = asset.geom
+    # the learned suns, their directions in the files' frame (the input's own: R^T d)
+    lights = recorded_lights(bake_stats, tf.rotation.T if asset.own_frame else None)
     extra_files: list[str] = []
     with staged_outputs(out_dir) as staging:
         with timer("copy"):
@@ -78,11 +82,11 @@ def run(
             copy_file(preview, staging / "preview.png", remedy="Rerun the bake stage.")
         instead, changed = {}, []  # a glTF input's own document; what of it was not carried over, and why
         if kept is not None and kept.kind == GLTF_SOURCE:
-            instead = own_document(kept, origin, brdf, occlusion, geom.slot_textures, changed)
+            instead = own_document(kept, origin, brdf, occlusion, geom.slot_textures, changed, lights)
         if kept is not None and kept.kind == OBJ_SOURCE:
             with timer("obj"):
                 extra_files = write_obj(staging, geom, kept, None if settings.units == "original" else tf, brdf)
-        info = AssetInfo(asset.meters_per_unit, name, origin, brdf, occlusion, settings)
+        info = AssetInfo(asset.meters_per_unit, name, origin, brdf, occlusion, settings, lights=lights)
         reports = write_asset_files(staging, geom, info, timer, instead)
         files = export_files()
         with open_read(staging / TEXTURE_FILES["basecolor"], IMAGE_LIMIT) as fh, Image.open(fh) as img:
@@ -101,6 +105,8 @@ def run(
             "texture_size": texture_size,
             "brdf": brdf.name,
             "occlusion": occlusion,
+            # the learned suns as the files carry them (glTF KHR_lights_punctual, USD DistantLight)
+            "distant_lights": [light.record() for light in lights],
             "validation": reports,
             **ExportRecord(**{k: v for e in formats.exporters() for k, v in e.record(reports).items()}).stats(),
             "bounds": [geom.positions.min(0).tolist(), geom.positions.max(0).tolist()],

@@ -349,18 +349,17 @@ def smoke_run(tmp_path_factory) -> SmokeRun:
     return SmokeRun(work, **json.loads(done.read_text()))
 
 
-@pytest.fixture(scope="session")
-def trained_cell(tmp_path_factory):
-    """A cell of TANGO's BRDF trained for two steps with the tiny test CLIP on the built-in candle (smooth shading
-    normals: its creases and MikkTSpace frames reach the assets), baked and exported:
+def make_cell(d: Path, **optimize) -> Path:
+    """A cell trained for two steps with the tiny test CLIP on the built-in candle (``optimize``:
+    its settings beyond the small ones here), baked and exported into ``d``:
     ``mesh.ply, transform.json, train/eval.npz, opt/, bake/, export/``."""
-    from stages import bake, export, optimize
+    from stages import bake, export
+    from stages import optimize as optimize_stage
     from stages.config.sections import BakeSettings, ExportSettings, NormalizeSettings, OptimizeSettings, RaycacheSettings
     from stages.geometry.meshio import save_ply
     from stages.geometry.normalization import normalize_mesh
     from stages.raycache import run as raycache_run
 
-    d = tmp_path_factory.mktemp("cell")
     res = normalize_mesh("builtin:candle", NormalizeSettings())
     save_ply(d / "mesh.ply", res.mesh)
     (d / "transform.json").write_text(json.dumps(res.transform.to_json()))
@@ -371,14 +370,20 @@ def trained_cell(tmp_path_factory):
         d / "rc.json",
         RaycacheSettings(views=4, resolution=64, eval_azimuths=4, eval_elevations_deg=(0.0, 30.0), eval_resolution=48),
     )
-    s = OptimizeSettings(
-        iterations=2,
-        clip_tiny_test=True,
-        image_size=64,
-        width=16,
-        crops=1,
-        light_lobes=8,
-        eval_width=32,
+    small = dict(iterations=2, clip_tiny_test=True, image_size=64, width=16, crops=1, light_lobes=8, eval_width=32)
+    s = OptimizeSettings(**{**small, **optimize})
+    optimize_stage.run(d / "train.npz", d / "eval.npz", "a candle made of wax", d / "opt", s, "cpu")
+    bake.run(d / "mesh.ply", d / "opt" / "field.pt", d / "eval.npz", d / "bake", BakeSettings(texture_size=256, eval_width=48))
+    export.run(d / "mesh.ply", d / "transform.json", d / "bake", d / "bake" / "preview.png", d / "export", ExportSettings())
+    return d
+
+
+@pytest.fixture(scope="session")
+def trained_cell(tmp_path_factory):
+    """A cell of TANGO's BRDF (smooth shading normals: its creases and MikkTSpace frames reach the
+    assets) from :func:`make_cell`."""
+    return make_cell(
+        tmp_path_factory.mktemp("cell"),
         shading_normals="smooth",
         # broad lobes: after two steps the light is its initialisation, and TANGO's sharp lobes
         # (the default) made Blender's diffuse pass agree with ours at 30.4 dB instead of above 33
@@ -390,23 +395,13 @@ def trained_cell(tmp_path_factory):
         # and the workflow tests run the defaults end to end, Blender's round trip included
         brdf="tango",
     )
-    optimize.run(d / "train.npz", d / "eval.npz", "a candle made of wax", d / "opt", s, "cpu")
-    bake.run(
-        d / "mesh.ply",
-        d / "opt" / "field.pt",
-        d / "eval.npz",
-        d / "bake",
-        BakeSettings(texture_size=256, eval_width=48),
-    )
-    export.run(
-        d / "mesh.ply",
-        d / "transform.json",
-        d / "bake",
-        d / "bake" / "preview.png",
-        d / "export",
-        ExportSettings(),
-    )
-    return d
+
+
+@pytest.fixture(scope="session")
+def sun_cell(tmp_path_factory):
+    """A cell lit by ``builtin:sun_sky`` as a known light with its sun found (``suns: auto``: one
+    sun and the SG lobes for the rest), of the default glTF BRDF, from :func:`make_cell`."""
+    return make_cell(tmp_path_factory.mktemp("suncell"), light="fixed", light_map="builtin:sun_sky", suns="auto")
 
 
 def run_lod(cell: Path, out: Path, settings, bake=None):

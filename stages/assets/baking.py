@@ -9,7 +9,9 @@ centres, and the baked textures rendered back for the fidelity check.
    specular colour and the predicted normal. The normal is stored in tangent space.
 4. Empty texels are filled by dilation (so bilinear filtering and mip-maps do not bleed the
    background across seams), then the rest with the mean.
-5. The learned SG light is written as an equirectangular image (``light.exr`` and ``light.hdr``).
+5. The learned light's environment (its SG lobes) is written as an equirectangular image
+   (``light.exr`` and ``light.hdr``) and its suns as distant lights (the bake's ``meta.json``),
+   which the exported assets carry as lights.
 6. Fidelity: the baked asset (textures sampled bilinearly per pixel, as a viewer would) is
    rendered with the same SG renderer and light from the evaluation views and compared with the
    neural field's renders: PSNR over object pixels.
@@ -46,6 +48,7 @@ from ..render import brdf as brdfs
 from ..render.brdf import Brdf
 from ..render.color import srgb_decode, srgb_encode, to_u8
 from ..render.envmap import equirect_directions
+from ..render.light import DistantLight
 from ..render.shading import face_viewer
 from .layouts import KeptLayout
 
@@ -54,8 +57,8 @@ from .layouts import KeptLayout
 class BakeResult:
     """A bake: its ``atlas`` (UVs per face), the ``textures`` (uint8 ``(S, S, 3)`` images as
     written; a kept layout's first texture set), the frame, the share of texels covered, the
-    light's image and a kept layout's further texture ``sets`` (folder below ``textures/`` ->
-    images, one per further material slot)."""
+    light's environment image and ``distant`` lights (:func:`light_image`) and a kept layout's
+    further texture ``sets`` (folder below ``textures/`` -> images, one per further material slot)."""
 
     atlas: Atlas
     textures: dict[str, np.ndarray]
@@ -63,6 +66,7 @@ class BakeResult:
     coverage: float
     light_equirect: np.ndarray
     sets: dict[str, dict[str, np.ndarray]] = dataclasses.field(default_factory=dict)
+    distant: list[DistantLight] = dataclasses.field(default_factory=list)
 
 
 @dataclass
@@ -181,14 +185,19 @@ def texture_images(
     }
 
 
-def light_image(field, width: int, device="cpu") -> np.ndarray:
-    """The field's learned SG light as an equirectangular ``(width / 2, width, 3)`` float32 image."""
+def light_image(field, width: int, device="cpu") -> tuple[np.ndarray, list[DistantLight]]:
+    """The field's learned light as an asset carries it: its environment (the SG lobes) as an
+    equirectangular ``(width / 2, width, 3)`` float32 image, and its suns as distant lights
+    (:meth:`~stages.render.light.Light.distant_lights`), which the image leaves out."""
     light = field.light()
+    sky = light.environment()
     h = width // 2
+    if sky is None:
+        return np.zeros((h, width, 3), np.float32), light.distant_lights()
     dirs = equirect_directions(h, width).to(device)
     with torch.no_grad():
-        env = light.radiance(dirs.reshape(-1, 3))
-    return env.reshape(h, width, 3).cpu().numpy().astype(np.float32)
+        env = sky.radiance(dirs.reshape(-1, 3))
+    return env.reshape(h, width, 3).cpu().numpy().astype(np.float32), light.distant_lights()
 
 
 def occlusion_decision(setting: str, field, cache) -> dict:
@@ -232,12 +241,12 @@ def bake_field(
     the atlas and evaluate ``field`` at every covered texel (and the ambient ``occlusion`` there,
     when given)."""
     size = settings.size_for(len(mesh.faces))
-    env = light_image(field, settings.light_width, device)
+    env, distant = light_image(field, settings.light_width, device)
     if layout is None:
         texels = atlas_texels(mesh, size, settings.padding, settings.max_chart_share)
         frames = CornerFrames.build(mesh.vertices, mesh.faces, texels.atlas.uv, field.normals)
         textures = bake_texels(mesh, field, texels, frames, settings, device, occlusion, False)
-        return BakeResult(texels.atlas, textures, frames, float(texels.filled.mean()), env)
+        return BakeResult(texels.atlas, textures, frames, float(texels.filled.mean()), env, distant=distant)
     frames = layout.frames(mesh)
     face_set = layout.face_set
     baked, coverage = {}, []
@@ -247,7 +256,7 @@ def bake_field(
         coverage.append(float(texels.filled.mean()))
     first = baked.pop("")
     atlas = Atlas(layout.uv.astype(np.float64), size, layout.check.islands, float(np.mean(coverage)))
-    return BakeResult(atlas, first, frames, float(np.mean(coverage)), env, baked)
+    return BakeResult(atlas, first, frames, float(np.mean(coverage)), env, baked, distant)
 
 
 def bake_texels(

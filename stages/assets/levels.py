@@ -39,7 +39,7 @@ from ..imaging.views import ViewStore, radiance_at_hits
 from ..render.color import linear_to_srgb
 from . import formats
 from .baking import bake_level, decode_textures, render_baked_views
-from .formats import AssetInfo, Level, export_mesh, write_asset_files
+from .formats import AssetInfo, Level, export_mesh, recorded_lights, write_asset_files
 
 log = logging.getLogger(__name__)
 
@@ -92,7 +92,8 @@ class LodSource:
     def asset_info(self) -> AssetInfo:
         """What every level's files (and the combined ones) write beside their geometry."""
         brdf, occlusion = self.field.brdf.spec, self.occlusion is not None
-        return AssetInfo(self.export.meters_per_unit, self.name, self.origin, brdf, occlusion, self.export)
+        lights = recorded_lights(self.bake_meta.get("stats", {}))
+        return AssetInfo(self.export.meters_per_unit, self.name, self.origin, brdf, occlusion, self.export, lights=lights)
 
 
 class LevelGrader:

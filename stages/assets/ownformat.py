@@ -42,7 +42,8 @@ from ..core.safefiles import IMAGE_LIMIT, open_read, plain_file, read_bytes
 from ..geometry.normalization import Similarity
 from ..geometry.sourcemesh import GLTF_SOURCE, ObjLines, SourceMesh, load_gltf_document
 from ..geometry.tangents import mikktspace
-from .formats.gltf import GlbBuffer, glb_material, glb_sampler
+from ..render.light import DistantLight
+from .formats.gltf import LIGHTS_EXTENSION, GlbBuffer, add_distant_lights, glb_material, glb_sampler, punctual_lights
 from .formats.mesh import ExportMesh, export_mesh
 
 log = logging.getLogger(__name__)
@@ -219,7 +220,13 @@ DOCUMENT_FORMAT = export_format_of("glb").name
 
 
 def own_document(
-    source: SourceMesh, origin: dict, brdf: BrdfSpec | str, occlusion: bool, folders: tuple[str, ...], changed: list[str]
+    source: SourceMesh,
+    origin: dict,
+    brdf: BrdfSpec | str,
+    occlusion: bool,
+    folders: tuple[str, ...],
+    changed: list[str],
+    lights: tuple[DistantLight, ...] = (),
 ) -> dict[str, Callable[[Path], None]]:
     """The writer of a glTF input's own document (:func:`write_document_glb` into a folder's
     :data:`DOCUMENT_FILE`, reading the folder's ``textures/``) in place of its format's writer, as
@@ -228,7 +235,8 @@ def own_document(
 
     def write(folder: Path) -> None:
         folder = Path(folder)
-        changed.extend(write_document_glb(folder / DOCUMENT_FILE, source, folder / "textures", origin, brdf, occlusion, folders))
+        notes = write_document_glb(folder / DOCUMENT_FILE, source, folder / "textures", origin, brdf, occlusion, folders, lights)
+        changed.extend(notes)
 
     return {DOCUMENT_FORMAT: write}
 
@@ -241,12 +249,14 @@ def write_document_glb(
     brdf: BrdfSpec | str,
     occlusion: bool,
     folders: tuple[str, ...] = (),
+    lights: tuple[DistantLight, ...] = (),
 ) -> list[str]:
     """``model.glb``: the input glTF document with its textured primitives' materials replaced by
     ones reading the baked texture sets (module docstring; ``folders``: each slot's set below
-    ``textures_dir``). The file needs nothing beside it and names nothing of this machine: images
-    are embedded or dropped (:func:`own_images`), local paths in ``extras`` removed
-    (:func:`drop_local_paths`); each change is logged and returned, one line each."""
+    ``textures_dir``), the learned suns (``lights``) added as lights. The file needs nothing beside
+    it and names nothing of this machine: images are embedded or dropped (:func:`own_images`),
+    local paths in ``extras`` removed (:func:`drop_local_paths`); each change is logged and
+    returned, one line each."""
     import pygltflib as g
 
     brdf = brdf_spec(brdf)
@@ -280,6 +290,7 @@ def write_document_glb(
     notes += drop_local_paths(doc)
     for note in notes:
         log.warning("%s: %s", Path(source.path).name, note)
+    notes += _add_lights(g, doc, lights)
     doc.extensionsUsed = sorted(set(doc.extensionsUsed or []) | set(brdf.gltf_extensions))
     extras = doc.asset.extras if isinstance(doc.asset.extras, dict) else {}
     doc.asset.extras = {**extras, ORIGIN_METADATA_KEY: origin}
@@ -290,6 +301,26 @@ def write_document_glb(
     with atomic_path(path) as tmp:
         doc.save_binary(str(tmp))
     return notes
+
+
+def _add_lights(g, doc, lights: tuple[DistantLight, ...]) -> list[str]:
+    """The learned suns into the document: ``KHR_lights_punctual`` directional lights after its
+    own lights, one node each in its default scene; the change, one line (none without suns)."""
+    if not lights:
+        return []
+    ext = dict(doc.extensions or {})
+    own = list(ext.get(LIGHTS_EXTENSION, {}).get("lights", []))
+    ext[LIGHTS_EXTENSION] = {**ext.get(LIGHTS_EXTENSION, {}), "lights": [*own, *punctual_lights(lights)]}
+    doc.extensions = ext
+    doc.nodes = list(doc.nodes or [])
+    used = list(doc.extensionsUsed or [])
+    added = add_distant_lights(g, doc.nodes, lights, used, len(own))
+    doc.extensionsUsed = used
+    if not doc.scenes:
+        doc.scenes = [g.Scene(nodes=[])]
+    scene = doc.scenes[doc.scene or 0]
+    scene.nodes = [*(scene.nodes or []), *added]
+    return [f"added the {len(lights)} learned sun(s) as {LIGHTS_EXTENSION} directional lights (nodes {added})"]
 
 
 def _merge_buffers(doc, blobs: list[bytes], buffer: GlbBuffer) -> None:

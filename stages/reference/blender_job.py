@@ -163,6 +163,39 @@ def mesh_corners(ob) -> dict[str, np.ndarray]:
     return out
 
 
+def describe_light(ob) -> dict:
+    """A light object as imported: its type, strength (``energy``), colour, angular diameter
+    (a sun's ``angle``) and the unit direction it comes from in Blender's world (its local ``+z``:
+    a Blender light shines along its ``-z``)."""
+    d = ob.matrix_world.to_3x3() @ Vector((0.0, 0.0, 1.0))
+    d.normalize()
+    return {
+        "name": ob.name,
+        "type": ob.data.type,
+        "energy": float(ob.data.energy),
+        "color": [float(c) for c in ob.data.color],
+        "angle": float(getattr(ob.data, "angle", 0.0)),
+        "direction": [float(c) for c in d],
+    }
+
+
+def use_suns(suns: list[dict]) -> None:
+    """Replace the scene's lights by ``suns`` (each ``direction`` it comes from in Blender's world,
+    ``strength`` (irradiance), ``color`` and ``angle``, its angular diameter in radians): the lights
+    the asset file means, whatever an importer made of them."""
+    scene = bpy.context.scene
+    for ob in [o for o in scene.objects if o.type == "LIGHT"]:
+        bpy.data.objects.remove(ob, do_unlink=True)
+    for k, sun in enumerate(suns):
+        data = bpy.data.lights.new(f"JudgeSun{k}", type="SUN")
+        data.energy = float(sun["strength"])
+        data.color = [float(c) for c in sun["color"]]
+        data.angle = float(sun["angle"])
+        ob = bpy.data.objects.new(f"JudgeSun{k}", data)
+        ob.matrix_world = Vector((0.0, 0.0, 1.0)).rotation_difference(Vector(sun["direction"])).to_matrix().to_4x4()
+        scene.collection.objects.link(ob)
+
+
 def inspect(out: Path) -> dict:
     scene = bpy.context.scene
     report = {"objects": [], "materials": [], "world": describe_world(scene.world)}
@@ -195,6 +228,7 @@ def inspect(out: Path) -> dict:
                 arrays = mesh_corners(ob)
         report["objects"].append(entry)
     report["materials"] = [describe_material(m) for m in bpy.data.materials if m.users]
+    report["lights"] = [describe_light(ob) for ob in scene.objects if ob.type == "LIGHT"]
     report["unit_scale_length"] = float(scene.unit_settings.scale_length)
     if arrays:
         np.savez(out / "mesh.npz", **arrays)
@@ -333,6 +367,8 @@ def main(argv: list[str]) -> int:
         use_environment(render_job["environment"], render_job.get("environment_rotation_z", 0.0))
     if job.get("asset") and job.get("inspect", True):
         report.update(inspect(out))
+    if "suns" in render_job:
+        use_suns(render_job["suns"])
     if render_job:
         report["render"] = render(render_job, out)
     (out / "report.json").write_text(json.dumps(report, indent=1))

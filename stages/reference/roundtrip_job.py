@@ -22,7 +22,7 @@ from ..core.provenance import Timer
 from ..geometry.raycache import RayCache
 from ..imaging.views import ViewStore
 from ..render.color import srgb_encode
-from .blender import BlenderUnavailable, check_import, compare_renders, render_job, run_job
+from .blender import Y_UP_TO_Z_UP, BlenderUnavailable, check_import, compare_renders, render_job, run_job
 
 log = logging.getLogger(__name__)
 
@@ -100,19 +100,67 @@ class RoundtripScene:
     document: bool = False
 
 
+def file_suns(export_meta: dict) -> list[dict]:
+    """The learned suns the exported files carry (the export's ``distant_lights``, in the files'
+    frame) as Blender suns: the direction each comes from in Blender's world, its strength (the
+    irradiance's largest channel), colour and angular diameter (radians)."""
+    out = []
+    for record in export_meta.get("stats", {}).get("distant_lights", []):
+        e = np.asarray(record["irradiance"], np.float64)
+        peak = float(e.max()) if e.max() > 0 else 0.0
+        d = Y_UP_TO_Z_UP @ np.asarray(record["direction"], np.float64)
+        out.append(
+            {
+                "direction": (d / np.linalg.norm(d)).tolist(),
+                "strength": peak,
+                "color": (e / peak).tolist() if peak > 0 else [1.0, 1.0, 1.0],
+                "angle": 2.0 * np.radians(float(record["radius_deg"])),
+            }
+        )
+    return out
+
+
+def check_suns(imported: list[dict], meant: list[dict]) -> tuple[dict, list[str]]:
+    """The suns Blender's importer made (``imported``: the job's ``lights``) against the ones the
+    file means (:func:`file_suns`): the problems (a count, a direction more than 0.1 degrees or a
+    colour more than 1e-3 away) and, per sun, what the importer read of the strength and the
+    angular diameter as a share of the file's (an importer's own convention, recorded; the render
+    uses the file's)."""
+    suns = [light for light in imported if light["type"] == "SUN"]
+    problems = [] if len(suns) == len(meant) else [f"{len(suns)} sun(s) imported where the file has {len(meant)}"]
+    figures = []
+    for got, want in zip(suns, meant, strict=False):
+        apart = float(np.degrees(np.arccos(np.clip(np.dot(got["direction"], want["direction"]), -1.0, 1.0))))
+        colour = float(np.abs(np.asarray(got["color"]) - np.asarray(want["color"])).max())
+        if apart > 0.1:
+            problems.append(f"the sun {got['name']} comes from {apart:.2f} degrees away from the file's direction")
+        if colour > 1e-3:
+            problems.append(f"the sun {got['name']}'s colour is {colour:.3g} away from the file's")
+        figures.append(
+            {
+                "direction_error_deg": apart,
+                "strength_read": got["energy"] / want["strength"] if want["strength"] > 0 else None,
+                "angle_read": got["angle"] / want["angle"] if want["angle"] > 0 else None,
+            }
+        )
+    return {"suns": figures}, problems
+
+
 def blender_pass(scene: RoundtripScene, fmt: str, name: str, overrides: dict, timer: Timer):
     """One Blender job: import the exported file of suffix ``fmt`` and render it (the ``name``
     pass: the material as imported, or with its ``overrides``), lit by ``light.hdr`` as the world
-    unless the file carries its light (the USD's DomeLight); the inspection and the renders."""
+    unless the file carries its light (the USD's DomeLight) and by the suns the file carries, as it
+    means them (:func:`file_suns`); the inspection and the renders."""
     s = scene.settings
     env = None if export_format_of(fmt).carries_light else (scene.export_dir / "light.hdr").resolve()
     render = render_job(
         scene.cameras, scene.cache.fov_deg, scene.cache.width, spp=s.spp, seed=s.seed, transport=s.transport, environment=env
     )
+    suns = file_suns(scene.export_meta)
     job = {
         "asset": str((scene.export_dir / EXPORT_FILES[fmt]).resolve()),
         "inspect": name == "full",
-        "render": {**render, "principled_overrides": overrides},
+        "render": {**render, "principled_overrides": overrides, **({"suns": suns} if suns else {})},
     }
     with timer(f"blender_{fmt}_{name}"):
         try:
@@ -137,6 +185,9 @@ def graded_import(scene: RoundtripScene, fmt: str, res) -> tuple[dict, object]:
     world = [n["node"] for n in res.report.get("world", {}).get("nodes", [])]
     if "TEX_ENVIRONMENT" not in world:
         checks["problems"].append("the world has no environment texture (the learned light did not arrive)")
+    suns, problems = check_suns(res.report.get("lights", []), file_suns(scene.export_meta))
+    checks.update(suns)
+    checks["problems"] += problems
     for problem in checks["problems"]:
         log.warning("Blender import of %s: %s", EXPORT_FILES[fmt], problem)
     cmp = compare_renders(scene.hits, res.renders, [r.rgb for r in scene.reference])

@@ -56,6 +56,8 @@ class SGLight:
 
     #: its kind's name (:mod:`stages.model.lights`)
     kind: ClassVar[str] = "sg"
+    #: an asset draws it into its environment image
+    in_environment: ClassVar[bool] = True
 
     @property
     def device(self) -> torch.device:
@@ -65,6 +67,10 @@ class SGLight:
     def lobes(self) -> int:
         """Its number of lobes ``K``."""
         return int(self.axis.shape[0])
+
+    def distant_lights(self) -> list:
+        """None: an asset carries the lobes in its environment image."""
+        return []
 
     def shade(self, brdf, normal: Tensor, view: Tensor, material, lobe: str | None, visibility: Tensor | None) -> Shading:
         """``brdf.shade`` of ``material`` under these lobes, each scaled by its visible share

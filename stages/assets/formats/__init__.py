@@ -19,7 +19,7 @@ from pathlib import Path
 
 from ...config.layout import EXPORT_FORMATS, check_format
 from ...core.registry import Registry
-from .base import AssetInfo, Exporter, check_reports, one_line
+from .base import AssetInfo, Exporter, check_reports, one_line, recorded_lights
 from .gltf import GLTF
 from .mesh import ATLAS_KEYS, ExportMesh, Level, export_mesh, read_atlas
 from .usd import USD
@@ -42,6 +42,7 @@ __all__ = [
     "names",
     "one_line",
     "read_atlas",
+    "recorded_lights",
     "temporarily",
     "write_asset_files",
 ]

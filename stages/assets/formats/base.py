@@ -11,10 +11,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from ...config.brdfs import BrdfSpec
 from ...config.layout import ExportFormat
 from ...config.sections import ExportSettings
 from ...core.errors import StageInputError
+from ...render.light import DistantLight
 from .mesh import ExportMesh, Level
 
 log = logging.getLogger(__name__)
@@ -27,7 +30,8 @@ class AssetInfo:
     (the guidance and weights that made it), the ``brdf`` whose textures the bake wrote (its row:
     the textures, USD's workflow, glTF's extensions), whether the bake wrote an ``occlusion``
     map, the export's ``settings`` (a format's own settings are fields there: ``usdz_root``) and
-    the learned light's file beside the asset (``light``)."""
+    the learned light: its environment image beside the asset (``light``) and its suns as distant
+    ``lights`` (directions in the asset file's frame)."""
 
     meters_per_unit: float
     name: str
@@ -36,6 +40,29 @@ class AssetInfo:
     occlusion: bool = False
     settings: ExportSettings = field(default_factory=ExportSettings)
     light: str = "light.exr"
+    lights: tuple[DistantLight, ...] = ()
+
+
+def recorded_lights(bake_stats: dict, rotation: np.ndarray | None = None) -> tuple[DistantLight, ...]:
+    """The learned suns the bake recorded (its ``meta.json`` ``stats.distant_lights``), their
+    directions turned by ``rotation (3, 3)`` into the asset file's frame (None: the normalised
+    frame's directions, which the export space shares)."""
+    lights = tuple(DistantLight.from_record(r) for r in bake_stats.get("distant_lights", []))
+    return lights if rotation is None else tuple(light.turned(rotation) for light in lights)
+
+
+def facing_rotation(direction) -> tuple[float, float, float, float]:
+    """The unit quaternion ``(x, y, z, w)`` of the shortest turn taking ``+z`` to the unit
+    ``direction`` a distant light comes from: a glTF directional light and a USD ``DistantLight``
+    shine along their node's ``-z``, so turned by it they shine along ``-direction``
+    (``q = normalise(z x d, 1 + z . d)``; a half turn about ``x`` for ``d = -z``)."""
+    d = np.asarray(direction, np.float64)
+    d = d / np.linalg.norm(d)
+    if d[2] < -1.0 + 1e-12:
+        return (1.0, 0.0, 0.0, 0.0)
+    q = np.array([-d[1], d[0], 0.0, 1.0 + d[2]])
+    q /= np.linalg.norm(q)
+    return tuple(float(x) for x in q)
 
 
 class Exporter(ABC):

@@ -12,6 +12,8 @@ way to the specular one (energy conservation, ``(1 - F)`` weighting) where TANGO
 so a glTF viewer renders slightly darker diffuse at grazing angles; glTF's Fresnel uses the half
 vector per light sample where TANGO evaluates it once at the mirror direction; and the
 environment light is not part of glTF core (it ships beside the model as ``light.exr``/``.hdr``).
+The learned suns are in the file as ``KHR_lights_punctual`` directional lights (their angular
+size, which glTF lacks, in each light's ``extras``).
 A field trained with glTF's own BRDF (``optimize.brdf: gltf``) is written as it was trained, with
 nothing lost: the baked base colour, roughness (green) and metallic (blue), no extension. The
 levels of detail go into one file with ``MSFT_lod`` (:meth:`GltfFormat.write_levels`).
@@ -32,7 +34,8 @@ from ...core.errors import StageInputError
 from ...core.provenance import ORIGIN_METADATA_KEY, atomic_path
 from ...core.safefiles import IMAGE_LIMIT, read_bytes
 from ...core.tools import GLTF_VALIDATOR, REPO_ROOT
-from .base import AssetInfo, Exporter, one_line
+from ...render.light import DistantLight
+from .base import AssetInfo, Exporter, facing_rotation, one_line
 from .mesh import ExportMesh, Level
 
 
@@ -43,7 +46,8 @@ class GltfFormat(Exporter):
     def write(self, folder: Path, geom: ExportMesh, asset: AssetInfo) -> None:
         (glb,) = (Path(folder) / name for name in self.files().values())
         mpu, textures = asset.meters_per_unit, Path(folder) / "textures"
-        write_glb(glb, geom, textures, mpu, asset.name, asset.origin, brdf=asset.brdf, occlusion=asset.occlusion)
+        a = asset
+        write_glb(glb, geom, textures, mpu, a.name, a.origin, brdf=a.brdf, occlusion=a.occlusion, lights=a.lights)
 
     def write_levels(self, folder: Path, levels: list[Level], asset: AssetInfo, coverage: list[float]) -> None:
         """The finest level in the scene, the coarser ones as its ``MSFT_lod`` alternatives."""
@@ -59,6 +63,7 @@ class GltfFormat(Exporter):
             screen_coverage=coverage,
             brdf=asset.brdf,
             occlusion=asset.occlusion,
+            lights=asset.lights,
         )
 
     def validate(self, folder: Path, stem: str = "model") -> dict[str, dict]:
@@ -131,10 +136,13 @@ def write_glb(
     screen_coverage: list[float] | None = None,
     brdf: BrdfSpec | str = "tango",
     occlusion: bool = False,
+    lights: tuple[DistantLight, ...] = (),
 ) -> None:
     """Write a self-contained binary glTF 2.0 file (see the module docstring for the mapping);
     ``origin`` goes into ``asset.extras.tango_stylize``. With ``occlusion`` the material's
     ``occlusionTexture`` is the metallic-roughness texture (its red channel, glTF's packing).
+    The distant ``lights`` (the learned suns) are ``KHR_lights_punctual`` directional lights, one
+    node each in the scene (:func:`add_distant_lights`).
 
     ``lods`` (coarser levels, each geometry with its textures' folder) makes the file an
     ``MSFT_lod`` asset: the scene's node holds the finest level and lists one node per coarser
@@ -168,10 +176,11 @@ def write_glb(
         nodes[0].extensions = {"MSFT_lod": {"ids": list(range(1, len(nodes)))}}
         nodes[0].extras = {"MSFT_screencoverage": [float(c) for c in screen_coverage]}
         used.append("MSFT_lod")
+    scene_nodes = [0, *add_distant_lights(g, nodes, lights, used)]
     gltf = g.GLTF2(
         asset=g.Asset(version="2.0", generator="tango-stylize", extras={ORIGIN_METADATA_KEY: origin}),
         scene=0,
-        scenes=[g.Scene(nodes=[0])],
+        scenes=[g.Scene(nodes=scene_nodes)],
         nodes=nodes,
         meshes=meshes,
         materials=materials,
@@ -183,9 +192,57 @@ def write_glb(
         buffers=[g.Buffer(byteLength=sum(len(b) for b in buffer.blobs))],
         extensionsUsed=used,
     )
+    if lights:
+        gltf.extensions = {LIGHTS_EXTENSION: {"lights": punctual_lights(lights)}}
     gltf.set_binary_blob(b"".join(buffer.blobs))
     with atomic_path(path) as tmp:
         gltf.save_binary(str(tmp))
+
+
+#: the extension that carries the learned suns
+LIGHTS_EXTENSION = "KHR_lights_punctual"
+#: lumens per watt (at 555 nm): a glTF directional light's intensity is in lux, which an importer
+#: reads as irradiance through this factor (Blender's, in its default lighting mode)
+LUMENS_PER_WATT = 683.0
+
+
+def punctual_lights(lights: tuple[DistantLight, ...]) -> list[dict]:
+    """The document-level ``KHR_lights_punctual`` lights of distant ``lights``: directional, the
+    colour the irradiance over its largest channel, the intensity that channel in lux
+    (:data:`LUMENS_PER_WATT` times the irradiance in the environment image's units, read as
+    W/(m^2 sr)); glTF has no angular size, so the radius and the irradiance also go into the
+    light's ``extras``."""
+    out = []
+    for k, light in enumerate(lights):
+        e = np.asarray(light.irradiance, np.float64)
+        peak = float(e.max()) if e.size and e.max() > 0 else 0.0
+        colour = (e / peak).tolist() if peak > 0 else [1.0, 1.0, 1.0]
+        out.append(
+            {
+                "type": "directional",
+                "name": f"Sun{k}",
+                "color": [float(c) for c in colour],
+                "intensity": LUMENS_PER_WATT * peak,
+                "extras": light.record(),
+            }
+        )
+    return out
+
+
+def add_distant_lights(g, nodes: list, lights: tuple[DistantLight, ...], used: list[str], first: int = 0) -> list[int]:
+    """Append one node per distant light to ``nodes`` (turned so that it shines along the light's
+    ``-direction``: :func:`~stages.assets.formats.base.facing_rotation`), each naming its light
+    of :func:`punctual_lights` in the ``KHR_lights_punctual`` extension (numbered from ``first``:
+    after a document's own lights), and the extension to ``used`` where there is any; returns the
+    new nodes' indices."""
+    added = []
+    for k, light in enumerate(lights):
+        rotation = list(facing_rotation(light.direction))
+        nodes.append(g.Node(name=f"Sun{k}", rotation=rotation, extensions={LIGHTS_EXTENSION: {"light": first + k}}))
+        added.append(len(nodes) - 1)
+    if lights and LIGHTS_EXTENSION not in used:
+        used.append(LIGHTS_EXTENSION)
+    return added
 
 
 class GlbBuffer:

@@ -8,14 +8,16 @@ baked albedo, ``specularColor`` = TANGO's specular colour (F0), ``roughness`` = 
 glTF's BRDF: the metallic workflow (``useSpecularWorkflow = 0``, ``diffuseColor`` = base colour,
 ``metallic``, ``roughness``), as trained, nothing lost; the bake's ``specular.png`` (its F0, a
 preview) is then not referenced. Where the bake wrote an ambient occlusion map, ``occlusion``
-reads the metallic-roughness texture's red channel. A ``DomeLight`` carries the learned SG light
-as an equirectangular EXR (latlong). The levels of detail go into one layer as the variants of a
-variant set ``LOD`` (:meth:`UsdFormat.write_levels`).
+reads the metallic-roughness texture's red channel. A ``DomeLight`` carries the learned light's
+environment (its SG lobes) as an equirectangular EXR (latlong), and a ``DistantLight`` each learned
+sun (its angle the disc's diameter, normalised: its intensity is the illuminance). The levels of
+detail go into one layer as the variants of a variant set ``LOD`` (:meth:`UsdFormat.write_levels`).
 """
 
 from __future__ import annotations
 
 import hashlib
+import math
 from pathlib import Path
 
 import numpy as np
@@ -24,7 +26,8 @@ from ...config.brdfs import BrdfSpec, brdf_spec
 from ...config.layout import EXPORT_FORMATS, LEVELS_STEM, TEXTURE_FILES
 from ...core.provenance import ORIGIN_METADATA_KEY, atomic_path
 from ...core.safefiles import remove
-from .base import AssetInfo, Exporter
+from ...render.light import DistantLight
+from .base import AssetInfo, Exporter, facing_rotation
 from .mesh import ExportMesh, Level
 
 #: rotation of the USD DomeLight about +Y that shows our equirectangular light as our renderer sees it
@@ -40,7 +43,16 @@ class UsdFormat(Exporter):
         usda, usdz = (Path(folder) / name for name in self.files().values())
         with atomic_path(usda) as tmp:
             remove(tmp)
-            write_usd(tmp, geom, asset.meters_per_unit, asset.light, asset.origin, brdf=asset.brdf, occlusion=asset.occlusion)
+            write_usd(
+                tmp,
+                geom,
+                asset.meters_per_unit,
+                asset.light,
+                asset.origin,
+                brdf=asset.brdf,
+                occlusion=asset.occlusion,
+                lights=asset.lights,
+            )
         package_usdz(usda, usdz, [*geom.texture_files(), asset.light], asset.settings.usdz_root)
 
     def write_levels(self, folder: Path, levels: list[Level], asset: AssetInfo, coverage: list[float]) -> None:
@@ -51,7 +63,15 @@ class UsdFormat(Exporter):
         with atomic_path(usda) as tmp:
             remove(tmp)
             write_usd(
-                tmp, levels, asset.meters_per_unit, asset.light, asset.origin, switch, brdf=asset.brdf, occlusion=asset.occlusion
+                tmp,
+                levels,
+                asset.meters_per_unit,
+                asset.light,
+                asset.origin,
+                switch,
+                brdf=asset.brdf,
+                occlusion=asset.occlusion,
+                lights=asset.lights,
             )
         files = [f"{lv.textures}/{key}.png" for lv in levels for key in TEXTURE_FILES] + [asset.light]
         package_usdz(usda, usdz, files, asset.settings.usdz_root)
@@ -78,9 +98,11 @@ def write_usd(
     extra_data: dict | None = None,
     brdf: BrdfSpec | str = "tango",
     occlusion: bool = False,
+    lights: tuple[DistantLight, ...] = (),
 ) -> None:
-    """Write ``model.usda``: a Mesh with ``st`` and normals, a UsdPreviewSurface bound to it, and
-    a DomeLight with the learned light. Texture paths are relative to the file. ``origin`` (the
+    """Write ``model.usda``: a Mesh with ``st`` and normals, a UsdPreviewSurface bound to it, a
+    DomeLight with the learned light's environment and a DistantLight per learned sun
+    (``lights``: :func:`_usd_distant_lights`). Texture paths are relative to the file. ``origin`` (the
     guidance and weights that made the material) goes into the root layer's ``customLayerData``
     under ``tango_stylize`` (beside ``extra_data``) and its label into the layer's documentation.
 
@@ -112,6 +134,7 @@ def write_usd(
         variants.SetVariantSelection(geom[0].name)
     if light_file:
         _usd_dome_light(stage, light_file)
+    _usd_distant_lights(stage, lights)
     stage.GetRootLayer().Save()
 
 
@@ -243,6 +266,29 @@ def _usd_dome_light(stage, light_file: str) -> None:
     dome.CreateTextureFileAttr().Set(light_file)
     dome.CreateTextureFormatAttr().Set(UsdLux.Tokens.latlong)
     dome.CreateIntensityAttr().Set(1.0)
+
+
+def _usd_distant_lights(stage, lights: tuple[DistantLight, ...]) -> None:
+    """One ``DistantLight`` per learned sun under ``/Asset/Lights``, as UsdLux defines it: oriented
+    to shine along ``-direction`` (:func:`~stages.assets.formats.base.facing_rotation`),
+    ``inputs:angle`` the disc's angular diameter in degrees, ``inputs:normalize`` on so that
+    ``inputs:intensity`` (the irradiance's largest channel) is the illuminance of a surface facing
+    it, and ``inputs:color`` the irradiance over that channel."""
+    from pxr import Gf, UsdGeom, UsdLux
+
+    if not lights:
+        return
+    UsdGeom.Xform.Define(stage, "/Asset/Lights")
+    for k, light in enumerate(lights):
+        sun = UsdLux.DistantLight.Define(stage, f"/Asset/Lights/Sun{k}")
+        x, y, z, w = facing_rotation(light.direction)
+        UsdGeom.Xformable(sun.GetPrim()).AddOrientOp().Set(Gf.Quatf(w, x, y, z))
+        e = np.asarray(light.irradiance, np.float64)
+        peak = float(e.max()) if e.size and e.max() > 0 else 0.0
+        sun.CreateAngleAttr().Set(2.0 * math.degrees(light.radius))
+        sun.CreateNormalizeAttr().Set(True)
+        sun.CreateIntensityAttr().Set(peak)
+        sun.CreateColorAttr().Set(Gf.Vec3f(*((e / peak).tolist() if peak > 0 else [1.0, 1.0, 1.0])))
 
 
 def package_usdz(usda: Path, usdz: Path, files: list[str], root: str = "usdc") -> None:

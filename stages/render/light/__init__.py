@@ -14,7 +14,17 @@ live in :mod:`stages.render.shading`).
 from __future__ import annotations
 
 from ..shading import SGLight
-from .base import Light, LightComponent, Visibility, cat_visibility, map_visibility, summed
+from .base import DistantLight, Light, LightComponent, Visibility, cat_visibility, map_visibility, summed
 from .sun import SunLight
 
-__all__ = ["Light", "LightComponent", "SGLight", "SunLight", "Visibility", "cat_visibility", "map_visibility", "summed"]
+__all__ = [
+    "DistantLight",
+    "Light",
+    "LightComponent",
+    "SGLight",
+    "SunLight",
+    "Visibility",
+    "cat_visibility",
+    "map_visibility",
+    "summed",
+]

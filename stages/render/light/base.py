@@ -21,6 +21,7 @@ caller holds (:meth:`LightComponent.shadowed_by`: the SG lobes ask a
 from __future__ import annotations
 
 import functools
+import math
 import operator
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -44,6 +45,9 @@ class LightComponent(Protocol):
 
     #: the kind's name (its registry's key, :mod:`stages.model.lights`)
     kind: ClassVar[str]
+    #: how an asset carries it: drawn into the environment image (True), or as distant lights
+    #: (:meth:`distant_lights`; False)
+    in_environment: ClassVar[bool]
 
     @property
     def device(self) -> torch.device:
@@ -74,6 +78,11 @@ class LightComponent(Protocol):
         """The arrays ``light.npz`` holds of it, by names no other kind uses."""
         ...
 
+    def distant_lights(self) -> list[DistantLight]:
+        """It as distant lights, for a kind an asset does not draw into its environment image
+        (``in_environment`` False); empty for one it does."""
+        ...
+
     def shadowed_by(self, shadows: Any, index: Tensor | None) -> Tensor | None:
         """Its visibility input at the points ``index`` (all when None) of ``shadows`` (a
         :class:`~stages.model.shadows.ShadowCache`), one row per point, or None where it takes none."""
@@ -96,6 +105,39 @@ class LightComponent(Protocol):
     def detach(self) -> LightComponent:
         """The same component without gradients."""
         ...
+
+
+@dataclass(frozen=True)
+class DistantLight:
+    """A light from a disc of directions, as an asset file carries it: the unit ``direction`` it
+    comes from ``(3,)``, the ``irradiance`` per channel it gives a surface facing it unshadowed
+    (the environment image's units), and its angular ``radius`` (radians; 0: a directional light).
+    A glTF ``KHR_lights_punctual`` directional light, a USD ``DistantLight`` (whose ``angle`` is
+    the diameter), a Blender sun."""
+
+    direction: tuple[float, float, float]
+    irradiance: tuple[float, ...]
+    radius: float
+
+    def record(self) -> dict:
+        """As plain figures: ``direction``, ``irradiance``, ``radius_deg``."""
+        return {
+            "direction": [float(x) for x in self.direction],
+            "irradiance": [float(x) for x in self.irradiance],
+            "radius_deg": math.degrees(self.radius),
+        }
+
+    @classmethod
+    def from_record(cls, record: dict) -> DistantLight:
+        """The light :meth:`record` wrote (its direction normalised again)."""
+        d = np.asarray(record["direction"], np.float64)
+        d = d / np.linalg.norm(d)
+        return cls(tuple(float(x) for x in d), tuple(float(x) for x in record["irradiance"]), math.radians(record["radius_deg"]))
+
+    def turned(self, rotation: np.ndarray) -> DistantLight:
+        """The same light with its direction ``rotation (3, 3) @ direction``."""
+        d = np.asarray(rotation, np.float64) @ np.asarray(self.direction, np.float64)
+        return DistantLight(tuple(float(x) for x in d), self.irradiance, self.radius)
 
 
 def summed(values: Sequence):
@@ -171,6 +213,17 @@ class Light:
                 raise ValueError(f"the {c.kind} light names arrays another component wrote: {', '.join(clash)}")
             out.update(mine)
         return out
+
+    def environment(self) -> Light | None:
+        """Its components an asset draws into its environment image (``in_environment``), or None
+        where it has none."""
+        kept = tuple(c for c in self.components if c.in_environment)
+        return Light(kept) if kept else None
+
+    def distant_lights(self) -> list[DistantLight]:
+        """What an asset carries of it as distant lights (its components' that are not drawn into
+        the environment image), in order."""
+        return [d for c in self.components if not c.in_environment for d in c.distant_lights()]
 
     def shadowed_by(self, shadows: Any, index: Tensor | None = None) -> Visibility:
         """Each component's visibility input from ``shadows`` at the points ``index`` (all when None)."""

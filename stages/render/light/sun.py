@@ -37,6 +37,7 @@ import torch
 from torch import Tensor
 
 from ..shading import Shading, tangent_frame
+from .base import DistantLight
 
 #: the golden angle, the azimuth step of :func:`cap_offsets`' spiral
 GOLDEN_ANGLE = math.pi * (3.0 - math.sqrt(5.0))
@@ -122,6 +123,8 @@ class SunLight:
 
     #: its kind's name (:mod:`stages.model.lights`)
     kind: ClassVar[str] = "sun"
+    #: an asset carries its suns as distant lights, not in its environment image
+    in_environment: ClassVar[bool] = False
 
     @property
     def device(self) -> torch.device:
@@ -194,6 +197,11 @@ class SunLight:
             "sun_irradiance": self.irradiance.cpu().numpy(),
             "sun_radius": self.radius.cpu().numpy(),
         }
+
+    def distant_lights(self) -> list[DistantLight]:
+        """Each sun as a :class:`~stages.render.light.base.DistantLight` (float64 figures)."""
+        d, e, r = (t.detach().double().cpu().numpy() for t in (self.direction, self.irradiance, self.radius))
+        return [DistantLight(tuple(map(float, d[k])), tuple(map(float, e[k])), float(r[k, 0])) for k in range(self.suns)]
 
     def shadowed_by(self, shadows: Any, index: Tensor | None) -> Tensor:
         """Each direction's visible share ``(n, S M)`` at the points ``index`` of ``shadows``
