@@ -28,6 +28,7 @@ from ..geometry.visibility import (
     trace_visibility,
     unpack_visibility,
 )
+from ..render.light.bounce import BounceLight, cosine_directions, face_side, indirect_irradiance
 from ..render.light.sun import SunLight, solid_angle
 from ..render.shading import SGLight
 from ..render.visibility import blend_traced, lobe_visibility_bits, resolvable_sharpness
@@ -68,6 +69,18 @@ class _TracedSun:
         return float(np.arccos(cos).max()) > allowed
 
 
+class _TracedBounce:
+    """The face side each point's bounce directions meet first (``sides (N, K)``, -1 a miss),
+    valid where traced; each point's lattice shift drawn once from the cache's seed."""
+
+    def __init__(self, count: int, samples: int, seed: int) -> None:
+        self.samples = samples
+        self.sides = np.full((count, samples), -1, np.int64)
+        self.valid = np.zeros(count, bool)
+        self.shift = np.random.default_rng(seed).random((count, 2))
+        self.traces = 0
+
+
 class ShadowCache:
     """Visibility of ``directions`` directions from ``points (N, 3)`` with ``normals (N, 3)``
     (unit, oriented to the side each point is seen from) on ``mesh``, traced once at
@@ -94,6 +107,7 @@ class ShadowCache:
         self.normals = np.asarray(normals, np.float64)
         self.tracer = tracer
         self.offset = surface_offset(mesh.vertices)
+        self.mesh = mesh
         self.directions = fibonacci_directions(directions)
         if bits is None:
             bits = trace_visibility(tracer, self.points, self.normals, self.directions, self.offset)
@@ -104,6 +118,7 @@ class ShadowCache:
         self.resolvable = resolvable_sharpness(directions)
         self._lobes: dict[int, _TracedLobe] = {}
         self._sun: _TracedSun | None = None
+        self._bounce: _TracedBounce | None = None
         self._dirs = torch.from_numpy(self.directions).float()
         self._normals = torch.from_numpy(self.normals).float()
         self._bits = torch.from_numpy(self.bits)
@@ -172,6 +187,30 @@ class ShadowCache:
             traced.valid[todo] = True
             traced.traces += len(todo)
         return torch.from_numpy(traced.values[idx]).to(sun.direction.device)
+
+    def bounce_irradiance(self, bounce: BounceLight, index: Tensor | None = None) -> Tensor:
+        """Each point's indirect irradiance ``(n, C)`` from the mesh at the points ``index`` (all
+        when None): :func:`~stages.render.light.bounce.indirect_irradiance` of the bounce's table at
+        the face sides its ``samples`` cosine-distributed directions meet first, traced once per
+        point (lazily, for the points asked for; a point's directions are fixed by the cache's
+        seed). Differentiable in the table; a ray that leaves the mesh adds nothing."""
+        idx = np.arange(len(self)) if index is None else index.cpu().numpy()
+        if self._bounce is None or self._bounce.samples != bounce.samples:
+            self._bounce = _TracedBounce(len(self), bounce.samples, self.seed + 7919)
+        traced = self._bounce
+        todo = idx[~traced.valid[idx]]
+        if len(todo):
+            normals = torch.from_numpy(self.normals[todo])
+            dirs = cosine_directions(normals, traced.samples, torch.from_numpy(traced.shift[todo])).numpy()
+            starts = np.repeat(self.points[todo] + self.offset * self.normals[todo], traced.samples, axis=0)
+            flat = dirs.reshape(-1, 3)
+            hit = self.tracer.trace(starts, flat)
+            sides = face_side(hit.face, flat, self.mesh.face_normals)
+            traced.sides[todo] = sides.reshape(len(todo), traced.samples)
+            traced.valid[todo] = True
+            traced.traces += len(todo)
+        sides = torch.from_numpy(traced.sides[idx]).to(bounce.table.device)
+        return indirect_irradiance(bounce.table, sides)
 
     def blocked_share(self) -> np.ndarray:
         """Per point, the share of its hemisphere the mesh blocks (uniform over directions)."""
