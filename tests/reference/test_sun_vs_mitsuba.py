@@ -51,9 +51,10 @@ def _disc_map(axis: np.ndarray, h: int = 512) -> np.ndarray:
     return (cover[..., None] * np.array([RADIANCE, RADIANCE, RADIANCE])).astype(np.float32)
 
 
-def _renderer(mi, mesh: TriMesh, views: ViewSet, env: np.ndarray, hits):
-    """Mitsuba's one-bounce path tracer under ``env`` at the pixels ``hits`` of view 0: a function
-    of a BSDF dict -> (RGB (P, 3), alpha (P,)) float64."""
+def _renderer(mi, mesh: TriMesh, views: ViewSet, env: np.ndarray, hits, depth: int = 2, spp: int = SPP):
+    """Mitsuba's path tracer to ``depth`` (2: direct light alone) under ``env`` at the pixels
+    ``hits`` of view 0, ``spp`` samples a pixel: a function of a BSDF dict -> (RGB (P, 3), alpha
+    (P,)) float64."""
     from stages.reference.targets import ENV_TO_WORLD, _mesh, mitsuba_rows
 
     emitter = {
@@ -61,13 +62,13 @@ def _renderer(mi, mesh: TriMesh, views: ViewSet, env: np.ndarray, hits):
         "bitmap": mi.Bitmap(np.ascontiguousarray(mitsuba_rows(env))),
         "to_world": mi.ScalarTransform4f(ENV_TO_WORLD.tolist()),
     }
-    integrator = mi.load_dict({"type": "path", "max_depth": 2, "hide_emitters": True})
-    cam = mi.load_dict(mref.sensor(views.c2w[0], views.fov_deg, views.width, SPP, centred=False, alpha=True, mi=mi))
+    integrator = mi.load_dict({"type": "path", "max_depth": depth, "hide_emitters": True})
+    cam = mi.load_dict(mref.sensor(views.c2w[0], views.fov_deg, views.width, spp, centred=False, alpha=True, mi=mi))
 
     def render(bsdf: dict) -> tuple[np.ndarray, np.ndarray]:
         obj = _mesh(mi, mesh, np.zeros((len(mesh.faces), 3, 2)), mi.load_dict(bsdf))
         scene = mi.load_dict({"type": "scene", "object": obj, "light": emitter})
-        img = np.array(mi.render(scene, sensor=cam, integrator=integrator, seed=0, spp=SPP), np.float64).reshape(-1, 4)
+        img = np.array(mi.render(scene, sensor=cam, integrator=integrator, seed=0, spp=spp), np.float64).reshape(-1, 4)
         return img[hits.pixel, :3], img[hits.pixel, 3]
 
     return render
