@@ -8,10 +8,14 @@ normals (the BRDF ``--brdf``, its model lobe), shadowed by the cache's stored vi
 the environment's fit with ``--suns`` suns each (``0``: SG lobes alone; ``auto``: as many as the
 environment holds by ``optimize.suns: auto``'s criterion; a count), against the truth over the
 fully covered object pixels, raw and after one scale per channel. What a perfect recovery of the
-material could reach with that transport.
+material could reach with that transport. ``--bounces 0,1`` adds one bounce of the mesh's own light
+(:mod:`stages.render.light.bounce`): each face side's diffuse radiance under the same light, the
+true material at its centroid (the target's procedural material baked again on the cache's mesh),
+reflected once at every hit through ``--bounce-samples`` first hits.
 
     python -m benchmarks.quality.ceilings results/demo-offline
     python -m benchmarks.quality.ceilings results/demo-offline --suns 0,auto --lobes 32 --brdf gltf
+    python -m benchmarks.quality.ceilings results/demo-offline --suns auto --bounces 0,1
 """
 
 from __future__ import annotations
@@ -33,7 +37,42 @@ def target_dirs(results: Path, only: list[str] | None) -> list[Path]:
     return found
 
 
-def ceilings(target: Path, suns: list[str], lobes: int, iterations: int, brdf: str, samples: int) -> list[dict]:
+def sender_shading(target: Path, cache, meta: dict, brdf: str):
+    """The face sides of the cache's mesh as senders (:class:`~stages.model.bounce.FaceSides`) and
+    their shading under a light: the target's true material (baked again from its procedural
+    material and settings) at each side's centroid, seen along its normal."""
+    import numpy as np
+    import torch
+
+    from stages.config.sections import TargetSettings
+    from stages.geometry.meshio import TriMesh
+    from stages.model.bounce import FaceSides
+    from stages.model.field import shade_material
+    from stages.model.networks import Material
+    from stages.reference.targets import ground_truth
+    from stages.render import brdf as brdfs
+
+    mesh = TriMesh(cache.arrays["vertices"].astype(np.float64), cache.arrays["faces"].astype(np.int64))
+    truth = ground_truth(mesh, target.name, TargetSettings.from_dict(meta["settings"]))
+    senders = FaceSides(mesh, cache.visibility_directions)
+    maps = truth.at_hits(senders.face, np.full((len(senders), 2), 1.0 / 3.0), senders.back)
+    model = brdfs.get(brdf)
+    parts = {k: torch.from_numpy(maps[k].astype(np.float32)) for k in model.parameters}
+    parts["roughness"] = parts["roughness"].clamp(0.01, 1.0)
+    material = Material.of(model, *(parts[k] for k in model.parameters))
+    normal = torch.nn.functional.normalize(torch.from_numpy(maps["normal"].astype(np.float32)), dim=-1)
+    flat = torch.from_numpy(senders.normals.astype(np.float32))
+    normal = torch.where((normal * flat).sum(-1, keepdim=True) > 0, normal, flat)
+
+    def shade(light, visibility):
+        return shade_material(normal, normal, material, light, model.model_lobe, visibility(light))
+
+    return senders, shade
+
+
+def ceilings(
+    target: Path, suns: list[str], lobes: int, iterations: int, brdf: str, samples: int, bounces=(0,), bounce_samples: int = 32
+) -> list[dict]:
     """The ceilings of one target stage's metric views, per environment and transport."""
     import torch
 
@@ -43,6 +82,7 @@ def ceilings(target: Path, suns: list[str], lobes: int, iterations: int, brdf: s
     from stages.imaging.relit import graded_figures, truth_radiance
     from stages.imaging.targets import FULL_COVERAGE, TargetSet, load_relit
     from stages.imaging.views import ViewStore
+    from stages.model.bounce import bounce_table, with_bounce
     from stages.model.lights import fit_environment
     from stages.model.lights.sun import resolve_suns
     from stages.render import brdf as brdfs
@@ -56,6 +96,7 @@ def ceilings(target: Path, suns: list[str], lobes: int, iterations: int, brdf: s
         cases += [(r.environment, r.radiance, r.coverage) for r in load_relit(target / "relit.npz", cache)]
     share = OptimizeSettings().suns_share
     model = brdfs.get(brdf)
+    senders = shade = None
     rows = []
     for environment, radiance, coverage in cases:
         full = torch.from_numpy(coverage.astype("float32") >= FULL_COVERAGE)
@@ -66,19 +107,27 @@ def ceilings(target: Path, suns: list[str], lobes: int, iterations: int, brdf: s
             )
             t0 = time.perf_counter()
             light, record = fit_environment(environment, lobes, iterations, count, samples)
-            with torch.no_grad():
-                ours = truth_radiance(truth, store, light, model.model_lobe, model)[full]
-            rows.append(
-                {
-                    "target": f"{target.parents[2].name}/{target.name}",
-                    "environment": environment,
-                    "suns": setting,
-                    "count": count,
-                    **graded_figures(ours, goal),
-                    "seconds": time.perf_counter() - t0,
-                    "fit": record,
-                }
-            )
+            for bounce in bounces:
+                t1 = time.perf_counter()
+                lit = light
+                if bounce:
+                    if senders is None:
+                        senders, shade = sender_shading(target, cache, meta, brdf)
+                    lit = with_bounce(light, bounce_table(senders, shade, light, bounce_samples))
+                with torch.no_grad():
+                    ours = truth_radiance(truth, store, lit, model.model_lobe, model)[full]
+                rows.append(
+                    {
+                        "target": f"{target.parents[2].name}/{target.name}",
+                        "environment": environment,
+                        "suns": setting,
+                        "count": count,
+                        "bounces": bounce,
+                        **graded_figures(ours, goal),
+                        "seconds": time.perf_counter() - t1 + (t1 - t0 if bounce == bounces[0] else 0.0),
+                        "fit": record,
+                    }
+                )
     return rows
 
 
@@ -91,17 +140,22 @@ def main() -> None:
     parser.add_argument("--iterations", type=int, default=400)
     parser.add_argument("--brdf", default="gltf")
     parser.add_argument("--samples", type=int, default=8, help="directions per sun")
+    parser.add_argument("--bounces", default="0", help="transports: comma-separated 0 (direct light) and 1 (one bounce)")
+    parser.add_argument("--bounce-samples", type=int, default=32, help="first hits per point of a bounce")
     parser.add_argument("--out", type=Path, help="write the rows as JSON here")
     args = parser.parse_args()
     rows = []
-    print(f"{'target':<22} {'environment':<18} {'suns':>5} {'raw dB':>8} {'scaled dB':>10} {'s':>6}", flush=True)
+    bounces = tuple(int(b) for b in args.bounces.split(",") if b)
+    head = f"{'target':<22} {'environment':<18} {'suns':>5} {'bounce':>6} {'raw dB':>8} {'scaled dB':>10} {'s':>6}"
+    print(head, flush=True)
     for d in target_dirs(args.results, args.targets):
-        for row in ceilings(d, [s for s in args.suns.split(",") if s], args.lobes, args.iterations, args.brdf, args.samples):
+        suns = [s for s in args.suns.split(",") if s]
+        for row in ceilings(d, suns, args.lobes, args.iterations, args.brdf, args.samples, bounces, args.bounce_samples):
             rows.append(row)
-            suns = f"{row['suns']}:{row['count']}" if row["suns"] == "auto" else row["suns"]
+            sun = f"{row['suns']}:{row['count']}" if row["suns"] == "auto" else row["suns"]
             print(
-                f"{row['target']:<22} {row['environment']:<18} {suns:>5} {row['psnr_db']:8.2f} {row['psnr_scaled_db']:10.2f} "
-                f"{row['seconds']:6.1f}",
+                f"{row['target']:<22} {row['environment']:<18} {sun:>5} {row['bounces']:>6} {row['psnr_db']:8.2f} "
+                f"{row['psnr_scaled_db']:10.2f} {row['seconds']:6.1f}",
                 flush=True,
             )
     if args.out:
