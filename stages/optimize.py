@@ -129,6 +129,7 @@ def run(
                 "light_pruned": run.light_pruned,
                 "light": run.light_record,
                 "suns": run.suns_record,
+                "bounces": {**run.bounces_record, "refreshes": run.bounce_refreshes},
                 **result,
             },
         )

@@ -492,6 +492,29 @@ class FieldSettings(Settings):
         le=256,
         marks=(COMPILED_RENDERER,),
     )
+    bounces: int | Literal["auto"] = setting(
+        0,
+        "one bounce of the mesh's own light (each face side's diffuse radiance under the light, refreshed every "
+        "bounce_every steps, reflected by the diffuse term through bounce_samples first hits per point; needs shadows "
+        "and a ray cache with visibility): 0, 1, or auto: 1 where the median over the training views' hits of the "
+        "share of the hemisphere the mesh blocks reaches bounce_auto_median",
+        ge=0,
+        le=1,
+        marks=(COMPILED_RENDERER,),
+    )
+    bounce_samples: int = setting(
+        16, "bounces: first hits traced per shaded point (once: cosine-distributed directions of its own)", ge=1, le=1024
+    )
+    bounce_every: int = setting(
+        25, "bounces: steps between refreshes of the table of what each face side sends (the material learns)", ge=1, le=100000
+    )
+    bounce_auto_median: float = setting(
+        0.05,
+        "bounces auto: the median blocked share of the hemisphere over the training views' hits from which a bounce "
+        "is modelled (the knot: 0.135; the vase, open but mostly seen from outside: 0; the candle: 0.016)",
+        ge=0,
+        le=1,
+    )
     brdf: Brdf = setting(
         "gltf",
         "the BRDF model: tango (TANGO's diffuse albedo + specular colour, a sum of a diffuse and a microfacet term) "

@@ -241,6 +241,10 @@ class RayCache:
             shading = interpolate_normals(self.corner_normals(normals), face, uv, flat).astype(np.float32)
         return ViewHits(pixel, face, point.astype(np.float32), shading, direction, a["c2w"][i], self.width, flat)
 
+    def mesh(self) -> TriMesh:
+        """The mesh its rays were traced against (float64)."""
+        return TriMesh(self.arrays["vertices"].astype(np.float64), self.arrays["faces"].astype(np.int64))
+
     @property
     def visibility_directions(self) -> int:
         """How many directions each hit's visibility holds (0: the cache has no visibility)."""

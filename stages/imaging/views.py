@@ -9,7 +9,6 @@ import numpy as np
 import torch
 
 from ..config.layout import RENDER_KINDS
-from ..geometry.meshio import TriMesh
 from ..geometry.normals import NormalSpec
 from ..geometry.raycache import RayCache
 from ..geometry.tracing import EmbreeTracer
@@ -128,8 +127,7 @@ class ViewStore:
         return self._views[i]
 
     def _shadows(self, i: int, h) -> ShadowCache:
-        a = self.cache.arrays
-        mesh = TriMesh(a["vertices"].astype(np.float64), a["faces"].astype(np.int64))
+        mesh = self.cache.mesh()
         if self._tracer is None:
             self._tracer = EmbreeTracer(mesh)
         oriented = viewer_side_normals(h.face_normal, h.direction)

@@ -64,9 +64,69 @@ def bounce_table(senders: FaceSides, shade: Callable[[Light, Callable], Shading]
     return BounceLight(table, samples)
 
 
+#: the senders a refresh shades at once
+SENDER_CHUNK = 16384
+
+
+def field_shading(field, senders: FaceSides, device) -> Callable[[Light, Callable], Shading]:
+    """The senders' shading by ``field`` (its networks at their centroids and flat normals, seen
+    along the normal, on ``device``), in pieces of :data:`SENDER_CHUNK`: what
+    :func:`bounce_table` takes."""
+    points = torch.from_numpy(senders.points).float().to(device)
+    normals = torch.from_numpy(senders.normals).float().to(device)
+
+    def shade(light: Light, visibility: Callable) -> Shading:
+        inputs = visibility(light)
+        parts = []
+        for lo in range(0, len(points), SENDER_CHUNK):
+            part = slice(lo, lo + SENDER_CHUNK)
+            vis = None if inputs is None else tuple(None if v is None else v[part].to(device) for v in inputs)
+            out = field(points[part], normals[part], normals[part], light, None, visibility=lambda _, vis=vis: vis)
+            parts.append(out.shading)
+        return Shading(torch.cat([p.diffuse for p in parts]), torch.cat([p.specular for p in parts]))
+
+    return shade
+
+
+def blocked_median(views) -> float | None:
+    """The median over every hit of ``views`` (a :class:`~stages.imaging.views.ViewStore`-like
+    sequence of views with shadows) of the share of its hemisphere the mesh blocks, or None
+    without shadows."""
+    shares = []
+    for i in range(len(views)):
+        shadows = views[i].shadows
+        if shadows is None:
+            return None
+        shares.append(shadows.blocked_share())
+    return float(np.median(np.concatenate(shares))) if shares else 0.0
+
+
+def resolve_bounces(setting: int | str, views, needed: float) -> tuple[int, dict]:
+    """``optimize.bounces`` as a count (0 or 1) and the record of how it was decided: a number as
+    it is (1 needs the views' shadows: the ray cache's visibility and ``optimize.shadows``);
+    ``auto`` by :func:`blocked_median` of the training ``views`` against ``needed``
+    (``bounce_auto_median``), 0 without shadows.
+
+    Raises:
+        ValueError: 1 asked for where the views have no shadows (what to do, in the message)."""
+    median = blocked_median(views) if setting != 0 else None
+    if setting != "auto":
+        if int(setting) and median is None:
+            raise ValueError(
+                "optimize.bounces: 1 needs shadows: set optimize.shadows: true and raycache.visibility: on "
+                "(or bounces: auto, which models none without them)"
+            )
+        return int(setting), {"setting": int(setting), "bounces": int(setting), "blocked_median": median}
+    if median is None:
+        return 0, {"setting": "auto", "bounces": 0, "why": "no shadows (the ray cache has no visibility, or shadows: false)"}
+    count = int(median >= needed)
+    why = f"the median blocked share of the hemisphere over the training hits {median:.3f} {'>=' if count else '<'} {needed}"
+    return count, {"setting": "auto", "bounces": count, "blocked_median": median, "needed": needed, "why": why}
+
+
 def with_bounce(light: Light, bounce: BounceLight) -> Light:
     """``light`` with ``bounce`` in place of any bounce it had (added last)."""
     return Light((*(c for c in light.components if c.kind != BounceLight.kind), bounce))
 
 
-__all__ = ["FaceSides", "bounce_table", "with_bounce"]
+__all__ = ["FaceSides", "blocked_median", "bounce_table", "field_shading", "resolve_bounces", "with_bounce"]

@@ -195,6 +195,11 @@ class ShadowCache:
         point (lazily, for the points asked for; a point's directions are fixed by the cache's
         seed). Differentiable in the table; a ray that leaves the mesh adds nothing."""
         idx = np.arange(len(self)) if index is None else index.cpu().numpy()
+        table = bounce.table
+        if len(table) == 0:  # not yet refreshed: no bounce
+            return torch.zeros(len(idx), table.shape[-1], dtype=table.dtype, device=table.device)
+        if len(table) != 2 * len(self.mesh.faces):
+            raise ValueError(f"a bounce table of {len(table)} face sides for a mesh of {len(self.mesh.faces)} faces")
         if self._bounce is None or self._bounce.samples != bounce.samples:
             self._bounce = _TracedBounce(len(self), bounce.samples, self.seed + 7919)
         traced = self._bounce

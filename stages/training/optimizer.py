@@ -23,11 +23,13 @@ from ..config.sections import OptimizeSettings
 from ..core.allocator import keep_freed_memory
 from ..core.provenance import Timer, atomic_path
 from ..core.safefiles import atomic_stream
+from ..geometry.normals import NormalSpec
 from ..geometry.raycache import RayCache
 from ..guidance.objective import ImageBatch, choose_guidance
 from ..imaging.images import ImageSpec, background, compose, gather_points, global_spec, sample_crops
 from ..imaging.targets import TargetSet
 from ..imaging.views import CachedView, ViewStore
+from ..model.bounce import FaceSides, bounce_table, field_shading, resolve_bounces
 from ..model.compiled import CompiledField
 from ..model.field import StyleField
 from ..model.lights.sun import resolve_suns
@@ -71,14 +73,19 @@ class Optimizer:
     ) -> None:
         """``targets``: the Mitsuba image targets of ``train`` (``target_renderer: mitsuba``).
         ``optimize.suns: auto`` is decided here (:func:`~stages.model.lights.sun.resolve_suns`, on
-        the fixed light's map or the targets' environment) and :attr:`settings` hold the count."""
+        the fixed light's map or the targets' environment), and ``optimize.bounces: auto``
+        (:func:`~stages.model.bounce.resolve_bounces`, on the training views' shadows);
+        :attr:`settings` hold the counts."""
         environment = settings.light_map if settings.light == "fixed" else (targets.environment if targets else None)
         suns, self.suns_record = resolve_suns(
             settings.suns, environment, train.visibility_directions if settings.shadows else 0, settings.suns_share
         )
-        settings = dataclasses.replace(settings, suns=suns)
-        self.settings = settings
         self.device = torch.device(device)
+        normals = NormalSpec(settings.shading_normals, settings.crease_angle_deg, settings.normal_weighting)
+        views = ViewStore(train, self.device, normals, targets, shadows=settings.shadows)
+        bounces, self.bounces_record = resolve_bounces(settings.bounces, views, settings.bounce_auto_median)
+        settings = dataclasses.replace(settings, suns=suns, bounces=bounces)
+        self.settings = settings
         self.field = StyleField(settings.field_settings()).to(self.device)
         if suns and settings.light == "learn" and environment is not None:  # the suns start where the targets' are
             self.suns_record["start"] = self.field.light.sun.start_at(environment)
@@ -92,7 +99,10 @@ class Optimizer:
         self.allocator = keep_freed_memory(settings.keep_freed_memory)[1]
         #: what the networks' products ran in during training, for the metadata
         self.network_precision = self.compiled.use_bf16(settings.bf16_networks, self.device)
-        self.views = ViewStore(train, self.device, self.field.normals, targets, shadows=self.field.shadows)
+        self.views = views
+        #: the face sides that send the bounce (where the run models one), and its refreshes
+        self.senders = FaceSides(train.mesh(), train.visibility_directions) if bounces else None
+        self.bounce_refreshes = 0
         self.compiled.use_compiled_shading(
             settings.compile_shading,
             self.device,
@@ -269,9 +279,22 @@ class Optimizer:
         )
 
     def step(self, timer: Timer) -> dict:
-        """One optimisation step (its float32 linear layers by oneDNN where :attr:`onednn`)."""
+        """One optimisation step (its float32 linear layers by oneDNN where :attr:`onednn`), the
+        bounce's table refreshed first every ``bounce_every`` steps (from the first)."""
+        if self.senders is not None and self.iteration % self.settings.bounce_every == 0:
+            with timer("bounce"):
+                self.refresh_bounce()
         with onednn_products(self.onednn, self.transposes):
             return self._step(timer)
+
+    @torch.no_grad()
+    def refresh_bounce(self) -> None:
+        """The bounce's table from the field as it is (:func:`~stages.model.bounce.bounce_table`:
+        each face side's diffuse radiance under the learned light's other components)."""
+        module = self.field.light.bounce
+        shade = field_shading(self.field, self.senders, self.device)
+        module.set_table(bounce_table(self.senders, shade, self.field.light(), module.samples).table)
+        self.bounce_refreshes += 1
 
     def _step(self, timer: Timer) -> dict:
         settings = self.settings

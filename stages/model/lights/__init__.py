@@ -3,8 +3,10 @@
 light the sum of those its settings ask for (:func:`build_light`, a
 :class:`~stages.model.lights.base.LightModule`).
 
-The kinds: ``sg`` (:mod:`stages.model.lights.sg`, the SG lobes every field has) and ``sun``
-(:mod:`stages.model.lights.sun`, sharp lights where ``optimize.suns`` asks for them). To add a light,
+The kinds: ``sg`` (:mod:`stages.model.lights.sg`, the SG lobes every field has), ``sun``
+(:mod:`stages.model.lights.sun`, sharp lights where ``optimize.suns`` asks for them) and ``bounce``
+(:mod:`stages.model.lights.bounce`, the mesh's own light, one bounce, where ``optimize.bounces``
+asks for it). To add a light,
 write its module (its renderer component, :class:`~stages.render.light.LightComponent`, and its
 component module: ``build`` from the field settings, ``forward``, ``fit``, and what only it does
 behind the methods every kind has) and list its class in :data:`_KINDS`;
@@ -23,13 +25,15 @@ from ...config.sections import FieldSettings
 from ...render.envmap import load_env
 from ...render.light import Light
 from .base import LightComponentModule, LightModule, Pruned
+from .bounce import BounceModule
 from .sg import SGLightModule, fit_sg_light
 from .sun import SunLightModule, sun_criterion
 
 #: each kind's component module by name, in the order a light holds them
-_KINDS: dict[str, type[LightComponentModule]] = {kind.kind: kind for kind in (SGLightModule, SunLightModule)}
+_KINDS: dict[str, type[LightComponentModule]] = {kind.kind: kind for kind in (SGLightModule, SunLightModule, BounceModule)}
 
 __all__ = [
+    "BounceModule",
     "LightComponentModule",
     "LightModule",
     "Pruned",
