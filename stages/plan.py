@@ -343,6 +343,8 @@ def make_plan(
         }
         if s.suns != 0:  # how many suns, decided as the run will decide it (on the known environment)
             row["suns"] = planned_suns(cfg, entry["mesh"], s)
+        if s.bounces != 0:  # decided by the optimisation, on the training views' shadows
+            row["bounces"] = {"setting": s.bounces, "every": s.bounce_every, "samples": s.bounce_samples}
         if sec is not None:
             row["seconds"] = sec * s.iterations * entry["cells"]
             total += row["seconds"]
@@ -392,6 +394,14 @@ def planned_suns(cfg: WorkflowConfig, mesh: str, s) -> dict:
     raycache = cfg.stage_settings(mesh, "raycache")
     directions = raycache.visibility_directions if raycache.visibility != "off" and s.shadows else 0
     return resolve_suns(s.suns, environment, directions, s.suns_share)[1]
+
+
+def bounces_text(record: dict) -> str:
+    """The plan's line of a group's bounce (``optimize.bounces``): what is modelled, or how auto decides."""
+    what = f"one bounce of the mesh's own light, refreshed every {record['every']} steps, {record['samples']} hits per point"
+    if record["setting"] == "auto":
+        return f"bounces: auto (at the optimisation: {what} where the training hits' median blocked share is high enough)"
+    return f"bounces: {record['setting']} ({what})"
 
 
 def suns_text(record: dict) -> str:
@@ -534,6 +544,8 @@ def plan_text(plan: dict) -> str:
         lines.append(f"    precision: {e['precision']}")
         if "suns" in e:
             lines.append(f"    {suns_text(e['suns'])}")
+        if "bounces" in e:
+            lines.append(f"    {bounces_text(e['bounces'])}")
     if not plan["optimisation"]:
         lines.append("No optimisation to run.")
         return "\n".join(lines) + "\n"

@@ -99,7 +99,7 @@ def run(
         fitted, fit_record = fit_environment_like(
             field.light, settings.envmap, settings.lobes, settings.fit_iterations, store.cache.visibility_directions
         )
-    light = fitted.to(dev)
+    light = store.light_of(field, fitted.to(dev))  # where the field bounces, its bounce under this light
     out_dir = Path(out_dir)
     with staged_outputs(out_dir) as staging:
         with timer("render"):

@@ -30,7 +30,7 @@ from .core.provenance import Timer, metadata, staged_outputs, write_json_atomic
 from .geometry.meshio import TriMesh, load_ply
 from .geometry.raycache import RayCache
 from .imaging.sheets import save_png
-from .imaging.targets import save_relit, save_targets
+from .imaging.targets import SENDER_PREFIX, save_relit, save_targets
 from .reference.target_job import MeshTargets, material_sheet, render_targets, target_sheet, view_summary
 from .reference.targets import target_normals
 
@@ -121,6 +121,7 @@ def _write_targets(staging: Path, targets: MeshTargets, train: RayCache, metric:
         staging / "train.npz", {"radiance": tt.radiance, "coverage": tt.coverage, "offsets": train.arrays["offsets"], **common}
     )
     metrics = {"radiance": tm.radiance, "coverage": tm.coverage, "offsets": metric.arrays["offsets"], **targets.truth, **common}
+    metrics.update({f"{SENDER_PREFIX}{k}": v for k, v in (targets.senders or {}).items()})
     save_targets(staging / "metrics.npz", metrics)
     save_relit(staging / "relit.npz", targets.relit, metric.arrays["offsets"], targets.text)
 

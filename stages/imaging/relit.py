@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from ..model.bounce import bounce_table, with_bounce
 from ..model.field import shade_material
 from ..model.lights import fit_environment_like
 from ..model.networks import Material
@@ -28,6 +29,7 @@ from ..render import brdf as brdfs
 from ..render.brdf import Brdf
 from ..render.color import linear_to_srgb
 from ..render.light import Light, Visibility, cat_visibility, map_visibility
+from ..render.light.bounce import BounceLight
 from ..render.shading import face_viewer
 from .images import render_cached_view
 from .quality import psnr
@@ -192,9 +194,9 @@ def grade_relighting(
         fitted, record = fit_environment_like(getattr(field, "light", None), r.environment, lobes, iterations, directions)
         light = fitted.to(dev)
         full = torch.from_numpy(r.coverage >= FULL_COVERAGE).to(dev)
+        ours_all = _field_radiance(field, store, store.light_of(field, light))  # the field bounces as it trained
         truth_linear = torch.from_numpy(r.radiance).to(dev)[full]
         goal = linear_to_srgb(truth_linear)
-        ours_all = _field_radiance(field, store, light)
         if renders is not None:
             renders[r.environment] = ours_all
         row = {
@@ -206,7 +208,8 @@ def grade_relighting(
         }
         brdf = brdfs.get(getattr(field, "brdf", "tango"))
         if truth is not None and truth.has_truth and all(k in truth.arrays for k in brdf.parameters):
-            ceiling = truth_radiance(truth, store, light, field.specular_lobe, brdf)[full]
+            lit, row["ceiling_bounce"] = ceiling_light(field, store, truth, light, brdf)
+            ceiling = truth_radiance(truth, store, lit, field.specular_lobe, brdf)[full]
             row["ceiling_psnr_db"] = psnr(linear_to_srgb(ceiling), goal)
             row["ceiling_psnr_scaled_db"] = psnr(linear_to_srgb(ceiling * channel_scale(ceiling, truth_linear)), goal)
         out.append(row)
@@ -214,6 +217,32 @@ def grade_relighting(
 
 
 @torch.no_grad()
+def ceiling_light(field, store: ViewStore, truth: TargetSet, light: Light, brdf: Brdf) -> tuple[Light, dict]:
+    """The light a ceiling renders the true material under with ``field``'s transport: ``light``,
+    and where the field models a bounce, the true material's bounce under it (its table from the
+    truth at the face sides that the targets carry, :meth:`~stages.imaging.targets.TargetSet.senders`).
+    Returns the light and the record of its bounce (``bounces`` 0 or 1, and why not)."""
+    module = dict(getattr(field, "light", torch.nn.Module()).named_children()).get(BounceLight.kind)
+    if module is None or not store.shadows:
+        return light, {"bounces": 0}
+    parts = truth.senders(brdf.parameters)
+    if parts is None:
+        return light, {"bounces": 0, "why": "the targets carry no truth at the face sides (written before they did)"}
+    senders, dev = store.senders, store.device
+    rows = torch.from_numpy(senders.rows)
+    picked = {k: torch.from_numpy(v)[rows].to(dev) for k, v in parts.items()}
+    picked["roughness"] = picked["roughness"].clamp(0.01, 1.0)
+    material = Material.of(brdf, *(picked[k] for k in brdf.parameters))
+    flat = torch.from_numpy(senders.normals).float().to(dev)
+    normal = torch.nn.functional.normalize(picked["normal"], dim=-1)
+    normal = torch.where((normal * flat).sum(-1, keepdim=True) > 0, normal, flat)
+
+    def shade(direct: Light, visibility):
+        return shade_material(normal, normal, material, direct, field.specular_lobe, visibility(direct))
+
+    return with_bounce(light, bounce_table(senders, shade, light, module.samples)), {"bounces": 1}
+
+
 def training_ceiling(field, store: ViewStore, truth: TargetSet, environment: str, lobes: int, iterations: int) -> dict:
     """The training light's ceiling beside the recovered figure, on ``store``'s views (the
     held-out metric views of ``truth``, which carries the true material and Mitsuba's render
@@ -228,7 +257,8 @@ def training_ceiling(field, store: ViewStore, truth: TargetSet, environment: str
     full = torch.from_numpy(truth.arrays["coverage"].astype(np.float32) >= FULL_COVERAGE).to(dev)
     goal = torch.from_numpy(truth.arrays["radiance"].astype(np.float32)).to(dev)[full]
     brdf = brdfs.get(getattr(field, "brdf", "tango"))
-    ceiling = graded_figures(truth_radiance(truth, store, light.to(dev), field.specular_lobe, brdf)[full], goal)
+    light, bounce = ceiling_light(field, store, truth, light.to(dev), brdf)
+    ceiling = graded_figures(truth_radiance(truth, store, light, field.specular_lobe, brdf)[full], goal)
     recovered = graded_figures(_field_radiance(field, store, field.light())[full], goal)
     return {
         "environment": environment,
@@ -239,6 +269,7 @@ def training_ceiling(field, store: ViewStore, truth: TargetSet, environment: str
         "pixels": int(full.sum()),
         "pixels_are": "fully covered hits of the held-out metric views (the relighting's protocol)",
         **record,
+        "ceiling_bounce": bounce,
     }
 
 

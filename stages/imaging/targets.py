@@ -42,6 +42,9 @@ from ..geometry.raycache import RayCache
 TRUTH_KEYS = ("albedo", "specular", "roughness", "normal")
 #: and the truth in glTF's terms (base colour, metallic), for fields of ``optimize.brdf: gltf``
 GLTF_TRUTH_KEYS = ("base", "metallic")
+#: the prefix of the truth at the metric cache's face sides in ``metrics.npz`` (what a bounce's
+#: ceiling sends: :meth:`TargetSet.senders`)
+SENDER_PREFIX = "sender_"
 #: a hit whose pixel is at least this covered counts as an object pixel of the figures
 FULL_COVERAGE = 0.999
 
@@ -142,6 +145,15 @@ class TargetSet:
         """The environment the targets are lit by (``target.environment``: ``builtin:<name>`` or a
         map's path), None for a file written without it."""
         return str(self.arrays["environment"]) if "environment" in self.arrays else None
+
+    def senders(self, keys: tuple[str, ...]) -> dict[str, np.ndarray] | None:
+        """The truth at the metric cache's face sides (rows ``2 f`` and ``2 f + 1``), the ``keys``
+        and the shading ``normal``, or None where the targets do not carry them (written before
+        they did)."""
+        wanted = (*keys, "normal")
+        if not all(f"{SENDER_PREFIX}{k}" in self.arrays for k in wanted):
+            return None
+        return {k: self.arrays[f"{SENDER_PREFIX}{k}"].astype(np.float32) for k in wanted}
 
     @property
     def has_truth(self) -> bool:

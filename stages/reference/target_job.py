@@ -17,7 +17,7 @@ from ..geometry.meshio import TriMesh
 from ..geometry.raycache import RayCache
 from ..imaging.sheets import contact_sheet
 from ..render.color import srgb_encode
-from .targets import TargetRenderer, ViewTargets
+from .targets import TargetRenderer, ViewTargets, truth_at_senders
 
 log = logging.getLogger(__name__)
 
@@ -39,8 +39,8 @@ def describe(kind: str, settings: TargetSettings, variant: str) -> str:
 class MeshTargets:
     """One mesh's targets in one material: the ``renderer`` (its scene and the truth), the training
     and metric views' renders, the ``truth`` at the metric hits and which of them ``missing`` the
-    rendered mesh, each relit environment's render and light energy, and the ``text`` that names
-    them."""
+    rendered mesh, each relit environment's render and light energy, the ``text`` that names
+    them, and the truth at the metric cache's face sides (``senders``)."""
 
     renderer: TargetRenderer
     train: ViewTargets
@@ -49,6 +49,8 @@ class MeshTargets:
     missing: np.ndarray
     relit: dict[str, tuple[ViewTargets, np.ndarray]]
     text: str
+    #: the truth at the metric cache's face sides (:func:`~stages.reference.targets.truth_at_senders`)
+    senders: dict | None = None
 
 
 def render_targets(
@@ -68,6 +70,7 @@ def render_targets(
         tm = renderer.render_cache(metric, settings.metric_spp, seed + METRIC_SEED)
     with timer("truth"):
         truth, met = renderer.truth_at_hits(metric)
+        senders = truth_at_senders(renderer.truth, mesh, metric.mesh())  # what a bounce's ceiling sends
     tm.coverage[~met] = 0.0
     relit = {}
     with timer("render_relit"):
@@ -77,7 +80,7 @@ def render_targets(
             t.coverage[~met] = 0.0
             relit[env] = (t, judge.env_energy)
             log.info("relit ground truth under %s: noise PSNR %.1f dB, %.1f s", env, t.noise_psnr_db, t.seconds)
-    return MeshTargets(renderer, tt, tm, truth, ~met, relit, text)
+    return MeshTargets(renderer, tt, tm, truth, ~met, relit, text, senders)
 
 
 def view_summary(t: ViewTargets, spp: int, width: int, missing: np.ndarray | None = None) -> dict:

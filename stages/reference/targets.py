@@ -409,6 +409,32 @@ def truth_at_cache(truth: GroundTruth, mesh: TriMesh, cache: RayCache) -> tuple[
     return {k: np.where(met[:, None], v, 0.0) for k, v in values.items()}, met
 
 
+def truth_at_senders(truth: GroundTruth, fine: TriMesh, mesh: TriMesh) -> dict:
+    """The true material and shading normal at the centroid of each face side of ``mesh`` (the
+    senders of a bounce, :class:`~stages.model.bounce.FaceSides`: row ``2 f`` the front, ``2 f + 1``
+    the back, each seen from its side), found on ``fine`` (the rendered mesh, which may be finer)
+    along the face's normal; a face whose centroid is not on ``fine`` within a hundredth of the
+    mesh's size, or without an area, gets zeros. Keys as :meth:`GroundTruth.at_hits`', each
+    ``(2 F, C)``."""
+    n = mesh.face_normals
+    c = mesh.vertices[mesh.faces].mean(axis=1)
+    reach = 1e-2 * float(np.linalg.norm(np.ptp(mesh.vertices, axis=0)))
+    tracer = EmbreeTracer(fine)
+    down = tracer.trace(c + reach * n, -n)
+    up = tracer.trace(c - reach * n, n)
+    near_down = (down.face >= 0) & (down.depth <= 2.0 * reach)
+    face = np.where(near_down, down.face, up.face)
+    bary = np.where(near_down[:, None], down.bary, up.bary).astype(np.float64)
+    met = (face >= 0) & (np.linalg.norm(n, axis=1) > 0.5) & (near_down | ((up.face >= 0) & (up.depth <= 2.0 * reach)))
+    f = np.where(met, face, 0)
+    front, back = truth.at_hits(f, bary, np.zeros(len(f), bool)), truth.at_hits(f, bary, np.ones(len(f), bool))
+    out = {}
+    for k in front:
+        both = np.stack([front[k], back[k]], axis=1).reshape(2 * len(f), -1)
+        out[k] = np.where(np.repeat(met, 2)[:, None], both, 0.0).astype(np.float32)
+    return out
+
+
 #: a pixel counts as an object pixel of the figures when Mitsuba's alpha says it is fully covered
 ALPHA_FULL = 0.999
 

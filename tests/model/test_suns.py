@@ -193,8 +193,9 @@ def test_an_optimisation_with_a_sun_writes_and_reloads_it(cache, tmp_path):
 @pytest.mark.slow(minutes=2)
 def test_training_with_a_shadowed_sun_compiled_steps_as_eager(tmp_path):
     """The renderer compiled (``compile_shading: on``) with a sun and its shadow rays (a cache with
-    visibility) takes the eager run's losses for three steps and ends at its parameters: the
-    sun's component, its visibility input and its padding go through the compiled graph
+    visibility) and one bounce takes the eager run's losses for three steps and ends at its
+    parameters: the sun's and the bounce's components, their visibility inputs and their padding
+    go through the compiled graph
     (measured: losses equal to 1e-7, parameters within 5e-7; the compilation about 90 s from an
     empty cache)."""
     from stages.config.sections import NormalizeSettings, RaycacheSettings
@@ -213,7 +214,14 @@ def test_training_with_a_shadowed_sun_compiled_steps_as_eager(tmp_path):
 
     def run(**compile_settings) -> Optimizer:
         s = OptimizeSettings(
-            **{**TINY, "light_lobes": 4, "width": 16}, iterations=5, bf16="off", bf16_networks="off", suns=1, **compile_settings
+            **{**TINY, "light_lobes": 4, "width": 16},
+            iterations=5,
+            bf16="off",
+            bf16_networks="off",
+            suns=1,
+            bounces=1,
+            bounce_every=2,
+            **compile_settings,
         )
         return Optimizer(s, RayCache(tmp_path / "train.npz"), "a vase", "cpu")
 
@@ -227,3 +235,6 @@ def test_training_with_a_shadowed_sun_compiled_steps_as_eager(tmp_path):
         torch.testing.assert_close(pb.detach(), pa.detach(), rtol=1e-4, atol=1e-5, msg=name)
     traced = [v.shadows._sun.traces for v in eager.views._views.values() if v.shadows._sun is not None]
     assert sum(traced) > 0  # its shadow rays were traced
+    bounced = [v.shadows._bounce.traces for v in compiled.views._views.values() if v.shadows._bounce is not None]
+    assert sum(bounced) > 0 and compiled.bounce_refreshes == 2  # the bounce went through the graph, refreshed twice
+    torch.testing.assert_close(compiled.field.light.bounce.table, eager.field.light.bounce.table, rtol=1e-4, atol=1e-6)

@@ -226,6 +226,28 @@ def test_ground_truth_at_hits_is_what_mitsuba_shows(mi, tmp_path):
     assert render_albedo(gt.base_color[::-1].copy()) > 0.02
 
 
+def test_the_truth_at_the_face_sides_is_the_truth_at_their_centroids(tmp_path):
+    """``truth_at_senders``: on the mesh the truth was baked on, row ``2 f`` is ``at_hits`` at face
+    ``f``'s centroid seen from the front and ``2 f + 1`` from behind (the normal mirrored); on a
+    coarser mesh of the same surface each side finds the fine surface below its centroid, so a
+    front normal stays within a few degrees of the coarse face's."""
+    mesh = icosphere(4)
+    gt = tref.ground_truth(mesh, "wood", TargetSettings(texture_size=128))
+    got = tref.truth_at_senders(gt, mesh, mesh)
+    f = np.arange(len(mesh.faces))
+    third = np.full((len(f), 2), 1.0 / 3.0)
+    for side, back in ((0, False), (1, True)):
+        want = gt.at_hits(f, third, np.full(len(f), back))
+        for k in ("albedo", "roughness", "normal"):
+            np.testing.assert_allclose(got[k][side::2], want[k], atol=2e-4, err_msg=k)
+    coarse = icosphere(2)
+    rough = tref.truth_at_senders(gt, mesh, coarse)
+    assert rough["albedo"].shape == (2 * len(coarse.faces), 3)
+    cos = (rough["normal"][0::2] * coarse.face_normals).sum(1)
+    assert float(np.percentile(cos, 5)) > math.cos(math.radians(15.0))
+    assert float((rough["normal"][1::2] * coarse.face_normals).sum(1).max()) < 0.0  # the backs face inwards
+
+
 @pytest.mark.parametrize("mode", ["smooth", "flat"])
 def test_mitsuba_shades_with_the_normals_we_interpolate(mi, tmp_path, mode):
     """A coarse sphere (icosphere 2, 320 faces) given our corner normals, white diffuse under a
@@ -367,6 +389,9 @@ def test_target_stage_writes_targets_truth_and_measured_noise(mi, tmp_path, vari
     assert 4.5 < gain < 7.5, gain
     t = TargetSet(out / "metrics.npz", RayCache(tmp_path / "metrics.npz"))
     assert t.has_truth and np.isfinite(t.arrays["radiance"].astype(np.float32)).all()
+    senders = t.senders(("albedo", "specular", "roughness"))  # the truth a bounce's ceiling sends
+    assert senders is not None and senders["albedo"].shape == (2 * len(mesh.faces), 3)
+    assert float(senders["albedo"].max()) > 0 and np.isfinite(senders["normal"]).all()
     assert (t.arrays["coverage"].astype(np.float32) > 0.999).mean() > 0.9
     assert np.allclose(t.arrays["env_energy"], radiant_energy(procedural_envmap("sun_sky", 512)))
     with pytest.raises(Exception, match="another ray cache"):

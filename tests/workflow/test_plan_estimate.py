@@ -111,3 +111,20 @@ def test_the_plan_says_how_many_suns_each_optimisation_gets(tmp_path):
         path.write_text(yaml.safe_dump(cfg_dict))
         p = plan_mod.make_plan(load_config_files([path]), "suns", tmp_path / "results", False, tmp_path / "cache")
         assert needle in plan_mod.plan_text(p), plan_mod.plan_text(p)
+
+
+def test_the_plan_says_what_bounce_each_optimisation_models(tmp_path):
+    """``optimize.bounces``: a 1 is said with its refresh and hits; ``auto`` says that the
+    optimisation decides it; 0 says nothing."""
+    import yaml
+
+    base = yaml.safe_load(DEMO.read_text())
+    for setting, needle in (
+        (1, "bounces: 1 (one bounce of the mesh's own light, refreshed every 25 steps, 16 hits per point)"),
+        ("auto", "bounces: auto (at the optimisation:"),
+        (0, None),
+    ):
+        path = tmp_path / "bounces.yaml"
+        path.write_text(yaml.safe_dump(dict(base, optimize={**base["optimize"], "bounces": setting})))
+        text = plan_mod.plan_text(plan_mod.make_plan(load_config_files([path]), "b", tmp_path / "results", False, tmp_path / "c"))
+        assert (needle in text) if needle else ("bounces:" not in text), text
