@@ -102,3 +102,19 @@ def test_a_known_light_fits_around_the_bounce():
     assert "sg_fit_relative_rms" in record or record["map"] == "builtin:sunset"
     assert light.bounce.table.shape == (0, 3)
     assert torch.equal(light().components[1].energy(), torch.zeros(3))
+
+
+def test_a_resumed_run_takes_its_table(knot):
+    """A checkpoint holds the bounce's table (its size the mesh's face sides): a run resumed from
+    it renders with it before its next refresh."""
+    from stages.core.provenance import Timer
+    from stages.training.optimizer import Optimizer
+
+    s = OptimizeSettings(iterations=4, bounces=1, bounce_every=3, **TINY)
+    first = Optimizer(s, RayCache(knot / "train.npz"), "a knot", "cpu")
+    first.step(Timer())
+    state = first.state()
+    again = Optimizer(s, RayCache(knot / "train.npz"), "a knot", "cpu")
+    again.load(state)
+    torch.testing.assert_close(again.field.light.bounce.table, first.field.light.bounce.table)
+    assert again.field.light.bounce.table.shape[0] == 2 * len(RayCache(knot / "train.npz").mesh().faces)
