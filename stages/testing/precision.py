@@ -52,6 +52,7 @@ from ..render.brdf import GLTF, TANGO, Brdf
 from ..render.brdf.gltf import diffuse_radiance_gltf
 from ..render.fitted_lobe import specular_radiance_fitted
 from ..render.isotropic_lobe import specular_radiance
+from ..render.light.bounce import BounceLight, indirect_irradiance
 from ..render.light.sun import SunLight
 from ..render.sg import sg_hemisphere_integral
 from ..render.split_sum import specular_radiance_split_sum
@@ -221,6 +222,16 @@ def _sun_shading(brdf: Brdf) -> tuple[tuple[str, ...], Callable]:
     )
 
 
+def _bounce_shading(p: dict[str, Tensor], lt: dict[str, Tensor]) -> Tensor:
+    """glTF's diffuse term under one bounce: the case's lobe amplitudes as the table of the face
+    sides sent from, each point meeting 16 of them (or missing, -1) drawn from a seed of its own
+    (the cases' draws untouched), through :func:`~stages.render.light.bounce.indirect_irradiance`."""
+    table = lt["amplitude"]
+    sides = torch.randint(-1, table.shape[0], (p["normal"].shape[0], 16), generator=torch.Generator().manual_seed(7))
+    material = Material.gltf(p["albedo"], p["metallic"], torch.full_like(p["metallic"], 0.5))
+    return BounceLight(table).shade(GLTF, p["normal"], p["view"], material, None, indirect_irradiance(table, sides)).rgb
+
+
 #: term -> (the point inputs it reads, its function of (points, light, fixed) -> (N, C))
 TERMS: dict[str, tuple[tuple[str, ...], Callable]] = {
     "light radiance L(d)": (("direction",), lambda p, lt, f: _light(lt).radiance(p["direction"])),
@@ -241,6 +252,7 @@ TERMS: dict[str, tuple[tuple[str, ...], Callable]] = {
     ),
     "sun (TANGO)": _sun_shading(TANGO),
     "sun (glTF)": _sun_shading(GLTF),
+    "bounce (glTF)": (("normal", "view", "albedo", "metallic"), lambda p, lt, f: _bounce_shading(p, lt)),
 }
 
 
