@@ -30,9 +30,10 @@ def child(faces: str, size: int, decimate_to: int | None) -> dict:
     import torch
 
     from stages.assets.baking import bake_field
-    from stages.assets.formats import export_mesh
+    from stages.assets.formats import AssetInfo, export_mesh
     from stages.assets.formats.gltf import write_glb
     from stages.assets.formats.usd import package_usdz, write_usd
+    from stages.config.brdfs import brdf_spec
     from stages.config.sections import BakeSettings, OptimizeSettings
     from stages.core.provenance import origin_record
     from stages.geometry.meshio import TriMesh, save_ply
@@ -75,7 +76,7 @@ def child(faces: str, size: int, decimate_to: int | None) -> dict:
         origin = origin_record(guidance="clip", weights="random untrained field (benchmark)", test_only=True)
         write_usd(d / "model.usda", geom, 1.0, "light.exr", origin)
         package_usdz(d / "model.usda", d / "model.usdz", [f"textures/{k}.png" for k in res.textures] + ["light.exr"])
-        write_glb(d / "model.glb", geom, d / "textures", 1.0, "bench", origin)
+        write_glb(d / "model.glb", geom, d / "textures", AssetInfo(1.0, "bench", origin, brdf_spec("tango")))
         t["export"] = time.perf_counter() - t0
         sizes = {k: (d / k).stat().st_size for k in ("model.usdz", "model.glb")}
     del np, save_ply

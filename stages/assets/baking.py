@@ -47,8 +47,8 @@ from ..model.networks import Material
 from ..render import brdf as brdfs
 from ..render.brdf import Brdf
 from ..render.color import srgb_decode, srgb_encode, to_u8
+from ..render.distant import DistantLight
 from ..render.envmap import equirect_directions
-from ..render.light import DistantLight
 from ..render.shading import face_viewer
 from .layouts import KeptLayout
 

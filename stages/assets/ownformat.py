@@ -42,7 +42,7 @@ from ..core.safefiles import IMAGE_LIMIT, open_read, plain_file, read_bytes
 from ..geometry.normalization import Similarity
 from ..geometry.sourcemesh import GLTF_SOURCE, ObjLines, SourceMesh, load_gltf_document
 from ..geometry.tangents import mikktspace
-from ..render.light import DistantLight
+from ..render.distant import DistantLight
 from .formats.gltf import LIGHTS_EXTENSION, GlbBuffer, add_distant_lights, glb_material, glb_sampler, punctual_lights
 from .formats.mesh import ExportMesh, export_mesh
 

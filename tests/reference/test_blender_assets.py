@@ -16,8 +16,9 @@ from PIL import Image
 
 from stages import roundtrip
 from stages.assets.baking import BakedHits, cached_barycentrics, decode_textures, render_baked
-from stages.assets.formats import export_mesh, read_atlas
+from stages.assets.formats import AssetInfo, export_mesh, read_atlas
 from stages.assets.formats.gltf import write_glb
+from stages.config.brdfs import brdf_spec
 from stages.config.sections import RoundtripSettings
 from stages.geometry.cameras import camera_positions, camera_space_directions, look_at
 from stages.geometry.meshio import load_ply
@@ -156,7 +157,7 @@ def test_normal_map_handedness_under_cycles(ready, trained_cell, tmp_path):
     mesh = load_ply(d / "mesh.ply")
     atlas = read_atlas(d / "bake" / "atlas.npz")
     geom = export_mesh(mesh, atlas, None)
-    write_glb(tmp_path / "model.glb", geom, tex, 1.0, "tilted", {"label": "test"})
+    write_glb(tmp_path / "model.glb", geom, tex, AssetInfo(1.0, "tilted", {"label": "test"}, brdf_spec("tango")))
     light, _ = fit_sg_light(load_env("builtin:sunset", 32), lobes=24, iterations=300)
     dirs = equirect_directions(256, 512).reshape(-1, 3)
     with torch.no_grad():

@@ -17,7 +17,7 @@ from ...config.brdfs import BrdfSpec
 from ...config.layout import ExportFormat
 from ...config.sections import ExportSettings
 from ...core.errors import StageInputError
-from ...render.light import DistantLight
+from ...render.distant import DistantLight
 from .mesh import ExportMesh, Level
 
 log = logging.getLogger(__name__)

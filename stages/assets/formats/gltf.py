@@ -34,7 +34,7 @@ from ...core.errors import StageInputError
 from ...core.provenance import ORIGIN_METADATA_KEY, atomic_path
 from ...core.safefiles import IMAGE_LIMIT, read_bytes
 from ...core.tools import GLTF_VALIDATOR, REPO_ROOT
-from ...render.light import DistantLight
+from ...render.distant import DistantLight
 from .base import AssetInfo, Exporter, facing_rotation, one_line
 from .mesh import ExportMesh, Level
 
@@ -45,26 +45,13 @@ class GltfFormat(Exporter):
 
     def write(self, folder: Path, geom: ExportMesh, asset: AssetInfo) -> None:
         (glb,) = (Path(folder) / name for name in self.files().values())
-        mpu, textures = asset.meters_per_unit, Path(folder) / "textures"
-        a = asset
-        write_glb(glb, geom, textures, mpu, a.name, a.origin, brdf=a.brdf, occlusion=a.occlusion, lights=a.lights)
+        write_glb(glb, geom, Path(folder) / "textures", asset)
 
     def write_levels(self, folder: Path, levels: list[Level], asset: AssetInfo, coverage: list[float]) -> None:
         """The finest level in the scene, the coarser ones as its ``MSFT_lod`` alternatives."""
         (glb,) = (Path(folder) / name for name in self.files(LEVELS_STEM).values())
-        write_glb(
-            glb,
-            levels[0].geom,
-            Path(folder) / levels[0].textures,
-            asset.meters_per_unit,
-            asset.name,
-            asset.origin,
-            lods=[(lv.geom, Path(folder) / lv.textures) for lv in levels[1:]],
-            screen_coverage=coverage,
-            brdf=asset.brdf,
-            occlusion=asset.occlusion,
-            lights=asset.lights,
-        )
+        lods = [(lv.geom, Path(folder) / lv.textures) for lv in levels[1:]]
+        write_glb(glb, levels[0].geom, Path(folder) / levels[0].textures, asset, lods, coverage)
 
     def validate(self, folder: Path, stem: str = "model") -> dict[str, dict]:
         return {name: validate_glb(Path(folder) / name) for name in self.files(stem).values()}
@@ -129,20 +116,16 @@ def write_glb(
     path: Path,
     geom: ExportMesh,
     textures_dir: Path,
-    meters_per_unit: float,
-    name: str,
-    origin: dict,
+    asset: AssetInfo,
     lods: list[tuple[ExportMesh, Path]] = (),
     screen_coverage: list[float] | None = None,
-    brdf: BrdfSpec | str = "tango",
-    occlusion: bool = False,
-    lights: tuple[DistantLight, ...] = (),
 ) -> None:
-    """Write a self-contained binary glTF 2.0 file (see the module docstring for the mapping);
-    ``origin`` goes into ``asset.extras.tango_stylize``. With ``occlusion`` the material's
-    ``occlusionTexture`` is the metallic-roughness texture (its red channel, glTF's packing).
-    The distant ``lights`` (the learned suns) are ``KHR_lights_punctual`` directional lights, one
-    node each in the scene (:func:`add_distant_lights`).
+    """Write a self-contained binary glTF 2.0 file of ``geom`` and the textures in ``textures_dir``
+    (see the module docstring for the mapping) with what ``asset`` says of it: its metres per
+    unit and name, its ``origin`` (into ``asset.extras.tango_stylize``), its BRDF, whether the
+    material's ``occlusionTexture`` is the metallic-roughness texture (its red channel, glTF's
+    packing: ``asset.occlusion``), and its distant ``lights`` (the learned suns), which become
+    ``KHR_lights_punctual`` directional lights, one node each in the scene (:func:`add_distant_lights`).
 
     ``lods`` (coarser levels, each geometry with its textures' folder) makes the file an
     ``MSFT_lod`` asset: the scene's node holds the finest level and lists one node per coarser
@@ -151,7 +134,7 @@ def write_glb(
     A viewer without the extension shows the finest level."""
     import pygltflib as g
 
-    brdf = brdf_spec(brdf)
+    brdf, occlusion, meters_per_unit, name = brdf_spec(asset.brdf), asset.occlusion, asset.meters_per_unit, asset.name
     buffer = GlbBuffer(g)
     materials, meshes, nodes = [], [], []
     for k, (level, tex_dir) in enumerate([(geom, textures_dir), *lods]):
@@ -176,9 +159,9 @@ def write_glb(
         nodes[0].extensions = {"MSFT_lod": {"ids": list(range(1, len(nodes)))}}
         nodes[0].extras = {"MSFT_screencoverage": [float(c) for c in screen_coverage]}
         used.append("MSFT_lod")
-    scene_nodes = [0, *add_distant_lights(g, nodes, lights, used)]
+    scene_nodes = [0, *add_distant_lights(g, nodes, asset.lights, used)]
     gltf = g.GLTF2(
-        asset=g.Asset(version="2.0", generator="tango-stylize", extras={ORIGIN_METADATA_KEY: origin}),
+        asset=g.Asset(version="2.0", generator="tango-stylize", extras={ORIGIN_METADATA_KEY: asset.origin}),
         scene=0,
         scenes=[g.Scene(nodes=scene_nodes)],
         nodes=nodes,
@@ -192,8 +175,8 @@ def write_glb(
         buffers=[g.Buffer(byteLength=sum(len(b) for b in buffer.blobs))],
         extensionsUsed=used,
     )
-    if lights:
-        gltf.extensions = {LIGHTS_EXTENSION: {"lights": punctual_lights(lights)}}
+    if asset.lights:
+        gltf.extensions = {LIGHTS_EXTENSION: {"lights": punctual_lights(asset.lights)}}
     gltf.set_binary_blob(b"".join(buffer.blobs))
     with atomic_path(path) as tmp:
         gltf.save_binary(str(tmp))

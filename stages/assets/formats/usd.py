@@ -26,7 +26,7 @@ from ...config.brdfs import BrdfSpec, brdf_spec
 from ...config.layout import EXPORT_FORMATS, LEVELS_STEM, TEXTURE_FILES
 from ...core.provenance import ORIGIN_METADATA_KEY, atomic_path
 from ...core.safefiles import remove
-from ...render.light import DistantLight
+from ...render.distant import DistantLight
 from .base import AssetInfo, Exporter, facing_rotation
 from .mesh import ExportMesh, Level
 
