@@ -31,8 +31,9 @@ from PIL import Image, ImageDraw
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from stages.assets.formats import ExportMesh  # noqa: E402
+from stages.assets.formats import AssetInfo, ExportMesh  # noqa: E402
 from stages.assets.formats.gltf import write_glb  # noqa: E402
+from stages.config.brdfs import brdf_spec  # noqa: E402
 from stages.config.guidance_modes import guidance_mode  # noqa: E402
 from stages.config.layout import RENDER_KINDS, TEXTURES  # noqa: E402
 from stages.config.sections import OptimizeSettings  # noqa: E402
@@ -148,7 +149,7 @@ def make(out: Path, meshes: int = 10, prompts: int = 3, decimated: int = 2, seed
                 Image.fromarray(np.full((64, 64, 3), (0, 128, 0), np.uint8)).save(tex / "metallic_roughness.png")
                 Image.fromarray(np.full((64, 64, 3), (128, 128, 255), np.uint8)).save(tex / "normal.png")
                 Image.fromarray(np.full((64, 64, 3), 60, np.uint8)).save(tex / "specular.png")
-                write_glb(model_dir / "model.glb", geom, tex, 1.0, f"{m}_{p}", origin)
+                write_glb(model_dir / "model.glb", geom, tex, AssetInfo(1.0, f"{m}_{p}", origin, brdf_spec("tango")))
                 sky = np.ones((32, 64, 3), np.float32) * np.linspace(2.0, 0.3, 32)[:, None, None] * np.array([0.9, 0.95, 1.1])
                 write_hdr(model_dir / "light.hdr", sky.astype(np.float32))
                 sheet(rgb, "rgb").crop((0, 0, TILE, TILE)).resize((256, 256)).save(model_dir / "preview.png")

@@ -87,6 +87,9 @@ def run(
             progress.close()
             return {"stopped_at": run.iteration}
     progress.close()
+    if run.senders is not None:  # the bounce the field is saved with, from the material it ends with
+        with timer("bounce"):
+            run.refresh_bounce()
     loop_s = time.perf_counter() - t_loop
     # every output is staged and moved into place together, the metadata last; the checkpoint
     # goes only after that, so a kill at any point leaves either a resumable run or finished outputs

@@ -216,7 +216,6 @@ def grade_relighting(
     return out
 
 
-@torch.no_grad()
 def ceiling_light(field, store: ViewStore, truth: TargetSet, light: Light, brdf: Brdf) -> tuple[Light, dict]:
     """The light a ceiling renders the true material under with ``field``'s transport: ``light``,
     and where the field models a bounce, the true material's bounce under it (its table from the
@@ -243,6 +242,7 @@ def ceiling_light(field, store: ViewStore, truth: TargetSet, light: Light, brdf:
     return with_bounce(light, bounce_table(senders, shade, light, module.samples)), {"bounces": 1}
 
 
+@torch.no_grad()
 def training_ceiling(field, store: ViewStore, truth: TargetSet, environment: str, lobes: int, iterations: int) -> dict:
     """The training light's ceiling beside the recovered figure, on ``store``'s views (the
     held-out metric views of ``truth``, which carries the true material and Mitsuba's render
@@ -313,7 +313,9 @@ def relight_budget(field, store: ViewStore, truth: TargetSet, cases: list[Budget
     gain in dB over the recovered render (``alone``) and over the previous step (``cumulative``),
     raw and scaled, so the cumulative gains add up to the gap between the recovered render and the
     ceiling. The SG fits are :func:`~stages.model.lights.sg.fit_sg_light`'s (``lobes``,
-    ``iterations``), as the relight stage's."""
+    ``iterations``), as the relight stage's. A field's bounce is not modelled here (each swapped
+    surface would send a bounce of its own): a case of a bouncing field says so (``bounce``), and
+    its figures are direct light's, not the relit grading's."""
     brdf = brdfs.get(getattr(field, "brdf", "tango"))
     names = budget_components(brdf)
     recovered = recovered_surface(field, store)
@@ -321,6 +323,8 @@ def relight_budget(field, store: ViewStore, truth: TargetSet, cases: list[Budget
     view = torch.cat([store[i].view for i in range(len(store))])
     dev = view.device
     learned = field.light()
+    bounces = any(c.kind == BounceLight.kind for c in learned.components)
+    learned = Light(tuple(c for c in learned.components if c.kind != BounceLight.kind))  # (the budget is direct)
     out = []
     for case in cases:
         directions = store.cache.visibility_directions
@@ -359,6 +363,7 @@ def relight_budget(field, store: ViewStore, truth: TargetSet, cases: list[Budget
                 "recovered": base,
                 "swaps": swaps,
                 "ceiling": previous,
+                **({"bounce": "not modelled: the budget's renders are direct light"} if bounces else {}),
             }
         )
     return out

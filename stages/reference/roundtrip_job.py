@@ -122,15 +122,18 @@ def file_suns(export_meta: dict) -> list[dict]:
 
 def check_suns(imported: list[dict], meant: list[dict]) -> tuple[dict, list[str]]:
     """The suns Blender's importer made (``imported``: the job's ``lights``) against the ones the
-    file means (:func:`file_suns`): the problems (a count, a direction more than 0.1 degrees or a
-    colour more than 1e-3 away) and, per sun, what the importer read of the strength and the
-    angular diameter as a share of the file's (an importer's own convention, recorded; the render
-    uses the file's)."""
+    file means (:func:`file_suns`), each meant sun paired with the imported one nearest its
+    direction (a kept document's own suns may be there too): the problems (fewer suns than the
+    file's, a direction more than 0.1 degrees or a colour more than 1e-3 away) and, per sun, what
+    the importer read of the strength and the angular diameter as a share of the file's (an
+    importer's own convention, recorded; the render uses the file's)."""
     suns = [light for light in imported if light["type"] == "SUN"]
-    problems = [] if len(suns) == len(meant) else [f"{len(suns)} sun(s) imported where the file has {len(meant)}"]
+    problems = [] if len(suns) >= len(meant) else [f"{len(suns)} sun(s) imported where the file has {len(meant)}"]
     figures = []
-    for got, want in zip(suns, meant, strict=False):
-        apart = float(np.degrees(np.arccos(np.clip(np.dot(got["direction"], want["direction"]), -1.0, 1.0))))
+    for want in meant if suns else ():
+        apart_all = [float(np.degrees(np.arccos(np.clip(np.dot(s["direction"], want["direction"]), -1.0, 1.0)))) for s in suns]
+        k = int(np.argmin(apart_all))
+        got, apart = suns[k], apart_all[k]
         colour = float(np.abs(np.asarray(got["color"]) - np.asarray(want["color"])).max())
         if apart > 0.1:
             problems.append(f"the sun {got['name']} comes from {apart:.2f} degrees away from the file's direction")

@@ -170,6 +170,7 @@ class Optimizer:
             "history_stride": self.history_stride,
             "light_pruned": self.light_pruned,
             "light": self.light_record,
+            "bounce_refreshes": self.bounce_refreshes,
         }
 
     def load(self, state: dict) -> None:
@@ -183,6 +184,7 @@ class Optimizer:
         saved = state["optimizer"]
         self.adamw.load_state_dict({**saved, "param_groups": [{**g, "fused": True} for g in saved["param_groups"]]})
         self.light_pruned = state.get("light_pruned")
+        self.bounce_refreshes = int(state.get("bounce_refreshes", 0))
         self.lr_schedule.load_state_dict(state["scheduler"])
         self.np_rng.bit_generator.state = state["rng"]["numpy"]
         self.tgen.set_state(state["rng"]["torch"])

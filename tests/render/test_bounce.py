@@ -16,7 +16,7 @@ from stages.geometry.meshio import TriMesh
 from stages.geometry.tracing import EmbreeTracer
 from stages.model.shadows import ShadowCache
 from stages.render.brdf import GLTF, TANGO
-from stages.render.light.bounce import BounceLight, cosine_directions, face_side, indirect_irradiance
+from stages.render.light.bounce import BounceLight, cosine_directions, indirect_irradiance
 
 
 def test_cosine_directions_are_distributed_as_the_cosine():
@@ -85,9 +85,9 @@ def test_a_wall_seen_from_the_floor_sends_its_configuration_factor(x, height):
     z = np.linspace(-5.0, 5.0, n)
     points = np.column_stack([np.full(n, -x), np.zeros(n), z])
     cache = ShadowCache(mesh, points, np.tile([0.0, 1.0, 0.0], (n, 1)), EmbreeTracer(mesh), directions=8, samples=0)
-    seen = face_side(np.array([wall, wall + 1]), np.array([[1.0, 0.0, 0.0]] * 2), mesh.face_normals)  # the sides met
+    assert np.allclose(mesh.face_normals[wall : wall + 2], [[-1.0, 0.0, 0.0]] * 2)  # the wall faces the floor point
     table = torch.zeros(2 * len(mesh.faces), 1, dtype=torch.float64)
-    table[torch.from_numpy(seen)] = 2.0
+    table[[2 * wall, 2 * (wall + 1)]] = 2.0  # their fronts: the rays meet them against their normals
     e = cache.bounce_irradiance(BounceLight(table, 256)).mean().item()
     h = height - cache.offset  # the rays start this far above the floor (ShadowCache.offset)
     factor = 0.5 * (1.0 - x / math.sqrt(x * x + h * h))

@@ -192,9 +192,9 @@ LUMENS_PER_WATT = 683.0
 def punctual_lights(lights: tuple[DistantLight, ...]) -> list[dict]:
     """The document-level ``KHR_lights_punctual`` lights of distant ``lights``: directional, the
     colour the irradiance over its largest channel, the intensity that channel in lux
-    (:data:`LUMENS_PER_WATT` times the irradiance in the environment image's units, read as
-    W/(m^2 sr)); glTF has no angular size, so the radius and the irradiance also go into the
-    light's ``extras``."""
+    (:data:`LUMENS_PER_WATT` times the irradiance, in W/m^2 where the environment image's
+    radiance is read as W/(m^2 sr)); glTF has no angular size, so the radius and the irradiance
+    also go into the light's ``extras``."""
     out = []
     for k, light in enumerate(lights):
         e = np.asarray(light.irradiance, np.float64)

@@ -126,7 +126,7 @@ class BounceLight:
             "kind": self.kind,
             "face_sides": int(self.table.shape[0]),
             "samples": self.samples,
-            "mean_radiance": [float(x) for x in self.table.double().mean(0)],
+            "mean_radiance": [float(x) for x in self.table.double().mean(0)] if len(self.table) else None,
         }
 
     def arrays(self) -> dict[str, np.ndarray]:
