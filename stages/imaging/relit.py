@@ -323,8 +323,10 @@ def relight_budget(field, store: ViewStore, truth: TargetSet, cases: list[Budget
     view = torch.cat([store[i].view for i in range(len(store))])
     dev = view.device
     learned = field.light()
-    bounces = any(c.kind == BounceLight.kind for c in learned.components)
-    learned = Light(tuple(c for c in learned.components if c.kind != BounceLight.kind))  # (the budget is direct)
+    parts = learned.components if isinstance(learned, Light) else (learned,)
+    bounces = any(c.kind == BounceLight.kind for c in parts)
+    if bounces:  # the budget is direct light
+        learned = Light(tuple(c for c in parts if c.kind != BounceLight.kind))
     out = []
     for case in cases:
         directions = store.cache.visibility_directions

@@ -62,7 +62,7 @@ def test_the_renderers_kind_changes_when_and_only_when_a_marked_setting_does():
     graph was found to depend on, and the kind is the same for the optimisation's settings."""
     base = OptimizeSettings().field_settings()
     marked = FieldSettings.marked(COMPILED_RENDERER)
-    assert set(marked) == {"brdf", "specular_lobe", "shadows", "light_rgb", "normal_network", "suns", "sun_samples"}
+    assert set(marked) == {"brdf", "specular_lobe", "shadows", "light_rgb", "normal_network", "suns", "sun_samples", "bounces"}
     assert renderer_kind(base) == renderer_kind(OptimizeSettings())
     tried = set()
     for field in dataclasses.fields(FieldSettings):

@@ -34,6 +34,8 @@ class ConstantLight:
     no shadows (its visibility input: none)."""
 
     kind = "constant"
+    #: an asset draws it into its environment image
+    in_environment = True
 
     def __init__(self, radiance: torch.Tensor) -> None:
         self.c = radiance
@@ -57,6 +59,9 @@ class ConstantLight:
 
     def arrays(self) -> dict[str, np.ndarray]:
         return {"constant_radiance": self.c.detach().cpu().numpy()}
+
+    def distant_lights(self) -> list:
+        return []
 
     def shadowed_by(self, shadows, index):
         return None
@@ -113,7 +118,7 @@ def _hits(n: int = 200, seed: int = 0):
 
 
 def test_the_registry_holds_a_kind_for_the_block_only(with_constant):
-    assert lights.names() == ("sg", "sun", "constant") and lights.get("constant") is ConstantLightModule
+    assert lights.names() == ("sg", "sun", "bounce", "constant") and lights.get("constant") is ConstantLightModule
     field = StyleField(OptimizeSettings(width=16, light_lobes=4).field_settings())
     assert [c.kind for c in field.light.components] == ["sg", "constant"]
     assert field.light.lobes == 4  # the SG lobes alone
@@ -129,10 +134,10 @@ def test_the_registry_holds_a_kind_for_the_block_only(with_constant):
 def test_outside_the_block_a_field_has_its_sg_lobes_only():
     with lights.registered(ConstantLightModule):
         pass
-    assert lights.names() == ("sg", "sun")
+    assert lights.names() == ("sg", "sun", "bounce")
     field = StyleField(OptimizeSettings(width=16, light_lobes=4).field_settings())
-    assert [c.kind for c in field.light.components] == ["sg"]  # no suns unless optimize.suns asks
-    with pytest.raises(ValueError, match="unknown light component 'constant'; the kinds are sg, sun"):
+    assert [c.kind for c in field.light.components] == ["sg"]  # no suns nor bounce unless asked for
+    with pytest.raises(ValueError, match="unknown light component 'constant'; the kinds are sg, sun, bounce"):
         lights.get("constant")
 
 
