@@ -39,35 +39,22 @@ def target_dirs(results: Path, only: list[str] | None) -> list[Path]:
 
 def sender_shading(target: Path, cache, meta: dict, brdf: str):
     """The face sides of the cache's mesh as senders (:class:`~stages.model.bounce.FaceSides`) and
-    their shading under a light: the target's true material (baked again from its procedural
-    material and settings) at each side's centroid, seen along its normal."""
-    import numpy as np
-    import torch
-
+    their shading under a light (:func:`~stages.imaging.relit.surface_shading`): the target's true
+    material, baked again from its procedural material and settings, at each side's centroid
+    (:func:`~stages.reference.targets.truth_at_senders`)."""
     from stages.config.sections import TargetSettings
-    from stages.geometry.meshio import TriMesh
+    from stages.imaging.relit import surface_shading
     from stages.model.bounce import FaceSides
-    from stages.model.field import shade_material
-    from stages.model.networks import Material
-    from stages.reference.targets import ground_truth
+    from stages.reference.targets import ground_truth, truth_at_senders
     from stages.render import brdf as brdfs
 
-    mesh = TriMesh(cache.arrays["vertices"].astype(np.float64), cache.arrays["faces"].astype(np.int64))
+    mesh = cache.mesh()
     truth = ground_truth(mesh, target.name, TargetSettings.from_dict(meta["settings"]))
     senders = FaceSides(mesh, cache.visibility_directions)
-    maps = truth.at_hits(senders.face, np.full((len(senders), 2), 1.0 / 3.0), senders.back)
+    maps = truth_at_senders(truth, mesh, mesh)
     model = brdfs.get(brdf)
-    parts = {k: torch.from_numpy(maps[k].astype(np.float32)) for k in model.parameters}
-    parts["roughness"] = parts["roughness"].clamp(0.01, 1.0)
-    material = Material.of(model, *(parts[k] for k in model.parameters))
-    normal = torch.nn.functional.normalize(torch.from_numpy(maps["normal"].astype(np.float32)), dim=-1)
-    flat = torch.from_numpy(senders.normals.astype(np.float32))
-    normal = torch.where((normal * flat).sum(-1, keepdim=True) > 0, normal, flat)
-
-    def shade(light, visibility):
-        return shade_material(normal, normal, material, light, model.model_lobe, visibility(light))
-
-    return senders, shade
+    parts = {k: maps[k][senders.rows] for k in (*model.parameters, "normal")}
+    return senders, surface_shading(senders, parts, model, model.model_lobe, "cpu")
 
 
 def ceilings(

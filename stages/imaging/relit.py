@@ -16,12 +16,13 @@ what separates it from Mitsuba).
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 
-from ..model.bounce import bounce_table, with_bounce
+from ..model.bounce import FaceSides, bounce_table, with_bounce
 from ..model.field import shade_material
 from ..model.lights import fit_environment_like
 from ..model.networks import Material
@@ -216,6 +217,24 @@ def grade_relighting(
     return out
 
 
+def surface_shading(senders: FaceSides, parts: dict[str, np.ndarray], brdf: Brdf, lobe: str, device) -> Callable:
+    """The shading of the face sides ``senders`` with a known surface (``parts``: the BRDF's
+    parameters and the shading ``normal`` at each sender, in their order), seen along the normal,
+    on ``device``: what :func:`~stages.model.bounce.bounce_table` takes. Roughness is clamped to
+    ``[0.01, 1]`` as the field's; a normal that faces away from its side is the side's flat one."""
+    picked = {k: torch.from_numpy(np.asarray(v, np.float32)).to(device) for k, v in parts.items()}
+    picked["roughness"] = picked["roughness"].clamp(0.01, 1.0)
+    material = Material.of(brdf, *(picked[k] for k in brdf.parameters))
+    flat = torch.from_numpy(senders.normals).float().to(device)
+    normal = torch.nn.functional.normalize(picked["normal"], dim=-1)
+    normal = torch.where((normal * flat).sum(-1, keepdim=True) > 0, normal, flat)
+
+    def shade(direct: Light, visibility):
+        return shade_material(normal, normal, material, direct, lobe, visibility(direct))
+
+    return shade
+
+
 def ceiling_light(field, store: ViewStore, truth: TargetSet, light: Light, brdf: Brdf) -> tuple[Light, dict]:
     """The light a ceiling renders the true material under with ``field``'s transport: ``light``,
     and where the field models a bounce, the true material's bounce under it (its table from the
@@ -227,18 +246,9 @@ def ceiling_light(field, store: ViewStore, truth: TargetSet, light: Light, brdf:
     parts = truth.senders(brdf.parameters)
     if parts is None:
         return light, {"bounces": 0, "why": "the targets carry no truth at the face sides (written before they did)"}
-    senders, dev = store.senders, store.device
-    rows = torch.from_numpy(senders.rows)
-    picked = {k: torch.from_numpy(v)[rows].to(dev) for k, v in parts.items()}
-    picked["roughness"] = picked["roughness"].clamp(0.01, 1.0)
-    material = Material.of(brdf, *(picked[k] for k in brdf.parameters))
-    flat = torch.from_numpy(senders.normals).float().to(dev)
-    normal = torch.nn.functional.normalize(picked["normal"], dim=-1)
-    normal = torch.where((normal * flat).sum(-1, keepdim=True) > 0, normal, flat)
-
-    def shade(direct: Light, visibility):
-        return shade_material(normal, normal, material, direct, field.specular_lobe, visibility(direct))
-
+    senders = store.senders
+    picked = {k: v[senders.rows] for k, v in parts.items()}
+    shade = surface_shading(senders, picked, brdf, field.specular_lobe, store.device)
     return with_bounce(light, bounce_table(senders, shade, light, module.samples)), {"bounces": 1}
 
 

@@ -119,6 +119,7 @@ class ShadowCache:
         self._lobes: dict[int, _TracedLobe] = {}
         self._sun: _TracedSun | None = None
         self._bounce: _TracedBounce | None = None
+        self._face_normals: np.ndarray | None = None
         self._dirs = torch.from_numpy(self.directions).float()
         self._normals = torch.from_numpy(self.normals).float()
         self._bits = torch.from_numpy(self.bits)
@@ -210,7 +211,9 @@ class ShadowCache:
             starts = np.repeat(self.points[todo] + self.offset * self.normals[todo], traced.samples, axis=0)
             flat = dirs.reshape(-1, 3)
             hit = self.tracer.trace(starts, flat)
-            sides = face_side(hit.face, flat, self.mesh.face_normals)
+            if self._face_normals is None:  # (once: a step traces new points, not a new mesh)
+                self._face_normals = self.mesh.face_normals
+            sides = face_side(hit.face, flat, self._face_normals)
             traced.sides[todo] = sides.reshape(len(todo), traced.samples)
             traced.valid[todo] = True
             traced.traces += len(todo)

@@ -29,7 +29,7 @@ from ..guidance.objective import ImageBatch, choose_guidance
 from ..imaging.images import ImageSpec, background, compose, gather_points, global_spec, sample_crops
 from ..imaging.targets import TargetSet
 from ..imaging.views import CachedView, ViewStore
-from ..model.bounce import FaceSides, bounce_table, field_shading, resolve_bounces
+from ..model.bounce import bounce_table, field_shading, resolve_bounces
 from ..model.compiled import CompiledField
 from ..model.field import StyleField
 from ..model.lights.sun import resolve_suns
@@ -101,7 +101,7 @@ class Optimizer:
         self.network_precision = self.compiled.use_bf16(settings.bf16_networks, self.device)
         self.views = views
         #: the face sides that send the bounce (where the run models one), and its refreshes
-        self.senders = FaceSides(train.mesh(), train.visibility_directions) if bounces else None
+        self.senders = views.senders if bounces else None
         self.bounce_refreshes = 0
         self.compiled.use_compiled_shading(
             settings.compile_shading,
