@@ -9,7 +9,8 @@ fully covered object pixels of the held-out metric views, raw and after one scal
 then with recovered components replaced by their truth, each alone and cumulatively in the order
 printed (under the training light the learned light first, replaced by the SG fit of the training
 environment; a relit render already takes the new environment's fit). With everything replaced
-the render is the ceiling, the relight stage's ``ceiling_psnr_db``.
+the render is the ceiling, the relight stage's ``ceiling_psnr_db``. A cell trained with one bounce
+(``optimize.bounces``) bounces in every render of its budget, off the surface that render shows.
 
     python -m benchmarks.quality.relight_budget results/demo-offline
     python -m benchmarks.quality.relight_budget results/demo-offline --cells vase/wood --out budget.json
@@ -87,7 +88,9 @@ def print_budget(name: str, budget: list[dict]) -> None:
     for case in budget:
         scale = ", ".join(f"{x:.2f}" for x in case["recovered"]["scale"])
         noise = f"truth's noise {case['noise_psnr_db']:.1f} dB"
-        print(f"\n{name}: {case['role']} light {case['environment']} ({case['pixels']:,} pixels, {noise})")
+        bounce = case["bounce"]
+        transport = "one bounce" if bounce["bounces"] else "direct light" + (f": {bounce['why']}" if "why" in bounce else "")
+        print(f"\n{name}: {case['role']} light {case['environment']} ({case['pixels']:,} pixels, {noise}, {transport})")
         print(f"  {'component':<10} {'alone':>17} {'gain':>17}   {'cumulative':>17} {'gain':>17}   scale (cumulative)")
         print(f"  {'recovered':<10} {_pair(case['recovered']):>17} {'':>17}   {'':>17} {'':>17}   {scale}")
         for sw in case["swaps"]:

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from ..model.bounce import FaceSides, bounce_table, with_bounce
+from ..model.bounce import FaceSides, bounce_samples, bounce_table, field_surface, with_bounce
 from ..model.field import shade_material
 from ..model.lights import fit_environment_like
 from ..model.networks import Material
@@ -240,16 +240,64 @@ def ceiling_light(field, store: ViewStore, truth: TargetSet, light: Light, brdf:
     and where the field models a bounce, the true material's bounce under it (its table from the
     truth at the face sides that the targets carry, :meth:`~stages.imaging.targets.TargetSet.senders`).
     Returns the light and the record of its bounce (``bounces`` 0 or 1, and why not)."""
-    module = dict(getattr(field, "light", torch.nn.Module()).named_children()).get(BounceLight.kind)
-    if module is None or not store.shadows:
+    samples = bounce_samples(field)
+    if samples is None or not store.shadows:
         return light, {"bounces": 0}
     parts = truth.senders(brdf.parameters)
     if parts is None:
-        return light, {"bounces": 0, "why": "the targets carry no truth at the face sides (written before they did)"}
+        return light, {"bounces": 0, "why": NO_SENDER_TRUTH}
     senders = store.senders
     picked = {k: v[senders.rows] for k, v in parts.items()}
     shade = surface_shading(senders, picked, brdf, field.specular_lobe, store.device)
-    return with_bounce(light, bounce_table(senders, shade, light, module.samples)), {"bounces": 1}
+    return with_bounce(light, bounce_table(senders, shade, light, samples)), {"bounces": 1}
+
+
+#: why a bouncing field's ceiling or budget models no bounce
+NO_SENDER_TRUTH = "the targets carry no truth at the face sides (written before they did)"
+
+
+@dataclass(frozen=True)
+class BudgetBounce:
+    """A relighting budget's bounce (:func:`relight_budget`): the face sides ``senders``, the
+    field's surface at them (``recovered``, :func:`~stages.model.bounce.field_surface`) and the
+    truth's (``true``), read through ``samples`` first hits per point; each swapped component is
+    swapped at the senders too, so every render bounces off the surface it shows."""
+
+    senders: FaceSides
+    recovered: dict[str, np.ndarray]
+    true: dict[str, np.ndarray]
+    samples: int
+    brdf: Brdf
+    lobe: str
+
+    @classmethod
+    def of(cls, field, store: ViewStore, truth: TargetSet, brdf: Brdf) -> tuple[BudgetBounce | None, dict]:
+        """The bounce of ``field`` on ``store``'s views, or None where it models none (or the
+        targets carry no truth at the senders), and the record of it (``bounces`` 0 or 1, and why not)."""
+        samples = bounce_samples(field)
+        if samples is None or not store.shadows:
+            return None, {"bounces": 0}
+        parts = truth.senders(brdf.parameters)
+        if parts is None:
+            return None, {"bounces": 0, "why": NO_SENDER_TRUTH}
+        senders = store.senders
+        true = {k: v[senders.rows] for k, v in parts.items()}
+        recovered = field_surface(field, senders, store.device)
+        return cls(senders, recovered, true, samples, brdf, field.specular_lobe), {"bounces": 1}
+
+    def light(self, light: Light, swapped: tuple[str, ...], device) -> Light:
+        """``light`` with the bounce of the senders' surface under it: each component the truth's
+        where ``swapped`` names it, else the field's."""
+        parts = {k: (self.true[k] if k in swapped else self.recovered[k]) for k in self.true}
+        shade = surface_shading(self.senders, parts, self.brdf, self.lobe, device)
+        return with_bounce(light, bounce_table(self.senders, shade, light, self.samples))
+
+    @staticmethod
+    def visibility(store: ViewStore, shares: Visibility, light: Light) -> Visibility:
+        """``shares`` (the direct components' visibility inputs at every hit of ``store``'s views)
+        and the bounce's irradiance there (``light``'s last component)."""
+        bounce = light.components[-1]
+        return (*shares, torch.cat([store[i].shadows.bounce_irradiance(bounce) for i in range(len(store))]))
 
 
 @torch.no_grad()
@@ -323,9 +371,10 @@ def relight_budget(field, store: ViewStore, truth: TargetSet, cases: list[Budget
     gain in dB over the recovered render (``alone``) and over the previous step (``cumulative``),
     raw and scaled, so the cumulative gains add up to the gap between the recovered render and the
     ceiling. The SG fits are :func:`~stages.model.lights.sg.fit_sg_light`'s (``lobes``,
-    ``iterations``), as the relight stage's. A field's bounce is not modelled here (each swapped
-    surface would send a bounce of its own): a case of a bouncing field says so (``bounce``), and
-    its figures are direct light's, not the relit grading's."""
+    ``iterations``), as the relight stage's. Where the field models a bounce, every render bounces
+    off the surface it shows (:class:`BudgetBounce`: a swapped component is swapped at the senders
+    too, under the render's light); ``bounce`` records whether (without truth at the senders, its
+    figures are direct light's)."""
     brdf = brdfs.get(getattr(field, "brdf", "tango"))
     names = budget_components(brdf)
     recovered = recovered_surface(field, store)
@@ -334,9 +383,8 @@ def relight_budget(field, store: ViewStore, truth: TargetSet, cases: list[Budget
     dev = view.device
     learned = field.light()
     parts = learned.components if isinstance(learned, Light) else (learned,)
-    bounces = any(c.kind == BounceLight.kind for c in parts)
-    if bounces:  # the budget is direct light
-        learned = Light(tuple(c for c in parts if c.kind != BounceLight.kind))
+    learned = Light(tuple(c for c in parts if c.kind != BounceLight.kind))  # a bounce is the budget's own
+    bounce, bounce_record = BudgetBounce.of(field, store, truth, brdf)
     out = []
     for case in cases:
         directions = store.cache.visibility_directions
@@ -350,8 +398,11 @@ def relight_budget(field, store: ViewStore, truth: TargetSet, cases: list[Budget
         def render(swapped: tuple[str, ...], full=full, goal=goal, fitted=fitted, shares=shares, role=case.role) -> dict:
             surface = {k: (true[k] if k in swapped else recovered[k]) for k in names}
             which = "fitted" if role == "relit" or "light" in swapped else "learned"
-            light = fitted if which == "fitted" else learned
-            visibility = map_visibility(lambda v, full=full: v[full], shares[which])
+            light, visibility = fitted if which == "fitted" else learned, shares[which]
+            if bounce is not None:
+                light = bounce.light(light, swapped, dev)
+                visibility = bounce.visibility(store, visibility, light)
+            visibility = map_visibility(lambda v, full=full: v[full], visibility)
             sel = {k: x[full] for k, x in surface.items()}
             return graded_figures(shade_surface(sel, brdf, view[full], light, field.specular_lobe, visibility), goal)
 
@@ -375,7 +426,7 @@ def relight_budget(field, store: ViewStore, truth: TargetSet, cases: list[Budget
                 "recovered": base,
                 "swaps": swaps,
                 "ceiling": previous,
-                **({"bounce": "not modelled: the budget's renders are direct light"} if bounces else {}),
+                "bounce": bounce_record,
             }
         )
     return out

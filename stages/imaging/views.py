@@ -13,13 +13,12 @@ from ..geometry.normals import NormalSpec
 from ..geometry.raycache import RayCache
 from ..geometry.tracing import EmbreeTracer
 from ..geometry.visibility import viewer_side_normals
-from ..model.bounce import FaceSides, bounce_table, field_shading, with_bounce
+from ..model.bounce import FaceSides, bounce_samples, bounce_table, field_shading, with_bounce
 from ..model.compiled import CompiledField
 from ..model.field import FieldOutput, StyleField
 from ..model.shadows import ShadowCache
 from ..render.color import linear_to_srgb
 from ..render.light import Light
-from ..render.light.bounce import BounceLight
 from ..render.shading import face_viewer
 from .images import compose, gather_points, global_spec, index_map, render_cached_view, summed_area
 from .targets import TargetSet
@@ -143,11 +142,11 @@ class ViewStore:
         table refreshed under ``light`` (:func:`~stages.model.bounce.bounce_table` of the field's
         material at :attr:`senders`), so that a relit render bounces as training did; else
         ``light`` as it is."""
-        module = dict(getattr(field, "light", torch.nn.Module()).named_children()).get(BounceLight.kind)
-        if module is None or not self.shadows:
+        samples = bounce_samples(field)
+        if samples is None or not self.shadows:
             return light
         device = next(field.parameters()).device
-        table = bounce_table(self.senders, field_shading(field, self.senders, device), light, module.samples)
+        table = bounce_table(self.senders, field_shading(field, self.senders, device), light, samples)
         return with_bounce(light, table)
 
     def _shadows(self, i: int, h) -> ShadowCache:

@@ -88,6 +88,31 @@ def field_shading(field, senders: FaceSides, device) -> Callable[[Light, Callabl
     return shade
 
 
+@torch.no_grad()
+def field_surface(field, senders: FaceSides, device) -> dict[str, np.ndarray]:
+    """``field``'s surface at the senders (its networks at their centroids and flat normals, seen
+    along the normal, as :func:`field_shading` shades them), rows in ``senders``' order: the
+    material's parameters and the unit shading ``normal``, as arrays (what a shading of a known
+    surface takes, :func:`~stages.imaging.relit.surface_shading`)."""
+    points = torch.from_numpy(senders.points).float().to(device)
+    normals = torch.from_numpy(senders.normals).float().to(device)
+    parts: dict[str, list] = {}
+    for lo in range(0, len(points), SENDER_CHUNK):
+        part = slice(lo, lo + SENDER_CHUNK)
+        material, normal = field.surface(points[part], normals[part], normals[part])
+        for k, x in {**material.parameters(), "normal": normal}.items():
+            parts.setdefault(k, []).append(x.float().cpu())
+    return {k: torch.cat(x).numpy() for k, x in parts.items()}
+
+
+def bounce_samples(field) -> int | None:
+    """The first hits per point of ``field``'s bounce (its light's ``bounce`` component), None
+    where it models none."""
+    light = getattr(field, "light", None)
+    module = dict(light.named_children()).get(BounceLight.kind) if isinstance(light, torch.nn.Module) else None
+    return None if module is None else int(module.samples)
+
+
 def blocked_median(views) -> float | None:
     """The median over every hit of ``views`` (a :class:`~stages.imaging.views.ViewStore`-like
     sequence of views with shadows) of the share of its hemisphere the mesh blocks, or None
@@ -129,4 +154,13 @@ def with_bounce(light: Light, bounce: BounceLight) -> Light:
     return Light((*(c for c in light.components if c.kind != BounceLight.kind), bounce))
 
 
-__all__ = ["FaceSides", "blocked_median", "bounce_table", "field_shading", "resolve_bounces", "with_bounce"]
+__all__ = [
+    "FaceSides",
+    "blocked_median",
+    "bounce_samples",
+    "bounce_table",
+    "field_shading",
+    "field_surface",
+    "resolve_bounces",
+    "with_bounce",
+]

@@ -187,3 +187,28 @@ def test_calibration_leaves_the_plans_process_allocator_as_it_is(monkeypatch):
     assert settings.keep_freed_memory == "auto"
     seconds_per_step(settings, RaycacheSettings(views=4, resolution=64), "cpu", steps=1)
     assert asked == ["off"]
+
+
+def test_calibration_times_a_bouncing_run_with_the_visibility_it_needs(monkeypatch):
+    """A run of ``optimize.bounces: 1`` needs the ray cache's visibility: the calibration traces it
+    on its vase and times the bouncing step (its table refreshed at the first step), where a cache
+    without it would refuse the setting; with shadows off nothing can bounce, and the setting's
+    own error says so."""
+    import math
+
+    import pytest
+
+    from stages.config.sections import OptimizeSettings, RaycacheSettings
+    from stages.guidance.clip import TINY_MODEL
+    from stages.training import optimizer
+    from stages.training.calibrate import seconds_per_step
+
+    refreshed = []
+    table = optimizer.bounce_table
+    monkeypatch.setattr(optimizer, "bounce_table", lambda *a, **k: refreshed.append(1) or table(*a, **k))
+    tiny = {"clip_model": TINY_MODEL, "image_size": 64, "width": 16, "crops": 0, "light_lobes": 4, "iterations": 10}
+    raycache = RaycacheSettings(views=4, resolution=64, visibility_directions=64)
+    assert 0 < seconds_per_step(OptimizeSettings(bounces=1, bounce_samples=4, **tiny), raycache, "cpu", steps=1) < math.inf
+    assert refreshed  # the bounce was modelled
+    with pytest.raises(ValueError, match="bounces: 1 needs shadows"):
+        seconds_per_step(OptimizeSettings(bounces=1, shadows=False, **tiny), raycache, "cpu", steps=1)
