@@ -13,9 +13,16 @@ material could reach with that transport. ``--bounces 0,1`` adds one bounce of t
 true material at its centroid (the target's procedural material baked again on the cache's mesh),
 reflected once at every hit through ``--bounce-samples`` first hits.
 
+``--depths 2,3`` says which part of the transport holds what is left: Mitsuba renders the metric
+views again with its paths cut at each ``max_depth`` (2: direct light only, 3: one bounce; the
+target stage's own scene, material and seeds, so the renders differ by the cut paths alone), and
+each row is also graded against those renders (``vs depth D``: our renderer's error on the light
+it models) and each cut render against the full truth (``depth D vs full``: the light of the
+later bounces, which no ceiling with D - 1 bounces can reach).
+
     python -m benchmarks.quality.ceilings results/demo-offline
     python -m benchmarks.quality.ceilings results/demo-offline --suns 0,auto --lobes 32 --brdf gltf
-    python -m benchmarks.quality.ceilings results/demo-offline --suns auto --bounces 0,1
+    python -m benchmarks.quality.ceilings results/demo-offline --suns auto --bounces 0,1 --depths 2,3
 """
 
 from __future__ import annotations
@@ -57,8 +64,44 @@ def sender_shading(target: Path, cache, meta: dict, brdf: str):
     return senders, surface_shading(senders, parts, model, model.model_lobe, "cpu")
 
 
+def cut_truths(target: Path, meta: dict, cache, environments: list[str], depths: tuple[int, ...]) -> dict:
+    """Mitsuba's renders of the metric views of ``cache`` under each of ``environments`` with the
+    paths cut at each of ``depths`` (``max_depth``), as the target stage rendered the full truth
+    (:func:`~stages.reference.target_job.render_targets`: its mesh, material, spp and seeds):
+    ``{(environment, depth): radiance (N, 3)}``."""
+    import dataclasses
+
+    from stages.config.sections import TargetSettings
+    from stages.geometry.meshio import load_ply
+    from stages.reference.target_job import METRIC_SEED, RELIT_SEED, RELIT_STRIDE
+    from stages.reference.targets import TargetRenderer
+
+    settings = TargetSettings.from_dict(meta["settings"])
+    rendered = Path(meta.get("rendered_mesh", {}).get("path", ""))
+    mesh = load_ply(rendered) if rendered.suffix == ".ply" and rendered.is_file() else cache.mesh()
+    seed = settings.seed * 1_000_003
+    seeds = {settings.environment: seed + METRIC_SEED}
+    seeds.update({env: seed + RELIT_SEED + RELIT_STRIDE * j for j, env in enumerate(settings.relight_environments)})
+    out, truth = {}, None
+    for depth in depths:
+        cut = dataclasses.replace(settings, max_depth=depth)
+        for env in environments:
+            renderer = TargetRenderer(mesh, target.name, cut, environment=env, truth=truth)
+            truth = renderer.truth
+            out[(env, depth)] = renderer.render_cache(cache, settings.metric_spp, seeds[env]).radiance
+    return out
+
+
 def ceilings(
-    target: Path, suns: list[str], lobes: int, iterations: int, brdf: str, samples: int, bounces=(0,), bounce_samples: int = 32
+    target: Path,
+    suns: list[str],
+    lobes: int,
+    iterations: int,
+    brdf: str,
+    samples: int,
+    bounces=(0,),
+    bounce_samples: int = 32,
+    depths: tuple[int, ...] = (),
 ) -> list[dict]:
     """The ceilings of one target stage's metric views, per environment and transport."""
     import torch
@@ -84,10 +127,13 @@ def ceilings(
     share = OptimizeSettings().suns_share
     model = brdfs.get(brdf)
     senders = shade = None
+    cut = cut_truths(target, meta, cache, [c[0] for c in cases], depths) if depths else {}
     rows = []
     for environment, radiance, coverage in cases:
         full = torch.from_numpy(coverage.astype("float32") >= FULL_COVERAGE)
         goal = torch.from_numpy(radiance.astype("float32"))[full]
+        goals = {d: torch.from_numpy(cut[(environment, d)].astype("float32"))[full] for d in depths}
+        later = {d: graded_figures(g, goal) for d, g in goals.items()}  # each cut render against the full truth
         for setting in suns:
             count, _ = resolve_suns(
                 setting if setting == "auto" else int(setting), environment, cache.visibility_directions, share
@@ -111,11 +157,27 @@ def ceilings(
                         "count": count,
                         "bounces": bounce,
                         **graded_figures(ours, goal),
+                        "against_depth": {d: graded_figures(ours, g) for d, g in goals.items()},
+                        "depth_vs_full": later,
                         "seconds": time.perf_counter() - t1 + (t1 - t0 if bounce == bounces[0] else 0.0),
                         "fit": record,
                     }
                 )
     return rows
+
+
+def _line(row: dict, depths: tuple[int, ...]) -> str:
+    """One printed row: its figures raw and scaled, then against each cut render and each cut
+    render against the full truth (raw / scaled)."""
+    sun = f"{row['suns']}:{row['count']}" if row["suns"] == "auto" else row["suns"]
+    line = (
+        f"{row['target']:<22} {row['environment']:<18} {sun:>5} {row['bounces']:>6} {row['psnr_db']:8.2f} "
+        f"{row['psnr_scaled_db']:10.2f} {row['seconds']:6.1f}"
+    )
+    for d in depths:
+        a, b = row["against_depth"][d], row["depth_vs_full"][d]
+        line += f" {a['psnr_db']:7.2f}/{a['psnr_scaled_db']:<7.2f} {b['psnr_db']:8.2f}/{b['psnr_scaled_db']:<8.2f}"
+    return line
 
 
 def main() -> None:
@@ -129,22 +191,24 @@ def main() -> None:
     parser.add_argument("--samples", type=int, default=8, help="directions per sun")
     parser.add_argument("--bounces", default="0", help="transports: comma-separated 0 (direct light) and 1 (one bounce)")
     parser.add_argument("--bounce-samples", type=int, default=32, help="first hits per point of a bounce")
+    parser.add_argument(
+        "--depths",
+        default="",
+        help="Mitsuba's max_depth values to grade against too (2: direct light, 3: one bounce), comma-separated",
+    )
     parser.add_argument("--out", type=Path, help="write the rows as JSON here")
     args = parser.parse_args()
     rows = []
     bounces = tuple(int(b) for b in args.bounces.split(",") if b)
+    depths = tuple(int(d) for d in args.depths.split(",") if d)
     head = f"{'target':<22} {'environment':<18} {'suns':>5} {'bounce':>6} {'raw dB':>8} {'scaled dB':>10} {'s':>6}"
+    head += "".join(f" {f'vs depth {d}':>15} {f'depth {d} vs full':>17}" for d in depths)
     print(head, flush=True)
     for d in target_dirs(args.results, args.targets):
         suns = [s for s in args.suns.split(",") if s]
-        for row in ceilings(d, suns, args.lobes, args.iterations, args.brdf, args.samples, bounces, args.bounce_samples):
+        for row in ceilings(d, suns, args.lobes, args.iterations, args.brdf, args.samples, bounces, args.bounce_samples, depths):
             rows.append(row)
-            sun = f"{row['suns']}:{row['count']}" if row["suns"] == "auto" else row["suns"]
-            print(
-                f"{row['target']:<22} {row['environment']:<18} {sun:>5} {row['bounces']:>6} {row['psnr_db']:8.2f} "
-                f"{row['psnr_scaled_db']:10.2f} {row['seconds']:6.1f}",
-                flush=True,
-            )
+            print(_line(row, depths), flush=True)
     if args.out:
         args.out.write_text(json.dumps(rows, indent=1))
 
