@@ -64,11 +64,15 @@ def sender_shading(target: Path, cache, meta: dict, brdf: str):
     return senders, surface_shading(senders, parts, model, model.model_lobe, "cpu")
 
 
-def cut_truths(target: Path, meta: dict, cache, environments: list[str], depths: tuple[int, ...]) -> dict:
-    """Mitsuba's renders of the metric views of ``cache`` under each of ``environments`` with the
-    paths cut at each of ``depths`` (``max_depth``), as the target stage rendered the full truth
-    (:func:`~stages.reference.target_job.render_targets`: its mesh, material, spp and seeds):
-    ``{(environment, depth): radiance (N, 3)}``."""
+def cut_truths(target: Path, meta: dict, cache, depths: tuple[int, ...]) -> list[dict[int, object]]:
+    """Mitsuba's renders of the metric views of ``cache`` with the paths cut at each of ``depths``
+    (``max_depth``), as the target stage rendered the full truths
+    (:func:`~stages.reference.target_job.render_targets`: its mesh, material, spp and seeds), one
+    per truth in its order (the training environment, then each relit one): ``[{depth: radiance
+    (N, 3)}]``.
+
+    Raises:
+        SystemExit: the mesh the target stage rendered is not where its record says."""
     import dataclasses
 
     from stages.config.sections import TargetSettings
@@ -78,17 +82,23 @@ def cut_truths(target: Path, meta: dict, cache, environments: list[str], depths:
 
     settings = TargetSettings.from_dict(meta["settings"])
     rendered = Path(meta.get("rendered_mesh", {}).get("path", ""))
-    mesh = load_ply(rendered) if rendered.suffix == ".ply" and rendered.is_file() else cache.mesh()
+    if rendered.suffix != ".ply" or not rendered.is_file():
+        raise SystemExit(
+            f"{target}: --depths renders the mesh the target stage rendered, and its meta.json names "
+            f"{str(rendered) or 'none'} (run from the folder the workflow ran in, or rerun the target stage)"
+        )
+    mesh = load_ply(rendered)
     seed = settings.seed * 1_000_003
-    seeds = {settings.environment: seed + METRIC_SEED}
-    seeds.update({env: seed + RELIT_SEED + RELIT_STRIDE * j for j, env in enumerate(settings.relight_environments)})
-    out, truth = {}, None
+    lights = [(settings.environment, seed + METRIC_SEED)]
+    lights += [(env, seed + RELIT_SEED + RELIT_STRIDE * j) for j, env in enumerate(settings.relight_environments)]
+    out: list[dict[int, object]] = [{} for _ in lights]
+    truth = None
     for depth in depths:
         cut = dataclasses.replace(settings, max_depth=depth)
-        for env in environments:
+        for i, (env, light_seed) in enumerate(lights):
             renderer = TargetRenderer(mesh, target.name, cut, environment=env, truth=truth)
             truth = renderer.truth
-            out[(env, depth)] = renderer.render_cache(cache, settings.metric_spp, seeds[env]).radiance
+            out[i][depth] = renderer.render_cache(cache, settings.metric_spp, light_seed).radiance
     return out
 
 
@@ -127,12 +137,12 @@ def ceilings(
     share = OptimizeSettings().suns_share
     model = brdfs.get(brdf)
     senders = shade = None
-    cut = cut_truths(target, meta, cache, [c[0] for c in cases], depths) if depths else {}
+    cut = cut_truths(target, meta, cache, depths) if depths else [{} for _ in cases]
     rows = []
-    for environment, radiance, coverage in cases:
+    for (environment, radiance, coverage), renders in zip(cases, cut, strict=True):
         full = torch.from_numpy(coverage.astype("float32") >= FULL_COVERAGE)
         goal = torch.from_numpy(radiance.astype("float32"))[full]
-        goals = {d: torch.from_numpy(cut[(environment, d)].astype("float32"))[full] for d in depths}
+        goals = {d: torch.from_numpy(r.astype("float32"))[full] for d, r in renders.items()}
         later = {d: graded_figures(g, goal) for d, g in goals.items()}  # each cut render against the full truth
         for setting in suns:
             count, _ = resolve_suns(

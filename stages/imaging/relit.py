@@ -8,9 +8,10 @@ relight stage brings any map (an SG fit, :func:`~stages.model.lights.sg.fit_sg_l
 forward pass shades every hit of the metric views under it, and the PSNR is taken over the fully
 covered object pixels in sRGB, as the metrics stage grades the training light. Beside it, the
 *ceiling*: our renderer given the true material and normals under the same fitted light, with the
-shadows the field's views cast (where they do), the best the model could reach there (the SG fit
-of the map, the closed-form BRDF, interreflection and, without visibility, the missing shadows are
-what separates it from Mitsuba).
+shadows the field's views cast (where they do) and the bounce the field models (where it does),
+the best the model could reach there (the SG fit of the map, the closed-form BRDF, the
+interreflection the field does not model and, without visibility, the missing shadows are what
+separates it from Mitsuba).
 """
 
 from __future__ import annotations
@@ -219,9 +220,10 @@ def grade_relighting(
 
 def surface_shading(senders: FaceSides, parts: dict[str, np.ndarray], brdf: Brdf, lobe: str, device) -> Callable:
     """The shading of the face sides ``senders`` with a known surface (``parts``: the BRDF's
-    parameters and the shading ``normal`` at each sender, in their order), seen along the normal,
-    on ``device``: what :func:`~stages.model.bounce.bounce_table` takes. Roughness is clamped to
-    ``[0.01, 1]`` as the field's; a normal that faces away from its side is the side's flat one."""
+    parameters and the shading ``normal`` at each sender, in their order), seen along the side's
+    flat normal as :func:`~stages.model.bounce.field_shading` sees a field's, on ``device``: what
+    :func:`~stages.model.bounce.bounce_table` takes. Roughness is clamped to ``[0.01, 1]`` as the
+    field's; a normal that faces away from its side is the side's flat one."""
     picked = {k: torch.from_numpy(np.asarray(v, np.float32)).to(device) for k, v in parts.items()}
     picked["roughness"] = picked["roughness"].clamp(0.01, 1.0)
     material = Material.of(brdf, *(picked[k] for k in brdf.parameters))
@@ -230,7 +232,7 @@ def surface_shading(senders: FaceSides, parts: dict[str, np.ndarray], brdf: Brdf
     normal = torch.where((normal * flat).sum(-1, keepdim=True) > 0, normal, flat)
 
     def shade(direct: Light, visibility):
-        return shade_material(normal, normal, material, direct, lobe, visibility(direct))
+        return shade_material(normal, flat, material, direct, lobe, visibility(direct))
 
     return shade
 
@@ -240,20 +242,29 @@ def ceiling_light(field, store: ViewStore, truth: TargetSet, light: Light, brdf:
     and where the field models a bounce, the true material's bounce under it (its table from the
     truth at the face sides that the targets carry, :meth:`~stages.imaging.targets.TargetSet.senders`).
     Returns the light and the record of its bounce (``bounces`` 0 or 1, and why not)."""
+    found, record = sender_truth(field, store, truth, brdf)
+    if found is None:
+        return light, record
+    samples, true = found
+    shade = surface_shading(store.senders, true, brdf, field.specular_lobe, store.device)
+    return with_bounce(light, bounce_table(store.senders, shade, light, samples)), record
+
+
+def sender_truth(field, store: ViewStore, truth: TargetSet, brdf: Brdf) -> tuple[tuple[int, dict] | None, dict]:
+    """Where ``field`` models a bounce on ``store``'s views: its first hits per point and the truth
+    at the views' senders (:attr:`~stages.imaging.views.ViewStore.senders`, their rows of
+    :meth:`~stages.imaging.targets.TargetSet.senders`), else None; and the record of the bounce
+    (``bounces`` 0 or 1, and why none where the field has one)."""
     samples = bounce_samples(field)
-    if samples is None or not store.shadows:
-        return light, {"bounces": 0}
+    if samples is None:
+        return None, {"bounces": 0}
+    if not store.shadows:
+        return None, {"bounces": 0, "why": "the views carry no shadows (the ray cache's visibility)"}
     parts = truth.senders(brdf.parameters)
     if parts is None:
-        return light, {"bounces": 0, "why": NO_SENDER_TRUTH}
-    senders = store.senders
-    picked = {k: v[senders.rows] for k, v in parts.items()}
-    shade = surface_shading(senders, picked, brdf, field.specular_lobe, store.device)
-    return with_bounce(light, bounce_table(senders, shade, light, samples)), {"bounces": 1}
-
-
-#: why a bouncing field's ceiling or budget models no bounce
-NO_SENDER_TRUTH = "the targets carry no truth at the face sides (written before they did)"
+        return None, {"bounces": 0, "why": "the targets carry no truth at the face sides (written before they did)"}
+    rows = store.senders.rows
+    return (samples, {k: v[rows] for k, v in parts.items()}), {"bounces": 1}
 
 
 @dataclass(frozen=True)
@@ -272,18 +283,14 @@ class BudgetBounce:
 
     @classmethod
     def of(cls, field, store: ViewStore, truth: TargetSet, brdf: Brdf) -> tuple[BudgetBounce | None, dict]:
-        """The bounce of ``field`` on ``store``'s views, or None where it models none (or the
-        targets carry no truth at the senders), and the record of it (``bounces`` 0 or 1, and why not)."""
-        samples = bounce_samples(field)
-        if samples is None or not store.shadows:
-            return None, {"bounces": 0}
-        parts = truth.senders(brdf.parameters)
-        if parts is None:
-            return None, {"bounces": 0, "why": NO_SENDER_TRUTH}
-        senders = store.senders
-        true = {k: v[senders.rows] for k, v in parts.items()}
-        recovered = field_surface(field, senders, store.device)
-        return cls(senders, recovered, true, samples, brdf, field.specular_lobe), {"bounces": 1}
+        """The bounce of ``field`` on ``store``'s views, or None where it models none (or cannot:
+        :func:`sender_truth`), and the record of it (``bounces`` 0 or 1, and why not)."""
+        found, record = sender_truth(field, store, truth, brdf)
+        if found is None:
+            return None, record
+        samples, true = found
+        recovered = field_surface(field, store.senders, store.device)
+        return cls(store.senders, recovered, true, samples, brdf, field.specular_lobe), record
 
     def light(self, light: Light, swapped: tuple[str, ...], device) -> Light:
         """``light`` with the bounce of the senders' surface under it: each component the truth's
@@ -373,8 +380,9 @@ def relight_budget(field, store: ViewStore, truth: TargetSet, cases: list[Budget
     ceiling. The SG fits are :func:`~stages.model.lights.sg.fit_sg_light`'s (``lobes``,
     ``iterations``), as the relight stage's. Where the field models a bounce, every render bounces
     off the surface it shows (:class:`BudgetBounce`: a swapped component is swapped at the senders
-    too, under the render's light); ``bounce`` records whether (without truth at the senders, its
-    figures are direct light's)."""
+    too, under the render's light; the recovered render's table refreshed under the learned light,
+    as the field's last refresh left it); ``bounce`` records whether (without truth at the
+    senders, its figures are direct light's)."""
     brdf = brdfs.get(getattr(field, "brdf", "tango"))
     names = budget_components(brdf)
     recovered = recovered_surface(field, store)

@@ -91,7 +91,7 @@ def field_shading(field, senders: FaceSides, device) -> Callable[[Light, Callabl
 @torch.no_grad()
 def field_surface(field, senders: FaceSides, device) -> dict[str, np.ndarray]:
     """``field``'s surface at the senders (its networks at their centroids and flat normals, seen
-    along the normal, as :func:`field_shading` shades them), rows in ``senders``' order: the
+    along the flat normal, as :func:`field_shading` runs them), rows in ``senders``' order: the
     material's parameters and the unit shading ``normal``, as arrays (what a shading of a known
     surface takes, :func:`~stages.imaging.relit.surface_shading`)."""
     points = torch.from_numpy(senders.points).float().to(device)

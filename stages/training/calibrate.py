@@ -23,7 +23,7 @@ from ..core.errors import ConfigError
 from ..core.provenance import Timer
 from ..geometry.normalization import normalize_mesh
 from ..geometry.raycache import RayCache, trace_cache_visibility, trace_views, training_views
-from ..geometry.tracing import make_tracer
+from ..geometry.tracing import EmbreeTracer, make_tracer
 from ..guidance.clip import TINY_MODEL, ClipGuide, load_clip, register_tiny_model
 from ..guidance.compat import import_open_clip
 from .optimizer import Optimizer
@@ -58,13 +58,12 @@ def random_guide(model_name: str, bf16: bool, tower: str, device: str) -> ClipGu
 @cache
 def _pool(raycache: RaycacheSettings, visibility: bool = False) -> RayCache:
     """The built-in vase traced with these ray-cache settings, once per process; with
-    ``visibility`` its hits' visibility bits too (``raycache.visibility_directions``), as a run
-    that bounces needs them."""
+    ``visibility`` its hits' visibility bits too (``raycache.visibility_directions``, traced
+    through Embree as the raycache stage traces them), as a run with shadows needs them."""
     mesh = normalize_mesh("builtin:vase", NormalizeSettings()).mesh
-    tracer = make_tracer(mesh, raycache.backend)
-    arrays, _ = trace_views(mesh, training_views(raycache), tracer)
+    arrays, _ = trace_views(mesh, training_views(raycache), make_tracer(mesh, raycache.backend))
     if visibility:
-        arrays["visibility"] = trace_cache_visibility(arrays, tracer, raycache.visibility_directions)
+        arrays["visibility"] = trace_cache_visibility(arrays, EmbreeTracer(mesh), raycache.visibility_directions)
         arrays["visibility_directions"] = np.int64(raycache.visibility_directions)
     return RayCache("calibration: built-in vase", arrays)
 
@@ -105,8 +104,9 @@ def calibration(settings: OptimizeSettings, device) -> tuple[OptimizeSettings, C
 def seconds_per_step(settings: OptimizeSettings, raycache: RaycacheSettings, device, steps: int = 2) -> float:
     """Wall seconds of one optimisation step of ``settings`` on ``device`` (mean of ``steps``
     steps after one warm-up step)."""
-    # a bounce needs the cache's visibility (and then costs its shadows): the vase is traced with it
-    visibility = settings.bounces == 1 and settings.shadows
+    # shadows where the cache will carry visibility for certain (raycache.visibility: on) or a bounce
+    # needs it: the vase is traced with it; visibility: auto (decided by each mesh) is timed without
+    visibility = settings.shadows and (settings.bounces == 1 or raycache.visibility == "on")
     train = _pool(dataclasses.replace(raycache, views=max(2, settings.views_per_step)), visibility)
     settings, guide = calibration(settings, device)
     # the eager renderer: a compiled one (compile_shading) would spend its compilation, 13 s to

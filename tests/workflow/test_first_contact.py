@@ -192,23 +192,29 @@ def test_calibration_leaves_the_plans_process_allocator_as_it_is(monkeypatch):
 def test_calibration_times_a_bouncing_run_with_the_visibility_it_needs(monkeypatch):
     """A run of ``optimize.bounces: 1`` needs the ray cache's visibility: the calibration traces it
     on its vase and times the bouncing step (its table refreshed at the first step), where a cache
-    without it would refuse the setting; with shadows off nothing can bounce, and the setting's
-    own error says so."""
+    without it would refuse the setting; so too with ``raycache.visibility: on`` (shadows for
+    certain), while ``auto`` (each mesh decides) is timed without. With shadows off nothing can
+    bounce, and the setting's own error says so."""
     import math
 
     import pytest
 
     from stages.config.sections import OptimizeSettings, RaycacheSettings
     from stages.guidance.clip import TINY_MODEL
-    from stages.training import optimizer
+    from stages.training import calibrate, optimizer
     from stages.training.calibrate import seconds_per_step
 
-    refreshed = []
-    table = optimizer.bounce_table
+    refreshed, traced = [], []
+    table, trace = optimizer.bounce_table, calibrate.trace_cache_visibility
     monkeypatch.setattr(optimizer, "bounce_table", lambda *a, **k: refreshed.append(1) or table(*a, **k))
+    monkeypatch.setattr(calibrate, "trace_cache_visibility", lambda *a: traced.append(a[2]) or trace(*a))
     tiny = {"clip_model": TINY_MODEL, "image_size": 64, "width": 16, "crops": 0, "light_lobes": 4, "iterations": 10}
     raycache = RaycacheSettings(views=4, resolution=64, visibility_directions=64)
     assert 0 < seconds_per_step(OptimizeSettings(bounces=1, bounce_samples=4, **tiny), raycache, "cpu", steps=1) < math.inf
-    assert refreshed  # the bounce was modelled
+    assert refreshed and traced == [64]  # the bounce was modelled, on the visibility traced for it
+    on = RaycacheSettings(views=4, resolution=64, visibility="on", visibility_directions=72)
+    seconds_per_step(OptimizeSettings(**tiny), on, "cpu", steps=1)
+    seconds_per_step(OptimizeSettings(**tiny), RaycacheSettings(views=4, resolution=64, visibility_directions=80), "cpu", steps=1)
+    assert traced == [64, 72]  # on: traced; auto: not
     with pytest.raises(ValueError, match="bounces: 1 needs shadows"):
         seconds_per_step(OptimizeSettings(bounces=1, shadows=False, **tiny), raycache, "cpu", steps=1)
