@@ -77,7 +77,7 @@ def cut_truths(target: Path, meta: dict, cache, depths: tuple[int, ...]) -> list
 
     from stages.config.sections import TargetSettings
     from stages.geometry.meshio import load_ply
-    from stages.reference.target_job import METRIC_SEED, RELIT_SEED, RELIT_STRIDE
+    from stages.reference.target_job import metric_seeds
     from stages.reference.targets import TargetRenderer
 
     settings = TargetSettings.from_dict(meta["settings"])
@@ -88,9 +88,7 @@ def cut_truths(target: Path, meta: dict, cache, depths: tuple[int, ...]) -> list
             f"{str(rendered) or 'none'} (run from the folder the workflow ran in, or rerun the target stage)"
         )
     mesh = load_ply(rendered)
-    seed = settings.seed * 1_000_003
-    lights = [(settings.environment, seed + METRIC_SEED)]
-    lights += [(env, seed + RELIT_SEED + RELIT_STRIDE * j) for j, env in enumerate(settings.relight_environments)]
+    lights = metric_seeds(settings)
     out: list[dict[int, object]] = [{} for _ in lights]
     truth = None
     for depth in depths:

@@ -53,30 +53,44 @@ class MeshTargets:
     senders: dict | None = None
 
 
+def metric_seeds(settings: TargetSettings) -> list[tuple[str, int]]:
+    """The environment and seed of each render of the metric views, in the targets' order: the
+    training environment's, then each of ``target.relight_environments`` (the training views use
+    :func:`base_seed` itself)."""
+    seed = base_seed(settings)
+    relit = [(env, seed + RELIT_SEED + RELIT_STRIDE * j) for j, env in enumerate(settings.relight_environments)]
+    return [(settings.environment, seed + METRIC_SEED), *relit]
+
+
+def base_seed(settings: TargetSettings) -> int:
+    """The seed of the training views' renders, from ``target.seed``."""
+    return settings.seed * 1_000_003
+
+
 def render_targets(
     mesh: TriMesh, material: str, settings: TargetSettings, caches: tuple[RayCache, RayCache], timer: Timer
 ) -> MeshTargets:
     """Render ``mesh`` in ``material`` from the training and metric ``caches`` (each step timed in
     ``timer``); a metric hit whose ray misses the rendered (finer) mesh is no object pixel."""
     train, metric = caches
-    seed = settings.seed * 1_000_003
+    (_, metric_seed), *relit_seeds = metric_seeds(settings)
     with timer("scene"):
         renderer = TargetRenderer(mesh, material, settings)
     text = describe(material, settings, renderer.variant)
     log.info("rendering %s", text)
     with timer("render_train"):
-        tt = renderer.render_cache(train, settings.spp, seed)
+        tt = renderer.render_cache(train, settings.spp, base_seed(settings))
     with timer("render_metrics"):
-        tm = renderer.render_cache(metric, settings.metric_spp, seed + METRIC_SEED)
+        tm = renderer.render_cache(metric, settings.metric_spp, metric_seed)
     with timer("truth"):
         truth, met = renderer.truth_at_hits(metric)
         senders = truth_at_senders(renderer.truth, mesh, metric.mesh())  # what a bounce's ceiling sends
     tm.coverage[~met] = 0.0
     relit = {}
     with timer("render_relit"):
-        for j, env in enumerate(settings.relight_environments):
+        for env, relit_seed in relit_seeds:
             judge = TargetRenderer(mesh, material, settings, environment=env, truth=renderer.truth)
-            t = judge.render_cache(metric, settings.metric_spp, seed + RELIT_SEED + RELIT_STRIDE * j)
+            t = judge.render_cache(metric, settings.metric_spp, relit_seed)
             t.coverage[~met] = 0.0
             relit[env] = (t, judge.env_energy)
             log.info("relit ground truth under %s: noise PSNR %.1f dB, %.1f s", env, t.noise_psnr_db, t.seconds)
