@@ -572,6 +572,28 @@ def _budget_ends_at_the_grades_ceiling(cache, targets, relit):
         assert b["recovered"]["psnr_db"] == pytest.approx(t["recovered_psnr_db"], abs=1e-6)
         assert b["ceiling"]["psnr_db"] == pytest.approx(t["ceiling_psnr_db"], abs=1e-6)
         assert b["ceiling"]["psnr_scaled_db"] == pytest.approx(t["ceiling_psnr_scaled_db"], abs=1e-6)
+    _a_bounce_that_cannot_be_modelled_says_why(field, cache, targets, relit)
+
+
+def _a_bounce_that_cannot_be_modelled_says_why(field, cache, targets, relit):
+    """A bouncing field whose views carry no shadows, or whose targets carry no truth at the face
+    sides (written before they did), is graded and budgeted with direct light, and each record
+    says why."""
+    from stages.imaging.relit import BudgetCase, grade_relighting, relight_budget
+    from stages.imaging.views import ViewStore
+
+    cases = [BudgetCase(r.environment, "relit", r.radiance, r.coverage, r.noise_psnr_db) for r in relit[:1]]
+    bare = ViewStore(cache, "cpu", field.normals, shadows=False)
+    (g,) = grade_relighting(field, bare, relit[:1], targets, 16, 100)
+    (b,) = relight_budget(field, bare, targets, cases, 16, 100)
+    assert g["ceiling_bounce"] == b["bounce"] and b["bounce"]["bounces"] == 0 and "no shadows" in b["bounce"]["why"]
+    store = ViewStore(cache, "cpu", field.normals, shadows=True)
+    old = TargetSet.__new__(TargetSet)
+    old.__dict__.update(targets.__dict__)
+    old.arrays = {k: v for k, v in targets.arrays.items() if not k.startswith("sender_")}
+    (g,) = grade_relighting(field, store, relit[:1], old, 16, 100)
+    (b,) = relight_budget(field, store, old, cases, 16, 100)
+    assert g["ceiling_bounce"] == b["bounce"] and b["bounce"]["bounces"] == 0 and "written before" in b["bounce"]["why"]
 
 
 def _shadowed_diffuse_errors(mi, mesh: TriMesh, tmp_path, light: np.ndarray) -> dict[str, float]:
