@@ -1,7 +1,10 @@
-"""bake: bake the trained field into PBR textures, in the input's own UV layout or a new xatlas atlas.
+"""bake: bake the trained field into PBR textures, in the input's own UV layout, a second UV set made
+beside it, or a new xatlas atlas.
 
-The layout is ``bake.uv``'s (:mod:`stages.assets.layouts`): the input's own where it is usable
-(``auto``, the default, records why not where it is not), always (``keep``) or never (``atlas``).
+The layout is ``bake.uv``'s (:mod:`stages.assets.layouts`): the input's own where it is usable,
+else a second set where the input holds one (a glTF document), else an atlas (``auto``, the
+default, records why); always the input's (``keep``), always a second set (``second``) or always
+an atlas (``atlas``).
 
 The field is evaluated at every covered texel centre (base colour, roughness, specular colour and
 the predicted normal in tangent space), the ambient occlusion is written into the
@@ -31,9 +34,9 @@ from .assets.baking import (
     render_texture_sets,
     texel_density,
 )
-from .assets.layouts import InputMesh, choose_layout
+from .assets.layouts import SECOND, InputMesh, choose_layout, second_layout
 from .config.records import BakeRecord
-from .config.sections import BakeSettings
+from .config.sections import UV_LAYOUT_WORDS, BakeSettings
 from .core.cli import stage_main
 from .core.errors import StageInputError
 from .core.progress import heartbeat, job_label
@@ -74,14 +77,15 @@ def run(
         eval_cache = RayCache(eval_path)
     with timer("layout"):
         source = source or InputMesh(None, None)
-        uv, layout = choose_layout(
-            settings.uv, source.path, source.transform(), mesh, settings.size_for(len(mesh.faces)), settings.uv_max_overlap
-        )
+        size = settings.size_for(len(mesh.faces))
+        uv, layout = choose_layout(settings.uv, source.path, source.transform(), mesh, size, settings.uv_max_overlap)
+        if uv.layout == SECOND:
+            layout = second_layout(layout, mesh, size, settings.padding, settings.max_chart_share)
     job = job_label("bake", out_dir)
     occlusion = occlusion_decision(settings.occlusion, field, eval_cache)
     with timer("occlusion"), heartbeat(job, "tracing the ambient occlusion"):
         ao = occlusion_samples(mesh, occlusion, settings)
-    verb = "baking the input's own layout of" if layout is not None else "unwrapping and baking"
+    verb = f"baking {UV_LAYOUT_WORDS[uv.layout]} layout of"
     with timer("bake"), heartbeat(job, f"{verb} {len(mesh.faces)} faces"):
         res = bake_field(mesh, field, settings, device, ao, layout)
     out_dir = Path(out_dir)
@@ -123,7 +127,7 @@ def run(
             "baked %d faces into %d^2 textures (%s, %s; %.0f%% texels used), fidelity %.1f dB",
             len(mesh.faces),
             res.atlas.size,
-            "the input's own layout" if uv.kept else "a new atlas",
+            UV_LAYOUT_WORDS[uv.layout],
             uv.why,
             100 * res.coverage,
             bake_psnr,

@@ -8,6 +8,8 @@ lights, USD ``DistantLight`` s).
 Where the bake kept the input's UV layout (``bake.uv``), the asset is the input's own topology
 (:mod:`stages.assets.ownformat`): a glTF input's own document with new materials, an OBJ input's
 own lines with a new material library (``model.obj``, ``model.mtl``) beside the USD and glTF files.
+Where it made a second UV set for a glTF input, the document also gets that set
+(:mod:`stages.assets.gltfuvset`), its own UVs kept; the USD holds the bake's set.
 
 Geometry is returned to the input's units through the normalisation's inverse transform (or left
 normalised, ``units: normalized``); the material mapping and what each format loses are in
@@ -23,7 +25,8 @@ from PIL import Image
 
 from .assets import formats
 from .assets.formats import AssetInfo, read_atlas, recorded_lights, write_asset_files
-from .assets.layouts import kept_materials, kept_source
+from .assets.gltfuvset import SecondSet
+from .assets.layouts import kept_materials, kept_source, second_set
 from .assets.ownformat import asset_geometry, own_document, write_obj
 from .config.brdfs import brdf_spec
 from .config.layout import TEXTURE_FILES, export_files
@@ -67,8 +70,9 @@ def run(
     brdf = brdf_spec(bake_stats.get("brdf", "tango"))  # the BRDF the bake's textures hold
     occlusion = bool(bake_stats.get("occlusion", {}).get("baked", False))
     kept = kept_source(bake_stats, atlas, source, bake_dir)
-    materials = None if kept is None else kept_materials(bake_stats, kept)
-    asset = asset_geometry(mesh, atlas, tf, settings, kept, materials)
+    second = second_set(bake_stats, atlas)
+    materials = None if kept is None else kept_materials(bake_stats, kept, second)
+    asset = asset_geometry(mesh, atlas, tf, settings, kept, materials, second)
     geom = asset.geom
     # the learned suns, their directions in the files' frame (the input's own: R^T d)
     lights = recorded_lights(bake_stats, tf.rotation.T if asset.own_frame else None)
@@ -81,8 +85,9 @@ def run(
                 copy_file(bake_dir / fname, staging / fname, remedy="Rerun the bake stage.")
             copy_file(preview, staging / "preview.png", remedy="Rerun the bake stage.")
         instead, changed = {}, []  # a glTF input's own document; what of it was not carried over, and why
+        uv_set = None if second is None else SecondSet(second)
         if kept is not None and kept.kind == GLTF_SOURCE:
-            instead = own_document(kept, origin, brdf, occlusion, geom.slot_textures, changed, lights)
+            instead = own_document(kept, origin, brdf, occlusion, geom.slot_textures, changed, lights, uv_set)
         if kept is not None and kept.kind == OBJ_SOURCE:
             with timer("obj"):
                 extra_files = write_obj(staging, geom, kept, None if settings.units == "original" else tf, brdf)
@@ -94,7 +99,9 @@ def run(
         stats = {
             "faces": len(mesh.faces),
             "vertices_exported": len(geom.positions),
-            "topology": "the input's own (kept UV layout)" if kept is not None else "the traced mesh, welded",
+            "topology": topology(kept, second),
+            # the bake's UV set beside the input's own (bake.uv: second): where, and the seam vertices it appended
+            "second_uv_set": None if uv_set is None or uv_set.written is None else uv_set.written.record(),
             "extra_files": extra_files,
             "input_document_changes": changed,
             # the files' frame: metres per unit, and whether positions are the input's own
@@ -123,6 +130,14 @@ def run(
             ),
         )
     return stats
+
+
+def topology(kept, second) -> str:
+    """What the asset's geometry is: the traced mesh, or the input's own (with its layout, or
+    with a second UV set for the bake)."""
+    if kept is None:
+        return "the traced mesh, welded"
+    return "the input's own (kept UV layout)" if second is None else "the input's own, with a second UV set for the bake"
 
 
 def main(argv: list[str] | None = None) -> int:

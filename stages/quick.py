@@ -41,7 +41,7 @@ import yaml
 from .assets.layouts import choose_layout
 from .config.presets import PRESETS
 from .config.schema import schema
-from .config.sections import MATERIALS, UV_LAYOUTS
+from .config.sections import MATERIALS, UV_LAYOUT_WORDS, UV_LAYOUTS
 from .config.workflow import (
     CONTROL,
     EXPERIMENT_RE,
@@ -217,7 +217,7 @@ def layout_text(cfg: WorkflowConfig, mesh: str) -> str:
     normalized = normalize_mesh(mesh, cfg.stage_settings(mesh_id, "normalize"))
     traced = normalized.mesh
     choice, _ = choose_layout(bake.uv, mesh, normalized.transform, traced, bake.size_for(len(traced.faces)), bake.uv_max_overlap)
-    return f"the input's own ({choice.why})" if choice.kept else f"a new atlas ({choice.why})"
+    return f"{UV_LAYOUT_WORDS[choice.layout]} ({choice.why})"
 
 
 @dataclass(frozen=True)

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from .assets.formats import read_atlas
-from .assets.layouts import kept_materials, kept_source
+from .assets.layouts import kept_materials, kept_source, second_set
 from .assets.ownformat import asset_geometry, kept_corner_tangents
 from .config.layout import EXPORT_FILES, export_format_of
 from .config.records import RoundtripRecord
@@ -70,8 +70,9 @@ def _scene(files: dict, settings: RoundtripSettings, device: str, timer: Timer, 
         atlas = read_atlas(bake_dir / "atlas.npz")
         bake_stats = read_json(bake_dir / "meta.json").get("stats", {})
         kept = kept_source(bake_stats, atlas, files.get("source"), bake_dir)
-        materials = None if kept is None else kept_materials(bake_stats, kept)
-        asset = asset_geometry(load_ply(files["mesh"]), atlas, tf, export_settings, kept, materials)
+        second = second_set(bake_stats, atlas)
+        materials = None if kept is None else kept_materials(bake_stats, kept, second)
+        asset = asset_geometry(load_ply(files["mesh"]), atlas, tf, export_settings, kept, materials, second)
         field, _ = load_field(files["field"], device)
         cache = RayCache(files["eval"])
     tf_export = tf if export_settings.units == "original" or asset.own_frame else None

@@ -50,16 +50,19 @@ class _Blob:
         return len(self.accessors) - 1
 
 
-def skinned_glb(path: Path, name: str = "vase", offset=(3.0, 0.5, -1.0)) -> dict:
+def skinned_glb(path: Path, name: str = "vase", offset=(3.0, 0.5, -1.0), fold: bool = False) -> dict:
     """A skinned, animated GLB of ``name`` with its xatlas layout: two primitives (materials
     ``Body`` and ``Rim``: the faces below and above mid-height) sharing one vertex set, a morph
     target, a skin of two joints (weights by height) of an armature placed at ``offset`` (the
     vertices, in the root skinned node's frame, placed there too), a rotation animation of the
-    upper joint, a camera and extras. Returns what was written: ``positions`` (as stored),
-    ``uv`` and ``faces``."""
+    upper joint, a camera and extras. ``fold``: the layout folded about u = 0.5 and v = 0.5
+    (``0.5 - |uv - 0.5|``), so that up to four islands overlap (a layout no bake can keep).
+    Returns what was written: ``positions`` (as stored), ``uv`` and ``faces``."""
     import pygltflib as g
 
     pos, uv, faces = unwrapped(name)
+    if fold:
+        uv = 0.5 - np.abs(uv - 0.5)
     pos = pos + np.asarray(offset, np.float64)
     pos32, uv32 = pos.astype(np.float32), uv.astype(np.float32)
     normals = smooth_normals(pos, faces).astype(np.float32)

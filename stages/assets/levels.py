@@ -227,9 +227,11 @@ def make_lod0(source: LodSource, grader: LevelGrader, staging: Path) -> LevelRec
         copy_file(source.bake_dir / rel, staging / "lod0" / rel, remedy="Run the bake stage again.")
     from_bake = {key: _texture(source.bake_dir / rel) for key, rel in TEXTURE_FILES.items()}
     uv = source.atlas["uv"].astype(np.float64)
-    kept = "source_face" in source.atlas  # the input's own layout: its textures repeat
+    kept = "source_face" in source.atlas  # a layout of the input's triangles: its textures repeat
     fidelity, image = grader.grade(source.mesh, uv, from_bake, CornerFrames.from_arrays(source.atlas), kept)
-    layout = "kept (the input's own, on the traced mesh's topology)" if kept else "atlas"
+    second = source.bake_meta["stats"].get("uv", {}).get("layout") == "second"
+    what = "second (a set made for the bake" if second else "kept (the input's own"
+    layout = f"{what}, on the traced mesh's topology)" if kept else "atlas"
     geom = export_mesh(source.mesh, source.atlas, source.export_transform, source.export.weld)
     return LevelRecord(
         level="lod0",

@@ -41,10 +41,12 @@ from ..core.provenance import ORIGIN_METADATA_KEY, atomic_path
 from ..core.safefiles import IMAGE_LIMIT, open_read, plain_file, read_bytes
 from ..geometry.normalization import Similarity
 from ..geometry.sourcemesh import GLTF_SOURCE, ObjLines, SourceMesh, load_gltf_document
-from ..geometry.tangents import mikktspace
+from ..geometry.tangents import vertex_tangents
+from ..geometry.uvsets import second_uv_set
 from ..render.distant import DistantLight
 from .formats.gltf import LIGHTS_EXTENSION, GlbBuffer, add_distant_lights, glb_material, glb_sampler, punctual_lights
 from .formats.mesh import ExportMesh, export_mesh
+from .gltfuvset import SecondSet, UvSetWritten, add_uv_set
 
 log = logging.getLogger(__name__)
 
@@ -52,44 +54,38 @@ log = logging.getLogger(__name__)
 OBJ_CHANNELS = {"roughness": 1, "metallic": 2}
 
 
-def kept_geometry(source: SourceMesh, transform: Similarity | None = None, materials=None) -> ExportMesh:
+def kept_geometry(
+    source: SourceMesh, transform: Similarity | None = None, materials=None, second: np.ndarray | None = None
+) -> ExportMesh:
     """The input's vertices (:mod:`stages.geometry.sourcemesh`: a glTF primitive's own, an OBJ's
     distinct corners in first-use order) and triangles in file order, its UVs and normals (its
     own; where it has none, smooth vertex normals) and materials (``materials``: per triangle, the
     names and the texture sets' folders, :func:`~stages.assets.layouts.kept_materials`; None: the
     input's slots, one set), in its own units and position, or with ``transform`` in the
-    normalised frame. Tangents: MikkTSpace's on its normals and UVs (the frame the bake used) where
-    every corner of a vertex has the same one, else none (viewers then compute the same
-    MikkTSpace themselves)."""
+    normalised frame. With a ``second`` UV set (``(T, 3, 2)``, the bake's) the UVs are that set's,
+    its seam vertices appended (:func:`~stages.geometry.uvsets.second_uv_set`). Tangents:
+    MikkTSpace's on its normals and UVs (the frame the bake used) where every corner of a vertex
+    has the same one, else none (viewers then compute the same MikkTSpace themselves)."""
     pos = source.positions if transform is None else transform.forward(source.positions)
     normals = source.vertex_normals()
     if transform is not None:
         normals = normals @ transform.rotation.T
+    uv, triangles = source.uv, source.triangles
+    if second is not None:
+        split = second_uv_set(triangles, second, len(pos))
+        pos, normals, uv, triangles = pos[split.source], normals[split.source], split.uv.astype(np.float64), split.indices
     material, names, folders = materials or (source.slot, source.slot_names, ())
     return ExportMesh(
         pos.astype(np.float32),
         normals.astype(np.float32),
-        source.uv.astype(np.float32),
-        vertex_tangents(pos, normals, source.uv, source.triangles),
-        source.triangles.astype(np.int64),
+        uv.astype(np.float32),
+        vertex_tangents(pos, normals, uv, triangles),
+        triangles.astype(np.int64),
         material,
         names,
         repeat=True,
         slot_textures=folders,
     )
-
-
-def vertex_tangents(positions: np.ndarray, normals: np.ndarray, uv: np.ndarray, triangles: np.ndarray) -> np.ndarray | None:
-    """MikkTSpace tangents ``(V, 4)`` (xyz and handedness) per vertex, or None where two corners of
-    one vertex get different ones (a vertex shared across a mirrored UV seam)."""
-    st = np.stack([uv[:, 0], 1.0 - uv[:, 1]], axis=-1)[triangles]
-    t, w = mikktspace(positions[triangles], normals[triangles], st)
-    corner = np.concatenate([t, np.repeat(w[:, None, None], 3, axis=1)], axis=-1).reshape(-1, 4)
-    out = np.zeros((len(positions), 4))
-    out[triangles.reshape(-1)] = corner
-    if np.abs(out[triangles.reshape(-1)] - corner).max(initial=0.0) > 1e-4:
-        return None
-    return out.astype(np.float32)
 
 
 @dataclass(frozen=True)
@@ -106,19 +102,21 @@ class AssetGeometry:
     own_frame: bool
 
 
-def asset_geometry(mesh, atlas: dict, transform: Similarity, settings, kept: SourceMesh | None, materials=None) -> AssetGeometry:
+def asset_geometry(
+    mesh, atlas: dict, transform: Similarity, settings, kept: SourceMesh | None, materials=None, second=None
+) -> AssetGeometry:
     """The geometry the export writes (and the round trip checks) for the traced ``mesh`` and the
     bake's ``atlas`` arrays, with the export ``settings`` (units, weld, metres per unit): the
     traced mesh welded (:func:`~stages.assets.formats.export_mesh`), or the input's own topology
-    where the bake kept its layout (:func:`kept_geometry`, with its ``materials``). A glTF input's
-    document keeps its own units (metres, by the specification) and position: ``units`` and
-    ``meters_per_unit`` do not apply to it."""
+    where the bake kept its layout or made a ``second`` UV set for it (:func:`kept_geometry`,
+    with its ``materials``). A glTF input's document keeps its own units (metres, by the
+    specification) and position: ``units`` and ``meters_per_unit`` do not apply to it."""
     original = settings.units == "original"
     if kept is None:
         geom = export_mesh(mesh, atlas, transform if original else None, settings.weld)
         return AssetGeometry(geom, None, settings.meters_per_unit, False)
     if kept.kind == GLTF_SOURCE:
-        return AssetGeometry(kept_geometry(kept, None, materials), kept, 1.0, True)
+        return AssetGeometry(kept_geometry(kept, None, materials, second), kept, 1.0, True)
     geom = kept_geometry(kept, None if original else transform, materials)
     return AssetGeometry(geom, kept, settings.meters_per_unit, original)
 
@@ -227,15 +225,18 @@ def own_document(
     folders: tuple[str, ...],
     changed: list[str],
     lights: tuple[DistantLight, ...] = (),
+    second: SecondSet | None = None,
 ) -> dict[str, Callable[[Path], None]]:
     """The writer of a glTF input's own document (:func:`write_document_glb` into a folder's
-    :data:`DOCUMENT_FILE`, reading the folder's ``textures/``) in place of its format's writer, as
+    :data:`DOCUMENT_FILE`, reading the folder's ``textures/``; with the ``second`` UV set where
+    the bake made one) in place of its format's writer, as
     :func:`stages.assets.formats.write_asset_files` takes it (``instead``); each change to the
     document is appended to ``changed``."""
 
     def write(folder: Path) -> None:
         folder = Path(folder)
-        notes = write_document_glb(folder / DOCUMENT_FILE, source, folder / "textures", origin, brdf, occlusion, folders, lights)
+        textures = folder / "textures"
+        notes = write_document_glb(folder / DOCUMENT_FILE, source, textures, origin, brdf, occlusion, folders, lights, second)
         changed.extend(notes)
 
     return {DOCUMENT_FORMAT: write}
@@ -250,19 +251,28 @@ def write_document_glb(
     occlusion: bool,
     folders: tuple[str, ...] = (),
     lights: tuple[DistantLight, ...] = (),
+    second: SecondSet | None = None,
 ) -> list[str]:
     """``model.glb``: the input glTF document with its textured primitives' materials replaced by
     ones reading the baked texture sets (module docstring; ``folders``: each slot's set below
-    ``textures_dir``), the learned suns (``lights``) added as lights. The file needs nothing beside
-    it and names nothing of this machine: images are embedded or dropped (:func:`own_images`),
-    local paths in ``extras`` removed (:func:`drop_local_paths`); each change is logged and
-    returned, one line each."""
+    ``textures_dir``), the learned suns (``lights``) added as lights. Where the bake made a
+    ``second`` UV set, the primitives get it (:func:`~stages.assets.gltfuvset.add_uv_set`; what
+    was done is left in ``second.written``) and the materials read it. The file needs
+    nothing beside it and names nothing of this machine: images are embedded or dropped
+    (:func:`own_images`), local paths in ``extras`` removed (:func:`drop_local_paths`); each
+    change is logged and returned, one line each."""
     import pygltflib as g
 
     brdf = brdf_spec(brdf)
     doc, blobs = load_gltf_document(source.path)
     buffer = GlbBuffer(g)
     _merge_buffers(doc, blobs, buffer)
+    texcoord, set_notes = 0, []
+    if second is not None:
+        doc.accessors = list(doc.accessors or [])
+        written = second.written = add_uv_set(doc, buffer, b"".join(buffer.blobs), source, second.corner_uv)
+        texcoord = written.texcoord
+        set_notes = [uv_set_note(written), *dict.fromkeys(written.notes)]
     buffer.images, buffer.textures = list(doc.images or []), list(doc.textures or [])
     doc.samplers = [*(doc.samplers or []), glb_sampler(g, True)]
     firsts: dict[str, int] = {}
@@ -275,7 +285,7 @@ def write_document_glb(
             sub = folders[source.slot_names.index(name)] if folders else ""
             if sub not in firsts:
                 firsts[sub] = buffer.texture_set(Path(textures_dir) / sub, brdf, sampler=len(doc.samplers) - 1)
-            new = glb_material(g, name, firsts[sub], brdf, occlusion)
+            new = glb_material(g, name, firsts[sub], brdf, occlusion, texcoord)
             if old is None:
                 doc.materials.append(new)
                 replaced[old] = len(doc.materials) - 1
@@ -290,7 +300,9 @@ def write_document_glb(
     notes += drop_local_paths(doc)
     for note in notes:
         log.warning("%s: %s", Path(source.path).name, note)
-    notes += _add_lights(g, doc, lights)
+    for note in set_notes:
+        log.info("%s: %s", Path(source.path).name, note)
+    notes += set_notes + _add_lights(g, doc, lights)
     doc.extensionsUsed = sorted(set(doc.extensionsUsed or []) | set(brdf.gltf_extensions))
     extras = doc.asset.extras if isinstance(doc.asset.extras, dict) else {}
     doc.asset.extras = {**extras, ORIGIN_METADATA_KEY: origin}
@@ -301,6 +313,15 @@ def write_document_glb(
     with atomic_path(path) as tmp:
         doc.save_binary(str(tmp))
     return notes
+
+
+def uv_set_note(written: UvSetWritten) -> str:
+    """The line the export's record and log give a second UV set (:func:`add_uv_set`)."""
+    return (
+        f"the bake's UV set added as TEXCOORD_{written.texcoord} to {written.primitives} primitive(s), the input's own "
+        f"UVs kept: {written.appended:,} seam vertices appended after the input's {written.vertices:,}, "
+        f"{written.rewritten:,} corners re-indexed to them"
+    )
 
 
 def _add_lights(g, doc, lights: tuple[DistantLight, ...]) -> list[str]:

@@ -74,16 +74,18 @@ class BrdfSpec:
         """The specular model that stands for the BRDF against a reference: its first."""
         return self.lobes[0]
 
-    def gltf_material_extensions(self, first: int) -> dict[str, Any]:
+    def gltf_material_extensions(self, first: int, texcoord: int = 0) -> dict[str, Any]:
         """A glTF material's ``extensions`` for the texture set whose first texture is ``first``
-        (in :attr:`exported_textures`' order): :attr:`gltf_material` with each texture's name
-        replaced by its index."""
+        (in :attr:`exported_textures`' order), read through UV set ``texcoord``:
+        :attr:`gltf_material` with each texture's name replaced by its index (and, for a set other
+        than the first, its ``texCoord`` beside it)."""
 
         def resolved(value: Any, key: str = "") -> Any:
             if key == "index" and isinstance(value, str):
                 return first + self.exported_textures.index(value)
             if isinstance(value, Mapping):
-                return {k: resolved(v, k) for k, v in value.items()}
+                out = {k: resolved(v, k) for k, v in value.items()}
+                return {**out, "texCoord": texcoord} if texcoord and isinstance(value.get("index"), str) else out
             return [resolved(v) for v in value] if isinstance(value, tuple | list) else value
 
         return resolved(self.gltf_material)

@@ -64,8 +64,10 @@ CLIP_TOWERS = get_args(ClipTower)
 Encoding = Literal["nerf", "fourier", "hashgrid", "none"]
 ENCODINGS = get_args(Encoding)
 #: the UV layout a bake writes into (:mod:`stages.assets.layouts`)
-UvLayout = Literal["auto", "keep", "atlas"]
+UvLayout = Literal["auto", "keep", "second", "atlas"]
 UV_LAYOUTS = get_args(UvLayout)
+#: what each layout a bake wrote into is, in the user's words (a bake's ``uv.layout``)
+UV_LAYOUT_WORDS = {"kept": "the input's own", "second": "a second UV set beside the input's own", "atlas": "a new atlas"}
 DecimateMode = Literal["faces", "share", "budget"]
 DECIMATE_MODES = get_args(DecimateMode)
 #: Mitsuba variants the target stage may use ("auto": LLVM when a usable libLLVM is found)
@@ -863,8 +865,10 @@ class BakeSettings(Settings):
     )
     uv: UvLayout = setting(
         "auto",
-        "the UV layout baked into: keep (the input's own, OBJ or glTF; stops when it is not usable), auto (the input's "
-        "where usable, else a new atlas, the reason recorded), atlas (a new xatlas atlas)",
+        "the UV layout baked into: keep (the input's own, OBJ or glTF; stops when it is not usable), second (a new layout "
+        "of the input's own triangles, written as a second UV set of its glTF document beside its own; stops for an OBJ), "
+        "auto (the input's where usable, else a second set where the input is glTF, else a new atlas, the reason "
+        "recorded), atlas (a new xatlas atlas of the traced mesh, welded)",
     )
     uv_max_overlap: float = setting(
         0.01,

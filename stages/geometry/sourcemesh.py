@@ -53,7 +53,8 @@ class SourceMesh:
     NaN where the file gives none), ``normals (V, 3)`` (NaN where none) and ``tangents (V, 4)`` or
     None (glTF ``TANGENT``); per triangle ``triangles (T, 3)`` (file order), ``slot (T,)`` (index
     into ``slot_names``, the input's materials in first-use order) and ``part (T,)`` (the OBJ
-    polygon, or the glTF primitive instance of ``parts``); ``kind`` is :data:`OBJ_SOURCE` or
+    polygon, or the glTF primitive instance of ``parts``: its ``node``, ``mesh``, ``primitive``,
+    ``material`` and whether the node's transform ``mirrored`` its winding); ``kind`` is :data:`OBJ_SOURCE` or
     :data:`GLTF_SOURCE`."""
 
     path: Path
@@ -680,6 +681,23 @@ def accessor_array(doc, blobs: list[bytes], index: int) -> np.ndarray:
     specification says) or, for indices, int64 ``(count,)``. Its elements are copied out of the
     buffer's bytes, which :func:`read_gltf_file` checked hold them (checked again here)."""
     acc = doc.accessors[index]
+    out = accessor_elements(doc, blobs, index)
+    dtype = out.dtype
+    if acc.type == "SCALAR" and np.issubdtype(dtype, np.integer) and not acc.normalized:
+        return out.reshape(-1).astype(np.int64)
+    out = out.astype(np.float64)
+    if acc.normalized and np.issubdtype(dtype, np.integer):
+        out = np.maximum(out / np.iinfo(dtype).max, -1.0)
+    return out
+
+
+def accessor_elements(doc, blobs: list[bytes], index: int) -> np.ndarray:
+    """Accessor ``index``'s elements as stored, ``(count, width)`` of its component type (zeros
+    where it has no buffer view, as the specification says).
+
+    Raises:
+        ValueError: a sparse accessor, a matrix other than 4x4, or elements past the buffer."""
+    acc = doc.accessors[index]
     if acc.sparse is not None:
         raise ValueError(f"accessor {index} is sparse")
     if acc.type not in WIDTHS:
@@ -700,12 +718,7 @@ def accessor_array(doc, blobs: list[bytes], index: int) -> np.ndarray:
         rows = np.zeros(count * stride, np.uint8)
         rows[: end - start] = np.frombuffer(blobs[view.buffer], np.uint8, count=end - start, offset=start)
         out = rows.reshape(count, stride)[:, :size].copy().view(dtype).reshape(count, width)
-    if acc.type == "SCALAR" and np.issubdtype(dtype, np.integer) and not acc.normalized:
-        return out.reshape(-1).astype(np.int64)
-    out = out.astype(np.float64)
-    if acc.normalized and np.issubdtype(dtype, np.integer):
-        out = np.maximum(out / np.iinfo(dtype).max, -1.0)
-    return out
+    return out.astype(dtype.newbyteorder("="))
 
 
 def node_matrix(node) -> np.ndarray:
@@ -776,7 +789,9 @@ def read_gltf(path: Path) -> SourceMesh:
                 raise StageInputError(path, f"node {node}, primitive {p} cannot be read: {exc}", "Re-export the file.") from exc
             slot = slots.setdefault(_material_name(doc, prim.material), len(slots))
             tris.append((blocks[key], tri, slot))
-            parts.append({"node": node, "mesh": doc.nodes[node].mesh, "primitive": p, "material": prim.material})
+            mirrored = bool(np.linalg.det(world[:3, :3]) < 0)  # its triangles' winding turned (_triangles)
+            part = {"node": node, "mesh": doc.nodes[node].mesh, "primitive": p, "material": prim.material}
+            parts.append({**part, "mirrored": mirrored})
     if not pieces:
         raise StageInputError(path, "has no triangle primitives", "Supply a triangle mesh.")
     offsets = np.cumsum([0] + [len(q["positions"]) for q in pieces[:-1]])

@@ -83,6 +83,19 @@ def mikktspace(positions: np.ndarray, normals: np.ndarray, st: np.ndarray, share
     return t / np.maximum(norm, 1e-300), w
 
 
+def vertex_tangents(positions: np.ndarray, normals: np.ndarray, uv: np.ndarray, triangles: np.ndarray) -> np.ndarray | None:
+    """MikkTSpace tangents ``(V, 4)`` (xyz and handedness) per vertex, or None where two corners of
+    one vertex get different ones (a vertex shared across a mirrored UV seam)."""
+    st = np.stack([uv[:, 0], 1.0 - uv[:, 1]], axis=-1)[triangles]
+    t, w = mikktspace(positions[triangles], normals[triangles], st)
+    corner = np.concatenate([t, np.repeat(w[:, None, None], 3, axis=1)], axis=-1).reshape(-1, 4)
+    out = np.zeros((len(positions), 4))
+    out[triangles.reshape(-1)] = corner
+    if np.abs(out[triangles.reshape(-1)] - corner).max(initial=0.0) > 1e-4:
+        return None
+    return out.astype(np.float32)
+
+
 def frame_at(tangents: np.ndarray, normals: np.ndarray, w: np.ndarray, face: np.ndarray, bary: np.ndarray):
     """The per-pixel frame ``T, B, N (N, 3)`` at faces ``face (N,)`` and barycentrics ``bary (N, 2)``
     (``(1-u-v) c0 + u c1 + v c2``): interpolated tangents and normals (not normalised) and

@@ -56,7 +56,8 @@ class LayoutCheck:
 
     def problems(self, max_overlap: float, udim: bool = False) -> list[str]:
         """One line per reason the layout cannot be baked into (empty: usable); ``udim``: several
-        UDIM tiles are usable (one texture set per tile: an OBJ's, not a glTF document's)."""
+        UDIM tiles are usable (one texture set per tile: an OBJ's; a glTF document's UVs outside
+        the unit square are tiling, which its samplers repeat, mirror or clamp)."""
         out = []
 
         def share(n):
@@ -74,12 +75,11 @@ class LayoutCheck:
         if self.outside:
             out.append(f"{share(self.outside)} reach more than {TILE_MARGIN:g} of a tile past their UV tile")
         if len(self.tiles) > 1 and not udim:
-            shown = ", ".join(str(t) for t in self.tiles[:6]) + (", ..." if len(self.tiles) > 6 else "")
             out.append(
-                f"the UVs span {len(self.tiles)} UDIM tiles ({shown}); a glTF document's primitives, kept as they are, "
-                "cannot read one texture set per tile"
+                f"the UVs span {len(self.tiles)} tiles, which a glTF sampler repeats, mirrors or clamps (tiling, not "
+                "UDIM tiles): a texel baked for one face would show on the others"
             )
-        if any(t < 1001 or t > 1100 for t in self.tiles):
+        if udim and any(t < 1001 or t > 1100 for t in self.tiles):
             out.append(f"UDIM tiles outside 1001-1100 ({', '.join(str(t) for t in self.tiles if t < 1001 or t > 1100)})")
         return out
 

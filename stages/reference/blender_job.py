@@ -130,12 +130,13 @@ def describe_world(world) -> dict:
     return {"nodes": nodes}
 
 
-def mesh_corners(ob) -> dict[str, np.ndarray]:
-    """Per face corner (loop) arrays of a mesh object, in world space; tangents are Blender's own
-    (MikkTSpace, what its normal-map node uses), from the first UV map."""
+def mesh_corners(ob, uv_map: int = 0) -> dict[str, np.ndarray]:
+    """Per face corner (loop) arrays of a mesh object, in world space; the UVs of its ``uv_map``-th
+    UV map (the set a material reads: a glTF ``TEXCOORD_<n>`` arrives as the n-th map) and
+    tangents Blender's own from it (MikkTSpace, what its normal-map node uses)."""
     me = ob.data
     n = len(me.loops)
-    uv_name = me.uv_layers[0].name if len(me.uv_layers) else None
+    uv_name = me.uv_layers[uv_map].name if len(me.uv_layers) > uv_map else None
     vert = np.zeros(n, np.int64)
     me.loops.foreach_get("vertex_index", vert)
     co = np.zeros(len(me.vertices) * 3, np.float32)
@@ -196,7 +197,7 @@ def use_suns(suns: list[dict]) -> None:
         scene.collection.objects.link(ob)
 
 
-def inspect(out: Path) -> dict:
+def inspect(out: Path, uv_map: int = 0) -> dict:
     scene = bpy.context.scene
     report = {"objects": [], "materials": [], "world": describe_world(scene.world)}
     arrays = {}
@@ -225,7 +226,7 @@ def inspect(out: Path) -> dict:
                 materials=[m.name for m in me.materials if m is not None],
             )
             if not arrays and ob.name not in bone_shapes:  # the first mesh (our assets have one)
-                arrays = mesh_corners(ob)
+                arrays = mesh_corners(ob, uv_map)
         report["objects"].append(entry)
     report["materials"] = [describe_material(m) for m in bpy.data.materials if m.users]
     report["lights"] = [describe_light(ob) for ob in scene.objects if ob.type == "LIGHT"]
@@ -366,7 +367,7 @@ def main(argv: list[str]) -> int:
     if render_job.get("environment"):
         use_environment(render_job["environment"], render_job.get("environment_rotation_z", 0.0))
     if job.get("asset") and job.get("inspect", True):
-        report.update(inspect(out))
+        report.update(inspect(out, int(job.get("uv_map", 0))))
     if "suns" in render_job:
         use_suns(render_job["suns"])
     if render_job:

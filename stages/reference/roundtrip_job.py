@@ -163,6 +163,7 @@ def blender_pass(scene: RoundtripScene, fmt: str, name: str, overrides: dict, ti
     job = {
         "asset": str((scene.export_dir / EXPORT_FILES[fmt]).resolve()),
         "inspect": name == "full",
+        "uv_map": baked_uv_map(scene, fmt),
         "render": {**render, "principled_overrides": overrides, **({"suns": suns} if suns else {})},
     }
     with timer(f"blender_{fmt}_{name}"):
@@ -170,6 +171,15 @@ def blender_pass(scene: RoundtripScene, fmt: str, name: str, overrides: dict, ti
             return run_job(job, scene.work / f"{fmt}_{name}", s.timeout_s)
         except BlenderUnavailable as exc:
             raise StageInputError(Path("blender"), str(exc), "Or set roundtrip.enabled: false.") from None
+
+
+def baked_uv_map(scene: RoundtripScene, fmt: str) -> int:
+    """Which UV map of the file of suffix ``fmt`` holds the bake: the second set the export added
+    to a glTF input's own document (``TEXCOORD_<n>``, Blender's n-th map), else the first."""
+    added = (scene.export_meta.get("stats", {}) or {}).get("second_uv_set") or {}
+    if not scene.document or fmt != "glb" or not added:
+        return 0
+    return int(str(added["attribute"]).rsplit("_", 1)[1])
 
 
 def graded_import(scene: RoundtripScene, fmt: str, res) -> tuple[dict, object]:
@@ -218,8 +228,9 @@ def graded_import(scene: RoundtripScene, fmt: str, res) -> tuple[dict, object]:
 
 def own_format_check(scene: RoundtripScene, timer: Timer) -> dict:
     """The asset in the input's own format (the GLB of a glTF input, ``model.obj`` of an OBJ's)
-    imported into Blender beside the input itself: the same mesh objects with the same vertex,
-    face and corner counts, and the same UVs per corner. Returns the counts of both, the largest
+    imported into Blender beside the input itself: the same mesh objects with the same vertex
+    (plus a second UV set's appended seam vertices), face and corner counts, and the same UVs per
+    corner (the input's own first set). Returns the counts of both, the largest
     UV difference and ``problems``."""
     own = scene.export_dir / (EXPORT_FILES["glb"] if scene.document else "model.obj")
     got = {}
@@ -234,10 +245,14 @@ def own_format_check(scene: RoundtripScene, timer: Timer) -> dict:
         counts = {k: sum(int(m[k]) for m in meshes) for k in ("vertices", "faces", "corners")}
         got[key] = {"file": Path(path).name, "mesh_objects": len(meshes), **counts, "uv": res.corners.get("uv")}
     a, b = got["input"], got["output"]
+    # the seam vertices of a second UV set come after the input's own (stats.second_uv_set)
+    appended = int(((scene.export_meta.get("stats", {}) or {}).get("second_uv_set") or {}).get("appended_vertices", 0))
+    b["appended_vertices"] = appended
     problems = [
         f"{k}: {b[k]:,} in Blender's import of {b['file']}, {a[k]:,} in its import of the input {a['file']}"
+        + (f" and {appended:,} appended" if k == "vertices" and appended else "")
         for k in ("mesh_objects", "vertices", "faces", "corners")
-        if a[k] != b[k]
+        if a[k] + (appended if k == "vertices" else 0) != b[k]
     ]
     uv_error = None
     if a["uv"] is not None and b["uv"] is not None and len(a["uv"]) == len(b["uv"]):

@@ -39,6 +39,7 @@ from markupsafe import Markup
 from ..config.guidance_modes import GUIDANCE_MODES
 from ..config.layout import RENDER_KINDS, VIEWER_FILE
 from ..config.records import Column
+from ..config.sections import UV_LAYOUT_WORDS
 from ..core.errors import StageInputError
 from ..core.provenance import atomic_path
 from ..core.safefiles import (
@@ -220,7 +221,7 @@ def fidelity_lines(row) -> list[str]:
     """The cell's UV layout, recovery (image targets, held-out views) and Blender round-trip figures."""
     lines = []
     if "uv_layout" in row and isinstance(row["uv_layout"].iloc[0], str):
-        kind = {"kept": "the input's own", "atlas": "a new atlas"}.get(row["uv_layout"].iloc[0], row["uv_layout"].iloc[0])
+        kind = UV_LAYOUT_WORDS.get(row["uv_layout"].iloc[0], row["uv_layout"].iloc[0])
         why = row["uv_why"].iloc[0] if "uv_why" in row and isinstance(row["uv_why"].iloc[0], str) else ""
         lines.append(f"UV layout: {kind}" + (f" ({why})" if why else ""))
     psnr, ssim = _figure(row, "target_psnr_db"), _figure(row, "target_ssim")

@@ -240,7 +240,7 @@ def test_export_refuses_an_input_that_changed_since_the_bake(cells, tmp_path):
     first_vt = next(i for i, ln in enumerate(lines) if ln.startswith("vt "))
     lines[first_vt] = "vt 0.123 0.456"  # one texture coordinate moved
     changed.write_text("\n".join(lines) + "\n")
-    with pytest.raises(StageInputError, match="is not the mesh whose UV layout the bake kept"):
+    with pytest.raises(StageInputError, match="is not the mesh whose triangles the bake baked"):
         export.run(
             d / "mesh.ply",
             d / "transform.json",
@@ -264,24 +264,21 @@ def test_export_refuses_an_input_that_changed_since_the_bake(cells, tmp_path):
         )
 
 
+def blender_roundtrip(src: Path, d: Path, uv: str) -> tuple[dict, dict]:
+    """The round trip of the cell in ``d`` baked and exported with ``bake.uv: uv`` (one view, 4
+    samples, the GLB): its record and its own-format check."""
+    settings = RoundtripSettings(enabled=True, views=1, spp=4, split_lobes=False, formats=("glb",))
+    bake_dir, export_dir, out = d / f"bake_{uv}", d / f"export_{uv}", d / f"rt_{uv}"
+    args = (d / "mesh.ply", d / "transform.json", d / "opt" / "field.pt", d / "eval.npz", bake_dir, export_dir, out)
+    record = roundtrip.run(*args, settings, "cpu", str(src))
+    return record, json.loads((out / "meta.json").read_text())["own_format"]
+
+
 @pytest.mark.parametrize("name", ["skinned", "multi", "obj", "udim"])
 def test_blender_imports_the_own_format_as_it_imports_the_input(cells, name):
     require_blender()
     src, d = cells[name]
-    settings = RoundtripSettings(enabled=True, views=1, spp=4, split_lobes=False, formats=("glb",))
-    out = roundtrip.run(
-        d / "mesh.ply",
-        d / "transform.json",
-        d / "opt" / "field.pt",
-        d / "eval.npz",
-        d / "bake_auto",
-        d / "export_auto",
-        d / "rt",
-        settings,
-        "cpu",
-        str(src),
-    )
-    own = json.loads((d / "rt" / "meta.json").read_text())["own_format"]
+    out, own = blender_roundtrip(src, d, "auto")
     assert own["problems"] == [] and own["uv_error"] == 0.0
     assert own["input"]["vertices"] == own["output"]["vertices"] > 0
     assert own["output"]["file"] == ("model.obj" if name in ("obj", "udim") else "model.glb")
@@ -336,3 +333,72 @@ def test_udim_tiles_of_an_obj_get_one_texture_set_each(cells):
     assert meta(d, "export_auto")["stats"]["gltf_validation_errors"] == 0
     # the fidelity reads each face's tile's set: as good as one tile's (the field is the same)
     assert stats["bake_psnr_db"] > 35.0
+
+
+@pytest.fixture(scope="module")
+def second(cells, tmp_path_factory):
+    """A second UV set: the skinned GLB with ``bake.uv: second`` (its own layout usable), and the
+    same GLB with its layout folded onto itself under ``auto`` (not usable: a second set)."""
+    root = tmp_path_factory.mktemp("second")
+    src, d = cells["skinned"]
+    baked(src, d, "second")
+    folded = root / "folded.glb"
+    uvmeshes.skinned_glb(folded, fold=True)
+    f = trained(folded, root / "folded")
+    baked(folded, f)
+    return {"skinned": (src, d, "second"), "folded": (folded, f, "auto")}
+
+
+def test_auto_makes_a_second_set_where_the_input_layout_overlaps_and_says_why(second):
+    _, d, uv = second["folded"]
+    stats = meta(d, f"bake_{uv}")["stats"]
+    assert stats["uv"]["layout"] == stats["uv_layout"] == "second"
+    assert "overlap other faces in UV space" in stats["uv"]["why"] and "a second UV set" in stats["uv"]["why"]
+    assert stats["uv"]["check"]["overlapping"] > 0.1 * stats["uv"]["check"]["faces"]  # what was measured: the input's
+    assert [ts["folder"] for ts in stats["uv"]["texture_sets"]] == [""]
+    assert meta(d, f"export_{uv}")["stats"]["topology"] == "the input's own, with a second UV set for the bake"
+
+
+@pytest.mark.parametrize("name", ["skinned", "folded"])
+def test_a_second_set_keeps_the_document_and_adds_texcoord_1(second, name):
+    src, d, uv = second[name]
+    a, b = pygltflib.GLTF2().load(str(src)), pygltflib.GLTF2().load(str(d / f"export_{uv}" / "model.glb"))
+    ja, jb = json.loads(a.to_json()), json.loads(b.to_json())
+    for key in ("scene", "scenes", "nodes", "skins", "animations", "cameras"):
+        assert ja.get(key) == jb.get(key), key
+    added = meta(d, f"export_{uv}")["stats"]["second_uv_set"]
+    assert added["attribute"] == "TEXCOORD_1" and added["primitives"] == 2
+    for pa, pb in zip(a.meshes[0].primitives, b.meshes[0].primitives, strict=True):
+        assert pb.attributes.TEXCOORD_1 is not None and pb.attributes.TEXCOORD_0 is not None
+        assert b.accessors[pb.attributes.POSITION].count == a.accessors[pa.attributes.POSITION].count + added["appended_vertices"]
+    assert all(m.pbrMetallicRoughness.baseColorTexture.texCoord == 1 for m in b.materials)
+    # every triangle draws the corners it drew, with the input's own UVs; the bake's set is the bake's
+    before, after = read_source(src), read_source(d / f"export_{uv}" / "model.glb")
+    np.testing.assert_array_equal(after.positions[after.triangles], before.positions[before.triangles])
+    np.testing.assert_array_equal(after.corner_uv, before.corner_uv)
+    report = validate_glb(d / f"export_{uv}" / "model.glb")
+    require_tool(report.get("ran", False), "the Khronos glTF-Validator (Node.js) is not installed")
+    assert report["errors"] == 0, report["messages"]
+
+
+def test_second_stops_for_an_obj_and_keep_stops_for_a_folded_layout(cells, second):
+    src, d = cells["obj"]
+    tf = normalize_mesh(str(src), NormalizeSettings()).transform
+    with pytest.raises(StageInputError, match="bake.uv: second, but an OBJ holds one UV set"):
+        choose_layout("second", str(src), tf, load_mesh(d / "mesh.ply"), 128, 0.01)
+    folded, f, _ = second["folded"]
+    tf = normalize_mesh(str(folded), NormalizeSettings()).transform
+    with pytest.raises(StageInputError, match="bake.uv: keep, but .* overlap other faces"):
+        choose_layout("keep", str(folded), tf, load_mesh(f / "mesh.ply"), 128, 0.01)
+
+
+@pytest.mark.parametrize("name", ["skinned", "folded"])
+def test_blender_imports_a_second_set_with_the_rig_and_the_bake_on_it(second, name):
+    require_blender()
+    src, d, uv = second[name]
+    out, own = blender_roundtrip(src, d, uv)
+    assert own["problems"] == [] and own["uv_error"] == 0.0
+    appended = meta(d, f"export_{uv}")["stats"]["second_uv_set"]["appended_vertices"]
+    assert own["output"]["vertices"] == own["input"]["vertices"] + appended
+    check = out["formats"]["glb"]["import"]
+    assert check["problems"] == [] and check["uv_error"] < 1e-5  # the bake's set, as the material reads it

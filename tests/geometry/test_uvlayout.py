@@ -209,7 +209,12 @@ def test_unmapped_degenerate_tiles_and_outside_are_problems():
     assert c.tiles == (1001, 1002)
     text = " | ".join(c.problems(1.0))
     assert "1 of the 8 faces (12.5%) have no texture coordinates" in text
-    assert "degenerate" in text and "2 UDIM tiles (1001, 1002)" in text
+    assert "degenerate" in text and "the UVs span 2 tiles, which a glTF sampler repeats" in text
+    assert not any("tiles" in p for p in c.problems(1.0, udim=True))  # an OBJ's UDIM tiles: one texture set each
+    below = uv.copy()
+    below[:2] -= [1.0, 0.0]  # one tile left of the first: no UDIM tile
+    assert any("UDIM tiles outside 1001-1100" in p for p in check_layout(pos, faces, below, 64).problems(1.0, udim=True))
+    assert not any("1001-1100" in p for p in check_layout(pos, faces, below, 64).problems(1.0))
 
 
 def test_tiles_and_the_margin_past_an_edge():

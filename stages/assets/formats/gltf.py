@@ -297,23 +297,24 @@ def glb_sampler(g, repeat: bool):
     return g.Sampler(magFilter=g.LINEAR, minFilter=g.LINEAR_MIPMAP_LINEAR, wrapS=wrap, wrapT=wrap)
 
 
-def glb_material(g, name: str, first: int, brdf: BrdfSpec, occlusion: bool):
+def glb_material(g, name: str, first: int, brdf: BrdfSpec, occlusion: bool, texcoord: int = 0):
     """A level's material: its textures from index ``first`` (base colour, metallic-roughness,
     normal, and TANGO's specular colour through ``KHR_materials_specular``: ``brdf``'s
     ``gltf_material_extensions``), the occlusion in the metallic-roughness texture's red channel
-    when baked."""
+    when baked, each read through UV set ``texcoord`` (``TEXCOORD_<texcoord>``)."""
+    uv = {"texCoord": texcoord} if texcoord else {}
     return g.Material(
         name=name,
         pbrMetallicRoughness=g.PbrMetallicRoughness(
-            baseColorTexture=g.TextureInfo(index=first),
-            metallicRoughnessTexture=g.TextureInfo(index=first + 1),
+            baseColorTexture=g.TextureInfo(index=first, **uv),
+            metallicRoughnessTexture=g.TextureInfo(index=first + 1, **uv),
             metallicFactor=1.0,  # the texture's blue channel is the metalness (0 for TANGO's BRDF)
             roughnessFactor=1.0,
         ),
-        normalTexture=g.NormalMaterialTexture(index=first + 2),
-        occlusionTexture=g.OcclusionTextureInfo(index=first + 1) if occlusion else None,
+        normalTexture=g.NormalMaterialTexture(index=first + 2, **uv),
+        occlusionTexture=g.OcclusionTextureInfo(index=first + 1, **uv) if occlusion else None,
         doubleSided=True,
-        extensions=brdf.gltf_material_extensions(first),
+        extensions=brdf.gltf_material_extensions(first, texcoord),
     )
 
 
