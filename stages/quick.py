@@ -39,7 +39,7 @@ from pathlib import Path
 import yaml
 
 from .assets.layouts import choose_layout
-from .config.presets import PRESETS
+from .config.presets import DEFAULT_PRESET, PRESETS
 from .config.schema import schema
 from .config.sections import MATERIALS, UV_LAYOUT_WORDS, UV_LAYOUTS
 from .config.workflow import (
@@ -63,8 +63,6 @@ log = logging.getLogger(__name__)
 SNAKEFILE = Path(__file__).resolve().parents[1] / "Snakefile"
 #: where the configs go (relative to the working directory)
 CONFIG_DIR = Path("config/quick")
-#: the preset when none is named: the measured knee of speed against quality (stages/config/presets.py)
-DEFAULT_PRESET = "fast"
 #: mesh ids that would put a cell's folder where the report's own folders are (results/<experiment>/report/)
 RESERVED_MESH_IDS = ("report",)
 

@@ -40,6 +40,10 @@ per-mesh ray-cache setting, so set ``raycache: {radius: ...}`` on the mesh if wa
 
 from __future__ import annotations
 
+#: the preset of a run that names none (``python -m stages.quick``, the Blender add-on): the measured
+#: knee of speed against quality
+DEFAULT_PRESET = "fast"
+
 PRESETS: dict[str, dict] = {
     "metal": {
         "material_encoding": "fourier",

@@ -245,7 +245,16 @@ def test_the_uv_layout_is_decided_and_said_before_anything_runs(tmp_path):
     bare = tmp_path / "pot.obj"
     bare.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 2 3\nf 1 2 4\nf 1 3 4\nf 2 3 4\n")
     proc = quick(tmp_path, str(bare), "a pot", "--test-clip", "--dry-run")
-    assert proc.returncode == 0 and "UV layout: a new atlas (auto: the input has no texture coordinates)" in proc.stdout
+    said = "UV layout: a new atlas (auto: the input has no texture coordinates; and an OBJ holds one UV set"
+    assert proc.returncode == 0 and said in proc.stdout
+    # a glTF input without UVs takes a second set (its own document kept); an OBJ cannot hold one
+    import trimesh
+
+    trimesh.Trimesh(*uvmeshes.unwrapped()[::2], process=False).export(tmp_path / "bare.glb")
+    proc = quick(tmp_path, str(tmp_path / "bare.glb"), "a pot", "--test-clip", "--dry-run")
+    assert proc.returncode == 0 and "UV layout: a second UV set beside the input's own (auto: the input has no" in proc.stdout
+    proc = quick(tmp_path, str(bare), "a pot", "--test-clip", "--uv", "second", "--name", "ps", "--dry-run")
+    assert proc.returncode == 2 and "bake.uv: second, but an OBJ holds one UV set" in proc.stderr
     proc = quick(tmp_path, "builtin:vase", "a vase", "--test-clip", "--uv", "keep", "--name", "vk", "--dry-run")
     assert proc.returncode == 2 and "bake.uv: keep, but builtin:vase has no UV layout" in proc.stderr
     assert not (tmp_path / "config" / "quick" / "vk.yaml").exists()
