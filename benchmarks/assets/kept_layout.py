@@ -18,7 +18,14 @@ vertex count and the validators' errors and warnings. With ``--roundtrip`` (Blen
 asset is also imported in the input's own format beside the input (vertices, UVs) and both layouts
 are rendered with Cycles against the field (GLB, 2 views, 64 spp).
 
-    bash scripts/fetch_uv_meshes.sh   # build/uv-meshes: duck, milk truck, jeep (benchmarks/SOURCES.md)
+The glTF assets (``scripts/fetch_gltf_assets.sh``: Khronos sample models and others as published)
+whose own layout cannot hold a bake get a second UV set (``auto``); the row gives the seam vertices
+it appended, and with ``--roundtrip`` Blender's import of the input and of the asset side by side:
+objects, armature bones, actions, shape keys and vertices (the asset's: the input's plus the
+appended).
+
+    bash scripts/fetch_uv_meshes.sh     # build/uv-meshes: duck, milk truck, jeep, converted (benchmarks/SOURCES.md)
+    bash scripts/fetch_gltf_assets.sh   # build/gltf-assets: nine glTF 2.0 assets as published (benchmarks/SOURCES.md)
     python -m benchmarks.assets.kept_layout [--meshes spot.obj,...] [--size N] [--max-overlap 0.01] [--roundtrip]
 """
 
@@ -34,7 +41,25 @@ from benchmarks.common import REPO, SHARED_MESHES, perturbed_field
 
 #: the measured set: spot (../shared/meshes), a made lathe layout, and the meshes
 #: scripts/fetch_uv_meshes.sh fetches into build/uv-meshes (licences: benchmarks/SOURCES.md)
-MESHES = "spot.obj,made:lathe-vase,build/uv-meshes/duck.glb,build/uv-meshes/milktruck.glb,build/uv-meshes/jeep.glb"
+MESHES = ",".join(
+    [
+        "spot.obj,made:lathe-vase,build/uv-meshes/duck.glb,build/uv-meshes/milktruck.glb,build/uv-meshes/jeep.glb",
+        *(
+            f"build/gltf-assets/{name}"
+            for name in (
+                "box-textured/BoxTextured.glb",
+                "duck/Duck.gltf",
+                "milk-truck/CesiumMilkTruck.gltf",
+                "cesium-man/CesiumMan.gltf",
+                "fox/Fox.gltf",
+                "spider/gltf_spider_animated.gltf",
+                "morph-cube/AnimatedMorphCube.gltf",
+                "test-scene/TestScene.gltf",
+                "sparse-morph/singleBlendshapeCube_sparse.glb",
+            )
+        ),
+    ]
+)
 
 
 def lathe_vase(path: Path, segments: int = 48, samples: int = 24) -> Path:
@@ -138,6 +163,7 @@ def one_layout(src: Path, d: Path, uv: str, size: int | None, roundtrip: bool, m
         "usd": f"{out['usd_validation_errors']}/{out['usd_validation_warnings']}",
         "why": stats["uv"]["why"],
         "layout": stats["uv"]["layout"],
+        "appended": (out.get("second_uv_set") or {}).get("appended_vertices", 0),
     }
     if roundtrip:
         row.update(blender(src, d, uv))
@@ -166,7 +192,9 @@ def blender(src: Path, d: Path, uv: str) -> dict:
     own = json.loads((d / f"rt_{uv}" / "meta.json").read_text())["own_format"]
     out = {"cycles_psnr": res["formats"]["glb"]["psnr_db"], "import_problems": len(res["formats"]["glb"]["import"]["problems"])}
     if own:
-        out["blender_vertices"] = f"{own['input']['vertices']}/{own['output']['vertices']}"
+        a, b = own["input"], own["output"]
+        for key in ("objects", "bones", "actions", "shape_keys", "vertices"):
+            out[f"blender_{key}"] = f"{a.get(key, '-')}/{b.get(key, '-')}"
         out["blender_uv_error"] = own["uv_error"]
         out["own_problems"] = len(own["problems"])
     return out
@@ -185,8 +213,9 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     field, settings = perturbed_field(shading_normals="smooth")
     cols = ["faces", "size", "bake_s", "islands", "seams", "coverage", "density", "density_p10", "density_p90", "psnr"]
-    cols += ["vertices", "gltf", "usd"]
-    cols += ["cycles_psnr", "import_problems", "blender_vertices", "blender_uv_error", "own_problems"] if args.roundtrip else []
+    cols += ["vertices", "appended", "gltf", "usd"]
+    blender_cols = [f"blender_{k}" for k in ("objects", "bones", "actions", "shape_keys", "vertices")]
+    cols += ["cycles_psnr", "import_problems", *blender_cols, "blender_uv_error", "own_problems"] if args.roundtrip else []
     print(f"# a perturbed field with texel-scale detail; fidelity over 24 views at 256 px; {'; '.join(cols)}")
     kv = {}
     for name in args.meshes.split(","):
@@ -196,7 +225,8 @@ def main() -> None:
             if name == "made:lathe-vase":
                 src = lathe_vase(d / "lathe-vase.obj")
             if not src.is_file():
-                print(f"{name}: not here (../shared/meshes in a developer checkout; scripts/fetch_uv_meshes.sh)", flush=True)
+                where = "../shared/meshes in a developer checkout; scripts/fetch_uv_meshes.sh, scripts/fetch_gltf_assets.sh"
+                print(f"{name}: not here ({where})", flush=True)
                 continue
             prepare(src, d, field, settings)
             rows = {uv: one_layout(src, d, uv, args.size, args.roundtrip, args.max_overlap) for uv in ("auto", "atlas")}

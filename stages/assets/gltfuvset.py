@@ -15,7 +15,9 @@ vertex attributes (several materials over one vertex set, a line primitive over 
 positions) are rewritten together, so they still share them; an index buffer is rewritten only
 where a corner now reads an appended vertex, and widened to 32 bits where 16 no longer count
 the vertices. A mesh drawn by several nodes has one layout: its first instance's (the bake gives
-the others the same texels). The input's own ``TANGENT`` is for its first set; where a rewritten
+the others the same texels). glTF numbers a primitive's sets without gaps, so a primitive with
+fewer sets than ``n`` (one without UVs) reads the new set under each missing number too. The
+input's own ``TANGENT`` is for its first set; where a rewritten
 primitive has one, it is replaced by MikkTSpace's on the document's normals and the new set (the
 frame the bake wrote the normal map in), and morph targets' tangent deltas are dropped. Nodes,
 skins, animations, cameras, extras and every other primitive stay as they are.
@@ -180,7 +182,9 @@ def _rewrite_group(doc, buffer, blobs, members, accessors, first, corner_uv, wri
     uv_acc = _add_accessor(doc, buffer, new.uv.astype(np.float32), "VEC2", 5126, 34962)
     for (m, p), tri in zip(textured, np.split(new.indices, np.cumsum(sizes)[:-1]), strict=True):
         prim = doc.meshes[m].primitives[p]
-        setattr(prim.attributes, f"TEXCOORD_{written.texcoord}", uv_acc)
+        for k in range(written.texcoord + 1):  # glTF numbers a primitive's sets without gaps
+            if getattr(prim.attributes, f"TEXCOORD_{k}", None) is None:
+                setattr(prim.attributes, f"TEXCOORD_{k}", uv_acc)
         if prim.indices is None or (tri != tris[textured.index((m, p))]).any():
             prim.indices = _index_accessor(doc, buffer, tri.reshape(-1), prim.indices)
         _set_tangents(doc, buffer, prim, tangents, written)

@@ -224,10 +224,14 @@ def inspect(out: Path, uv_map: int = 0) -> dict:
                 bbox_min=[min(c[i] for c in corners) for i in range(3)],
                 bbox_max=[max(c[i] for c in corners) for i in range(3)],
                 materials=[m.name for m in me.materials if m is not None],
+                shape_keys=len(me.shape_keys.key_blocks) if me.shape_keys else 0,
             )
             if not arrays and ob.name not in bone_shapes:  # the first mesh (our assets have one)
                 arrays = mesh_corners(ob, uv_map)
+        if ob.type == "ARMATURE":
+            entry["bones"] = len(ob.data.bones)
         report["objects"].append(entry)
+    report["actions"] = len(bpy.data.actions)
     report["materials"] = [describe_material(m) for m in bpy.data.materials if m.users]
     report["lights"] = [describe_light(ob) for ob in scene.objects if ob.type == "LIGHT"]
     report["unit_scale_length"] = float(scene.unit_settings.scale_length)

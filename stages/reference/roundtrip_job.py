@@ -228,10 +228,10 @@ def graded_import(scene: RoundtripScene, fmt: str, res) -> tuple[dict, object]:
 
 def own_format_check(scene: RoundtripScene, timer: Timer) -> dict:
     """The asset in the input's own format (the GLB of a glTF input, ``model.obj`` of an OBJ's)
-    imported into Blender beside the input itself: the same mesh objects with the same vertex
-    (plus a second UV set's appended seam vertices), face and corner counts, and the same UVs per
-    corner (the input's own first set). Returns the counts of both, the largest
-    UV difference and ``problems``."""
+    imported into Blender beside the input itself: the same objects (mesh objects among them),
+    armature bones, actions and shape keys, the same vertex (plus a second UV set's appended seam
+    vertices), face and corner counts, and the same UVs per corner (the input's own first set).
+    Returns the counts of both, the largest UV difference and ``problems``."""
     own = scene.export_dir / (EXPORT_FILES["glb"] if scene.document else "model.obj")
     got = {}
     for key, path in (("input", scene.source), ("output", own)):
@@ -241,9 +241,12 @@ def own_format_check(scene: RoundtripScene, timer: Timer) -> dict:
                 res = run_job(job, scene.work / f"own_{key}", scene.settings.timeout_s)
             except BlenderUnavailable as exc:
                 raise StageInputError(Path("blender"), str(exc), "Or set roundtrip.enabled: false.") from None
-        meshes = [o for o in res.report.get("objects", []) if o["type"] == "MESH" and not o.get("bone_shape")]
-        counts = {k: sum(int(m[k]) for m in meshes) for k in ("vertices", "faces", "corners")}
-        got[key] = {"file": Path(path).name, "mesh_objects": len(meshes), **counts, "uv": res.corners.get("uv")}
+        objects = [o for o in res.report.get("objects", []) if not o.get("bone_shape")]
+        meshes = [o for o in objects if o["type"] == "MESH"]
+        counts = {k: sum(int(m[k]) for m in meshes) for k in ("vertices", "faces", "corners", "shape_keys")}
+        bones = sum(int(o.get("bones", 0)) for o in objects)
+        rig = {"objects": len(objects), "bones": bones, "actions": res.report.get("actions", 0)}
+        got[key] = {"file": Path(path).name, "mesh_objects": len(meshes), **counts, **rig, "uv": res.corners.get("uv")}
     a, b = got["input"], got["output"]
     # the seam vertices of a second UV set come after the input's own (stats.second_uv_set)
     appended = int(((scene.export_meta.get("stats", {}) or {}).get("second_uv_set") or {}).get("appended_vertices", 0))
@@ -251,7 +254,7 @@ def own_format_check(scene: RoundtripScene, timer: Timer) -> dict:
     problems = [
         f"{k}: {b[k]:,} in Blender's import of {b['file']}, {a[k]:,} in its import of the input {a['file']}"
         + (f" and {appended:,} appended" if k == "vertices" and appended else "")
-        for k in ("mesh_objects", "vertices", "faces", "corners")
+        for k in ("mesh_objects", "objects", "bones", "actions", "shape_keys", "vertices", "faces", "corners")
         if a[k] + (appended if k == "vertices" else 0) != b[k]
     ]
     uv_error = None

@@ -212,3 +212,25 @@ def test_compressed_or_sparse_vertices_cannot_take_a_set(tmp_path):
     doc.meshes[0].primitives[1].extensions = {"KHR_draco_mesh_compression": {"bufferView": 0, "attributes": {}}}
     assert "primitive 1 is compressed (KHR_draco_mesh_compression)" in set_refusal(doc)
     assert json.loads(doc.to_json())["meshes"]  # the document itself untouched by the check
+
+
+def test_a_primitive_without_uvs_reads_the_new_set_under_every_number_up_to_it(tmp_path):
+    """glTF numbers a primitive's UV sets from 0 without gaps: a primitive without UVs beside one with
+    ``TEXCOORD_0`` gets the bake's set as ``TEXCOORD_0`` and ``TEXCOORD_1`` (the materials read 1)."""
+    path = tmp_path / "input.glb"
+    document(path)
+    doc = g.GLTF2().load(str(path))
+    bare = g.Attributes(**{k: v for k, v in vars(doc.meshes[0].primitives[1].attributes).items() if k != "TEXCOORD_0"})
+    doc.meshes[0].primitives[1].attributes = bare
+    doc.save_binary(str(path))
+    src = read_source(path)
+    write_document_glb(
+        tmp_path / "m.glb", src, textures(tmp_path / "t"), {}, "gltf", False, second=SecondSet(per_triangle_layout(src))
+    )
+    out = g.GLTF2().load(str(tmp_path / "m.glb"))
+    first, second = out.meshes[0].primitives[:2]
+    assert first.attributes.TEXCOORD_1 == second.attributes.TEXCOORD_1 == second.attributes.TEXCOORD_0
+    assert first.attributes.TEXCOORD_0 != first.attributes.TEXCOORD_1  # the input's own set, kept
+    report = validate_glb(tmp_path / "m.glb")
+    require_tool(report.get("ran", False), "the Khronos glTF-Validator (Node.js) is not installed")
+    assert report["errors"] == 0, report["messages"]

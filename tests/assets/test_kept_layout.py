@@ -8,6 +8,7 @@ compares it with its import of the input."""
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -306,6 +307,42 @@ def test_the_measured_meshes_fetch_and_read_with_their_layouts(tmp_path):
     assert faces == {"duck": 4212, "milktruck": 3624, "jeep": 2032}  # as benchmarks/SOURCES.md lists them
 
 
+@pytest.mark.slow(minutes=1)
+def test_the_published_gltf_assets_fetch_with_their_checksums(tmp_path):
+    """scripts/fetch_gltf_assets.sh fetches the nine glTF 2.0 assets benchmarks/SOURCES.md lists from
+    the Debian archive's source tarballs, each as published (read here with its own layout, rig and
+    morph targets); a tarball that is not the one pinned stops it."""
+    import shutil
+    import subprocess
+
+    require_tool(shutil.which("curl") is not None, "curl")
+    script = REPO / "scripts" / "fetch_gltf_assets.sh"
+    out = tmp_path / "assets"
+    proc = subprocess.run(["bash", str(script), str(out)], capture_output=True, text=True, timeout=900, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    faces = {p.parent.name: len(read_source(p).triangles) for p in out.glob("*/*.gl[tb]*")}
+    assert faces == {
+        "box-textured": 12,
+        "duck": 4212,
+        "milk-truck": 3624,
+        "cesium-man": 4672,
+        "fox": 576,
+        "spider": 500,
+        "morph-cube": 12,
+        "test-scene": 1096,
+        "sparse-morph": 12,
+    }
+    man = pygltflib.GLTF2().load(str(out / "cesium-man" / "CesiumMan.gltf"))
+    assert len(man.skins[0].joints) == 19 and len(man.animations) == 1
+    # a local mirror whose tarball is not the pinned one: the checksum stops the script
+    mirror = tmp_path / "mirror" / "d" / "draco"
+    mirror.mkdir(parents=True)
+    (mirror / "draco_1.5.5+dfsg.orig.tar.xz").write_bytes(b"not the tarball")
+    env = {**os.environ, "TANGO_DEBIAN_POOL": str(tmp_path / "mirror")}
+    proc = subprocess.run(["bash", str(script), str(tmp_path / "bad")], capture_output=True, text=True, env=env, timeout=120)
+    assert proc.returncode != 0 and "draco_1.5.5+dfsg.orig.tar.xz: checksum mismatch" in proc.stderr
+
+
 def test_udim_tiles_of_an_obj_get_one_texture_set_each(cells):
     """An OBJ whose one material spans two UDIM tiles: one texture set per tile, a material per
     tile (``Glaze.1001``, ``Glaze.1002``) in every format, and ``usemtl`` lines before each run of
@@ -400,5 +437,8 @@ def test_blender_imports_a_second_set_with_the_rig_and_the_bake_on_it(second, na
     assert own["problems"] == [] and own["uv_error"] == 0.0
     appended = meta(d, f"export_{uv}")["stats"]["second_uv_set"]["appended_vertices"]
     assert own["output"]["vertices"] == own["input"]["vertices"] + appended
+    # the rig, its animation and the morph target arrive as they did from the input
+    assert own["output"]["bones"] == own["input"]["bones"] == 2 and own["output"]["actions"] == own["input"]["actions"] >= 1
+    assert own["output"]["shape_keys"] == own["input"]["shape_keys"] > 0
     check = out["formats"]["glb"]["import"]
     assert check["problems"] == [] and check["uv_error"] < 1e-5  # the bake's set, as the material reads it
