@@ -19,6 +19,7 @@ pixels). Conventions (texel centres,
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from pathlib import Path
 
@@ -81,6 +82,7 @@ def run(
         uv, layout = choose_layout(settings.uv, source.path, source.transform(), mesh, size, settings.uv_max_overlap)
         if uv.layout == SECOND:
             layout = second_layout(layout, mesh, size, settings.padding, settings.max_chart_share)
+            uv = dataclasses.replace(uv, made=layout.check)
     job = job_label("bake", out_dir)
     occlusion = occlusion_decision(settings.occlusion, field, eval_cache)
     with timer("occlusion"), heartbeat(job, "tracing the ambient occlusion"):

@@ -27,7 +27,7 @@ from .assets import formats
 from .assets.formats import AssetInfo, read_atlas, recorded_lights, write_asset_files
 from .assets.gltfuvset import SecondSet
 from .assets.layouts import kept_materials, kept_source, second_set
-from .assets.ownformat import asset_geometry, own_document, write_obj
+from .assets.ownformat import asset_geometry, input_faults, own_document, write_obj
 from .config.brdfs import brdf_spec
 from .config.layout import TEXTURE_FILES, export_files
 from .config.records import ExportRecord
@@ -86,13 +86,16 @@ def run(
             copy_file(preview, staging / "preview.png", remedy="Rerun the bake stage.")
         instead, changed = {}, []  # a glTF input's own document; what of it was not carried over, and why
         uv_set = None if second is None else SecondSet(second)
+        inherited, input_report = {}, None  # the faults the input's document has itself, handed on
         if kept is not None and kept.kind == GLTF_SOURCE:
             instead = own_document(kept, origin, brdf, occlusion, geom.slot_textures, changed, lights, uv_set)
+            with timer("validate_input"):
+                inherited, input_report = input_faults(kept)
         if kept is not None and kept.kind == OBJ_SOURCE:
             with timer("obj"):
                 extra_files = write_obj(staging, geom, kept, None if settings.units == "original" else tf, brdf)
         info = AssetInfo(asset.meters_per_unit, name, origin, brdf, occlusion, settings, lights=lights)
-        reports = write_asset_files(staging, geom, info, timer, instead)
+        reports = write_asset_files(staging, geom, info, timer, instead, inherited)
         files = export_files()
         with open_read(staging / TEXTURE_FILES["basecolor"], IMAGE_LIMIT) as fh, Image.open(fh) as img:
             texture_size = int(img.size[0])
@@ -104,6 +107,8 @@ def run(
             "second_uv_set": None if uv_set is None or uv_set.written is None else uv_set.written.record(),
             "extra_files": extra_files,
             "input_document_changes": changed,
+            # the Khronos validator on the glTF input itself: its errors are handed on, not the export's
+            "input_validation": input_report,
             # the files' frame: metres per unit, and whether positions are the input's own
             "meters_per_unit": asset.meters_per_unit,
             "own_frame": asset.own_frame,

@@ -114,7 +114,23 @@ class Run:
     targets: list[str]
     exported: exchange.Exported
     job: job.Job | None = None
-    notes: list[str] = field(default_factory=list)
+    #: the stylised copies made for this run (modifiers applied): removed again if it fails
+    copies: list[str] = field(default_factory=list)
+
+    @property
+    def prefix(self) -> str:
+        """The prefix of the names the run's exported materials and nodes carry."""
+        return f"tango_{self.request.name.rsplit('-', 1)[-1]}_"
+
+    def discard(self) -> None:
+        """Remove the copies a failed or cancelled run made."""
+        for name in self.copies:
+            ob = bpy.data.objects.get(name)
+            if ob is not None:
+                mesh = ob.data
+                bpy.data.objects.remove(ob)
+                if mesh.users == 0:
+                    bpy.data.meshes.remove(mesh)
 
 
 def _workdir(context) -> Path:
@@ -168,51 +184,51 @@ def _request(context, settings, name: str, uv: str) -> job.Request:
     return job.Request(python, workdir, mesh, prompt, settings.preset, name, material, prefs.test_clip, uv, overlays)
 
 
+def _name(targets, settings) -> str:
+    """The run's experiment name: the file's and the objects' names, and a digest of the settings
+    that make another result (prompt, material, guidance, preset, modifiers)."""
+    material = settings.material if settings.guidance == "IMAGE" else ""
+    said = (settings.prompt.strip(), material, settings.preset, str(settings.apply_modifiers), settings.layout)
+    return job.run_name(Path(bpy.data.filepath).stem or "untitled", *(ob.name for ob in targets), settings=said)
+
+
 def prepare(context, settings) -> Run:
     """Everything before the run: the objects to paint, their bake UV maps (:func:`_bake_maps`),
-    the exported GLB and the request."""
+    the exported GLB and the request. A stylised copy made here is removed again if this fails."""
+    if context.mode != "OBJECT":
+        bpy.ops.object.mode_set(mode="OBJECT")
     targets = _targets(context, settings.apply_modifiers)
-    name = job.run_name(Path(bpy.data.filepath).stem or "untitled", *(ob.name for ob in targets))
-    request = _request(context, settings, name, "keep")
-    exported = _bake_maps(targets, settings.layout, request)
-    return Run(request, [ob.name for ob in targets], exported)
+    copies = [ob.name for ob in targets] if settings.apply_modifiers else []
+    run = Run(_request(context, settings, _name(targets, settings), "keep"), [ob.name for ob in targets], None, copies=copies)
+    try:
+        run.exported = _bake_maps(targets, settings.layout, run)
+    except Exception:
+        run.discard()
+        raise
+    return run
 
 
-def _bake_maps(targets, layout: str, request: job.Request) -> exchange.Exported:
+def _bake_maps(targets, layout: str, run: Run) -> exchange.Exported:
     """Each object's bake UV map (module docstring): its render map, checked by the workflow
     (``--uv keep``, planned only); a new one where it has none, where ``layout`` asks for one, or
-    (``AUTO``) where the workflow cannot keep the objects' own; the objects exported with them."""
-    missing = [ob.name for ob in targets if exchange.bake_uv_map(ob) is None]
+    (``AUTO``) where the workflow refuses to keep the objects' own; the objects exported with them."""
+    request = run.request
+    own = {ob.name: exchange.own_uv_map(ob) for ob in targets}
+    missing = [name for name, uv_map in own.items() if uv_map is None]
     if layout == "OWN" and missing:
         raise RuntimeError(f"{', '.join(missing)} has no UV map: choose Auto or New UV map")
-    for ob in targets:
-        if layout == "NEW" or exchange.bake_uv_map(ob) is None:
-            exchange.make_bake_uv_map(ob)
-    exported = exchange.write_glb(targets, request.mesh)
+    maps = {ob.name: exchange.make_bake_uv_map(ob) if layout == "NEW" or own[ob.name] is None else own[ob.name] for ob in targets}
+    exported = exchange.write_glb(targets, request.mesh, maps, run.prefix)
     if layout == "NEW":
         return exported
-    proc = _plan(request)
+    proc = job.plan(request)
+    said = proc.stdout + proc.stderr
     if proc.returncode == 0:
         return exported
-    if layout == "OWN":
-        raise RuntimeError(job.last_line(proc.stdout + proc.stderr))
-    for ob in targets:
-        exchange.make_bake_uv_map(ob)
-    return exchange.write_glb(targets, request.mesh)
-
-
-def _plan(request: job.Request):
-    import subprocess
-
-    request.workdir.mkdir(parents=True, exist_ok=True)
-    return subprocess.run(
-        request.command(dry_run=True),
-        cwd=request.workdir,
-        capture_output=True,
-        text=True,
-        timeout=600,
-        env={**job.environment(request.python), "TANGO_PLAN_CALIBRATE": "0"},
-    )
+    if layout == "OWN" or job.REFUSED_LAYOUT not in said:  # not the layout: the run would fail the same way
+        raise RuntimeError(job.last_line(said))
+    maps = {ob.name: exchange.make_bake_uv_map(ob) for ob in targets}
+    return exchange.write_glb(targets, request.mesh, maps, run.prefix)
 
 
 def finish(context, run: Run, settings) -> list[str]:
@@ -220,7 +236,7 @@ def finish(context, run: Run, settings) -> list[str]:
     done, one line each."""
     result = job.result_of(run.request)
     count = 1 + max((k for slots in run.exported.slots.values() for k in slots if k is not None), default=-1)
-    materials, lights = exchange.import_materials(result.glb, count)
+    materials, lights = exchange.import_materials(result.glb, count, run.prefix)
     provenance = {
         "prompt": run.request.prompt,
         "preset": run.request.preset,
@@ -302,10 +318,15 @@ class TANGO_OT_stylise_selected(bpy.types.Operator):
         settings = context.scene.tango_stylize
         try:
             run = prepare(context, settings)
+        except (RuntimeError, OSError) as exc:
+            self.report({"ERROR"}, str(exc).splitlines()[0])
+            return {"CANCELLED"}
+        try:
             env = job.environment(run.request.python)
             log = run.request.mesh.parent / "run.log"
             run.job = job.Job(run.request.command(), run.request.workdir, log, env).start()
-        except (RuntimeError, OSError) as exc:
+        except OSError as exc:
+            run.discard()
             self.report({"ERROR"}, str(exc).splitlines()[0])
             return {"CANCELLED"}
         _RUNNING["run"] = run
@@ -315,8 +336,9 @@ class TANGO_OT_stylise_selected(bpy.types.Operator):
         run = _RUNNING.get("run")
         if run is None:
             return self._end(context, None)
-        if event.type == "ESC":
+        if event.type == "ESC" and event.value == "PRESS":
             run.job.cancel()
+            run.discard()
             return self._end(context, None)
         if event.type != "TIMER":
             return {"PASS_THROUGH"}
@@ -338,11 +360,13 @@ class TANGO_OT_stylise_selected(bpy.types.Operator):
             self.report({"WARNING"}, "stylisation cancelled")
             return {"CANCELLED"}
         if code != 0:
+            run.discard()
             self.report({"ERROR"}, f"the workflow stopped: {job.last_line(run.job.output())}")
             return {"CANCELLED"}
         try:
             done = finish(context, run, context.scene.tango_stylize)
         except (RuntimeError, OSError, KeyError) as exc:
+            run.discard()
             self.report({"ERROR"}, str(exc).splitlines()[0])
             return {"CANCELLED"}
         self.report({"INFO"}, "; ".join(done))
@@ -359,6 +383,7 @@ class TANGO_OT_cancel(bpy.types.Operator):
         run = _RUNNING.get("run")
         if run is not None and run.job is not None:
             run.job.cancel()
+            run.discard()
             _RUNNING.pop("run", None)
         return {"FINISHED"}
 
@@ -375,10 +400,9 @@ class TANGO_OT_estimate(bpy.types.Operator):
             targets = [ob for ob in context.selected_objects if ob.type == "MESH"]
             if not targets:
                 raise RuntimeError("select one or more mesh objects")
-            name = job.run_name(Path(bpy.data.filepath).stem or "untitled", *(ob.name for ob in targets))
-            request = _request(context, settings, name, "auto")
-            exchange.write_glb(targets, request.mesh)
-            proc = _plan(request)
+            request = _request(context, settings, _name(targets, settings), "auto")
+            exchange.write_glb(targets, request.mesh, {ob.name: exchange.own_uv_map(ob) for ob in targets}, "tango_plan_")
+            proc = job.plan(request)
         except (RuntimeError, OSError) as exc:
             self.report({"ERROR"}, str(exc).splitlines()[0])
             return {"CANCELLED"}

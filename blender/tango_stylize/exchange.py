@@ -2,8 +2,8 @@
 stylised materials back onto the same objects.
 
 Out: one glTF node and mesh per object, in world space (the object's transform applied, in
-glTF's +Y up), one primitive per material slot it uses (materials named ``tango_m<k>``, so that
-they come back under names nothing else has), its corner normals, and its bake UV map as
+glTF's +Y up), one primitive per material slot it uses (one material per object and slot, named
+``tango_<run>_m<k>``, so that they come back under names nothing else has), its corner normals, and its bake UV map as
 ``TEXCOORD_0``: one glTF vertex per distinct (vertex, normal, UV) corner. Nothing of the object
 changes; the rig, shape keys and animation are not needed to paint the surface and stay in Blender.
 
@@ -43,13 +43,9 @@ class Exported:
     uv_maps: dict[str, str | None]
 
 
-def bake_uv_map(ob) -> str | None:
-    """The UV map an object's bake goes into: the add-on's own where it made one, else the one
-    Blender renders with."""
-    layers = ob.data.uv_layers
-    if BAKE_UV_MAP in layers:
-        return BAKE_UV_MAP
-    active = next((uv for uv in layers if uv.active_render), None)
+def own_uv_map(ob) -> str | None:
+    """The UV map Blender renders an object with (None: it has none)."""
+    active = next((uv for uv in ob.data.uv_layers if uv.active_render), None)
     return active.name if active is not None else None
 
 
@@ -58,25 +54,20 @@ def make_bake_uv_map(ob, margin: float = 0.003) -> str:
     the object's own maps and its active and render choices stay as they are."""
     me = ob.data
     active = me.uv_layers.active.name if me.uv_layers.active else None
-    render = next((uv.name for uv in me.uv_layers if uv.active_render), None)
+    render = own_uv_map(ob)
     layer = me.uv_layers.get(BAKE_UV_MAP) or me.uv_layers.new(name=BAKE_UV_MAP, do_init=False)
     me.uv_layers.active = layer
-    view_layer = bpy.context.view_layer
-    previous, selected = view_layer.objects.active, [o for o in view_layer.objects if o.select_get()]
-    for o in selected:  # edit mode takes every selected object: unwrap this one alone
-        o.select_set(False)
-    ob.select_set(True)
-    view_layer.objects.active = ob
-    try:
+    picked = np.empty(len(me.polygons), bool)  # the mesh's own face selection, put back after
+    me.polygons.foreach_get("select", picked)
+    with kept_selection():
+        for o in bpy.context.view_layer.objects:  # edit mode takes every selected object: unwrap this one alone
+            o.select_set(o == ob)
+        bpy.context.view_layer.objects.active = ob
         bpy.ops.object.mode_set(mode="EDIT")
         bpy.ops.mesh.select_all(action="SELECT")
         bpy.ops.uv.smart_project(angle_limit=math.radians(66.0), island_margin=margin)
         bpy.ops.object.mode_set(mode="OBJECT")
-    finally:
-        ob.select_set(False)
-        for o in selected:
-            o.select_set(True)
-        view_layer.objects.active = previous
+    me.polygons.foreach_set("select", picked)
     if active is not None:
         me.uv_layers.active = me.uv_layers[active]
     if render is not None:
@@ -84,13 +75,32 @@ def make_bake_uv_map(ob, margin: float = 0.003) -> str:
     return BAKE_UV_MAP
 
 
-def _corners(ob) -> dict[str, np.ndarray]:
+class kept_selection:
+    """The view layer's selected and active objects, put back as they were on leaving."""
+
+    def __enter__(self):
+        layer = bpy.context.view_layer
+        self.active, self.selected = layer.objects.active, {o.name for o in layer.objects if o.select_get()}
+        return self
+
+    def __exit__(self, *exc):
+        layer = bpy.context.view_layer
+        for o in layer.objects:
+            o.select_set(o.name in self.selected)
+        if self.active is not None and self.active.name in layer.objects:
+            layer.objects.active = self.active
+        return False
+
+
+def _corners(ob, uv_map: str | None) -> dict[str, np.ndarray]:
     """An object's triangle corners: world positions and normals (glTF's frame), the bake UV map's
     coordinates (glTF's v down; NaN where it has none), per triangle its slot, and each corner's
     vertex."""
     me = ob.data
     me.calc_loop_triangles()
     tris = len(me.loop_triangles)
+    if not tris:
+        raise RuntimeError(f"{ob.name} has no faces to stylise")
     loops = np.empty(tris * 3, np.int64)
     me.loop_triangles.foreach_get("loops", loops)
     slot = np.empty(tris, np.int64)
@@ -107,10 +117,9 @@ def _corners(ob) -> dict[str, np.ndarray]:
     n = normals.reshape(-1, 3) @ np.linalg.inv(m[:3, :3]) @ Z_UP_TO_Y_UP.T
     n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
     uv = np.full((len(me.loops), 2), np.nan)
-    name = bake_uv_map(ob)
-    if name is not None:
+    if uv_map is not None:
         raw = np.empty(len(me.loops) * 2)
-        me.uv_layers[name].data.foreach_get("uv", raw)
+        me.uv_layers[uv_map].data.foreach_get("uv", raw)
         uv = raw.reshape(-1, 2) * [1.0, -1.0] + [0.0, 1.0]
     tri = loops.reshape(-1, 3)
     if np.linalg.det(m[:3, :3]) < 0:  # a mirroring transform: the winding turned, as exporters do
@@ -118,10 +127,11 @@ def _corners(ob) -> dict[str, np.ndarray]:
     return {"position": pos[vert], "normal": n, "uv": uv, "triangles": tri, "slot": slot}
 
 
-def write_glb(objects, path: Path) -> Exported:
-    """``objects`` (mesh objects) as one GLB at ``path`` (module docstring)."""
+def write_glb(objects, path: Path, uv_maps: dict[str, str | None], prefix: str) -> Exported:
+    """``objects`` (mesh objects) as one GLB at ``path`` (module docstring), each with the UV map
+    ``uv_maps[name]`` as ``TEXCOORD_0``, one material per object and slot named
+    ``<prefix>m<k>``."""
     blob, views, accessors, meshes, nodes, materials = bytearray(), [], [], [], [], []
-    used: dict[str, int] = {}
     exported = Exported({}, {})
 
     def add(arr: np.ndarray, kind: str, component: int, target: int, bounds: bool = False) -> int:
@@ -136,7 +146,7 @@ def write_glb(objects, path: Path) -> Exported:
         return len(accessors) - 1
 
     for k, ob in enumerate(objects):
-        c = _corners(ob)
+        c = _corners(ob, uv_maps[ob.name])
         uv = np.nan_to_num(c["uv"], nan=-1.0)
         key = np.concatenate([c["position"], c["normal"], uv], axis=1).astype(np.float32)
         _, first, corner = np.unique(key.view(np.uint32), axis=0, return_index=True, return_inverse=True)
@@ -148,22 +158,19 @@ def write_glb(objects, path: Path) -> Exported:
         if np.isfinite(c["uv"]).all():
             attrs["TEXCOORD_0"] = add(c["uv"][first].astype(np.float32), "VEC2", 5126, 34962)
         prims, slots = [], []
-        for s, mat in enumerate(ob.material_slots or [None]):
+        for s in range(max(len(ob.material_slots), 1)):  # each object's slot its own material: its own UVs
             faces = c["triangles"][c["slot"] == s]
             if not len(faces):
                 slots.append(None)
                 continue
-            label = mat.material.name if mat is not None and mat.material is not None else f"{ob.name}/{s}"
-            if label not in used:
-                used[label] = len(used)
-                materials.append({"name": f"tango_m{used[label]}"})
+            materials.append({"name": f"{prefix}m{len(materials)}"})
             idx = corner[faces].reshape(-1).astype(np.uint32)
-            prims.append({"attributes": attrs, "indices": add(idx, "SCALAR", 5125, 34963), "material": used[label]})
-            slots.append(used[label])
+            prims.append({"attributes": attrs, "indices": add(idx, "SCALAR", 5125, 34963), "material": len(materials) - 1})
+            slots.append(len(materials) - 1)
         meshes.append({"name": ob.data.name, "primitives": prims})
-        nodes.append({"name": f"tango_o{k}", "mesh": k})
+        nodes.append({"name": f"{prefix}o{k}", "mesh": k})
         exported.slots[ob.name] = slots
-        exported.uv_maps[ob.name] = bake_uv_map(ob)
+        exported.uv_maps[ob.name] = uv_maps[ob.name]
     doc = {
         "asset": {"version": "2.0", "generator": "tango-stylize Blender add-on"},
         "scene": 0,
@@ -192,10 +199,11 @@ def _save_glb(path: Path, doc: dict, blob: bytes) -> None:
     tmp.replace(path)
 
 
-def import_materials(glb: Path, count: int) -> tuple[list, list]:
-    """The stylised materials ``tango_m0 .. tango_m<count-1>`` of a finished run's ``glb``, imported
-    by Blender's glTF importer into a scratch collection, and the lights it carries (the learned
-    suns). The imported meshes are removed; the lights are returned unlinked."""
+def import_materials(glb: Path, count: int, prefix: str) -> tuple[list, list]:
+    """The stylised materials ``<prefix>m0 .. <prefix>m<count-1>`` of a finished run's ``glb``,
+    imported by Blender's glTF importer into a scratch collection, and the lights it carries (the
+    learned suns). The imported meshes are removed; the lights are returned unlinked; the
+    selection is left as it was."""
     scratch = bpy.data.collections.new("tango_import")
     bpy.context.scene.collection.children.link(scratch)
     layer = bpy.context.view_layer.layer_collection.children[scratch.name]
@@ -203,13 +211,14 @@ def import_materials(glb: Path, count: int) -> tuple[list, list]:
     bpy.context.view_layer.active_layer_collection = layer
     before = set(bpy.data.materials)
     try:
-        result = bpy.ops.import_scene.gltf(filepath=str(glb))
+        with kept_selection():
+            result = bpy.ops.import_scene.gltf(filepath=str(glb))
     finally:
         bpy.context.view_layer.active_layer_collection = previous
     if "FINISHED" not in result:
         raise RuntimeError(f"Blender's glTF importer could not read {glb}")
     new = {m.name: m for m in set(bpy.data.materials) - before}
-    materials = [new.get(f"tango_m{k}") for k in range(count)]
+    materials = [new.get(f"{prefix}m{k}") for k in range(count)]
     lights = [ob for ob in scratch.all_objects if ob.type == "LIGHT"]
     for ob in list(scratch.all_objects):
         if ob.type == "LIGHT":
@@ -266,7 +275,7 @@ def keep_images(materials, pack: bool, folder: Path | None) -> None:
         image.save()
         if image.packed_file is not None:
             image.unpack(method="REMOVE")
-        image.filepath = str(path)
+        image.filepath = bpy.path.relpath(str(path)) if bpy.data.filepath else str(path)  # moves with the .blend
 
 
 def add_world(light_hdr: Path, name: str):

@@ -5,6 +5,7 @@ read it as plain Python."""
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import re
@@ -42,24 +43,28 @@ class Request:
 
     def command(self, dry_run: bool = False) -> list[str]:
         """``python -m stages.quick`` for this request (``--force``: a new run of the same name
-        replaces its config)."""
-        cmd = [self.python, "-m", "stages.quick", str(self.mesh), self.prompt, "--preset", self.preset]
-        cmd += ["--name", self.name, "--uv", self.uv, "--force"]
+        replaces its config; the mesh and the prompt after ``--``, so that a prompt may start
+        with a hyphen)."""
+        cmd = [self.python, "-m", "stages.quick", "--preset", self.preset, "--name", self.name, "--uv", self.uv, "--force"]
         cmd += ["--image-guided", self.material] if self.material else []
         cmd += ["--test-clip"] if self.test_clip else []
         for overlay in self.overlays:
             cmd += ["--overlay", overlay]
-        return cmd + (["--dry-run"] if dry_run else [])
+        return cmd + (["--dry-run"] if dry_run else []) + ["--", str(self.mesh), self.prompt]
 
     def results(self) -> Path:
         """The run's experiment folder."""
         return Path(self.workdir) / "results" / self.name
 
 
-def run_name(*words: str) -> str:
+def run_name(*words: str, settings: tuple[str, ...] = ()) -> str:
     """An experiment name from ``words`` (the file's and the objects' names): lower-case letters,
-    digits and hyphens."""
-    return NAME.sub("-", "-".join(words).lower()).strip("-")[:60] or "blender"
+    digits and hyphens; with ``settings`` (the prompt, material, preset) a short digest of them
+    after it, so that another prompt is another experiment and the same one is the same."""
+    name = NAME.sub("-", "-".join(words).lower()).strip("-")[:60] or "blender"
+    if settings:
+        name += "-" + hashlib.sha256("\0".join(settings).encode()).hexdigest()[:8]
+    return name
 
 
 def environment(python: str) -> dict:
@@ -79,11 +84,30 @@ def choices(python: str, timeout: float = 120.0) -> dict:
         proc = subprocess.run(
             [python, "-m", "stages.config.choices"], capture_output=True, text=True, timeout=timeout, env=environment(python)
         )
-    except (OSError, subprocess.TimeoutExpired) as exc:
+    except (OSError, subprocess.SubprocessError) as exc:
         raise RuntimeError(f"the project's Python {python} could not be run: {exc}") from None
     if proc.returncode != 0:
         raise RuntimeError(f"{python} -m stages.config.choices failed: {last_line(proc.stderr)}")
     return json.loads(proc.stdout)
+
+
+def plan(request: Request, timeout: float = 600.0) -> subprocess.CompletedProcess:
+    """The workflow's plan for ``request`` (``--dry-run``: the config written, nothing run).
+
+    Raises:
+        RuntimeError: the project's Python could not be run or did not finish (one line)."""
+    Path(request.workdir).mkdir(parents=True, exist_ok=True)
+    env = {**environment(request.python), "TANGO_PLAN_CALIBRATE": "0"}
+    try:
+        return subprocess.run(
+            request.command(dry_run=True), cwd=request.workdir, capture_output=True, text=True, timeout=timeout, env=env
+        )
+    except (OSError, subprocess.SubprocessError) as exc:
+        raise RuntimeError(f"the plan could not be made: {str(exc).splitlines()[0]}") from None
+
+
+#: the plan's refusal of a UV map the bake cannot keep (``bake.uv: keep, but ...``)
+REFUSED_LAYOUT = "bake.uv: keep, but"
 
 
 def last_line(text: str) -> str:

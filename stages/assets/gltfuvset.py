@@ -36,7 +36,8 @@ from ..geometry.uvsets import second_uv_set
 
 #: a vertex attribute that is a UV set, and its number
 TEXCOORD = re.compile(r"^TEXCOORD_(\d+)$")
-#: primitive extensions whose vertex data lie elsewhere (compressed): no set can be appended
+#: extensions whose vertex data lie elsewhere, compressed (a primitive's Draco data, a buffer view's
+#: meshopt data): no set can be appended
 COMPRESSED = ("KHR_draco_mesh_compression", "EXT_meshopt_compression")
 #: the component type of glTF's unsigned indices by the largest index they must hold (the type's
 #: largest value is reserved for primitive restart, which glTF forbids)
@@ -54,6 +55,8 @@ class UvSetWritten:
     vertices: int = 0
     appended: int = 0
     rewritten: int = 0
+    #: primitives that had fewer sets and read the new one under the missing numbers too
+    filled: int = 0
     notes: list[str] = field(default_factory=list)
 
     def record(self) -> dict:
@@ -63,6 +66,7 @@ class UvSetWritten:
             "input_vertices": self.vertices,
             "appended_vertices": self.appended,
             "rewritten_corners": self.rewritten,
+            "primitives_given_lower_sets": self.filled,
         }
 
 
@@ -78,6 +82,9 @@ class SecondSet:
 def set_refusal(doc) -> str | None:
     """Why a second set cannot be appended to ``doc``'s triangle primitives, or None: compressed
     vertex data, or a sparse vertex attribute (whose elements would have to be rewritten in place)."""
+    compressed = {e for v in doc.bufferViews or [] for e in (v.extensions or {})} | set(doc.extensionsRequired or [])
+    if compressed & set(COMPRESSED):
+        return f"its buffers are compressed ({', '.join(sorted(compressed & set(COMPRESSED)))}): no UV set can be appended"
     for m, mesh in enumerate(doc.meshes or []):
         for p, prim in enumerate(mesh.primitives):
             ext = set(prim.extensions or {}) & set(COMPRESSED)
@@ -103,7 +110,7 @@ def add_uv_set(doc, buffer, blob: bytes, source, corner_uv: np.ndarray) -> UvSet
     if why is not None:
         raise ValueError(why)
     first = _first_instances(source)
-    n = 1 + max((_texcoords(doc.meshes[m].primitives[p]) for m, p in first), default=-1)
+    n = 1 + max((_texcoord(doc.meshes[m].primitives[p]) for m, p in first), default=-1)
     written = UvSetWritten(n)
     for members, accessors in _shared_groups(doc, first):
         _rewrite_group(doc, buffer, [blob], members, accessors, first, corner_uv, written)
@@ -129,7 +136,7 @@ def _vertex_accessors(prim) -> list[tuple[str, int]]:
     return out
 
 
-def _texcoords(prim) -> int:
+def _texcoord(prim) -> int:
     """The highest UV set a primitive has (-1: none)."""
     found = [int(m.group(1)) for name, _ in _vertex_accessors(prim) if (m := TEXCOORD.match(name))]
     return max(found, default=-1)
@@ -176,12 +183,14 @@ def _rewrite_group(doc, buffer, blobs, members, accessors, first, corner_uv, wri
         uvs.append(uv[:, [0, 2, 1]] if mirrored else uv)  # back to the file's winding
     sizes = [len(t) for t in tris]
     new = second_uv_set(np.concatenate(tris), np.concatenate(uvs), count)
-    tangents = _tangents(doc, blobs, prim0, new)
+    normals = {doc.meshes[m].primitives[p].attributes.NORMAL for m, p in textured}
+    tangents = _tangents(doc, blobs, prim0, new) if len(normals) == 1 else None  # one frame needs one set of normals
     for i in sorted(accessors):
         _append_vertices(doc, buffer, blobs, i, new.source)
     uv_acc = _add_accessor(doc, buffer, new.uv.astype(np.float32), "VEC2", 5126, 34962)
     for (m, p), tri in zip(textured, np.split(new.indices, np.cumsum(sizes)[:-1]), strict=True):
         prim = doc.meshes[m].primitives[p]
+        written.filled += _texcoord(prim) < written.texcoord - 1
         for k in range(written.texcoord + 1):  # glTF numbers a primitive's sets without gaps
             if getattr(prim.attributes, f"TEXCOORD_{k}", None) is None:
                 setattr(prim.attributes, f"TEXCOORD_{k}", uv_acc)
@@ -260,10 +269,10 @@ def _tangents(doc, blobs, prim, new) -> np.ndarray | None:
     pos = accessor_array(doc, blobs, prim.attributes.POSITION)[new.source]
     normals = accessor_array(doc, blobs, prim.attributes.NORMAL)[new.source]
     out = vertex_tangents(pos, normals, new.uv.astype(np.float64), new.indices.reshape(-1, 3))
-    if out is not None:
+    if out is not None:  # a vertex no triangle reads, or only UV-degenerate ones: any unit tangent
         unread = np.ones(len(out), bool)
         unread[new.indices.reshape(-1)] = False
-        out[unread] = (1.0, 0.0, 0.0, 1.0)
+        out[unread | (np.linalg.norm(out[:, :3], axis=1) < 0.5)] = (1.0, 0.0, 0.0, 1.0)
     return out
 
 

@@ -138,6 +138,8 @@ class UvChoice:
     slots: tuple[str, ...] = ()
     sets: tuple[TextureSet, ...] = ()
     sets_why: str = ""
+    #: what was measured of a second set made for the bake (:func:`second_layout`)
+    made: LayoutCheck | None = None
 
     @property
     def kept(self) -> bool:
@@ -153,6 +155,8 @@ class UvChoice:
         out = {"setting": self.setting, "layout": self.layout, "why": self.why}
         if self.check is not None:
             out["check"] = self.check.to_json()
+        if self.made is not None:
+            out["second_check"] = self.made.to_json()
         if self.own_topology:
             out["slots"] = list(self.slots)
             out["texture_sets"] = [

@@ -40,6 +40,7 @@ from ..render.color import linear_to_srgb
 from . import formats
 from .baking import bake_level, decode_textures, render_baked_views
 from .formats import AssetInfo, Level, export_mesh, recorded_lights, write_asset_files
+from .layouts import SECOND
 
 log = logging.getLogger(__name__)
 
@@ -229,7 +230,7 @@ def make_lod0(source: LodSource, grader: LevelGrader, staging: Path) -> LevelRec
     uv = source.atlas["uv"].astype(np.float64)
     kept = "source_face" in source.atlas  # a layout of the input's triangles: its textures repeat
     fidelity, image = grader.grade(source.mesh, uv, from_bake, CornerFrames.from_arrays(source.atlas), kept)
-    second = source.bake_meta["stats"].get("uv", {}).get("layout") == "second"
+    second = source.bake_meta["stats"].get("uv", {}).get("layout") == SECOND
     what = "second (a set made for the bake" if second else "kept (the input's own"
     layout = f"{what}, on the traced mesh's topology)" if kept else "atlas"
     geom = export_mesh(source.mesh, source.atlas, source.export_transform, source.export.weld)

@@ -44,7 +44,16 @@ from ..geometry.sourcemesh import GLTF_SOURCE, ObjLines, SourceMesh, load_gltf_d
 from ..geometry.tangents import vertex_tangents
 from ..geometry.uvsets import second_uv_set
 from ..render.distant import DistantLight
-from .formats.gltf import LIGHTS_EXTENSION, GlbBuffer, add_distant_lights, glb_material, glb_sampler, punctual_lights
+from .formats.base import message_key
+from .formats.gltf import (
+    LIGHTS_EXTENSION,
+    GlbBuffer,
+    add_distant_lights,
+    glb_material,
+    glb_sampler,
+    punctual_lights,
+    validate_glb,
+)
 from .formats.mesh import ExportMesh, export_mesh
 from .gltfuvset import SecondSet, UvSetWritten, add_uv_set
 
@@ -278,6 +287,7 @@ def write_document_glb(
     firsts: dict[str, int] = {}
     doc.materials = list(doc.materials or [])
     replaced: dict[int | None, int] = {}
+    shared = _materials_elsewhere(doc, source) if texcoord else set()
     for k, part in enumerate(source.parts):
         old = part["material"]
         if old not in replaced:
@@ -286,7 +296,7 @@ def write_document_glb(
             if sub not in firsts:
                 firsts[sub] = buffer.texture_set(Path(textures_dir) / sub, brdf, sampler=len(doc.samplers) - 1)
             new = glb_material(g, name, firsts[sub], brdf, occlusion, texcoord)
-            if old is None:
+            if old is None or old in shared:  # also the material of primitives without the new set: a new one
                 doc.materials.append(new)
                 replaced[old] = len(doc.materials) - 1
             else:
@@ -313,6 +323,33 @@ def write_document_glb(
     with atomic_path(path) as tmp:
         doc.save_binary(str(tmp))
     return notes
+
+
+def _materials_elsewhere(doc, source: SourceMesh) -> set[int]:
+    """The materials that a primitive other than the textured triangle primitives of ``source``
+    uses (lines, points, a mesh outside the default scene): replaced in place, they would read a
+    UV set those primitives lack."""
+    ours = {(part["mesh"], part["primitive"]) for part in source.parts}
+    return {
+        prim.material
+        for m, mesh in enumerate(doc.meshes or [])
+        for p, prim in enumerate(mesh.primitives)
+        if (m, p) not in ours and prim.material is not None
+    }
+
+
+def input_faults(source: SourceMesh) -> tuple[dict[str, set[str]], dict]:
+    """What the Khronos glTF-Validator finds wrong with a glTF input itself (its buffers and images
+    read from its folder): per file the export writes from it (:data:`DOCUMENT_FILE`), the faults
+    (:func:`~stages.assets.formats.message_key`) of its errors, which the document hands on and
+    which are therefore not the export's; and the input's counts for the record (``ran`` False
+    where the validator is not installed)."""
+    report = validate_glb(source.path)
+    if not report.get("ran"):
+        return {}, {"ran": False}
+    errors = report["messages"][: report["errors"]]
+    summary = {"errors": report["errors"], "warnings": report["warnings"], "first": errors[0] if errors else None}
+    return {DOCUMENT_FILE: {message_key(m) for m in errors}}, summary
 
 
 def uv_set_note(written: UvSetWritten) -> str:

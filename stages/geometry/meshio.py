@@ -105,7 +105,8 @@ def load_mesh(source: str | Path, given_in: str = "the config") -> TriMesh:
 
 
 def _flatten(loaded, path: Path) -> TriMesh:
-    """Turn whatever trimesh returned into one TriMesh (scenes: transforms applied, concatenated)."""
+    """Turn whatever trimesh returned into one TriMesh (scenes: transforms applied, a mirroring
+    one with its faces' winding turned back as viewers turn it, concatenated)."""
     trimesh = _trimesh()
     if isinstance(loaded, trimesh.Scene):
         parts = []
@@ -114,7 +115,9 @@ def _flatten(loaded, path: Path) -> TriMesh:
             geom = loaded.geometry[geom_name]
             if isinstance(geom, trimesh.Trimesh) and len(geom.faces):
                 v = trimesh.transform_points(np.asarray(geom.vertices, np.float64), transform)
-                parts.append((v, np.asarray(geom.faces, np.int64)))
+                f = np.asarray(geom.faces, np.int64)
+                # a mirroring node turns the winding back, as viewers do (the normals stay outward)
+                parts.append((v, f[:, [0, 2, 1]] if np.linalg.det(np.asarray(transform)[:3, :3]) < 0 else f))
         if not parts:
             kinds = sorted({type(g).__name__ for g in loaded.geometry.values()}) or ["nothing"]
             raise StageInputError(

@@ -225,6 +225,7 @@ def inspect(out: Path, uv_map: int = 0) -> dict:
                 bbox_max=[max(c[i] for c in corners) for i in range(3)],
                 materials=[m.name for m in me.materials if m is not None],
                 shape_keys=len(me.shape_keys.key_blocks) if me.shape_keys else 0,
+                data=me.name,  # objects that draw one glTF mesh share it
             )
             if not arrays and ob.name not in bone_shapes:  # the first mesh (our assets have one)
                 arrays = mesh_corners(ob, uv_map)

@@ -173,10 +173,15 @@ def blender_pass(scene: RoundtripScene, fmt: str, name: str, overrides: dict, ti
             raise StageInputError(Path("blender"), str(exc), "Or set roundtrip.enabled: false.") from None
 
 
+def added_set(scene: RoundtripScene) -> dict:
+    """The export's record of the second UV set it gave a glTF input's document (empty: none)."""
+    return (scene.export_meta.get("stats", {}) or {}).get("second_uv_set") or {}
+
+
 def baked_uv_map(scene: RoundtripScene, fmt: str) -> int:
     """Which UV map of the file of suffix ``fmt`` holds the bake: the second set the export added
     to a glTF input's own document (``TEXCOORD_<n>``, Blender's n-th map), else the first."""
-    added = (scene.export_meta.get("stats", {}) or {}).get("second_uv_set") or {}
+    added = added_set(scene)
     if not scene.document or fmt != "glb" or not added:
         return 0
     return int(str(added["attribute"]).rsplit("_", 1)[1])
@@ -243,13 +248,14 @@ def own_format_check(scene: RoundtripScene, timer: Timer) -> dict:
                 raise StageInputError(Path("blender"), str(exc), "Or set roundtrip.enabled: false.") from None
         objects = [o for o in res.report.get("objects", []) if not o.get("bone_shape")]
         meshes = [o for o in objects if o["type"] == "MESH"]
-        counts = {k: sum(int(m[k]) for m in meshes) for k in ("vertices", "faces", "corners", "shape_keys")}
+        data = list({m.get("data", k): m for k, m in enumerate(meshes)}.values())  # a mesh drawn twice counts once
+        counts = {k: sum(int(m[k]) for m in data) for k in ("vertices", "faces", "corners", "shape_keys")}
         bones = sum(int(o.get("bones", 0)) for o in objects)
         rig = {"objects": len(objects), "bones": bones, "actions": res.report.get("actions", 0)}
         got[key] = {"file": Path(path).name, "mesh_objects": len(meshes), **counts, **rig, "uv": res.corners.get("uv")}
     a, b = got["input"], got["output"]
     # the seam vertices of a second UV set come after the input's own (stats.second_uv_set)
-    appended = int(((scene.export_meta.get("stats", {}) or {}).get("second_uv_set") or {}).get("appended_vertices", 0))
+    appended = int(added_set(scene).get("appended_vertices", 0))
     b["appended_vertices"] = appended
     problems = [
         f"{k}: {b[k]:,} in Blender's import of {b['file']}, {a[k]:,} in its import of the input {a['file']}"
@@ -259,7 +265,10 @@ def own_format_check(scene: RoundtripScene, timer: Timer) -> dict:
     ]
     uv_error = None
     if a["uv"] is not None and b["uv"] is not None and len(a["uv"]) == len(b["uv"]):
-        uv_error = float(np.abs(a["uv"] - b["uv"]).max())
+        # primitives without UVs (Blender's 0, 0) that the export gave the bake's set as their first
+        filled = int(added_set(scene).get("primitives_given_lower_sets", 0))
+        had = ~(a["uv"] == 0).all(axis=1) if filled else np.ones(len(a["uv"]), bool)
+        uv_error = float(np.abs(a["uv"][had] - b["uv"][had]).max(initial=0.0))
         if uv_error > 1e-6:
             problems.append(f"UVs differ by up to {uv_error:.2g} from the input's in Blender")
     elif a["uv"] is not None:

@@ -234,3 +234,24 @@ def test_a_primitive_without_uvs_reads_the_new_set_under_every_number_up_to_it(t
     report = validate_glb(tmp_path / "m.glb")
     require_tool(report.get("ran", False), "the Khronos glTF-Validator (Node.js) is not installed")
     assert report["errors"] == 0, report["messages"]
+
+
+def test_a_material_other_primitives_use_stays_theirs(tmp_path):
+    """The points over the surface's positions use the surface's material too: it stays theirs (they
+    have no new set to read), and the surface gets a new material reading the bake."""
+    path = tmp_path / "input.glb"
+    document(path)
+    doc = g.GLTF2().load(str(path))
+    doc.meshes[0].primitives[2].material = 0
+    doc.save_binary(str(path))
+    src = read_source(path)
+    second = SecondSet(per_triangle_layout(src))
+    write_document_glb(tmp_path / "m.glb", src, textures(tmp_path / "t"), {}, "gltf", False, second=second)
+    out = g.GLTF2().load(str(tmp_path / "m.glb"))
+    surface, _, points = out.meshes[0].primitives
+    assert points.material == 0 and out.materials[0].pbrMetallicRoughness is None  # the input's own, untextured
+    assert surface.material == len(out.materials) - 1 and out.materials[surface.material].name == "A"
+    assert out.materials[surface.material].pbrMetallicRoughness.baseColorTexture.texCoord == 1
+    report = validate_glb(tmp_path / "m.glb")
+    require_tool(report.get("ran", False), "the Khronos glTF-Validator (Node.js) is not installed")
+    assert report["errors"] == 0, report["messages"]

@@ -20,7 +20,7 @@ from conftest import REPO, require_blender, require_tool
 from stages import bake, export, optimize, roundtrip
 from stages.assets.baking import kept_texels
 from stages.assets.formats.gltf import validate_glb
-from stages.assets.layouts import InputMesh, choose_layout
+from stages.assets.layouts import InputMesh, choose_layout, second_set
 from stages.config.sections import (
     BakeSettings,
     ExportSettings,
@@ -32,7 +32,7 @@ from stages.config.sections import (
 from stages.core.errors import StageInputError
 from stages.geometry.meshio import load_mesh, save_ply
 from stages.geometry.normalization import normalize_mesh
-from stages.geometry.sourcemesh import ObjLines, read_source
+from stages.geometry.sourcemesh import ObjLines, accessor_array, load_gltf_document, read_source
 from stages.raycache import run as raycache_run
 
 BAKE = {"texture_size": 128, "eval_width": 32}
@@ -316,6 +316,8 @@ def test_the_published_gltf_assets_fetch_with_their_checksums(tmp_path):
     import subprocess
 
     require_tool(shutil.which("curl") is not None, "curl")
+    reach = subprocess.run(["curl", "-fsI", "--max-time", "20", "http://deb.debian.org/debian/"], capture_output=True)
+    require_tool(reach.returncode == 0, "the Debian archive (deb.debian.org) is not reachable")
     script = REPO / "scripts" / "fetch_gltf_assets.sh"
     out = tmp_path / "assets"
     proc = subprocess.run(["bash", str(script), str(out)], capture_output=True, text=True, timeout=900, cwd=tmp_path)
@@ -409,6 +411,14 @@ def test_a_second_set_keeps_the_document_and_adds_texcoord_1(second, name):
         assert pb.attributes.TEXCOORD_1 is not None and pb.attributes.TEXCOORD_0 is not None
         assert b.accessors[pb.attributes.POSITION].count == a.accessors[pa.attributes.POSITION].count + added["appended_vertices"]
     assert all(m.pbrMetallicRoughness.baseColorTexture.texCoord == 1 for m in b.materials)
+    # TEXCOORD_1 per corner is the layout the bake baked (atlas.npz, per traced face)
+    with np.load(d / f"bake_{uv}" / "atlas.npz") as z:
+        baked = second_set({"uv": {"layout": "second"}}, {"uv": z["uv"], "source_face": z["source_face"]})
+    doc, blobs = load_gltf_document(d / f"export_{uv}" / "model.glb")
+    tri = np.concatenate([accessor_array(doc, blobs, p.indices) for p in doc.meshes[0].primitives]).reshape(-1, 3)
+    uv1 = accessor_array(doc, blobs, doc.meshes[0].primitives[0].attributes.TEXCOORD_1)
+    np.testing.assert_allclose(uv1[tri], baked, atol=1e-6)
+    assert meta(d, f"bake_{uv}")["stats"]["uv"]["second_check"]["overlapping"] == 0  # the new set's own check
     # every triangle draws the corners it drew, with the input's own UVs; the bake's set is the bake's
     before, after = read_source(src), read_source(d / f"export_{uv}" / "model.glb")
     np.testing.assert_array_equal(after.positions[after.triangles], before.positions[before.triangles])

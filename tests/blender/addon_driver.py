@@ -4,9 +4,10 @@ selected objects with the add-on's operator and write what changed to ``JOB["out
 
 The scene: ``Body``, a UV sphere with its own UV map (and a second one, ``Detail``), weighted to a
 two-bone armature whose upper bone is animated, with two material slots; ``Box``, a cube whose UV
-map was removed (the add-on must make one). What is recorded before and after, per object: the
-vertices, every UV map's coordinates, the vertex groups' weights, the material slots and what their
-materials read; and the armature's bones and the action's keyframes."""
+map was removed (the add-on must make one) and whose one slot holds the body's first material.
+What is recorded before and after, per object: the vertices, every UV map's coordinates, the
+vertex groups' weights, the material slots and what their materials read; and the armature's
+bones and the action's keyframes."""
 
 from __future__ import annotations
 
@@ -55,6 +56,7 @@ def build_scene() -> None:
     box = bpy.context.active_object
     box.name = "Box"
     box.data.uv_layers.remove(box.data.uv_layers[0])
+    box.data.materials.append(bpy.data.materials["Skin"])  # one material on two objects, each with its own UVs
     bpy.ops.object.select_all(action="DESELECT")
     body.select_set(True)
     box.select_set(True)

@@ -37,12 +37,16 @@ def test_the_command_is_the_quick_command_with_the_panels_choices(tmp_path):
     job = addon_job()
     r = job.Request("/p/python", tmp_path, tmp_path / "in.glb", "a ball", "balanced", "n", "wood", True, "keep", ("o.yaml",))
     assert r.command(dry_run=True) == [
-        "/p/python", "-m", "stages.quick", str(tmp_path / "in.glb"), "a ball", "--preset", "balanced",
-        "--name", "n", "--uv", "keep", "--force", "--image-guided", "wood", "--test-clip", "--overlay", "o.yaml", "--dry-run",
+        "/p/python", "-m", "stages.quick", "--preset", "balanced", "--name", "n", "--uv", "keep", "--force",
+        "--image-guided", "wood", "--test-clip", "--overlay", "o.yaml", "--dry-run", "--", str(tmp_path / "in.glb"), "a ball",
     ]  # fmt: skip
-    assert "--image-guided" not in job.Request("p", tmp_path, tmp_path / "m", "x", "fast", "n").command()
+    plain = job.Request("p", tmp_path, tmp_path / "m", "-a prompt with a hyphen", "fast", "n").command()
+    assert "--image-guided" not in plain and plain[-3:] == ["--", str(tmp_path / "m"), "-a prompt with a hyphen"]
     assert job.run_name("My Scene.blend", "Body", "Ünïcode box") == "my-scene-blend-body-n-code-box"
     assert job.run_name("", "") == "blender"
+    # another prompt is another experiment, the same one the same
+    a, b = job.run_name("f", "o", settings=("wood", "fast")), job.run_name("f", "o", settings=("gold", "fast"))
+    assert a != b and a == job.run_name("f", "o", settings=("wood", "fast")) and a.startswith("f-o-")
 
 
 def test_progress_and_the_one_line_error_come_from_the_runs_output(tmp_path):
@@ -95,6 +99,9 @@ def test_choices_come_from_the_project(tmp_path):
     assert found["default_preset"] in found["presets"] and "wood" in found["materials"]
     with pytest.raises(RuntimeError, match="could not be run"):
         job.choices(str(tmp_path / "absent-python"))
+    absent = job.Request(str(tmp_path / "absent-python"), tmp_path, tmp_path / "m.glb", "x", "fast", "n")
+    with pytest.raises(RuntimeError, match="the plan could not be made"):
+        job.plan(absent)
 
 
 @pytest.mark.slow(minutes=2)
@@ -131,6 +138,8 @@ def test_blender_stylises_the_selected_objects_and_keeps_their_rig(tmp_path):
             assert {"Base Color", "Metallic", "Roughness", "Normal"} <= set(slot["wired"])
             assert slot["uv_maps"] == [a["provenance"]["uv_map"]]
     assert after["objects"]["Body"]["provenance"]["uv_map"] == "UVMap"  # its own render map, kept
+    # the material the two objects shared: each now has its own, reading its own UV map
+    assert after["objects"]["Box"]["slots"][0]["material"] != after["objects"]["Body"]["slots"][0]["material"]
     assert list(after["objects"]["Box"]["uv_maps"]) == ["TANGO"]  # it had none: one was made
     assert after["bones"] == before["bones"] and after["keys"] == before["keys"] and len(after["keys"]) == 6
     assert after["world"].startswith("TANGO light")

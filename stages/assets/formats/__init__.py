@@ -19,7 +19,7 @@ from pathlib import Path
 
 from ...config.layout import EXPORT_FORMATS, check_format
 from ...core.registry import Registry
-from .base import AssetInfo, Exporter, check_reports, one_line, recorded_lights
+from .base import AssetInfo, Exporter, check_reports, message_key, one_line, recorded_lights
 from .gltf import GLTF
 from .mesh import ATLAS_KEYS, ExportMesh, Level, export_mesh, read_atlas
 from .usd import USD
@@ -36,6 +36,7 @@ __all__ = [
     "Exporter",
     "Level",
     "check_reports",
+    "message_key",
     "export_mesh",
     "exporters",
     "get",
@@ -80,6 +81,7 @@ def write_asset_files(
     asset: AssetInfo,
     timer=None,
     instead: Mapping[str, Callable[[Path], None]] | None = None,
+    inherited: dict[str, set[str]] | None = None,
 ) -> dict[str, dict]:
     """Write one asset in every registered format into ``folder`` (which already holds its
     textures, ``textures/*.png``, and its light), each file atomically, and validate every file
@@ -87,8 +89,9 @@ def write_asset_files(
     its writer's place, as the export stage writes a glTF input's own document). Returns every
     validator's report by file name. Warnings are logged; any validator error raises
     (:func:`check_reports`; the folder is the caller's staging folder, so nothing half-checked is
-    committed). ``timer`` (a :class:`~stages.core.provenance.Timer`) times each format's writing,
-    under its name, and the ``validate`` part."""
+    committed), but those the input itself has (``inherited``, per file name) are only said.
+    ``timer`` (a :class:`~stages.core.provenance.Timer`) times each format's writing, under its
+    name, and the ``validate`` part."""
 
     def part(key):
         return timer(key) if timer is not None else nullcontext()
@@ -102,5 +105,5 @@ def write_asset_files(
                 exporter.write(folder, geom, asset)
     with part("validate"):
         reports = {name: r for exporter in exporters() for name, r in exporter.validate(folder).items()}
-    check_reports(reports, folder)
+    check_reports(reports, folder, inherited)
     return reports

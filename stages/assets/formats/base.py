@@ -112,17 +112,41 @@ class Exporter(ABC):
         return {}
 
 
-def check_reports(reports: dict[str, dict], where: Path) -> None:
+def message_key(message: str) -> str:
+    """What a validator message is about, without its particulars: its code and where it points
+    (``CODE at /pointer``), so that the same fault of an input and of its asset compare equal."""
+    return str(message).split(": ", 1)[0]
+
+
+def check_reports(reports: dict[str, dict], where: Path, inherited: dict[str, set[str]] | None = None) -> None:
     """Log every validator message of ``reports`` (file name -> its format's report,
     :meth:`Exporter.validate`), one line each, and a warning for each validator that did not run
-    (its report's ``validator``, or the file's).
+    (its report's ``validator``, or the file's). ``inherited``: per file name, the faults
+    (:func:`message_key`) of the input it hands on (a glTF input's own document): its errors that
+    are those are the input's, counted in the report's ``inherited_errors``, not its ``errors``,
+    and said in one warning.
 
     Raises:
-        StageInputError: any report has an error (one line: the file, the count, the first message).
+        StageInputError: any report has an error of its own (one line: the file, the count, the first message).
     """
     lines = [f"{where.name}/{name}: {one_line(m)}" for name, r in reports.items() for m in r.get("messages", [])]
     for line in lines:
         log.warning("validation: %s", line)
+    for name, keys in (inherited or {}).items():
+        r = reports.get(name, {})
+        errors = r.get("messages", [])[: r.get("errors", 0)]  # errors come first
+        theirs = [m for m in errors if message_key(m) in keys]
+        if theirs:
+            # a list cut short after the validator's first messages, each the input's: the rest are too
+            count = r["errors"] if r.get("truncated") and len(theirs) == len(errors) else len(theirs)
+            r["inherited_errors"], r["errors"] = count, r["errors"] - count
+            r["messages"] = [m for m in r["messages"] if m not in theirs]
+            log.warning(
+                "%s: %d validator error(s) the input itself has (the first: %s), handed on as they are",
+                name,
+                len(theirs),
+                one_line(theirs[0], 200),
+            )
     for name, r in reports.items():
         if r.get("ran") is False:
             log.warning("%s did not run: %s; %s is unchecked", r.get("validator", f"the validator of {name}"), r["reason"], name)

@@ -104,6 +104,8 @@ def validate_glb(path: Path) -> dict:
             "warnings": int(issues["numWarnings"]),
             "infos": int(issues["numInfos"]),
             "hints": int(issues["numHints"]),
+            # the validator stops listing (and counting) after its first 100 messages
+            "truncated": bool(issues.get("truncated", False)),
             "messages": [one_line(f"{m['code']} at {m.get('pointer', '')}: {m['message']}") for m in found],
         }
     except (ValueError, KeyError, TypeError) as exc:
