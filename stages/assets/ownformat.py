@@ -274,6 +274,9 @@ def write_document_glb(
 
     brdf = brdf_spec(brdf)
     doc, blobs = load_gltf_document(source.path)
+    for acc in doc.accessors or []:  # pygltflib reads an absent offset as 0; without a view it must stay absent
+        if acc.bufferView is None:
+            acc.byteOffset = None
     buffer = GlbBuffer(g)
     _merge_buffers(doc, blobs, buffer)
     texcoord, set_notes = 0, []

@@ -40,6 +40,8 @@ def reset_scene() -> None:
 
 
 def import_asset(path: Path) -> None:
+    """Import an asset by its suffix; armatures are set to their rest pose, so that a skinned mesh
+    is drawn as the file stores it (what our renders show), not in an animation's first frame."""
     suffix = path.suffix.lower()
     if suffix in (".glb", ".gltf"):
         result = bpy.ops.import_scene.gltf(filepath=str(path))
@@ -51,6 +53,9 @@ def import_asset(path: Path) -> None:
         raise SystemExit(f"{path}: not an asset Blender imports here (.glb, .gltf, .usd, .usda, .usdc, .usdz, .obj)")
     if "FINISHED" not in result:
         raise SystemExit(f"{path}: Blender's importer returned {result}")
+    for ob in bpy.context.scene.objects:  # a rig drawn in its rest pose: the surface as the file stores it
+        if ob.type == "ARMATURE":
+            ob.data.pose_position = "REST"
     bpy.context.view_layer.update()
 
 

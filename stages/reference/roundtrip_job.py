@@ -234,8 +234,10 @@ def graded_import(scene: RoundtripScene, fmt: str, res) -> tuple[dict, object]:
 def own_format_check(scene: RoundtripScene, timer: Timer) -> dict:
     """The asset in the input's own format (the GLB of a glTF input, ``model.obj`` of an OBJ's)
     imported into Blender beside the input itself: the same objects (mesh objects among them),
-    armature bones, actions and shape keys, the same vertex (plus a second UV set's appended seam
-    vertices), face and corner counts, and the same UVs per corner (the input's own first set).
+    armature bones, actions and shape keys, the same face and corner counts, as many vertices (up to
+    a second UV set's appended seam vertices more: Blender merges those that differ from their
+    source only in their UVs, which it keeps per corner), and the same UVs per corner (the input's
+    own first set, where it had one).
     Returns the counts of both, the largest UV difference and ``problems``."""
     own = scene.export_dir / (EXPORT_FILES["glb"] if scene.document else "model.obj")
     got = {}
@@ -257,17 +259,19 @@ def own_format_check(scene: RoundtripScene, timer: Timer) -> dict:
     # the seam vertices of a second UV set come after the input's own (stats.second_uv_set)
     appended = int(added_set(scene).get("appended_vertices", 0))
     b["appended_vertices"] = appended
+    # Blender keeps UVs per corner and may merge vertices that differ only there: an appended one
+    # arrives as its own vertex or as its source again
     problems = [
         f"{k}: {b[k]:,} in Blender's import of {b['file']}, {a[k]:,} in its import of the input {a['file']}"
-        + (f" and {appended:,} appended" if k == "vertices" and appended else "")
+        + (f" (and {appended:,} appended)" if k == "vertices" and appended else "")
         for k in ("mesh_objects", "objects", "bones", "actions", "shape_keys", "vertices", "faces", "corners")
-        if a[k] + (appended if k == "vertices" else 0) != b[k]
+        if not a[k] <= b[k] <= a[k] + (appended if k == "vertices" else 0)
     ]
     uv_error = None
     if a["uv"] is not None and b["uv"] is not None and len(a["uv"]) == len(b["uv"]):
-        # primitives without UVs (Blender's 0, 0) that the export gave the bake's set as their first
+        # primitives without UVs (Blender fills them with 0, 1) that the export gave the bake's set as their first
         filled = int(added_set(scene).get("primitives_given_lower_sets", 0))
-        had = ~(a["uv"] == 0).all(axis=1) if filled else np.ones(len(a["uv"]), bool)
+        had = ~(a["uv"] == (0.0, 1.0)).all(axis=1) if filled else np.ones(len(a["uv"]), bool)
         uv_error = float(np.abs(a["uv"][had] - b["uv"][had]).max(initial=0.0))
         if uv_error > 1e-6:
             problems.append(f"UVs differ by up to {uv_error:.2g} from the input's in Blender")

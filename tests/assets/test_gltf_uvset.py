@@ -255,3 +255,37 @@ def test_a_material_other_primitives_use_stays_theirs(tmp_path):
     report = validate_glb(tmp_path / "m.glb")
     require_tool(report.get("ran", False), "the Khronos glTF-Validator (Node.js) is not installed")
     assert report["errors"] == 0, report["messages"]
+
+
+def test_a_mirrored_first_instance_takes_a_second_set_through_the_bakes_layout(tmp_path):
+    """The mesh drawn first by the mirroring node: the traced mesh's faces are the input's (winding
+    turned back as viewers turn it), the bake's layout gives both instances one set (the plain one's
+    corners in turned order), and the document reads it back per corner in its file's winding."""
+    from stages.assets.layouts import choose_layout, second_layout
+    from stages.config.sections import NormalizeSettings
+    from stages.geometry.normalization import normalize_mesh
+
+    path = tmp_path / "input.glb"
+    document(path)
+    doc = g.GLTF2().load(str(path))
+    doc.scenes[0].nodes = [1, 0, 2]  # the mirroring node first
+    doc.save_binary(str(path))
+    norm = normalize_mesh(str(path), NormalizeSettings())
+    choice, layout = choose_layout("second", str(path), norm.transform, norm.mesh, 128, 0.01)
+    assert choice.layout == "second" and choice.why == "bake.uv: second"
+    made = second_layout(layout, norm.mesh, 128, 2, None)
+    src = read_source(path)
+    assert src.parts[0]["mirrored"] and not src.parts[2]["mirrored"]
+    corner = np.empty((len(src.triangles), 3, 2))
+    corner[made.source_face] = made.uv
+    for mirrored, plain in ((0, 2), (1, 3)):
+        np.testing.assert_array_equal(corner[src.part == plain], corner[src.part == mirrored][:, [0, 2, 1]])
+    assert made.check.overlapping == 0 and made.check.unmapped == 0
+    write_document_glb(tmp_path / "m.glb", src, textures(tmp_path / "t"), {}, "gltf", False, second=SecondSet(corner))
+    out, blobs = load_gltf_document(tmp_path / "m.glb")
+    tri = np.concatenate([accessor_array(out, blobs, p.indices) for p in out.meshes[0].primitives[:2]]).reshape(-1, 3)
+    uv1 = accessor_array(out, blobs, out.meshes[0].primitives[0].attributes.TEXCOORD_1)
+    np.testing.assert_allclose(uv1[tri], corner[src.part == 2].tolist() + corner[src.part == 3].tolist(), atol=1e-6)
+    report = validate_glb(tmp_path / "m.glb")
+    require_tool(report.get("ran", False), "the Khronos glTF-Validator (Node.js) is not installed")
+    assert report["errors"] == 0, report["messages"]

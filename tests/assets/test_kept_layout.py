@@ -446,7 +446,7 @@ def test_blender_imports_a_second_set_with_the_rig_and_the_bake_on_it(second, na
     out, own = blender_roundtrip(src, d, uv)
     assert own["problems"] == [] and own["uv_error"] == 0.0
     appended = meta(d, f"export_{uv}")["stats"]["second_uv_set"]["appended_vertices"]
-    assert own["output"]["vertices"] == own["input"]["vertices"] + appended
+    assert own["input"]["vertices"] < own["output"]["vertices"] <= own["input"]["vertices"] + appended
     # the rig, its animation and the morph target arrive as they did from the input
     assert own["output"]["bones"] == own["input"]["bones"] == 2 and own["output"]["actions"] == own["input"]["actions"] >= 1
     assert own["output"]["shape_keys"] == own["input"]["shape_keys"] > 0
