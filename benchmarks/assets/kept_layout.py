@@ -26,7 +26,7 @@ appended).
 
     bash scripts/fetch_uv_meshes.sh     # build/uv-meshes: duck, milk truck, jeep, converted (benchmarks/SOURCES.md)
     bash scripts/fetch_gltf_assets.sh   # build/gltf-assets: nine glTF 2.0 assets as published (benchmarks/SOURCES.md)
-    python -m benchmarks.assets.kept_layout [--meshes spot.obj,...] [--size N] [--max-overlap 0.01] [--roundtrip]
+    python -m benchmarks.assets.kept_layout [--meshes spot.obj,...|gltf-assets] [--size N] [--max-overlap 0.01] [--roundtrip]
 """
 
 from __future__ import annotations
@@ -41,25 +41,24 @@ from benchmarks.common import REPO, SHARED_MESHES, perturbed_field
 
 #: the measured set: spot (../shared/meshes), a made lathe layout, and the meshes
 #: scripts/fetch_uv_meshes.sh fetches into build/uv-meshes (licences: benchmarks/SOURCES.md)
-MESHES = ",".join(
-    [
-        "spot.obj,made:lathe-vase,build/uv-meshes/duck.glb,build/uv-meshes/milktruck.glb,build/uv-meshes/jeep.glb",
-        *(
-            f"build/gltf-assets/{name}"
-            for name in (
-                "box-textured/BoxTextured.glb",
-                "duck/Duck.gltf",
-                "milk-truck/CesiumMilkTruck.gltf",
-                "cesium-man/CesiumMan.gltf",
-                "fox/Fox.gltf",
-                "spider/gltf_spider_animated.gltf",
-                "morph-cube/AnimatedMorphCube.gltf",
-                "test-scene/TestScene.gltf",
-                "sparse-morph/singleBlendshapeCube_sparse.glb",
-            )
-        ),
-    ]
+#: the published glTF assets scripts/fetch_gltf_assets.sh fetches (``--meshes gltf-assets``)
+GLTF_ASSETS = ",".join(
+    f"build/gltf-assets/{name}"
+    for name in (
+        "box-textured/BoxTextured.glb",
+        "duck/Duck.gltf",
+        "milk-truck/CesiumMilkTruck.gltf",
+        "cesium-man/CesiumMan.gltf",
+        "fox/Fox.gltf",
+        "spider/gltf_spider_animated.gltf",
+        "morph-cube/AnimatedMorphCube.gltf",
+        "test-scene/TestScene.gltf",
+        "sparse-morph/singleBlendshapeCube_sparse.glb",
+    )
 )
+MESHES = "spot.obj,made:lathe-vase,build/uv-meshes/duck.glb,build/uv-meshes/milktruck.glb,build/uv-meshes/jeep.glb," + GLTF_ASSETS
+#: names for sets of meshes
+SETS = {"gltf-assets": GLTF_ASSETS}
 
 
 def lathe_vase(path: Path, segments: int = 48, samples: int = 24) -> Path:
@@ -204,7 +203,9 @@ def main() -> None:
     import torch
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--meshes", default=MESHES, help="files with their own layouts (names: in ../shared/meshes)")
+    parser.add_argument(
+        "--meshes", default=MESHES, help="files with their own layouts (names: in ../shared/meshes), or gltf-assets (the nine)"
+    )
     parser.add_argument("--size", type=int, help="texture width for both layouts (default: the bake's rule)")
     parser.add_argument("--roundtrip", action="store_true", help="also through Blender (Cycles, own-format import)")
     parser.add_argument("--max-overlap", type=float, default=0.01, help="bake.uv_max_overlap for the auto layout")
@@ -218,7 +219,7 @@ def main() -> None:
     cols += ["cycles_psnr", "import_problems", *blender_cols, "blender_uv_error", "own_problems"] if args.roundtrip else []
     print(f"# a perturbed field with texel-scale detail; fidelity over 24 views at 256 px; {'; '.join(cols)}")
     kv = {}
-    for name in args.meshes.split(","):
+    for name in SETS.get(args.meshes, args.meshes).split(","):
         with tempfile.TemporaryDirectory() as d:
             d = Path(d)
             src = Path(name) if Path(name).is_file() else REPO / name if (REPO / name).is_file() else SHARED_MESHES / name

@@ -94,9 +94,17 @@ class SourceMesh:
         return _unit(np.where(missing[..., None], fill, given))
 
     def vertex_normals(self) -> np.ndarray:
-        """``(V, 3)``: the file's normals, or where none the angle-weighted mean of the unit normals
-        of the faces around the vertex's position (vertices at one position, split at a UV seam,
-        share it: an OBJ's smoothing by ``v``; zero where they cancel, then any unit vector)."""
+        """``(V, 3)``: the file's normals, or where none what its consumers assume: for glTF the
+        flat normal of a face that uses the vertex (the specification's flat shading; exact where
+        faces do not share vertices), for OBJ the angle-weighted mean of the unit normals of the
+        faces around the vertex's position (vertices at one position, split at a UV seam, share it:
+        an OBJ's smoothing by ``v``; zero where they cancel, then any unit vector)."""
+        if self.kind == GLTF_SOURCE:
+            flat = np.tile((0.0, 1.0, 0.0), (len(self.positions), 1))
+            flat[self.triangles.reshape(-1)] = np.repeat(unit_face_normals(self.positions, self.triangles), 3, axis=0)
+            given = np.isfinite(self.normals).all(1)
+            flat[given] = _unit(self.normals[given])
+            return flat
         p = self.positions[self.triangles]
         e1 = p[:, [1, 2, 0]] - p
         e2 = p[:, [2, 0, 1]] - p

@@ -70,6 +70,7 @@ EXEMPT: dict[str, str] = {
     r"^pip install\b": "installs packages (a system set-up step)",
     r"^bash scripts/slurm-cluster\.sh\b": "starts a one-node Slurm cluster as root (the Slurm tests run it)",
     r"^bash scripts/fetch_uv_meshes\.sh\b": "downloads Debian packages (tests/assets/test_kept_layout.py runs it)",
+    r"^bash scripts/fetch_gltf_assets\.sh\b": "downloads Debian source tarballs (tests/assets/test_kept_layout.py runs it)",
     r"^python -m pytest\b": "the test suite itself",
     r"^mkdocs build\b": "tests/docs/test_docs.py::test_site_builds_strictly runs it",
     r"^mkdocs serve\b": "a server that runs until stopped",
