@@ -87,7 +87,9 @@ def run(
     occlusion = occlusion_decision(settings.occlusion, field, eval_cache)
     with timer("occlusion"), heartbeat(job, "tracing the ambient occlusion"):
         ao = occlusion_samples(mesh, occlusion, settings)
-    verb = f"baking {UV_LAYOUT_WORDS[uv.layout]} layout of"
+    verb = {"kept": "baking the input's own layout of", SECOND: "unwrapping and baking a second UV set of"}.get(
+        uv.layout, "unwrapping and baking"
+    )
     with timer("bake"), heartbeat(job, f"{verb} {len(mesh.faces)} faces"):
         res = bake_field(mesh, field, settings, device, ao, layout)
     out_dir = Path(out_dir)
