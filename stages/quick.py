@@ -1,7 +1,7 @@
 """quick: stylise one's own mesh without writing YAML.
 
-    python -m stages.quick MESH "PROMPT" [--preset fast|balanced|paper|...] [--image-guided MATERIAL]
-                           [--test-clip] [--uv auto|keep|atlas] [--name NAME] [--overlay FILE]...
+    python -m stages.quick MESH "PROMPT" [--preset fast|balanced|paper|...] [--image-guided MATERIAL | --test-clip]
+                           [--uv auto|keep|second|atlas] [--name NAME] [--overlay FILE]...
                            [--cores N] [--dry-run]
 
 1. checks the mesh the way the normalize stage reads it (a missing, empty, unreadable or faceless
@@ -10,8 +10,9 @@
    the mesh by its absolute path, the prompt, the preset and the guidance; the config is validated
    like any other before it is written;
 3. prints what it will run and the command that runs it again, with the UV layout the bake will
-   write into (``--uv``, ``bake.uv``: the input's own where it is usable, measured here; ``--uv
-   keep`` on a layout that is not usable stops here, with what is wrong);
+   write into (``--uv``, ``bake.uv``: the input's own where it is usable, measured here, else for
+   a glTF input a second UV set beside it; ``--uv keep`` on a layout that is not usable stops
+   here, with what is wrong);
 4. starts Snakemake on that config (``--dry-run``: prints the plan, with its time estimate, and
    stops). Snakemake checks the CLIP weights before any job (without them it stops at once with one
    message per model) and prints the plan with its time estimate.
@@ -39,6 +40,7 @@ from pathlib import Path
 import yaml
 
 from .assets.layouts import choose_layout
+from .config.choices import preset_steps
 from .config.presets import DEFAULT_PRESET, PRESETS
 from .config.schema import schema
 from .config.sections import MATERIALS, UV_LAYOUT_WORDS, UV_LAYOUTS
@@ -312,9 +314,12 @@ def main(argv: list[str] | None = None) -> int:
     def arguments(parser):
         parser.add_argument("mesh", help="the mesh file (OBJ, PLY, STL, OFF, GLB, GLTF), or builtin:vase|candle|knot")
         parser.add_argument("prompt", help='what it should look like, e.g. "a vase made of wood"')
-        parser.add_argument("--preset", default=DEFAULT_PRESET, help=f"optimisation preset (default {DEFAULT_PRESET})")
-        parser.add_argument("--image-guided", metavar="MATERIAL", help=f"no CLIP: recover one of {', '.join(MATERIALS)}")
-        parser.add_argument("--test-clip", action="store_true", help="the tiny random test CLIP (results marked TEST ONLY)")
+        steps = ", ".join(f"{name} ({n} steps)" for name, n in preset_steps().items())
+        presets = f"optimisation preset: {steps} (default {DEFAULT_PRESET})"
+        parser.add_argument("--preset", default=DEFAULT_PRESET, help=presets)  # an unknown one: the run's own one-line error
+        guidance = parser.add_mutually_exclusive_group()
+        guidance.add_argument("--image-guided", metavar="MATERIAL", help=f"no CLIP: recover one of {', '.join(MATERIALS)}")
+        guidance.add_argument("--test-clip", action="store_true", help="the tiny random test CLIP (results marked TEST ONLY)")
         parser.add_argument("--uv", choices=UV_LAYOUTS, help="the UV layout baked into (bake.uv; default auto)")
         parser.add_argument("--name", help="experiment name (default: the mesh's stem and the prompt)")
         parser.add_argument("--config-dir", type=Path, default=CONFIG_DIR, help=f"where the config goes (default {CONFIG_DIR})")

@@ -17,11 +17,16 @@ from .presets import DEFAULT_PRESET, PRESETS
 from .sections import MATERIALS, UV_LAYOUTS, OptimizeSettings
 
 
+def preset_steps() -> dict[str, int]:
+    """Each preset's optimisation steps: its own ``iterations``, else ``optimize.iterations``' default."""
+    default = OptimizeSettings().iterations
+    return {name: int(p.get("iterations", default)) for name, p in PRESETS.items()}
+
+
 def choices() -> dict:
     """The choices (module docstring) as a JSON-ready dictionary."""
-    steps = OptimizeSettings().iterations
     return {
-        "presets": {name: {"iterations": int(p.get("iterations", steps))} for name, p in PRESETS.items()},
+        "presets": {name: {"iterations": n} for name, n in preset_steps().items()},
         "default_preset": DEFAULT_PRESET,
         "materials": list(MATERIALS),
         "uv_layouts": list(UV_LAYOUTS),

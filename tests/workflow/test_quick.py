@@ -284,3 +284,18 @@ def test_a_rigged_animated_glb_through_the_workflow(tmp_path):
     assert [m["name"] for m in jb["materials"]] == ["Body", "Rim"]
     export = json.loads((cell / "export" / "meta.json").read_text())["stats"]
     assert export["topology"].startswith("the input's own") and export["gltf_validation_errors"] == 0
+
+
+def test_the_flags_list_their_choices_and_refuse_two_guidances(tmp_path):
+    """``--help`` lists every preset with its steps; ``--image-guided`` and ``--test-clip`` together
+    stop before anything is written (an unknown preset: test_bad_input_is_refused_before_anything_is_written)."""
+    from stages.config.choices import preset_steps
+
+    proc = quick(tmp_path, "--help")
+    assert proc.returncode == 0
+    text = " ".join(proc.stdout.split())
+    for name, steps in preset_steps().items():
+        assert f"{name} ({steps} steps)" in text
+    proc = quick(tmp_path, "builtin:vase", "a vase", "--image-guided", "wood", "--test-clip", "--dry-run")
+    assert proc.returncode == 2 and "not allowed with argument" in proc.stderr
+    assert not (tmp_path / "config").exists()
