@@ -41,7 +41,7 @@ from pathlib import Path
 from .assets.probes import probe_gltf, probe_node_validator, probe_usd
 from .config.workflow import load_config_files
 from .core.allocator import allocator_plan
-from .core.cli import stage_main
+from .core.cli import add_configfile, stage_main
 from .core.device import (
     bf16_choice,
     bf16_support,
@@ -467,7 +467,7 @@ def main(argv: list[str] | None = None) -> int:
     result = {}
 
     def arguments(parser):
-        parser.add_argument("--configfile", type=Path, nargs="+", default=[Path("config/config.yaml")])
+        add_configfile(parser)
         parser.add_argument("--json", action="store_true", help="print the checks as JSON")
         parser.add_argument(
             "--offline",

@@ -161,8 +161,8 @@ def _material_errors(field, store: ViewStore, targets: TargetSet) -> dict:
 def main(argv: list[str] | None = None) -> int:
     def arguments(parser):
         parser.add_argument("--field", required=True, type=Path)
-        parser.add_argument("--metrics-cache", required=True, type=Path)
-        parser.add_argument("--prompt", required=True)
+        parser.add_argument("--metrics-cache", required=True, type=Path, help="the metric views' ray cache (.npz)")
+        parser.add_argument("--prompt", required=True, help="the prompt's text (CLIP scores the renders against it)")
         parser.add_argument("--candidates", default="[]", help="JSON list of the grid's prompt texts for this mesh")
         parser.add_argument("--out-dir", required=True, type=Path)
         parser.add_argument("--settings", default="{}")

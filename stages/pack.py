@@ -175,8 +175,8 @@ def run(
 def main(argv: list[str] | None = None) -> int:
     def arguments(parser):
         parser.add_argument("--results", type=Path, default=Path("results"))
-        parser.add_argument("--zip", required=True, type=Path)
-        parser.add_argument("--index", required=True, type=Path)
+        parser.add_argument("--zip", required=True, type=Path, help="the asset pack to write (.zip)")
+        parser.add_argument("--index", required=True, type=Path, help="the pack's index to write (JSON)")
         parser.add_argument("--cells", nargs="+", required=True)
         parser.add_argument("--lod-cells", nargs="*", default=[], help="cells whose lod folder is packed too")
 

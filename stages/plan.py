@@ -34,10 +34,11 @@ import sys
 import time
 from pathlib import Path
 
+from .config.choices import COST_KEYS, PRESET_COSTS
 from .config.presets import PRESETS
 from .config.sections import OptimizeSettings
 from .config.workflow import WorkflowConfig, experiment_name, load_config_files
-from .core.cli import stage_main
+from .core.cli import add_configfile, stage_main
 from .core.device import precision_summary, resolve_device
 from .core.errors import StageInputError
 from .core.provenance import write_json_atomic
@@ -50,12 +51,9 @@ from .training.calibrate import seconds_per_step
 log = logging.getLogger(__name__)
 
 REPO = Path(__file__).resolve().parents[1]
-PRESET_COSTS = REPO / "benchmarks" / "figures" / "preset_costs.json"
 #: rules whose jobs are one per cell (besides optimize), and those once per experiment
 PER_CELL = ("bake", "export", "relight", "metrics")
 PER_EXPERIMENT = ("report", "pack", "html_report")
-#: the settings that set what an optimisation costs (compared with the paper's, preset ``paper``)
-COST_KEYS = ("iterations", "views_per_step", "crops", "width")
 #: where calibrations are kept (per settings, device and machine)
 CACHE = Path(".cache/tango-plan")
 #: the rules that run torch (their --device)
@@ -100,6 +98,7 @@ def job_counts(cfg: WorkflowConfig) -> dict[str, int]:
         add(rule, sum(cfg.cell_stage_settings(rule, c.prompt, c.variant).enabled for c in cfg.cells))
     for rule in PER_EXPERIMENT:
         add(rule, 1)
+    add("all", 1)  # the workflow's target rule: Snakemake counts it as a job too
     return counts
 
 
@@ -360,6 +359,7 @@ def make_plan(
     plan = {
         "experiment": experiment,
         "source": cfg.source,
+        "grid": cfg.grid_text(),
         "meshes": len(cfg.grid_meshes),
         "prompts": len({c.prompt for c in cfg.cells}),
         "variants": len(cfg.variants),
@@ -493,6 +493,14 @@ def _jobs(counts: dict[str, int]) -> str:
     return f"{sum(counts.values())} jobs ({', '.join(f'{r} {n}' for r, n in counts.items())})"
 
 
+def _pending(pending: dict[str, int], jobs: dict[str, int]) -> str:
+    """The jobs still to run, said against the experiment's (their rules only where some are done)."""
+    n = sum(pending.values())
+    if pending == jobs:
+        return ", all of them to run now"
+    return f", {n} of them to run now ({', '.join(f'{r} {k}' for r, k in pending.items())})"
+
+
 def duration(seconds: float | None) -> str:
     if seconds is None:
         return "not estimated"
@@ -528,10 +536,9 @@ def estimate_text(plan: dict) -> str:
 def plan_text(plan: dict) -> str:
     jobs = plan["jobs"]
     lines = [
-        f"Plan of experiment {plan['experiment']} ({plan['source']}): {plan['meshes']} meshes x {plan['prompts']} prompts x "
-        f"{plan['variants']} variants = {plan['cells']} cells, {sum(jobs.values())} jobs "
-        f"({', '.join(f'{r} {n}' for r, n in jobs.items())}); {plan['optimisations_done']} of {plan['cells']} optimisations "
-        "already done." + (f" To run now: {_jobs(plan['pending_jobs'])}." if plan.get("pending_jobs") is not None else ""),
+        f"Plan of experiment {plan['experiment']} ({plan['source']}): {plan['grid']}; {_jobs(jobs)}"
+        + (_pending(plan["pending_jobs"], jobs) if plan.get("pending_jobs") is not None else "")
+        + f"; {plan['optimisations_done']} of {plan['cells']} optimisations already done.",
         f"Torch stages ({', '.join(r for r in TORCH_RULES if r in jobs)}) run on {plan['device']} "
         f"(device: {plan['device_setting']}).",
     ]
@@ -568,7 +575,7 @@ def plan_text(plan: dict) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     def arguments(parser):
-        parser.add_argument("--configfile", type=Path, nargs="+", default=[Path("config/config.yaml")])
+        add_configfile(parser)
         parser.add_argument("--results", type=Path, default=Path("results"))
         parser.add_argument("--no-calibrate", action="store_true", help="no calibration run (estimate from earlier runs only)")
         parser.add_argument("--cache", type=Path, default=CACHE, help="where calibrations are kept")

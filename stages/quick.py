@@ -40,10 +40,10 @@ from pathlib import Path
 import yaml
 
 from .assets.layouts import choose_layout
-from .config.choices import preset_steps
+from .config.choices import preset_help
 from .config.presets import DEFAULT_PRESET, PRESETS
 from .config.schema import schema
-from .config.sections import MATERIALS, UV_LAYOUT_WORDS, UV_LAYOUTS
+from .config.sections import MATERIALS, UP_AXES, UV_LAYOUT_WORDS, UV_LAYOUTS, BakeSettings
 from .config.workflow import (
     CONTROL,
     EXPERIMENT_RE,
@@ -97,13 +97,20 @@ def mesh_entry(mesh: str) -> tuple[str, dict]:
     return mesh_id, {"path": str(path.resolve()), "object": path.stem.replace("_", " ")}
 
 
-def experiment_config(
-    mesh: str, prompt: str, name: str, preset: str, image_guided: str | None, test_clip: bool, uv: str | None = None
-) -> dict:
-    """The experiment config of one mesh and one prompt (one cell: the mesh's id is its file's stem,
-    the prompt's id the prompt made an id, :func:`slug`; variant ``base``), and the bake's UV
-    layout where ``uv`` names one."""
+def experiment_config(request: Request, name: str) -> dict:
+    """The experiment config of the request's mesh and prompt (one cell: the mesh's id is its file's
+    stem, the prompt's id the prompt made an id, :func:`slug`; variant ``base``), with the bake's UV
+    layout and overlap threshold and the mesh's up axis where the request names them."""
+    mesh, prompt, preset, image_guided, test_clip = (
+        request.mesh,
+        request.prompt,
+        request.preset,
+        request.image_guided,
+        request.test_clip,
+    )
     mesh_id, entry = mesh_entry(mesh)
+    if request.up_axis is not None:
+        entry["normalize"] = {"up_axis": request.up_axis}
     prompt_entry: dict = {"text": prompt, "preset": preset}
     config: dict = {"experiment": name, "meshes": {mesh_id: entry}, "prompts": {slug(prompt, 40): prompt_entry}}
     if image_guided:
@@ -112,8 +119,9 @@ def experiment_config(
     if test_clip:
         config["optimize"] = {"clip_tiny_test": True}
         config["metrics"] = {**config.get("metrics", {}), "clip_tiny_test": True}
-    if uv is not None:
-        config["bake"] = {"uv": uv}
+    bake = {"uv": request.uv, "uv_max_overlap": request.uv_max_overlap}
+    if any(v is not None for v in bake.values()):
+        config["bake"] = {k: v for k, v in bake.items() if v is not None}
     return config
 
 
@@ -225,7 +233,8 @@ class Request:
     """What the user asks for: a ``mesh`` (a file, or ``builtin:<name>``) and a ``prompt``, the
     optimisation ``preset``, the guidance (CLIP, ``image_guided`` by a procedural material, or the
     tiny ``test_clip``), the experiment's ``name`` (default: the mesh's stem and the prompt) and
-    the bake's ``uv`` layout (``bake.uv``; None: the config's, ``auto``)."""
+    the bake's ``uv`` layout (``bake.uv``; None: the config's, ``auto``), its ``uv_max_overlap``
+    and the mesh's ``up_axis`` (``normalize.up_axis``; None: the config's)."""
 
     mesh: str
     prompt: str
@@ -234,6 +243,8 @@ class Request:
     test_clip: bool = False
     name: str | None = None
     uv: str | None = None
+    uv_max_overlap: float | None = None
+    up_axis: str | None = None
 
 
 @dataclass(frozen=True)
@@ -274,7 +285,7 @@ def run(request: Request, launch: Launch = Launch()) -> int:
     name = request.name or slug(f"{mesh_entry(mesh)[0]}-{slug(prompt, 40)}", max_id())
     path = Path(launch.config_dir) / f"{name}.yaml"
     check_name(name, path, launch.force)
-    config = experiment_config(mesh, prompt, name, preset, image_guided, request.test_clip, request.uv)
+    config = experiment_config(request, name)
     configfiles = [path, *overlays]
     merged = config
     for overlay in overlays:
@@ -314,24 +325,48 @@ def main(argv: list[str] | None = None) -> int:
     def arguments(parser):
         parser.add_argument("mesh", help="the mesh file (OBJ, PLY, STL, OFF, GLB, GLTF), or builtin:vase|candle|knot")
         parser.add_argument("prompt", help='what it should look like, e.g. "a vase made of wood"')
-        steps = ", ".join(f"{name} ({n} steps)" for name, n in preset_steps().items())
-        presets = f"optimisation preset: {steps} (default {DEFAULT_PRESET})"
+        presets = (
+            f"optimisation preset: {preset_help()} (default {DEFAULT_PRESET}; the times: one optimisation under image "
+            "guidance on a 2-core CPU, measured; --dry-run estimates this mesh's here)"
+        )
         parser.add_argument("--preset", default=DEFAULT_PRESET, help=presets)  # an unknown one: the run's own one-line error
         guidance = parser.add_mutually_exclusive_group()
         guidance.add_argument("--image-guided", metavar="MATERIAL", help=f"no CLIP: recover one of {', '.join(MATERIALS)}")
         guidance.add_argument("--test-clip", action="store_true", help="the tiny random test CLIP (results marked TEST ONLY)")
         parser.add_argument("--uv", choices=UV_LAYOUTS, help="the UV layout baked into (bake.uv; default auto)")
+        parser.add_argument(
+            "--uv-max-overlap",
+            type=float,
+            metavar="SHARE",
+            help=f"the share of faces (0-1) that may overlap in the input's UV layout for it to be kept (bake.uv_max_overlap; "
+            f"default {BakeSettings().uv_max_overlap:g})",
+        )
+        parser.add_argument(
+            "--up-axis",
+            choices=("auto", *UP_AXES),
+            help="the mesh's up axis, turned to +y (normalize.up_axis; default +y; auto: the format's or a guess)",
+        )
         parser.add_argument("--name", help="experiment name (default: the mesh's stem and the prompt)")
         parser.add_argument("--config-dir", type=Path, default=CONFIG_DIR, help=f"where the config goes (default {CONFIG_DIR})")
         parser.add_argument(
             "--overlay", type=Path, action="append", default=[], help="a config file laid over the written one (repeatable)"
         )
-        parser.add_argument("--cores", type=int, default=2)
+        parser.add_argument("--cores", type=int, default=2, help="CPU cores Snakemake may use (default 2)")
         parser.add_argument("--dry-run", action="store_true", help="write the config and print the plan; run nothing")
         parser.add_argument("--force", action="store_true", help="replace an existing config of this name with other settings")
 
     def body(args):
-        request = Request(args.mesh, args.prompt, args.preset, args.image_guided, args.test_clip, args.name, args.uv)
+        request = Request(
+            args.mesh,
+            args.prompt,
+            args.preset,
+            args.image_guided,
+            args.test_clip,
+            args.name,
+            args.uv,
+            args.uv_max_overlap,
+            args.up_axis,
+        )
         launch = Launch(args.config_dir, tuple(args.overlay), args.cores, args.dry_run, args.force)
         result["code"] = run(request, launch)
 

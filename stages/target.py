@@ -147,7 +147,7 @@ def main(argv: list[str] | None = None) -> int:
         )
         parser.add_argument("--train", required=True, type=Path, help="training ray cache (.npz)")
         parser.add_argument("--metrics", required=True, type=Path, help="metric-view ray cache (.npz)")
-        parser.add_argument("--material", required=True, choices=MATERIALS)
+        parser.add_argument("--material", required=True, choices=MATERIALS, help="the procedural material to render")
         parser.add_argument("--out-dir", required=True, type=Path)
         parser.add_argument("--settings", default="{}", help="JSON of the target settings")
 

@@ -316,9 +316,10 @@ def _refuse(setting: str, source: str | None, why: str, check: LayoutCheck | Non
     """A new atlas under ``auto`` (the reason logged and recorded); under ``keep`` or ``second`` a
     stop, one line naming the setting and ``why``."""
     if setting in ("keep", SECOND):
-        raise StageInputError(
-            source or "the mesh", f"bake.uv: {setting}, but {why}", "Set bake.uv: auto or atlas to bake into a new atlas."
-        )
+        remedy = "Set bake.uv: auto or atlas to bake into a new atlas"
+        if "bake.uv_max_overlap" in why:
+            remedy += ", or raise bake.uv_max_overlap (stages.quick: --uv-max-overlap) to bake over the overlap"
+        raise StageInputError(source or "the mesh", f"bake.uv: {setting}, but {why}", remedy + ".")
     log.info("bake.uv: auto: a new atlas, because %s", why)
     return UvChoice(setting, ATLAS, f"auto: {why}", check)
 

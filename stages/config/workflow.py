@@ -23,7 +23,7 @@ from functools import cache
 from pathlib import Path
 from typing import Any
 
-from ..core.cli import stage_main
+from ..core.cli import add_configfile, stage_main
 from ..core.errors import ConfigError
 from .presets import PRESETS
 from .schema import PROMPT_CHARS, schema
@@ -433,6 +433,20 @@ class WorkflowConfig:
     def cells(self) -> list[Cell]:
         return [Cell(m, p, v) for m, p in self.pairs for v in self.variants]
 
+    def grid_text(self) -> str:
+        """The grid in words, as it is made: ``"2 meshes x 2 prompts x 1 variant = 4 cells"`` where
+        every mesh meets every prompt, else ``"2 mesh/prompt pairs x 1 variant = 2 cells"``."""
+
+        def count(n: int, word: str, plural: str = "") -> str:
+            return f"{n} {word if n == 1 else plural or word + 's'}"
+
+        meshes, prompts = len(self.grid_meshes), len({p for _, p in self.pairs})
+        if len(self.pairs) == meshes * prompts:
+            made = f"{count(meshes, 'mesh', 'meshes')} x {count(prompts, 'prompt')}"
+        else:
+            made = count(len(self.pairs), "mesh/prompt pair")
+        return f"{made} x {count(len(self.variants), 'variant')} = {count(len(self.cells), 'cell')}"
+
     # ---- per-mesh --------------------------------------------------------------------------
     def mesh_source(self, mesh_id: str) -> str:
         entry = self.meshes[mesh_id]
@@ -671,11 +685,14 @@ def main(argv: list[str] | None = None) -> int:
     (``results/meshes/<mesh>/<key>``; the folders of other keys serve other experiments or none)."""
 
     def arguments(parser):
-        parser.add_argument(
-            "--configfile", type=Path, nargs="+", default=[Path("config/config.yaml")], help="as snakemake's (later files win)"
-        )
+        add_configfile(parser)
         parser.add_argument("--cell", help="mesh/prompt/variant")
-        parser.add_argument("--stage", default="optimize", choices=("optimize", *CELL_STAGES, *MESH_STAGES))
+        parser.add_argument(
+            "--stage",
+            default="optimize",
+            choices=("optimize", *CELL_STAGES, *MESH_STAGES),
+            help="whose settings --cell explains (default optimize)",
+        )
         parser.add_argument("--json", action="store_true", help="print JSON instead of a table")
         parser.add_argument("--mesh-work", action="store_true", help="print the experiment's mesh-level work folders")
         parser.add_argument(
@@ -686,11 +703,10 @@ def main(argv: list[str] | None = None) -> int:
         cfg, experiment = workflow_config(args.configfile)
         files = ", ".join(map(str, args.configfile))
         if args.check:  # refused by now if the workflow's start would refuse it
-            meshes, prompts = len(cfg.grid_meshes), len({c.prompt for c in cfg.cells})
             doctor = "python -m stages.doctor --configfile " + " ".join(map(str, args.configfile))
             sys.stdout.write(
-                f"{files}: a valid config of {len(cfg.cells)} cells ({meshes} meshes x {prompts} prompts x "
-                f"{len(cfg.variants)} variants); no template, every key within its bounds; experiment {experiment!r}. "
+                f"{files}: a valid config of {cfg.grid_text()}; no template, every key within its bounds; "
+                f"experiment {experiment!r}. "
                 f"Whether its weights and tools are here: {doctor}\n"
             )
             return

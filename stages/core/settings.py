@@ -285,7 +285,17 @@ class Settings:
 
     @classmethod
     def from_json(cls, text: str | None) -> Self:
-        return cls.from_dict(json.loads(text) if text else {})
+        """The settings from ``--settings``' JSON object; malformed JSON is a one-line :class:`ConfigError`."""
+        try:
+            data = json.loads(text) if text else {}
+        except json.JSONDecodeError as exc:
+            raise ConfigError(
+                f"--settings for '{cls.section}' is not valid JSON ({exc.msg} at column {exc.colno}); "
+                f"give one JSON object of '{cls.section}' keys with double-quoted names"
+            ) from None
+        if not isinstance(data, dict):
+            raise ConfigError(f"--settings for '{cls.section}' must be a JSON object of keys, got {type(data).__name__}")
+        return cls.from_dict(data)
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)

@@ -201,7 +201,11 @@ def test_the_check_reads_overlays_as_the_workflow_merges_them(tmp_path, capsys):
     overlay.write_text(yaml.safe_dump({"optimize": {"image_size": 32}}))
     assert main(["--configfile", str(base), "--check"]) == 0
     out = capsys.readouterr().out
-    assert "a valid config of 1 cells" in out and "experiment 'base'" in out and "python -m stages.doctor" in out
+    assert (
+        "a valid config of 1 mesh x 1 prompt x 1 variant = 1 cell" in out
+        and "experiment 'base'" in out
+        and "python -m stages.doctor" in out
+    )
     assert main(["--configfile", str(base), str(overlay), "--check"]) == 2
     assert "set image_size: 64" in capsys.readouterr().err
 

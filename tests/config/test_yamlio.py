@@ -96,7 +96,7 @@ def test_the_check_command_reads_a_received_config_as_data(tmp_path, capsys, mon
     good = tmp_path / "good.yaml"
     good.write_text(BASE)
     assert main(["--configfile", str(good), "--check"]) == 0
-    assert "a valid config of 1 cells (1 meshes x 1 prompts x 1 variants); no template" in capsys.readouterr().out
+    assert "a valid config of 1 mesh x 1 prompt x 1 variant = 1 cell; no template" in capsys.readouterr().out
     bad = tmp_path / "yte.yaml"
     bad.write_text("__use_yte__: true\n" + BASE)
     assert main(["--configfile", str(bad), "--check"]) == 2

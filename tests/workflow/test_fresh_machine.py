@@ -152,7 +152,7 @@ def test_offline_demo_stops_at_once_naming_what_to_install(machine):
         env,
     )
     assert proc.returncode == 0, proc.stderr[-3000:]
-    assert "tools this run needs are missing" not in proc.stderr and "To run now: 3 jobs (normalize 3)" in proc.stderr
+    assert "tools this run needs are missing" not in proc.stderr and "3 of them to run now (normalize 3)" in proc.stderr
 
 
 @pytest.mark.slow(minutes=1)

@@ -5,6 +5,7 @@ written or run. (Its image-guided run on a fresh machine: tests/workflow/test_fr
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 import time
@@ -129,7 +130,7 @@ def test_ids_built_ins_overlays_and_a_second_run(tmp_path):
     assert list(config["meshes"]) == ["report-mesh"]  # not the report's own folder
     (prompt_id,) = config["prompts"]
     assert prompt_id == slug("一个木花瓶", 40) and written.stem == f"report-mesh-{prompt_id}"
-    assert "1 meshes x 1 prompts x 1 variants" in proc.stdout  # the overlay's variant, no 'base' assumed
+    assert "1 mesh x 1 prompt x 1 variant = 1 cell" in proc.stdout  # the overlay's variant, no 'base' assumed
     # the same command again: nothing rewritten (a comment added by hand survives)
     written.write_text(written.read_text() + "# my note\n")
     assert quick(tmp_path, *args).returncode == 0 and written.read_text().endswith("# my note\n")
@@ -260,6 +261,31 @@ def test_the_uv_layout_is_decided_and_said_before_anything_runs(tmp_path):
     assert not (tmp_path / "config" / "quick" / "vk.yaml").exists()
 
 
+def test_the_overlap_threshold_and_the_up_axis_from_the_command(tmp_path):
+    """A layout folded over itself: ``--uv keep`` stops naming the threshold and the flag that
+    raises it; with ``--uv-max-overlap 1`` it is kept, and the value and ``--up-axis`` land in the
+    written config (the mesh's own ``normalize`` entry); a value out of range is one line."""
+    import uvmeshes
+
+    folded = tmp_path / "folded.glb"
+    uvmeshes.skinned_glb(folded, fold=True)
+    proc = quick(tmp_path, str(folded), "a vase", "--test-clip", "--uv", "keep", "--name", "f1", "--dry-run")
+    assert proc.returncode == 2 and "(bake.uv_max_overlap: 0.01;" in proc.stderr, proc.stderr[-2000:]
+    assert "or raise bake.uv_max_overlap (stages.quick: --uv-max-overlap) to bake over the overlap" in proc.stderr
+    args = ("--test-clip", "--uv", "keep", "--uv-max-overlap", "1", "--up-axis", "+z", "--name", "f2", "--dry-run")
+    proc = quick(tmp_path, str(folded), "a vase", *args)
+    assert proc.returncode == 0 and "UV layout: the input's own (usable: " in proc.stdout, proc.stderr[-2000:]
+    config = yaml.safe_load((tmp_path / "config" / "quick" / "f2.yaml").read_text())
+    assert config["bake"] == {"uv": "keep", "uv_max_overlap": 1.0}
+    assert config["meshes"]["folded"]["normalize"] == {"up_axis": "+z"}
+    proc = quick(tmp_path, str(folded), "a vase", "--test-clip", "--uv-max-overlap", "2", "--name", "f3", "--dry-run")
+    assert proc.returncode == 2 and "uv_max_overlap" in proc.stderr and "Traceback" not in proc.stderr
+    assert (
+        sum("ERROR" in line for line in proc.stderr.splitlines()) == 1
+        and not (tmp_path / "config" / "quick" / "f3.yaml").exists()
+    )
+
+
 @pytest.mark.slow(minutes=1)
 def test_a_rigged_animated_glb_through_the_workflow(tmp_path):
     """A skinned, animated, two-material GLB with its own UV layout through the whole workflow:
@@ -295,7 +321,10 @@ def test_the_flags_list_their_choices_and_refuse_two_guidances(tmp_path):
     assert proc.returncode == 0
     text = " ".join(proc.stdout.split())
     for name, steps in preset_steps().items():
-        assert f"{name} ({steps} steps)" in text
+        assert f"{name} ({steps:,} steps" in text
+    # with the optimisation's measured time: rough and metal cost what paper does (COST_KEYS)
+    assert re.search(r"rough \(1,500 steps, [0-9.]+-[0-9.]+ min as paper\)", text), text
+    assert "--uv-max-overlap" in text and "--up-axis" in text
     proc = quick(tmp_path, "builtin:vase", "a vase", "--image-guided", "wood", "--test-clip", "--dry-run")
     assert proc.returncode == 2 and "not allowed with argument" in proc.stderr
     assert not (tmp_path / "config").exists()

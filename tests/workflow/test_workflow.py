@@ -211,7 +211,7 @@ def test_smoke_run(tmp_path_factory, tmp_path):
     # the plan, printed before the first job: the cells, the jobs to run, the device, an estimate
     plan = proc.stderr[proc.stderr.index("Plan of experiment smoke") :]
     assert "2 meshes x 2 prompts x 2 variants = 8 cells" in plan and "(device: auto)" in plan
-    assert "To run now: " in plan and "optimize 8" in plan and "Estimated wall time on this machine" in plan
+    assert "to run now" in plan and "optimize 8" in plan and "Estimated wall time on this machine" in plan
     # progress: each optimisation's short line reaches Snakemake's terminal; the logs have theirs
     for cell in ("vase/wood/full", "knot/gold/second"):
         assert f"[optimize {cell}] 3/3 it, " in proc.stdout, proc.stdout[-2000:]
