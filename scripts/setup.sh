@@ -2,9 +2,11 @@
 # Create (or refresh) the project's virtual environment in .venv.
 #
 # - Keeps a torch that is already installed in .venv (GPU users install their CUDA build first,
-#   see README); otherwise installs torch==2.13.0, which resolves to the CPU build on a machine
-#   that has it as a local wheel, and then pins whatever torch is present for every later install
-#   so no dependency can swap it for a multi-GB CUDA build.
+#   see README); otherwise installs torch==2.13.0: without an NVIDIA driver from PyTorch's CPU
+#   wheel index, with one from the default index (scripts/torch_index.py decides and says which;
+#   TANGO_TORCH_INDEX names another index, or "default"; an index that cannot be reached falls back
+#   to the default one with a warning), and then pins whatever torch is present for every later
+#   install so no dependency can swap it for a multi-GB CUDA build.
 # - Points Snakemake's cache at .cache/ inside the project (in .venv/bin/activate).
 # - Idempotent and quick when nothing changed (a stamp file records the last successful set-up).
 set -euo pipefail
@@ -30,8 +32,10 @@ fi
 
 export PIP_DISABLE_PIP_VERSION_CHECK=1
 if ! .venv/bin/python -c "import torch" >/dev/null 2>&1; then
+    index_args=$("$py" scripts/torch_index.py)
     echo "setup: installing torch==${TORCH_VERSION:-2.13.0}"
-    .venv/bin/pip install --quiet "torch==${TORCH_VERSION:-2.13.0}"
+    # shellcheck disable=SC2086 # the index arguments are words
+    .venv/bin/pip install --quiet "torch==${TORCH_VERSION:-2.13.0}" $index_args
 fi
 torch_version=$(.venv/bin/python -c "import torch; print(torch.__version__.split('+')[0])" 2>/dev/null)
 echo "torch==$torch_version" > .venv/constraints.txt
