@@ -16,7 +16,7 @@ from conftest import REPO
 from stages.core.cli import plain_text
 
 #: every ``python -m`` command of the library that parses arguments through stage_main
-COMMANDS = sorted(p.stem for p in (REPO / "stages").glob("*.py") if p.stem != "__init__") + ["config"]
+COMMANDS = sorted(p.stem for p in (REPO / "stages").glob("*.py") if not p.stem.startswith("__")) + ["config"]
 #: what reStructuredText leaves in text that was not converted
 REST = ("``", ":func:", ":mod:", ":data:", ":class:", ":meth:", ":ref:", "`")
 
@@ -99,3 +99,32 @@ def test_configfile_after_one_flag_or_repeated_as_snakemake_takes_it(tmp_path):
     proc = run("stages.config", "--check")  # none given: config/config.yaml, as before
     assert proc.returncode == 0 and "config/config.yaml" in proc.stdout
     assert Path(REPO, "config", "config.yaml").is_file()
+
+
+def test_the_tango_command_fronts_the_everyday_commands(tmp_path):
+    """``tango`` (pyproject's console script, also ``python -m stages``): its commands, each the
+    module's own arguments; an unknown one is one line."""
+    from stages import __version__
+    from stages.__main__ import COMMANDS
+
+    tango = Path(sys.executable).with_name("tango")
+    assert tango.is_file(), f"{tango} missing: pip install -e . (bash scripts/setup.sh) installs the console command"
+
+    def front(*args: str) -> subprocess.CompletedProcess:
+        return subprocess.run([str(tango), *args], cwd=REPO, capture_output=True, text=True, timeout=300)
+
+    proc = front("--help")
+    assert proc.returncode == 0 and all(f"  {name} " in proc.stdout for name in COMMANDS)
+    assert front("--version").stdout.strip() == f"tango-stylize {__version__}"
+    proc = front("check", "config/demo.yaml")
+    assert proc.returncode == 0 and "config/demo.yaml: a valid config of 2 mesh/prompt pairs x 1 variant" in proc.stdout
+    proc = front("plan", "--configfile", "config/demo.yaml", "--no-calibrate", "--results", str(tmp_path), "--json")
+    assert proc.returncode == 0 and json.loads(proc.stdout)["experiment"] == "demo"
+    proc = front("quick", "--help")
+    assert proc.returncode == 0 and "--uv-max-overlap" in proc.stdout
+    proc = front("demo", "--dry-run", "--directory", str(tmp_path))
+    assert proc.returncode == 0 and "This was a dry-run" in proc.stdout + proc.stderr, proc.stderr[-2000:]
+    proc = front("stylise")
+    assert proc.returncode == 2 and proc.stderr.strip() == (
+        "tango: unknown command 'stylise': use one of demo, quick, doctor, plan, check (tango --help)"
+    )

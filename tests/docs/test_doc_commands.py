@@ -52,6 +52,7 @@ from unittest import mock
 import pytest
 from conftest import REPO, SHARED_MESHES, exclusive, snakemake_env
 
+from stages.__main__ import COMMANDS, equivalent
 from stages.config.presets import PRESETS
 from stages.config.sections import MATERIALS
 
@@ -120,7 +121,7 @@ INPUT_SUFFIXES = (".yaml", ".yml", ".obj", ".ply", ".stl", ".off", ".glb", ".glt
 
 COMMAND_START = re.compile(
     r"^(?:python -m (?:stages|benchmarks)\b|python (?:benchmarks|scripts)/|snakemake(?:\s|$)|bash scripts/|python -m http\.server"
-    r"|mkdocs\s)"
+    r"|mkdocs\s|tango\s)"
 )
 #: what may come before a command: a subshell, the environment's activation, ``time``, ``.venv/bin/``
 COMMAND_PREFIX = re.compile(r"^(?:\(\s*|source \.venv/bin/activate\s*&&\s*|time\s+|\.venv/bin/)+")
@@ -334,6 +335,8 @@ def _normalise(words: list[str]) -> list[str]:
         words = words[1:]
     if words and words[0].startswith(".venv/bin/"):
         words = [words[0].removeprefix(".venv/bin/"), *words[1:]]
+    if len(words) > 1 and words[0] == "tango" and words[1] in COMMANDS:
+        words = equivalent(words[1:])  # the front command checked as the command it stands for
     return words
 
 

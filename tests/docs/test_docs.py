@@ -114,7 +114,18 @@ def test_site_builds_strictly(tmp_path):
         timeout=300,
     )
     assert out.returncode == 0, f"mkdocs build --strict failed:\n{out.stdout}\n{out.stderr}"
-    assert (tmp_path / "site" / "reference" / "configuration" / "index.html").is_file()
+    site = tmp_path / "site"
+    assert (site / "reference" / "configuration" / "index.html").is_file()
+    # offline: MathJax served with the site, and no page loads a script or style from elsewhere
+    assert (site / "javascripts" / "vendor" / "mathjax" / "tex-svg.js").stat().st_size > 1_000_000
+    fetched = {
+        (page.relative_to(site).as_posix(), url)
+        for page in site.rglob("*.html")
+        for url in re.findall(r'<(?:script|link)[^>]+(?:src|href)="(https?://[^"]+)"', page.read_text())
+    }
+    assert not fetched, f"pages that fetch from the network: {sorted(fetched)[:5]}"
+    method = (site / "method" / "brdf" / "index.html").read_text()
+    assert "javascripts/vendor/mathjax/tex-svg.js" in method and "arithmatex" in method
 
 
 # ---------------------------------------------------------------------------- the README and links
