@@ -25,6 +25,7 @@ from typing import Any
 
 from ..core.cli import add_configfile, stage_main
 from ..core.errors import ConfigError
+from ..core.shipped import shipped_archive
 from .presets import PRESETS
 from .schema import PROMPT_CHARS, schema
 from .sections import FACE_BUDGET_FIELDS, PATH_PATTERN, SECTIONS, OptimizeSettings
@@ -453,11 +454,16 @@ class WorkflowConfig:
         return f"builtin:{entry['builtin']}" if "builtin" in entry else entry["path"]
 
     def mesh_file(self, mesh_id: str) -> str | None:
-        """The mesh's file when it is a file that exists (Snakemake input), else None."""
+        """The mesh's file when it is a file that exists (Snakemake input), else None; for a mesh
+        that travels with the project compressed, its archive (the same input before and after the
+        first run unpacks it, :mod:`stages.core.shipped`)."""
         entry = self.meshes[mesh_id]
-        if "path" in entry and Path(entry["path"]).is_file():
-            return entry["path"]
-        return None
+        if "path" not in entry:
+            return None
+        archive = shipped_archive(entry["path"])
+        if archive is not None:
+            return str(archive)
+        return entry["path"] if Path(entry["path"]).is_file() else None
 
     def stage_dict(self, mesh_id: str, stage: str) -> dict[str, Any]:
         """Global section of ``stage`` updated by the mesh's own override (shallow, per key)."""

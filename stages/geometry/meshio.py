@@ -16,6 +16,7 @@ import numpy as np
 
 from ..core.errors import StageInputError
 from ..core.safefiles import DATA_LIMIT, atomic_stream, open_read, read_bytes, require_plain_file, user_file
+from ..core.shipped import ensure_unpacked
 from .normals import unit_face_normals
 from .shapes import BUILTIN_NAMES, builtin_mesh
 from .sourcemesh import read_gltf_file
@@ -75,6 +76,7 @@ def load_mesh(source: str | Path, given_in: str = "the config") -> TriMesh:
         return check_mesh(TriMesh(v, f), source_str)
 
     path = Path(source)
+    ensure_unpacked(path)  # a mesh that travels with the project compressed (meshes/*.obj.xz)
     if not path.exists():
         raise StageInputError(path, "file not found", f"Check the mesh path in {given_in}.")
     if not path.is_file():

@@ -176,3 +176,14 @@ def test_readme_test_command_is_the_one_ci_runs():
     assert ci_commands[0] in readme_lines, (
         f"the README's test command differs from the one .ci/run runs ({ci_commands[0]!r}): keep them word for word"
     )
+
+
+#: the pages a user reads (the development pages describe a developer checkout)
+USER_PAGES = [README, REPO / "config" / "README.md", *(p for p in sorted(DOCS.rglob("*.md")) if "development" not in p.parts)]
+
+
+def test_no_user_page_names_the_development_only_folder():
+    """A user's clone has no ../shared: the meshes the shipped configs and the documented commands
+    use travel with the project (meshes/)."""
+    named = [p.relative_to(REPO).as_posix() for p in USER_PAGES if "../shared" in p.read_text()]
+    assert not named, f"user pages that name ../shared, which only a developer checkout has: {named}"
