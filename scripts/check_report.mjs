@@ -9,6 +9,9 @@
 //       a cell page: console errors, every file it requested, its 3D viewer loaded (with the
 //       learned light, then the studio light: SHOT and SHOT's name + _studio), a gallery
 //       thumbnail clicked; --page-shot: the first screen of the page (the README's picture)
+//   node scripts/check_report.mjs downloads PAGE SHOT --into DIR
+//       every download link (a[download]) clicked: the browser's download saved into DIR as
+//       <k>-<suggested name>, with the link's href, label and the download's failure (null)
 //   node scripts/check_report.mjs single PAGE SHOT
 //       a one-file report: every viewer scrolled into view and loaded; a screenshot of the first
 //
@@ -24,7 +27,7 @@ const browser = await chromium.launch({
   args: ["--no-sandbox", "--disable-gpu", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
          "--disable-background-networking", "--disable-component-update", "--disable-sync", "--no-first-run"],
 });
-const page = await browser.newPage({ viewport: { width: 1400, height: 1000 } });
+const page = await browser.newPage({ viewport: { width: 1400, height: 1000 }, acceptDownloads: true });
 const errors = [];
 const requests = [];
 page.on("console", (m) => { if (m.type() === "error") errors.push(m.text()); });
@@ -128,8 +131,26 @@ if (mode === "index") {
       return g.querySelector("img.main").getAttribute("src") === g.querySelectorAll(".picks img")[1].getAttribute("src");
     });
   }
+} else if (mode === "downloads") {
+  // every download link of the page clicked as a reader would: the browser's download saved under
+  // --into DIR as <k>-<suggested name>; what each link said and what arrived
+  await page.goto(url, { waitUntil: "load" });
+  const into = option("--into") || ".";
+  const anchors = page.locator("a[download]");
+  out.downloads = [];
+  for (let i = 0; i < await anchors.count(); i++) {
+    const a = anchors.nth(i);
+    const link = await a.evaluate((el) => ({ href: el.getAttribute("href"), name: el.getAttribute("download"), label: el.textContent }));
+    try {
+      const [download] = await Promise.all([page.waitForEvent("download", { timeout: 30000 }), a.click()]);
+      const saved = `${into}/${i}-${download.suggestedFilename()}`;
+      await download.saveAs(saved);
+      out.downloads.push({ ...link, suggested: download.suggestedFilename(), saved, failure: await download.failure() });
+    } catch (e) { errors.push("download " + link.href + ": " + e); }
+  }
+  await page.screenshot({ path: shot });
 } else {
-  errors.push("unknown mode " + mode + " (index, cell or single)");
+  errors.push("unknown mode " + mode + " (index, cell, single or downloads)");
 }
 await browser.close();
 process.stdout.write(JSON.stringify(out) + "\n");

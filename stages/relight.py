@@ -35,7 +35,7 @@ from .core.safefiles import remove
 from .geometry.raycache import RayCache
 from .imaging.images import render_cached_view
 from .imaging.relit import comparison_rows, grade_relighting
-from .imaging.sheets import contact_sheet, save_png
+from .imaging.sheets import annotate, contact_sheet, save_png
 from .imaging.targets import TargetSet, load_relit
 from .imaging.views import ViewStore
 from .model.checkpoint import load_field
@@ -68,7 +68,18 @@ def _truth_sheet(store: ViewStore, relit, renders: dict, width: int) -> np.ndarr
     elevation = store.cache.arrays["elevation"]
     ring = np.flatnonzero(np.isclose(elevation, elevation[store.cache.front_view()]))[:TRUTH_SHEET_VIEWS].tolist()
     images = [img for r in relit for img in comparison_rows(store, ring, renders[r.environment], r.radiance, width)]
-    return contact_sheet(images, len(ring))
+    rows = [f"{r.environment}: {what}" for r in relit for what in ("ours, relit", "Mitsuba, true material", "4 x |difference|")]
+    return annotate(
+        contact_sheet(images, len(ring)),
+        f"Relit against the truth, held-out views at elevation {float(elevation[ring[0]]):.0f} deg (sRGB)",
+        columns=_azimuth_labels(store, ring),
+        rows=rows,
+        scale=("0", "0.25", "|difference| of sRGB values, per channel, times 4 (clipped at 0.25)"),
+    )
+
+
+def _azimuth_labels(store: ViewStore, views: list[int]) -> list[str]:
+    return [f"azimuth {float(store.cache.arrays['azimuth'][i]):.0f} deg" for i in views]
 
 
 def run(
@@ -104,19 +115,32 @@ def run(
     with staged_outputs(out_dir) as staging:
         with timer("render"):
             views = [render_edit(field, store[i], store.width, settings.width, light) for i in range(len(store))]
-            save_png(staging / "relit.png", contact_sheet(views, len(store.azimuths())))
+            title = f"Relit under {settings.envmap}: the evaluation views (sRGB)"
+            save_png(staging / "relit.png", annotate(contact_sheet(views, len(store.azimuths())), title))
             front = store.cache.front_view()
             grid = [
                 render_edit(field, store[front], store.width, settings.width, light, MaterialEdit(rs, ss))
                 for rs in settings.roughness_scales
                 for ss in settings.specular_scales
             ]
-            save_png(staging / "material_edit.png", contact_sheet(grid, len(settings.specular_scales)))
+            edit = annotate(
+                contact_sheet(grid, len(settings.specular_scales)),
+                f"Material editing, front view under {settings.envmap}",
+                columns=[f"specular x {x:g}" for x in settings.specular_scales],
+                rows=[f"roughness x {x:g}" for x in settings.roughness_scales],
+            )
+            save_png(staging / "material_edit.png", edit)
             h, w = env.shape[:2]
             fit = light.equirect(h, w).cpu().numpy()
             top = max(float(env.max()), 1e-12)
             both = np.concatenate([env, fit], axis=0) / top
-            save_png(staging / "light_fit.png", to_u8(srgb_encode(both)))
+            fitted_sheet = annotate(
+                to_u8(srgb_encode(both)),
+                f"{settings.envmap} (equirectangular) and its fit",
+                rows=[settings.envmap, f"its fit ({settings.lobes} SG lobes)"],
+                scale=("0", f"{top:.3g}", "radiance, both divided by the map's peak (sRGB encoded)"),
+            )
+            save_png(staging / "light_fit.png", fitted_sheet)
         ground_truth = []
         if graded:
             with timer("ground_truth"):

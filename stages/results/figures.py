@@ -26,6 +26,10 @@ log = logging.getLogger(__name__)
 PALETTE = ("tab:blue", "tab:orange", "tab:green", "tab:purple", "tab:brown", "tab:pink", "tab:olive", "tab:cyan")
 
 
+#: the speed/accuracy figure's title (the report's index shows it in its speed/accuracy section)
+SPEED_ACCURACY_TITLE = "Speed / accuracy per mesh x prompt"
+
+
 def _pyplot():
     import matplotlib
 
@@ -73,7 +77,7 @@ def speed_accuracy_figures(out_dir: Path, groups: list[Group], panels: int) -> l
     over its seeds, bars = one standard deviation), the group's Pareto front and its knee; the
     configurations of one sweep factor are joined to the reference by a line of their colour.
     Never across meshes or prompts."""
-    title = "Speed / accuracy per mesh x prompt"
+    title = SPEED_ACCURACY_TITLE
     tradeoffs = [(g, trade_off(g)) for g in groups]
     drawn = [(g, t) for g, t in tradeoffs if len(t) >= 2]
     if not drawn:

@@ -28,7 +28,9 @@ import base64
 import hashlib
 import json
 import logging
+import os
 import re
+import zipfile
 from collections.abc import Callable
 from pathlib import Path
 
@@ -54,6 +56,7 @@ from ..core.safefiles import (
     remove_tree,
     replace,
 )
+from .figures import SPEED_ACCURACY_TITLE
 from .spreadsheet import read_spreadsheet_csv
 from .summary import quality_of, summary_columns
 
@@ -77,6 +80,7 @@ CELL_FILES = (
     *(("optimize/renders", f"{kind}.png", f"render_{kind}.png") for kind in (*RENDER_KINDS, "target", "light")),
     ("optimize", "loss.png", "loss.png"),
     ("export", VIEWER_FILE, VIEWER_FILE),  # the export format the viewer reads (config.layout)
+    ("export", "model.usdz", "model.usdz"),
     ("export", "light.hdr", "light.hdr"),
     ("export", "preview.png", "preview.png"),
     ("relight", "relit.png", "relit.png"),
@@ -93,6 +97,18 @@ TEMPLATES = WEB / "templates"
 #: a texture map's name as the export writes it (``textures/<name>.png``); other files found there are not shown
 TEXTURE_NAME = re.compile(r"[A-Za-z0-9_-]{1,64}")
 MIME = {".png": "image/png", ".glb": "model/gltf-binary", ".hdr": "image/vnd.radiance"}
+
+
+#: the texture set a cell page offers, zipped (``textures/<map>.png`` inside)
+TEXTURES_ZIP = "textures.zip"
+#: the run's asset pack, beside the report's index (the pack stage's output)
+PACK = "asset_pack.zip"
+#: what a cell offers to download: (name in the cell's page folder, label, what it is)
+DOWNLOADS = (
+    (VIEWER_FILE, "GLB", "glTF 2.0 binary: the mesh, its PBR textures and the learned lights"),
+    ("model.usdz", "USDZ", "USD package: the mesh, its UsdPreviewSurface textures and the learned light"),
+    (TEXTURES_ZIP, "textures", "the baked texture set as PNG files, zipped"),
+)
 
 
 # ---- shared pieces ---------------------------------------------------------------------------
@@ -236,24 +252,6 @@ def fidelity_lines(row) -> list[str]:
         if rough is not None:
             text += f", roughness MAE {rough:.3f}"
         lines.append(text)
-    ours = _entries(row, "relit_psnr_db")
-    if ours is not None:
-
-        def per_environment(column: str, missing=None) -> list:
-            entries = _entries(row, column)  # (a figure not every environment has cannot be told apart)
-            return entries if entries is not None and len(entries) == len(ours) else [missing] * len(ours)
-
-        envs = per_environment("relit_environments", "?")
-        ceilings, scaled = per_environment("relit_ceiling_psnr_db"), per_environment("relit_psnr_scaled_db")
-        factors = per_environment("relit_scale")
-        parts = [
-            f"{env}: {q:.2f} dB"
-            + (f", {a:.2f} dB after a scale per channel" if a is not None else "")
-            + (f" (x {', '.join(f'{x:.2f}' for x in f)})" if f is not None else "")
-            + (f" (true material {c:.2f} dB)" if c is not None else "")
-            for env, q, a, f, c in zip(envs, ours, scaled, factors, ceilings, strict=True)
-        ]
-        lines.append("relit, against Mitsuba's truth (held-out views, object pixels): " + "; ".join(parts))
     glb, usdz = _figure(row, "roundtrip_glb_psnr_db"), _figure(row, "roundtrip_usdz_psnr_db")
     if glb is not None or usdz is not None:
         parts = [f"{name} {value:.2f} dB" for name, value in (("GLB", glb), ("USDZ", usdz)) if value is not None]
@@ -270,6 +268,30 @@ def fidelity_lines(row) -> list[str]:
         parts = [f"lod{k} {int(f):,} faces, {int(b) / 1e6:.2f} MB GLB, {q:.2f} dB" for k, (f, b, q) in enumerate(levels)]
         lines.append("levels of detail (baked render vs the full neural render, object pixels): " + "; ".join(parts))
     return lines
+
+
+def relit_lines(row) -> list[str]:
+    """One line per light the cell was relit under and graded against Mitsuba's render of the true
+    material (held-out views, object pixels): the raw figure, the figure after one scale per
+    channel (with the scale), and the true material's own figure in our renderer (the ceiling)."""
+    ours = _entries(row, "relit_psnr_db")
+    if ours is None:
+        return []
+
+    def per_environment(column: str, missing=None) -> list:
+        entries = _entries(row, column)  # (a figure not every environment has cannot be told apart)
+        return entries if entries is not None and len(entries) == len(ours) else [missing] * len(ours)
+
+    envs = per_environment("relit_environments", "?")
+    ceilings, scaled = per_environment("relit_ceiling_psnr_db"), per_environment("relit_psnr_scaled_db")
+    factors = per_environment("relit_scale")
+    return [
+        f"under {env}: {q:.2f} dB raw"
+        + (f"; {a:.2f} dB after one scale per channel" if a is not None else "")
+        + (f" (x {', '.join(f'{x:.2f}' for x in f)})" if f is not None else "")
+        + (f"; the true material in our renderer (the ceiling): {c:.2f} dB" if c is not None else "")
+        for env, q, a, f, c in zip(envs, ours, scaled, factors, ceilings, strict=True)
+    ]
 
 
 def cell_key(cell: tuple[str, str, str]) -> str:
@@ -390,11 +412,48 @@ def _figure_file(report_dir: Path, entry: dict) -> Path | None:
         return None
 
 
+def _mean_std(mean, std, digits: int) -> str:
+    if _missing(mean):
+        return ""
+    return f"{mean:.{digits}f}" + (f" ± {std:.{digits}f}" if not _missing(std) and std > 0 else "")
+
+
 def speed_accuracy_table(report_dir: Path) -> dict | None:
-    """The speed/accuracy table (None where the report has none)."""
+    """The speed/accuracy table as a reader takes it (None where the report has none): per mesh x
+    prompt and configuration, what it changes, its seeds, the optimisation's wall time and peak
+    memory, its quality (mean ± standard deviation over seeds) and whether it is on the Pareto front
+    (and the knee); the CSV keeps every column."""
     sa = Path(report_dir) / "speed_accuracy.csv"
     frame = read_spreadsheet_csv(sa) if sa.exists() or sa.is_symlink() else pd.DataFrame()
-    return {"rows": len(frame), "table": table(frame)} if len(frame) else None
+    if not len(frame):
+        return None
+
+    def text(r, key, default=""):
+        value = r.get(key, default)
+        return default if _missing(value) else str(value)
+
+    def yes(r, key):
+        return str(r.get(key, "")).strip().lower() in ("true", "1", "yes")
+
+    rows = []
+    for _, r in frame.iterrows():
+        front = "yes, the knee" if yes(r, "knee") else "yes" if yes(r, "pareto") else ""
+        change = "the reference" if yes(r, "reference") else text(r, "factor") or "the seed"
+        rows.append(
+            {
+                "mesh x prompt": text(r, "group"),
+                "configuration": text(r, "configuration") + (" (ablation)" if yes(r, "ablation") else ""),
+                "changes": change,
+                "seeds": text(r, "seeds"),
+                "optimisation (s)": _mean_std(r.get("seconds"), r.get("seconds_std"), 1),
+                "peak memory (MB)": "" if _missing(r.get("peak_mb")) else f"{float(r['peak_mb']):,.0f}",
+                "quality": _mean_std(r.get("quality"), r.get("quality_std"), 2),
+                "quality measure": text(r, "quality_name"),
+                "Pareto front": front,
+            }
+        )
+    shown = pd.DataFrame(rows)
+    return {"rows": len(shown), "table": table(shown)}
 
 
 def _groups(report_dir: Path) -> list[dict]:
@@ -456,10 +515,12 @@ def cell_context(
     url: Callable[[str], str],
     viewer: dict,
     comparison: str,
+    downloads: list[dict] = (),
 ) -> dict:
     """What a cell's section shows: heading, origin, what it is compared with (``comparison``), 3D
-    ``viewer``, fidelity figures, material maps, renders, loss curve, every summary field and the
-    relighting and material-editing figures. ``url(name)``: how the page refers to the cell's file."""
+    ``viewer``, its ``downloads`` (:func:`downloads`), fidelity figures, material maps, renders, loss
+    curve, every summary field and the relighting (its figures printed under it) and
+    material-editing figures. ``url(name)``: how the page refers to the cell's file."""
     r = row.iloc[0] if len(row) else None
     origin = "" if r is None else str(r.get("origin", ""))
 
@@ -480,8 +541,20 @@ def cell_context(
         "renders": shown((n, n.removeprefix("render_").removesuffix(".png")) for n in files if n.startswith("render_")),
         "loss": url("loss.png") if "loss.png" in files else None,
         "fields": [] if r is None else _fields(r),
-        "figures": [{"title": title, "src": url(name)} for name, title in CELL_FIGURES if name in files],
+        "figures": _cell_figures(files, url, relit_lines(row) if r is not None else []),
+        "downloads": downloads,
     }
+
+
+def _cell_figures(files: dict, url: Callable[[str], str], relit: list[str]) -> list[dict]:
+    """The cell's figures in :data:`CELL_FIGURES`' order, the relit figures under the one that
+    grades them (Mitsuba's truth beside ours; without it, the relit views)."""
+    graded = "relit_truth.png" if "relit_truth.png" in files else "relit.png"
+    return [
+        {"title": title, "src": url(name), "lines": relit if name == graded else []}
+        for name, title in CELL_FIGURES
+        if name in files
+    ]
 
 
 def _fields(r: pd.Series) -> list[dict]:
@@ -508,6 +581,80 @@ def viewer_context(files: dict[str, Path], url: Callable[[str], str], have_viewe
         "preview": url("preview.png") if "preview.png" in files else None,
         "label": label,
     }
+
+
+def write_textures_zip(files: dict[str, Path], out: Path) -> Path | None:
+    """The cell's texture maps (``texture_<map>.png`` of :func:`cell_files`) as ``out``, a zip of
+    ``textures/<map>.png`` (stored: PNG is compressed already), written atomically; None without maps."""
+    maps = sorted((n, f) for n, f in files.items() if n.startswith("texture_"))
+    if not maps:
+        return None
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(out) as tmp:
+        with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_STORED) as z:
+            for name, src in maps:
+                z.writestr(f"textures/{name.removeprefix('texture_')}", read_bytes(src, DATA_LIMIT))
+    return out
+
+
+def _size(nbytes: int) -> str:
+    return f"{nbytes / 1e6:.1f} MB" if nbytes >= 100_000 else f"{max(nbytes, 1) / 1e3:.0f} kB"
+
+
+def downloads(available: dict[str, Path], href: Callable[[str], str], pack: tuple[str, Path] | None) -> list[dict]:
+    """A cell's download links: each file of :data:`DOWNLOADS` it has (``available``: name -> the
+    file, for its size; ``href(name)``: the link), and the run's asset ``pack`` (its link and file)."""
+    out = [
+        {
+            "label": label,
+            "href": href(name),
+            "file": name,
+            "size": _size(available[name].stat().st_size),
+            "what": what,
+        }
+        for name, label, what in DOWNLOADS
+        if name in available
+    ]
+    if pack is not None:
+        link, path = pack
+        what = "every cell's asset folder of this run in one zip, with an index"
+        out.append({"label": "asset pack", "href": link, "file": PACK, "size": _size(path.stat().st_size), "what": what})
+    return out
+
+
+def run_summary(results: Path, cells: list[tuple[str, str, str]], pack: bool) -> dict:
+    """The index's summary of the run: how many cells, when their jobs ran (the earliest start and
+    the latest finish over every stage record of the cells: ``finished_utc`` less the job's own
+    ``timings_s.total``), how much job time that was, and where the assets are."""
+    import datetime
+
+    spans, busy = [], 0.0
+    for cell in cells:
+        for meta in Path(results).joinpath(*cell).glob("*/meta.json"):
+            try:
+                m = read_json(meta)
+                end = datetime.datetime.fromisoformat(str(m["finished_utc"]).replace("Z", "+00:00"))
+                took = float(m["timings_s"]["total"])
+            except (StageInputError, KeyError, TypeError, ValueError):
+                continue  # a record without the times (an older stage, or not ours): left out
+            spans.append((end - datetime.timedelta(seconds=took), end))
+            busy += took
+    out = {"cells": len(cells), "pack": PACK if pack else None, "experiment": Path(results).name}
+    if spans:
+        first, last = min(a for a, _ in spans), max(b for _, b in spans)
+        out.update(
+            first=first.strftime("%Y-%m-%d %H:%M UTC"),
+            last=last.strftime("%Y-%m-%d %H:%M UTC"),
+            wall=_duration((last - first).total_seconds()),
+            busy=_duration(busy),
+        )
+    return out
+
+
+def _duration(seconds: float) -> str:
+    minutes, s = divmod(round(seconds), 60)
+    hours, minutes = divmod(minutes, 60)
+    return f"{hours} h {minutes:02d} min" if hours else f"{minutes} min {s:02d} s" if minutes else f"{s} s"
 
 
 def _page_frame(title: str, **scripts) -> dict:
@@ -574,6 +721,9 @@ def write_folder(
             _place(src, folder / name)
         with atomic_path(folder / "thumb.png") as tmp:
             thumbnail(cell).save(tmp, format="PNG")
+        offered = {**files}
+        if write_textures_zip(files, folder / TEXTURES_ZIP) is not None:
+            offered[TEXTURES_ZIP] = folder / TEXTURES_ZIP
         packed = None
         if have_viewer and VIEWER_FILE in files:
             assets = {"glb": base64.b64encode(read_bytes(files[VIEWER_FILE], DATA_LIMIT)).decode("ascii")}
@@ -584,6 +734,7 @@ def write_folder(
             packed = "assets.js"
             viewers += 1
         up = "../" * (len(cell) + 1)  # cells/<mesh>/<prompt>/<variant>/ back to the report folder
+        pack = (f"{up}{PACK}", report_dir / PACK) if plain_file(report_dir / PACK, report_dir) else None
         row, label = _row(frame, cell), cell_key(cell)
         scripts = {"files": [f"{up}viewer/model-viewer.min.js"] if have_viewer else [], "deferred": [f"{up}viewer/cell.js"]}
         viewer = viewer_context(files, lambda n: n, have_viewer, packed, label)
@@ -592,7 +743,9 @@ def write_folder(
             up=up,
             banner=origin_banner(row),
             have_viewer=have_viewer,
-            cell=cell_context(cell, row, files, lambda n: n, viewer, comparison_text(cell, groups)),
+            cell=cell_context(
+                cell, row, files, lambda n: n, viewer, comparison_text(cell, groups), downloads(offered, lambda n: n, pack)
+            ),
         )
         with atomic_path(folder / "index.html") as tmp:
             tmp.write_text(page)
@@ -609,7 +762,12 @@ def write_folder(
         return "cells/" + "/".join(cell) + "/thumb.png"
 
     index = _index_page(
-        env, frame, report_dir, len(cells), (link, thumb, lambda p: Path(p).relative_to(report_dir).as_posix()), have_viewer
+        env,
+        frame,
+        report_dir,
+        (link, thumb, lambda p: Path(p).relative_to(report_dir).as_posix()),
+        have_viewer,
+        run_summary(results, cells, plain_file(report_dir / PACK, report_dir)),
     )
     with atomic_path(report_dir / "index.html") as tmp:
         tmp.write_text(index)
@@ -622,22 +780,25 @@ def _index_page(
     env: Environment,
     frame: pd.DataFrame,
     report_dir: Path,
-    n_cells: int,
     links: tuple,
     have_viewer: bool,
+    summary: dict,
     cells=(),
     head=(),
     end=(),
 ) -> str:
     """The index page. ``links``: how it refers to a cell's page, a cell's thumbnail and a file of
-    the report folder; ``cells``: the cells' sections (the one-file form); ``head`` and ``end``:
-    scripts to inline in the head and at the end."""
+    the report folder; ``summary``: the run's (:func:`run_summary`); ``cells``: the cells' sections
+    (the one-file form); ``head`` and ``end``: scripts to inline in the head and at the end."""
     link, thumb, url = links
     csvs = [n for n in ("summary.csv", "speed_accuracy.csv") if plain_file(Path(report_dir) / n, report_dir)]
     overview = Path(report_dir) / "overview.png"
+    figures = figure_entries(report_dir, url)
+    pareto = [f for f in figures if f["title"].startswith(SPEED_ACCURACY_TITLE)]
     return env.get_template("index.html").render(
         **_page_frame("tango-stylize report", inline=list(head)),
-        n_cells=n_cells,
+        n_cells=summary["cells"],
+        summary=summary,
         banner=origin_banner(frame),
         have_viewer=have_viewer,
         csvs=csvs if not cells else [],
@@ -646,7 +807,8 @@ def _index_page(
         columns=index_headings(),
         tables=index_tables(frame, link, thumb),
         speed_accuracy=speed_accuracy_table(report_dir),
-        figures=figure_entries(report_dir, url),
+        pareto=pareto,
+        figures=[f for f in figures if f not in pareto],
         overview=url(overview) if plain_file(overview, report_dir) else None,
         cells=list(cells),
         inline_end=[Markup(code) for code in (*end, read_text(WEB / "index.js"))],
@@ -654,6 +816,17 @@ def _index_page(
 
 
 # ---- one file ------------------------------------------------------------------------------
+def _single_file_downloads(files: dict[str, Path], folder: Path, page_dir: Path) -> dict[str, Path]:
+    """What a one-file report offers a cell to download: its export's own files where they lie in
+    the results (linked relative to the page, so the results folder must stay beside it) and its
+    texture set zipped under the report's ``downloads/``."""
+    offered = {name: files[name] for name, _, _ in DOWNLOADS if name in files}
+    zipped = write_textures_zip(files, folder / TEXTURES_ZIP)
+    if zipped is not None:
+        offered[TEXTURES_ZIP] = zipped
+    return offered
+
+
 def write_single_file(results: Path, report_dir: Path, cells: list[tuple[str, str, str]], out: Path, model_viewer: Path) -> dict:
     """One self-contained page: the index, then every cell's section with its images and model
     inlined (data URIs) and its viewer started when it scrolls into view."""
@@ -666,6 +839,7 @@ def write_single_file(results: Path, report_dir: Path, cells: list[tuple[str, st
     have_viewer = Path(model_viewer).is_file()
     groups = _groups(report_dir)
     sections, viewers = [], 0
+    has_pack = plain_file(report_dir / PACK, report_dir)
     for cell in cells:
         files = cell_files(results, cell)
 
@@ -674,14 +848,17 @@ def write_single_file(results: Path, report_dir: Path, cells: list[tuple[str, st
 
         viewer = viewer_context(files, url, have_viewer, None, cell_key(cell))
         viewers += viewer["model"] is not None
-        sections.append(cell_context(cell, _row(frame, cell), files, url, viewer, comparison_text(cell, groups)))
+        offered = _single_file_downloads(files, report_dir / "downloads" / cell_key(cell), Path(out).parent)
+        pack = (os.path.relpath(report_dir / PACK, Path(out).parent), report_dir / PACK) if has_pack else None
+        listed = downloads(offered, lambda n, o=offered: os.path.relpath(o[n], Path(out).parent), pack)
+        sections.append(cell_context(cell, _row(frame, cell), files, url, viewer, comparison_text(cell, groups), listed))
     page = _index_page(
         env,
         frame,
         report_dir,
-        len(cells),
         (lambda c: "#" + cell_anchor(c), lambda c: None, data_uri),
         have_viewer,
+        run_summary(results, cells, has_pack),
         cells=sections,
         head=[read_text(model_viewer, DATA_LIMIT)] if have_viewer else [],
         end=[read_text(WEB / "cell.js")],

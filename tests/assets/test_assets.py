@@ -418,7 +418,8 @@ def test_darker_environment_darkens_relit_render(trained, tmp_path):
     from PIL import Image
 
     grid = Image.open(tmp_path / "a" / "material_edit.png")
-    assert grid.size == (2 * 32, 2 * 32)  # rows: roughness scales, columns: specular scales
+    # rows: roughness scales, columns: specular scales (2 x 2 tiles of 32), labelled around them
+    assert grid.size[0] > 2 * 32 and grid.size[1] > 2 * 32
     # more specular (column 2) is brighter than none (column 1) in the same row
     assert a["mean_material_edit"][1] > a["mean_material_edit"][0]
 

@@ -177,7 +177,11 @@ def test_single_file_for_small_grids(site, tmp_path):
     out = html_report.run(site["results"], out_dir, cells, ReportSettings(single_file=True))
     assert out["viewers"] == 3 and not (out_dir / "cells").exists()
     text = (out_dir / "index.html").read_text()
-    assert all(r.startswith(("data:", "#")) for r in page_references(text))
+    # everything inline but the downloads, which link the cells' files where they lie (and the
+    # texture sets zipped under the report's downloads/)
+    offered = {r for r in page_references(text) if not r.startswith(("data:", "#"))}
+    assert offered and all((out_dir / unquote(r)).is_file() for r in offered), offered
+    assert {Path(r).name for r in offered} == {"model.glb", "textures.zip"}  # the synthetic cells have no USDZ
     r = browser_check("single", out_dir / "index.html", tmp_path / "single.png")
     assert r["errors"] == [] and r["viewers"] == r["loaded"] == 3
     assert_not_blank(tmp_path / "single.png")
@@ -222,12 +226,13 @@ def test_comparison_line_finds_the_cells_own_group():
     assert comparison_text(("other", "p", "b"), groups) == ""
 
 
-def test_relit_figures_on_the_cell_line():
-    """The relighting graded against Mitsuba (summary columns, one entry per environment) is shown
-    with its environment and the true material's ceiling; a cell without it shows no such line."""
+def test_relit_figures_under_the_relit_picture():
+    """The relighting graded against Mitsuba (summary columns, one entry per environment) is printed
+    under the relit figure, a line per light: raw, scaled and the true material's ceiling; a cell
+    without it gets no line."""
     import pandas as pd
 
-    from stages.results.site import fidelity_lines
+    from stages.results.site import fidelity_lines, relit_lines
 
     row = pd.DataFrame(
         [
@@ -240,17 +245,18 @@ def test_relit_figures_on_the_cell_line():
             }
         ]
     )
-    line = " ".join(fidelity_lines(row))
-    expected = "builtin:sunset: 21.50 dB, 23.00 dB after a scale per channel (x 1.72, 1.46, 1.12) (true material 27.00 dB)"
-    assert expected in line
-    expected = (
-        "config/envmaps/studio.hdr: 19.25 dB, 20.00 dB after a scale per channel (x 1.00, 1.01, 0.99) (true material 25.10 dB)"
-    )
-    assert expected in line
+    lines = relit_lines(row)
+    assert lines == [
+        "under builtin:sunset: 21.50 dB raw; 23.00 dB after one scale per channel (x 1.72, 1.46, 1.12); "
+        "the true material in our renderer (the ceiling): 27.00 dB",
+        "under config/envmaps/studio.hdr: 19.25 dB raw; 20.00 dB after one scale per channel (x 1.00, 1.01, 0.99); "
+        "the true material in our renderer (the ceiling): 25.10 dB",
+    ]
+    assert not any("relit" in line for line in fidelity_lines(row))  # under the relit figure, not on the cell line
     old = row.drop(columns=["relit_scale"])  # a summary written before the factors were: the line without them
-    expected = "builtin:sunset: 21.50 dB, 23.00 dB after a scale per channel (true material 27.00 dB)"
-    assert expected in " ".join(fidelity_lines(old))
-    assert fidelity_lines(pd.DataFrame([{"relit_psnr_db": float("nan")}])) == []
+    expected = "under builtin:sunset: 21.50 dB raw; 23.00 dB after one scale per channel; the true material"
+    assert relit_lines(old)[0].startswith(expected)
+    assert relit_lines(pd.DataFrame([{"relit_psnr_db": float("nan")}])) == []
 
 
 def test_the_pages_come_from_autoescaping_templates_that_mark_nothing_safe():

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -284,6 +285,7 @@ def test_smoke_run(tmp_path_factory, tmp_path):
     r = browser_check("cell", res / "report" / "cells" / "knot" / "gold" / "second" / "index.html", tmp_path / "cell.png")
     assert r["errors"] == [] and r["loaded"] == 1 and r["environment"].endswith("#light.hdr")
     assert_not_blank(tmp_path / "cell.png")
+    check_downloads(res, ("knot", "gold", "second"), tmp_path / "downloads")
     for rel in ("export/model.usdz", "export/model.glb", "relight/material_edit.png"):
         assert (res / "vase" / "wood" / "full" / rel).is_file()
     check_test_only_marks(res)
@@ -331,3 +333,49 @@ def test_keep_going_finishes_other_meshes(tmp_path):
     assert not (broken / "normalize" / "mesh.ply").exists()
     log = (broken / "logs" / "normalize.log").read_text()
     assert "missing.obj: file not found" in log
+
+
+def check_downloads(res: Path, cell: tuple[str, str, str], into: Path) -> None:
+    """A cell page's download links, clicked in Chromium over HTTP: the GLB passes the Khronos
+    validator, the USDZ usd-core's validators, the texture zip holds the export's PNGs, and the asset
+    pack holds the cell's files; the run summary on the index links the same pack."""
+    import functools
+    import http.server
+    import threading
+    import zipfile
+
+    from PIL import Image
+
+    from stages.assets.formats.gltf import validate_glb
+    from stages.assets.formats.usd import validate_usd
+
+    class Quiet(http.server.SimpleHTTPRequestHandler):
+        def log_message(self, *args):
+            pass
+
+    into.mkdir(parents=True)
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(Quiet, directory=str(res / "report")))
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        url = f"http://127.0.0.1:{server.server_address[1]}/cells/{'/'.join(cell)}/index.html"
+        r = browser_check("downloads", url, into / "page.png", "--into", str(into))
+    finally:
+        server.shutdown()
+    assert r["errors"] == [], r["errors"]
+    got = {d["suggested"]: Path(d["saved"]) for d in r["downloads"] if d["failure"] is None}
+    assert sorted(got) == ["asset_pack.zip", "model.glb", "model.usdz", "textures.zip"], r["downloads"]
+    glb = validate_glb(got["model.glb"])
+    assert glb["ran"] and glb["errors"] == 0, glb
+    usd = validate_usd(got["model.usdz"])
+    assert usd["validators"] > 0 and usd["errors"] == 0, usd["messages"]
+    export = res.joinpath(*cell, "export")
+    with zipfile.ZipFile(got["textures.zip"]) as z:
+        assert sorted(z.namelist()) == sorted(f"textures/{p.name}" for p in (export / "textures").glob("*.png"))
+        for name in z.namelist():
+            assert Image.open(z.open(name)).size[0] > 0
+    with zipfile.ZipFile(got["asset_pack.zip"]) as z:
+        assert f"{'/'.join(cell)}/model.glb" in z.namelist() and "index.csv" in z.namelist()
+    assert got["model.glb"].read_bytes() == (export / "model.glb").read_bytes()
+    index = (res / "report" / "index.html").read_text()
+    assert "<h2>This run</h2>" in index and "href='asset_pack.zip' download" in index
+

@@ -77,6 +77,7 @@ rule html_report:
         figures=f"{RESULTS}/report/figures.json",
         plots=f"{RESULTS}/report/figures",
         assets=cell_metas("export/meta.json"),
+        pack=f"{RESULTS}/report/asset_pack.zip",  # each page links it
     output:
         html=f"{RESULTS}/report/index.html",
         site=REPORT_SITE,
