@@ -378,4 +378,3 @@ def check_downloads(res: Path, cell: tuple[str, str, str], into: Path) -> None:
     assert got["model.glb"].read_bytes() == (export / "model.glb").read_bytes()
     index = (res / "report" / "index.html").read_text()
     assert "<h2>This run</h2>" in index and "href='asset_pack.zip' download" in index
-
