@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -115,6 +116,12 @@ def main() -> None:
     parser.add_argument("--visibility", default="off", help="the cache's raycache.visibility (off, auto, on)")
     parser.add_argument("--material", default="wood", help="the procedural target material (wood, metal, chrome, plaster)")
     parser.add_argument("--out", type=Path, default=RESULTS / "recovery.csv")
+    parser.add_argument(
+        "--preset-costs",
+        type=Path,
+        help="also write the presets' PSNR and optimisation seconds per mesh as the plan and the quick command read "
+        "them (benchmarks/figures/preset_costs.json)",
+    )
     args = parser.parse_args()
     presets = [p.strip() for p in args.presets.split(",") if p.strip()]
     for p in presets:
@@ -173,6 +180,41 @@ def main() -> None:
             w.writerows(rows)
         tmp.replace(args.out)
     print(f"wrote {args.out}", flush=True)
+    if args.preset_costs:
+        write_preset_costs(args.preset_costs, rows, args)
+        print(f"wrote {args.preset_costs}", flush=True)
+
+
+def write_preset_costs(path: Path, rows: list[dict], args) -> None:
+    """The presets' held-out PSNR and optimisation seconds per mesh (``preset_costs.json``: what the
+    plan quotes for faster presets and the quick command's help), with the command, date, machine
+    and conditions they were measured under."""
+    import datetime
+    import json
+    import shlex
+
+    from benchmarks.records import machine
+
+    meshes = list(dict.fromkeys(r["mesh"] for r in rows))
+    presets = {}
+    for preset in dict.fromkeys(r["preset"] for r in rows):
+        by_mesh = {r["mesh"]: r for r in rows if r["preset"] == preset}
+        presets[preset] = {
+            "psnr_db": [round(float(by_mesh[m]["psnr_db"]), 2) for m in meshes],
+            "seconds": [round(float(by_mesh[m]["optimize_s"])) for m in meshes],
+        }
+    record = {
+        "what": "held-out PSNR (object pixels) and optimisation wall time of the presets on the same meshes",
+        "command": "python -m benchmarks.quality.recovery " + shlex.join(sys.argv[1:]),
+        "measured": f"{datetime.datetime.now(datetime.UTC):%Y-%m-%d}, {machine()}",
+        "conditions": f"image guidance (Mitsuba {args.material} targets, {args.resolution}-pixel images, seed 0, "
+        f"visibility {args.visibility}, networks {args.precision}): under CLIP guidance the quality cost is not measured",
+        "meshes": meshes,
+        "presets": presets,
+    }
+    tmp = path.with_suffix(".part")
+    tmp.write_text(json.dumps(record, indent=1) + "\n")
+    tmp.replace(path)
 
 
 if __name__ == "__main__":

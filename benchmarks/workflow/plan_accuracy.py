@@ -35,6 +35,11 @@ def main() -> int:
     parser.add_argument("--cores", type=int, default=2)
     parser.add_argument("--keep", type=Path, help="clone here and keep it (default: a temporary folder, removed)")
     parser.add_argument("--out", type=Path, help="write the figures here (JSON)")
+    parser.add_argument(
+        "--record",
+        action="store_true",
+        help="write the records the documentation quotes: <experiment>.wall_time, .peak_memory, .disk and .psnr",
+    )
     args = parser.parse_args()
     if not (REPO / args.configfile).is_file():
         parser.error(f"{args.configfile}: no such config in {REPO}")
@@ -75,6 +80,9 @@ def main() -> int:
         cfg = load_config_files([clone / args.configfile])
         actual = rule_seconds(clone / "results" / experiment_name(cfg.raw, [Path(args.configfile)]))
         report(plan, wall, peak_gb, actual)
+        if args.record:
+            results = clone / "results" / experiment_name(cfg.raw, [Path(args.configfile)])
+            record_run(args.configfile, results, plan, wall, peak_gb, actual)
         if args.out:
             figures = {"estimate": plan, "wall_seconds": wall, "peak_rss_gb": peak_gb, "rule_seconds": actual}
             args.out.write_text(json.dumps(figures, indent=1, default=str) + "\n")
@@ -82,6 +90,47 @@ def main() -> int:
         if args.keep is None:
             shutil.rmtree(root, ignore_errors=True)
     return 0
+
+
+def _duration(seconds: float) -> str:
+    minutes, s = divmod(round(seconds), 60)
+    return f"{minutes} min {s} s" if minutes else f"{s} s"
+
+
+def record_run(configfile: str, results: Path, plan: dict, wall: float, peak_gb: float, actual: dict) -> None:
+    """The run's records (benchmarks/figures/records): its wall time (with the plan's estimate), the peak
+    resident memory of one job, the results' disk, and each cell's held-out PSNR."""
+    import pandas as pd
+
+    from benchmarks.records import disk_bytes, write_record
+
+    name = results.name
+    command = (
+        f"`python -m benchmarks.workflow.plan_accuracy --configfile {configfile} --record` "
+        f"(runs `snakemake --cores 2 --configfile {configfile}` in a fresh clone)"
+    )
+    page = "demo.md"
+    jobs = sum(len(v) for v in actual.values())
+    estimate = plan.get("total_seconds")
+    said = f" the plan estimated {_duration(estimate)} ({estimate / wall:.2f} of the run)" if estimate else ""
+    write_record(
+        f"{name}.wall_time",
+        f"`{configfile}`: wall time from a fresh clone",
+        _duration(wall),
+        command,
+        page,
+        f"({jobs} jobs;{said})",
+    )
+    write_record(f"{name}.peak_memory", f"`{configfile}`: peak resident memory of one job", f"{peak_gb:.1f} GB", command, page)
+    write_record(f"{name}.disk", f"`{configfile}`: the results' disk", f"{disk_bytes(results) / 1e6:.0f} MB", command, page)
+    summary = pd.read_csv(results / "report" / "summary.csv")
+    cells = "; ".join(
+        f"{r.mesh} / {r.prompt} {r.target_psnr_db:.2f} dB" for r in summary.itertuples() if r.target_psnr_db == r.target_psnr_db
+    )
+    if cells:
+        write_record(
+            f"{name}.psnr", f"`{configfile}`: held-out PSNR per cell (object pixels, metric views)", cells, command, page
+        )
 
 
 def report(plan: dict, wall: float, peak_gb: float, actual: dict[str, list[float]]) -> None:

@@ -24,14 +24,22 @@ from .threads import set_cpu_threads
 log = logging.getLogger(__name__)
 
 
+#: libraries whose own INFO lines (trimesh's "triangulating faces" on every quad mesh it reads, ...)
+#: are kept out of the user's console unless ``-v``; their warnings still show
+THIRD_PARTY_LOGGERS = ("trimesh", "PIL", "matplotlib", "fsspec", "filelock", "urllib3", "httpx", "huggingface_hub")
+
+
 def setup_logging(verbose: bool = False) -> None:
-    """Log to stderr (rules redirect it to their ``log:`` file)."""
+    """Log to stderr (rules redirect it to their ``log:`` file): the tool's INFO lines, third-party
+    libraries' warnings only (:data:`THIRD_PARTY_LOGGERS`; everything with ``verbose``)."""
     logging.basicConfig(
         level=logging.DEBUG if verbose else logging.INFO,
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
         stream=sys.stderr,
         force=True,
     )
+    for name in THIRD_PARTY_LOGGERS:
+        logging.getLogger(name).setLevel(logging.DEBUG if verbose else logging.WARNING)
 
 
 #: the help of options many stages share, by their ``dest`` (a stage's own ``help=`` wins)

@@ -45,7 +45,7 @@ def _patch_torchvision_ops() -> bool:
         if not _has_schema(name):
             lib.define(f"{name}(Tensor dets, Tensor scores, float iou_threshold) -> Tensor")
     _LIBS.append(lib)  # keep the fragment alive for the life of the process
-    log.info(
+    log.debug(
         "torchvision's compiled ops did not load (%s); defined nms/qnms schemas so its transforms "
         "import (detection ops unavailable; not needed by CLIP)",
         reason,

@@ -128,3 +128,29 @@ def test_the_tango_command_fronts_the_everyday_commands(tmp_path):
     assert proc.returncode == 2 and proc.stderr.strip() == (
         "tango: unknown command 'stylise': use one of demo, quick, doctor, plan, check (tango --help)"
     )
+
+
+def test_third_party_info_lines_stay_out_of_the_console(tmp_path):
+    """A quad mesh makes trimesh log "triangulating faces" at INFO: the console shows the tool's
+    own lines only (with -v, everything)."""
+    import logging
+
+    from stages.core.cli import THIRD_PARTY_LOGGERS, setup_logging
+
+    quad = tmp_path / "quad.obj"
+    corners = "".join(f"v {x} {y} {z}\n" for x in (0, 1) for y in (0, 1) for z in (0, 1))
+    quad.write_text(corners + "f 1 3 4 2\nf 5 6 8 7\nf 1 2 6 5\nf 3 7 8 4\nf 1 5 7 3\nf 2 4 8 6\n")  # a cube of quads
+    base = ("stages.normalize", "--input", str(quad), "--mesh", str(tmp_path / "m.ply"))
+    base += ("--transform", str(tmp_path / "t.json"), "--meta", str(tmp_path / "meta.json"))
+    proc = run(*base)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "triangulating" not in proc.stderr and "8 vertices, 12 faces" in proc.stderr  # its own line, not the library's
+    proc = run(*base, "-v")
+    assert "triangulating faces" in proc.stderr  # the library did log it: hidden above, not absent
+    try:
+        setup_logging(False)
+        assert all(not logging.getLogger(n).isEnabledFor(logging.INFO) for n in THIRD_PARTY_LOGGERS)
+        assert logging.getLogger("stages.x").isEnabledFor(logging.INFO)
+    finally:
+        for name in THIRD_PARTY_LOGGERS:
+            logging.getLogger(name).setLevel(logging.NOTSET)

@@ -18,7 +18,9 @@ BENCHMARKS = REPO / "benchmarks"
 PAGE = REPO / "docs" / "development" / "benchmarks.md"
 #: the modules of benchmarks/ that are not benchmarks: the package's and topics' ``__init__`` and
 #: the shared library
-LIBRARY = {"common"}
+LIBRARY = {"common", "records"}
+#: the library modules run as commands (the documentation's records), not benchmarks
+TOOLS = {"benchmarks.records"}
 #: text that names benchmarks: the documentation site and what it includes, the configs and
 #: profiles (their comments show commands), the code and the tests (docstrings, messages)
 TEXTS = sorted(
@@ -89,7 +91,7 @@ def test_every_benchmark_is_listed_with_its_command(module):
 def test_every_command_and_file_named_exists():
     """Every ``python -m benchmarks...`` names a benchmark module (or the package's library is
     not run), every ``benchmarks/...`` path exists, and no ``python benchmarks/x.py`` is left."""
-    modules = set(benchmark_modules())
+    modules = set(benchmark_modules()) | TOOLS
     wrong = []
     for path in TEXTS:
         text = read(path)

@@ -13,7 +13,7 @@ rule bake:
         f"{CELL}/benchmarks/bake.tsv"
     conda:
         CONDA_ENV
-    threads: 2
+    threads: 1
     resources:
         gpu=GPU_JOBS,
     params:

@@ -9,7 +9,7 @@ rule lod:
         f"{CELL}/benchmarks/lod.tsv"
     conda:
         CONDA_ENV
-    threads: 2
+    threads: 1
     resources:
         gpu=GPU_JOBS,
     params:

@@ -13,7 +13,7 @@ rule metrics:
         f"{CELL}/benchmarks/metrics.tsv"
     conda:
         CONDA_ENV
-    threads: 2
+    threads: 1
     resources:
         gpu=GPU_JOBS,
     params:

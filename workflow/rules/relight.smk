@@ -12,7 +12,7 @@ rule relight:
         f"{CELL}/benchmarks/relight.tsv"
     conda:
         CONDA_ENV
-    threads: 2
+    threads: 1
     resources:
         gpu=GPU_JOBS,
     params:

@@ -10,7 +10,7 @@ rule roundtrip:
         f"{CELL}/benchmarks/roundtrip.tsv"
     conda:
         CONDA_ENV
-    threads: 2
+    threads: 1
     resources:
         gpu=GPU_JOBS,
     params:
