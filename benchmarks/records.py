@@ -93,6 +93,10 @@ def write_record(rid: str, what: str, value: str, command: str, page: str, detai
         "page": page,
     }
     path = RECORDS / f"{rid}.json"
+    if path.is_file():  # a record measured again keeps its place in the headline table
+        order = json.loads(path.read_text(encoding="utf-8")).get("order")
+        if order is not None:
+            record["order"] = order
     tmp = path.with_suffix(".tmp")
     tmp.write_text(json.dumps(record, indent=1, ensure_ascii=False) + "\n", encoding="utf-8")
     tmp.replace(path)

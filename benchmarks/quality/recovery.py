@@ -215,6 +215,21 @@ def write_preset_costs(path: Path, rows: list[dict], args) -> None:
     tmp = path.with_suffix(".part")
     tmp.write_text(json.dumps(record, indent=1) + "\n")
     tmp.replace(path)
+    record_preset_costs(record)
+
+
+def record_preset_costs(costs: dict) -> None:
+    """The headline record of the presets' cost (``presets.costs``) from ``preset_costs.json``'s figures."""
+    from benchmarks.records import write_record
+
+    meshes = costs["meshes"]
+    parts = [
+        f"`{name}` {', '.join(f'{s} s' for s in p['seconds'])} ({', '.join(f'{q:.2f}' for q in p['psnr_db'])} dB)"
+        for name, p in costs["presets"].items()
+    ]
+    what = f"the presets' optimisation ({', '.join(meshes)}; {costs['conditions'].split(':')[0]})"
+    page = "recovery.md#across-meshes-and-presets"
+    write_record("presets.costs", what, "; ".join(parts), f"`{costs['command']}`", page)
 
 
 if __name__ == "__main__":
