@@ -37,7 +37,13 @@ SHOWS = {
     "report_index.png": ["stages/results", "stages/html_report.py", "stages/report.py", "config/demo.yaml"],
     "report_cell.png": ["stages/results", "stages/html_report.py", "config/demo.yaml"],
     "examples/doctor.md": ["stages/doctor.py", "config/demo.yaml"],
-    "examples/plan.md": ["stages/plan.py", "stages/config/choices.py", "benchmarks/figures", "config/config.yaml"],
+    "examples/plan.md": [
+        "stages/plan.py",
+        "stages/config/choices.py",
+        "benchmarks/figures/preset_costs.json",
+        "benchmarks/figures/stage_seconds.json",
+        "config/config.yaml",
+    ],
 }
 CELL = ("vase", "wood", "base")
 
