@@ -103,10 +103,10 @@ def write_record(rid: str, what: str, value: str, command: str, page: str, detai
     return path
 
 
-def load_records() -> dict[str, dict]:
+def load_records(folder: Path = RECORDS) -> dict[str, dict]:
     """Every record by id, in the table's order (each record's ``order``, then its id)."""
     out = {}
-    for path in RECORDS.glob("*.json"):
+    for path in Path(folder).glob("*.json"):
         record = json.loads(path.read_text(encoding="utf-8"))
         missing = [k for k in FIELDS if not record.get(k)]
         if missing or record["id"] != path.stem:
@@ -146,14 +146,14 @@ def rendered(text: str, records: dict[str, dict], page: Path) -> tuple[str, list
     def fill(m: re.Match) -> str:
         rid = m.group(1)
         if rid not in records:
-            problems.append(f"{page.relative_to(REPO)}: quotes {rid!r}, which no record in benchmarks/figures/records/ holds")
+            problems.append(f"{page}: quotes {rid!r}, which no record in benchmarks/figures/records/ holds")
             return m.group(0)
         return f"<!--fig:{rid}-->{records[rid]['value']}<!--/fig-->"
 
     out = QUOTE.sub(fill, text)
     if page == HEADLINE_PAGE:
         if START not in out or END not in out:
-            problems.append(f"{page.relative_to(REPO)}: no {START} ... {END} marks for the headline table")
+            problems.append(f"{page}: no {START} ... {END} marks for the headline table")
         else:
             head, rest = out.split(START, 1)
             out = head + START + "\n" + headline_table(records) + "\n" + END + rest.split(END, 1)[1]
@@ -165,15 +165,17 @@ def main(argv: list[str] | None = None) -> int:
     group = parser.add_mutually_exclusive_group(required=True)
     group.add_argument("--write", action="store_true", help="regenerate the headline table and every quoted figure")
     group.add_argument("--check", action="store_true", help="exit 1 when a page is out of date or quotes no record")
+    parser.add_argument("--records", type=Path, default=RECORDS, help="the records' folder (default: the project's)")
+    parser.add_argument("--page", type=Path, action="append", help="only these pages (repeatable; default: every page)")
     args = parser.parse_args(argv)
-    records = load_records()
+    records = load_records(args.records)
     stale, problems = [], []
-    for page in PAGES:
+    for page in args.page or PAGES:
         text = page.read_text(encoding="utf-8")
         new, found = rendered(text, records, page)
         problems += found
         if new != text:
-            stale.append(page.relative_to(REPO).as_posix())
+            stale.append(str(page))
             if args.write:
                 page.write_text(new, encoding="utf-8")
     for line in problems:

@@ -10,6 +10,8 @@ import importlib
 import sys
 from pathlib import Path
 
+from . import _version
+
 #: the subcommands: (what it does, the module whose ``main`` runs it)
 COMMANDS = {
     "demo": ("the image-guided demo (config/demo.yaml): two cells through every stage, no weights needed", None),
@@ -23,10 +25,8 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def usage() -> str:
-    from . import __version__
-
     width = max(map(len, COMMANDS))
-    lines = [f"usage: tango <command> [arguments]   (tango-stylize {__version__})", "", "commands:"]
+    lines = [f"usage: tango <command> [arguments]   (tango-stylize {_version()})", "", "commands:"]
     lines += [f"  {name:<{width}}  {what}" for name, (what, _) in COMMANDS.items()]
     lines += ["", "tango <command> --help: that command's arguments; tango --version: the version"]
     return "\n".join(lines) + "\n"
@@ -73,9 +73,7 @@ def main(argv: list[str] | None = None) -> int:
         sys.stdout.write(usage())
         return 0 if argv else 2
     if argv[0] == "--version":
-        from . import __version__
-
-        sys.stdout.write(f"tango-stylize {__version__}\n")
+        sys.stdout.write(f"tango-stylize {_version()}\n")
         return 0
     name, rest = argv[0], argv[1:]
     if name not in COMMANDS:

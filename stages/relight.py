@@ -82,6 +82,38 @@ def _azimuth_labels(store: ViewStore, views: list[int]) -> list[str]:
     return [f"azimuth {float(store.cache.arrays['azimuth'][i]):.0f} deg" for i in views]
 
 
+def _material_edit(field, store: ViewStore, front: int, light, settings: RelightSettings, path: Path) -> list:
+    """``material_edit.png``: the front view under the new light, rows = roughness scales, columns =
+    specular scales, labelled; returns the renders."""
+    grid = [
+        render_edit(field, store[front], store.width, settings.width, light, MaterialEdit(rs, ss))
+        for rs in settings.roughness_scales
+        for ss in settings.specular_scales
+    ]
+    edit = annotate(
+        contact_sheet(grid, len(settings.specular_scales)),
+        f"Material editing, front view under {settings.envmap}",
+        columns=[f"specular x {x:g}" for x in settings.specular_scales],
+        rows=[f"roughness x {x:g}" for x in settings.roughness_scales],
+    )
+    save_png(path, edit)
+    return grid
+
+
+def _light_fit_sheet(env: np.ndarray, light, settings: RelightSettings) -> np.ndarray:
+    """``light_fit.png``: the new environment above its fit, both divided by the map's peak, labelled."""
+    h, w = env.shape[:2]
+    fit = light.equirect(h, w).cpu().numpy()
+    top = max(float(env.max()), 1e-12)
+    both = np.concatenate([env, fit], axis=0) / top
+    return annotate(
+        to_u8(srgb_encode(both)),
+        f"{settings.envmap} (equirectangular) and its fit",
+        rows=[settings.envmap, f"its fit ({settings.lobes} SG lobes)"],
+        scale=("0", f"{top:.3g}", "radiance, both divided by the map's peak (sRGB encoded)"),
+    )
+
+
 def run(
     field_path: Path,
     eval_path: Path,
@@ -118,29 +150,8 @@ def run(
             title = f"Relit under {settings.envmap}: the evaluation views (sRGB)"
             save_png(staging / "relit.png", annotate(contact_sheet(views, len(store.azimuths())), title))
             front = store.cache.front_view()
-            grid = [
-                render_edit(field, store[front], store.width, settings.width, light, MaterialEdit(rs, ss))
-                for rs in settings.roughness_scales
-                for ss in settings.specular_scales
-            ]
-            edit = annotate(
-                contact_sheet(grid, len(settings.specular_scales)),
-                f"Material editing, front view under {settings.envmap}",
-                columns=[f"specular x {x:g}" for x in settings.specular_scales],
-                rows=[f"roughness x {x:g}" for x in settings.roughness_scales],
-            )
-            save_png(staging / "material_edit.png", edit)
-            h, w = env.shape[:2]
-            fit = light.equirect(h, w).cpu().numpy()
-            top = max(float(env.max()), 1e-12)
-            both = np.concatenate([env, fit], axis=0) / top
-            fitted_sheet = annotate(
-                to_u8(srgb_encode(both)),
-                f"{settings.envmap} (equirectangular) and its fit",
-                rows=[settings.envmap, f"its fit ({settings.lobes} SG lobes)"],
-                scale=("0", f"{top:.3g}", "radiance, both divided by the map's peak (sRGB encoded)"),
-            )
-            save_png(staging / "light_fit.png", fitted_sheet)
+            grid = _material_edit(field, store, front, light, settings, staging / "material_edit.png")
+            save_png(staging / "light_fit.png", _light_fit_sheet(env, light, settings))
         ground_truth = []
         if graded:
             with timer("ground_truth"):

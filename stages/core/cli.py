@@ -17,6 +17,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from .. import _version
 from .device import resolve_device, set_torch_threads
 from .errors import stage_errors
 from .threads import set_cpu_threads
@@ -78,10 +79,8 @@ def plain_text(doc: str) -> str:
 def stage_parser(stage: str, doc: str) -> argparse.ArgumentParser:
     """The parser of ``python -m stages.<stage>``: the docstring's first paragraph as its description,
     and ``--version``."""
-    from .. import __version__
-
     parser = argparse.ArgumentParser(prog=f"python -m stages.{stage}", description=plain_text(doc))
-    parser.add_argument("--version", action="version", version=f"tango-stylize {__version__}")
+    parser.add_argument("--version", action="version", version=f"tango-stylize {_version()}")
     return parser
 
 

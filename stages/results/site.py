@@ -39,7 +39,7 @@ from jinja2 import Environment, FileSystemLoader, StrictUndefined
 from markupsafe import Markup
 
 from ..config.guidance_modes import GUIDANCE_MODES
-from ..config.layout import RENDER_KINDS, VIEWER_FILE
+from ..config.layout import EXPORT_FILES, RENDER_KINDS, VIEWER_FILE
 from ..config.records import Column
 from ..config.sections import UV_LAYOUT_WORDS
 from ..core.errors import StageInputError
@@ -80,7 +80,7 @@ CELL_FILES = (
     *(("optimize/renders", f"{kind}.png", f"render_{kind}.png") for kind in (*RENDER_KINDS, "target", "light")),
     ("optimize", "loss.png", "loss.png"),
     ("export", VIEWER_FILE, VIEWER_FILE),  # the export format the viewer reads (config.layout)
-    ("export", "model.usdz", "model.usdz"),
+    ("export", EXPORT_FILES["usdz"], EXPORT_FILES["usdz"]),
     ("export", "light.hdr", "light.hdr"),
     ("export", "preview.png", "preview.png"),
     ("relight", "relit.png", "relit.png"),
@@ -106,7 +106,7 @@ PACK = "asset_pack.zip"
 #: what a cell offers to download: (name in the cell's page folder, label, what it is)
 DOWNLOADS = (
     (VIEWER_FILE, "GLB", "glTF 2.0 binary: the mesh, its PBR textures and the learned lights"),
-    ("model.usdz", "USDZ", "USD package: the mesh, its UsdPreviewSurface textures and the learned light"),
+    (EXPORT_FILES["usdz"], "USDZ", "USD package: the mesh, its UsdPreviewSurface textures and the learned light"),
     (TEXTURES_ZIP, "textures", "the baked texture set as PNG files, zipped"),
 )
 

@@ -687,7 +687,9 @@ def test_html_report_opens_in_chromium(trained, tmp_path, single_file):
     assert refs and not any(r.startswith(("http:", "https:", "//", "/", "file:")) for r in refs)  # nothing from elsewhere
     if single_file:
         assert "<script src" not in text and "data:model/gltf-binary;base64," in text
-        assert all(r.startswith(("data:", "#")) for r in refs)
+        # everything inline but the downloads, which link the cell's own export files in the results
+        offered = [r for r in refs if not r.startswith(("data:", "#"))]
+        assert offered and all((index.parent / r).resolve().is_file() for r in offered), offered
     result = browser_check("single" if single_file else "cell", page, tmp_path / "shot.png")
     assert result["errors"] == [] and result["viewers"] == result["loaded"] == 1
     assert result["environment"].endswith("light.hdr") or "#light.hdr" in result["environment"]

@@ -7,11 +7,16 @@ from __future__ import annotations
 import json
 import re
 import shutil
+import subprocess
+import sys
 
 import pytest
 from conftest import REPO
 
-from benchmarks import records
+RECORDS = REPO / "benchmarks" / "figures" / "records"
+HEADLINE = REPO / "docs" / "measurements" / "index.md"
+#: a quoted figure (benchmarks/records.py's pattern, written here again: tests never import a benchmark)
+QUOTE = re.compile(r"<!--fig:([\w.-]+)-->(.*?)<!--/fig-->", re.S)
 
 #: the pages a user reads first: every measured figure on them is quoted from a record
 USER_PAGES = [
@@ -44,44 +49,52 @@ NOT_MEASURED: dict[str, str] = {
 def stripped(text: str) -> str:
     """``text`` without code (fenced blocks, inline spans), quoted figures and HTML comments."""
     text = re.sub(r"^([ \t]*)(`{3,}|~{3,}).*?^\1\2[ \t]*$", "", text, flags=re.M | re.S)
-    text = records.QUOTE.sub("", text)
+    text = QUOTE.sub("", text)
     text = re.sub(r"<!--.*?-->", "", text, flags=re.S)
     return re.sub(r"`[^`\n]*`", "", text)
 
 
+def records_command(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "benchmarks.records", *args], cwd=REPO, capture_output=True, text=True)
+
+
 def test_the_pages_are_what_the_records_make():
-    assert records.main(["--check"]) == 0, "run python -m benchmarks.records --write"
+    proc = records_command("--check")
+    assert proc.returncode == 0, proc.stderr + "\nrun python -m benchmarks.records --write"
 
 
 def test_every_record_is_whole_and_the_table_holds_them_all():
-    found = records.load_records()
+    found = {p.stem: json.loads(p.read_text()) for p in RECORDS.glob("*.json")}
     assert len(found) >= 20
-    table = (REPO / "docs" / "measurements" / "index.md").read_text().split(records.START)[1].split(records.END)[0]
+    table = HEADLINE.read_text().split("<!-- headline:start -->")[1].split("<!-- headline:end -->")[0]
     for rid, r in found.items():
+        assert r["id"] == rid and all(r.get(k) for k in ("what", "value", "date", "commit", "machine", "command", "page")), rid
         assert re.fullmatch(r"\d{4}-\d{2}-\d{2}.*", r["date"]), rid
-        assert f"| {records.cell(r['value'])}" in table, rid
-        target = (records.HEADLINE_PAGE.parent / r["page"].split("#")[0]).resolve()
-        assert target.is_file(), (rid, r["page"])
+        assert f"| {r['value'].replace('|', chr(92) + '|')}" in table, rid
+        assert (HEADLINE.parent / r["page"].split("#")[0]).resolve().is_file(), (rid, r["page"])
+    rows = [line for line in table.splitlines() if line.startswith("| ") and not line.startswith(("| figure", "| ---"))]
+    assert len(rows) == len(found)
 
 
-def test_a_stale_or_unknown_quote_fails_the_check(tmp_path, monkeypatch):
+def test_a_stale_or_unknown_quote_fails_the_check(tmp_path):
     """A record whose value changed makes the pages stale until --write; a quote of no record fails."""
     folder = tmp_path / "records"
-    shutil.copytree(records.RECORDS, folder)
+    shutil.copytree(RECORDS, folder)
     page = tmp_path / "page.md"
     rid = "demo.wall_time"
-    page.write_text(f"It took <!--fig:{rid}-->{json.loads((folder / f'{rid}.json').read_text())['value']}<!--/fig--> here.\n")
-    monkeypatch.setattr(records, "RECORDS", folder)
-    monkeypatch.setattr(records, "REPO", tmp_path)
-    monkeypatch.setattr(records, "PAGES", [page])
-    monkeypatch.setattr(records, "HEADLINE_PAGE", tmp_path / "none.md")
-    assert records.main(["--check"]) == 0
+    value = json.loads((folder / f"{rid}.json").read_text())["value"]
+    page.write_text(f"It took <!--fig:{rid}-->{value}<!--/fig--> here.\n")
+    args = ("--records", str(folder), "--page", str(page))
+    assert records_command("--check", *args).returncode == 0
     data = json.loads((folder / f"{rid}.json").read_text())
     (folder / f"{rid}.json").write_text(json.dumps({**data, "value": "9 min 9 s"}))
-    assert records.main(["--check"]) == 1
-    assert records.main(["--write"]) == 0 and "<!--fig:demo.wall_time-->9 min 9 s<!--/fig-->" in page.read_text()
+    proc = records_command("--check", *args)
+    assert proc.returncode == 1 and "out of date" in proc.stderr
+    assert records_command("--write", *args).returncode == 0
+    assert "<!--fig:demo.wall_time-->9 min 9 s<!--/fig-->" in page.read_text()
     page.write_text(page.read_text() + "<!--fig:no.such-->1 s<!--/fig-->\n")
-    assert records.main(["--check"]) == 1
+    proc = records_command("--check", *args)
+    assert proc.returncode == 1 and "'no.such', which no record" in proc.stderr
 
 
 @pytest.mark.parametrize("page", USER_PAGES, ids=lambda p: str(p.relative_to(REPO)))

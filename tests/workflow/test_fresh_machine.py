@@ -193,7 +193,8 @@ def test_own_mesh_image_guided_runs_end_to_end_on_a_bare_machine(machine, tmp_pa
 
     tile = json.loads((cell / "relight" / "meta.json").read_text())["settings"]["width"]
     width, height = Image.open(cell / "relight" / "ground_truth.png").size
-    assert height == 3 * tile and width % tile == 0 and 1 <= width // tile <= 8
+    # three rows of tiles (ours, Mitsuba's, the difference), labelled around them with a grey scale
+    assert 3 * tile < height < 3 * tile + 100 and tile < width
     summary = (clone / "results" / name / "report" / "summary.csv").read_text()
     assert "relit_psnr_db" in summary.splitlines()[0] and "relit_scale" in summary.splitlines()[0]
     index = (clone / "results" / name / "report" / "index.html").read_text()

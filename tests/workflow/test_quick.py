@@ -323,7 +323,7 @@ def test_the_flags_list_their_choices_and_refuse_two_guidances(tmp_path):
     for name, steps in preset_steps().items():
         assert f"{name} ({steps:,} steps" in text
     # with the optimisation's measured time: rough and metal cost what paper does (COST_KEYS)
-    assert re.search(r"rough \(1,500 steps, [0-9.]+-[0-9.]+ min as paper\)", text), text
+    assert re.search(r"rough \(1,500 steps, [0-9.]+-[0-9.]+ (s|min) as paper\)", text), text
     assert "--uv-max-overlap" in text and "--up-axis" in text
     proc = quick(tmp_path, "builtin:vase", "a vase", "--image-guided", "wood", "--test-clip", "--dry-run")
     assert proc.returncode == 2 and "not allowed with argument" in proc.stderr
