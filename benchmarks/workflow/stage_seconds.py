@@ -17,25 +17,11 @@ from __future__ import annotations
 import argparse
 import datetime
 import json
-import os
-import platform
 import statistics
-import subprocess
 from pathlib import Path
 
-from benchmarks.common import REPO, rule_seconds
-
-
-def machine() -> str:
-    model = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return f"{model}, {os.cpu_count()} CPUs"
+from benchmarks.common import rule_seconds
+from benchmarks.records import commit, machine
 
 
 def main() -> int:
@@ -54,14 +40,13 @@ def main() -> int:
         print(f"{rule:<14}{len(values):>6}{statistics.median(values):>10.1f}{sum(values):>10.1f}")
     print(f"{'all':<14}{sum(len(v) for v in times.values()):>6}{'':>10}{sum(sum(v) for v in times.values()):>10.1f}")
     if args.out:
-        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True).stdout.strip()
         date = datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d")
         table = {
             "seconds_per_job": {r: round(statistics.median(v), 2) for r, v in sorted(times.items())},
             "jobs": {r: len(v) for r, v in sorted(times.items())},
             # what the plan prints (no commit: the plan speaks to users), and the commit for provenance
             "conditions": f"{args.command or args.experiment}, {date}, {machine()}",
-            "commit": commit,
+            "commit": commit(),
         }
         tmp = args.out.with_suffix(".tmp")
         tmp.write_text(json.dumps(table, indent=1) + "\n")
