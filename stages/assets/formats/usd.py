@@ -319,7 +319,7 @@ def validate_usd(path: Path) -> dict:
 
     Returns ``{"file", "validators" (how many ran), "validator_names" (sorted), "validator_digest"
     (SHA-256 of the names, one per line), "errors", "warnings", "infos" (counts), "messages"
-    (``"name: message"`` of every error and warning)}``. Nothing here is a constant: a stage whose
+    (``"name: message"`` of every error, then every warning, each sorted)}``. Nothing here is a constant: a stage whose
     validators report errors fails, and the counts say what ran.
     """
     from pxr import Usd, UsdValidation
@@ -340,7 +340,13 @@ def validate_usd(path: Path) -> dict:
         "errors": count[kinds.Error],
         "warnings": count[kinds.Warn],
         "infos": count[kinds.Info],
-        "messages": [f"{e.GetName()}: {e.GetMessage()}" for e in issues if e.GetType() in (kinds.Error, kinds.Warn)],
+        # errors first, each kind sorted: usd-core's validators run in parallel, so the order they
+        # report in varies from run to run
+        "messages": [
+            m
+            for kind in (kinds.Error, kinds.Warn)
+            for m in sorted(f"{e.GetName()}: {e.GetMessage()}" for e in issues if e.GetType() == kind)
+        ],
     }
 
 
