@@ -14,8 +14,9 @@ rates, the slower of the two meshes; ``bytes_per_view`` is at 512 on the generat
 Then the shadow rays, side by side on each mesh: the bake's ambient occlusion samples (32,768
 points, both sides, the default 512 directions: about 17 M rays) traced as the visibility bits are,
 with Embree's first-hit query in one thread (how they were traced before 2026-11-25), its any-hit
-query in one thread, and the any-hit query over every CPU (the default); the bits must be equal.
-``vis_speedup`` is the first against the last.
+query in one thread, the any-hit query over every CPU in batches of 2^20 rays (how they were
+traced before 2026-11-29), and the same in batches of ``RAYS_PER_BATCH`` (the default); the bits
+must be equal. ``vis_speedup`` is the first against the last, ``vis_batch_speedup`` the last two.
 
     python -m benchmarks.geometry.raycache [--views 24] [--visibility-only]
 """
@@ -34,6 +35,7 @@ from stages.geometry.meshio import TriMesh
 from stages.geometry.normalization import normalize_mesh
 from stages.geometry.raycache import trace_views, training_views
 from stages.geometry.tracing import EmbreeTracer
+from stages.geometry import visibility
 from stages.geometry.visibility import OcclusionSamples, fibonacci_directions
 
 
@@ -65,12 +67,12 @@ class FirstHit:
     def __init__(self, tracer: EmbreeTracer) -> None:
         self.tracer = tracer
 
-    def occluded(self, origins, directions):
+    def occluded(self, origins, directions, threads=None):
         return self.tracer.trace(origins, directions).face >= 0
 
 
 def visibility_side_by_side(meshes: dict[str, TriMesh], samples: int = 32768, directions: int = 512) -> dict:
-    """The occlusion samples of each mesh traced three ways (see the module docstring)."""
+    """The occlusion samples of each mesh traced four ways (see the module docstring)."""
     dirs = fibonacci_directions(directions)
     cpus = cpu_threads()
     out = {}
@@ -78,24 +80,30 @@ def visibility_side_by_side(meshes: dict[str, TriMesh], samples: int = 32768, di
     for name, mesh in meshes.items():
         tracer = EmbreeTracer(mesh)
         ways = (
-            ("first-hit, 1 thread", FirstHit(tracer), 1),
-            ("any-hit, 1 thread", tracer, 1),
-            (f"any-hit, {cpus} threads", tracer, cpus),
+            ("first-hit, 1 thread", FirstHit(tracer), 1, visibility.RAYS_PER_BATCH),
+            ("any-hit, 1 thread", tracer, 1, visibility.RAYS_PER_BATCH),
+            (f"any-hit, {cpus} threads, 2^20", tracer, cpus, 1 << 20),
+            (f"any-hit, {cpus} threads", tracer, cpus, visibility.RAYS_PER_BATCH),
         )
         times, values = [], []
-        for label, t, count in ways:
+        default = visibility.RAYS_PER_BATCH
+        for label, t, count, batch in ways:
             set_cpu_threads(count)
+            visibility.RAYS_PER_BATCH = batch
             t0 = time.perf_counter()
             occ = OcclusionSamples(mesh, t, dirs, samples)
             times.append(time.perf_counter() - t0)
             values.append(occ.values)
-            print(f"  {name:<10}{label:<24}{times[-1]:>8.2f} s")
+            print(f"  {name:<10}{label:<32}{times[-1]:>8.2f} s")
+        visibility.RAYS_PER_BATCH = default
         set_cpu_threads(None)
-        assert all(np.array_equal(values[0], v) for v in values[1:]), "the three ways disagree"
+        assert all(np.array_equal(values[0], v) for v in values[1:]), "the four ways disagree"
         out[f"vis_s_first_hit_{name}"] = times[0]
         out[f"vis_s_any_hit_{name}"] = times[1]
-        out[f"vis_s_threads_{name}"] = times[2]
-        out[f"vis_speedup_{name}"] = times[0] / times[2]
+        out[f"vis_s_threads_2_20_{name}"] = times[2]
+        out[f"vis_s_threads_{name}"] = times[3]
+        out[f"vis_speedup_{name}"] = times[0] / times[3]
+        out[f"vis_batch_speedup_{name}"] = times[2] / times[3]
     out["vis_threads"] = cpus
     return out
 

@@ -19,10 +19,10 @@ from .meshio import TriMesh
 RAYS_PER_THREAD = 1 << 15
 
 
-def _split(count: int) -> list[slice]:
-    """``count`` rays in at most :func:`~stages.core.threads.cpu_threads` contiguous slices of at
-    least :data:`RAYS_PER_THREAD` rays (one slice for a small batch)."""
-    parts = max(1, min(cpu_threads(), count // RAYS_PER_THREAD))
+def _split(count: int, threads: int | None = None) -> list[slice]:
+    """``count`` rays in at most ``threads`` (default :func:`~stages.core.threads.cpu_threads`)
+    contiguous slices of at least :data:`RAYS_PER_THREAD` rays (one slice for a small batch)."""
+    parts = max(1, min(threads or cpu_threads(), count // RAYS_PER_THREAD))
     bounds = np.linspace(0, count, parts + 1).astype(np.int64)
     return [slice(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
 
@@ -40,6 +40,9 @@ class Hits:
 class EmbreeTracer:
     """First-hit and any-hit queries against a triangle mesh through embreex (Embree 4)."""
 
+    #: queries may come from several threads at once (Embree's scenes are read-only once built)
+    concurrent = True
+
     def __init__(self, mesh: TriMesh) -> None:
         try:
             from embreex import rtcore_scene
@@ -49,12 +52,16 @@ class EmbreeTracer:
         self._scene = rtcore_scene.EmbreeScene()
         triangles = np.ascontiguousarray(mesh.vertices[mesh.faces], dtype=np.float32)
         self._geometry = TriangleMesh(self._scene, triangles)  # keep a reference alive
+        # embreex builds the BVH at the first query: made here, once, so that concurrent first
+        # queries do not both build it
+        self._scene.run(np.zeros((1, 3), np.float32), np.ones((1, 3), np.float32), query="OCCLUDED")
 
-    def _run(self, origins: np.ndarray, directions: np.ndarray, **query) -> list:
-        """embreex's ``run`` over the batch's slices (:func:`_split`), in threads when more than one."""
+    def _run(self, origins: np.ndarray, directions: np.ndarray, threads: int | None = None, **query) -> list:
+        """embreex's ``run`` over the batch's slices (:func:`_split` into ``threads``), in threads
+        when more than one."""
         o = np.ascontiguousarray(origins, dtype=np.float32)
         d = np.ascontiguousarray(directions, dtype=np.float32)
-        parts = _split(len(o))
+        parts = _split(len(o), threads)
         if len(parts) == 1:
             return [self._scene.run(o, d, **query)]
         with ThreadPoolExecutor(len(parts)) as pool:
@@ -70,11 +77,12 @@ class EmbreeTracer:
         depth = np.where(face >= 0, tfar, np.inf).astype(np.float32)
         return Hits(face, bary, depth)
 
-    def occluded(self, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
+    def occluded(self, origins: np.ndarray, directions: np.ndarray, threads: int | None = None) -> np.ndarray:
         """Whether each ray ``origins, directions (N, 3)`` meets the mesh at all -> ``(N,) bool``:
         Embree's any-hit query (it stops at the first triangle found, not the nearest), the same
-        answer as ``trace(...).face >= 0``."""
-        parts = self._run(origins, directions, query="OCCLUDED")
+        answer as ``trace(...).face >= 0``; on up to ``threads`` threads (default
+        :func:`~stages.core.threads.cpu_threads`)."""
+        parts = self._run(origins, directions, threads, query="OCCLUDED")
         return np.concatenate([np.asarray(p) for p in parts]) != -1
 
 
@@ -114,8 +122,9 @@ class TrimeshTracer:
             bary[r, 1] = (d11 * p2 - d12 * p1) / den
         return Hits(face, bary, depth)
 
-    def occluded(self, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
-        """Whether each ray meets the mesh -> ``(N,) bool`` (from :meth:`trace`)."""
+    def occluded(self, origins: np.ndarray, directions: np.ndarray, threads: int | None = None) -> np.ndarray:
+        """Whether each ray meets the mesh -> ``(N,) bool`` (from :meth:`trace`; one thread, whatever
+        ``threads`` says)."""
         return self.trace(origins, directions).face >= 0
 
 

@@ -17,11 +17,16 @@ sides; the caller decides which (:func:`viewer_side_normals`).
 from __future__ import annotations
 
 import math
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-#: rays per Embree call: bounds the working memory (about 100 bytes per ray) whatever N x D is
-RAYS_PER_BATCH = 1 << 20
+from ..core.threads import cpu_threads
+
+#: rays per Embree call: bounds the working memory (about 100 bytes per ray) whatever N x D is,
+#: and keeps one call's rays and results in a core's cache (a batch of 2^20 rays traced at half
+#: the rate of one of 2^16: ``benchmarks/geometry/raycache.py``)
+RAYS_PER_BATCH = 1 << 16
 
 
 def fibonacci_directions(count: int) -> np.ndarray:
@@ -62,24 +67,36 @@ def trace_visibility(tracer, points: np.ndarray, normals: np.ndarray, directions
     ``points (N, 3)`` with oriented unit ``normals (N, 3)``, through ``tracer`` (an
     :class:`~stages.geometry.tracing.EmbreeTracer` of the mesh). Only the directions above each
     point's surface are traced (any-hit queries: :meth:`~stages.geometry.tracing.EmbreeTracer.occluded`),
-    in batches of :data:`RAYS_PER_BATCH`."""
+    in batches of about :data:`RAYS_PER_BATCH` rays, each batch whole (its set-up, its rays and its
+    bits) on one of :func:`~stages.core.threads.cpu_threads` threads where the tracer takes queries
+    from several (Embree does; each ray is traced on its own, so the bits do not depend on the
+    split)."""
     points = np.asarray(points, np.float64)
     normals = np.asarray(normals, np.float64)
     directions = np.asarray(directions, np.float64)
     n, d = len(points), len(directions)
     out = np.zeros((n, (d + 7) // 8), np.uint8)
-    per_batch = max(1, RAYS_PER_BATCH // d)
+    workers = cpu_threads() if getattr(tracer, "concurrent", False) else 1
+    per_batch = max(1, min(RAYS_PER_BATCH // d, math.ceil(n / workers)))
     # the rays' origins and directions as the tracer takes them (float32), made once per point and
     # direction rather than once per ray
     starts = (points + offset * normals).astype(np.float32)
     dirs32 = directions.astype(np.float32)
-    for lo in range(0, n, per_batch):
+
+    def batch(lo: int) -> None:
         hi = min(n, lo + per_batch)
         above = normals[lo:hi] @ directions.T > 0.0  # (B, D)
-        rows, cols = np.nonzero(above)
-        visible = np.zeros((hi - lo, d), bool)
-        visible[rows, cols] = ~tracer.occluded(starts[lo:hi][rows], dirs32[cols])
-        out[lo:hi] = np.packbits(visible, axis=1)
+        origins = np.repeat(starts[lo:hi], above.sum(1), axis=0)  # row-major, as the mask's True entries
+        blocked = tracer.occluded(origins, np.take(dirs32, np.nonzero(above)[1], axis=0), threads=1)
+        above[above] = ~blocked
+        out[lo:hi] = np.packbits(above, axis=1)
+
+    if workers == 1:
+        for lo in range(0, n, per_batch):
+            batch(lo)
+    else:
+        with ThreadPoolExecutor(workers) as pool:
+            list(pool.map(batch, range(0, n, per_batch)))
     return out
 
 

@@ -73,6 +73,35 @@ def test_inside_a_closed_box_everything_is_blocked_and_outside_a_convex_mesh_not
     np.testing.assert_array_equal(share, [1.0, 0.0, 0.0])
 
 
+def test_the_bits_do_not_depend_on_the_batches_or_the_threads(monkeypatch):
+    """Batches traced whole on several threads (Embree) give the bits of one thread, of a tracer
+    that takes no concurrent queries (trimesh's reference, traced in order), and of any batch size
+    (a batch smaller than a point's directions, and one point per batch)."""
+    from stages.core.threads import set_cpu_threads
+    from stages.geometry import visibility
+    from stages.geometry.tracing import TrimeshTracer
+
+    mesh = floor_and_ball(2.0, 1.0)
+    dirs = fibonacci_directions(64)
+    rng = np.random.default_rng(3)
+    pts = np.c_[rng.uniform(-2, 2, (40, 2)), np.zeros(40)]
+    nrm = np.tile([0.0, 0.0, 1.0], (40, 1))
+    offset = surface_offset(mesh.vertices)
+    embree = EmbreeTracer(mesh)
+    results = []
+    try:
+        for threads, batch in ((1, 1 << 16), (3, 1 << 16), (2, 100), (3, 8)):
+            set_cpu_threads(threads)
+            monkeypatch.setattr(visibility, "RAYS_PER_BATCH", batch)
+            results.append(trace_visibility(embree, pts, nrm, dirs, offset))
+        results.append(trace_visibility(TrimeshTracer(mesh), pts, nrm, dirs, offset))
+    finally:
+        set_cpu_threads(None)
+    assert blocked_share(results[0], nrm, dirs).max() > 0.05  # some points under the ball
+    for bits in results[1:]:
+        np.testing.assert_array_equal(bits, results[0])
+
+
 def test_viewer_side_normals_turn_to_the_eye():
     n = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])
     rays = np.array([[0.0, 0.0, -1.0], [0.0, 0.3, 1.0]])  # from above, from below
