@@ -31,11 +31,11 @@ import numpy as np
 from benchmarks.common import SHARED_MESHES, knot_mesh
 from stages.config.sections import NormalizeSettings, RaycacheSettings
 from stages.core.threads import cpu_threads, set_cpu_threads
+from stages.geometry import visibility
 from stages.geometry.meshio import TriMesh
 from stages.geometry.normalization import normalize_mesh
 from stages.geometry.raycache import trace_views, training_views
 from stages.geometry.tracing import EmbreeTracer
-from stages.geometry import visibility
 from stages.geometry.visibility import OcclusionSamples, fibonacci_directions
 
 
