@@ -54,6 +54,13 @@ class GuidanceMode:
     #: its results are fitted to image targets, not stylised from their prompts (the origin's
     #: ``image_guided``)
     image_guided: bool
+    #: the CPU threads one optimisation job of it takes on a CPU run (the optimize rule's
+    #: ``threads``; :meth:`~stages.config.workflow.WorkflowConfig.optimize_threads`): a CLIP step
+    #: is large matrix products that a second thread shares, an image-target step thousands of
+    #: points in small operations that a second thread barely speeds up, so that two one-thread
+    #: jobs side by side do nearly twice the work of one two-thread job
+    #: (``benchmarks/training/threads.py``)
+    cpu_threads: int
 
     def weights_label(self, weights: str, test_only: bool, settings: dict[str, Any]) -> str:
         """The summary's ``weights`` column of a result: ``test-only random`` for the test CLIP."""
@@ -97,6 +104,7 @@ for _mode in (
         uses_clip=True,
         image_targets=False,
         image_guided=False,
+        cpu_threads=2,
     ),
     GuidanceMode(
         name="image",
@@ -114,6 +122,7 @@ for _mode in (
         uses_clip=False,
         image_targets=True,
         image_guided=True,
+        cpu_threads=1,
     ),
 ):
     GUIDANCE_MODES.register(_mode.name, _mode)

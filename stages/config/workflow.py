@@ -424,6 +424,14 @@ class WorkflowConfig:
             return 1
         return int(driver.is_dir() and any(driver.iterdir()))
 
+    def optimize_threads(self, prompt_id: str, variant_id: str) -> int:
+        """The CPU threads of a cell's optimize job (the rule's ``threads``): its guidance mode's
+        :attr:`~stages.config.guidance_modes.GuidanceMode.cpu_threads` on a CPU run, 2 where the
+        job runs on a GPU (the CPU only feeds it)."""
+        if self.gpu_jobs():
+            return 2
+        return self.optimize_settings(prompt_id, variant_id).guidance_mode().cpu_threads
+
     @property
     def grid_meshes(self) -> list[str]:
         """Mesh ids that appear in the grid, in config order."""

@@ -197,6 +197,7 @@ def test_a_new_mode_is_one_row_and_one_class(monkeypatch):
         uses_clip=False,
         image_targets=False,
         image_guided=True,
+        cpu_threads=1,
     )
     stack = contextlib.ExitStack()
     monkeypatch.setattr(objective, "GUIDANCE_CLASSES", dict(GUIDANCE_CLASSES))

@@ -187,6 +187,11 @@ def optimize_settings_json(wildcards):
     return json.dumps(settings.to_dict(), sort_keys=True)
 
 
+def optimize_threads(wildcards):
+    """Threads function: the cell's optimize job's CPU threads (its guidance mode's)."""
+    return CFG.optimize_threads(wildcards.prompt, wildcards.variant)
+
+
 def cell_targets(name):
     """Input function: the cell's Mitsuba targets (``train`` or ``metrics``), or nothing when the
     cell trains on CLIP or on SG-rendered targets."""

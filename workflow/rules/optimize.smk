@@ -12,7 +12,7 @@ rule optimize:
         f"{RESULTS}/{{mesh}}/{{prompt}}/{{variant}}/benchmarks/optimize.tsv"
     conda:
         CONDA_ENV
-    threads: 2
+    threads: optimize_threads
     resources:
         gpu=GPU_JOBS,
     params:
