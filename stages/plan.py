@@ -43,6 +43,7 @@ from .core.device import precision_summary, resolve_device
 from .core.errors import StageInputError
 from .core.provenance import write_json_atomic
 from .core.safefiles import read_json, read_text
+from .core.threads import cpu_threads
 from .model.lights.sun import resolve_suns
 from .reference.mitsuba import choose_variant
 from .reference.targets import probe, target_samples
@@ -305,10 +306,13 @@ def make_plan(
     calibrate: bool = True,
     cache: Path = CACHE,
     pending: list[tuple[str, dict]] | None = None,
+    cores: int | None = None,
 ) -> dict:
     """Everything the plan says, as data. ``pending``: the jobs Snakemake will run, as (rule,
     wildcards) (the workflow passes its DAG's); without it, a cell's optimisation counts as done
-    when its ``optimize/meta.json`` exists."""
+    when its ``optimize/meta.json`` exists. ``cores``: the run's (Snakemake's ``--cores``; default
+    the CPUs this process may use), over which the total spreads the jobs' CPU time
+    (:func:`wall_seconds`)."""
     device = torch_device(cfg)
     if pending is not None:
         running = {(w.get("mesh"), w.get("prompt"), w.get("variant")) for rule, w in pending if rule == "optimize"}
@@ -325,7 +329,10 @@ def make_plan(
     groups: dict[str, dict] = {}
     for c in todo:
         s = cfg.optimize_settings(c.prompt, c.variant)
-        entry = groups.setdefault(_digest(s.to_dict()), {"settings": s, "mesh": c.mesh, "cells": 0})
+        entry = groups.setdefault(
+            _digest(s.to_dict()),
+            {"settings": s, "mesh": c.mesh, "threads": cfg.optimize_threads(c.prompt, c.variant), "cells": 0},
+        )
         entry["cells"] += 1
     estimates, total = [], 0.0
     for entry in groups.values():
@@ -333,6 +340,7 @@ def make_plan(
         sec, source = step_seconds(s, cfg.stage_settings(entry["mesh"], "raycache"), device, results, cache, calibrate)
         row = {
             "cells": entry["cells"],
+            "threads": entry["threads"],
             "iterations": s.iterations,
             "seconds_per_step": sec,
             "source": source,
@@ -354,8 +362,12 @@ def make_plan(
     other_rules = [r for r in to_run if r not in ("optimize", "target", "all")]
     missing = [r for r in other_rules if r not in others]
     other_total = sum(others[r] * to_run[r] for r in other_rules if r in others)
-    parts = [total if estimates else 0.0, targets["seconds"], other_total]
     known = all(e["seconds_per_step"] is not None for e in estimates) and targets["seconds"] is not None and not missing
+    cores = cores or cpu_threads()
+    work = [(row["seconds"] / row["cells"], row["threads"], row["cells"]) for row in estimates if "seconds" in row]
+    if targets["seconds"]:
+        work.append((targets["seconds"] / targets["jobs"], cfg.job_threads("target"), targets["jobs"]))
+    work += [(others[r], cfg.job_threads(r), to_run[r]) for r in other_rules if r in others]
     plan = {
         "experiment": experiment,
         "source": cfg.source,
@@ -377,11 +389,21 @@ def make_plan(
         "other_jobs": {r: to_run[r] for r in other_rules},
         "other_seconds": other_total,
         "other_missing": missing,
-        "total_seconds": sum(parts) if known else None,
+        "cores": cores,
+        "total_seconds": wall_seconds(work, cores) if known else None,
     }
     if device == "cpu" and any(e["paper"] for e in estimates):
         plan["paper_on_cpu"] = faster_presets(groups, cfg, device, results, cache, calibrate)
     return plan
+
+
+def wall_seconds(work: list[tuple[float, int, int]], cores: int) -> float:
+    """The wall time of jobs ``(seconds per job, threads, jobs)`` on ``cores``: their CPU time
+    (seconds times threads, at most ``cores`` each) spread over the cores, as Snakemake runs jobs
+    side by side where their threads fit; never less than the longest job (one job does not
+    split)."""
+    spread = sum(seconds * min(threads, cores) * jobs for seconds, threads, jobs in work) / cores
+    return max([spread, *(seconds for seconds, _, _ in work)])
 
 
 def planned_suns(cfg: WorkflowConfig, mesh: str, s) -> dict:
@@ -515,7 +537,7 @@ def estimate_text(plan: dict) -> str:
     t, opt = plan["targets"], plan["optimisation_seconds"]
     total = plan["total_seconds"]
     head = f"about {duration(total)} in all" if total is not None else "not estimated in all"
-    parts = [f"optimisation {duration(opt)} (one at a time)"]
+    parts = [f"optimisation {duration(opt)}"]
     if t["jobs"]:
         samples = sum(t["samples"].values())
         rate = t.get("samples_per_second")
@@ -530,7 +552,8 @@ def estimate_text(plan: dict) -> str:
         if plan["other_missing"]:
             said += f"; not estimated: {', '.join(plan['other_missing'])}"
         parts.append(said)
-    return f"Estimated wall time on this machine: {head}: {'; '.join(parts)}. An estimate, not a promise."
+    spread = f" on {plan['cores']} cores (jobs side by side as their threads allow)" if total is not None else ""
+    return f"Estimated wall time on this machine: {head}{spread}: {'; '.join(parts)}. An estimate, not a promise."
 
 
 def plan_text(plan: dict) -> str:
@@ -580,10 +603,16 @@ def main(argv: list[str] | None = None) -> int:
         parser.add_argument("--no-calibrate", action="store_true", help="no calibration run (estimate from earlier runs only)")
         parser.add_argument("--cache", type=Path, default=CACHE, help="where calibrations are kept")
         parser.add_argument("--json", action="store_true")
+        parser.add_argument(
+            "--cores", type=int, default=None, help="the cores of the run to estimate (default: the CPUs this process may use)"
+        )
 
     def body(args):
         cfg = load_config_files(args.configfile)
-        plan = make_plan(cfg, experiment_name(cfg.raw, args.configfile), args.results, not args.no_calibrate, args.cache)
+        if args.cores is not None and args.cores < 1:
+            raise StageInputError(Path("--cores"), f"must be at least 1, got {args.cores}", "Pass the cores the run will use.")
+        name = experiment_name(cfg.raw, args.configfile)
+        plan = make_plan(cfg, name, args.results, not args.no_calibrate, args.cache, cores=args.cores)
         if args.json:
             sys.stdout.write(json.dumps(plan, indent=1, default=str) + "\n")
         else:

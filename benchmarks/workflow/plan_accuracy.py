@@ -56,7 +56,7 @@ def main() -> int:
     try:
         plan = json.loads(
             subprocess.run(
-                [sys.executable, "-m", "stages.plan", "--configfile", args.configfile, "--json"],
+                [sys.executable, "-m", "stages.plan", "--configfile", args.configfile, "--cores", str(args.cores), "--json"],
                 cwd=clone,
                 env=env,
                 capture_output=True,
@@ -143,7 +143,8 @@ def report(plan: dict, wall: float, peak_gb: float, actual: dict[str, list[float
         print(f"estimate / run: {total:.0f} / {wall:.0f} s = {total / wall:.2f}")
     per_job = plan["other_stage_seconds"]
     jobs = {**plan["other_jobs"], "target": t["jobs"]}
-    print(f"{'rule':<14}{'jobs':>6}{'estimate s':>12}{'run s':>10}")
+    print(f"{'rule':<14}{'jobs':>6}{'estimate s':>12}{'run s':>10}   (job seconds, side by side on {plan['cores']} cores)")
+    estimated = 0.0
     for rule, values in sorted(actual.items(), key=lambda kv: -sum(kv[1])):
         if rule == "optimize":
             est = plan["optimisation_seconds"]
@@ -151,9 +152,10 @@ def report(plan: dict, wall: float, peak_gb: float, actual: dict[str, list[float
             est = t["seconds"]
         else:
             est = per_job.get(rule, float("nan")) * jobs.get(rule, 0)
+        estimated += est or 0.0
         print(f"{rule:<14}{len(values):>6}{est:>12.1f}{sum(values):>10.1f}")
     jobs_run, seconds_run = sum(len(v) for v in actual.values()), sum(map(sum, actual.values()))
-    print(f"{'all jobs':<14}{jobs_run:>6}{total or float('nan'):>12.1f}{seconds_run:>10.1f}")
+    print(f"{'all jobs':<14}{jobs_run:>6}{estimated:>12.1f}{seconds_run:>10.1f}")
 
 
 if __name__ == "__main__":

@@ -51,6 +51,11 @@ RESERVED_MESH_IDS = {"report": "results/<experiment>/report/ holds the experimen
 #: the name no id and no experiment may take: a folder of that name inside results/ would be taken
 #: for the results folder itself, which alone may be a link (stages.core.safefiles)
 RESERVED_NAME = "results"
+#: the CPU threads of the rules whose jobs take more than one (their ``threads:`` read this; the
+#: plan counts with it): the ray tracer and Mitsuba use every thread they get. Every other rule's
+#: jobs take one, as their work is small operations that a second thread barely speeds up, but
+#: optimize's, which follow the cell's guidance (:meth:`WorkflowConfig.optimize_threads`)
+RULE_THREADS = {"raycache": 2, "target": 2}
 
 
 def settings_digest(obj: Any) -> str:
@@ -423,6 +428,11 @@ class WorkflowConfig:
         if self.device == "cuda":
             return 1
         return int(driver.is_dir() and any(driver.iterdir()))
+
+    def job_threads(self, rule: str) -> int:
+        """The CPU threads of ``rule``'s jobs (:data:`RULE_THREADS`; 1 for the others) but
+        optimize's (per cell: :meth:`optimize_threads`)."""
+        return RULE_THREADS.get(rule, 1)
 
     def optimize_threads(self, prompt_id: str, variant_id: str) -> int:
         """The CPU threads of a cell's optimize job (the rule's ``threads``): its guidance mode's

@@ -53,9 +53,32 @@ def test_the_estimate_counts_every_rule_to_run(tmp_path):
     table = p["other_stage_seconds"]
     others = sum(table[r] * n for r, n in p["other_jobs"].items())
     assert p["other_seconds"] == pytest.approx(others)
-    assert p["total_seconds"] == pytest.approx(p["optimisation_seconds"] + t["seconds"] + others)
+    # the demo's optimisations take one thread each, its targets two: on two cores the jobs' CPU
+    # time over the two cores
+    assert [row["threads"] for row in p["optimisation"]] == [1, 1] and p["cores"] == plan_mod.cpu_threads()
+    cpu = (
+        p["optimisation_seconds"]
+        + 2 * t["seconds"]
+        + sum(table[r] * n * (2 if r == "raycache" else 1) for r, n in p["other_jobs"].items())
+    )
+    if p["cores"] == 2:
+        assert p["total_seconds"] == pytest.approx(cpu / 2)
     text = plan_mod.plan_text(p)
     assert "of them the relit truths" in text and "Estimated wall time on this machine: about" in text
+    assert f"on {p['cores']} cores (jobs side by side" in text
+    one = plan_mod.make_plan(cfg, "demo", tmp_path / "results", True, env_cache, cores=1)
+    # one core: one job at a time, the sum of the parts (a calibration under load is measured again)
+    assert one["total_seconds"] == pytest.approx(one["optimisation_seconds"] + one["targets"]["seconds"] + one["other_seconds"])
+
+
+def test_the_wall_time_spreads_the_jobs_cpu_time_over_the_cores():
+    """Jobs side by side: two one-thread jobs of 10 s and a two-thread one of 5 s take 15 s on two
+    cores and 25 s on one (the two-thread job on one thread); one job never splits."""
+    jobs = [(10.0, 1, 2), (5.0, 2, 1)]
+    assert plan_mod.wall_seconds(jobs, 2) == pytest.approx(15.0)
+    assert plan_mod.wall_seconds(jobs, 1) == pytest.approx(25.0)
+    assert plan_mod.wall_seconds(jobs, 8) == pytest.approx(10.0)
+    assert plan_mod.wall_seconds([(100.0, 1, 1), (1.0, 1, 4)], 2) == pytest.approx(100.0)
 
 
 @pytest.mark.slow(minutes=0.5)

@@ -110,6 +110,26 @@ def test_gpu_jobs_without_torch(tmp_path):
     assert cfg.gpu_jobs(driver) == 1
 
 
+def test_optimize_jobs_take_their_guidance_modes_threads(tmp_path, monkeypatch):
+    """On a CPU run a CLIP-guided cell's optimize job takes two threads and an image-guided one
+    one (two of them then run side by side on two cores); on a GPU run every one takes two."""
+    cfg = yaml.safe_load(SMOKE.read_text())
+    cfg["variants"]["second"]["optimize"].update(guidance="image", target_renderer="sg")
+    path = tmp_path / "threads.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    proc = run_snakemake(tmp_path, "-n", "-p", "--cores", "2", "--configfile", str(path), "--config", "device=cpu")
+    assert proc.returncode == 0, proc.stderr
+    jobs = re.findall(r"^(?:local)?rule (\w+):\n(.*?)(?:\n\n|\Z)", proc.stdout, re.S | re.M)
+    threads = {
+        re.search(r"variant=(\w+)", body)[1]: re.search(r"--threads (\d+)", body)[1] for rule, body in jobs if rule == "optimize"
+    }
+    assert threads == {"full": "2", "second": "1"}, threads
+    loaded = load_config_file(path)
+    assert (loaded.optimize_threads("wood", "full"), loaded.optimize_threads("wood", "second")) == (2, 1)
+    monkeypatch.setattr(WorkflowConfig, "gpu_jobs", lambda self: 1)
+    assert loaded.optimize_threads("wood", "second") == 2
+
+
 def test_face_budget_mode_reads_the_mesh_cache_settings(tmp_path):
     """``decimate.mode: budget`` inserts the decimate stage, hands it the mesh's own ray-cache
     settings (which set the budget: a cache edit reruns it) and traces its output; a mesh

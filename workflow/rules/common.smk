@@ -9,7 +9,7 @@ from pathlib import Path
 from stages.config.code import code_digest
 from stages.config.layout import EXPORT_FILES, LOD_FILES, OPTIMIZE_FILES, TEXTURES
 from stages.config.sections import MATERIALS
-from stages.config.workflow import MESH_WORK, read_yaml, workflow_config
+from stages.config.workflow import MESH_WORK, RULE_THREADS, read_yaml, workflow_config
 from stages.core.errors import ConfigError
 
 DEFAULT_CONFIGFILE = "config/config.yaml"
@@ -251,7 +251,13 @@ def print_plan():
     try:
         calibrate = os.environ.get("TANGO_PLAN_CALIBRATE", "1") != "0"
         text = plan_text(
-            make_plan(CFG, EXPERIMENT, calibrate=calibrate, pending=pending)
+            make_plan(
+                CFG,
+                EXPERIMENT,
+                calibrate=calibrate,
+                pending=pending,
+                cores=workflow.cores,
+            )
         )
     except Exception as exc:
         text = f"(no plan: {type(exc).__name__}: {exc})\n"

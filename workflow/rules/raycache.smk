@@ -12,7 +12,7 @@ rule raycache:
         f"{MESH_WORK_DIR}/benchmarks/raycache.tsv"
     conda:
         CONDA_ENV
-    threads: 2
+    threads: RULE_THREADS["raycache"]
     params:
         code=code_digest("stages.raycache"),
         settings=stage_settings_json("raycache"),

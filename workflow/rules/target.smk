@@ -17,7 +17,7 @@ rule target:
         f"{MESH_WORK_DIR}/benchmarks/target-{{material}}.tsv"
     conda:
         CONDA_ENV
-    threads: 2
+    threads: RULE_THREADS["target"]
     params:
         code=code_digest("stages.target"),
         out_dir=lambda wildcards: f"{MESHES}/{wildcards.mesh}/{wildcards.key}/target/{wildcards.material}",
