@@ -1,6 +1,6 @@
 """plan: what a run of a config will do and about how long it will take here, before it starts.
 
-    python -m stages.plan [--configfile config/config.yaml [overlay.yaml ...]] [--no-calibrate] [--json]
+    python -m stages.plan [--configfile config/config.yaml [overlay.yaml ...]] [--cores N] [--no-calibrate] [--json]
 
 Printed by the workflow when it starts (``onstart``) and available alone. It says:
 
@@ -10,19 +10,22 @@ Printed by the workflow when it starts (``onstart``) and available alone. It say
 - an **estimate** of the optimisations' wall time on this machine: iterations x seconds per step,
   the seconds per step taken from an earlier run of the same settings on the same device when
   one is in ``results/`` (its ``seconds_per_iteration``), else measured by a short calibration
-  (:mod:`stages.training.calibrate`: a few real steps of these settings; cached in
-  ``.cache/tango-plan/`` unless other processes used more than a quarter of the CPU meanwhile,
-  which the plan then says; ``TANGO_PLAN_CALIBRATE=0`` skips it at the workflow's start), one
-  optimisation at a time; Mitsuba's target jobs from the samples they render (training views,
-  metric views and the relit truths) at the rate of a probe render here; every other stage per
-  job from the benchmark files of earlier runs when there are any, else from the reference
-  table (``benchmarks/figures/stage_seconds.json``, with its conditions);
+  (:mod:`stages.training.calibrate`: a few real steps of these settings on the job's threads;
+  cached in ``.cache/tango-plan/`` unless other processes used more than a quarter of the CPU
+  meanwhile, which the plan then says; ``TANGO_PLAN_CALIBRATE=0`` skips it at the workflow's
+  start); Mitsuba's target jobs from the samples they render (training views, metric views and
+  the relit truths) at the rate of a probe render here on the job's threads; every other stage
+  per job from the benchmark files of earlier runs when there are any, else from the reference
+  table (``benchmarks/figures/stage_seconds.json``, with its conditions); in all, the jobs' CPU
+  time spread over the run's cores (:func:`wall_seconds`; on a GPU run, never less than the GPU
+  jobs one after another);
 - on a CPU with the paper's settings, that it is so, and the faster presets with their
   measured quality cost (``benchmarks/figures/preset_costs.json``) and their time here.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import hashlib
 import json
@@ -43,7 +46,7 @@ from .core.device import precision_summary, resolve_device
 from .core.errors import StageInputError
 from .core.provenance import write_json_atomic
 from .core.safefiles import read_json, read_text
-from .core.threads import cpu_threads
+from .core.threads import cpu_threads, set_cpu_threads, threads_setting
 from .model.lights.sun import resolve_suns
 from .reference.mitsuba import choose_variant
 from .reference.targets import probe, target_samples
@@ -186,12 +189,37 @@ def _cached_measure(cache: Path, key: str, name: str, measure, extra: dict) -> t
     return value, load.note()
 
 
-def step_seconds(settings, raycache, device: str, results: Path, cache: Path, calibrate: bool) -> tuple[float | None, str]:
-    """Seconds per optimisation step and where the figure comes from."""
+@contextlib.contextmanager
+def job_threads(count: int):
+    """This process on ``count`` CPU threads (torch's and :func:`~stages.core.threads.cpu_threads`,
+    which Mitsuba's follow), as a job of that many threads runs, then as it was: a calibration
+    and a probe measure at their job's threads."""
+    import torch
+
+    before_torch, before = torch.get_num_threads(), threads_setting()
+    set_cpu_threads(count)
+    torch.set_num_threads(count)
+    try:
+        yield
+    finally:
+        set_cpu_threads(before)
+        torch.set_num_threads(before_torch)
+
+
+def step_seconds(
+    settings, raycache, device: str, results: Path, cache: Path, calibrate: bool, threads: int
+) -> tuple[float | None, str]:
+    """Seconds per optimisation step of a job on ``threads`` threads and where the figure comes from."""
     digest = _digest(settings.to_dict())
     earlier = earlier_step_seconds(results, digest, device)
     if earlier is not None:
         return earlier, "an earlier run of these settings"
+    with job_threads(threads):
+        return _calibrated_step(settings, raycache, device, digest, cache, calibrate)
+
+
+def _calibrated_step(settings, raycache, device: str, digest: str, cache: Path, calibrate: bool) -> tuple[float | None, str]:
+    """:func:`step_seconds` from the cache or a calibration (on the threads the caller set)."""
     key = hashlib.sha256(f"{digest}|{_digest(dataclasses.asdict(raycache))}|{device}|{_machine()}".encode()).hexdigest()[:16]
     cached = cache / f"{key}.json"
     if (seconds := _cached(cached, "seconds_per_step")) is not None:
@@ -203,11 +231,16 @@ def step_seconds(settings, raycache, device: str, results: Path, cache: Path, ca
     return seconds, "a calibration of these settings (a few real steps" + note + ")"
 
 
-def mitsuba_rate(target, cache: Path, calibrate: bool) -> tuple[float | None, str]:
-    """Mitsuba's samples per second for target ``settings`` on this machine (the doctor's probe:
-    the target scene on a small sphere, :func:`stages.reference.targets.probe`), cached per
-    settings, variant and machine; and where the figure comes from."""
+def mitsuba_rate(target, cache: Path, calibrate: bool, threads: int) -> tuple[float | None, str]:
+    """Mitsuba's samples per second for target ``settings`` on this machine on ``threads`` threads
+    (the doctor's probe: the target scene on a small sphere, :func:`stages.reference.targets.probe`),
+    cached per settings, variant, machine and threads; and where the figure comes from."""
+    with job_threads(threads):
+        return _probed_rate(target, cache, calibrate)
 
+
+def _probed_rate(target, cache: Path, calibrate: bool) -> tuple[float | None, str]:
+    """:func:`mitsuba_rate` from this process's probes, the cache or a probe (on the caller's threads)."""
     variant = choose_variant(target.variant)
     key = hashlib.sha256(f"mitsuba|{_digest(target.to_dict())}|{variant}|{_machine()}".encode()).hexdigest()[:16]
     cached = cache / f"{key}.json"
@@ -232,7 +265,8 @@ def _machine() -> str:
 
     import torch
 
-    return f"{platform.processor() or platform.machine()}|{os.cpu_count()}|{torch.__version__}|{torch.get_num_threads()}"
+    cpu = platform.processor() or platform.machine()
+    return f"{cpu}|{os.cpu_count()}|{torch.__version__}|{torch.get_num_threads()}|{cpu_threads()}"
 
 
 def positive_figure(value) -> float | None:
@@ -314,60 +348,17 @@ def make_plan(
     the CPUs this process may use), over which the total spreads the jobs' CPU time
     (:func:`wall_seconds`)."""
     device = torch_device(cfg)
-    if pending is not None:
-        running = {(w.get("mesh"), w.get("prompt"), w.get("variant")) for rule, w in pending if rule == "optimize"}
-        todo = [c for c in cfg.cells if (c.mesh, c.prompt, c.variant) in running]
-    else:
-        cell_dir = results / experiment
-        todo = [c for c in cfg.cells if not (cell_dir / c.mesh / c.prompt / c.variant / "optimize" / "meta.json").is_file()]
-    done = [c for c in cfg.cells if c not in todo]
-    pending_jobs = None
-    if pending is not None:
-        pending_jobs = {}
-        for rule, _ in pending:
-            pending_jobs[rule] = pending_jobs.get(rule, 0) + 1
-    groups: dict[str, dict] = {}
-    for c in todo:
-        s = cfg.optimize_settings(c.prompt, c.variant)
-        entry = groups.setdefault(
-            _digest(s.to_dict()),
-            {"settings": s, "mesh": c.mesh, "threads": cfg.optimize_threads(c.prompt, c.variant), "cells": 0},
-        )
-        entry["cells"] += 1
-    estimates, total = [], 0.0
-    for entry in groups.values():
-        s = entry["settings"]
-        sec, source = step_seconds(s, cfg.stage_settings(entry["mesh"], "raycache"), device, results, cache, calibrate)
-        row = {
-            "cells": entry["cells"],
-            "threads": entry["threads"],
-            "iterations": s.iterations,
-            "seconds_per_step": sec,
-            "source": source,
-            "paper": is_paper(s),
-            "clip_model": s.guidance_mode().plan_label(s),  # what guides it
-            "precision": precision_summary(s.bf16, s.bf16_networks, resolve_device(device)),
-        }
-        if s.suns != 0:  # how many suns, decided as the run will decide it (on the known environment)
-            row["suns"] = planned_suns(cfg, entry["mesh"], s)
-        if s.bounces != 0:  # decided by the optimisation, on the training views' shadows
-            row["bounces"] = {"setting": s.bounces, "every": s.bounce_every, "samples": s.bounce_samples}
-        if sec is not None:
-            row["seconds"] = sec * s.iterations * entry["cells"]
-            total += row["seconds"]
-        estimates.append(row)
+    cores = cores or cpu_threads()
+    todo, pending_jobs = _todo(cfg, experiment, results, pending)
+    groups = _groups(cfg, todo)
+    estimates = [_estimate_row(cfg, entry, device, results, cache, calibrate, cores) for entry in groups.values()]
+    timed = all(e["seconds_per_step"] is not None for e in estimates)
     to_run = pending_jobs if pending_jobs is not None else remaining_jobs(cfg, todo)
-    targets = target_estimate(cfg, pending, todo, cache, calibrate)
+    targets = target_estimate(cfg, pending, todo, cache, calibrate, cores)
     others, others_source = other_stage_seconds(results)
     other_rules = [r for r in to_run if r not in ("optimize", "target", "all")]
     missing = [r for r in other_rules if r not in others]
-    other_total = sum(others[r] * to_run[r] for r in other_rules if r in others)
-    known = all(e["seconds_per_step"] is not None for e in estimates) and targets["seconds"] is not None and not missing
-    cores = cores or cpu_threads()
-    work = [(row["seconds"] / row["cells"], row["threads"], row["cells"]) for row in estimates if "seconds" in row]
-    if targets["seconds"]:
-        work.append((targets["seconds"] / targets["jobs"], cfg.job_threads("target"), targets["jobs"]))
-    work += [(others[r], cfg.job_threads(r), to_run[r]) for r in other_rules if r in others]
+    known = timed and targets["seconds"] is not None and not missing
     plan = {
         "experiment": experiment,
         "source": cfg.source,
@@ -376,25 +367,91 @@ def make_plan(
         "prompts": len({c.prompt for c in cfg.cells}),
         "variants": len(cfg.variants),
         "cells": len(cfg.cells),
-        "optimisations_done": len(done),
+        "optimisations_done": len(cfg.cells) - len(todo),
         "jobs": job_counts(cfg),
         "pending_jobs": pending_jobs,
         "device": device,
         "device_setting": cfg.device,
         "optimisation": estimates,
-        "optimisation_seconds": total if all(e["seconds_per_step"] is not None for e in estimates) else None,
+        "optimisation_seconds": sum(e.get("seconds", 0.0) for e in estimates) if timed else None,
         "targets": targets,
         "other_stage_seconds": {r: others[r] for r in others},
         "other_source": others_source,
         "other_jobs": {r: to_run[r] for r in other_rules},
-        "other_seconds": other_total,
+        "other_seconds": sum(others[r] * to_run[r] for r in other_rules if r in others),
         "other_missing": missing,
         "cores": cores,
-        "total_seconds": wall_seconds(work, cores) if known else None,
     }
+    plan["total_seconds"] = _total(cfg, plan) if known else None
     if device == "cpu" and any(e["paper"] for e in estimates):
-        plan["paper_on_cpu"] = faster_presets(groups, cfg, device, results, cache, calibrate)
+        plan["paper_on_cpu"] = faster_presets(groups, cfg, device, results, cache, calibrate, cores)
     return plan
+
+
+def _todo(cfg: WorkflowConfig, experiment: str, results: Path, pending) -> tuple[list, dict | None]:
+    """The cells whose optimisation is still to run, and the pending jobs per rule (None without
+    Snakemake's DAG: a cell counts as done when its ``optimize/meta.json`` exists)."""
+    if pending is None:
+        cell_dir = results / experiment
+        return [c for c in cfg.cells if not (cell_dir / c.mesh / c.prompt / c.variant / "optimize" / "meta.json").is_file()], None
+    running = {(w.get("mesh"), w.get("prompt"), w.get("variant")) for rule, w in pending if rule == "optimize"}
+    counts: dict[str, int] = {}
+    for rule, _ in pending:
+        counts[rule] = counts.get(rule, 0) + 1
+    return [c for c in cfg.cells if (c.mesh, c.prompt, c.variant) in running], counts
+
+
+def _groups(cfg: WorkflowConfig, todo: list) -> dict[str, dict]:
+    """The cells to optimise grouped by their settings (one calibration each), with a mesh of
+    theirs, their job's threads and their count."""
+    groups: dict[str, dict] = {}
+    for c in todo:
+        s = cfg.optimize_settings(c.prompt, c.variant)
+        threads = cfg.optimize_threads(c.prompt, c.variant)
+        entry = groups.setdefault(_digest(s.to_dict()), {"settings": s, "mesh": c.mesh, "threads": threads, "cells": 0})
+        entry["cells"] += 1
+    return groups
+
+
+def _estimate_row(cfg: WorkflowConfig, entry: dict, device: str, results: Path, cache: Path, calibrate: bool, cores: int) -> dict:
+    """The plan's row of one group of optimisations: its seconds per step (on its job's threads)
+    and in all, where they come from, its guide, precision, suns and bounces."""
+    s = entry["settings"]
+    raycache = cfg.stage_settings(entry["mesh"], "raycache")
+    sec, source = step_seconds(s, raycache, device, results, cache, calibrate, min(entry["threads"], cores))
+    row = {
+        "cells": entry["cells"],
+        "threads": entry["threads"],
+        "iterations": s.iterations,
+        "seconds_per_step": sec,
+        "source": source,
+        "paper": is_paper(s),
+        "clip_model": s.guidance_mode().plan_label(s),  # what guides it
+        "precision": precision_summary(s.bf16, s.bf16_networks, resolve_device(device)),
+    }
+    if s.suns != 0:  # how many suns, decided as the run will decide it (on the known environment)
+        row["suns"] = planned_suns(cfg, entry["mesh"], s)
+    if s.bounces != 0:  # decided by the optimisation, on the training views' shadows
+        row["bounces"] = {"setting": s.bounces, "every": s.bounce_every, "samples": s.bounce_samples}
+    if sec is not None:
+        row["seconds"] = sec * s.iterations * entry["cells"]
+    return row
+
+
+def _total(cfg: WorkflowConfig, plan: dict) -> float:
+    """The plan's wall time: every job's seconds, threads and count (:func:`wall_seconds` over the
+    run's cores); on a GPU run never less than the torch jobs one after another (they share the
+    GPU, one at a time under the workflow's profile)."""
+    work = [("optimize", row["seconds"] / row["cells"], row["threads"], row["cells"]) for row in plan["optimisation"]]
+    t = plan["targets"]
+    if t["jobs"]:
+        work.append(("target", t["seconds"] / t["jobs"], cfg.job_threads("target"), t["jobs"]))
+    per_job = plan["other_stage_seconds"]
+    work += [(r, per_job[r], cfg.job_threads(r), n) for r, n in plan["other_jobs"].items()]
+    spread = wall_seconds([w[1:] for w in work], plan["cores"])
+    if cfg.gpu_jobs():
+        return max(spread, sum(seconds * n for rule, seconds, _, n in work if rule in TORCH_RULES))
+    return spread
 
 
 def wall_seconds(work: list[tuple[float, int, int]], cores: int) -> float:
@@ -456,7 +513,7 @@ def remaining_jobs(cfg: WorkflowConfig, todo: list) -> dict[str, int]:
     return {r: n for r, n in counts.items() if n}
 
 
-def target_estimate(cfg: WorkflowConfig, pending, todo: list, cache: Path, calibrate: bool) -> dict:
+def target_estimate(cfg: WorkflowConfig, pending, todo: list, cache: Path, calibrate: bool, cores: int) -> dict:
     """The Mitsuba target jobs still to run: their samples (training views, metric views and the
     relit truths: :func:`stages.reference.targets.target_samples`) and seconds at the rate a probe
     render measures here (per target settings)."""
@@ -474,7 +531,7 @@ def target_estimate(cfg: WorkflowConfig, pending, todo: list, cache: Path, calib
         samples = target_samples(cfg.stage_settings(mesh, "raycache"), target)
         for kind, n in samples.items():
             out["samples"][kind] += n
-        rate, source = mitsuba_rate(target, cache, calibrate)
+        rate, source = mitsuba_rate(target, cache, calibrate, min(cfg.job_threads("target"), cores))
         sources.add(source)
         seconds = None if rate is None or seconds is None else seconds + sum(samples.values()) / rate
         if rate is not None:
@@ -483,7 +540,7 @@ def target_estimate(cfg: WorkflowConfig, pending, todo: list, cache: Path, calib
     return out
 
 
-def faster_presets(groups, cfg, device, results, cache, calibrate) -> list[dict]:
+def faster_presets(groups, cfg, device, results, cache, calibrate, cores: int) -> list[dict]:
     """The speed presets applied to the paper-setting cells: their time here and their measured
     quality cost against the paper's settings (``benchmarks/figures/preset_costs.json``)."""
     costs = read_json(PRESET_COSTS) if PRESET_COSTS.is_file() else {}
@@ -495,7 +552,8 @@ def faster_presets(groups, cfg, device, results, cache, calibrate) -> list[dict]
         for e in paper:
             preset = {k: tuple(v) if isinstance(v, list) else v for k, v in PRESETS[name].items()}
             s = dataclasses.replace(e["settings"], **preset)
-            sec, _ = step_seconds(s, cfg.stage_settings(e["mesh"], "raycache"), device, results, cache, calibrate)
+            raycache = cfg.stage_settings(e["mesh"], "raycache")
+            sec, _ = step_seconds(s, raycache, device, results, cache, calibrate, min(e["threads"], cores))
             seconds = None if sec is None or seconds is None else seconds + sec * s.iterations * e["cells"]
         measured = costs.get("presets", {})
         out.append(
@@ -552,8 +610,8 @@ def estimate_text(plan: dict) -> str:
         if plan["other_missing"]:
             said += f"; not estimated: {', '.join(plan['other_missing'])}"
         parts.append(said)
-    spread = f" on {plan['cores']} cores (jobs side by side as their threads allow)" if total is not None else ""
-    return f"Estimated wall time on this machine: {head}{spread}: {'; '.join(parts)}. An estimate, not a promise."
+    where = f"on this machine, on {plan['cores']} cores (jobs side by side as their threads allow)"
+    return f"Estimated wall time {where}: {head}: {'; '.join(parts)}. An estimate, not a promise."
 
 
 def plan_text(plan: dict) -> str:

@@ -309,7 +309,7 @@ def run(request: Request, launch: Launch = Launch()) -> int:
     sys.stdout.write("\n".join(lines) + "\n")
     sys.stdout.flush()
     if launch.dry_run:
-        cmd = [sys.executable, "-m", "stages.plan", "--configfile", *map(str, configfiles)]
+        cmd = [sys.executable, "-m", "stages.plan", "--configfile", *map(str, configfiles), "--cores", str(cores)]
         cmd += ["--no-calibrate"] if os.environ.get("TANGO_PLAN_CALIBRATE") == "0" else []  # as the workflow's plan
     else:
         cmd = [sys.executable, "-m", "snakemake", "--snakefile", str(SNAKEFILE), "--cores", str(cores)]

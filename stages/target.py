@@ -154,7 +154,7 @@ def main(argv: list[str] | None = None) -> int:
     def body(args):
         run(args.train, args.metrics, args.material, args.out_dir, TargetSettings.from_json(args.settings), args.mesh)
 
-    return stage_main("target", __doc__, arguments, body, argv)
+    return stage_main("target", __doc__, arguments, body, argv, threads=True)
 
 
 if __name__ == "__main__":

@@ -14,9 +14,10 @@ rates, the slower of the two meshes; ``bytes_per_view`` is at 512 on the generat
 Then the shadow rays, side by side on each mesh: the bake's ambient occlusion samples (32,768
 points, both sides, the default 512 directions: about 17 M rays) traced as the visibility bits are,
 with Embree's first-hit query in one thread (how they were traced before 2026-11-25), its any-hit
-query in one thread, the any-hit query over every CPU in batches of 2^20 rays (how they were
-traced before 2026-11-29), and the same in batches of ``RAYS_PER_BATCH`` (the default); the bits
-must be equal. ``vis_speedup`` is the first against the last, ``vis_batch_speedup`` the last two.
+query in one thread, the any-hit query over every CPU in batches of 2^20 rays (the batch size
+before 2026-11-29, traced the current way: each batch whole on one thread), and the same in
+batches of ``RAYS_PER_BATCH`` (the default); the bits must be equal. ``vis_speedup`` is the first
+against the last, ``vis_batch_speedup`` the last two (the batch size alone).
 
     python -m benchmarks.geometry.raycache [--views 24] [--visibility-only]
 """

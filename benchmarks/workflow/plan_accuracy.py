@@ -156,7 +156,7 @@ def report(plan: dict, wall: float, peak_gb: float, actual: dict[str, list[float
             est = t["seconds"]
         else:
             est = per_job.get(rule, float("nan")) * jobs.get(rule, 0)
-        estimated += est or 0.0
+        estimated += est if est is not None and est == est else 0.0  # (a rule without a figure: nan)
         print(f"{rule:<14}{len(values):>6}{est:>12.1f}{sum(values):>10.1f}")
     jobs_run, seconds_run = sum(len(v) for v in actual.values()), sum(map(sum, actual.values()))
     print(f"{'all jobs':<14}{jobs_run:>6}{estimated:>12.1f}{seconds_run:>10.1f}")

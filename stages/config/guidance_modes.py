@@ -56,10 +56,10 @@ class GuidanceMode:
     image_guided: bool
     #: the CPU threads one optimisation job of it takes on a CPU run (the optimize rule's
     #: ``threads``; :meth:`~stages.config.workflow.WorkflowConfig.optimize_threads`): a CLIP step
-    #: is large matrix products that a second thread shares, an image-target step thousands of
-    #: points in small operations that a second thread barely speeds up, so that two one-thread
-    #: jobs side by side do nearly twice the work of one two-thread job
-    #: (``benchmarks/training/threads.py``)
+    #: is large matrix products that a second thread shares (1.27x faster on two), an image-target
+    #: step thousands of points in small operations that a second thread does not speed up (0.74x
+    #: measured), so that two one-thread jobs side by side do more than twice the work of one
+    #: two-thread job (``benchmarks/training/threads.py``); on a GPU run every job takes two
     cpu_threads: int
 
     def weights_label(self, weights: str, test_only: bool, settings: dict[str, Any]) -> str:

@@ -26,3 +26,8 @@ def cpu_threads() -> int:
     cpus = len(os.sched_getaffinity(0))
     omp = os.environ.get("OMP_NUM_THREADS", "")
     return min(cpus, int(omp)) if omp.isdigit() and int(omp) > 0 else cpus
+
+
+def threads_setting() -> int | None:
+    """What :func:`set_cpu_threads` last set (None: :func:`cpu_threads`' default), to set again."""
+    return _count

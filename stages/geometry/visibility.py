@@ -22,6 +22,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from ..core.threads import cpu_threads
+from .tracing import RAYS_PER_THREAD
 
 #: rays per Embree call: bounds the working memory (about 100 bytes per ray) whatever N x D is,
 #: and keeps one call's rays and results in a core's cache (a batch of 2^20 rays traced at half
@@ -76,7 +77,9 @@ def trace_visibility(tracer, points: np.ndarray, normals: np.ndarray, directions
     directions = np.asarray(directions, np.float64)
     n, d = len(points), len(directions)
     out = np.zeros((n, (d + 7) // 8), np.uint8)
-    workers = cpu_threads() if getattr(tracer, "concurrent", False) else 1
+    # threads where the tracer takes concurrent queries and the rays are worth them (as the
+    # tracer's own split: a thread per RAYS_PER_THREAD rays at least)
+    workers = min(cpu_threads(), max(1, n * d // RAYS_PER_THREAD)) if getattr(tracer, "concurrent", False) else 1
     per_batch = max(1, min(RAYS_PER_BATCH // d, math.ceil(n / workers)))
     # the rays' origins and directions as the tracer takes them (float32), made once per point and
     # direction rather than once per ray
@@ -91,7 +94,7 @@ def trace_visibility(tracer, points: np.ndarray, normals: np.ndarray, directions
         above[above] = ~blocked
         out[lo:hi] = np.packbits(above, axis=1)
 
-    if workers == 1:
+    if workers == 1 or per_batch >= n:
         for lo in range(0, n, per_batch):
             batch(lo)
     else:

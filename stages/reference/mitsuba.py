@@ -25,6 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..core.threads import cpu_threads
+
 #: our camera-to-world times this is Mitsuba's sensor-to-world (x and z axes negated)
 OPENGL_TO_MITSUBA = np.diag([-1.0, 1.0, -1.0, 1.0])
 #: the variant used when none is given: CPU, no LLVM needed
@@ -187,6 +189,9 @@ def import_mitsuba(variant: str = DEFAULT_VARIANT):
         ) from exc
     if mi.variant() != variant:
         mi.set_variant(variant)
+    import drjit
+
+    drjit.set_thread_count(cpu_threads())  # the job's --threads (a rule's threads), else every CPU
     return mi
 
 

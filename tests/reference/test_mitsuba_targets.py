@@ -418,6 +418,23 @@ def test_probe_renders_the_target_scene_and_measures_a_rate(mi, variant):
     assert result.first_seconds > 0 and 0 < result.samples_per_second < float("inf")
 
 
+def test_mitsuba_renders_on_the_jobs_threads(mi):
+    """A target job's ``--threads`` (the rule's threads) is Dr.Jit's thread count: Mitsuba renders on
+    the cores the job claimed, not on every CPU."""
+    import drjit
+
+    from stages.core.threads import set_cpu_threads
+
+    try:
+        for count in (1, 3):
+            set_cpu_threads(count)
+            mref.import_mitsuba(mref.choose_variant("auto"))
+            assert drjit.thread_count() == count
+    finally:
+        set_cpu_threads(None)
+        mref.import_mitsuba(mref.choose_variant("auto"))
+
+
 def test_without_libllvm_auto_falls_back_to_scalar_and_llvm_says_what_to_install(monkeypatch, tmp_path):
     """No libLLVM 16+ (DRJIT_LIBLLVM_PATH names no file): ``auto`` takes scalar_rgb, an explicit
     LLVM variant fails naming the package, and the workflow's check before any job says the same."""

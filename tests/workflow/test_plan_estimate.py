@@ -40,10 +40,11 @@ def test_target_samples_count_the_relit_truths():
 def test_the_estimate_counts_every_rule_to_run(tmp_path):
     """The first demo in an empty results folder: the targets' samples are the two target jobs',
     every rule Snakemake would run besides optimize and target has a figure per job (the reference
-    table's, as no earlier run exists), and the total is the sum of the three parts."""
+    table's, as no earlier run exists), and the total is the jobs' CPU time over the run's cores
+    (on one core, the sum of the three parts)."""
     cfg = load_config_files([DEMO])
     env_cache = tmp_path / "cache"
-    p = plan_mod.make_plan(cfg, "demo", tmp_path / "results", True, env_cache)
+    p = plan_mod.make_plan(cfg, "demo", tmp_path / "results", True, env_cache, cores=2)
     t = p["targets"]
     assert t["jobs"] == 2 and t["samples"]["relit"] == 2 * 24 * 224**2 * 64
     assert sum(t["samples"].values()) == sum(target_samples(cfg, m) for m, _ in cfg.target_jobs())
@@ -55,17 +56,15 @@ def test_the_estimate_counts_every_rule_to_run(tmp_path):
     assert p["other_seconds"] == pytest.approx(others)
     # the demo's optimisations take one thread each, its targets two: on two cores the jobs' CPU
     # time over the two cores
-    assert [row["threads"] for row in p["optimisation"]] == [1, 1] and p["cores"] == plan_mod.cpu_threads()
+    assert [row["threads"] for row in p["optimisation"]] == [1, 1] and p["cores"] == 2
     cpu = (
         p["optimisation_seconds"]
         + 2 * t["seconds"]
         + sum(table[r] * n * (2 if r == "raycache" else 1) for r, n in p["other_jobs"].items())
     )
-    if p["cores"] == 2:
-        assert p["total_seconds"] == pytest.approx(cpu / 2)
+    assert p["total_seconds"] == pytest.approx(cpu / 2)
     text = plan_mod.plan_text(p)
-    assert "of them the relit truths" in text and "Estimated wall time on this machine: about" in text
-    assert f"on {p['cores']} cores (jobs side by side" in text
+    assert "of them the relit truths" in text and "Estimated wall time on this machine, on 2 cores (jobs" in text
     one = plan_mod.make_plan(cfg, "demo", tmp_path / "results", True, env_cache, cores=1)
     # one core: one job at a time, the sum of the parts (a calibration under load is measured again)
     assert one["total_seconds"] == pytest.approx(one["optimisation_seconds"] + one["targets"]["seconds"] + one["other_seconds"])
@@ -93,7 +92,7 @@ def test_a_calibration_under_load_is_said_and_not_kept(tmp_path, monkeypatch):
             clip_tiny_test=True, image_size=64, width=16, crops=0, light_lobes=4, material_frequencies=2, eval_width=16
         )
         seconds, source = plan_mod.step_seconds(
-            settings, RaycacheSettings(views=4, resolution=32), "cpu", tmp_path / "results", tmp_path / "cache", True
+            settings, RaycacheSettings(views=4, resolution=32), "cpu", tmp_path / "results", tmp_path / "cache", True, 2
         )
     finally:
         for proc in spinners:
@@ -151,3 +150,47 @@ def test_the_plan_says_what_bounce_each_optimisation_models(tmp_path):
         path.write_text(yaml.safe_dump(dict(base, optimize={**base["optimize"], "bounces": setting})))
         text = plan_mod.plan_text(plan_mod.make_plan(load_config_files([path]), "b", tmp_path / "results", False, tmp_path / "c"))
         assert (needle in text) if needle else ("bounces:" not in text), text
+
+
+@pytest.mark.slow(minutes=0.5)
+def test_on_a_gpu_the_torch_jobs_take_their_turns(tmp_path, monkeypatch):
+    """On a GPU run the torch jobs share the GPU one at a time (the workflow profile's gpu=1): the
+    total is never less than their seconds one after another, however many cores."""
+    cfg = load_config_files([DEMO])
+    monkeypatch.setattr(type(cfg), "gpu_jobs", lambda self: 1)
+    p = plan_mod.make_plan(cfg, "demo", tmp_path / "results", False, tmp_path / "cache", cores=64)
+    p["optimisation"] = [dict(row, seconds=100.0) for row in p["optimisation"]]
+    p["targets"]["seconds"] = 10.0
+    torch_jobs = 2 * 100.0 + sum(p["other_stage_seconds"][r] * n for r, n in p["other_jobs"].items() if r in plan_mod.TORCH_RULES)
+    assert [row["threads"] for row in p["optimisation"]] == [2, 2]  # a GPU job's threads
+    assert plan_mod._total(cfg, p) == pytest.approx(torch_jobs)
+
+
+def test_the_cores_must_be_positive(capsys):
+    assert plan_mod.main(["--cores", "0", "--no-calibrate"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--cores" in err[0] and "at least 1" in err[0], err
+
+
+def test_a_calibration_and_a_probe_run_on_their_jobs_threads(tmp_path, monkeypatch):
+    """The plan times a step and probes Mitsuba on the threads their job will have (torch's and
+    the tracer's, which Mitsuba's follow), keyed by them, and leaves the process as it was."""
+    import torch
+
+    from stages.core.threads import cpu_threads
+
+    seen = []
+
+    def spy(*args):
+        seen.append((torch.get_num_threads(), cpu_threads(), plan_mod._machine()))
+        return 0.25
+
+    monkeypatch.setattr(plan_mod, "seconds_per_step", spy)
+    before = torch.get_num_threads(), cpu_threads()
+    settings, raycache = OptimizeSettings(clip_tiny_test=True), RaycacheSettings(views=4, resolution=32)
+    for threads in (1, 3):
+        seconds, _ = plan_mod.step_seconds(settings, raycache, "cpu", tmp_path / "r", tmp_path / "c", True, threads)
+        assert seconds == 0.25
+    assert [s[:2] for s in seen] == [(1, 1), (3, 3)] and seen[0][2] != seen[1][2]  # each its own cache key
+    assert (torch.get_num_threads(), cpu_threads()) == before
+    assert len(list((tmp_path / "c").glob("*.json"))) == 2

@@ -74,6 +74,7 @@ def test_without_weights_it_stops_at_once_with_one_message_per_model(tmp_path):
     proc = quick(tmp_path, str(mesh), "a pot made of gold", "--dry-run", env=env)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "Plan of experiment pot-a-pot-made-of-gold" in proc.stdout and "1 optimisation(s) of 300 steps" in proc.stdout
+    assert "on 2 cores (jobs side by side" in proc.stdout  # quick's --cores reach the plan
     assert not (tmp_path / "results").exists()
 
 

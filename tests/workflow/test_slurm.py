@@ -193,6 +193,8 @@ def test_grid_through_slurm_equals_a_local_run(cluster, tmp_path_factory, tmp_pa
     proc = slurm_run(slurm_dir, config)
     assert proc.returncode == 0, (proc.stdout + proc.stderr)[-5000:]
     log = proc.stdout + proc.stderr
+    # the plan is printed through Slurm too (Snakemake has no --cores of its own to share there)
+    assert "Plan of experiment grid" in log and "(no plan:" not in log, log[:3000]
     # every job of the DAG but the target rule `all` went through Slurm and completed there
     stats = dict(re.findall(r"^(\w+)\s+(\d+)$", log[log.index("Job stats:") :], re.M))
     expected = int(stats["total"]) - int(stats.get("all", 0))

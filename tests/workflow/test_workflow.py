@@ -233,6 +233,7 @@ def test_smoke_run(tmp_path_factory, tmp_path):
     plan = proc.stderr[proc.stderr.index("Plan of experiment smoke") :]
     assert "2 meshes x 2 prompts x 2 variants = 8 cells" in plan and "(device: auto)" in plan
     assert "to run now" in plan and "optimize 8" in plan and "Estimated wall time on this machine" in plan
+    assert "on 2 cores (jobs side by side as their threads allow)" in plan  # Snakemake's --cores
     # progress: each optimisation's short line reaches Snakemake's terminal; the logs have theirs
     for cell in ("vase/wood/full", "knot/gold/second"):
         assert f"[optimize {cell}] 3/3 it, " in proc.stdout, proc.stdout[-2000:]

@@ -235,6 +235,15 @@ def pending_jobs():
         return None
 
 
+def run_cores():
+    """Snakemake's ``--cores`` where the jobs run on this machine, None where an executor sends
+    them elsewhere (Slurm: Snakemake has no cores to share then)."""
+    try:
+        return workflow.cores
+    except Exception:
+        return None
+
+
 def print_plan():
     """Before the first job: the plan (stages/plan.py: cells, jobs to run, device, an estimate
     of the wall time here). A plan that cannot be made never stops the run."""
@@ -256,7 +265,7 @@ def print_plan():
                 EXPERIMENT,
                 calibrate=calibrate,
                 pending=pending,
-                cores=workflow.cores,
+                cores=run_cores(),
             )
         )
     except Exception as exc:

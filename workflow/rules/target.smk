@@ -24,4 +24,5 @@ rule target:
         settings=stage_settings_json("target"),
     shell:
         "python -m stages.target --mesh {input.mesh:q} --train {input.train:q} --metrics {input.metrics:q} "
-        "--material {wildcards.material} --out-dir {params.out_dir:q} --settings {params.settings:q} 2> {log:q}"
+        "--material {wildcards.material} --out-dir {params.out_dir:q} --settings {params.settings:q} "
+        "--threads {threads} 2> {log:q}"
