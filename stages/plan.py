@@ -46,7 +46,7 @@ from .core.device import precision_summary, resolve_device
 from .core.errors import StageInputError
 from .core.provenance import write_json_atomic
 from .core.safefiles import read_json, read_text
-from .core.threads import cpu_threads, set_cpu_threads, threads_setting
+from .core.threads import cpu_threads, threads_for
 from .model.lights.sun import resolve_suns
 from .reference.mitsuba import choose_variant
 from .reference.targets import probe, target_samples
@@ -190,20 +190,19 @@ def _cached_measure(cache: Path, key: str, name: str, measure, extra: dict) -> t
 
 
 @contextlib.contextmanager
-def job_threads(count: int):
+def _on_threads(count: int):
     """This process on ``count`` CPU threads (torch's and :func:`~stages.core.threads.cpu_threads`,
     which Mitsuba's follow), as a job of that many threads runs, then as it was: a calibration
     and a probe measure at their job's threads."""
     import torch
 
-    before_torch, before = torch.get_num_threads(), threads_setting()
-    set_cpu_threads(count)
+    before = torch.get_num_threads()
     torch.set_num_threads(count)
     try:
-        yield
+        with threads_for(count):
+            yield
     finally:
-        set_cpu_threads(before)
-        torch.set_num_threads(before_torch)
+        torch.set_num_threads(before)
 
 
 def step_seconds(
@@ -214,7 +213,7 @@ def step_seconds(
     earlier = earlier_step_seconds(results, digest, device)
     if earlier is not None:
         return earlier, "an earlier run of these settings"
-    with job_threads(threads):
+    with _on_threads(threads):
         return _calibrated_step(settings, raycache, device, digest, cache, calibrate)
 
 
@@ -235,7 +234,7 @@ def mitsuba_rate(target, cache: Path, calibrate: bool, threads: int) -> tuple[fl
     """Mitsuba's samples per second for target ``settings`` on this machine on ``threads`` threads
     (the doctor's probe: the target scene on a small sphere, :func:`stages.reference.targets.probe`),
     cached per settings, variant, machine and threads; and where the figure comes from."""
-    with job_threads(threads):
+    with _on_threads(threads):
         return _probed_rate(target, cache, calibrate)
 
 

@@ -5,6 +5,7 @@ which Snakemake fills from each rule's ``threads:``; unset, every CPU this proce
 
 from __future__ import annotations
 
+import contextlib
 import os
 
 _count: int | None = None
@@ -28,6 +29,13 @@ def cpu_threads() -> int:
     return min(cpus, int(omp)) if omp.isdigit() and int(omp) > 0 else cpus
 
 
-def threads_setting() -> int | None:
-    """What :func:`set_cpu_threads` last set (None: :func:`cpu_threads`' default), to set again."""
-    return _count
+@contextlib.contextmanager
+def threads_for(count: int):
+    """:func:`set_cpu_threads` to ``count`` inside the block, then back to what it was."""
+    global _count
+    before = _count
+    set_cpu_threads(count)
+    try:
+        yield
+    finally:
+        _count = before
