@@ -186,6 +186,7 @@ def test_a_calibration_and_a_probe_run_on_their_jobs_threads(tmp_path, monkeypat
         return 0.25
 
     monkeypatch.setattr(plan_mod, "seconds_per_step", spy)
+    monkeypatch.setenv("TANGO_PLAN_BUSY_SHARE", "1")  # kept however busy the test machine is
     before = torch.get_num_threads(), cpu_threads()
     settings, raycache = OptimizeSettings(clip_tiny_test=True), RaycacheSettings(views=4, resolution=32)
     for threads in (1, 3):
